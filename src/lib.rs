@@ -1,0 +1,10 @@
+//! safedice: offline safe imitation learning (SafeDICE, NeurIPS 2023) as a service.
+//!
+//! - [`algo`]: the learning algorithms on candle (no HTTP or SQL).
+//! - [`data`]: the dataset model, upload parsers and validation.
+//! - [`envs`]: built-in benchmark environments, demonstrators and evaluation metrics.
+//! - [`store`]: all SQL and artefact storage.
+//! - [`jobs`]: the training queue and worker pool.
+//! - [`http`]: the HTTP API, one module per resource.
+
+pub mod data;
