@@ -8,3 +8,4 @@
 //! - [`http`]: the HTTP API, one module per resource.
 
 pub mod data;
+pub mod envs;
