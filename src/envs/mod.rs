@@ -23,8 +23,8 @@ use crate::data::ActionSpace;
 pub use datagen::{generate, DatagenSpec, Generated, GroupProfile, Manifest};
 pub use demonstrators::{demonstrator, Demonstrator, Profile};
 pub use metrics::{
-    compute_metrics, evaluate, reference_stats, CvarCost, EvalError, EvalReport, Metrics,
-    ReferenceStats,
+    compute_metrics, cvar_cost, evaluate, reference_stats, CvarCost, EvalError, EvalReport,
+    Metrics, ReferenceStats,
 };
 pub use rollout::{demonstration_dataset, EpisodeOutcome, RolloutError};
 

@@ -253,49 +253,64 @@ impl Env for PointGoal {
 /// Noise of the demonstrators' actions (std of a Gaussian added to both components).
 const DEMO_NOISE: f32 = 0.25;
 
-/// A steering controller that reads only the observation: it turns towards a desired direction
-/// (the goal, bent away from hazards seen by the lidar when `avoid_hazards`) and thrusts when it
-/// roughly faces it. The preferred demonstrator avoids hazards; the non-preferred one drives
-/// straight through them, a little slower so that both collect about the same return.
+/// Angle of lidar ray `k` in the robot frame.
+fn ray_angle(k: usize) -> f32 {
+    std::f32::consts::TAU * k as f32 / LIDAR_BINS as f32
+}
+
+/// Smallest absolute difference of two angles.
+fn angle_gap(a: f32, b: f32) -> f32 {
+    let d = (a - b).rem_euclid(std::f32::consts::TAU);
+    d.min(std::f32::consts::TAU - d)
+}
+
+/// A steering controller that reads only the observation. It picks a heading, turns towards it
+/// and thrusts when roughly facing it. The non-preferred demonstrator heads straight for the
+/// goal, through hazards; the preferred one, when `avoid_hazards`, picks the heading closest to
+/// the goal whose lidar window is clear (a vector-field-histogram rule: every ray within
+/// `window` of it sees no hazard nearer than `clearance`, or than the goal), so it walks around
+/// hazards. The non-preferred one is a little slower so both collect about the same return.
 pub(crate) struct Steering {
     pub avoid_hazards: bool,
     pub top_thrust: f32,
+    /// Half-width (rad) of the lidar window that must be clear around a heading.
+    pub window: f32,
+    /// Distance (m) a heading must be clear for.
+    pub clearance: f32,
 }
 
 impl Steering {
     pub fn preferred() -> Steering {
-        Steering { avoid_hazards: true, top_thrust: 1.0 }
+        Steering { avoid_hazards: true, top_thrust: 1.0, window: 0.3, clearance: 0.8 }
     }
 
     pub fn non_preferred() -> Steering {
-        Steering { avoid_hazards: false, top_thrust: 0.8 }
+        Steering { avoid_hazards: false, top_thrust: 0.8, ..Steering::preferred() }
     }
 
-    /// Desired heading in the robot frame.
-    fn desired(&self, obs: &[f32]) -> Vec2 {
-        let goal = [obs[OBS_GOAL_DIR], obs[OBS_GOAL_DIR + 1]];
+    /// Desired heading in the robot frame (rad).
+    fn heading(&self, obs: &[f32]) -> f32 {
+        let goal = obs[OBS_GOAL_DIR + 1].atan2(obs[OBS_GOAL_DIR]);
         if !self.avoid_hazards {
             return goal;
         }
-        // Repulsion from every lidar ray, growing sharply as a hazard gets close, plus a
-        // sideways push so a hazard straight ahead is walked around rather than stalled at.
-        let mut push = [0.0f32; 2];
-        for k in 0..LIDAR_BINS {
-            let reading = obs[OBS_LIDAR + k];
-            let closeness = ((reading - 0.55) / 0.45).max(0.0);
-            let angle = std::f32::consts::TAU * k as f32 / LIDAR_BINS as f32;
-            let weight = 3.0 * closeness * closeness;
-            push[0] -= weight * angle.cos();
-            push[1] -= weight * angle.sin();
-        }
-        let side = if goal[1] >= 0.0 { 1.0 } else { -1.0 };
-        let tangent = [-push[1] * side, push[0] * side];
-        [goal[0] + push[0] + 0.5 * tangent[0], goal[1] + push[1] + 0.5 * tangent[1]]
+        let goal_dist = -obs[OBS_GOAL_DIST].max(f32::MIN_POSITIVE).ln();
+        let needed = self.clearance.min(goal_dist);
+        let lidar = &obs[OBS_LIDAR..OBS_LIDAR + LIDAR_BINS];
+        let clear = |heading: f32| {
+            (0..LIDAR_BINS).all(|k| {
+                let hazard_at = (1.0 - lidar[k]) * LIDAR_RANGE;
+                angle_gap(ray_angle(k), heading) > self.window || hazard_at > needed
+            })
+        };
+        let mut candidates: Vec<f32> = (0..LIDAR_BINS).map(ray_angle).collect();
+        candidates.sort_by(|a, b| angle_gap(*a, goal).total_cmp(&angle_gap(*b, goal)));
+        std::iter::once(goal).chain(candidates).find(|&h| clear(h)).unwrap_or(goal)
     }
 
     pub fn act(&self, obs: &[f32], rng: &mut ChaCha8Rng) -> [f32; 2] {
-        let want = self.desired(obs);
-        let angle = want[1].atan2(want[0]);
+        let heading = self.heading(obs);
+        let angle = heading.sin().atan2(heading.cos());
         let noise = Normal::new(0.0, DEMO_NOISE).expect("valid std");
         let thrust = self.top_thrust * angle.cos().max(0.0) + noise.sample(rng);
         let turn = 2.0 * angle + noise.sample(rng);
