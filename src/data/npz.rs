@@ -139,11 +139,14 @@ fn read_elements<const N: usize, T>(
     convert: impl Fn([u8; N]) -> T,
 ) -> Result<Vec<T>, ParseError> {
     const CHUNK_ELEMENTS: usize = 16 * 1024;
-    let truncated = |done: usize, e: Option<io::Error>| {
-        let cause = e.map(|e| format!(" ({e})")).unwrap_or_default();
+    let broken = |done: usize, e: io::Error| {
+        let what = if done < count {
+            format!("is truncated: {done} of {count} elements could be read")
+        } else {
+            "is corrupt".to_string()
+        };
         ParseError::invalid(format!(
-            "key `{key}` is truncated: {done} of {count} elements could be read{cause}; the \
-             archive is incomplete or corrupt"
+            "key `{key}` {what} ({e}); the archive is incomplete or damaged, re-create it"
         ))
     };
     let mut out = Vec::with_capacity(count);
@@ -151,7 +154,7 @@ fn read_elements<const N: usize, T>(
     while out.len() < count {
         let take = (count - out.len()).min(CHUNK_ELEMENTS);
         let chunk = &mut buf[..take * N];
-        reader.read_exact(chunk).map_err(|e| truncated(out.len(), Some(e)))?;
+        reader.read_exact(chunk).map_err(|e| broken(out.len(), e))?;
         out.extend(chunk.chunks_exact(N).map(|c| {
             let mut bytes: [u8; N] = c.try_into().expect("chunks_exact yields N bytes");
             if big_endian {
@@ -162,7 +165,7 @@ fn read_elements<const N: usize, T>(
     }
     // Reading to the end also makes the zip reader verify the entry's CRC.
     let mut rest = Vec::new();
-    reader.read_to_end(&mut rest).map_err(|e| truncated(out.len(), Some(e)))?;
+    reader.read_to_end(&mut rest).map_err(|e| broken(out.len(), e))?;
     if !rest.is_empty() {
         return Err(ParseError::invalid(format!(
             "key `{key}` holds {} bytes more than its shape says; the array is corrupt",
