@@ -2,6 +2,9 @@
 //! mixes preferred and non-preferred episodes (shuffled), and a scarce *labeled* set D^N of
 //! fresh non-preferred episodes. Behind `safedice datagen`.
 
+use std::io;
+use std::path::Path;
+
 use rand::seq::SliceRandom;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
@@ -9,8 +12,10 @@ use serde::Serialize;
 
 use super::metrics::mean_return_and_cost;
 use super::rollout::{assemble, demonstration_records, EpisodeOutcome, RolloutError};
-use super::{demonstrator, derive_seed, make, reference_stats, Profile, ReferenceStats};
-use crate::data::Dataset;
+use super::{
+    demonstrator, derive_seed, make, reference_stats, Profile, ReferenceStats, UnknownEnv,
+};
+use crate::data::{write_csv, write_jsonl, write_npz, Dataset, Format};
 
 pub(crate) const STREAM_PREFERRED: u64 = 1;
 pub(crate) const STREAM_NON_PREFERRED: u64 = 2;
@@ -59,13 +64,13 @@ pub struct Manifest {
     pub unlabeled_preferred: GroupProfile,
     pub unlabeled_non_preferred: GroupProfile,
     pub labeled_non_preferred: GroupProfile,
-    /// Ground truth for diagnostics only (a learner must not see it): the episode ids of the
-    /// unlabeled set that came from the non-preferred demonstrator.
-    pub unlabeled_non_preferred_episode_ids: Vec<u32>,
     /// The environment's reference statistics that evaluation normalises with.
     pub reference: ReferenceStats,
     /// Files written, relative to the output directory (filled in by [`write_generated`]).
     pub files: Vec<String>,
+    /// Ground truth for diagnostics only (a learner must not see it): the episode ids of the
+    /// unlabeled set that came from the non-preferred demonstrator.
+    pub unlabeled_non_preferred_episode_ids: Vec<u32>,
 }
 
 /// The generated sets.
@@ -76,9 +81,30 @@ pub struct Generated {
     pub manifest: Manifest,
 }
 
+/// Why nothing was generated.
+#[derive(Debug, thiserror::Error)]
+pub enum DatagenError {
+    #[error(transparent)]
+    UnknownEnv(#[from] UnknownEnv),
+    #[error("the unlabeled set needs at least one episode (preferred + non-preferred)")]
+    NoUnlabeled,
+}
+
+impl From<RolloutError> for DatagenError {
+    fn from(e: RolloutError) -> Self {
+        match e {
+            RolloutError::UnknownEnv(e) => DatagenError::UnknownEnv(e),
+            RolloutError::Policy(m) => unreachable!("demonstrators act validly: {m}"),
+        }
+    }
+}
+
 /// Generates both sets; the same spec gives the same data.
-pub fn generate(spec: &DatagenSpec) -> Result<Generated, RolloutError> {
+pub fn generate(spec: &DatagenSpec) -> Result<Generated, DatagenError> {
     let env = make(&spec.env, 0)?;
+    if spec.preferred + spec.non_preferred == 0 {
+        return Err(DatagenError::NoUnlabeled);
+    }
     let (obs_dim, space) = (env.obs_dim(), env.action_space());
     let preferred = demonstrator(&spec.env, Profile::Preferred)?;
     let non_preferred = demonstrator(&spec.env, Profile::NonPreferred)?;
@@ -112,6 +138,44 @@ pub fn generate(spec: &DatagenSpec) -> Result<Generated, RolloutError> {
         labeled_non_preferred: assemble(&l_rec, obs_dim, &space),
         manifest,
     })
+}
+
+/// File name of the unlabeled set (plus the format's extension).
+pub const UNLABELED_FILE: &str = "unlabeled";
+/// File name of the labeled non-preferred set (plus the format's extension).
+pub const NON_PREFERRED_FILE: &str = "non_preferred";
+pub const MANIFEST_FILE: &str = "manifest.json";
+
+/// Writes both sets in an upload `format` (`npz`, `jsonl` or `csv`) and `manifest.json` into
+/// `dir` (created if missing); an empty labeled set is not written. Returns the manifest as
+/// written, `files` filled in.
+pub fn write_generated(g: &Generated, dir: &Path, format: Format) -> io::Result<Manifest> {
+    let writer: fn(&Dataset, &Path) -> io::Result<()> = match format {
+        Format::Npz => write_npz,
+        Format::Jsonl => write_jsonl,
+        Format::Csv => write_csv,
+        Format::Hdf5 => {
+            return Err(io::Error::new(
+                io::ErrorKind::Unsupported,
+                "datagen writes npz, jsonl or csv, not hdf5",
+            ))
+        }
+    };
+    std::fs::create_dir_all(dir)?;
+    let mut manifest = g.manifest.clone();
+    let sets = [(UNLABELED_FILE, &g.unlabeled), (NON_PREFERRED_FILE, &g.labeled_non_preferred)];
+    for (stem, data) in sets {
+        if data.is_empty() {
+            continue;
+        }
+        let name = format!("{stem}.{}", format.as_str());
+        writer(data, &dir.join(&name))?;
+        manifest.files.push(name);
+    }
+    manifest.files.push(MANIFEST_FILE.to_string());
+    let json = serde_json::to_vec_pretty(&manifest).map_err(io::Error::other)?;
+    std::fs::write(dir.join(MANIFEST_FILE), json)?;
+    Ok(manifest)
 }
 
 #[cfg(test)]

@@ -20,7 +20,9 @@ use serde::Serialize;
 
 use crate::data::ActionSpace;
 
-pub use datagen::{generate, DatagenSpec, Generated, GroupProfile, Manifest};
+pub use datagen::{
+    generate, write_generated, DatagenError, DatagenSpec, Generated, GroupProfile, Manifest,
+};
 pub use demonstrators::{demonstrator, Demonstrator, Profile};
 pub use metrics::{
     compute_metrics, cvar_cost, evaluate, reference_stats, CvarCost, EvalError, EvalReport,
