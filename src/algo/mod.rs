@@ -23,7 +23,7 @@ pub mod optim;
 pub mod policy;
 // pub mod ppl;
 pub mod run;
-// pub mod safedice;
+pub mod safedice;
 
 use std::sync::Arc;
 
@@ -178,6 +178,7 @@ pub fn build_trainer(
         return resume(config, data, bytes);
     }
     Ok(match config.algorithm() {
+        Algorithm::Safedice => Box::new(safedice::SafediceTrainer::new(config, data)?),
         Algorithm::Bc => Box::new(bc::BcTrainer::new(config, data)?),
         _ => return Err(TrainError::Other("not yet implemented".into())),
     })
@@ -189,6 +190,7 @@ fn resume(
     bytes: &[u8],
 ) -> Result<Box<dyn Trainer>, TrainError> {
     Ok(match config.algorithm() {
+        Algorithm::Safedice => Box::new(safedice::SafediceTrainer::resume(config, data, bytes)?),
         Algorithm::Bc => Box::new(bc::BcTrainer::resume(config, data, bytes)?),
         _ => return Err(TrainError::Other("not yet implemented".into())),
     })
