@@ -3,6 +3,8 @@
 use std::path::PathBuf;
 
 use clap::{Parser, Subcommand, ValueEnum};
+use safedice::config::ServeConfig;
+use safedice::server::{self, Server};
 
 #[derive(Parser)]
 #[command(name = "safedice", version, about = "Offline safe imitation learning service (SafeDICE)")]
@@ -13,6 +15,10 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Command {
+    /// Run the HTTP service.
+    Serve(ServeConfig),
+    /// Print the HTTP API's OpenAPI description (YAML, as committed in api/openapi.yaml).
+    Openapi,
     /// Generate demonstration data from a built-in environment's scripted demonstrators: an
     /// unlabeled set mixing preferred and non-preferred episodes (shuffled), a labeled set of
     /// fresh non-preferred episodes, and manifest.json (counts, seed, data profile, reference
@@ -87,5 +93,24 @@ fn main() -> anyhow::Result<()> {
     let cli = Cli::parse();
     match cli.command {
         Command::Datagen(args) => datagen(args),
+        Command::Serve(config) => serve(config),
+        Command::Openapi => {
+            print!("{}", safedice::http::openapi::yaml()?);
+            Ok(())
+        }
     }
+}
+
+fn serve(config: ServeConfig) -> anyhow::Result<()> {
+    server::init_logging(config.log_format);
+    let runtime = tokio::runtime::Builder::new_multi_thread().enable_all().build()?;
+    runtime.block_on(async {
+        let server = Server::start(config).await?;
+        let stop = server.shutdown_token();
+        tokio::spawn(async move {
+            server::shutdown_signal().await;
+            stop.cancel();
+        });
+        server.wait().await
+    })
 }
