@@ -7,5 +7,6 @@
 //! - [`jobs`]: the training queue and worker pool.
 //! - [`http`]: the HTTP API, one module per resource.
 
+pub mod algo;
 pub mod data;
 pub mod envs;
