@@ -290,6 +290,10 @@ impl RouteFollower {
         RouteFollower { layout, potential, epsilon: Self::EPSILON }
     }
 
+    pub fn obs_dim(&self) -> usize {
+        self.layout.n_free()
+    }
+
     /// Action for the one-hot observation `obs`; ties between equally good moves are broken at
     /// random so the data covers every shortest path.
     pub fn act(&self, obs: &[f32], rng: &mut impl Rng) -> u32 {
