@@ -483,3 +483,39 @@ fn writers_fixture(path: &Path) {
     };
     safedice::data::write_npz(&d, path).unwrap();
 }
+
+// ---------------------------------------------------------------- NPZ written by numpy itself
+
+fn fixture(name: &str) -> (Format, Dataset) {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures").join(name);
+    parse_file(&path, name).unwrap_or_else(|e| panic!("{name}: {e}"))
+}
+
+/// tests/fixtures/make_npz_fixtures.py: compressed, Fortran-ordered float64 observations, bool
+/// terminals, uint8 timeouts, a big-endian float64 cost column, an ignored `infos/qpos` key.
+#[test]
+fn numpy_savez_compressed_d4rl_layout() {
+    let (format, d) = fixture("d4rl_like.npz");
+    assert_eq!(format, Format::Npz);
+    let obs: Vec<f32> = (0..18).map(|x| x as f32 / 4.0).collect();
+    assert_eq!(d.observations, obs);
+    assert_eq!(d.next_observations, obs.iter().map(|x| x + 0.25).collect::<Vec<_>>());
+    let Actions::Continuous(actions) = &d.actions else { panic!("continuous expected") };
+    let linspace = (0..12).map(|i| (-1.0 + i as f64 * 2.0 / 11.0) as f32);
+    assert!(actions.iter().zip(linspace).all(|(a, b)| (a - b).abs() < 1e-6), "{actions:?}");
+    assert_eq!(d.action_space.width(), 2);
+    assert_eq!(d.terminals, vec![false, false, true, false, false, false]);
+    assert_eq!(d.episode_ids, vec![0, 0, 0, 1, 1, 2]);
+    assert_eq!(d.rewards, Some(vec![1.0; 6]));
+    assert_eq!(d.costs, Some(vec![0., 1., 0., 1., 1., 0.]));
+}
+
+#[test]
+fn numpy_savez_discrete_omnisafe_names() {
+    let (_, d) = fixture("discrete.npz");
+    assert_eq!(d.actions, Actions::Discrete(vec![0, 2, 1, 1, 0, 2]));
+    assert_eq!(d.action_space, ActionSpace::Discrete { n: 3 });
+    assert_eq!(d.terminals, vec![false, false, false, true, false, true]);
+    assert_eq!(d.episode_ids, vec![0, 0, 0, 0, 1, 1]);
+    assert_eq!(d.obs_dim, 3);
+}
