@@ -270,8 +270,9 @@ fn names_that_contradict_the_content_are_rejected() {
 #[cfg(not(feature = "hdf5"))]
 #[test]
 fn hdf5_without_the_feature_says_how_to_enable_it() {
-    let h5 = upload("dsrl.hdf5", b"\x89HDF\r\n\x1a\n\0\0\0\0rest of a superblock");
-    rejected(parse_file(&h5.path, &h5.name), "unsupported_format", &["--features hdf5"]);
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/dsrl_like.hdf5");
+    let result = parse_file(&path, "dsrl_like.hdf5");
+    rejected(result, "unsupported_format", &["--features hdf5", "libhdf5"]);
 }
 
 // ---------------------------------------------------------------- NPZ
