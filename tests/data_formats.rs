@@ -211,6 +211,21 @@ next_obs_0,action,obs_0,episode
 }
 
 #[test]
+fn crlf_line_endings_and_pandas_habits_are_accepted() {
+    let crlf = JSONL_CONTINUOUS.replace('\n', "\r\n");
+    assert_eq!(ok("d.jsonl", &crlf), ok("d.jsonl", JSONL_CONTINUOUS));
+    let crlf = CSV_CONTINUOUS.replace('\n', "\r\n");
+    assert_eq!(ok("d.csv", &crlf), ok("d.csv", CSV_CONTINUOUS));
+    // pandas: True/False flags, integer columns written as 3.0 once they held a NaN.
+    let d = ok("d.csv", "episode,obs_0,action,terminal\n3.0,1,2.0,False\n3.0,2,0,True\n");
+    assert_eq!(d.episode_ids, vec![3, 3]);
+    assert_eq!(d.actions, Actions::Discrete(vec![2, 0]));
+    assert_eq!(d.terminals, vec![false, true]);
+    let text = format!(",{}", CSV_CONTINUOUS.replace('\n', "\n0,"));
+    rejected(parse("d.csv", text.trim_end_matches("0,")), "invalid_dataset", &["index=False"]);
+}
+
+#[test]
 fn csv_rejects_ragged_rows_and_bad_cells_with_line_and_column() {
     let text = CSV_CONTINUOUS.replace("1.5,2,0.2", "1.5,0.2");
     rejected(parse("d.csv", &text), "invalid_dataset", &["line 3", "7 fields", "header has 8"]);
@@ -249,6 +264,15 @@ fn csv_rejects_non_contiguous_episodes_and_fractional_discrete_actions() {
 }
 
 // ---------------------------------------------------------------- detection, empty, unknown
+
+#[test]
+fn format_names_round_trip_through_str_and_serde() {
+    for f in [Format::Jsonl, Format::Csv, Format::Npz, Format::Hdf5] {
+        assert_eq!(f.as_str().parse::<Format>().unwrap(), f);
+        assert_eq!(serde_json::to_string(&f).unwrap(), format!("\"{f}\""));
+    }
+    assert_eq!("parquet".parse::<Format>().unwrap_err().code, "unknown_format");
+}
 
 #[test]
 fn empty_and_unknown_files() {
