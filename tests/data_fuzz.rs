@@ -13,6 +13,8 @@ use safedice::data::{
     Actions, Dataset,
 };
 
+type Writer = fn(&Dataset, &Path) -> std::io::Result<()>;
+
 fn small_dataset(discrete: bool) -> Dataset {
     let n = 12;
     Dataset {
@@ -63,7 +65,7 @@ fn mutate(rng: &mut impl Rng, bytes: &[u8]) -> Vec<u8> {
 fn damaged_files_are_rejected_or_valid_never_a_panic() {
     let dir = tempfile::tempdir().unwrap();
     let mut rng = ChaCha8Rng::seed_from_u64(42);
-    let writers: [(&str, fn(&Dataset, &Path) -> std::io::Result<()>); 3] =
+    let writers: [(&str, Writer); 3] =
         [("d.jsonl", write_jsonl), ("d.csv", write_csv), ("d.npz", write_npz)];
     for discrete in [false, true] {
         let d = small_dataset(discrete);
@@ -95,7 +97,7 @@ fn arrays_claiming_more_data_than_the_file_can_hold_are_refused_before_allocatio
     let path = dir.path().join("bomb.npz");
     let mut header =
         "{'descr': '<f8', 'fortran_order': False, 'shape': (1000000000, 64), }".to_string();
-    while (10 + header.len() + 1) % 64 != 0 {
+    while !(10 + header.len() + 1).is_multiple_of(64) {
         header.push(' ');
     }
     header.push('\n');
