@@ -9,8 +9,10 @@
 //! - [`jobs`]: the training queue and worker pool.
 //! - [`http`]: the HTTP API, one module per resource.
 
+pub mod algo;
 pub mod config;
 pub mod data;
+pub mod envs;
 pub mod http;
 pub mod server;
 pub mod store;
