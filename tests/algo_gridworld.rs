@@ -11,9 +11,9 @@ use serde_json::json;
 fn small(extra: serde_json::Value) -> serde_json::Value {
     let mut config = json!({
         "seed": 3,
-        "iterations": 1500,
+        "iterations": 1000,
         "batch_size": 256,
-        "hidden_sizes": [64, 64],
+        "hidden_sizes": [32, 32],
     });
     config.as_object_mut().unwrap().extend(extra.as_object().unwrap().clone());
     config
@@ -27,7 +27,7 @@ fn safedice_takes_the_safe_route_and_bc_does_not() {
     assert!(bc_cost > 0, "BC should follow the unsafe majority");
 
     let (safedice, alpha) =
-        train(Algorithm::Safedice, small(json!({"discriminator_iterations": 500})), &data);
+        train(Algorithm::Safedice, small(json!({"discriminator_iterations": 300})), &data);
     let (cost, reached) = grid_rollout(&safedice);
     let alpha = alpha.unwrap();
     assert!(alpha > 0.2 && alpha < 0.9, "alpha-hat {alpha}");
@@ -73,7 +73,7 @@ fn measure_defaults() {
             for seed in 0..seeds {
                 let data = make_data(seed + 10);
                 let mut config = small(
-                    json!({"discriminator_iterations": 500, "seed": seed, "iterations": 3000}),
+                    json!({"discriminator_iterations": 500, "seed": seed, "iterations": 3000, "hidden_sizes": [64, 64]}),
                 );
                 config.as_object_mut().unwrap().extend(extra.as_object().unwrap().clone());
                 let config = safedice::algo::resolve_config(Algorithm::Safedice, &config).unwrap();
