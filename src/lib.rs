@@ -7,4 +7,5 @@
 //! - [`jobs`]: the training queue and worker pool.
 //! - [`http`]: the HTTP API, one module per resource.
 
+pub mod algo;
 pub mod data;
