@@ -8,20 +8,20 @@
 //! is not a GEMM is a single pass over a buffer, and the GEMMs go straight to the `gemm` crate
 //! (the same kernels candle uses, AVX-512 enabled in Cargo.toml).
 //!
-//! Layout (compatible with `candle_nn::Linear`): layer `l` maps `d[l-1] -> d[l]` with weight
-//! `W_l` stored `d[l] x d[l-1]` row-major (`y = x W_l^T + b_l`), then its bias. ReLU after every
+//! Layout (as `algo::mlp::Mlp`'s vars): layer `l` maps `d[l-1] -> d[l]` with weight `W_l` stored
+//! `d[l-1] x d[l]` row-major (`y = x W_l + b_l`), then its bias. ReLU after every
 //! layer but the last. All parameters live in one flat `Vec<f32>` so the optimiser is one loop.
 //!
 //! Double backprop, hand-derived (masks `m_l = [h_l > 0]` are piecewise constant, so they carry
 //! no gradient). For a scalar-output net without last bias, the input-gradient is
-//! `δ_{L-1} = m_{L-1} ⊙ W_L`, `δ_{l-1} = m_{l-1} ⊙ (δ_l W_l)`, `g = δ_1 W_1` — exactly the
+//! `δ_{L-1} = m_{L-1} ⊙ W_L^T`, `δ_{l-1} = m_{l-1} ⊙ (δ_l W_l^T)`, `g = δ_1 W_1^T` — exactly the
 //! ordinary backward pass with upstream gradient 1. So the loss rows and the penalty rows share one
 //! forward and one backward (upstream `dL/dout` on loss rows, 1 on penalty rows). Given
-//! `G = dP/dg`, the penalty's weight gradients are `dW_1 += δ_1^T G`, and with
-//! `e_1 = m_1 ⊙ (G W_1^T)`, `e_l = m_l ⊙ (e_{l-1} W_l^T)`: `dW_l += δ_l^T e_{l-1}` and
-//! `dW_L += colsum(e_{L-1})`; biases get nothing from the penalty. Writing `G` and `e_l` over the
-//! penalty rows of the activation buffers makes every weight gradient one GEMM over all rows:
-//! `dW_l = D_l^T A_{l-1}`.
+//! `G = dP/dg`, the penalty's weight gradients are `dW_1 += G^T δ_1`, and with
+//! `e_1 = m_1 ⊙ (G W_1)`, `e_l = m_l ⊙ (e_{l-1} W_l)`: `dW_l += e_{l-1}^T δ_l` and
+//! `dW_L += colsum(e_{L-1})^T`; biases get nothing from the penalty. Writing `G` and `e_l` over
+//! the penalty rows of the activation buffers makes every weight gradient one GEMM over all rows:
+//! `dW_l = A_{l-1}^T D_l`.
 
 use candle_core::{Device, Tensor};
 use gemm::Parallelism;
@@ -157,7 +157,7 @@ impl MlpShape {
     }
 }
 
-/// An MLP's parameters, flat, in `candle_nn::Linear` layout.
+/// An MLP's parameters, flat: per layer the weight (`in x out`, row-major), then the bias.
 #[derive(Clone, Debug)]
 pub struct FusedMlp {
     shape: MlpShape,
@@ -209,12 +209,12 @@ impl FusedMlp {
     }
 
     /// The parameters as candle tensors, in order `[W_1, b_1, W_2, ...]` (no last bias when the
-    /// shape has none); weights `d[l] x d[l-1]` as in `candle_nn::Linear`.
+    /// shape has none); weights `d[l-1] x d[l]` as in `algo::mlp::Mlp`.
     pub fn to_tensors(&self, device: &Device) -> candle_core::Result<Vec<Tensor>> {
         let mut out = Vec::new();
         for l in 1..=self.shape.layers() {
             let (dout, din) = (self.shape.dims[l], self.shape.dims[l - 1]);
-            out.push(Tensor::from_slice(self.weight(l), (dout, din), device)?);
+            out.push(Tensor::from_slice(self.weight(l), (din, dout), device)?);
             if let Some(b) = self.bias(l) {
                 out.push(Tensor::from_slice(b, dout, device)?);
             }
@@ -303,7 +303,7 @@ impl FusedMlp {
                 None => false,
             };
             let w = self.weight(l);
-            matmul(y, x, Op::N, w, Op::T, (rows, dims[l], dims[l - 1]), accumulate, ws.par);
+            matmul(y, x, Op::N, w, Op::N, (rows, dims[l], dims[l - 1]), accumulate, ws.par);
             if l < layers {
                 y.iter_mut().for_each(|v| *v = v.max(0.0));
             }
@@ -327,7 +327,7 @@ impl FusedMlp {
                 }
             } else {
                 let w = self.weight(l);
-                matmul(d_in, d_out, Op::N, w, Op::N, (rows, dims[l - 1], dims[l]), false, ws.par);
+                matmul(d_in, d_out, Op::N, w, Op::T, (rows, dims[l - 1], dims[l]), false, ws.par);
             }
             // ReLU mask of layer l-1's output.
             for (v, &h) in d_in.iter_mut().zip(&ws.acts[l - 1]) {
@@ -338,7 +338,7 @@ impl FusedMlp {
         }
     }
 
-    /// `dW_l += D_l^T A_{l-1}` over `rows` rows, `db_l += colsum(D_l)` over the first
+    /// `dW_l += A_{l-1}^T D_l` over `rows` rows, `db_l += colsum(D_l)` over the first
     /// `bias_rows` rows.
     fn accumulate_param_grads(
         &self,
@@ -355,11 +355,11 @@ impl FusedMlp {
             let dw = &mut grads[w..w + dout * din];
             matmul(
                 dw,
-                &ws.deltas[l],
-                Op::T,
                 &ws.acts[l - 1],
+                Op::T,
+                &ws.deltas[l],
                 Op::N,
-                (dout, din, rows),
+                (din, dout, rows),
                 true,
                 ws.par,
             );
@@ -420,7 +420,7 @@ impl FusedMlp {
         let d0 = dims[0];
         let g = &mut ws.input_grad[..rows * d0];
         let delta1 = &ws.deltas[1][from * dims[1]..(from + rows) * dims[1]];
-        matmul(g, delta1, Op::N, self.weight(1), Op::N, (rows, d0, dims[1]), false, ws.par);
+        matmul(g, delta1, Op::N, self.weight(1), Op::T, (rows, d0, dims[1]), false, ws.par);
         let value = penalty(g, &mut ws.acts[0][from * d0..(from + rows) * d0]);
         for l in 1..self.shape.layers() {
             let (below, above) = ws.acts.split_at_mut(l);
@@ -431,7 +431,7 @@ impl FusedMlp {
                 e_prev,
                 Op::N,
                 self.weight(l),
-                Op::T,
+                Op::N,
                 (rows, dims[l], dims[l - 1]),
                 false,
                 ws.par,
