@@ -156,13 +156,14 @@ class Bench:
 def time_it(fn, iters, warmup, repeats):
     for _ in range(warmup):
         fn()
-    rates = []
+    rates, cpu_rates = [], []
     for _ in range(repeats):
-        t = time.perf_counter()
+        t, c = time.perf_counter(), time.process_time()
         for _ in range(iters):
             fn()
         rates.append(iters / (time.perf_counter() - t))
-    return statistics.median(rates), rates
+        cpu_rates.append(iters / max(time.process_time() - c, 0.01))
+    return statistics.median(rates), rates, statistics.median(cpu_rates)
 
 
 def main():
@@ -186,8 +187,9 @@ def main():
           + (f"discrete {a.discrete}" if a.discrete else f"act {a.act_dim}"))
     for name, fn, flops, unit in [("main loop", bench.main_iteration, main_flops, "iterations/s"),
                                   ("discriminator", bench.disc_step, disc_flops, "steps/s")]:
-        med, rates = time_it(fn, a.iters, warmup=max(5, a.iters // 10), repeats=a.repeats)
-        print(f"{name:14} {med:8.1f} {unit:13} ({', '.join(f'{x:.1f}' for x in rates)})  "
+        med, rates, cpu = time_it(fn, a.iters, warmup=max(5, a.iters // 10), repeats=a.repeats)
+        print(f"{name:14} {med:8.1f} {unit:13} (runs {', '.join(f'{x:.1f}' for x in rates)}; "
+              f"per CPU-second {cpu:.1f})  "
               f"{flops / 1e6:7.1f} MFLOP each  {med * flops / 1e9:6.1f} GFLOP/s")
 
 

@@ -774,6 +774,9 @@ pub struct Measurement {
     /// Steps per second of every repeat, and their median.
     pub rates: Vec<f64>,
     pub median: f64,
+    /// Steps per second of process CPU time (Linux), median over repeats: less sensitive than
+    /// wall-clock time to other processes taking the cores.
+    pub cpu_median: Option<f64>,
     pub flops_per_step: u64,
 }
 
@@ -794,18 +797,36 @@ fn measure(
     for _ in 0..(cfg.iters / 10).max(5) {
         last = step()?;
     }
-    let mut rates = Vec::new();
+    let (mut rates, mut cpu_rates) = (Vec::new(), Vec::new());
     for _ in 0..cfg.repeats.max(1) {
-        let t = Instant::now();
+        let (t, cpu) = (Instant::now(), process_cpu_seconds());
         for _ in 0..cfg.iters {
             last = step()?;
         }
         rates.push(cfg.iters as f64 / t.elapsed().as_secs_f64());
+        if let (Some(start), Some(end)) = (cpu, process_cpu_seconds()) {
+            cpu_rates.push(cfg.iters as f64 / (end - start).max(0.01));
+        }
     }
     anyhow::ensure!(last.is_finite(), "{name}: loss went non-finite ({last})");
-    let mut sorted = rates.clone();
+    let cpu_median = (cpu_rates.len() == rates.len()).then(|| median(&cpu_rates));
+    Ok(Measurement { name, unit, median: median(&rates), rates, cpu_median, flops_per_step })
+}
+
+fn median(values: &[f64]) -> f64 {
+    let mut sorted = values.to_vec();
     sorted.sort_by(f64::total_cmp);
-    Ok(Measurement { name, unit, median: sorted[sorted.len() / 2], rates, flops_per_step })
+    sorted[sorted.len() / 2]
+}
+
+/// User + system CPU seconds of this process from `/proc/self/stat` (10 ms resolution); None
+/// where that file does not exist.
+fn process_cpu_seconds() -> Option<f64> {
+    let stat = std::fs::read_to_string("/proc/self/stat").ok()?;
+    // Fields after the parenthesised command name start at field 3; utime and stime are 14, 15.
+    let fields: Vec<&str> = stat.rsplit_once(')')?.1.split_whitespace().collect();
+    let ticks: f64 = fields.get(11)?.parse::<f64>().ok()? + fields.get(12)?.parse::<f64>().ok()?;
+    Some(ticks / 100.0)
 }
 
 /// Run both workloads with the configured engine.
@@ -860,11 +881,12 @@ pub fn report(cfg: &SpeedConfig, results: &[Measurement]) -> String {
     for m in results {
         let runs: Vec<String> = m.rates.iter().map(|r| format!("{r:.1}")).collect();
         out += &format!(
-            "{:44} {:8.1} {:12} (runs {})  {:7.1} MFLOP each  {:6.1} GFLOP/s  {:4.1}% of {} GFLOP/s (2-core peak)\n",
+            "{:44} {:8.1} {:12} (runs {}; per CPU-second {})  {:7.1} MFLOP each  {:6.1} GFLOP/s  {:4.1}% of {} GFLOP/s (2-core peak)\n",
             m.name,
             m.median,
             m.unit,
             runs.join(", "),
+            m.cpu_median.map_or("n/a".to_string(), |c| format!("{c:.1}")),
             m.flops_per_step as f64 / 1e6,
             m.gflops(),
             100.0 * m.gflops() / PEAK_GFLOPS_2_CORES,
