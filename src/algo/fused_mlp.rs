@@ -329,11 +329,10 @@ impl FusedMlp {
                 let w = self.weight(l);
                 matmul(d_in, d_out, Op::N, w, Op::T, (rows, dims[l - 1], dims[l]), false, ws.par);
             }
-            // ReLU mask of layer l-1's output.
+            // ReLU mask of layer l-1's output, as a select so it vectorises (a conditional store
+            // compiled to scalar branches took 38% of a main-loop iteration).
             for (v, &h) in d_in.iter_mut().zip(&ws.acts[l - 1]) {
-                if h <= 0.0 {
-                    *v = 0.0;
-                }
+                *v = if h > 0.0 { *v } else { 0.0 };
             }
         }
     }
