@@ -1,4 +1,214 @@
-//! The learning algorithms on candle (no HTTP or SQL).
+//! The learning core: SafeDICE (NeurIPS 2023) and the paper's four baselines on candle.
+//!
+//! No HTTP or SQL here. The caller resolves a user's config ([`resolve_config`]), checks it
+//! against the datasets ([`check_data`]), builds a [`Trainer`] ([`build_trainer`]) and advances
+//! it one step at a time, so it can cancel, checkpoint and record metrics when it likes. The
+//! result is a [`PolicyArtifact`] (safetensors weights + a JSON [`PolicySpec`]) that
+//! [`Policy::load`] turns back into a policy without the training datasets.
+//!
+//! Files: one per algorithm ([`safedice`], [`bc`], [`dwbc`], [`ppl`], [`dexperts`]), the shared
+//! networks ([`mlp`]), policy heads and artefacts ([`policy`]), the optimiser ([`optim`]), the
+//! training tensors built from a [`Dataset`] ([`columns`]), checkpoints ([`checkpoint`]) and the
+//! configuration with its presets ([`config`]).
 
+pub mod bc;
+pub mod checkpoint;
+pub mod columns;
+pub mod config;
+pub mod dexperts;
+pub mod dwbc;
 pub mod fused_mlp;
+pub mod losses;
+pub mod mlp;
+pub mod optim;
+pub mod policy;
+pub mod ppl;
+pub mod run;
+pub mod safedice;
 pub mod speed;
+
+use std::sync::Arc;
+
+use serde::{Deserialize, Serialize};
+
+use crate::data::{ActionSpace, Dataset};
+
+pub use config::{resolve_config, ConfigError, Preset, ResolvedConfig, TerminalHandling};
+pub use policy::{Policy, PolicyArtifact, PolicySpec};
+
+/// The algorithms the service trains.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize, utoipa::ToSchema)]
+#[serde(rename_all = "lowercase")]
+pub enum Algorithm {
+    Safedice,
+    Bc,
+    Dwbc,
+    Ppl,
+    Dexperts,
+}
+
+impl Algorithm {
+    pub const ALL: [Algorithm; 5] =
+        [Algorithm::Safedice, Algorithm::Bc, Algorithm::Dwbc, Algorithm::Ppl, Algorithm::Dexperts];
+
+    /// Whether a run needs the labeled non-preferred dataset D^N (every algorithm but BC).
+    pub fn needs_non_preferred(self) -> bool {
+        !matches!(self, Algorithm::Bc)
+    }
+
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Algorithm::Safedice => "safedice",
+            Algorithm::Bc => "bc",
+            Algorithm::Dwbc => "dwbc",
+            Algorithm::Ppl => "ppl",
+            Algorithm::Dexperts => "dexperts",
+        }
+    }
+}
+
+impl std::fmt::Display for Algorithm {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.as_str())
+    }
+}
+
+/// The datasets a run trains on (Arc so a worker thread can own them).
+#[derive(Clone, Debug)]
+pub struct TrainingData {
+    /// D^U: abundant, unlabeled demonstrations (preferred and non-preferred mixed).
+    pub unlabeled: Arc<Dataset>,
+    /// D^N: the few demonstrations labeled non-preferred.
+    pub non_preferred: Option<Arc<Dataset>>,
+}
+
+/// Why a run stopped with an error.
+#[derive(Debug, thiserror::Error)]
+pub enum TrainError {
+    /// Losses went non-finite; message says at which step, which loss, and what to try.
+    #[error("training diverged at step {step}: {message}")]
+    Diverged { step: u64, message: String },
+    /// A checkpoint that does not belong to this config/data or is corrupt.
+    #[error("bad checkpoint: {0}")]
+    BadCheckpoint(String),
+    #[error("tensor error: {0}")]
+    Candle(#[from] candle_core::Error),
+    #[error("{0}")]
+    Other(String),
+}
+
+/// Where a run is. `phase` is "discriminator", "reward_model" or "policy".
+#[derive(Clone, Debug, Serialize)]
+pub struct Progress {
+    pub step: u64,
+    pub total: u64,
+    pub phase: &'static str,
+}
+
+/// A training run, advanced one step at a time by the caller (so the caller can cancel between
+/// steps, checkpoint when it likes, and record metrics at the rate it likes).
+pub trait Trainer: Send {
+    fn progress(&self) -> Progress;
+    fn is_finished(&self) -> bool {
+        let p = self.progress();
+        p.step >= p.total
+    }
+    /// One step of the current phase. With `record`, returns the step's named scalars
+    /// (losses, alpha_hat, weight statistics such as ESS, ...); else an empty vector.
+    fn step(&mut self, record: bool) -> Result<Vec<(&'static str, f64)>, TrainError>;
+    /// Everything needed to continue this exact run: weights, optimiser state, step, RNG state.
+    fn checkpoint(&self) -> Result<Vec<u8>, TrainError>;
+    /// SafeDICE's alpha-hat once computed; None otherwise.
+    fn alpha_hat(&self) -> Option<f64>;
+    /// The current policy as an artefact.
+    fn export_policy(&self) -> Result<PolicyArtifact, TrainError>;
+}
+
+/// Check the datasets fit the config (non-preferred present when needed, spaces agree, ...).
+pub fn check_data(config: &ResolvedConfig, data: &TrainingData) -> Result<(), ConfigError> {
+    let algorithm = config.algorithm();
+    let unlabeled = &data.unlabeled;
+    let bad = |key: &str, message: String| ConfigError { key: key.to_string(), message };
+    unlabeled.check().map_err(|e| bad("unlabeled", format!("unlabeled dataset: {e}")))?;
+    let non_preferred = match (&data.non_preferred, algorithm.needs_non_preferred()) {
+        (None, true) => {
+            return Err(bad(
+                "non_preferred",
+                format!("algorithm {algorithm} needs a labeled non-preferred dataset"),
+            ))
+        }
+        (Some(n), _) => Some(n),
+        (None, false) => None,
+    };
+    if let Some(n) = non_preferred {
+        n.check().map_err(|e| bad("non_preferred", format!("non-preferred dataset: {e}")))?;
+        if n.obs_dim != unlabeled.obs_dim {
+            return Err(bad(
+                "non_preferred",
+                format!(
+                    "non-preferred observations have {} dimensions, unlabeled ones {}",
+                    n.obs_dim, unlabeled.obs_dim
+                ),
+            ));
+        }
+        if !n.action_space.compatible_with(&unlabeled.action_space) {
+            return Err(bad(
+                "non_preferred",
+                format!(
+                    "non-preferred action space {:?} does not match the unlabeled one {:?}",
+                    n.action_space, unlabeled.action_space
+                ),
+            ));
+        }
+    }
+    if let ActionSpace::Continuous { low, high, .. } = &unlabeled.action_space {
+        if low.iter().zip(high).any(|(l, h)| !(h > l)) {
+            return Err(bad("unlabeled", "action box has a dimension with high <= low".into()));
+        }
+    }
+    Ok(())
+}
+
+/// Start a run, or resume it from `checkpoint` bytes made by [`Trainer::checkpoint`].
+pub fn build_trainer(
+    config: &ResolvedConfig,
+    data: &TrainingData,
+    checkpoint: Option<&[u8]>,
+) -> Result<Box<dyn Trainer>, TrainError> {
+    check_data(config, data).map_err(|e| TrainError::Other(e.message))?;
+    if let Some(bytes) = checkpoint {
+        return resume(config, data, bytes);
+    }
+    Ok(match config.algorithm() {
+        Algorithm::Safedice => Box::new(safedice::SafediceTrainer::new(config, data)?),
+        Algorithm::Bc => Box::new(bc::BcTrainer::new(config, data)?),
+        Algorithm::Dwbc => Box::new(dwbc::DwbcTrainer::new(config, data)?),
+        Algorithm::Ppl => Box::new(ppl::PplTrainer::new(config, data)?),
+        Algorithm::Dexperts => Box::new(dexperts::DexpertsTrainer::new(config, data)?),
+    })
+}
+
+fn resume(
+    config: &ResolvedConfig,
+    data: &TrainingData,
+    bytes: &[u8],
+) -> Result<Box<dyn Trainer>, TrainError> {
+    Ok(match config.algorithm() {
+        Algorithm::Safedice => Box::new(safedice::SafediceTrainer::resume(config, data, bytes)?),
+        Algorithm::Bc => Box::new(bc::BcTrainer::resume(config, data, bytes)?),
+        Algorithm::Dwbc => Box::new(dwbc::DwbcTrainer::resume(config, data, bytes)?),
+        Algorithm::Ppl => Box::new(ppl::PplTrainer::resume(config, data, bytes)?),
+        Algorithm::Dexperts => Box::new(dexperts::DexpertsTrainer::resume(config, data, bytes)?),
+    })
+}
+
+/// The device training runs on: the CPU, or the first CUDA GPU when built with `cuda`.
+pub fn device() -> candle_core::Device {
+    #[cfg(feature = "cuda")]
+    {
+        if let Ok(d) = candle_core::Device::new_cuda(0) {
+            return d;
+        }
+    }
+    candle_core::Device::Cpu
+}

@@ -1,0 +1,442 @@
+//! Policy heads (tanh-squashed Gaussian, categorical), action rescaling, and the policy artefact
+//! (safetensors weights + a JSON [`PolicySpec`]) that a deployed [`Policy`] is loaded from.
+
+use std::collections::HashMap;
+
+use candle_core::{DType, Device, Result, Tensor, D};
+use rand::Rng;
+use rand_chacha::ChaCha8Rng;
+use rand_distr::StandardNormal;
+use serde::{Deserialize, Serialize};
+
+use super::columns::{from_unit_box, ActionColumn, ObsNormalizer};
+use super::mlp::Mlp;
+use super::{Algorithm, TrainError};
+use crate::data::{ActionSpace, Actions};
+
+/// Clipping of the Gaussian head, as in the authors' code: mean to [−7, 7], log-std to [−5, 2].
+pub const MEAN_CLIP: f64 = 7.0;
+pub const LOG_STD_MIN: f64 = -5.0;
+pub const LOG_STD_MAX: f64 = 2.0;
+
+/// A policy network: a ReLU body with a linear head giving `[mean | log_std]` (continuous; the
+/// concatenation of the two separate heads) or logits (discrete).
+#[derive(Clone)]
+pub struct PolicyNet {
+    mlp: Mlp,
+    space: ActionSpace,
+}
+
+impl PolicyNet {
+    pub fn new(
+        name: &str,
+        obs_dim: usize,
+        hidden: &[usize],
+        space: &ActionSpace,
+        device: &Device,
+        rng: &mut ChaCha8Rng,
+    ) -> Result<PolicyNet> {
+        let mlp = Mlp::new(name, &dims(obs_dim, hidden, space), true, device, rng)?;
+        Ok(PolicyNet { mlp, space: space.clone() })
+    }
+
+    pub fn mlp(&self) -> &Mlp {
+        &self.mlp
+    }
+
+    /// Clipped `(mean, log_std)` of the pre-tanh Gaussian (continuous policies).
+    pub fn gaussian(&self, obs: &Tensor) -> Result<(Tensor, Tensor)> {
+        let out = self.mlp.forward(obs)?;
+        let dim = self.space.width();
+        let mean = out.narrow(1, 0, dim)?.clamp(-MEAN_CLIP, MEAN_CLIP)?;
+        let log_std = out.narrow(1, dim, dim)?.clamp(LOG_STD_MIN, LOG_STD_MAX)?;
+        Ok((mean, log_std))
+    }
+
+    /// `log π(a|s)` of dataset actions (a vector of length B).
+    pub fn log_prob(&self, obs: &Tensor, actions: &ActionColumn) -> Result<Tensor> {
+        match actions {
+            ActionColumn::Continuous { pretanh, log_jacobian } => {
+                let (mean, log_std) = self.gaussian(obs)?;
+                tanh_gaussian_log_prob(&mean, &log_std, pretanh, log_jacobian)
+            }
+            ActionColumn::Discrete { index } => {
+                categorical_log_prob(&self.mlp.forward(obs)?, index)
+            }
+        }
+    }
+
+    /// Action probabilities `B × n` (discrete policies).
+    pub fn probabilities(&self, obs: &Tensor) -> Result<Tensor> {
+        candle_nn::ops::softmax(&self.mlp.forward(obs)?, D::Minus1)
+    }
+
+    /// Unit-box actions (`B × dim`, host) of a continuous policy: `tanh(mean)` or a sample.
+    fn continuous_actions(
+        &self,
+        obs: &Tensor,
+        deterministic: bool,
+        rng: &mut ChaCha8Rng,
+    ) -> Result<Vec<f32>> {
+        let (mean, log_std) = self.gaussian(obs)?;
+        let mean = mean.flatten_all()?.to_vec1::<f32>()?;
+        if deterministic {
+            return Ok(mean.iter().map(|m| m.tanh()).collect());
+        }
+        let std = log_std.exp()?.flatten_all()?.to_vec1::<f32>()?;
+        Ok(mean
+            .iter()
+            .zip(&std)
+            .map(|(m, s)| {
+                let z: f32 = rng.sample(StandardNormal);
+                (m + s * z).tanh()
+            })
+            .collect())
+    }
+}
+
+fn dims(obs_dim: usize, hidden: &[usize], space: &ActionSpace) -> Vec<usize> {
+    let out = match space {
+        ActionSpace::Continuous { dim, .. } => 2 * dim,
+        ActionSpace::Discrete { n } => *n,
+    };
+    std::iter::once(obs_dim).chain(hidden.iter().copied()).chain(std::iter::once(out)).collect()
+}
+
+/// Log-density of a tanh-squashed diagonal Gaussian at `a = tanh(u)`:
+/// `Σ_j log N(u_j; mean_j, std_j) − Σ_j log(1 − a_j² + ε)`, with `u = atanh(clip(a))` and the
+/// Jacobian term precomputed per row (see [`super::columns::ActionColumn`]).
+pub fn tanh_gaussian_log_prob(
+    mean: &Tensor,
+    log_std: &Tensor,
+    pretanh: &Tensor,
+    log_jacobian: &Tensor,
+) -> Result<Tensor> {
+    let z = ((pretanh - mean)? / log_std.exp()?)?;
+    let log_normal =
+        ((z.sqr()? * -0.5)? - log_std)?.affine(1.0, -0.5 * (2.0 * std::f64::consts::PI).ln())?;
+    log_normal.sum(D::Minus1)? - log_jacobian
+}
+
+/// `log softmax(logits)[a]` per row.
+pub fn categorical_log_prob(logits: &Tensor, index: &Tensor) -> Result<Tensor> {
+    let log_p = candle_nn::ops::log_softmax(logits, D::Minus1)?;
+    log_p.gather(&index.unsqueeze(1)?, 1)?.squeeze(1)
+}
+
+/// How the artefact's networks turn into actions.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "type", rename_all = "snake_case")]
+pub enum Decoder {
+    /// One policy network (`policy.*`).
+    Single,
+    /// DExperts at decoding time (Eq. 44, discrete actions): `π = π^U − α π^N` from the
+    /// networks `policy.*` (π^U) and `policy_n.*` (π^N), negative mass clipped, renormalised.
+    Dexperts { alpha: f64 },
+}
+
+/// Everything needed to rebuild a policy without the training datasets.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct PolicySpec {
+    /// Version of this layout.
+    pub format_version: u32,
+    pub algorithm: Algorithm,
+    pub obs_dim: usize,
+    /// Continuous policies act in `[-1, 1]^dim`; actions are rescaled to this box's
+    /// `[low, high]` affinely (`low + (a + 1)/2 · (high − low)`).
+    pub action_space: ActionSpace,
+    /// Hidden layer widths (ReLU); continuous heads output `[mean | log_std]` clipped to
+    /// [−7, 7] / [−5, 2] and squashed by tanh.
+    pub hidden_sizes: Vec<usize>,
+    /// Observation standardisation applied before the network, if the run used it.
+    pub observation_normalization: Option<ObsNormalizer>,
+    pub decoder: Decoder,
+}
+
+pub const POLICY_FORMAT_VERSION: u32 = 1;
+
+/// Weights (safetensors bytes) + the JSON spec needed to rebuild the policy without datasets.
+#[derive(Clone, Debug)]
+pub struct PolicyArtifact {
+    pub spec: PolicySpec,
+    pub weights: Vec<u8>,
+}
+
+impl PolicyArtifact {
+    /// Serialises the parameters of `nets` (names as in [`Mlp::named_vars`]).
+    pub fn new(
+        spec: PolicySpec,
+        nets: &[&PolicyNet],
+    ) -> std::result::Result<PolicyArtifact, TrainError> {
+        let tensors: Vec<(String, Tensor)> = nets
+            .iter()
+            .flat_map(|n| n.mlp.named_vars())
+            .map(|(name, var)| Ok((name, var.as_tensor().to_device(&Device::Cpu)?)))
+            .collect::<Result<_>>()?;
+        let weights = safetensors::serialize(tensors.iter().map(|(n, t)| (n.as_str(), t)), None)
+            .map_err(|e| TrainError::Other(format!("serialising policy weights: {e}")))?;
+        Ok(PolicyArtifact { spec, weights })
+    }
+}
+
+/// A loaded policy; Send + Sync so concurrent requests share one.
+pub struct Policy {
+    spec: PolicySpec,
+    nets: Vec<PolicyNet>,
+    device: Device,
+}
+
+impl Policy {
+    pub fn load(spec: &PolicySpec, weights: &[u8]) -> std::result::Result<Policy, TrainError> {
+        if spec.format_version != POLICY_FORMAT_VERSION {
+            return Err(TrainError::Other(format!(
+                "policy format version {} is not supported (expected {POLICY_FORMAT_VERSION})",
+                spec.format_version
+            )));
+        }
+        let device = Device::Cpu;
+        let tensors: HashMap<String, Tensor> =
+            candle_core::safetensors::load_buffer(weights, &device)?;
+        let names: &[&str] = match spec.decoder {
+            Decoder::Single => &["policy"],
+            Decoder::Dexperts { .. } => &["policy", "policy_n"],
+        };
+        let mut rng = rand::SeedableRng::seed_from_u64(0);
+        let nets = names
+            .iter()
+            .map(|name| {
+                let net = PolicyNet::new(
+                    name,
+                    spec.obs_dim,
+                    &spec.hidden_sizes,
+                    &spec.action_space,
+                    &device,
+                    &mut rng,
+                )?;
+                net.mlp.load(&tensors)?;
+                Ok(net)
+            })
+            .collect::<Result<Vec<_>>>()?;
+        Ok(Policy { spec: spec.clone(), nets, device })
+    }
+
+    /// A policy over networks already in memory (e.g. a trainer's), on their device.
+    pub fn from_nets(spec: PolicySpec, nets: Vec<PolicyNet>) -> Policy {
+        let device = nets[0].mlp.named_vars()[0].1.device().clone();
+        Policy { spec, nets, device }
+    }
+
+    pub fn spec(&self) -> &PolicySpec {
+        &self.spec
+    }
+
+    /// `observations`: B × obs_dim row-major in the dataset's original units. Returns B actions in
+    /// the dataset's original action units (continuous: B × dim inside the box; discrete: B
+    /// indices). deterministic: tanh(mean) / argmax; else a sample drawn with `rng`.
+    pub fn act(
+        &self,
+        observations: &[f32],
+        deterministic: bool,
+        rng: &mut ChaCha8Rng,
+    ) -> std::result::Result<Actions, TrainError> {
+        let dim = self.spec.obs_dim;
+        if dim == 0 || observations.len() % dim != 0 {
+            return Err(TrainError::Other(format!(
+                "observations must be rows of {dim} values, got {} values",
+                observations.len()
+            )));
+        }
+        let rows = observations.len() / dim;
+        let mut obs = observations.to_vec();
+        if let Some(norm) = &self.spec.observation_normalization {
+            norm.apply(&mut obs);
+        }
+        let obs = Tensor::from_vec(obs, (rows, dim), &self.device)?;
+        match &self.spec.action_space {
+            ActionSpace::Continuous { low, high, .. } => {
+                let unit = self.nets[0].continuous_actions(&obs, deterministic, rng)?;
+                let width = low.len();
+                Ok(Actions::Continuous(
+                    unit.iter()
+                        .enumerate()
+                        .map(|(i, &a)| from_unit_box(a, low[i % width], high[i % width]))
+                        .collect(),
+                ))
+            }
+            ActionSpace::Discrete { n } => {
+                let probs = self.discrete_probabilities(&obs)?;
+                let picks = probs.chunks_exact(*n).map(|p| pick(p, deterministic, rng)).collect();
+                Ok(Actions::Discrete(picks))
+            }
+        }
+    }
+
+    /// Row-major `B × n` action scores: probabilities (Single) or Eq. 44's `π^U − α π^N`.
+    fn discrete_probabilities(&self, obs: &Tensor) -> Result<Vec<f32>> {
+        let p_u = self.nets[0].probabilities(obs)?;
+        let scores = match self.spec.decoder {
+            Decoder::Single => p_u,
+            Decoder::Dexperts { alpha } => (p_u - (self.nets[1].probabilities(obs)? * alpha)?)?,
+        };
+        scores.to_dtype(DType::F32)?.flatten_all()?.to_vec1::<f32>()
+    }
+}
+
+/// argmax, or a sample from the positive part of `scores` renormalised (argmax if none is
+/// positive, which only Eq. 44 with a large α can produce).
+fn pick(scores: &[f32], deterministic: bool, rng: &mut ChaCha8Rng) -> u32 {
+    let argmax = scores
+        .iter()
+        .enumerate()
+        .fold((0, f32::NEG_INFINITY), |best, (i, &s)| if s > best.1 { (i, s) } else { best })
+        .0 as u32;
+    let total: f32 = scores.iter().map(|s| s.max(0.0)).sum();
+    if deterministic || total <= 0.0 {
+        return argmax;
+    }
+    let mut u = rng.random::<f32>() * total;
+    for (i, s) in scores.iter().enumerate() {
+        u -= s.max(0.0);
+        if u < 0.0 {
+            return i as u32;
+        }
+    }
+    argmax
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The tanh-Gaussian log-density against its closed form in one dimension:
+    /// p(a) = N(atanh a; m, s) / (1 − a²).
+    #[test]
+    fn tanh_gaussian_log_prob_matches_closed_form() {
+        let (m, log_s) = (0.4f64, -0.3f64);
+        for a in [-0.95f64, -0.5, 0.0, 0.3, 0.9, 0.999] {
+            let u = a.atanh();
+            let s = log_s.exp();
+            let want = -0.5 * ((u - m) / s).powi(2)
+                - s.ln()
+                - 0.5 * (2.0 * std::f64::consts::PI).ln()
+                - (1.0 - a * a).ln();
+            let t = |v: f64| Tensor::new(&[[v as f32]], &Device::Cpu).unwrap();
+            let jac = Tensor::new(
+                &[(1.0 - a * a + super::super::columns::ACTION_EPS).ln() as f32],
+                &Device::Cpu,
+            )
+            .unwrap();
+            let got = tanh_gaussian_log_prob(&t(m), &t(log_s), &t(u), &jac)
+                .unwrap()
+                .to_vec1::<f32>()
+                .unwrap()[0];
+            assert!(
+                (got as f64 - want).abs() < 2e-3 * want.abs().max(1.0),
+                "a={a}: {got} vs {want}"
+            );
+        }
+    }
+
+    /// The density integrates to one over (−1, 1) (midpoint rule on a fine grid).
+    #[test]
+    fn tanh_gaussian_density_integrates_to_one() {
+        let n = 20_000;
+        let a: Vec<f64> = (0..n).map(|i| -1.0 + (i as f64 + 0.5) * 2.0 / n as f64).collect();
+        let pre: Vec<f32> = a.iter().map(|x| x.atanh() as f32).collect();
+        let jac: Vec<f32> = a.iter().map(|x| (1.0 - x * x).ln() as f32).collect();
+        let dev = Device::Cpu;
+        let mean = Tensor::full(0.7f32, (n, 1), &dev).unwrap();
+        let log_std = Tensor::full(0.2f32, (n, 1), &dev).unwrap();
+        let lp = tanh_gaussian_log_prob(
+            &mean,
+            &log_std,
+            &Tensor::from_vec(pre, (n, 1), &dev).unwrap(),
+            &Tensor::from_vec(jac, n, &dev).unwrap(),
+        )
+        .unwrap()
+        .to_vec1::<f32>()
+        .unwrap();
+        let integral: f64 = lp.iter().map(|l| (*l as f64).exp() * 2.0 / n as f64).sum();
+        assert!((integral - 1.0).abs() < 1e-3, "integral {integral}");
+    }
+
+    #[test]
+    fn categorical_log_prob_is_log_softmax_of_the_action() {
+        let logits = Tensor::new(&[[1f32, 2.0, 0.5], [0.0, 0.0, 3.0]], &Device::Cpu).unwrap();
+        let idx = Tensor::new(&[1u32, 0], &Device::Cpu).unwrap();
+        let got = categorical_log_prob(&logits, &idx).unwrap().to_vec1::<f32>().unwrap();
+        let lse0 = (1f64.exp() + 2f64.exp() + 0.5f64.exp()).ln();
+        let lse1 = (2.0 + 3f64.exp()).ln();
+        assert!((got[0] as f64 - (2.0 - lse0)).abs() < 1e-6);
+        assert!((got[1] as f64 - (0.0 - lse1)).abs() < 1e-6);
+    }
+
+    fn spec(space: ActionSpace, decoder: Decoder) -> PolicySpec {
+        PolicySpec {
+            format_version: POLICY_FORMAT_VERSION,
+            algorithm: Algorithm::Safedice,
+            obs_dim: 3,
+            action_space: space,
+            hidden_sizes: vec![8, 8],
+            observation_normalization: Some(ObsNormalizer {
+                mean: vec![0.5, -1.0, 2.0],
+                std: vec![2.0, 0.5, 1.0],
+            }),
+            decoder,
+        }
+    }
+
+    /// Weights through safetensors bytes and the spec through JSON give a policy whose
+    /// deterministic and sampled actions equal the in-memory policy's, bit for bit.
+    #[test]
+    fn safetensors_round_trip_gives_identical_actions() {
+        let cases = [
+            (
+                ActionSpace::Continuous { dim: 2, low: vec![-2.0, 0.0], high: vec![2.0, 10.0] },
+                Decoder::Single,
+            ),
+            (ActionSpace::Discrete { n: 4 }, Decoder::Single),
+            (ActionSpace::Discrete { n: 4 }, Decoder::Dexperts { alpha: 0.4 }),
+        ];
+        let obs: Vec<f32> = (0..30).map(|i| ((i * 7919) % 23) as f32 / 5.0 - 2.0).collect();
+        for (space, decoder) in cases {
+            let spec = spec(space.clone(), decoder.clone());
+            let mut rng = rand::SeedableRng::seed_from_u64(5);
+            let names: &[&str] =
+                if decoder == Decoder::Single { &["policy"] } else { &["policy", "policy_n"] };
+            let nets: Vec<PolicyNet> = names
+                .iter()
+                .map(|n| PolicyNet::new(n, 3, &[8, 8], &space, &Device::Cpu, &mut rng).unwrap())
+                .collect();
+            let artifact =
+                PolicyArtifact::new(spec.clone(), &nets.iter().collect::<Vec<_>>()).unwrap();
+            let json = serde_json::to_string(&artifact.spec).unwrap();
+            let loaded =
+                Policy::load(&serde_json::from_str(&json).unwrap(), &artifact.weights).unwrap();
+            let original = Policy::from_nets(spec, nets);
+            for deterministic in [true, false] {
+                let mut r1 = rand::SeedableRng::seed_from_u64(9);
+                let mut r2 = rand::SeedableRng::seed_from_u64(9);
+                let a = original.act(&obs, deterministic, &mut r1).unwrap();
+                let b = loaded.act(&obs, deterministic, &mut r2).unwrap();
+                assert_eq!(a, b);
+                if let Actions::Continuous(values) = &a {
+                    assert!(values
+                        .chunks(2)
+                        .all(|r| (-2.0..=2.0).contains(&r[0]) && (0.0..=10.0).contains(&r[1])));
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn pick_samples_only_positive_scores() {
+        let mut rng = rand::SeedableRng::seed_from_u64(0);
+        for _ in 0..200 {
+            let a = pick(&[0.5, -0.2, 0.5], false, &mut rng);
+            assert!(a == 0 || a == 2);
+        }
+        assert_eq!(pick(&[0.1, 0.7, 0.2], true, &mut rng), 1);
+        assert_eq!(pick(&[-0.1, -0.7, -0.2], false, &mut rng), 0);
+    }
+}

@@ -1,0 +1,570 @@
+//! SafeDICE (Jang et al., NeurIPS 2023), Algorithm 1 of the paper, top to bottom:
+//!
+//! 1. pretrain the discriminator `c(s, a)` on D^N against D^U (Eq. 9), then freeze it;
+//! 2. set α to alpha-hat, the minimum of Eq. 15 over every sample of D^U;
+//! 3. compute the reward of Eq. 10 for every row of D^U once (the discriminator is frozen);
+//! 4. each iteration, update ν by Eq. 36 and the policy by the weighted BC of Eq. 37, both on the
+//!    same minibatch and with the pre-update ν.
+//!
+//! Where the paper is silent we follow the authors' code (see `algorithm-notes.md`): the
+//! discriminator's interpolated gradient penalty, ν's zero-centred one, the clipping margins of
+//! alpha-hat. Our additions are options ([`TerminalHandling`], reward standardisation, the
+//! alpha-hat quantile diagnostic) with the faithful behaviour available through the presets.
+
+use candle_core::{DType, Tensor};
+use rand::seq::SliceRandom;
+use rand::Rng;
+
+use super::columns::{uniform_column, Columns};
+use super::config::{AlgorithmConfig, SafediceConfig};
+use super::losses::{
+    ess_fraction, interpolate, neg_log_one_minus_sigmoid, neg_log_sigmoid, self_normalized_weights,
+    unit_gradient_penalty, weighted_nll, zero_gradient_penalty,
+};
+use super::mlp::Mlp;
+use super::optim::Adam;
+use super::policy::{Decoder, PolicyArtifact, PolicyNet};
+use super::run::RunData;
+use super::{Progress, ResolvedConfig, TerminalHandling, TrainError, Trainer, TrainingData};
+
+/// Alpha-hat's margin below the minimum and its cap, as in the authors' code.
+const ALPHA_MARGIN: f64 = 1e-5;
+/// Rows per forward pass when scoring all of D^U.
+const SCORING_CHUNK: usize = 8192;
+/// Floor of `1 − α e^c` inside Eq. 10's log; reached only with the quantile diagnostic.
+const REWARD_LOG_FLOOR: f64 = 1e-8;
+
+/// Eq. 9's loss for a batch of discriminator logits: `−mean log σ(c_N) − mean log(1 − σ(c_U))`
+/// (σ(c) is the probability that (s, a) is non-preferred).
+pub fn discriminator_loss(logits_n: &Tensor, logits_u: &Tensor) -> candle_core::Result<Tensor> {
+    neg_log_sigmoid(logits_n)?.mean_all()? + neg_log_one_minus_sigmoid(logits_u)?.mean_all()?
+}
+
+/// Eq. 36: `log E_{D^U}[exp A] + (1 − γ) E_{p0}[ν(s0)]`, with `A = r + γ' ν(s') − ν(s)` already
+/// formed (γ' per row, see [`TerminalHandling`]). The log-mean-exp is computed stably.
+pub fn nu_loss(
+    advantages: &Tensor,
+    nu_initial: &Tensor,
+    gamma: f64,
+) -> candle_core::Result<Tensor> {
+    let b = advantages.dim(0)? as f64;
+    let log_mean_exp = (advantages.log_sum_exp(0)? - b.ln())?;
+    log_mean_exp + (nu_initial.mean_all()? * (1.0 - gamma))?
+}
+
+/// Eq. 37: `−mean(w̃ log π) / mean(w̃)` with self-normalised, detached weights (optionally
+/// masked: absorbing-state rows have no action).
+pub fn policy_loss(log_prob: &Tensor, weights: &Tensor) -> candle_core::Result<Tensor> {
+    weighted_nll(log_prob, weights)
+}
+
+/// Eq. 10 written with the discriminator logit `c` (σ(c) = c* of the paper):
+/// `log((1 − (1+α)σ) / ((1−α)(1−σ))) = log(1 − α e^c) − log(1 − α)`, exact and free of the
+/// cancellations of the sigmoid form. Returns the reward and whether `1 − α e^c` had to be
+/// floored (impossible with the paper's alpha-hat, which makes it positive on all of D^U).
+pub fn reward_from_logit(c: f64, alpha: f64) -> (f64, bool) {
+    let inside = 1.0 - alpha * c.exp();
+    let clipped = inside < REWARD_LOG_FLOOR;
+    ((inside.max(REWARD_LOG_FLOOR)).ln() - (1.0 - alpha).ln(), clipped)
+}
+
+/// alpha-hat (Eq. 15, Algorithm 1 step 2) and where it came from.
+#[derive(Clone, Debug, PartialEq)]
+pub struct AlphaHat {
+    /// The α used: the statistic below minus 1e-5, kept in [0, 1 − 1e-5].
+    pub value: f64,
+    /// `min over D^U of (1/c(s,a) − 1) = min e^{−logit}` (the paper's statistic).
+    pub min_ratio: f64,
+    /// Row of D^U (and its episode id) where that minimum is reached.
+    pub argmin_row: usize,
+    pub argmin_episode: u32,
+    /// The 1% quantile of the same ratio: a diagnostic only, NOT the paper. Far above
+    /// `min_ratio` means one rare sample sets alpha-hat.
+    pub quantile_01: f64,
+}
+
+/// alpha-hat from the discriminator logits of every row of D^U. `quantile = 0` is the paper's
+/// minimum; `quantile > 0` replaces it by that quantile (diagnostic option, not the paper).
+pub fn alpha_hat_from_logits(logits: &[f32], episode_ids: &[u32], quantile: f64) -> AlphaHat {
+    assert!(!logits.is_empty(), "D^U is never empty");
+    let (argmin_row, max_logit) = logits
+        .iter()
+        .enumerate()
+        .fold((0, f32::NEG_INFINITY), |best, (i, &c)| if c > best.1 { (i, c) } else { best });
+    let mut ratios: Vec<f64> = logits.iter().map(|&c| (-(c as f64)).exp()).collect();
+    ratios.sort_by(f64::total_cmp);
+    let at =
+        |q: f64| ratios[((q * (ratios.len() - 1) as f64).round() as usize).min(ratios.len() - 1)];
+    let min_ratio = (-(max_logit as f64)).exp();
+    let statistic = if quantile > 0.0 { at(quantile) } else { min_ratio };
+    AlphaHat {
+        value: (statistic - ALPHA_MARGIN).clamp(0.0, 1.0 - ALPHA_MARGIN),
+        min_ratio,
+        argmin_row,
+        argmin_episode: episode_ids[argmin_row],
+        quantile_01: at(0.01),
+    }
+}
+
+/// The table the ν step samples from: D^U's rows with the reward and the per-row discount that
+/// the terminal handling dictates (plus absorbing-state rows for `absorbing`).
+struct FlowColumns {
+    obs: Tensor,
+    next_obs: Tensor,
+    /// γ, or γ(1 − done) with `mask` (`M`).
+    discount: Tensor,
+    /// Eq. 10 reward, standardised if asked (`M`).
+    reward: Tensor,
+    /// Rows of the initial-state set p0.
+    starts: Vec<u32>,
+    /// Rows `0..real_rows` are D^U; the rest are absorbing-state rows (no action).
+    real_rows: usize,
+    rows: usize,
+}
+
+impl FlowColumns {
+    fn build(
+        u: &Columns,
+        rewards: Vec<f32>,
+        cfg: &SafediceConfig,
+    ) -> candle_core::Result<FlowColumns> {
+        let device = u.obs.device();
+        let n = u.len;
+        let gamma = cfg.gamma as f32;
+        let terminal_rows: Vec<usize> = (0..n).filter(|&i| u.terminals[i]).collect();
+        // Without terminal rows there is nothing to absorb: the flow is D^U as it is.
+        let handling = match cfg.terminal_handling {
+            TerminalHandling::Absorbing if terminal_rows.is_empty() => TerminalHandling::None,
+            other => other,
+        };
+        let (obs, next_obs, rows, reward, discount) = match handling {
+            TerminalHandling::None | TerminalHandling::Mask => {
+                let discount: Vec<f32> = match handling {
+                    TerminalHandling::Mask => {
+                        u.terminals.iter().map(|&t| if t { 0.0 } else { gamma }).collect()
+                    }
+                    _ => vec![gamma; n],
+                };
+                (u.obs.clone(), u.next_obs.clone(), n, rewards, discount)
+            }
+            TerminalHandling::Reset => {
+                // Row i of cat(next_obs, obs) for a non-terminal row, its episode's start otherwise.
+                let source: Vec<u32> = (0..n)
+                    .map(|i| if u.terminals[i] { (n as u32) + u.start_of_row[i] } else { i as u32 })
+                    .collect();
+                let both = Tensor::cat(&[&u.next_obs, &u.obs], 0)?;
+                let next = both.index_select(&Tensor::from_vec(source, n, device)?, 0)?;
+                (u.obs.clone(), next, n, rewards, vec![gamma; n])
+            }
+            TerminalHandling::Absorbing => {
+                let k = terminal_rows.len();
+                let flag = |rows: usize, value: f32| Tensor::full(value, (rows, 1), device);
+                let absorbing_state = Tensor::cat(
+                    &[Tensor::zeros((1, u.obs_dim), DType::F32, device)?, flag(1, 1.0)?],
+                    1,
+                )?;
+                let absorbing = absorbing_state.broadcast_as((k, u.obs_dim + 1))?.contiguous()?;
+                let obs = Tensor::cat(
+                    &[Tensor::cat(&[&u.obs, &flag(n, 0.0)?], 1)?, absorbing.clone()],
+                    0,
+                )?;
+                let real_next = Tensor::cat(&[&u.next_obs, &flag(n, 0.0)?], 1)?;
+                // Terminal rows lead to the absorbing state; absorbing rows loop on it.
+                let source: Vec<u32> =
+                    (0..n).map(|i| if u.terminals[i] { n as u32 } else { i as u32 }).collect();
+                let both = Tensor::cat(&[&real_next, &absorbing_state], 0)?;
+                let next_real = both.index_select(&Tensor::from_vec(source, n, device)?, 0)?;
+                let next = Tensor::cat(&[next_real, absorbing], 0)?;
+                let mut reward = rewards;
+                reward.extend(std::iter::repeat_n(0.0, k));
+                (obs, next, n + k, reward, vec![gamma; n + k])
+            }
+        };
+        Ok(FlowColumns {
+            obs: obs.contiguous()?,
+            next_obs: next_obs.contiguous()?,
+            discount: Tensor::from_vec(discount, rows, device)?,
+            reward: Tensor::from_vec(reward, rows, device)?,
+            starts: u.episode_starts.clone(),
+            real_rows: n,
+            rows,
+        })
+    }
+}
+
+pub struct SafediceTrainer {
+    run: RunData,
+    cfg: SafediceConfig,
+    /// c(s, a): logit of "non-preferred"; trained in phase 1, frozen after.
+    disc: Mlp,
+    disc_opt: Adam,
+    nu: Mlp,
+    nu_opt: Adam,
+    policy: PolicyNet,
+    policy_opt: Adam,
+    /// Set once the discriminator phase ends.
+    alpha: Option<AlphaHat>,
+    flow: Option<FlowColumns>,
+    /// Metrics of the alpha-hat/reward computation, reported with the step that made them.
+    phase_metrics: Vec<(&'static str, f64)>,
+}
+
+impl SafediceTrainer {
+    pub fn new(
+        config: &ResolvedConfig,
+        data: &TrainingData,
+    ) -> Result<SafediceTrainer, TrainError> {
+        let AlgorithmConfig::Safedice(cfg) = &config.specific else {
+            return Err(TrainError::Other("not a SafeDICE config".into()));
+        };
+        let mut run = RunData::new(config, data)?;
+        let nu_input =
+            run.obs_dim + usize::from(cfg.terminal_handling == TerminalHandling::Absorbing);
+        let disc = run.new_critic("discriminator", run.state_action_dim())?;
+        let nu = run.new_critic("nu", nu_input)?;
+        let policy = run.new_policy("policy")?;
+        Ok(SafediceTrainer {
+            disc_opt: Adam::new(disc.named_vars(), cfg.lr_discriminator)?,
+            nu_opt: Adam::new(nu.named_vars(), cfg.lr_nu)?,
+            policy_opt: Adam::new(policy.mlp().named_vars(), config.common.lr_actor)?,
+            cfg: cfg.clone(),
+            run,
+            disc,
+            nu,
+            policy,
+            alpha: None,
+            flow: None,
+            phase_metrics: Vec::new(),
+        })
+    }
+
+    pub fn resume(
+        config: &ResolvedConfig,
+        data: &TrainingData,
+        bytes: &[u8],
+    ) -> Result<SafediceTrainer, TrainError> {
+        let mut t = SafediceTrainer::new(config, data)?;
+        let restored = t.run.restore(bytes)?;
+        restored.restore("discriminator", &mut t.disc_opt)?;
+        restored.restore("nu", &mut t.nu_opt)?;
+        restored.restore("policy", &mut t.policy_opt)?;
+        if t.run.step >= t.cfg.discriminator_iterations {
+            // Deterministic from the frozen discriminator: the same alpha-hat and rewards.
+            t.finish_discriminator_phase()?;
+            t.phase_metrics.clear();
+        }
+        Ok(t)
+    }
+
+    /// alpha-hat with where it came from, once the discriminator phase is over.
+    pub fn alpha_details(&self) -> Option<&AlphaHat> {
+        self.alpha.as_ref()
+    }
+
+    /// Algorithm 1 step 1, one step: Eq. 9 plus the interpolated gradient penalty
+    /// `λ mean((‖∇c(x̂)‖ − 1)²)` at `x̂ = u x_N + (1−u) x_U` and `x̂ = u shuffle(x_U) + (1−u) x_U`.
+    fn discriminator_step(&mut self, record: bool) -> Result<Vec<(&'static str, f64)>, TrainError> {
+        let b = self.run.batch();
+        let idx_n = self.run.sample_n()?;
+        let idx_u = self.run.sample_u()?;
+        let x_n = self.run.non_preferred().state_action(&idx_n)?;
+        let x_u = self.run.u.state_action(&idx_u)?;
+        let logits = self.disc.forward(&Tensor::cat(&[&x_n, &x_u], 0)?)?.squeeze(1)?;
+        let (c_n, c_u) = (logits.narrow(0, 0, b)?, logits.narrow(0, b, b)?);
+        let classification = discriminator_loss(&c_n, &c_u)?;
+        let mut loss = classification.clone();
+        let mut penalty_value = 0.0;
+        if self.cfg.discriminator_gp > 0.0 {
+            let device = self.run.device.clone();
+            let u1 = uniform_column(&mut self.run.rng, b, &device)?;
+            let u2 = uniform_column(&mut self.run.rng, b, &device)?;
+            let mut perm: Vec<u32> = (0..b as u32).collect();
+            perm.shuffle(&mut self.run.rng);
+            let shuffled = x_u.index_select(&Tensor::from_vec(perm, b, &device)?, 0)?;
+            let points = Tensor::cat(
+                &[interpolate(&x_n, &x_u, &u1)?, interpolate(&shuffled, &x_u, &u2)?],
+                0,
+            )?;
+            let penalty = unit_gradient_penalty(&self.disc, &points)?;
+            if record {
+                penalty_value = super::losses::scalar(&penalty)?;
+            }
+            loss = (loss + (penalty * self.cfg.discriminator_gp)?)?;
+        }
+        let value = self.run.checked(
+            &loss,
+            "the discriminator loss (Eq. 9)",
+            "Try a lower lr_discriminator.",
+        )?;
+        self.disc_opt.minimize(&loss)?;
+        self.run.step += 1;
+        if self.run.step == self.cfg.discriminator_iterations {
+            self.finish_discriminator_phase()?;
+        }
+        if !record {
+            return Ok(Vec::new());
+        }
+        let mean_prob = |c: &Tensor| -> Result<f64, TrainError> {
+            Ok(super::losses::scalar(&candle_nn::ops::sigmoid(c)?.mean_all()?)?)
+        };
+        let mut metrics = vec![
+            ("discriminator_loss", value),
+            ("discriminator_classification_loss", super::losses::scalar(&classification)?),
+            ("discriminator_gp", penalty_value),
+            ("discriminator_prob_non_preferred_on_dn", mean_prob(&c_n)?),
+            ("discriminator_prob_non_preferred_on_du", mean_prob(&c_u)?),
+        ];
+        metrics.append(&mut self.phase_metrics);
+        Ok(metrics)
+    }
+
+    /// Algorithm 1 step 2 and the reward of Eq. 10 over all of D^U, with the frozen discriminator.
+    fn finish_discriminator_phase(&mut self) -> Result<(), TrainError> {
+        let u = &self.run.u;
+        let mut logits = Vec::with_capacity(u.len);
+        for start in (0..u.len).step_by(SCORING_CHUNK) {
+            let rows = SCORING_CHUNK.min(u.len - start);
+            let idx = Tensor::arange(start as u32, (start + rows) as u32, &self.run.device)?;
+            logits.extend(
+                self.disc.forward(&u.state_action(&idx)?)?.flatten_all()?.to_vec1::<f32>()?,
+            );
+        }
+        let alpha = alpha_hat_from_logits(&logits, &u.episode_ids, self.cfg.alpha_hat_quantile);
+        let mut clipped = 0usize;
+        let mut rewards: Vec<f64> = logits
+            .iter()
+            .map(|&c| {
+                let (r, was_clipped) = reward_from_logit(c as f64, alpha.value);
+                clipped += was_clipped as usize;
+                r
+            })
+            .collect();
+        let (mean, std) = mean_std(&rewards);
+        if self.cfg.standardize_reward {
+            rewards.iter_mut().for_each(|r| *r = (*r - mean) / (std + 1e-8));
+        }
+        if let Some(bad) = rewards.iter().position(|r| !r.is_finite()) {
+            return Err(TrainError::Diverged {
+                step: self.run.step,
+                message: format!(
+                    "the Eq. 10 reward of D^U row {bad} is not finite (alpha-hat {})",
+                    alpha.value
+                ),
+            });
+        }
+        tracing::info!(
+            alpha_hat = alpha.value,
+            argmin_row = alpha.argmin_row,
+            argmin_episode = alpha.argmin_episode,
+            quantile_01 = alpha.quantile_01,
+            "SafeDICE alpha-hat (Eq. 15) computed over all of D^U"
+        );
+        self.phase_metrics = vec![
+            ("alpha_hat", alpha.value),
+            ("alpha_hat_min_ratio", alpha.min_ratio),
+            ("alpha_hat_argmin_row", alpha.argmin_row as f64),
+            ("alpha_hat_argmin_episode", alpha.argmin_episode as f64),
+            ("alpha_hat_q01_diagnostic_not_paper", alpha.quantile_01),
+            ("reward_mean", mean),
+            ("reward_std", std),
+            ("reward_clipped_rows", clipped as f64),
+        ];
+        let rewards: Vec<f32> = rewards.iter().map(|&r| r as f32).collect();
+        self.flow = Some(FlowColumns::build(u, rewards, &self.cfg)?);
+        self.alpha = Some(alpha);
+        Ok(())
+    }
+
+    /// Algorithm 1 steps 4-5: the ν step (Eq. 36, ν on cat(s, s', s0) in one forward) and the
+    /// policy step (Eq. 37) on the same batch with the pre-update ν.
+    fn main_step(&mut self, record: bool) -> Result<Vec<(&'static str, f64)>, TrainError> {
+        let flow = self.flow.as_ref().expect("set when the discriminator phase ends");
+        let b = self.run.batch();
+        let device = self.run.device.clone();
+        let rng = &mut self.run.rng;
+        let rows: Vec<u32> = (0..b).map(|_| rng.random_range(0..flow.rows as u32)).collect();
+        let initial: Vec<u32> =
+            (0..b).map(|_| flow.starts[rng.random_range(0..flow.starts.len())]).collect();
+        let idx = Tensor::from_vec(rows.clone(), b, &device)?;
+        let s = flow.obs.index_select(&idx, 0)?;
+        let s_next = flow.next_obs.index_select(&idx, 0)?;
+        let s0 = flow.obs.index_select(&Tensor::from_vec(initial, b, &device)?, 0)?;
+        let values = self.nu.forward(&Tensor::cat(&[&s, &s_next, &s0], 0)?)?.squeeze(1)?;
+        let (nu_s, nu_next, nu_0) =
+            (values.narrow(0, 0, b)?, values.narrow(0, b, b)?, values.narrow(0, 2 * b, b)?);
+        // A = r + γ' ν(s') − ν(s)
+        let advantages = ((flow.reward.index_select(&idx, 0)?
+            + (flow.discount.index_select(&idx, 0)? * nu_next)?)?
+            - nu_s)?;
+        let mut loss_nu = nu_loss(&advantages, &nu_0, self.cfg.gamma)?;
+        let mut gp_value = 0.0;
+        if self.cfg.nu_gp > 0.0 {
+            let u = uniform_column(&mut self.run.rng, b, &device)?;
+            let points =
+                Tensor::cat(&[interpolate(&s0, &s, &u)?, interpolate(&s_next, &s, &u)?], 0)?;
+            let penalty = zero_gradient_penalty(&self.nu, &points)?;
+            if record {
+                gp_value = super::losses::scalar(&penalty)?;
+            }
+            loss_nu = (loss_nu + (penalty * self.cfg.nu_gp)?)?;
+        }
+
+        // Policy rows: absorbing-state rows (only with `absorbing`) carry no action.
+        let real = flow.real_rows as u32;
+        let mut weights = self_normalized_weights(&advantages)?;
+        if rows.iter().any(|&r| r >= real) {
+            let mask: Vec<f32> = rows.iter().map(|&r| (r < real) as u8 as f32).collect();
+            let masked = (weights * Tensor::from_vec(mask, b, &device)?)?;
+            let mean = masked.mean_all()?;
+            weights = masked.broadcast_div(&(mean + 1e-12)?)?;
+        }
+        let policy_rows: Vec<u32> = rows.iter().map(|&r| r.min(real - 1)).collect();
+        let pidx = Tensor::from_vec(policy_rows, b, &device)?;
+        let u = &self.run.u;
+        let log_prob =
+            self.policy.log_prob(&u.obs.index_select(&pidx, 0)?, &u.actions.select(&pidx)?)?;
+        let loss_pi = policy_loss(&log_prob, &weights)?;
+
+        let nu_value = self.run.checked(
+            &loss_nu,
+            "the nu loss (Eq. 36)",
+            "Episodes that end in terminal states make Eq. 36 unbounded below: try terminal_handling \"reset\", standardize_reward true, or a lower lr_nu (the authors' code uses 1e-4).",
+        )?;
+        let pi_value = self.run.checked(
+            &loss_pi,
+            "the policy loss (Eq. 37)",
+            "Try a lower lr_actor, or check the weight statistics (ess_fraction) for degeneracy.",
+        )?;
+        self.nu_opt.minimize(&loss_nu)?;
+        self.policy_opt.minimize(&loss_pi)?;
+        self.run.step += 1;
+        if !record {
+            return Ok(Vec::new());
+        }
+        let w = weights.to_vec1::<f32>()?;
+        let ess = ess_fraction(&w);
+        let degenerate = ess < self.cfg.ess_warning_fraction;
+        if degenerate {
+            tracing::warn!(
+                step = self.run.step,
+                ess_fraction = ess,
+                "SafeDICE weights are degenerate: a few samples carry the batch"
+            );
+        }
+        let adv = advantages.to_vec1::<f32>()?;
+        let max_share = w.iter().fold(0f32, |m, &x| m.max(x)) as f64 / b as f64;
+        Ok(vec![
+            ("nu_loss", nu_value),
+            ("nu_gp", gp_value),
+            ("policy_loss", pi_value),
+            ("alpha_hat", self.alpha.as_ref().map_or(f64::NAN, |a| a.value)),
+            ("advantage_mean", adv.iter().map(|&a| a as f64).sum::<f64>() / b as f64),
+            ("advantage_max", adv.iter().fold(f32::NEG_INFINITY, |m, &a| m.max(a)) as f64),
+            ("nu_initial_mean", super::losses::scalar(&nu_0.mean_all()?)?),
+            ("ess_fraction", ess),
+            ("weight_max_share", max_share),
+            ("weight_degenerate", degenerate as u8 as f64),
+        ])
+    }
+}
+
+fn mean_std(values: &[f64]) -> (f64, f64) {
+    let n = values.len().max(1) as f64;
+    let mean = values.iter().sum::<f64>() / n;
+    let var = values.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / n;
+    (mean, var.sqrt())
+}
+
+impl Trainer for SafediceTrainer {
+    fn progress(&self) -> Progress {
+        let phase = if self.run.step < self.cfg.discriminator_iterations {
+            "discriminator"
+        } else {
+            "policy"
+        };
+        Progress { step: self.run.step, total: self.run.total(), phase }
+    }
+
+    fn step(&mut self, record: bool) -> Result<Vec<(&'static str, f64)>, TrainError> {
+        self.run.ensure_running()?;
+        if self.run.step < self.cfg.discriminator_iterations {
+            self.discriminator_step(record)
+        } else {
+            self.main_step(record)
+        }
+    }
+
+    fn checkpoint(&self) -> Result<Vec<u8>, TrainError> {
+        self.run.checkpoint(&[
+            ("discriminator", &self.disc_opt),
+            ("nu", &self.nu_opt),
+            ("policy", &self.policy_opt),
+        ])
+    }
+
+    fn alpha_hat(&self) -> Option<f64> {
+        self.alpha.as_ref().map(|a| a.value)
+    }
+
+    fn export_policy(&self) -> Result<PolicyArtifact, TrainError> {
+        PolicyArtifact::new(self.run.policy_spec(Decoder::Single), &[&self.policy])
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// With the optimal discriminator c* = d^N/(d^U + d^N), i.e. logit log(d^N/d^U), alpha-hat
+    /// is min d^U/d^N (Eq. 15) minus the margin, found at the row that attains it.
+    #[test]
+    fn alpha_hat_of_a_known_discriminator() {
+        let d_u = [0.30f64, 0.25, 0.15, 0.30];
+        let d_n = [0.05f64, 0.10, 0.60, 0.25];
+        let logits: Vec<f32> = d_u.iter().zip(&d_n).map(|(u, n)| (n / u).ln() as f32).collect();
+        let a = alpha_hat_from_logits(&logits, &[4, 4, 9, 9], 0.0);
+        assert!((a.min_ratio - 0.25).abs() < 1e-6, "{a:?}");
+        assert!((a.value - (0.25 - ALPHA_MARGIN)).abs() < 1e-6);
+        assert_eq!((a.argmin_row, a.argmin_episode), (2, 9));
+        // Eq. 10 is then finite on every row (Appendix A.3) and most negative at the argmin.
+        let rewards: Vec<f64> = logits
+            .iter()
+            .map(|&c| reward_from_logit(c as f64, a.value))
+            .map(|(r, clipped)| {
+                assert!(!clipped);
+                r
+            })
+            .collect();
+        assert!(rewards.iter().all(|r| r.is_finite()));
+        let worst =
+            rewards
+                .iter()
+                .enumerate()
+                .fold((0, f64::INFINITY), |b, (i, &r)| if r < b.1 { (i, r) } else { b });
+        assert_eq!(worst.0, 2);
+    }
+
+    /// Eq. 10 in its logit form equals the paper's sigmoid form.
+    #[test]
+    fn reward_logit_form_equals_eq_10() {
+        for (c, alpha) in [(-2.0f64, 0.3), (0.5, 0.1), (1.2, 0.2), (-0.3, 0.6)] {
+            let sigma = 1.0 / (1.0 + (-c).exp());
+            let paper = ((1.0 - (1.0 + alpha) * sigma) / ((1.0 - alpha) * (1.0 - sigma))).ln();
+            let (ours, clipped) = reward_from_logit(c, alpha);
+            assert!(!clipped);
+            assert!((ours - paper).abs() < 1e-10, "c={c}: {ours} vs {paper}");
+        }
+        assert!(reward_from_logit(3.0, 0.5).1, "1 − α e^c < 0 is floored and reported");
+    }
+
+    #[test]
+    fn nu_loss_is_log_mean_exp_plus_initial_term() {
+        let dev = candle_core::Device::Cpu;
+        let a = Tensor::new(&[0.5f32, -1.0, 2.0, 100.0], &dev).unwrap();
+        let nu0 = Tensor::new(&[1.0f32, 3.0], &dev).unwrap();
+        let got = super::super::losses::scalar(&nu_loss(&a, &nu0, 0.99).unwrap()).unwrap();
+        let lme = 100.0 + ((0.5f64 - 100.0).exp() + (-101f64).exp() + (-98f64).exp() + 1.0).ln()
+            - 4f64.ln();
+        assert!((got - (lme + 0.01 * 2.0)).abs() < 1e-4, "{got} vs {}", lme + 0.02);
+    }
+}
