@@ -188,6 +188,12 @@ impl FusedMlp {
         Self { shape, offsets, params }
     }
 
+    /// All parameters zero (to be filled, e.g. by `Mlp::copy_into_fused`).
+    pub fn zeros(shape: MlpShape) -> Self {
+        let (offsets, total) = shape.offsets();
+        Self { shape, offsets, params: vec![0.0; total] }
+    }
+
     pub fn shape(&self) -> &MlpShape {
         &self.shape
     }

@@ -25,6 +25,7 @@ pub mod policy;
 pub mod ppl;
 pub mod run;
 pub mod safedice;
+pub mod safedice_fused;
 pub mod speed;
 
 use std::sync::Arc;
