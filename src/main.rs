@@ -45,8 +45,9 @@ struct SpeedArgs {
     threads: usize,
     #[arg(long, default_value_t = 0)]
     seed: u64,
-    /// `fused`: the hand-derived engine the trainer uses; `candle`: plain candle autograd.
-    #[arg(long, value_enum, default_value_t = Engine::Fused)]
+    /// `trainer`: the real SafeDICE trainer (fused CPU engine); `trainer-candle`: the same
+    /// trainer on candle autograd; `fused` / `candle`: the two workloads alone on either engine.
+    #[arg(long, value_enum, default_value_t = Engine::Trainer)]
     engine: Engine,
 }
 

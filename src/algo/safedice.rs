@@ -276,6 +276,12 @@ impl SafediceTrainer {
         Ok(t)
     }
 
+    /// Run the hot loops on candle autograd even on the CPU (the reference path; used by the
+    /// `safedice speed` benchmark and the tests that compare both paths).
+    pub fn use_candle_autograd(&mut self) {
+        self.fused = None;
+    }
+
     /// alpha-hat with where it came from, once the discriminator phase is over.
     pub fn alpha_details(&self) -> Option<&AlphaHat> {
         self.alpha.as_ref()

@@ -23,7 +23,12 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, StandardNormal};
 
+use std::sync::Arc;
+
 use super::fused_mlp::{Adam, FusedMlp, MlpShape, Workspace};
+use super::safedice::SafediceTrainer;
+use super::{resolve_config, Algorithm, Trainer, TrainingData};
+use crate::data::{ActionSpace, Actions, Dataset};
 
 pub const GAMMA: f32 = 0.99;
 /// Discriminator gradient-penalty coefficient (the `authors-code` preset).
@@ -41,7 +46,13 @@ pub const PEAK_GFLOPS_2_CORES: f64 = 333.0;
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
 pub enum Engine {
+    /// The real `SafediceTrainer` (fused CPU engine) on a synthetic dataset.
+    Trainer,
+    /// The real `SafediceTrainer` forced onto its candle autograd path (the "before").
+    TrainerCandle,
+    /// The workloads alone on the fused engine (no trainer bookkeeping).
     Fused,
+    /// The workloads alone on plain candle autograd.
     Candle,
 }
 
@@ -829,8 +840,99 @@ fn process_cpu_seconds() -> Option<f64> {
     Some(ticks / 100.0)
 }
 
+/// A synthetic dataset for the trainer: `episodes` episodes of `len` steps, no terminals (as the
+/// authors' 1000-step data), standard-normal observations, uniform actions.
+fn synthetic_dataset(
+    cfg: &SpeedConfig,
+    episodes: usize,
+    len: usize,
+    rng: &mut ChaCha8Rng,
+) -> Dataset {
+    let n = episodes * len;
+    let mut normals =
+        |k: usize| -> Vec<f32> { (0..k).map(|_| StandardNormal.sample(&mut *rng)).collect() };
+    let observations = normals(n * cfg.obs_dim);
+    let next_observations = normals(n * cfg.obs_dim);
+    let (action_space, actions) = match cfg.discrete {
+        Some(k) => (
+            ActionSpace::Discrete { n: k },
+            Actions::Discrete((0..n).map(|_| rng.random_range(0..k as u32)).collect()),
+        ),
+        None => (
+            ActionSpace::Continuous {
+                dim: cfg.act_dim,
+                low: vec![-1.0; cfg.act_dim],
+                high: vec![1.0; cfg.act_dim],
+            },
+            Actions::Continuous(
+                (0..n * cfg.act_dim).map(|_| rng.random_range(-1.0..=1.0)).collect(),
+            ),
+        ),
+    };
+    Dataset {
+        obs_dim: cfg.obs_dim,
+        action_space,
+        observations,
+        actions,
+        next_observations,
+        terminals: vec![false; n],
+        episode_ids: (0..n).map(|i| (i / len) as u32).collect(),
+        rewards: None,
+        costs: None,
+    }
+}
+
+/// The real trainer, `authors-code` preset (both gradient penalties on), timed phase by phase.
+fn run_trainer(cfg: &SpeedConfig, candle_path: bool) -> anyhow::Result<Vec<Measurement>> {
+    let mut rng = ChaCha8Rng::seed_from_u64(cfg.seed);
+    let data = TrainingData {
+        unlabeled: Arc::new(synthetic_dataset(cfg, UNLABELED / 1000, 1000, &mut rng)),
+        non_preferred: Some(Arc::new(synthetic_dataset(cfg, NON_PREFERRED / 1000, 1000, &mut rng))),
+    };
+    let warmup = (cfg.iters / 10).max(5);
+    let timed = cfg.iters * cfg.repeats.max(1);
+    // One untimed step after the timed discriminator steps ends the phase (alpha-hat and the
+    // rewards over all of D^U), so no timed step includes it.
+    let disc_steps = warmup + timed + 1;
+    let config = resolve_config(
+        Algorithm::Safedice,
+        &serde_json::json!({
+            "preset": "authors-code",
+            "seed": cfg.seed,
+            "batch_size": cfg.batch,
+            "hidden_sizes": cfg.hidden,
+            "iterations": warmup + timed,
+            "discriminator_iterations": disc_steps,
+        }),
+    )?;
+    let mut trainer = SafediceTrainer::new(&config, &data)?;
+    if candle_path {
+        trainer.use_candle_autograd();
+    }
+    let mut step = || -> anyhow::Result<f32> {
+        trainer.step(false)?;
+        Ok(0.0)
+    };
+    let disc =
+        measure("discriminator step (with GP)", "steps/s", disc_step_flops(cfg), cfg, &mut step)?;
+    step()?;
+    let main = measure(
+        "main loop (nu on s,s',s0 + nu GP + policy)",
+        "iterations/s",
+        main_loop_flops(cfg),
+        cfg,
+        &mut step,
+    )?;
+    Ok(vec![main, disc])
+}
+
 /// Run both workloads with the configured engine.
 pub fn run(cfg: &SpeedConfig) -> anyhow::Result<Vec<Measurement>> {
+    match cfg.engine {
+        Engine::Trainer => return run_trainer(cfg, false),
+        Engine::TrainerCandle => return run_trainer(cfg, true),
+        Engine::Fused | Engine::Candle => {}
+    }
     let data = SyntheticData::new(cfg, cfg.seed);
     let mut rng = ChaCha8Rng::seed_from_u64(cfg.seed.wrapping_add(1));
     let mut fused = FusedNets::new(cfg, &mut rng);
@@ -841,6 +943,7 @@ pub fn run(cfg: &SpeedConfig) -> anyhow::Result<Vec<Measurement>> {
     let main_name = "main loop (nu on s,s',s0 + nu GP + policy)";
     let disc_name = "discriminator step (with GP)";
     match cfg.engine {
+        Engine::Trainer | Engine::TrainerCandle => unreachable!("handled above"),
         Engine::Fused => Ok(vec![
             measure(main_name, "iterations/s", main_flops, cfg, || {
                 main_batch.sample(b, &mut rng);
