@@ -882,18 +882,24 @@ fn synthetic_dataset(
     }
 }
 
-/// The real trainer, `authors-code` preset (both gradient penalties on), timed phase by phase.
-fn run_trainer(cfg: &SpeedConfig, candle_path: bool) -> anyhow::Result<Vec<Measurement>> {
+/// A SafeDICE trainer (`authors-code` preset: both gradient penalties on) on synthetic data.
+fn synthetic_trainer(
+    cfg: &SpeedConfig,
+    (unlabeled, non_preferred): (usize, usize),
+    disc_steps: usize,
+    iterations: usize,
+) -> anyhow::Result<SafediceTrainer> {
     let mut rng = ChaCha8Rng::seed_from_u64(cfg.seed);
+    let episode = 1000.min(unlabeled).min(non_preferred);
     let data = TrainingData {
-        unlabeled: Arc::new(synthetic_dataset(cfg, UNLABELED / 1000, 1000, &mut rng)),
-        non_preferred: Some(Arc::new(synthetic_dataset(cfg, NON_PREFERRED / 1000, 1000, &mut rng))),
+        unlabeled: Arc::new(synthetic_dataset(cfg, unlabeled / episode, episode, &mut rng)),
+        non_preferred: Some(Arc::new(synthetic_dataset(
+            cfg,
+            non_preferred / episode,
+            episode,
+            &mut rng,
+        ))),
     };
-    let warmup = (cfg.iters / 10).max(5);
-    let timed = cfg.iters * cfg.repeats.max(1);
-    // One untimed step after the timed discriminator steps ends the phase (alpha-hat and the
-    // rewards over all of D^U), so no timed step includes it.
-    let disc_steps = warmup + timed + 1;
     let config = resolve_config(
         Algorithm::Safedice,
         &serde_json::json!({
@@ -901,11 +907,22 @@ fn run_trainer(cfg: &SpeedConfig, candle_path: bool) -> anyhow::Result<Vec<Measu
             "seed": cfg.seed,
             "batch_size": cfg.batch,
             "hidden_sizes": cfg.hidden,
-            "iterations": warmup + timed,
+            "iterations": iterations,
             "discriminator_iterations": disc_steps,
         }),
     )?;
-    let mut trainer = SafediceTrainer::new(&config, &data)?;
+    Ok(SafediceTrainer::new(&config, &data)?)
+}
+
+/// The real trainer, timed phase by phase.
+fn run_trainer(cfg: &SpeedConfig, candle_path: bool) -> anyhow::Result<Vec<Measurement>> {
+    let warmup = (cfg.iters / 10).max(5);
+    let timed = cfg.iters * cfg.repeats.max(1);
+    // One untimed step after the timed discriminator steps ends the phase (alpha-hat and the
+    // rewards over all of D^U), so no timed step includes it.
+    let disc_steps = warmup + timed + 1;
+    let mut trainer =
+        synthetic_trainer(cfg, (UNLABELED, NON_PREFERRED), disc_steps, warmup + timed)?;
     if candle_path {
         trainer.use_candle_autograd();
     }
@@ -1176,6 +1193,30 @@ mod tests {
         let d_train = 1024 * (2 * fwd(23, 1) + 2 * (256 * 256 + 256));
         let d_gp = 1024 * (fwd(23, 1) + 3 * 2 * (23 * 256 + 256 * 256));
         assert_eq!(disc_step_flops(&cfg), d_train + d_gp);
+    }
+
+    /// The trainer's fused path and its candle autograd path draw the same batches and report
+    /// the same losses, step after step (they drift apart only by float rounding).
+    #[test]
+    fn trainer_fused_and_candle_paths_agree() {
+        for discrete in [None, Some(4)] {
+            let cfg = small(discrete);
+            let make = || synthetic_trainer(&cfg, (400, 200), 4, 3).unwrap();
+            let (mut fused, mut candle) = (make(), make());
+            candle.use_candle_autograd();
+            for step in 0..7 {
+                let (a, b) = (fused.step(true).unwrap(), candle.step(true).unwrap());
+                assert_eq!(a.len(), b.len());
+                for ((name, x), (other, y)) in a.iter().zip(&b) {
+                    assert_eq!(name, other);
+                    let tol = 1e-3 * y.abs().max(1.0);
+                    assert!(
+                        (x - y).abs() <= tol || (x.is_nan() && y.is_nan()),
+                        "step {step} {name}: fused {x}, candle {y}"
+                    );
+                }
+            }
+        }
     }
 
     #[test]
