@@ -52,6 +52,13 @@ struct SpeedArgs {
 }
 
 fn main() -> anyhow::Result<()> {
+    // One compute thread per training job unless the operator says otherwise: candle's CPU ops
+    // read RAYON_NUM_THREADS on every call, and on the shared machine its 2-thread pool
+    // busy-waited against other processes (3x slower; bench/README.md "Threads"). Set before
+    // any thread exists.
+    if std::env::var_os("RAYON_NUM_THREADS").is_none() {
+        std::env::set_var("RAYON_NUM_THREADS", "1");
+    }
     let cli = Cli::parse();
     match cli.command {
         Command::Speed(a) => {
