@@ -378,8 +378,9 @@ impl FusedMlp {
     /// (loss rows first), then
     /// - `output_grad(out, dout)`: fill `dL/d out` for the loss rows from their outputs;
     /// - `penalty(g, dp)` (only if `penalty_rows > 0`; needs a scalar output and no last bias):
-    ///   given the input-gradients `g` of the penalty rows, write `dP/dg` into `dp` and return P;
-    /// and accumulate `dL/dθ + dP/dθ` into `grads`. Returns P (0 without penalty rows).
+    ///   given the input-gradients `g` of the penalty rows, write `dP/dg` into `dp` and return P.
+    ///
+    /// Accumulates `dL/dθ + dP/dθ` into `grads` and returns P (0 without penalty rows).
     pub fn train_pass(
         &self,
         ws: &mut Workspace,
