@@ -11,9 +11,9 @@ use serde_json::json;
 fn small(extra: serde_json::Value) -> serde_json::Value {
     let mut config = json!({
         "seed": 3,
-        "iterations": 1500,
+        "iterations": 1000,
         "batch_size": 256,
-        "hidden_sizes": [64, 64],
+        "hidden_sizes": [32, 32],
     });
     config.as_object_mut().unwrap().extend(extra.as_object().unwrap().clone());
     config
@@ -27,7 +27,7 @@ fn safedice_takes_the_safe_route_and_bc_does_not() {
     assert!(bc_cost > 0, "BC should follow the unsafe majority");
 
     let (safedice, alpha) =
-        train(Algorithm::Safedice, small(json!({"discriminator_iterations": 500})), &data);
+        train(Algorithm::Safedice, small(json!({"discriminator_iterations": 300})), &data);
     let (cost, reached) = grid_rollout(&safedice);
     let alpha = alpha.unwrap();
     assert!(alpha > 0.2 && alpha < 0.9, "alpha-hat {alpha}");
@@ -39,7 +39,9 @@ fn safedice_takes_the_safe_route_and_bc_does_not() {
 }
 
 /// Measurements behind the `service` defaults (not a check: prints a table). Run with
-/// `cargo test --test algo_gridworld -- --ignored --nocapture measure_defaults`.
+/// `cargo test --test algo_gridworld -- --ignored --nocapture measure_defaults`; set
+/// `MEASURE_ONLY=<substring>` to run only the matching "task | variant" rows and
+/// `MEASURE_SEEDS=<n>` for fewer seeds (default 3).
 #[test]
 #[ignore]
 fn measure_defaults() {
@@ -60,13 +62,18 @@ fn measure_defaults() {
         ("gridworld", grid_training_data, grid_rollout),
         ("point", point_training_data, point_rollout),
     ];
+    let only = std::env::var("MEASURE_ONLY").unwrap_or_default();
+    let seeds: u64 = std::env::var("MEASURE_SEEDS").map_or(3, |s| s.parse().unwrap());
     for (task, make_data, rollout) in tasks {
         for (name, extra) in &variants {
+            if !format!("{task} | {name}").contains(&only) {
+                continue;
+            }
             let mut outcomes = Vec::new();
-            for seed in 0..3u64 {
+            for seed in 0..seeds {
                 let data = make_data(seed + 10);
                 let mut config = small(
-                    json!({"discriminator_iterations": 500, "seed": seed, "iterations": 3000}),
+                    json!({"discriminator_iterations": 500, "seed": seed, "iterations": 3000, "hidden_sizes": [64, 64]}),
                 );
                 config.as_object_mut().unwrap().extend(extra.as_object().unwrap().clone());
                 let config = safedice::algo::resolve_config(Algorithm::Safedice, &config).unwrap();
