@@ -11,6 +11,8 @@
 use std::collections::HashMap;
 
 use candle_core::{DType, Device, Result, Tensor, Var};
+
+use super::fused_mlp::{FusedMlp, MlpShape};
 use rand::Rng;
 use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
@@ -176,6 +178,60 @@ impl Mlp {
             })
             .collect::<Result<Vec<_>>>()?;
         Ok(Mlp { name: self.name.clone(), dims: self.dims.clone(), layers })
+    }
+}
+
+/// Bridge to the fused CPU engine ([`super::fused_mlp`]) used by the training hot loops: the
+/// same parameters in one flat buffer, and gradients back as one tensor per parameter.
+impl Mlp {
+    /// The engine's view of this network's shape.
+    pub fn fused_shape(&self) -> MlpShape {
+        let last_bias = self.layers.last().is_some_and(|l| l.bias.is_some());
+        MlpShape { dims: self.dims.clone(), last_bias }
+    }
+
+    /// Copy the current parameters into `fused` (layer by layer: weight `in × out`, then bias).
+    pub fn copy_into_fused(&self, fused: &mut FusedMlp) -> Result<()> {
+        let mut at = 0;
+        for layer in &self.layers {
+            for var in std::iter::once(&layer.weight).chain(&layer.bias) {
+                let values = var.as_tensor().flatten_all()?.to_vec1::<f32>()?;
+                fused.params[at..at + values.len()].copy_from_slice(&values);
+                at += values.len();
+            }
+        }
+        Ok(())
+    }
+
+    /// A fused copy of this network.
+    pub fn to_fused(&self) -> Result<FusedMlp> {
+        let mut fused = FusedMlp::zeros(self.fused_shape());
+        self.copy_into_fused(&mut fused)?;
+        Ok(fused)
+    }
+
+    /// Flat gradients in the fused layout as tensors in [`Mlp::named_vars`] order (what
+    /// [`super::optim::Adam::step_with_grads`] takes for an optimiser built from `named_vars`).
+    pub fn grads_from_fused(&self, flat: &[f32]) -> Result<Vec<Tensor>> {
+        let mut at = 0;
+        let mut named = Vec::new();
+        for (i, layer) in self.layers.iter().enumerate() {
+            let device = layer.weight.device();
+            let w_len = layer.weight.elem_count();
+            let w = Tensor::from_slice(&flat[at..at + w_len], layer.weight.dims(), device)?;
+            named.push((weight_name(&self.name, i), w));
+            at += w_len;
+            if let Some(b) = &layer.bias {
+                let bt = Tensor::from_slice(&flat[at..at + b.elem_count()], b.dims(), device)?;
+                named.push((format!("{}.{i}.bias", self.name), bt));
+                at += b.elem_count();
+            }
+        }
+        if at != flat.len() {
+            candle_core::bail!("{} fused gradients for {} parameters", flat.len(), at);
+        }
+        named.sort_by(|a, b| a.0.cmp(&b.0));
+        Ok(named.into_iter().map(|(_, t)| t).collect())
     }
 }
 

@@ -17,6 +17,7 @@ pub mod columns;
 pub mod config;
 pub mod dexperts;
 pub mod dwbc;
+pub mod fused_mlp;
 pub mod losses;
 pub mod mlp;
 pub mod optim;
@@ -24,6 +25,8 @@ pub mod policy;
 pub mod ppl;
 pub mod run;
 pub mod safedice;
+pub mod safedice_fused;
+pub mod speed;
 
 use std::sync::Arc;
 

@@ -48,19 +48,41 @@ impl Adam {
     /// One update from precomputed gradients.
     pub fn step(&mut self, grads: &GradStore) -> Result<()> {
         self.t += 1;
+        for i in 0..self.params.len() {
+            if let Some(g) = grads.get(self.params[i].1.as_tensor()) {
+                let g = g.clone();
+                self.update(i, &g)?;
+            }
+        }
+        Ok(())
+    }
+
+    /// One update from gradients given for every parameter in [`Adam::params`] order (the fused
+    /// CPU training path computes them without autograd).
+    pub fn step_with_grads(&mut self, grads: &[Tensor]) -> Result<()> {
+        if grads.len() != self.params.len() {
+            candle_core::bail!("{} gradients for {} parameters", grads.len(), self.params.len());
+        }
+        self.t += 1;
+        for (i, g) in grads.iter().enumerate() {
+            self.update(i, g)?;
+        }
+        Ok(())
+    }
+
+    /// Adam's update of parameter `i` at step `self.t`.
+    fn update(&mut self, i: usize, g: &Tensor) -> Result<()> {
         let correction1 = 1.0 - self.beta1.powi(self.t as i32);
         let correction2 = 1.0 - self.beta2.powi(self.t as i32);
         let step_size = self.lr / correction1;
-        for (i, (_, var)) in self.params.iter().enumerate() {
-            let Some(g) = grads.get(var.as_tensor()) else { continue };
-            let m = ((&self.m[i] * self.beta1)? + (g * (1.0 - self.beta1))?)?;
-            let v = ((&self.v[i] * self.beta2)? + (g.sqr()? * (1.0 - self.beta2))?)?;
-            let denom = ((&v / correction2)?.sqrt()? + self.eps)?;
-            let update = ((&m / denom)? * step_size)?;
-            var.set(&(var.as_tensor() - update)?)?;
-            self.m[i] = m;
-            self.v[i] = v;
-        }
+        let var = &self.params[i].1;
+        let m = ((&self.m[i] * self.beta1)? + (g * (1.0 - self.beta1))?)?;
+        let v = ((&self.v[i] * self.beta2)? + (g.sqr()? * (1.0 - self.beta2))?)?;
+        let denom = ((&v / correction2)?.sqrt()? + self.eps)?;
+        let update = ((&m / denom)? * step_size)?;
+        var.set(&(var.as_tensor() - update)?)?;
+        self.m[i] = m;
+        self.v[i] = v;
         Ok(())
     }
 

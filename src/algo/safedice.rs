@@ -15,7 +15,7 @@ use candle_core::{DType, Tensor};
 use rand::seq::SliceRandom;
 use rand::Rng;
 
-use super::columns::{uniform_column, Columns};
+use super::columns::{uniform_column, ActionColumn, Columns};
 use super::config::{AlgorithmConfig, SafediceConfig};
 use super::losses::{
     ess_fraction, interpolate, neg_log_one_minus_sigmoid, neg_log_sigmoid, self_normalized_weights,
@@ -25,6 +25,7 @@ use super::mlp::Mlp;
 use super::optim::Adam;
 use super::policy::{Decoder, PolicyArtifact, PolicyNet};
 use super::run::RunData;
+use super::safedice_fused::{DiscBatch, FusedSafedice, HostActions, MainBatch};
 use super::{Progress, ResolvedConfig, TerminalHandling, TrainError, Trainer, TrainingData};
 
 /// Alpha-hat's margin below the minimum and its cap, as in the authors' code.
@@ -33,6 +34,16 @@ const ALPHA_MARGIN: f64 = 1e-5;
 const SCORING_CHUNK: usize = 8192;
 /// Floor of `1 − α e^c` inside Eq. 10's log; reached only with the quantile diagnostic.
 const REWARD_LOG_FLOOR: f64 = 1e-8;
+/// Names and hints of the non-finite guard, shared by the candle and the fused paths.
+const DISC_LOSS: (&str, &str) = ("the discriminator loss (Eq. 9)", "Try a lower lr_discriminator.");
+const NU_LOSS: (&str, &str) = (
+    "the nu loss (Eq. 36)",
+    "Episodes that end in terminal states make Eq. 36 unbounded below: try terminal_handling \"reset\", standardize_reward true, or a lower lr_nu (the authors' code uses 1e-4).",
+);
+const POLICY_LOSS: (&str, &str) = (
+    "the policy loss (Eq. 37)",
+    "Try a lower lr_actor, or check the weight statistics (ess_fraction) for degeneracy.",
+);
 
 /// Eq. 9's loss for a batch of discriminator logits: `−mean log σ(c_N) − mean log(1 − σ(c_U))`
 /// (σ(c) is the probability that (s, a) is non-preferred).
@@ -207,6 +218,8 @@ pub struct SafediceTrainer {
     flow: Option<FlowColumns>,
     /// Metrics of the alpha-hat/reward computation, reported with the step that made them.
     phase_metrics: Vec<(&'static str, f64)>,
+    /// The fused CPU engine for both hot loops (None on other devices: the candle path runs).
+    fused: Option<FusedSafedice>,
 }
 
 impl SafediceTrainer {
@@ -223,7 +236,14 @@ impl SafediceTrainer {
         let disc = run.new_critic("discriminator", run.state_action_dim())?;
         let nu = run.new_critic("nu", nu_input)?;
         let policy = run.new_policy("policy")?;
+        let fused = match run.device {
+            candle_core::Device::Cpu => {
+                Some(FusedSafedice::new(&disc, &nu, policy.mlp(), run.batch())?)
+            }
+            _ => None,
+        };
         Ok(SafediceTrainer {
+            fused,
             disc_opt: Adam::new(disc.named_vars(), cfg.lr_discriminator)?,
             nu_opt: Adam::new(nu.named_vars(), cfg.lr_nu)?,
             policy_opt: Adam::new(policy.mlp().named_vars(), config.common.lr_actor)?,
@@ -256,6 +276,12 @@ impl SafediceTrainer {
         Ok(t)
     }
 
+    /// Run the hot loops on candle autograd even on the CPU (the reference path; used by the
+    /// `safedice speed` benchmark and the tests that compare both paths).
+    pub fn use_candle_autograd(&mut self) {
+        self.fused = None;
+    }
+
     /// alpha-hat with where it came from, once the discriminator phase is over.
     pub fn alpha_details(&self) -> Option<&AlphaHat> {
         self.alpha.as_ref()
@@ -264,6 +290,9 @@ impl SafediceTrainer {
     /// Algorithm 1 step 1, one step: Eq. 9 plus the interpolated gradient penalty
     /// `λ mean((‖∇c(x̂)‖ − 1)²)` at `x̂ = u x_N + (1−u) x_U` and `x̂ = u shuffle(x_U) + (1−u) x_U`.
     fn discriminator_step(&mut self, record: bool) -> Result<Vec<(&'static str, f64)>, TrainError> {
+        if self.fused.is_some() {
+            return self.discriminator_step_fused(record);
+        }
         let b = self.run.batch();
         let idx_n = self.run.sample_n()?;
         let idx_u = self.run.sample_u()?;
@@ -291,31 +320,84 @@ impl SafediceTrainer {
             }
             loss = (loss + (penalty * self.cfg.discriminator_gp)?)?;
         }
-        let value = self.run.checked(
-            &loss,
-            "the discriminator loss (Eq. 9)",
-            "Try a lower lr_discriminator.",
-        )?;
+        let value = self.run.checked(&loss, DISC_LOSS.0, DISC_LOSS.1)?;
         self.disc_opt.minimize(&loss)?;
-        self.run.step += 1;
-        if self.run.step == self.cfg.discriminator_iterations {
-            self.finish_discriminator_phase()?;
-        }
+        self.end_discriminator_step()?;
         if !record {
             return Ok(Vec::new());
         }
         let mean_prob = |c: &Tensor| -> Result<f64, TrainError> {
             Ok(super::losses::scalar(&candle_nn::ops::sigmoid(c)?.mean_all()?)?)
         };
-        let mut metrics = vec![
-            ("discriminator_loss", value),
-            ("discriminator_classification_loss", super::losses::scalar(&classification)?),
-            ("discriminator_gp", penalty_value),
-            ("discriminator_prob_non_preferred_on_dn", mean_prob(&c_n)?),
-            ("discriminator_prob_non_preferred_on_du", mean_prob(&c_u)?),
+        let classification = super::losses::scalar(&classification)?;
+        let (prob_n, prob_u) = (mean_prob(&c_n)?, mean_prob(&c_u)?);
+        Ok(self.discriminator_metrics([value, classification, penalty_value, prob_n, prob_u]))
+    }
+
+    /// [`Self::discriminator_step`] on the fused CPU engine: the same draws from the run's RNG,
+    /// the same loss, gradients without autograd.
+    fn discriminator_step_fused(
+        &mut self,
+        record: bool,
+    ) -> Result<Vec<(&'static str, f64)>, TrainError> {
+        let b = self.run.batch();
+        let idx_n = self.run.sample_n()?;
+        let idx_u = self.run.sample_u()?;
+        let x_n = host(&self.run.non_preferred().state_action(&idx_n)?)?;
+        let x_u = host(&self.run.u.state_action(&idx_u)?)?;
+        let draws = if self.cfg.discriminator_gp > 0.0 {
+            let device = self.run.device.clone();
+            let u1 = host(&uniform_column(&mut self.run.rng, b, &device)?)?;
+            let u2 = host(&uniform_column(&mut self.run.rng, b, &device)?)?;
+            let mut perm: Vec<u32> = (0..b as u32).collect();
+            perm.shuffle(&mut self.run.rng);
+            Some((u1, u2, perm))
+        } else {
+            None
+        };
+        let fused = self.fused.as_mut().expect("fused path");
+        let out = fused.disc_grads(
+            &self.disc,
+            &DiscBatch {
+                x_n: &x_n,
+                x_u: &x_u,
+                penalty: draws.as_ref().map(|(u1, u2, p)| (&u1[..], &u2[..], &p[..])),
+                penalty_coef: self.cfg.discriminator_gp as f32,
+            },
+        )?;
+        let value = self.run.checked(&host_scalar(out.loss)?, DISC_LOSS.0, DISC_LOSS.1)?;
+        self.disc_opt.step_with_grads(&self.disc.grads_from_fused(&fused.disc_grads)?)?;
+        self.end_discriminator_step()?;
+        if !record {
+            return Ok(Vec::new());
+        }
+        let values = [out.loss, out.classification, out.penalty, out.prob_n, out.prob_u];
+        let mut values = values.map(|v| v as f64);
+        values[0] = value;
+        Ok(self.discriminator_metrics(values))
+    }
+
+    fn end_discriminator_step(&mut self) -> Result<(), TrainError> {
+        self.run.step += 1;
+        if self.run.step == self.cfg.discriminator_iterations {
+            self.finish_discriminator_phase()?;
+        }
+        Ok(())
+    }
+
+    /// `[loss, classification loss, penalty, mean σ(c) on D^N, mean σ(c) on D^U]` as named
+    /// metrics, plus the alpha-hat metrics if this step ended the phase.
+    fn discriminator_metrics(&mut self, values: [f64; 5]) -> Vec<(&'static str, f64)> {
+        let names = [
+            "discriminator_loss",
+            "discriminator_classification_loss",
+            "discriminator_gp",
+            "discriminator_prob_non_preferred_on_dn",
+            "discriminator_prob_non_preferred_on_du",
         ];
+        let mut metrics: Vec<(&'static str, f64)> = names.into_iter().zip(values).collect();
         metrics.append(&mut self.phase_metrics);
-        Ok(metrics)
+        metrics
     }
 
     /// Algorithm 1 step 2 and the reward of Eq. 10 over all of D^U, with the frozen discriminator.
@@ -378,6 +460,9 @@ impl SafediceTrainer {
     /// Algorithm 1 steps 4-5: the ν step (Eq. 36, ν on cat(s, s', s0) in one forward) and the
     /// policy step (Eq. 37) on the same batch with the pre-update ν.
     fn main_step(&mut self, record: bool) -> Result<Vec<(&'static str, f64)>, TrainError> {
+        if self.fused.is_some() {
+            return self.main_step_fused(record);
+        }
         let flow = self.flow.as_ref().expect("set when the discriminator phase ends");
         let b = self.run.batch();
         let device = self.run.device.clone();
@@ -425,16 +510,8 @@ impl SafediceTrainer {
             self.policy.log_prob(&u.obs.index_select(&pidx, 0)?, &u.actions.select(&pidx)?)?;
         let loss_pi = policy_loss(&log_prob, &weights)?;
 
-        let nu_value = self.run.checked(
-            &loss_nu,
-            "the nu loss (Eq. 36)",
-            "Episodes that end in terminal states make Eq. 36 unbounded below: try terminal_handling \"reset\", standardize_reward true, or a lower lr_nu (the authors' code uses 1e-4).",
-        )?;
-        let pi_value = self.run.checked(
-            &loss_pi,
-            "the policy loss (Eq. 37)",
-            "Try a lower lr_actor, or check the weight statistics (ess_fraction) for degeneracy.",
-        )?;
+        let nu_value = self.run.checked(&loss_nu, NU_LOSS.0, NU_LOSS.1)?;
+        let pi_value = self.run.checked(&loss_pi, POLICY_LOSS.0, POLICY_LOSS.1)?;
         self.nu_opt.minimize(&loss_nu)?;
         self.policy_opt.minimize(&loss_pi)?;
         self.run.step += 1;
@@ -442,7 +519,87 @@ impl SafediceTrainer {
             return Ok(Vec::new());
         }
         let w = weights.to_vec1::<f32>()?;
-        let ess = ess_fraction(&w);
+        let adv = advantages.to_vec1::<f32>()?;
+        let nu_initial = super::losses::scalar(&nu_0.mean_all()?)?;
+        Ok(self.main_metrics([nu_value, gp_value, pi_value, nu_initial], &w, &adv))
+    }
+
+    /// [`Self::main_step`] on the fused CPU engine: the same draws from the run's RNG, the same
+    /// losses (Eq. 36 with ν's penalty, Eq. 37), gradients without autograd.
+    fn main_step_fused(&mut self, record: bool) -> Result<Vec<(&'static str, f64)>, TrainError> {
+        let flow = self.flow.as_ref().expect("set when the discriminator phase ends");
+        let b = self.run.batch();
+        let device = self.run.device.clone();
+        let rng = &mut self.run.rng;
+        let rows: Vec<u32> = (0..b).map(|_| rng.random_range(0..flow.rows as u32)).collect();
+        let initial: Vec<u32> =
+            (0..b).map(|_| flow.starts[rng.random_range(0..flow.starts.len())]).collect();
+        let idx = Tensor::from_vec(rows.clone(), b, &device)?;
+        let s = host(&flow.obs.index_select(&idx, 0)?)?;
+        let s_next = host(&flow.next_obs.index_select(&idx, 0)?)?;
+        let s0 = host(&flow.obs.index_select(&Tensor::from_vec(initial, b, &device)?, 0)?)?;
+        let reward = host(&flow.reward.index_select(&idx, 0)?)?;
+        let discount = host(&flow.discount.index_select(&idx, 0)?)?;
+        let u = if self.cfg.nu_gp > 0.0 {
+            Some(host(&uniform_column(&mut self.run.rng, b, &device)?)?)
+        } else {
+            None
+        };
+        // Policy rows: absorbing-state rows (only with `absorbing`) carry no action.
+        let real = flow.real_rows as u32;
+        let has_action: Vec<bool> = rows.iter().map(|&r| r < real).collect();
+        let policy_rows: Vec<u32> = rows.iter().map(|&r| r.min(real - 1)).collect();
+        let pidx = Tensor::from_vec(policy_rows, b, &device)?;
+        let policy_obs = host(&self.run.u.obs.index_select(&pidx, 0)?)?;
+        let (pretanh, log_jacobian, index);
+        let actions = match self.run.u.actions.select(&pidx)? {
+            ActionColumn::Continuous { pretanh: p, log_jacobian: j } => {
+                (pretanh, log_jacobian) = (host(&p)?, host(&j)?);
+                HostActions::Continuous { pretanh: &pretanh, log_jacobian: &log_jacobian }
+            }
+            ActionColumn::Discrete { index: i } => {
+                index = i.to_vec1::<u32>()?;
+                HostActions::Discrete { index: &index }
+            }
+        };
+        let fused = self.fused.as_mut().expect("fused path");
+        let out = fused.main_grads(
+            &self.nu,
+            self.policy.mlp(),
+            &MainBatch {
+                s: &s,
+                s_next: &s_next,
+                s0: &s0,
+                reward: &reward,
+                discount: &discount,
+                gamma: self.cfg.gamma as f32,
+                penalty: u.as_deref().map(|u| (u, self.cfg.nu_gp as f32)),
+                policy_obs: &policy_obs,
+                actions,
+                has_action: has_action.contains(&false).then_some(&has_action[..]),
+            },
+        )?;
+        let nu_value = self.run.checked(&host_scalar(out.nu_loss)?, NU_LOSS.0, NU_LOSS.1)?;
+        let pi_value =
+            self.run.checked(&host_scalar(out.policy_loss)?, POLICY_LOSS.0, POLICY_LOSS.1)?;
+        self.nu_opt.step_with_grads(&self.nu.grads_from_fused(&fused.nu_grads)?)?;
+        let policy_grads = self.policy.mlp().grads_from_fused(&fused.policy_grads)?;
+        self.policy_opt.step_with_grads(&policy_grads)?;
+        self.run.step += 1;
+        if !record {
+            return Ok(Vec::new());
+        }
+        let (w, adv) = (fused.weights.clone(), fused.advantages.clone());
+        let values = [nu_value, out.nu_penalty as f64, pi_value, out.nu_initial_mean as f64];
+        Ok(self.main_metrics(values, &w, &adv))
+    }
+
+    /// The main step's metrics from `[nu loss, nu penalty, policy loss, mean ν(s0)]`, the policy
+    /// weights and the advantages.
+    fn main_metrics(&self, values: [f64; 4], w: &[f32], adv: &[f32]) -> Vec<(&'static str, f64)> {
+        let [nu_value, gp_value, pi_value, nu_initial] = values;
+        let b = w.len();
+        let ess = ess_fraction(w);
         let degenerate = ess < self.cfg.ess_warning_fraction;
         if degenerate {
             tracing::warn!(
@@ -451,21 +608,30 @@ impl SafediceTrainer {
                 "SafeDICE weights are degenerate: a few samples carry the batch"
             );
         }
-        let adv = advantages.to_vec1::<f32>()?;
         let max_share = w.iter().fold(0f32, |m, &x| m.max(x)) as f64 / b as f64;
-        Ok(vec![
+        vec![
             ("nu_loss", nu_value),
             ("nu_gp", gp_value),
             ("policy_loss", pi_value),
             ("alpha_hat", self.alpha.as_ref().map_or(f64::NAN, |a| a.value)),
             ("advantage_mean", adv.iter().map(|&a| a as f64).sum::<f64>() / b as f64),
             ("advantage_max", adv.iter().fold(f32::NEG_INFINITY, |m, &a| m.max(a)) as f64),
-            ("nu_initial_mean", super::losses::scalar(&nu_0.mean_all()?)?),
+            ("nu_initial_mean", nu_initial),
             ("ess_fraction", ess),
             ("weight_max_share", max_share),
             ("weight_degenerate", degenerate as u8 as f64),
-        ])
+        ]
     }
+}
+
+/// A tensor's values on the host, flattened (row-major).
+fn host(t: &Tensor) -> candle_core::Result<Vec<f32>> {
+    t.flatten_all()?.to_vec1::<f32>()
+}
+
+/// A host loss as a scalar tensor for [`RunData::checked`].
+fn host_scalar(value: f32) -> candle_core::Result<Tensor> {
+    Tensor::new(value, &candle_core::Device::Cpu)
 }
 
 fn mean_std(values: &[f64]) -> (f64, f64) {

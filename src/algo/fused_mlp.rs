@@ -1,0 +1,495 @@
+//! A whole-MLP fused CPU engine for the training hot loops: forward, backward, the input-gradient
+//! of a scalar-output MLP and the backward of a penalty on it (double backprop), and an in-place
+//! Adam — all on preallocated buffers with one GEMM per layer and pass, no allocation per step.
+//!
+//! Why: on 2 cores with batch 512 and hidden [256, 256], ~70% of a candle autograd step is not
+//! GEMM (slow strided bias-gradient sums, ReLU masks via `ge` + `to_dtype`, zero-filled gradient
+//! accumulators, optimiser temporaries; see /work/shared/candle-notes.md). Here everything that
+//! is not a GEMM is a single pass over a buffer, and the GEMMs go straight to the `gemm` crate
+//! (the same kernels candle uses, AVX-512 enabled in Cargo.toml).
+//!
+//! Layout (as `algo::mlp::Mlp`'s vars): layer `l` maps `d[l-1] -> d[l]` with weight `W_l` stored
+//! `d[l-1] x d[l]` row-major (`y = x W_l + b_l`), then its bias. ReLU after every
+//! layer but the last. All parameters live in one flat `Vec<f32>` so the optimiser is one loop.
+//!
+//! Double backprop, hand-derived (masks `m_l = [h_l > 0]` are piecewise constant, so they carry
+//! no gradient). For a scalar-output net without last bias, the input-gradient is
+//! `δ_{L-1} = m_{L-1} ⊙ W_L^T`, `δ_{l-1} = m_{l-1} ⊙ (δ_l W_l^T)`, `g = δ_1 W_1^T` — exactly the
+//! ordinary backward pass with upstream gradient 1. So the loss rows and the penalty rows share one
+//! forward and one backward (upstream `dL/dout` on loss rows, 1 on penalty rows). Given
+//! `G = dP/dg`, the penalty's weight gradients are `dW_1 += G^T δ_1`, and with
+//! `e_1 = m_1 ⊙ (G W_1)`, `e_l = m_l ⊙ (e_{l-1} W_l)`: `dW_l += e_{l-1}^T δ_l` and
+//! `dW_L += colsum(e_{L-1})^T`; biases get nothing from the penalty. Writing `G` and `e_l` over
+//! the penalty rows of the activation buffers makes every weight gradient one GEMM over all rows:
+//! `dW_l = A_{l-1}^T D_l`.
+
+use candle_core::{Device, Tensor};
+use gemm::Parallelism;
+use rand::Rng;
+use rand_distr::{Distribution, Normal};
+
+/// Which way a matrix operand is read: as stored (`N`) or transposed (`T`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Op {
+    N,
+    T,
+}
+
+/// `c (m x n) = [c +] op(a) · op(b)`, all row-major and contiguous; `op(a)` is `m x k` and
+/// `op(b)` is `k x n`.
+#[allow(clippy::too_many_arguments)]
+fn matmul(
+    c: &mut [f32],
+    a: &[f32],
+    ta: Op,
+    b: &[f32],
+    tb: Op,
+    (m, n, k): (usize, usize, usize),
+    accumulate: bool,
+    par: Parallelism,
+) {
+    assert!(c.len() >= m * n && a.len() >= m * k && b.len() >= k * n);
+    if m == 0 || n == 0 {
+        return;
+    }
+    if k == 0 {
+        if !accumulate {
+            c[..m * n].fill(0.0);
+        }
+        return;
+    }
+    // (row stride, column stride) of op(a) and op(b) in their stored buffers.
+    let (a_rs, a_cs) = match ta {
+        Op::N => (k as isize, 1),
+        Op::T => (1, m as isize),
+    };
+    let (b_rs, b_cs) = match tb {
+        Op::N => (n as isize, 1),
+        Op::T => (1, k as isize),
+    };
+    // SAFETY: the asserts above keep every index the strides reach inside the slices, and `c`
+    // is borrowed mutably so it cannot alias `a` or `b`.
+    unsafe {
+        gemm::gemm(
+            m,
+            n,
+            k,
+            c.as_mut_ptr(),
+            1,
+            n as isize,
+            accumulate,
+            a.as_ptr(),
+            a_cs,
+            a_rs,
+            b.as_ptr(),
+            b_cs,
+            b_rs,
+            1.0,
+            1.0,
+            false,
+            false,
+            false,
+            par,
+        )
+    }
+}
+
+/// Sum of the rows of `x` (`rows x cols`) added into `acc` (`cols`).
+fn add_column_sums(acc: &mut [f32], x: &[f32], rows: usize) {
+    let cols = acc.len();
+    for row in x[..rows * cols].chunks_exact(cols) {
+        for (a, v) in acc.iter_mut().zip(row) {
+            *a += v;
+        }
+    }
+}
+
+/// The shape of an MLP: `dims = [input, hidden..., output]`, ReLU between layers.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct MlpShape {
+    pub dims: Vec<usize>,
+    pub last_bias: bool,
+}
+
+impl MlpShape {
+    pub fn new(input: usize, hidden: &[usize], output: usize, last_bias: bool) -> Self {
+        let mut dims = vec![input];
+        dims.extend_from_slice(hidden);
+        dims.push(output);
+        Self { dims, last_bias }
+    }
+
+    pub fn layers(&self) -> usize {
+        self.dims.len() - 1
+    }
+
+    fn has_bias(&self, layer: usize) -> bool {
+        layer < self.layers() || self.last_bias
+    }
+
+    pub fn input(&self) -> usize {
+        self.dims[0]
+    }
+
+    pub fn output(&self) -> usize {
+        self.dims[self.layers()]
+    }
+
+    /// (weight offset, bias offset) of every layer `1..=L` (index 0 unused) and the total count.
+    fn offsets(&self) -> (Vec<(usize, usize)>, usize) {
+        let mut at = 0;
+        let mut offsets = vec![(0, 0)];
+        for l in 1..=self.layers() {
+            let w = at;
+            at += self.dims[l] * self.dims[l - 1];
+            let b = at;
+            if self.has_bias(l) {
+                at += self.dims[l];
+            }
+            offsets.push((w, b));
+        }
+        (offsets, at)
+    }
+
+    /// Multiply-adds of one forward pass per row, times 2: the FLOPs of a forward row.
+    pub fn forward_flops_per_row(&self) -> u64 {
+        self.dims.windows(2).map(|w| 2 * (w[0] * w[1]) as u64).sum()
+    }
+}
+
+/// An MLP's parameters, flat: per layer the weight (`in x out`, row-major), then the bias.
+#[derive(Clone, Debug)]
+pub struct FusedMlp {
+    shape: MlpShape,
+    offsets: Vec<(usize, usize)>,
+    pub params: Vec<f32>,
+}
+
+impl FusedMlp {
+    /// He-normal weights (std `sqrt(2 / fan_in)`, truncated at 2 std and rescaled as the
+    /// authors' initialiser), zero biases, from the caller's seeded RNG.
+    pub fn new_he(shape: MlpShape, rng: &mut impl Rng) -> Self {
+        let (offsets, total) = shape.offsets();
+        let mut params = vec![0f32; total];
+        let normal = Normal::new(0f32, 1f32).expect("unit normal");
+        for l in 1..=shape.layers() {
+            let fan_in = shape.dims[l - 1];
+            let std = (2.0 / fan_in as f32).sqrt() / 0.879_625_7;
+            let (w, _) = offsets[l];
+            for p in &mut params[w..w + shape.dims[l] * fan_in] {
+                *p = loop {
+                    let z: f32 = normal.sample(rng);
+                    if z.abs() <= 2.0 {
+                        break z * std;
+                    }
+                };
+            }
+        }
+        Self { shape, offsets, params }
+    }
+
+    /// All parameters zero (to be filled, e.g. by `Mlp::copy_into_fused`).
+    pub fn zeros(shape: MlpShape) -> Self {
+        let (offsets, total) = shape.offsets();
+        Self { shape, offsets, params: vec![0.0; total] }
+    }
+
+    pub fn shape(&self) -> &MlpShape {
+        &self.shape
+    }
+
+    pub fn num_params(&self) -> usize {
+        self.params.len()
+    }
+
+    fn weight(&self, l: usize) -> &[f32] {
+        let (w, _) = self.offsets[l];
+        &self.params[w..w + self.shape.dims[l] * self.shape.dims[l - 1]]
+    }
+
+    fn bias(&self, l: usize) -> Option<&[f32]> {
+        self.shape.has_bias(l).then(|| {
+            let (_, b) = self.offsets[l];
+            &self.params[b..b + self.shape.dims[l]]
+        })
+    }
+
+    /// The parameters as candle tensors, in order `[W_1, b_1, W_2, ...]` (no last bias when the
+    /// shape has none); weights `d[l-1] x d[l]` as in `algo::mlp::Mlp`.
+    pub fn to_tensors(&self, device: &Device) -> candle_core::Result<Vec<Tensor>> {
+        let mut out = Vec::new();
+        for l in 1..=self.shape.layers() {
+            let (dout, din) = (self.shape.dims[l], self.shape.dims[l - 1]);
+            out.push(Tensor::from_slice(self.weight(l), (din, dout), device)?);
+            if let Some(b) = self.bias(l) {
+                out.push(Tensor::from_slice(b, dout, device)?);
+            }
+        }
+        Ok(out)
+    }
+
+    /// Overwrite the parameters from tensors in the order and shapes of [`Self::to_tensors`].
+    pub fn load_tensors(&mut self, tensors: &[Tensor]) -> candle_core::Result<()> {
+        let mut at = 0;
+        for t in tensors {
+            let values = t.flatten_all()?.to_vec1::<f32>()?;
+            let end = at + values.len();
+            if end > self.params.len() {
+                candle_core::bail!("fused mlp: tensors hold more values than the shape");
+            }
+            self.params[at..end].copy_from_slice(&values);
+            at = end;
+        }
+        if at != self.params.len() {
+            candle_core::bail!("fused mlp: {} values for {} parameters", at, self.params.len());
+        }
+        Ok(())
+    }
+}
+
+/// Preallocated buffers for up to `max_rows` rows through one network.
+pub struct Workspace {
+    max_rows: usize,
+    par: Parallelism,
+    /// `acts[0]` the input, `acts[l]` layer `l`'s output (after ReLU for hidden layers).
+    acts: Vec<Vec<f32>>,
+    /// `deltas[l]`: gradient with respect to layer `l`'s pre-activation (index 0 unused).
+    deltas: Vec<Vec<f32>>,
+    /// Penalty rows: the input-gradient `g`, then the scratch for `e_l`.
+    input_grad: Vec<f32>,
+    scratch: Vec<f32>,
+}
+
+impl Workspace {
+    /// `threads > 1` lets the GEMMs use rayon's pool (one thread per training job was best on
+    /// the shared 2-core machine).
+    pub fn new(shape: &MlpShape, max_rows: usize, threads: usize) -> Self {
+        let widest = shape.dims.iter().copied().max().unwrap_or(0);
+        Self {
+            max_rows,
+            par: if threads > 1 { Parallelism::Rayon(threads) } else { Parallelism::None },
+            acts: shape.dims.iter().map(|&d| vec![0.0; max_rows * d]).collect(),
+            deltas: shape.dims.iter().map(|&d| vec![0.0; max_rows * d]).collect(),
+            input_grad: vec![0.0; max_rows * shape.input()],
+            scratch: vec![0.0; max_rows * widest],
+        }
+    }
+
+    /// The input buffer (`max_rows x input`): write the rows to evaluate here.
+    pub fn input_mut(&mut self) -> &mut [f32] {
+        &mut self.acts[0]
+    }
+
+    pub fn output(&self) -> &[f32] {
+        self.acts.last().expect("at least one layer")
+    }
+
+    /// `dL/d output` (`max_rows x output`): the caller fills it between forward and backward.
+    pub fn output_grad_mut(&mut self) -> &mut [f32] {
+        self.deltas.last_mut().expect("at least one layer")
+    }
+}
+
+impl FusedMlp {
+    /// Forward pass on the first `rows` rows of the workspace input.
+    pub fn forward(&self, ws: &mut Workspace, rows: usize) {
+        assert!(rows <= ws.max_rows);
+        let dims = &self.shape.dims;
+        let layers = self.shape.layers();
+        for l in 1..=layers {
+            let (below, above) = ws.acts.split_at_mut(l);
+            let (x, y) = (&below[l - 1], &mut above[0][..rows * dims[l]]);
+            let accumulate = match self.bias(l) {
+                Some(b) => {
+                    for row in y.chunks_exact_mut(dims[l]) {
+                        row.copy_from_slice(b);
+                    }
+                    true
+                }
+                None => false,
+            };
+            let w = self.weight(l);
+            matmul(y, x, Op::N, w, Op::N, (rows, dims[l], dims[l - 1]), accumulate, ws.par);
+            if l < layers {
+                y.iter_mut().for_each(|v| *v = v.max(0.0));
+            }
+        }
+    }
+
+    /// Backward from `output_grad` through every layer: fills `deltas[l]` for `l = L..1` on
+    /// `rows` rows (the penalty rows, if any, must hold 1 in the output gradient).
+    fn backward_deltas(&self, ws: &mut Workspace, rows: usize) {
+        let dims = &self.shape.dims;
+        for l in (2..=self.shape.layers()).rev() {
+            let (below, above) = ws.deltas.split_at_mut(l);
+            let (d_in, d_out) = (&mut below[l - 1][..rows * dims[l - 1]], &above[0]);
+            if dims[l] == 1 {
+                // An outer product: a GEMM with k = 1 is mostly overhead.
+                let w = self.weight(l);
+                for (row, &d) in d_in.chunks_exact_mut(dims[l - 1]).zip(d_out) {
+                    for (v, &wv) in row.iter_mut().zip(w) {
+                        *v = d * wv;
+                    }
+                }
+            } else {
+                let w = self.weight(l);
+                matmul(d_in, d_out, Op::N, w, Op::T, (rows, dims[l - 1], dims[l]), false, ws.par);
+            }
+            // ReLU mask of layer l-1's output, as a select so it vectorises (a conditional store
+            // compiled to scalar branches took 38% of a main-loop iteration).
+            for (v, &h) in d_in.iter_mut().zip(&ws.acts[l - 1]) {
+                *v = if h > 0.0 { *v } else { 0.0 };
+            }
+        }
+    }
+
+    /// `dW_l += A_{l-1}^T D_l` over `rows` rows, `db_l += colsum(D_l)` over the first
+    /// `bias_rows` rows.
+    fn accumulate_param_grads(
+        &self,
+        ws: &Workspace,
+        rows: usize,
+        bias_rows: usize,
+        grads: &mut [f32],
+    ) {
+        assert_eq!(grads.len(), self.params.len());
+        let dims = &self.shape.dims;
+        for l in 1..=self.shape.layers() {
+            let (w, b) = self.offsets[l];
+            let (dout, din) = (dims[l], dims[l - 1]);
+            let dw = &mut grads[w..w + dout * din];
+            matmul(
+                dw,
+                &ws.acts[l - 1],
+                Op::T,
+                &ws.deltas[l],
+                Op::N,
+                (din, dout, rows),
+                true,
+                ws.par,
+            );
+            if self.shape.has_bias(l) {
+                add_column_sums(&mut grads[b..b + dout], &ws.deltas[l], bias_rows);
+            }
+        }
+    }
+
+    /// One training pass: forward on `loss_rows + penalty_rows` rows of the workspace input
+    /// (loss rows first), then
+    /// - `output_grad(out, dout)`: fill `dL/d out` for the loss rows from their outputs;
+    /// - `penalty(g, dp)` (only if `penalty_rows > 0`; needs a scalar output and no last bias):
+    ///   given the input-gradients `g` of the penalty rows, write `dP/dg` into `dp` and return P.
+    ///
+    /// Accumulates `dL/dθ + dP/dθ` into `grads` and returns P (0 without penalty rows).
+    pub fn train_pass(
+        &self,
+        ws: &mut Workspace,
+        loss_rows: usize,
+        penalty_rows: usize,
+        grads: &mut [f32],
+        output_grad: impl FnOnce(&[f32], &mut [f32]),
+        penalty: impl FnOnce(&[f32], &mut [f32]) -> f32,
+    ) -> f32 {
+        let rows = loss_rows + penalty_rows;
+        let out_dim = self.shape.output();
+        self.forward(ws, rows);
+        {
+            let (acts, deltas) = (&ws.acts, &mut ws.deltas);
+            let out = &acts[self.shape.layers()][..loss_rows * out_dim];
+            let dout = deltas.last_mut().expect("layers");
+            output_grad(out, &mut dout[..loss_rows * out_dim]);
+            dout[loss_rows * out_dim..rows * out_dim].fill(1.0);
+        }
+        if penalty_rows > 0 {
+            assert!(out_dim == 1 && !self.shape.last_bias, "penalty needs a scalar critic");
+        }
+        self.backward_deltas(ws, rows);
+        let value = if penalty_rows > 0 {
+            self.penalty_second_order(ws, loss_rows, penalty_rows, penalty)
+        } else {
+            0.0
+        };
+        self.accumulate_param_grads(ws, rows, loss_rows, grads);
+        value
+    }
+
+    /// Input-gradient `g = δ_1 W_1` of the penalty rows, `G = dP/dg` from the caller, then the
+    /// `e_l` chain written over the penalty rows of `acts` (with `G` over the input rows).
+    fn penalty_second_order(
+        &self,
+        ws: &mut Workspace,
+        from: usize,
+        rows: usize,
+        penalty: impl FnOnce(&[f32], &mut [f32]) -> f32,
+    ) -> f32 {
+        let dims = &self.shape.dims;
+        let d0 = dims[0];
+        let g = &mut ws.input_grad[..rows * d0];
+        let delta1 = &ws.deltas[1][from * dims[1]..(from + rows) * dims[1]];
+        matmul(g, delta1, Op::N, self.weight(1), Op::T, (rows, d0, dims[1]), false, ws.par);
+        let value = penalty(g, &mut ws.acts[0][from * d0..(from + rows) * d0]);
+        for l in 1..self.shape.layers() {
+            let (below, above) = ws.acts.split_at_mut(l);
+            let e_prev = &below[l - 1][from * dims[l - 1]..(from + rows) * dims[l - 1]];
+            let tmp = &mut ws.scratch[..rows * dims[l]];
+            matmul(
+                tmp,
+                e_prev,
+                Op::N,
+                self.weight(l),
+                Op::N,
+                (rows, dims[l], dims[l - 1]),
+                false,
+                ws.par,
+            );
+            let h = &mut above[0][from * dims[l]..(from + rows) * dims[l]];
+            for (hv, &t) in h.iter_mut().zip(tmp.iter()) {
+                *hv = if *hv > 0.0 { t } else { 0.0 };
+            }
+        }
+        value
+    }
+}
+
+/// Adam (as `candle_nn::AdamW` with weight decay 0, i.e. PyTorch's Adam), updating a flat
+/// parameter vector in place: one pass, no temporaries.
+#[derive(Clone, Debug)]
+pub struct Adam {
+    pub lr: f64,
+    pub beta1: f64,
+    pub beta2: f64,
+    pub eps: f64,
+    pub step_t: u64,
+    pub m: Vec<f32>,
+    pub v: Vec<f32>,
+}
+
+impl Adam {
+    pub fn new(num_params: usize, lr: f64) -> Self {
+        Self {
+            lr,
+            beta1: 0.9,
+            beta2: 0.999,
+            eps: 1e-8,
+            step_t: 0,
+            m: vec![0.0; num_params],
+            v: vec![0.0; num_params],
+        }
+    }
+
+    pub fn step(&mut self, params: &mut [f32], grads: &[f32]) {
+        assert!(params.len() == grads.len() && grads.len() == self.m.len());
+        self.step_t += 1;
+        let t = self.step_t as i32;
+        let scale_m = (1.0 / (1.0 - self.beta1.powi(t))) as f32;
+        let scale_v = (1.0 / (1.0 - self.beta2.powi(t))) as f32;
+        let (b1, b2) = (self.beta1 as f32, self.beta2 as f32);
+        let (c1, c2) = ((1.0 - self.beta1) as f32, (1.0 - self.beta2) as f32);
+        let (lr, eps) = (self.lr as f32, self.eps as f32);
+        for (((p, &g), m), v) in params.iter_mut().zip(grads).zip(&mut self.m).zip(&mut self.v) {
+            *m = *m * b1 + g * c1;
+            *v = *v * b2 + g * g * c2;
+            *p -= (*m * scale_m) / ((*v * scale_v).sqrt() + eps) * lr;
+        }
+    }
+}
