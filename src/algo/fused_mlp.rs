@@ -4,7 +4,7 @@
 //!
 //! Why: on 2 cores with batch 512 and hidden [256, 256], ~70% of a candle autograd step is not
 //! GEMM (slow strided bias-gradient sums, ReLU masks via `ge` + `to_dtype`, zero-filled gradient
-//! accumulators, optimiser temporaries; see /work/shared/candle-notes.md). Here everything that
+//! accumulators, optimiser temporaries; see the team's candle notes). Here everything that
 //! is not a GEMM is a single pass over a buffer, and the GEMMs go straight to the `gemm` crate
 //! (the same kernels candle uses, AVX-512 enabled in Cargo.toml).
 //!
