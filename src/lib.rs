@@ -1,5 +1,7 @@
 //! safedice: offline safe imitation learning (SafeDICE, NeurIPS 2023) as a service.
 //!
+//! - [`config`]: the settings of `safedice serve`.
+//! - [`server`]: starting and stopping the service.
 //! - [`algo`]: the learning algorithms on candle (no HTTP or SQL).
 //! - [`data`]: the dataset model, upload parsers and validation.
 //! - [`envs`]: built-in benchmark environments, demonstrators and evaluation metrics.
@@ -8,4 +10,8 @@
 //! - [`http`]: the HTTP API, one module per resource.
 
 pub mod algo;
+pub mod config;
 pub mod data;
+pub mod http;
+pub mod server;
+pub mod store;

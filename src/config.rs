@@ -1,0 +1,180 @@
+//! Configuration of `safedice serve`: every flag is also an environment variable `SAFEDICE_*`.
+
+use std::net::SocketAddr;
+use std::path::PathBuf;
+
+use axum::http::HeaderValue;
+
+pub const DEFAULT_BIND: &str = "127.0.0.1:8080";
+pub const DEFAULT_DATA_DIR: &str = "./safedice-data";
+/// 1 GiB.
+pub const DEFAULT_MAX_UPLOAD_BYTES: u64 = 1 << 30;
+
+/// Log line format.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum LogFormat {
+    /// One JSON object per line, for log collectors.
+    Json,
+    /// Human-readable lines.
+    Pretty,
+}
+
+/// Settings of the HTTP service.
+#[derive(Clone, Debug, clap::Args)]
+pub struct ServeConfig {
+    /// Address to listen on (IP:port; port 0 picks a free one). A non-loopback address needs
+    /// --api-token, or --insecure-public to serve without one.
+    #[arg(long, env = "SAFEDICE_BIND", default_value = DEFAULT_BIND)]
+    pub bind: SocketAddr,
+
+    /// Directory for the SQLite database and the stored datasets; created on first start.
+    #[arg(long, env = "SAFEDICE_DATA_DIR", default_value = DEFAULT_DATA_DIR)]
+    pub data_dir: PathBuf,
+
+    /// Bearer token required on every /v1 and /v2 route. Without it the API is open and the
+    /// server only listens on loopback.
+    #[arg(long, env = "SAFEDICE_API_TOKEN", hide_env_values = true)]
+    pub api_token: Option<String>,
+
+    /// A second bearer token that may only call the action endpoints
+    /// (POST /v1/policies/{id}/act and the /v2 inference protocol), for deployed agents.
+    #[arg(long, env = "SAFEDICE_INFERENCE_TOKEN", hide_env_values = true)]
+    pub inference_token: Option<String>,
+
+    /// Allow a non-loopback --bind without --api-token (anyone who can reach the port can use
+    /// the whole API).
+    #[arg(long, env = "SAFEDICE_INSECURE_PUBLIC", value_parser = clap::builder::BoolishValueParser::new(), action = clap::ArgAction::SetTrue)]
+    pub insecure_public: bool,
+
+    /// Origin allowed to call the API from a browser (CORS), e.g. https://dash.example.com;
+    /// repeat the flag (or comma-separate the variable) for several; `*` allows any origin.
+    #[arg(long = "cors-origin", env = "SAFEDICE_CORS_ORIGIN", value_delimiter = ',')]
+    pub cors_origins: Vec<String>,
+
+    /// Largest accepted dataset upload in bytes; larger uploads get 413.
+    #[arg(long, env = "SAFEDICE_MAX_UPLOAD_BYTES", default_value_t = DEFAULT_MAX_UPLOAD_BYTES)]
+    pub max_upload_bytes: u64,
+
+    /// Log format.
+    #[arg(long, env = "SAFEDICE_LOG_FORMAT", value_enum, default_value_t = LogFormat::Pretty)]
+    pub log_format: LogFormat,
+
+    /// Training jobs run concurrently.
+    #[arg(long, env = "SAFEDICE_WORKERS", default_value_t = 1, value_parser = clap::value_parser!(u16).range(1..))]
+    pub workers: u16,
+}
+
+/// A configuration the server refuses to start with.
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum ConfigError {
+    #[error(
+        "refusing to listen on {0} without --api-token: anyone reaching that address could use \
+         the whole API. Set --api-token (SAFEDICE_API_TOKEN), bind to 127.0.0.1, or pass \
+         --insecure-public if the network is trusted"
+    )]
+    PublicWithoutToken(SocketAddr),
+    #[error(
+        "--inference-token needs --api-token: without an API token every route is open anyway"
+    )]
+    InferenceTokenWithoutApiToken,
+    #[error("{0} must not be empty")]
+    EmptyToken(&'static str),
+    #[error(
+        "--cors-origin {0:?} is not a valid origin (expected e.g. https://dash.example.com or *)"
+    )]
+    BadCorsOrigin(String),
+}
+
+impl ServeConfig {
+    /// The defaults of every flag, for a given data directory (used by tests and embedders).
+    pub fn new(data_dir: impl Into<PathBuf>) -> Self {
+        ServeConfig {
+            bind: DEFAULT_BIND.parse().expect("default bind address parses"),
+            data_dir: data_dir.into(),
+            api_token: None,
+            inference_token: None,
+            insecure_public: false,
+            cors_origins: Vec::new(),
+            max_upload_bytes: DEFAULT_MAX_UPLOAD_BYTES,
+            log_format: LogFormat::Pretty,
+            workers: 1,
+        }
+    }
+
+    /// Checks the combinations that would expose the API or cannot work.
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        if self.api_token.as_deref() == Some("") {
+            return Err(ConfigError::EmptyToken("--api-token"));
+        }
+        if self.inference_token.as_deref() == Some("") {
+            return Err(ConfigError::EmptyToken("--inference-token"));
+        }
+        if self.inference_token.is_some() && self.api_token.is_none() {
+            return Err(ConfigError::InferenceTokenWithoutApiToken);
+        }
+        if !self.bind.ip().is_loopback() && self.api_token.is_none() && !self.insecure_public {
+            return Err(ConfigError::PublicWithoutToken(self.bind));
+        }
+        self.cors_origin_values()?;
+        Ok(())
+    }
+
+    /// The CORS origins as header values; `None` inside means any origin (`*`).
+    pub fn cors_origin_values(&self) -> Result<Vec<Option<HeaderValue>>, ConfigError> {
+        self.cors_origins
+            .iter()
+            .map(|origin| {
+                if origin == "*" {
+                    return Ok(None);
+                }
+                let looks_like_origin = (origin.starts_with("http://")
+                    || origin.starts_with("https://"))
+                    && !origin.trim_end_matches('/').contains(|c: char| c.is_whitespace());
+                match HeaderValue::from_str(origin.trim_end_matches('/')) {
+                    Ok(value) if looks_like_origin => Ok(Some(value)),
+                    _ => Err(ConfigError::BadCorsOrigin(origin.clone())),
+                }
+            })
+            .collect()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn config(bind: &str) -> ServeConfig {
+        ServeConfig { bind: bind.parse().unwrap(), ..ServeConfig::new("unused") }
+    }
+
+    #[test]
+    fn public_bind_needs_a_token_or_the_explicit_opt_out() {
+        assert_eq!(config("127.0.0.1:0").validate(), Ok(()));
+        assert_eq!(config("[::1]:0").validate(), Ok(()));
+        let public = config("0.0.0.0:8080");
+        assert_eq!(public.validate(), Err(ConfigError::PublicWithoutToken(public.bind)));
+        let with_token = ServeConfig { api_token: Some("s3cret".into()), ..public.clone() };
+        assert_eq!(with_token.validate(), Ok(()));
+        let opted_out = ServeConfig { insecure_public: true, ..public };
+        assert_eq!(opted_out.validate(), Ok(()));
+    }
+
+    #[test]
+    fn inference_token_alone_and_empty_tokens_are_refused() {
+        let c = ServeConfig { inference_token: Some("agent".into()), ..config("127.0.0.1:0") };
+        assert_eq!(c.validate(), Err(ConfigError::InferenceTokenWithoutApiToken));
+        let c = ServeConfig { api_token: Some(String::new()), ..config("127.0.0.1:0") };
+        assert_eq!(c.validate(), Err(ConfigError::EmptyToken("--api-token")));
+    }
+
+    #[test]
+    fn cors_origins_are_checked() {
+        let mut c = config("127.0.0.1:0");
+        c.cors_origins = vec!["https://dash.example.com/".into(), "*".into()];
+        let values = c.cors_origin_values().unwrap();
+        assert_eq!(values[0].as_ref().unwrap(), "https://dash.example.com");
+        assert!(values[1].is_none());
+        c.cors_origins = vec!["dash.example.com".into()];
+        assert_eq!(c.validate(), Err(ConfigError::BadCorsOrigin("dash.example.com".into())));
+    }
+}

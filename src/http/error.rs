@@ -1,0 +1,204 @@
+//! The one error type of the HTTP API. Every 4xx/5xx body has the shape
+//! `{"error": {"code": "snake_case_code", "message": "what is wrong and how to fix it"}}`;
+//! 500s are logged with their cause and answered with a generic message.
+
+use axum::extract::multipart::{MultipartError, MultipartRejection};
+use axum::extract::rejection::{JsonRejection, PathRejection, QueryRejection};
+use axum::http::{header, HeaderValue, StatusCode};
+use axum::response::{IntoResponse, Response};
+use serde::Serialize;
+use utoipa::ToSchema;
+
+/// Every error the API answers with.
+#[derive(Debug, thiserror::Error)]
+pub enum ApiError {
+    /// 400: the request itself is malformed (not the data it carries).
+    #[error("{message}")]
+    BadRequest { code: &'static str, message: String },
+    /// 401: missing or wrong bearer token.
+    #[error("{0}")]
+    Unauthorized(&'static str),
+    /// 403: a valid token that may not call this endpoint.
+    #[error("{0}")]
+    Forbidden(&'static str),
+    /// 404: no such resource or route.
+    #[error("{0}")]
+    NotFound(String),
+    /// 405: the route exists, the method does not.
+    #[error("this route does not accept the request's method; see /v1/openapi.json")]
+    MethodNotAllowed,
+    /// 409: the request conflicts with the current state (e.g. a dataset in use by a job).
+    #[error("{message}")]
+    Conflict { code: &'static str, message: String },
+    /// 413: an upload larger than `--max-upload-bytes`.
+    #[error("the upload exceeds the server's limit of {limit} bytes (--max-upload-bytes)")]
+    PayloadTooLarge { limit: u64 },
+    /// 422: well-formed request, invalid content (a dataset that does not parse, a bad value).
+    #[error("{message}")]
+    Unprocessable { code: &'static str, message: String },
+    /// A rejection from one of axum's extractors, with the status axum chose.
+    #[error("{message}")]
+    Rejected { status: StatusCode, code: &'static str, message: String },
+    /// 503: the service cannot answer now (database unreachable, request timed out).
+    #[error("{message}")]
+    Unavailable { code: &'static str, message: String },
+    /// 500: anything unexpected. Logged, never shown to the client.
+    #[error("internal error")]
+    Internal(#[from] anyhow::Error),
+}
+
+/// The JSON body of every error response.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct ErrorBody {
+    pub error: ErrorDetail,
+}
+
+/// What went wrong: a stable machine-readable `code` and a human-readable `message`.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct ErrorDetail {
+    /// Stable snake_case code, e.g. `not_found`, `unauthorized`, `invalid_dataset`.
+    #[schema(example = "not_found")]
+    pub code: String,
+    /// What is wrong and how to fix it.
+    #[schema(example = "dataset 6f1c… does not exist")]
+    pub message: String,
+}
+
+impl ApiError {
+    pub fn not_found(kind: &str, id: &str) -> Self {
+        ApiError::NotFound(format!("{kind} {id} does not exist"))
+    }
+
+    pub fn bad_request(code: &'static str, message: impl Into<String>) -> Self {
+        ApiError::BadRequest { code, message: message.into() }
+    }
+
+    pub fn unprocessable(code: &'static str, message: impl Into<String>) -> Self {
+        ApiError::Unprocessable { code, message: message.into() }
+    }
+
+    pub fn conflict(code: &'static str, message: impl Into<String>) -> Self {
+        ApiError::Conflict { code, message: message.into() }
+    }
+
+    pub fn unavailable(code: &'static str, message: impl Into<String>) -> Self {
+        ApiError::Unavailable { code, message: message.into() }
+    }
+
+    pub fn status(&self) -> StatusCode {
+        match self {
+            ApiError::BadRequest { .. } => StatusCode::BAD_REQUEST,
+            ApiError::Unauthorized(_) => StatusCode::UNAUTHORIZED,
+            ApiError::Forbidden(_) => StatusCode::FORBIDDEN,
+            ApiError::NotFound(_) => StatusCode::NOT_FOUND,
+            ApiError::MethodNotAllowed => StatusCode::METHOD_NOT_ALLOWED,
+            ApiError::Conflict { .. } => StatusCode::CONFLICT,
+            ApiError::PayloadTooLarge { .. } => StatusCode::PAYLOAD_TOO_LARGE,
+            ApiError::Unprocessable { .. } => StatusCode::UNPROCESSABLE_ENTITY,
+            ApiError::Rejected { status, .. } => *status,
+            ApiError::Unavailable { .. } => StatusCode::SERVICE_UNAVAILABLE,
+            ApiError::Internal(_) => StatusCode::INTERNAL_SERVER_ERROR,
+        }
+    }
+
+    pub fn code(&self) -> &'static str {
+        match self {
+            ApiError::BadRequest { code, .. }
+            | ApiError::Conflict { code, .. }
+            | ApiError::Unprocessable { code, .. }
+            | ApiError::Unavailable { code, .. }
+            | ApiError::Rejected { code, .. } => code,
+            ApiError::Unauthorized(_) => "unauthorized",
+            ApiError::Forbidden(_) => "forbidden",
+            ApiError::NotFound(_) => "not_found",
+            ApiError::MethodNotAllowed => "method_not_allowed",
+            ApiError::PayloadTooLarge { .. } => "payload_too_large",
+            ApiError::Internal(_) => "internal_error",
+        }
+    }
+
+    /// Maps an extractor rejection, keeping axum's status and its explanation.
+    fn rejected(status: StatusCode, message: String) -> Self {
+        let code = match status {
+            StatusCode::PAYLOAD_TOO_LARGE => "payload_too_large",
+            StatusCode::UNSUPPORTED_MEDIA_TYPE => "unsupported_media_type",
+            StatusCode::UNPROCESSABLE_ENTITY => "invalid_body",
+            StatusCode::BAD_REQUEST => "bad_request",
+            s if s.is_server_error() => {
+                return ApiError::Internal(anyhow::anyhow!("extractor failed: {message}"))
+            }
+            _ => "invalid_request",
+        };
+        ApiError::Rejected { status, code, message }
+    }
+}
+
+impl IntoResponse for ApiError {
+    fn into_response(self) -> Response {
+        let status = self.status();
+        let message = match &self {
+            ApiError::Internal(cause) => {
+                tracing::error!(error = ?cause, "internal error");
+                "internal error; the server log has the details".to_owned()
+            }
+            other => other.to_string(),
+        };
+        let body = ErrorBody { error: ErrorDetail { code: self.code().to_owned(), message } };
+        let mut response = (status, axum::Json(body)).into_response();
+        if status == StatusCode::UNAUTHORIZED {
+            response
+                .headers_mut()
+                .insert(header::WWW_AUTHENTICATE, HeaderValue::from_static("Bearer"));
+        }
+        response
+    }
+}
+
+impl From<crate::store::StoreError> for ApiError {
+    fn from(e: crate::store::StoreError) -> Self {
+        match e {
+            crate::store::StoreError::NotFound { kind, id } => ApiError::not_found(kind, &id),
+            other => ApiError::Internal(other.into()),
+        }
+    }
+}
+
+impl From<sqlx::Error> for ApiError {
+    fn from(e: sqlx::Error) -> Self {
+        ApiError::Internal(e.into())
+    }
+}
+
+impl From<std::io::Error> for ApiError {
+    fn from(e: std::io::Error) -> Self {
+        ApiError::Internal(e.into())
+    }
+}
+
+impl From<tokio::task::JoinError> for ApiError {
+    fn from(e: tokio::task::JoinError) -> Self {
+        ApiError::Internal(e.into())
+    }
+}
+
+macro_rules! from_rejection {
+    ($($rejection:ty),*) => {$(
+        impl From<$rejection> for ApiError {
+            fn from(r: $rejection) -> Self {
+                ApiError::rejected(r.status(), r.body_text())
+            }
+        }
+    )*};
+}
+
+from_rejection!(JsonRejection, QueryRejection, PathRejection, MultipartRejection, MultipartError);
+
+/// Answers requests for routes that do not exist (the router's fallback).
+pub async fn route_not_found(uri: axum::http::Uri) -> ApiError {
+    ApiError::NotFound(format!("no route for {}; see /v1/openapi.json", uri.path()))
+}
+
+/// Answers requests whose route exists but not for this method.
+pub async fn method_not_allowed() -> ApiError {
+    ApiError::MethodNotAllowed
+}

@@ -1,0 +1,164 @@
+//! The HTTP API: one module per resource, each exposing a `router()` of its routes together
+//! with their OpenAPI description; this module merges them and adds the middleware.
+//!
+//! Request path, outermost first: request id (`x-request-id`, generated when absent) → trace
+//! span → CORS → panic catcher → per-route metrics → bearer auth → timeout (not on uploads and
+//! streams) → handler.
+
+pub mod auth;
+pub mod error;
+pub mod extract;
+pub mod health;
+pub mod metrics;
+pub mod openapi;
+pub mod pagination;
+
+use std::sync::Arc;
+use std::time::Duration;
+
+use axum::extract::Request;
+use axum::http::{header, HeaderName, Method};
+use axum::middleware::{self, Next};
+use axum::response::{IntoResponse, Response};
+use axum::Router;
+use tokio_util::sync::CancellationToken;
+use tower::ServiceBuilder;
+use tower_http::catch_panic::CatchPanicLayer;
+use tower_http::cors::{AllowOrigin, CorsLayer};
+use tower_http::request_id::{MakeRequestUuid, PropagateRequestIdLayer, SetRequestIdLayer};
+use tower_http::trace::{DefaultOnResponse, TraceLayer};
+use utoipa_axum::router::OpenApiRouter;
+
+use crate::config::ServeConfig;
+use crate::store::Store;
+pub use error::ApiError;
+
+/// Longest a bounded request may take before it is answered with 503 `timeout`. Uploads and
+/// event streams are exempt.
+pub const REQUEST_TIMEOUT: Duration = Duration::from_secs(30);
+
+const REQUEST_ID: HeaderName = HeaderName::from_static("x-request-id");
+
+/// What every handler can reach; cheap to clone. Later resources (the job runner's handle, the
+/// policy cache) become further fields here.
+#[derive(Clone)]
+pub struct AppState {
+    pub config: Arc<ServeConfig>,
+    pub store: Store,
+    pub metrics: Arc<metrics::Metrics>,
+    pub tokens: Arc<auth::Tokens>,
+    /// Cancelled when the server begins a graceful shutdown (long-running work stops on it).
+    pub shutdown: CancellationToken,
+}
+
+impl AppState {
+    pub fn new(config: ServeConfig, store: Store, shutdown: CancellationToken) -> Self {
+        let tokens =
+            auth::Tokens::new(config.api_token.as_deref(), config.inference_token.as_deref());
+        AppState {
+            config: Arc::new(config),
+            store,
+            metrics: Arc::new(metrics::Metrics::new()),
+            tokens: Arc::new(tokens),
+            shutdown,
+        }
+    }
+}
+
+/// Every route with its OpenAPI description, before middleware.
+fn routes() -> OpenApiRouter<AppState> {
+    let bounded = OpenApiRouter::new()
+        .merge(health::router())
+        .merge(metrics::router())
+        .merge(openapi::router())
+        .layer(middleware::from_fn(timeout));
+    // Routes that legitimately take long: uploads of up to --max-upload-bytes (and, later,
+    // event streams).
+    let long_running = OpenApiRouter::new();
+    OpenApiRouter::with_openapi(openapi::base()).merge(bounded).merge(long_running)
+}
+
+/// The OpenAPI description of the whole API, generated from the handlers.
+pub fn openapi() -> utoipa::openapi::OpenApi {
+    let mut doc = routes().into_openapi();
+    openapi::secure_api_routes(&mut doc);
+    doc
+}
+
+/// The complete application: routes, fallbacks and middleware.
+pub fn app(state: AppState) -> anyhow::Result<Router> {
+    let cors = cors_layer(&state.config)?;
+    let (router, _) = routes().split_for_parts();
+    let router = router
+        .fallback(error::route_not_found)
+        .method_not_allowed_fallback(error::method_not_allowed)
+        .layer(middleware::from_fn_with_state(state.clone(), auth::require_token))
+        .layer(middleware::from_fn_with_state(state.clone(), metrics::track))
+        .with_state(state);
+    let trace = TraceLayer::new_for_http()
+        .make_span_with(|request: &Request| {
+            let request_id =
+                request.headers().get(&REQUEST_ID).and_then(|v| v.to_str().ok()).unwrap_or("-");
+            tracing::info_span!(
+                "request",
+                method = %request.method(),
+                path = %request.uri().path(),
+                request_id,
+            )
+        })
+        .on_response(DefaultOnResponse::new().level(tracing::Level::INFO));
+    Ok(router.layer(
+        ServiceBuilder::new()
+            .layer(SetRequestIdLayer::new(REQUEST_ID, MakeRequestUuid))
+            .layer(trace)
+            .layer(PropagateRequestIdLayer::new(REQUEST_ID))
+            .option_layer(cors)
+            .layer(CatchPanicLayer::custom(panic_response)),
+    ))
+}
+
+/// CORS for a dashboard served from another origin; none when no origin is configured.
+fn cors_layer(config: &ServeConfig) -> anyhow::Result<Option<CorsLayer>> {
+    let origins = config.cors_origin_values()?;
+    if origins.is_empty() {
+        return Ok(None);
+    }
+    let allow_origin = if origins.iter().any(Option::is_none) {
+        AllowOrigin::any()
+    } else {
+        AllowOrigin::list(origins.into_iter().flatten())
+    };
+    Ok(Some(
+        CorsLayer::new()
+            .allow_origin(allow_origin)
+            .allow_methods([Method::GET, Method::POST, Method::DELETE])
+            .allow_headers([header::AUTHORIZATION, header::CONTENT_TYPE])
+            .expose_headers([REQUEST_ID, header::LOCATION])
+            .max_age(Duration::from_secs(3600)),
+    ))
+}
+
+/// Bounds the time to produce a response.
+async fn timeout(request: Request, next: Next) -> Response {
+    match tokio::time::timeout(REQUEST_TIMEOUT, next.run(request)).await {
+        Ok(response) => response,
+        Err(_) => ApiError::unavailable(
+            "timeout",
+            format!(
+                "the request took longer than {} s and was abandoned",
+                REQUEST_TIMEOUT.as_secs()
+            ),
+        )
+        .into_response(),
+    }
+}
+
+/// A panicking handler becomes a logged 500 with the usual error body.
+fn panic_response(panic: Box<dyn std::any::Any + Send + 'static>) -> Response {
+    let detail = panic
+        .downcast_ref::<String>()
+        .map(String::as_str)
+        .or_else(|| panic.downcast_ref::<&str>().copied())
+        .unwrap_or("non-string panic payload");
+    ApiError::Internal(anyhow::anyhow!("handler panicked: {detail}")).into_response()
+}

@@ -1,0 +1,124 @@
+//! Starting and stopping the HTTP service: open the store, bind, serve until shut down.
+
+use std::net::SocketAddr;
+use std::time::Duration;
+
+use anyhow::Context;
+use tokio::task::JoinHandle;
+use tokio_util::sync::CancellationToken;
+
+use crate::config::{LogFormat, ServeConfig};
+use crate::http::{self, AppState};
+use crate::store::Store;
+
+/// How long a graceful shutdown waits for in-flight requests before dropping them.
+pub const SHUTDOWN_GRACE: Duration = Duration::from_secs(30);
+
+/// A running server.
+pub struct Server {
+    local_addr: SocketAddr,
+    shutdown: CancellationToken,
+    task: JoinHandle<std::io::Result<()>>,
+    store: Store,
+}
+
+impl Server {
+    /// Validates the configuration, opens (or creates) the data directory, runs migrations,
+    /// binds the listener and starts serving in the background.
+    pub async fn start(config: ServeConfig) -> anyhow::Result<Server> {
+        config.validate()?;
+        let store = Store::open(&config.data_dir).await?;
+        let listener = tokio::net::TcpListener::bind(config.bind)
+            .await
+            .with_context(|| format!("cannot listen on {}", config.bind))?;
+        let local_addr = listener.local_addr()?;
+        let shutdown = CancellationToken::new();
+        let auth = if config.api_token.is_some() { "bearer token" } else { "none (loopback)" };
+        tracing::info!(
+            %local_addr,
+            data_dir = %config.data_dir.display(),
+            auth,
+            "safedice listening"
+        );
+        let app = http::app(AppState::new(config, store.clone(), shutdown.clone()))?;
+        let stopped = shutdown.clone().cancelled_owned();
+        let task = tokio::spawn(async move {
+            axum::serve(listener, app).with_graceful_shutdown(stopped).await
+        });
+        Ok(Server { local_addr, shutdown, task, store })
+    }
+
+    /// The bound address (the actual port when the configuration asked for port 0).
+    pub fn local_addr(&self) -> SocketAddr {
+        self.local_addr
+    }
+
+    /// Cancelling this token starts a graceful shutdown.
+    pub fn shutdown_token(&self) -> CancellationToken {
+        self.shutdown.clone()
+    }
+
+    /// Stops accepting connections, lets in-flight requests finish (at most
+    /// [`SHUTDOWN_GRACE`]), then closes the database.
+    pub async fn stop(self) -> anyhow::Result<()> {
+        self.shutdown.cancel();
+        self.wait().await
+    }
+
+    /// Serves until the shutdown token is cancelled, then finishes like [`Server::stop`].
+    pub async fn wait(mut self) -> anyhow::Result<()> {
+        self.shutdown.cancelled().await;
+        let served = match tokio::time::timeout(SHUTDOWN_GRACE, &mut self.task).await {
+            Ok(joined) => joined.context("the server task failed")?.context("serving failed"),
+            Err(_) => {
+                tracing::warn!(
+                    "in-flight requests still running after the grace period; dropping them"
+                );
+                self.task.abort();
+                Ok(())
+            }
+        };
+        self.store.close().await;
+        tracing::info!("safedice stopped");
+        served
+    }
+}
+
+/// Resolves on SIGINT (Ctrl-C) or SIGTERM.
+pub async fn shutdown_signal() {
+    let interrupt = async {
+        if let Err(e) = tokio::signal::ctrl_c().await {
+            tracing::error!(error = %e, "cannot listen for SIGINT");
+            std::future::pending::<()>().await;
+        }
+    };
+    #[cfg(unix)]
+    let terminate = async {
+        match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+            Ok(mut signal) => {
+                signal.recv().await;
+            }
+            Err(e) => {
+                tracing::error!(error = %e, "cannot listen for SIGTERM");
+                std::future::pending::<()>().await;
+            }
+        }
+    };
+    #[cfg(not(unix))]
+    let terminate = std::future::pending::<()>();
+    tokio::select! {
+        () = interrupt => tracing::info!("SIGINT received, shutting down"),
+        () = terminate => tracing::info!("SIGTERM received, shutting down"),
+    }
+}
+
+/// Installs the global `tracing` subscriber; `RUST_LOG` overrides the default filter.
+pub fn init_logging(format: LogFormat) {
+    let filter = tracing_subscriber::EnvFilter::try_from_default_env()
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info"));
+    let builder = tracing_subscriber::fmt().with_env_filter(filter);
+    match format {
+        LogFormat::Json => builder.json().with_current_span(true).init(),
+        LogFormat::Pretty => builder.init(),
+    }
+}

@@ -1,0 +1,121 @@
+//! All SQL and artefact storage. One data directory holds everything the service keeps:
+//!
+//! ```text
+//! <data-dir>/safedice.sqlite   SQLite database (WAL mode; -wal/-shm files beside it)
+//! <data-dir>/datasets/<id>.canonical   each accepted dataset, once, in the canonical form
+//! <data-dir>/tmp/              uploads in flight; emptied at start-up
+//! ```
+//!
+//! Dataset bytes live in files rather than SQLite blobs because uploads may reach
+//! `--max-upload-bytes` (1 GiB by default) and SQLite caps a blob at 1 GB; a row is only inserted
+//! once its file is durably in place, and files without a row are removed at start-up.
+
+pub mod jobs;
+
+use std::path::{Path, PathBuf};
+use std::str::FromStr;
+use std::time::Duration;
+
+use anyhow::Context;
+use sqlx::sqlite::{SqliteConnectOptions, SqliteJournalMode, SqlitePoolOptions, SqliteSynchronous};
+use sqlx::SqlitePool;
+
+const DATABASE_FILE: &str = "safedice.sqlite";
+const DATASETS_DIR: &str = "datasets";
+const TMP_DIR: &str = "tmp";
+
+/// A failure of the store that callers may want to tell apart.
+#[derive(Debug, thiserror::Error)]
+pub enum StoreError {
+    #[error("{kind} {id} does not exist")]
+    NotFound { kind: &'static str, id: String },
+    #[error("stored data for {0} is damaged: {1}")]
+    Corrupt(String, String),
+    #[error(transparent)]
+    Database(#[from] sqlx::Error),
+    #[error(transparent)]
+    Io(#[from] std::io::Error),
+}
+
+/// The database pool and the data directory; cheap to clone.
+#[derive(Clone, Debug)]
+pub struct Store {
+    pool: SqlitePool,
+    data_dir: PathBuf,
+}
+
+impl Store {
+    /// Opens (creating on first start) the data directory and its database, runs the pending
+    /// migrations and clears what an interrupted run left behind.
+    pub async fn open(data_dir: &Path) -> anyhow::Result<Store> {
+        for dir in [data_dir.to_path_buf(), data_dir.join(DATASETS_DIR), data_dir.join(TMP_DIR)] {
+            std::fs::create_dir_all(&dir)
+                .with_context(|| format!("cannot create data directory {}", dir.display()))?;
+        }
+        let database = data_dir.join(DATABASE_FILE);
+        let options = SqliteConnectOptions::from_str("sqlite:")?
+            .filename(&database)
+            .create_if_missing(true)
+            .journal_mode(SqliteJournalMode::Wal)
+            // NORMAL is durable across application crashes in WAL mode; only an OS crash or
+            // power loss can drop the last commits.
+            .synchronous(SqliteSynchronous::Normal)
+            .foreign_keys(true)
+            .busy_timeout(Duration::from_secs(5));
+        let pool = SqlitePoolOptions::new()
+            .max_connections(8)
+            .connect_with(options)
+            .await
+            .with_context(|| format!("cannot open the database {}", database.display()))?;
+        sqlx::migrate!("./migrations")
+            .run(&pool)
+            .await
+            .with_context(|| format!("cannot migrate the database {}", database.display()))?;
+        let store = Store { pool, data_dir: data_dir.to_path_buf() };
+        store.remove_leftovers().await?;
+        Ok(store)
+    }
+
+    pub fn pool(&self) -> &SqlitePool {
+        &self.pool
+    }
+
+    pub fn data_dir(&self) -> &Path {
+        &self.data_dir
+    }
+
+    /// Where uploads are streamed before they are parsed (same file system as the datasets, so
+    /// nothing crosses devices).
+    pub fn tmp_dir(&self) -> PathBuf {
+        self.data_dir.join(TMP_DIR)
+    }
+
+    /// Whether the database answers a query (readiness).
+    pub async fn ping(&self) -> Result<(), sqlx::Error> {
+        sqlx::query("SELECT 1").execute(&self.pool).await.map(|_| ())
+    }
+
+    /// Closes the pool, checkpointing the WAL.
+    pub async fn close(&self) {
+        self.pool.close().await;
+    }
+
+    /// Removes temp uploads and dataset files without a database row: what a crash between
+    /// writing a file and committing its row (or between deleting a row and its file) leaves.
+    async fn remove_leftovers(&self) -> anyhow::Result<()> {
+        for entry in std::fs::read_dir(self.tmp_dir())? {
+            let path = entry?.path();
+            tracing::info!(path = %path.display(), "removing an interrupted upload");
+            remove_path(&path)?;
+        }
+        Ok(())
+    }
+}
+
+fn remove_path(path: &Path) -> std::io::Result<()> {
+    if path.is_dir() {
+        std::fs::remove_dir_all(path)
+    } else {
+        std::fs::remove_file(path)
+    }
+}

@@ -1,0 +1,166 @@
+//! Test harness shared by the HTTP tests: starts the real server (the same code path as
+//! `safedice serve`) on a free loopback port with a fresh temp data directory, and talks HTTP
+//! to it. Reusable by every resource's tests: `TestApp::spawn().await`, then `app.get(path)`.
+#![allow(dead_code)] // each test binary uses a different subset
+
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+use std::str::FromStr;
+
+use reqwest::{RequestBuilder, Response, StatusCode};
+use safedice::config::ServeConfig;
+use safedice::server::Server;
+use sqlx::sqlite::SqliteConnectOptions;
+use sqlx::{Connection, SqliteConnection};
+
+/// A running server on its own data directory.
+pub struct TestApp {
+    /// `http://127.0.0.1:PORT`; changes on [`TestApp::restart`].
+    pub base_url: String,
+    pub addr: SocketAddr,
+    pub client: reqwest::Client,
+    /// The configuration it runs with (port 0; edit it and restart to change settings).
+    pub config: ServeConfig,
+    data_dir: tempfile::TempDir,
+    server: Option<Server>,
+}
+
+impl TestApp {
+    /// A server with the default settings (no token, loopback).
+    pub async fn spawn() -> TestApp {
+        Self::spawn_with(|_| {}).await
+    }
+
+    /// A server whose settings `configure` adjusts (tokens, upload limit, CORS...).
+    pub async fn spawn_with(configure: impl FnOnce(&mut ServeConfig)) -> TestApp {
+        let data_dir = tempfile::tempdir().expect("temp data dir");
+        let mut config = ServeConfig::new(data_dir.path());
+        config.bind = "127.0.0.1:0".parse().unwrap();
+        configure(&mut config);
+        let server = Server::start(config.clone()).await.expect("server starts");
+        let addr = server.local_addr();
+        TestApp {
+            base_url: format!("http://{addr}"),
+            addr,
+            client: reqwest::Client::new(),
+            config,
+            data_dir,
+            server: Some(server),
+        }
+    }
+
+    pub fn data_dir(&self) -> &Path {
+        self.data_dir.path()
+    }
+
+    pub fn url(&self, path: &str) -> String {
+        format!("{}{path}", self.base_url)
+    }
+
+    /// A request carrying the API token when the server has one.
+    pub fn request(&self, method: reqwest::Method, path: &str) -> RequestBuilder {
+        let builder = self.client.request(method, self.url(path));
+        match &self.config.api_token {
+            Some(token) => builder.bearer_auth(token),
+            None => builder,
+        }
+    }
+
+    pub fn get(&self, path: &str) -> RequestBuilder {
+        self.request(reqwest::Method::GET, path)
+    }
+
+    pub fn post(&self, path: &str) -> RequestBuilder {
+        self.request(reqwest::Method::POST, path)
+    }
+
+    pub fn delete(&self, path: &str) -> RequestBuilder {
+        self.request(reqwest::Method::DELETE, path)
+    }
+
+    /// Graceful shutdown; the data directory stays.
+    pub async fn stop(&mut self) {
+        if let Some(server) = self.server.take() {
+            server.stop().await.expect("server stops cleanly");
+        }
+    }
+
+    /// Stops (if running) and starts again on the same data directory with `self.config`.
+    pub async fn restart(&mut self) {
+        self.stop().await;
+        let server = Server::start(self.config.clone()).await.expect("server restarts");
+        self.addr = server.local_addr();
+        self.base_url = format!("http://{}", self.addr);
+        self.server = Some(server);
+    }
+
+    /// A direct connection to the server's SQLite file, to check what was (not) stored.
+    pub async fn db(&self) -> SqliteConnection {
+        let path = self.data_dir().join("safedice.sqlite");
+        let options = SqliteConnectOptions::from_str("sqlite:").unwrap().filename(path);
+        SqliteConnection::connect_with(&options).await.expect("open the test database")
+    }
+
+    pub async fn count_rows(&self, table: &str) -> i64 {
+        let mut db = self.db().await;
+        let count = sqlx::query_scalar(&format!("SELECT COUNT(*) FROM {table}"))
+            .fetch_one(&mut db)
+            .await
+            .expect("count rows");
+        db.close().await.unwrap();
+        count
+    }
+
+    /// Files (not directories) under `sub` of the data directory, sorted.
+    pub fn files_in(&self, sub: &str) -> Vec<PathBuf> {
+        let mut files: Vec<PathBuf> = std::fs::read_dir(self.data_dir().join(sub))
+            .map(|entries| entries.map(|e| e.unwrap().path()).filter(|p| p.is_file()).collect())
+            .unwrap_or_default();
+        files.sort();
+        files
+    }
+
+    /// Inserts a job row directly (the jobs API arrives with the job runner).
+    pub async fn insert_job(
+        &self,
+        id: &str,
+        status: &str,
+        unlabeled: &str,
+        non_preferred: Option<&str>,
+    ) {
+        let mut db = self.db().await;
+        sqlx::query(
+            "INSERT INTO jobs (id, algorithm, status, unlabeled_dataset_id, \
+             non_preferred_dataset_id, created_at, updated_at) \
+             VALUES (?, 'safedice', ?, ?, ?, '2026-01-01T00:00:00Z', '2026-01-01T00:00:00Z')",
+        )
+        .bind(id)
+        .bind(status)
+        .bind(unlabeled)
+        .bind(non_preferred)
+        .execute(&mut db)
+        .await
+        .expect("insert a job row");
+        db.close().await.unwrap();
+    }
+}
+
+impl Drop for TestApp {
+    fn drop(&mut self) {
+        if let Some(server) = &self.server {
+            server.shutdown_token().cancel();
+        }
+    }
+}
+
+/// Asserts an error response: its status and the `{"error": {"code", "message"}}` body; returns
+/// the message.
+pub async fn assert_error(response: Response, status: StatusCode, code: &str) -> String {
+    assert_eq!(response.status(), status, "unexpected status for {}", response.url());
+    let body: serde_json::Value = response.json().await.expect("error body is JSON");
+    assert_eq!(body["error"]["code"], code, "unexpected error body {body}");
+    let message = body["error"]["message"].as_str().expect("error message is a string");
+    assert!(!message.is_empty(), "empty error message");
+    assert_eq!(body.as_object().unwrap().len(), 1, "extra top-level fields in {body}");
+    message.to_owned()
+}
