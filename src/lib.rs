@@ -13,5 +13,6 @@ pub mod algo;
 pub mod config;
 pub mod data;
 pub mod http;
+pub mod jobs;
 pub mod server;
 pub mod store;
