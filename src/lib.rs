@@ -12,6 +12,7 @@
 pub mod algo;
 pub mod config;
 pub mod data;
+pub mod envs;
 pub mod http;
 pub mod jobs;
 pub mod server;

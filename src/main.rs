@@ -1,6 +1,8 @@
 //! The `safedice` command line: thin wrappers over the library.
 
-use clap::{Parser, Subcommand};
+use std::path::PathBuf;
+
+use clap::{Parser, Subcommand, ValueEnum};
 use safedice::config::ServeConfig;
 use safedice::server::{self, Server};
 
@@ -17,11 +19,80 @@ enum Command {
     Serve(ServeConfig),
     /// Print the HTTP API's OpenAPI description (YAML, as committed in api/openapi.yaml).
     Openapi,
+    /// Generate demonstration data from a built-in environment's scripted demonstrators: an
+    /// unlabeled set mixing preferred and non-preferred episodes (shuffled), a labeled set of
+    /// fresh non-preferred episodes, and manifest.json (counts, seed, data profile, reference
+    /// statistics), in an upload format.
+    Datagen(DatagenArgs),
+}
+
+#[derive(clap::Args)]
+struct DatagenArgs {
+    /// Environment: six-rooms, point-goal or cartpole-slider.
+    #[arg(long)]
+    env: String,
+    /// Preferred episodes in the unlabeled set.
+    #[arg(long, default_value_t = 1000)]
+    preferred: usize,
+    /// Non-preferred episodes in the unlabeled set.
+    #[arg(long, default_value_t = 1000)]
+    non_preferred: usize,
+    /// Episodes in the labeled non-preferred set (0: none written).
+    #[arg(long, default_value_t = 50)]
+    labeled: usize,
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Output directory (created if missing).
+    #[arg(long)]
+    out: PathBuf,
+    #[arg(long, value_enum, default_value_t = DataFormat::Npz)]
+    format: DataFormat,
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum DataFormat {
+    Npz,
+    Jsonl,
+    Csv,
+}
+
+fn datagen(args: DatagenArgs) -> anyhow::Result<()> {
+    use safedice::envs::{generate, write_generated, DatagenSpec};
+    let spec = DatagenSpec {
+        env: args.env,
+        preferred: args.preferred,
+        non_preferred: args.non_preferred,
+        labeled: args.labeled,
+        seed: args.seed,
+    };
+    let generated = generate(&spec)?;
+    let format = match args.format {
+        DataFormat::Npz => safedice::data::Format::Npz,
+        DataFormat::Jsonl => safedice::data::Format::Jsonl,
+        DataFormat::Csv => safedice::data::Format::Csv,
+    };
+    let manifest = write_generated(&generated, &args.out, format)?;
+    let groups = [
+        ("unlabeled preferred", &manifest.unlabeled_preferred),
+        ("unlabeled non-preferred", &manifest.unlabeled_non_preferred),
+        ("labeled non-preferred", &manifest.labeled_non_preferred),
+    ];
+    for (name, g) in groups {
+        println!(
+            "{name:>24}: {:>6} episodes {:>9} transitions  mean return {:>9.3}  mean cost {:>8.3}",
+            g.episodes, g.transitions, g.mean_return, g.mean_cost
+        );
+    }
+    for file in &manifest.files {
+        println!("wrote {}", args.out.join(file).display());
+    }
+    Ok(())
 }
 
 fn main() -> anyhow::Result<()> {
     let cli = Cli::parse();
     match cli.command {
+        Command::Datagen(args) => datagen(args),
         Command::Serve(config) => serve(config),
         Command::Openapi => {
             print!("{}", safedice::http::openapi::yaml()?);

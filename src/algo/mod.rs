@@ -15,13 +15,13 @@ pub mod bc;
 pub mod checkpoint;
 pub mod columns;
 pub mod config;
-// pub mod dexperts;
-// pub mod dwbc;
+pub mod dexperts;
+pub mod dwbc;
 pub mod losses;
 pub mod mlp;
 pub mod optim;
 pub mod policy;
-// pub mod ppl;
+pub mod ppl;
 pub mod run;
 pub mod safedice;
 
@@ -180,7 +180,9 @@ pub fn build_trainer(
     Ok(match config.algorithm() {
         Algorithm::Safedice => Box::new(safedice::SafediceTrainer::new(config, data)?),
         Algorithm::Bc => Box::new(bc::BcTrainer::new(config, data)?),
-        _ => return Err(TrainError::Other("not yet implemented".into())),
+        Algorithm::Dwbc => Box::new(dwbc::DwbcTrainer::new(config, data)?),
+        Algorithm::Ppl => Box::new(ppl::PplTrainer::new(config, data)?),
+        Algorithm::Dexperts => Box::new(dexperts::DexpertsTrainer::new(config, data)?),
     })
 }
 
@@ -192,7 +194,9 @@ fn resume(
     Ok(match config.algorithm() {
         Algorithm::Safedice => Box::new(safedice::SafediceTrainer::resume(config, data, bytes)?),
         Algorithm::Bc => Box::new(bc::BcTrainer::resume(config, data, bytes)?),
-        _ => return Err(TrainError::Other("not yet implemented".into())),
+        Algorithm::Dwbc => Box::new(dwbc::DwbcTrainer::resume(config, data, bytes)?),
+        Algorithm::Ppl => Box::new(ppl::PplTrainer::resume(config, data, bytes)?),
+        Algorithm::Dexperts => Box::new(dexperts::DexpertsTrainer::resume(config, data, bytes)?),
     })
 }
 

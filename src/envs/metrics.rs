@@ -1,0 +1,361 @@
+//! The paper's evaluation metrics (section 5, Appendix E.1) and policy evaluation.
+//!
+//! All sums are undiscounted per-episode returns and costs. With `R_P`, `C_P` the preferred and
+//! `C_N` the non-preferred demonstrators' mean episode cost and return (the environment's
+//! [`ReferenceStats`], from [`REFERENCE_EPISODES`] demonstrator episodes with a fixed seed):
+//!
+//! - normalized return = `100 · mean return / R_P` (the paper does not define it in text or
+//!   code; 100 means "as good as the preferred demonstrations");
+//! - average cost = mean episode cost;
+//! - cost threshold `κ = (C_P + C_N) / 2`, the midpoint the authors' code uses;
+//! - cost-violation ratio = share (in [0, 1]) of episodes whose cost exceeds `κ`;
+//! - CVaR k% cost = mean cost of the worst (highest-cost) `⌈k/100 · n⌉` episodes, k ∈ {50, 20,
+//!   10, 5};
+//! - normalized cost (DSRL's convention) = average cost / `κ`, so 1 sits on the threshold.
+
+use std::collections::BTreeMap;
+use std::sync::Mutex;
+
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use serde::Serialize;
+
+use super::rollout::{demonstration_records, run_episodes, EpisodeOutcome, RolloutError};
+use super::{demonstrator, derive_seed, make, Profile, UnknownEnv};
+use crate::data::Actions;
+
+/// Demonstrator episodes per profile behind the reference statistics.
+pub const REFERENCE_EPISODES: usize = 500;
+/// Seed of the reference episodes (fixed: the normalisation must not move between runs).
+pub const REFERENCE_SEED: u64 = 20231210;
+/// Most episodes one evaluation may run.
+pub const MAX_EPISODES: usize = 100_000;
+
+const STREAM_EVAL: u64 = 101;
+const STREAM_EVAL_POLICY: u64 = 102;
+const STREAM_REFERENCE: u64 = 103;
+
+/// Mean return and cost of the two demonstrators on one environment, and the derived threshold.
+#[derive(Clone, Debug, PartialEq, Serialize, utoipa::ToSchema)]
+pub struct ReferenceStats {
+    pub env: String,
+    /// Episodes per demonstrator.
+    pub episodes: usize,
+    pub seed: u64,
+    pub preferred_return: f64,
+    pub preferred_cost: f64,
+    pub non_preferred_return: f64,
+    pub non_preferred_cost: f64,
+    /// Midpoint of the two mean costs: the cost-violation threshold κ.
+    pub cost_threshold: f64,
+}
+
+impl ReferenceStats {
+    /// Reference statistics from demonstrator outcomes.
+    pub fn from_outcomes(
+        env: &str,
+        seed: u64,
+        preferred: &[EpisodeOutcome],
+        non_preferred: &[EpisodeOutcome],
+    ) -> ReferenceStats {
+        let (preferred_return, preferred_cost) = mean_return_and_cost(preferred);
+        let (non_preferred_return, non_preferred_cost) = mean_return_and_cost(non_preferred);
+        ReferenceStats {
+            env: env.to_string(),
+            episodes: preferred.len(),
+            seed,
+            preferred_return,
+            preferred_cost,
+            non_preferred_return,
+            non_preferred_cost,
+            cost_threshold: (preferred_cost + non_preferred_cost) / 2.0,
+        }
+    }
+}
+
+fn mean(values: impl ExactSizeIterator<Item = f64>) -> f64 {
+    let n = values.len();
+    values.sum::<f64>() / n.max(1) as f64
+}
+
+fn std_dev(values: &[f64]) -> f64 {
+    if values.len() < 2 {
+        return 0.0;
+    }
+    let m = mean(values.iter().copied());
+    let var = values.iter().map(|v| (v - m).powi(2)).sum::<f64>() / (values.len() - 1) as f64;
+    var.sqrt()
+}
+
+pub(crate) fn mean_return_and_cost(outcomes: &[EpisodeOutcome]) -> (f64, f64) {
+    (mean(outcomes.iter().map(|o| o.ret)), mean(outcomes.iter().map(|o| o.cost)))
+}
+
+/// Reference statistics of `env`, computed once per process from [`REFERENCE_EPISODES`]
+/// episodes of each demonstrator with [`REFERENCE_SEED`], then cached.
+pub fn reference_stats(env: &str) -> Result<ReferenceStats, UnknownEnv> {
+    static CACHE: Mutex<BTreeMap<String, ReferenceStats>> = Mutex::new(BTreeMap::new());
+    make(env, 0)?;
+    let mut cache = CACHE.lock().unwrap_or_else(|poisoned| poisoned.into_inner());
+    if let Some(stats) = cache.get(env) {
+        return Ok(stats.clone());
+    }
+    let outcomes = |profile| -> Result<Vec<EpisodeOutcome>, UnknownEnv> {
+        let demo = demonstrator(env, profile)?;
+        let stream = STREAM_REFERENCE + profile as u64;
+        let run = demonstration_records(
+            env,
+            demo.as_ref(),
+            REFERENCE_EPISODES,
+            REFERENCE_SEED,
+            stream,
+            false,
+        );
+        match run {
+            Ok((outcomes, _)) => Ok(outcomes),
+            Err(RolloutError::UnknownEnv(e)) => Err(e),
+            Err(RolloutError::Policy(m)) => unreachable!("demonstrators act validly: {m}"),
+        }
+    };
+    let stats = ReferenceStats::from_outcomes(
+        env,
+        REFERENCE_SEED,
+        &outcomes(Profile::Preferred)?,
+        &outcomes(Profile::NonPreferred)?,
+    );
+    cache.insert(env.to_string(), stats.clone());
+    Ok(stats)
+}
+
+/// CVaR k% cost for the paper's k (Appendix E.1).
+#[derive(Clone, Debug, PartialEq, Serialize, utoipa::ToSchema)]
+pub struct CvarCost {
+    #[serde(rename = "50")]
+    pub k50: f64,
+    #[serde(rename = "20")]
+    pub k20: f64,
+    #[serde(rename = "10")]
+    pub k10: f64,
+    #[serde(rename = "5")]
+    pub k5: f64,
+}
+
+/// The paper's metrics over a set of episodes (see the module docs for the definitions).
+#[derive(Clone, Debug, PartialEq, Serialize, utoipa::ToSchema)]
+pub struct Metrics {
+    pub normalized_return: f64,
+    pub average_return: f64,
+    pub return_std: f64,
+    pub average_cost: f64,
+    pub cost_std: f64,
+    /// Share of episodes with cost above the threshold, in [0, 1].
+    pub cost_violation_ratio: f64,
+    pub cvar_cost: CvarCost,
+    /// DSRL's normalized cost: average cost / threshold.
+    pub normalized_cost: f64,
+    pub cost_threshold: f64,
+}
+
+/// Mean of the worst `⌈k/100 · n⌉` (at least one) episode costs.
+pub fn cvar_cost(costs: &[f64], k_percent: f64) -> f64 {
+    if costs.is_empty() {
+        return 0.0;
+    }
+    let mut sorted = costs.to_vec();
+    sorted.sort_by(|a, b| b.total_cmp(a));
+    let count = ((k_percent / 100.0 * costs.len() as f64).ceil() as usize).clamp(1, costs.len());
+    mean(sorted[..count].iter().copied())
+}
+
+/// The paper's metrics for episodes with these returns and costs against `reference`.
+pub fn compute_metrics(returns: &[f64], costs: &[f64], reference: &ReferenceStats) -> Metrics {
+    let average_return = mean(returns.iter().copied());
+    let average_cost = mean(costs.iter().copied());
+    let threshold = reference.cost_threshold;
+    let violations = costs.iter().filter(|&&c| c > threshold).count();
+    Metrics {
+        normalized_return: 100.0 * average_return / reference.preferred_return,
+        average_return,
+        return_std: std_dev(returns),
+        average_cost,
+        cost_std: std_dev(costs),
+        cost_violation_ratio: violations as f64 / costs.len().max(1) as f64,
+        cvar_cost: CvarCost {
+            k50: cvar_cost(costs, 50.0),
+            k20: cvar_cost(costs, 20.0),
+            k10: cvar_cost(costs, 10.0),
+            k5: cvar_cost(costs, 5.0),
+        },
+        normalized_cost: average_cost / threshold,
+        cost_threshold: threshold,
+    }
+}
+
+/// The result of evaluating a policy on a built-in environment.
+#[derive(Clone, Debug, PartialEq, Serialize, utoipa::ToSchema)]
+pub struct EvalReport {
+    pub env: String,
+    pub episodes: usize,
+    pub seed: u64,
+    pub deterministic: bool,
+    pub metrics: Metrics,
+    pub mean_episode_length: f64,
+    pub reference: ReferenceStats,
+}
+
+/// Why an evaluation could not run.
+#[derive(Debug, thiserror::Error)]
+pub enum EvalError {
+    #[error(transparent)]
+    UnknownEnv(#[from] UnknownEnv),
+    #[error("episodes must be between 1 and {MAX_EPISODES}, got {0}")]
+    Episodes(usize),
+    /// The policy failed or answered with unusable actions.
+    #[error("policy: {0}")]
+    Policy(String),
+}
+
+impl From<RolloutError> for EvalError {
+    fn from(e: RolloutError) -> Self {
+        match e {
+            RolloutError::UnknownEnv(e) => EvalError::UnknownEnv(e),
+            RolloutError::Policy(m) => EvalError::Policy(m),
+        }
+    }
+}
+
+/// Runs `episodes` episodes of `env_name` with `policy` and reports the paper's metrics.
+///
+/// Episodes run side by side (up to [`super::rollout::WAVE`] at a time), so `policy` receives a
+/// batch of observations (`rows × obs_dim`, row-major) and returns one action per row in the
+/// environment's units. It also receives `deterministic` and a generator seeded from `seed`
+/// to sample with, e.g. `|obs, det, rng| policy.act(obs, det, rng)`. Episode `i` is reset with a
+/// seed derived from `(seed, i)`, so the same seed gives the same initial states for every
+/// policy, and a deterministic policy gives the same report. A background task can cancel an
+/// evaluation by having `policy` return an error (e.g. after checking a cancellation flag): the
+/// error ends the rollout at once and comes back as [`EvalError::Policy`].
+pub fn evaluate<F, E>(
+    env_name: &str,
+    mut policy: F,
+    episodes: usize,
+    seed: u64,
+    deterministic: bool,
+) -> Result<EvalReport, EvalError>
+where
+    F: FnMut(&[f32], bool, &mut ChaCha8Rng) -> Result<Actions, E>,
+    E: std::fmt::Display,
+{
+    make(env_name, 0)?;
+    if episodes == 0 || episodes > MAX_EPISODES {
+        return Err(EvalError::Episodes(episodes));
+    }
+    let reference = reference_stats(env_name)?;
+    let seeds: Vec<u64> = (0..episodes as u64).map(|i| derive_seed(seed, STREAM_EVAL, i)).collect();
+    let mut rng = ChaCha8Rng::seed_from_u64(derive_seed(seed, STREAM_EVAL_POLICY, 0));
+    let (outcomes, _) = run_episodes(
+        env_name,
+        &seeds,
+        &mut rng,
+        |obs, rng| policy(obs, deterministic, rng).map_err(|e| e.to_string()),
+        false,
+    )?;
+    let returns: Vec<f64> = outcomes.iter().map(|o| o.ret).collect();
+    let costs: Vec<f64> = outcomes.iter().map(|o| o.cost).collect();
+    Ok(EvalReport {
+        env: env_name.to_string(),
+        episodes,
+        seed,
+        deterministic,
+        metrics: compute_metrics(&returns, &costs, &reference),
+        mean_episode_length: mean(outcomes.iter().map(|o| o.length as f64)),
+        reference,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn reference() -> ReferenceStats {
+        ReferenceStats {
+            env: "test".into(),
+            episodes: 10,
+            seed: 0,
+            preferred_return: 50.0,
+            preferred_cost: 2.0,
+            non_preferred_return: 51.0,
+            non_preferred_cost: 10.0,
+            cost_threshold: 6.0,
+        }
+    }
+
+    #[test]
+    fn metrics_match_hand_computed_values() {
+        let returns = [40.0, 50.0, 60.0, 50.0];
+        let costs = [0.0, 4.0, 8.0, 12.0];
+        let m = compute_metrics(&returns, &costs, &reference());
+        assert_eq!(m.average_return, 50.0);
+        assert_eq!(m.normalized_return, 100.0);
+        assert_eq!(m.average_cost, 6.0);
+        // Costs 8 and 12 exceed the threshold 6 (6 itself would not).
+        assert_eq!(m.cost_violation_ratio, 0.5);
+        assert_eq!(m.normalized_cost, 1.0);
+        // Worst 50% of 4 = 2 episodes: (12 + 8)/2; worst 20%, 10%, 5% = ⌈…⌉ = 1 episode: 12.
+        assert_eq!(m.cvar_cost, CvarCost { k50: 10.0, k20: 12.0, k10: 12.0, k5: 12.0 });
+        // Sample standard deviation of 40, 50, 60, 50: sqrt(200/3).
+        assert!((m.return_std - (200.0f64 / 3.0).sqrt()).abs() < 1e-12);
+    }
+
+    #[test]
+    fn cvar_counts_the_worst_share_of_episodes() {
+        let costs: Vec<f64> = (1..=100).map(f64::from).collect();
+        assert_eq!(cvar_cost(&costs, 5.0), (96..=100).sum::<i32>() as f64 / 5.0);
+        assert_eq!(cvar_cost(&costs, 10.0), (91..=100).sum::<i32>() as f64 / 10.0);
+        assert_eq!(cvar_cost(&costs, 50.0), (51..=100).sum::<i32>() as f64 / 50.0);
+        assert_eq!(cvar_cost(&[3.0, 1.0, 2.0], 20.0), 3.0, "⌈0.6⌉ = 1 episode");
+        assert_eq!(cvar_cost(&[], 10.0), 0.0);
+    }
+
+    #[test]
+    fn cvar_serialises_with_the_percentages_as_keys() {
+        let json =
+            serde_json::to_value(CvarCost { k50: 1.0, k20: 2.0, k10: 3.0, k5: 4.0 }).unwrap();
+        assert_eq!(json, serde_json::json!({"50": 1.0, "20": 2.0, "10": 3.0, "5": 4.0}));
+    }
+
+    #[test]
+    fn evaluate_rejects_bad_requests() {
+        let policy =
+            |_: &[f32], _: bool, _: &mut ChaCha8Rng| Ok::<_, String>(Actions::Discrete(vec![]));
+        assert!(matches!(evaluate("nope", policy, 10, 0, true), Err(EvalError::UnknownEnv(_))));
+        assert!(matches!(evaluate("six-rooms", policy, 0, 0, true), Err(EvalError::Episodes(0))));
+        let failing = |_: &[f32], _: bool, _: &mut ChaCha8Rng| Err::<Actions, _>("weights missing");
+        let err = evaluate("six-rooms", failing, 3, 0, true).unwrap_err();
+        assert_eq!(err.to_string(), "policy: weights missing");
+    }
+
+    #[test]
+    fn evaluating_a_demonstrator_reproduces_its_reference_profile() {
+        let demo = demonstrator("six-rooms", Profile::Preferred).unwrap();
+        let report = evaluate(
+            "six-rooms",
+            |obs, _, rng| Ok::<_, String>(demo.act_batch(obs, rng)),
+            300,
+            4,
+            false,
+        )
+        .unwrap();
+        let r = &report.reference;
+        assert!(report.metrics.normalized_return > 90.0, "{report:?}");
+        assert!(report.metrics.average_cost < r.cost_threshold, "{report:?}");
+        let again = evaluate(
+            "six-rooms",
+            |obs, _, rng| Ok::<_, String>(demo.act_batch(obs, rng)),
+            300,
+            4,
+            false,
+        )
+        .unwrap();
+        assert_eq!(report, again, "same seed, same report");
+    }
+}
