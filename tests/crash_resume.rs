@@ -80,7 +80,7 @@ fn uninterrupted_run(config: &ResolvedConfig, log_every: u64) -> (Metrics, Vec<u
     let total = config.total_steps();
     while !trainer.is_finished() {
         let next = trainer.progress().step + 1;
-        let record = next % log_every == 0 || next == total;
+        let record = next.is_multiple_of(log_every) || next == total;
         for (name, value) in trainer.step(record).unwrap() {
             metrics.insert((name.to_owned(), next as i64), value);
         }

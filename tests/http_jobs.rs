@@ -377,3 +377,50 @@ async fn bad_observations_get_the_exact_status_and_code() {
     assert_error(missing, StatusCode::NOT_FOUND, "not_found").await;
     assert_eq!(app.get("/v2/health/ready").send().await.unwrap().status(), StatusCode::OK);
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_graceful_restart_checkpoints_the_running_job_and_resumes_it() {
+    let mut app = TestApp::spawn().await;
+    let (u, n) = upload_grid(&app).await;
+    // Checkpoints only at shutdown: the resume can only come from the shutdown checkpoint.
+    let job = create_job(
+        &app.client,
+        &app.base_url,
+        json!({"algorithm": "safedice", "unlabeled_dataset": u, "non_preferred_dataset": n,
+               "config": small_config(3000, 2),
+               "runner": {"log_every": 10, "checkpoint_every": 100_000_000}}),
+    )
+    .await;
+    let id = job["id"].as_str().unwrap().to_owned();
+    let before = wait_for_job(&app.client, &app.base_url, &id, Duration::from_secs(300), |j| {
+        j["progress"]["step"].as_u64().unwrap() >= 100
+    })
+    .await;
+    // A dataset a running job uses cannot be deleted.
+    let delete = app.delete(&format!("/v1/datasets/{u}")).send().await.unwrap();
+    assert_error(delete, StatusCode::CONFLICT, "dataset_in_use").await;
+
+    app.restart().await;
+    let lowest = std::cell::Cell::new(u64::MAX);
+    let done = wait_for_job(&app.client, &app.base_url, &id, Duration::from_secs(300), |j| {
+        if j["status"] == "running" {
+            lowest.set(lowest.get().min(j["progress"]["step"].as_u64().unwrap()));
+        }
+        j["status"] == "succeeded"
+    })
+    .await;
+    let stopped_at = before["progress"]["step"].as_u64().unwrap();
+    assert!(lowest.get() >= stopped_at, "resumed at {} < {stopped_at}", lowest.get());
+    let total = done["progress"]["total"].as_u64().unwrap();
+    let metrics =
+        get_json(&app.client, &app.url(&format!("/v1/jobs/{id}/metrics?max_points=10000"))).await;
+    let mut seen = std::collections::BTreeMap::<(String, u64), usize>::new();
+    for row in metrics["rows"].as_array().unwrap() {
+        let key = (row["name"].as_str().unwrap().to_owned(), row["step"].as_u64().unwrap());
+        *seen.entry(key).or_default() += 1;
+    }
+    assert!(seen.values().all(|&count| count == 1));
+    let steps: std::collections::BTreeSet<u64> = seen.keys().map(|(_, step)| *step).collect();
+    assert_eq!(steps, (1..=total / 10).map(|k| k * 10).collect(), "no recorded step lost");
+    assert_eq!(app.count_rows("job_checkpoints").await, 0, "removed once the job succeeded");
+}
