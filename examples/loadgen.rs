@@ -82,9 +82,16 @@ fn synthetic_dataset() -> Dataset {
     }
 }
 
+/// An in-process server on its own temporary data directory (removed when dropped).
+struct LocalServer {
+    _server: Server,
+    _data_dir: tempfile::TempDir,
+}
+
 /// Starts a server in-process, trains a policy on it; returns the server, its URL and the policy.
-async fn prepare_server(client: &reqwest::Client) -> anyhow::Result<(Server, String, String)> {
-    let dir = tempfile::tempdir()?.keep();
+async fn prepare_server(client: &reqwest::Client) -> anyhow::Result<(LocalServer, String, String)> {
+    let data_dir = tempfile::tempdir()?;
+    let dir = data_dir.path().to_path_buf();
     let mut config = ServeConfig::new(&dir);
     config.bind = "127.0.0.1:0".parse()?;
     let server = Server::start(config).await?;
@@ -111,7 +118,8 @@ async fn prepare_server(client: &reqwest::Client) -> anyhow::Result<(Server, Str
         match job["status"].as_str() {
             Some("succeeded") => {
                 let policy = job["policy_id"].as_str().context("policy id")?.to_owned();
-                return Ok((server, url, policy));
+                let local = LocalServer { _server: server, _data_dir: data_dir };
+                return Ok((local, url, policy));
             }
             Some("failed" | "cancelled") => bail!("training failed: {job}"),
             _ => tokio::time::sleep(Duration::from_millis(100)).await,
