@@ -6,6 +6,7 @@
 //! streams) → handler.
 
 pub mod auth;
+pub mod datasets;
 pub mod error;
 pub mod extract;
 pub mod health;
@@ -71,10 +72,11 @@ fn routes() -> OpenApiRouter<AppState> {
         .merge(health::router())
         .merge(metrics::router())
         .merge(openapi::router())
+        .merge(datasets::router())
         .layer(middleware::from_fn(timeout));
     // Routes that legitimately take long: uploads of up to --max-upload-bytes (and, later,
     // event streams).
-    let long_running = OpenApiRouter::new();
+    let long_running = OpenApiRouter::new().merge(datasets::upload_router());
     OpenApiRouter::with_openapi(openapi::base()).merge(bounded).merge(long_running)
 }
 

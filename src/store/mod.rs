@@ -10,6 +10,7 @@
 //! `--max-upload-bytes` (1 GiB by default) and SQLite caps a blob at 1 GB; a row is only inserted
 //! once its file is durably in place, and files without a row are removed at start-up.
 
+pub mod datasets;
 pub mod jobs;
 
 use std::path::{Path, PathBuf};
@@ -19,6 +20,8 @@ use std::time::Duration;
 use anyhow::Context;
 use sqlx::sqlite::{SqliteConnectOptions, SqliteJournalMode, SqlitePoolOptions, SqliteSynchronous};
 use sqlx::SqlitePool;
+
+pub use datasets::{DatasetRecord, DeleteOutcome, NewDataset};
 
 const DATABASE_FILE: &str = "safedice.sqlite";
 const DATASETS_DIR: &str = "datasets";
@@ -90,6 +93,10 @@ impl Store {
         self.data_dir.join(TMP_DIR)
     }
 
+    fn datasets_dir(&self) -> PathBuf {
+        self.data_dir.join(DATASETS_DIR)
+    }
+
     /// Whether the database answers a query (readiness).
     pub async fn ping(&self) -> Result<(), sqlx::Error> {
         sqlx::query("SELECT 1").execute(&self.pool).await.map(|_| ())
@@ -107,6 +114,17 @@ impl Store {
             let path = entry?.path();
             tracing::info!(path = %path.display(), "removing an interrupted upload");
             remove_path(&path)?;
+        }
+        let known: std::collections::HashSet<String> =
+            self.dataset_ids().await?.into_iter().collect();
+        for entry in std::fs::read_dir(self.datasets_dir())? {
+            let path = entry?.path();
+            let is_known =
+                datasets::id_of_canonical_file(&path).is_some_and(|id| known.contains(id));
+            if !is_known {
+                tracing::warn!(path = %path.display(), "removing a dataset file without a row");
+                remove_path(&path)?;
+            }
         }
         Ok(())
     }
