@@ -13,6 +13,7 @@ pub mod health;
 pub mod metrics;
 pub mod openapi;
 pub mod pagination;
+pub mod ui;
 
 use std::sync::Arc;
 use std::time::Duration;
@@ -72,6 +73,7 @@ fn routes() -> OpenApiRouter<AppState> {
         .merge(health::router())
         .merge(metrics::router())
         .merge(openapi::router())
+        .merge(ui::router())
         .merge(datasets::router())
         .layer(middleware::from_fn(timeout));
     // Routes that legitimately take long: uploads of up to --max-upload-bytes (and, later,
