@@ -10,9 +10,12 @@ pub mod datasets;
 pub mod error;
 pub mod extract;
 pub mod health;
+pub mod inference;
+pub mod jobs;
 pub mod metrics;
 pub mod openapi;
 pub mod pagination;
+pub mod policies;
 pub mod ui;
 
 use std::sync::Arc;
@@ -51,6 +54,10 @@ pub struct AppState {
     pub tokens: Arc<auth::Tokens>,
     /// Cancelled when the server begins a graceful shutdown (long-running work stops on it).
     pub shutdown: CancellationToken,
+    /// The training worker pool (started by the server).
+    pub jobs: crate::jobs::JobRunner,
+    /// Trained policies loaded for inference.
+    pub policies: Arc<inference::PolicyCache>,
 }
 
 impl AppState {
@@ -58,11 +65,17 @@ impl AppState {
         let tokens =
             auth::Tokens::new(config.api_token.as_deref(), config.inference_token.as_deref());
         AppState {
-            config: Arc::new(config),
-            store,
             metrics: Arc::new(metrics::Metrics::new()),
             tokens: Arc::new(tokens),
+            jobs: crate::jobs::JobRunner::new(
+                store.clone(),
+                usize::from(config.workers),
+                shutdown.clone(),
+            ),
+            policies: Arc::new(inference::PolicyCache::new(store.clone())),
             shutdown,
+            config: Arc::new(config),
+            store,
         }
     }
 }
@@ -75,10 +88,12 @@ fn routes() -> OpenApiRouter<AppState> {
         .merge(openapi::router())
         .merge(ui::router())
         .merge(datasets::router())
+        .merge(jobs::router())
+        .merge(policies::router())
+        .merge(inference::router())
         .layer(middleware::from_fn(timeout));
-    // Routes that legitimately take long: uploads of up to --max-upload-bytes (and, later,
-    // event streams).
-    let long_running = OpenApiRouter::new().merge(datasets::upload_router());
+    // Routes that legitimately take long: uploads of up to --max-upload-bytes and event streams.
+    let long_running = OpenApiRouter::new().merge(datasets::upload_router()).merge(jobs::streams());
     OpenApiRouter::with_openapi(openapi::base()).merge(bounded).merge(long_running)
 }
 

@@ -12,6 +12,7 @@
 
 pub mod datasets;
 pub mod jobs;
+pub mod policies;
 
 use std::path::{Path, PathBuf};
 use std::str::FromStr;
