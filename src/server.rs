@@ -30,6 +30,7 @@ impl Server {
     pub async fn start(config: ServeConfig) -> anyhow::Result<Server> {
         config.validate()?;
         let store = Store::open(&config.data_dir).await?;
+        store.remove_leftovers().await?;
         let listener = tokio::net::TcpListener::bind(config.bind)
             .await
             .with_context(|| format!("cannot listen on {}", config.bind))?;

@@ -56,7 +56,7 @@ pub fn demonstrator(env: &str, profile: Profile) -> Result<Box<dyn Demonstrator>
 
 impl Demonstrator for six_rooms::RouteFollower {
     fn obs_dim(&self) -> usize {
-        super::six_rooms::Layout::new().n_free()
+        six_rooms::RouteFollower::obs_dim(self)
     }
 
     fn act_batch(&self, observations: &[f32], rng: &mut ChaCha8Rng) -> Actions {

@@ -231,7 +231,9 @@ impl From<RolloutError> for EvalError {
 /// environment's units. It also receives `deterministic` and a generator seeded from `seed`
 /// to sample with, e.g. `|obs, det, rng| policy.act(obs, det, rng)`. Episode `i` is reset with a
 /// seed derived from `(seed, i)`, so the same seed gives the same initial states for every
-/// policy, and a deterministic policy gives the same report.
+/// policy, and a deterministic policy gives the same report. A background task can cancel an
+/// evaluation by having `policy` return an error (e.g. after checking a cancellation flag): the
+/// error ends the rollout at once and comes back as [`EvalError::Policy`].
 pub fn evaluate<F, E>(
     env_name: &str,
     mut policy: F,

@@ -227,8 +227,8 @@ impl Env for PointGoal {
         s.heading = (s.heading + std::f32::consts::PI).rem_euclid(std::f32::consts::TAU)
             - std::f32::consts::PI;
         let h = [s.heading.cos(), s.heading.sin()];
-        for i in 0..2 {
-            s.vel[i] += DT * (ACCEL * thrust * h[i] - DRAG * s.vel[i]);
+        for (i, h) in h.into_iter().enumerate() {
+            s.vel[i] += DT * (ACCEL * thrust * h - DRAG * s.vel[i]);
             s.pos[i] += DT * s.vel[i];
             if s.pos[i].abs() > ARENA {
                 s.pos[i] = s.pos[i].clamp(-ARENA, ARENA);

@@ -87,21 +87,21 @@ impl Layout {
     pub fn new() -> Layout {
         let mut cells = vec![Cell::Wall; HEIGHT * WIDTH];
         for (r, c) in (0..HEIGHT).flat_map(|r| (0..WIDTH).map(move |c| (r, c))) {
-            let in_band = |x: usize| x % (ROOM + 1) != 0;
+            let in_band = |x: usize| !x.is_multiple_of(ROOM + 1);
             if in_band(r) && in_band(c) {
                 cells[r * WIDTH + c] = Cell::Room(r / (ROOM + 1), c / (ROOM + 1));
             }
         }
-        for room_row in 0..ROOM_ROWS {
+        for (room_row, offset) in SIDE_DOOR_OFFSET.iter().enumerate() {
             for room_col in 0..ROOM_COLS - 1 {
-                let r = room_row * (ROOM + 1) + 1 + SIDE_DOOR_OFFSET[room_row];
+                let r = room_row * (ROOM + 1) + 1 + offset;
                 let c = (room_col + 1) * (ROOM + 1);
                 cells[r * WIDTH + c] = Cell::Door((room_row, room_col), (room_row, room_col + 1));
             }
         }
-        for room_col in 0..ROOM_COLS {
+        for (room_col, offset) in FLOOR_DOOR_OFFSET.iter().enumerate() {
             let r = ROOM + 1;
-            let c = room_col * (ROOM + 1) + 1 + FLOOR_DOOR_OFFSET[room_col];
+            let c = room_col * (ROOM + 1) + 1 + offset;
             cells[r * WIDTH + c] = Cell::Door((0, room_col), (1, room_col));
         }
         let mut index = vec![None; HEIGHT * WIDTH];
@@ -288,6 +288,10 @@ impl RouteFollower {
         let layout = Layout::new();
         let potential = route_potential(&layout, &route(preferred));
         RouteFollower { layout, potential, epsilon: Self::EPSILON }
+    }
+
+    pub fn obs_dim(&self) -> usize {
+        self.layout.n_free()
     }
 
     /// Action for the one-hot observation `obs`; ties between equally good moves are broken at

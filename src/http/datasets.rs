@@ -319,7 +319,7 @@ fn default_name(file_name: &str) -> DatasetName {
     tag = "datasets",
     params(PageParams),
     responses(
-        (status = 200, body = Page<DatasetResource>),
+        (status = 200, description = "One page of datasets, newest first", body = Page<DatasetResource>),
         (status = 400, description = "Bad `limit`/`offset` (`invalid_pagination`, `bad_request`)", body = ErrorBody),
     )
 )]
@@ -340,7 +340,7 @@ async fn list_datasets(
     tag = "datasets",
     params(("id" = String, Path, description = "Dataset id")),
     responses(
-        (status = 200, body = DatasetResource),
+        (status = 200, description = "The dataset", body = DatasetResource),
         (status = 404, description = "No such dataset (`not_found`)", body = ErrorBody),
     )
 )]

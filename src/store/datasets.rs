@@ -97,9 +97,10 @@ impl TryFrom<DatasetRow> for DatasetRecord {
     type Error = StoreError;
 
     fn try_from(row: DatasetRow) -> Result<Self, StoreError> {
-        let format = parse_format(&row.format).ok_or_else(|| {
-            StoreError::Corrupt(row.id.clone(), format!("format {:?}", row.format))
-        })?;
+        let format: Format = row
+            .format
+            .parse()
+            .map_err(|e: data::ParseError| StoreError::Corrupt(row.id.clone(), e.message))?;
         Ok(DatasetRecord {
             id: row.id,
             name: row.name,
@@ -132,10 +133,6 @@ pub enum DeleteOutcome {
 pub(super) fn id_of_canonical_file(path: &Path) -> Option<&str> {
     let is_canonical = path.extension().is_some_and(|e| e == CANONICAL_EXTENSION);
     is_canonical.then(|| path.file_stem()?.to_str()).flatten()
-}
-
-fn parse_format(name: &str) -> Option<Format> {
-    [Format::Jsonl, Format::Csv, Format::Npz, Format::Hdf5].into_iter().find(|f| f.as_str() == name)
 }
 
 fn sha256_hex(bytes: &[u8]) -> String {

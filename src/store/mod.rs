@@ -49,8 +49,9 @@ pub struct Store {
 }
 
 impl Store {
-    /// Opens (creating on first start) the data directory and its database, runs the pending
-    /// migrations and clears what an interrupted run left behind.
+    /// Opens (creating on first start) the data directory and its database and runs the pending
+    /// migrations. Safe while a server runs on the same directory (tests and tools use it to
+    /// inspect the store); only the server calls [`Store::remove_leftovers`].
     pub async fn open(data_dir: &Path) -> anyhow::Result<Store> {
         for dir in [data_dir.to_path_buf(), data_dir.join(DATASETS_DIR), data_dir.join(TMP_DIR)] {
             std::fs::create_dir_all(&dir)
@@ -75,9 +76,7 @@ impl Store {
             .run(&pool)
             .await
             .with_context(|| format!("cannot migrate the database {}", database.display()))?;
-        let store = Store { pool, data_dir: data_dir.to_path_buf() };
-        store.remove_leftovers().await?;
-        Ok(store)
+        Ok(Store { pool, data_dir: data_dir.to_path_buf() })
     }
 
     pub fn pool(&self) -> &SqlitePool {
@@ -110,7 +109,8 @@ impl Store {
 
     /// Removes temp uploads and dataset files without a database row: what a crash between
     /// writing a file and committing its row (or between deleting a row and its file) leaves.
-    async fn remove_leftovers(&self) -> anyhow::Result<()> {
+    /// Call it at start-up, before serving: it would also remove uploads in flight.
+    pub async fn remove_leftovers(&self) -> anyhow::Result<()> {
         for entry in std::fs::read_dir(self.tmp_dir())? {
             let path = entry?.path();
             tracing::info!(path = %path.display(), "removing an interrupted upload");
