@@ -92,7 +92,7 @@ fn routes() -> OpenApiRouter<AppState> {
         .merge(policies::router())
         .merge(inference::router())
         .layer(middleware::from_fn(timeout));
-    // Routes that legitimately take long: uploads of up to --max-upload-bytes and event streams.
+    // Routes that legitimately take long: uploads of up to --max-upload-bytes, event streams.
     let long_running = OpenApiRouter::new().merge(datasets::upload_router()).merge(jobs::streams());
     OpenApiRouter::with_openapi(openapi::base()).merge(bounded).merge(long_running)
 }

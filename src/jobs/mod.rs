@@ -147,29 +147,10 @@ pub async fn load_training_data(
     unlabeled: &str,
     non_preferred: Option<&str>,
 ) -> Result<crate::algo::TrainingData, crate::store::StoreError> {
-    let unlabeled = Arc::new(load_dataset(store, unlabeled).await?);
+    let unlabeled = Arc::new(store.load_dataset(unlabeled).await?);
     let non_preferred = match non_preferred {
-        Some(id) => Some(Arc::new(load_dataset(store, id).await?)),
+        Some(id) => Some(Arc::new(store.load_dataset(id).await?)),
         None => None,
     };
     Ok(crate::algo::TrainingData { unlabeled, non_preferred })
-}
-
-/// Reads a stored dataset's canonical file (`<data-dir>/datasets/<id>.canonical`).
-// Interim: replaced by the dataset store's own loader (with its hash check) once it lands.
-async fn load_dataset(
-    store: &Store,
-    id: &str,
-) -> Result<crate::data::Dataset, crate::store::StoreError> {
-    use crate::store::StoreError;
-    let path = store.data_dir().join("datasets").join(format!("{id}.canonical"));
-    let bytes = tokio::fs::read(&path).await.map_err(|e| match e.kind() {
-        std::io::ErrorKind::NotFound => StoreError::NotFound { kind: "dataset", id: id.into() },
-        _ => e.into(),
-    })?;
-    let id = id.to_owned();
-    tokio::task::spawn_blocking(move || crate::data::decode_canonical(&bytes))
-        .await
-        .map_err(std::io::Error::other)?
-        .map_err(|e| StoreError::Corrupt(id, e.to_string()))
 }
