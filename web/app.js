@@ -578,8 +578,11 @@ async function finalMetrics(job) {
   return last;
 }
 
-function pickAxis(names, pattern, fallbackIndex) {
-  return names.find((n) => /^eval/.test(n) && pattern.test(n)) || names.find((n) => pattern.test(n)) || names[fallbackIndex] || '';
+/** The default scatter axis: an evaluation metric matching `pattern` (cost, return), else any
+ *  metric matching it, else a metric every chosen job has (other than `avoid`). */
+function pickAxis(names, common, pattern, avoid) {
+  return names.find((n) => /^eval/.test(n) && pattern.test(n)) || names.find((n) => pattern.test(n))
+    || common.find((n) => n !== avoid) || common[0] || names[0] || '';
 }
 
 function comparePage(view) {
@@ -613,8 +616,9 @@ function comparePage(view) {
         names.map((n) => h('tr', {}, h('td', { class: 'mono' }, n), finals.map((f) => h('td', { class: 'num' }, fmt(f[n])))))));
     const xSelect = h('select', { id: 'scatter-x' }, names.map((n) => h('option', { value: n }, n)));
     const ySelect = h('select', { id: 'scatter-y' }, names.map((n) => h('option', { value: n }, n)));
-    xSelect.value = pickAxis(names, /cost/, 0);
-    ySelect.value = pickAxis(names, /return/, 1);
+    const common = names.filter((n) => finals.every((f) => typeof f[n] === 'number'));
+    xSelect.value = pickAxis(names, common, /cost/, null);
+    ySelect.value = pickAxis(names, common, /return/, xSelect.value);
     const scatter = h('div', { class: 'chart-box', 'data-chart': 'scatter' });
     const drawScatter = async () => {
       const [x, y] = [xSelect.value, ySelect.value];
