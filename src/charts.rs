@@ -154,10 +154,11 @@ fn safe_color(color: Option<&str>, fallback_index: usize) -> String {
     }
 }
 
-/// The plot area in pixels.
+/// The plot area in pixels: below the title and the legend rows.
 struct Frame {
     x: Axis,
     y: Axis,
+    top: f64,
 }
 
 impl Frame {
@@ -166,7 +167,7 @@ impl Frame {
     }
 
     fn py(&self, y: f64) -> f64 {
-        HEIGHT - MARGIN_BOTTOM - self.y.fraction(y) * (HEIGHT - MARGIN_TOP - MARGIN_BOTTOM)
+        HEIGHT - MARGIN_BOTTOM - self.y.fraction(y) * (HEIGHT - self.top - MARGIN_BOTTOM)
     }
 }
 
@@ -185,7 +186,7 @@ fn frame_svg(out: &mut String, kind: &str, title: &str, x_label: &str, y_label: 
         escape(title)
     );
     let (left, right) = (MARGIN_LEFT, WIDTH - MARGIN_RIGHT);
-    let (top, bottom) = (MARGIN_TOP, HEIGHT - MARGIN_BOTTOM);
+    let (top, bottom) = (f.top, HEIGHT - MARGIN_BOTTOM);
     out.push_str(r##"<g class="grid" stroke="#e5e7eb" stroke-width="1">"##);
     for &t in &f.y.ticks {
         let y = f.py(t);
@@ -247,17 +248,43 @@ fn empty_note(out: &mut String) {
     );
 }
 
-/// A legend entry per (name, colour), laid out left to right under the title.
+/// Height of one legend row.
+const LEGEND_ROW: f64 = 15.0;
+
+/// Legend entries placed left to right under the title, wrapping at the chart's width:
+/// (row, x, name, colour).
+fn legend_layout(entries: &[(String, String)]) -> Vec<(usize, f64, &str, &str)> {
+    let mut placed = Vec::with_capacity(entries.len());
+    let (mut row, mut x) = (0, MARGIN_LEFT);
+    for (name, color) in entries {
+        // Approximate text width: 6.2 px per character at font-size 11.
+        let width = 20.0 + 6.2 * name.chars().count() as f64;
+        if x + width > WIDTH - MARGIN_RIGHT && x > MARGIN_LEFT {
+            (row, x) = (row + 1, MARGIN_LEFT);
+        }
+        placed.push((row, x, name.as_str(), color.as_str()));
+        x += width;
+    }
+    placed
+}
+
+fn legend_rows(entries: &[(String, String)]) -> usize {
+    legend_layout(entries).last().map_or(0, |&(row, ..)| row + 1)
+}
+
+/// Top of the plot area below `rows` legend rows.
+fn plot_top(rows: usize) -> f64 {
+    MARGIN_TOP + LEGEND_ROW * rows as f64
+}
+
 fn legend(out: &mut String, entries: &[(String, String)]) {
     out.push_str(r#"<g class="legend">"#);
-    let mut x = WIDTH - MARGIN_RIGHT;
-    // Right-aligned: place from the right edge leftwards, approximating text width.
-    for (name, color) in entries.iter().rev() {
-        let width = 18.0 + 6.5 * name.chars().count() as f64;
-        x -= width;
+    for (row, x, name, color) in legend_layout(entries) {
+        let y = 36.0 + LEGEND_ROW * row as f64;
         let _ = write!(
             out,
-            r##"<rect x="{x:.1}" y="12" width="10" height="10" rx="2" fill="{color}"/><text x="{:.1}" y="21" fill="#374151">{}</text>"##,
+            r##"<rect x="{x:.1}" y="{:.1}" width="10" height="10" rx="2" fill="{color}"/><text x="{:.1}" y="{y:.1}" fill="#374151">{}</text>"##,
+            y - 9.0,
             x + 14.0,
             escape(name)
         );
@@ -270,17 +297,25 @@ fn legend(out: &mut String, entries: &[(String, String)]) {
 pub fn line_svg(chart: &LineChart) -> String {
     let finite = |p: &&[f64; 2]| p[0].is_finite() && p[1].is_finite();
     let all = || chart.series.iter().flat_map(|s| s.points.iter().filter(finite));
-    let frame =
-        Frame { x: Axis::covering(all().map(|p| p[0])), y: Axis::covering(all().map(|p| p[1])) };
+    let entries: Vec<(String, String)> = chart
+        .series
+        .iter()
+        .enumerate()
+        .map(|(i, s)| (s.name.clone(), safe_color(s.color.as_deref(), i)))
+        .collect();
+    let rows = if entries.len() > 1 { legend_rows(&entries) } else { 0 };
+    let frame = Frame {
+        x: Axis::covering(all().map(|p| p[0])),
+        y: Axis::covering(all().map(|p| p[1])),
+        top: plot_top(rows),
+    };
     let mut out = String::new();
     frame_svg(&mut out, "line", &chart.title, &chart.x_label, &chart.y_label, &frame);
     if all().next().is_none() {
         empty_note(&mut out);
     }
     let markers = chart.series.iter().all(|s| s.points.len() <= MARKER_LIMIT);
-    let mut entries = Vec::new();
-    for (i, series) in chart.series.iter().enumerate() {
-        let color = safe_color(series.color.as_deref(), i);
+    for (series, (_, color)) in chart.series.iter().zip(&entries) {
         let points: Vec<(f64, f64)> =
             series.points.iter().filter(finite).map(|p| (frame.px(p[0]), frame.py(p[1]))).collect();
         let coordinates: Vec<String> =
@@ -300,9 +335,8 @@ pub fn line_svg(chart: &LineChart) -> String {
                 );
             }
         }
-        entries.push((series.name.clone(), color));
     }
-    if chart.series.len() > 1 {
+    if rows > 0 {
         legend(&mut out, &entries);
     }
     out.push_str("</svg>");
@@ -314,26 +348,31 @@ pub fn line_svg(chart: &LineChart) -> String {
 pub fn scatter_svg(chart: &ScatterChart) -> String {
     let points: Vec<&ScatterPoint> =
         chart.points.iter().filter(|p| p.x.is_finite() && p.y.is_finite()).collect();
-    let frame = Frame {
-        x: Axis::covering(points.iter().map(|p| p.x)),
-        y: Axis::covering(points.iter().map(|p| p.y)),
-    };
-    let mut out = String::new();
-    frame_svg(&mut out, "scatter", &chart.title, &chart.x_label, &chart.y_label, &frame);
-    if points.is_empty() {
-        empty_note(&mut out);
-    }
     let mut groups: Vec<(String, String)> = Vec::new();
+    let mut colors = Vec::with_capacity(points.len());
     for (i, p) in points.iter().enumerate() {
         let group = p.group.clone().unwrap_or_else(|| p.label.clone());
         let color = match groups.iter().find(|(g, _)| *g == group) {
             Some((_, c)) => c.clone(),
             None => {
                 let c = safe_color(p.color.as_deref(), i);
-                groups.push((group.clone(), c.clone()));
+                groups.push((group, c.clone()));
                 c
             }
         };
+        colors.push(color);
+    }
+    let frame = Frame {
+        x: Axis::covering(points.iter().map(|p| p.x)),
+        y: Axis::covering(points.iter().map(|p| p.y)),
+        top: plot_top(legend_rows(&groups)),
+    };
+    let mut out = String::new();
+    frame_svg(&mut out, "scatter", &chart.title, &chart.x_label, &chart.y_label, &frame);
+    if points.is_empty() {
+        empty_note(&mut out);
+    }
+    for (p, color) in points.iter().zip(&colors) {
         let (x, y) = (frame.px(p.x), frame.py(p.y));
         let _ = write!(
             out,

@@ -443,7 +443,7 @@ function jobsPage(view) {
 // Metric groups of the job page, matched on the metric name.
 const METRIC_GROUPS = [
   { key: 'losses', title: 'Losses', y: 'loss', test: (n) => n.endsWith('_loss') },
-  { key: 'alpha', title: 'α̂ (Eq. 15)', y: 'α̂', test: (n) => n.startsWith('alpha_hat') },
+  { key: 'alpha', title: 'α̂ (Eq. 15)', y: 'α̂', test: (n) => n === 'alpha_hat' },
   { key: 'weights', title: 'Weight statistics', y: 'value', test: (n) => /^(ess|weight|advantage|reward_(mean|std|clipped))/.test(n) },
   { key: 'discriminator', title: 'Discriminator', y: 'probability', test: (n) => n.startsWith('discriminator_') },
   { key: 'eval', title: 'Evaluation', y: 'value', test: (n) => /^eval/.test(n) },
@@ -497,6 +497,10 @@ async function drawCharts(container, job) {
         : 'No metrics recorded yet: the worker records them every log_every steps (runner option on the Jobs form).'));
     return;
   }
+  // Metrics recorded once (e.g. alpha-hat diagnostics at the end of the discriminator phase)
+  // read better as numbers than as one-point charts.
+  const once = [...series.entries()].filter(([name, points]) => points.length === 1 && name !== 'alpha_hat');
+  once.forEach(([name]) => series.delete(name));
   const specs = chartSpecs(job, series);
   const svgs = await Promise.all(specs.map((spec) => renderChart('line', spec)));
   const boxes = specs.map((spec, i) => {
@@ -504,7 +508,10 @@ async function drawCharts(container, job) {
     box.innerHTML = svgs[i]; // server-rendered SVG: every text in it is escaped on the server
     return box;
   });
-  container.replaceChildren(h('div', { class: 'grid2', id: 'charts' }, boxes));
+  const onceTable = once.length ? h('div', { class: 'card', id: 'single-values', style: 'margin-top:18px' },
+    h('h2', {}, 'Recorded once'), h('table', {}, h('tbody', {}, once.map(([name, [[step, value]]]) =>
+      h('tr', {}, h('td', { class: 'mono' }, name), h('td', { class: 'num' }, fmt(value)), h('td', { class: 'muted' }, `at step ${fmt(step)}`)))))) : null;
+  container.replaceChildren(h('div', { class: 'grid2', id: 'charts' }, boxes), onceTable);
 }
 
 function configTable(config) {
