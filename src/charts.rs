@@ -74,8 +74,8 @@ impl Axis {
             (low, high) = (0.0, 1.0);
         }
         if high - low <= f64::EPSILON * high.abs().max(1.0) {
-            // A constant series: centre it in a band of ±1 (or ±10 % of its magnitude).
-            let pad = (low.abs() * 0.1).max(1.0);
+            // A constant series: centre it in a band of ±10 % of its magnitude (±1 around 0).
+            let pad = if low == 0.0 { 1.0 } else { low.abs() * 0.1 };
             (low, high) = (low - pad, high + pad);
         }
         let step = nice_step((high - low) / 5.0);
@@ -374,12 +374,15 @@ pub fn scatter_svg(chart: &ScatterChart) -> String {
     }
     for (p, color) in points.iter().zip(&colors) {
         let (x, y) = (frame.px(p.x), frame.py(p.y));
+        // Labels of points near the right edge go to their left, so they are not cut off.
+        let near_right = x > WIDTH - MARGIN_RIGHT - 90.0;
+        let anchor = if near_right { "end" } else { "start" };
         let _ = write!(
             out,
-            r##"<g class="point" data-label="{l}"><circle cx="{x:.1}" cy="{y:.1}" r="5" fill="{color}" fill-opacity="0.85" stroke="#111827" stroke-width="0.6"><title>{l}: ({}, {})</title></circle><text x="{:.1}" y="{:.1}" fill="#374151">{l}</text></g>"##,
+            r##"<g class="point" data-label="{l}"><circle cx="{x:.1}" cy="{y:.1}" r="5" fill="{color}" fill-opacity="0.85" stroke="#111827" stroke-width="0.6"><title>{l}: ({}, {})</title></circle><text x="{:.1}" y="{:.1}" text-anchor="{anchor}" fill="#374151">{l}</text></g>"##,
             tick_label(p.x),
             tick_label(p.y),
-            x + 7.0,
+            if near_right { x - 7.0 } else { x + 7.0 },
             y - 6.0,
             l = escape(&p.label)
         );

@@ -445,7 +445,7 @@ const METRIC_GROUPS = [
   { key: 'losses', title: 'Losses', y: 'loss', test: (n) => n.endsWith('_loss') },
   { key: 'alpha', title: 'α̂ (Eq. 15)', y: 'α̂', test: (n) => n === 'alpha_hat' },
   { key: 'weights', title: 'Weight statistics', y: 'value', test: (n) => /^(ess|weight|advantage|reward_(mean|std|clipped))/.test(n) },
-  { key: 'discriminator', title: 'Discriminator', y: 'probability', test: (n) => n.startsWith('discriminator_') },
+  { key: 'discriminator', title: 'Discriminator', y: 'value', test: (n) => n.startsWith('discriminator_') },
   { key: 'eval', title: 'Evaluation', y: 'value', test: (n) => /^eval/.test(n) },
 ];
 
@@ -642,7 +642,7 @@ function comparePage(view) {
     output.replaceChildren(h('div', { class: 'grid2' },
       h('div', { class: 'card' }, h('h2', {}, 'Side by side'), table),
       h('div', { class: 'card' }, h('h2', {}, 'Scatter'),
-        h('div', { class: 'form-actions', style: 'margin:0 0 8px' }, 'x ', xSelect, ' y ', ySelect), scatter)));
+        h('div', { class: 'axis-pick' }, 'x', xSelect, 'y', ySelect), scatter)));
     await drawScatter();
   };
 
