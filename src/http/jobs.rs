@@ -448,7 +448,7 @@ async fn job_events(
 
 enum Update {
     Progress(JobProgress),
-    Status(Job),
+    Status(Box<Job>),
 }
 
 /// The next event of job `id`; None when the runner is gone or the job cannot be read.
@@ -463,7 +463,7 @@ async fn next_event(
             Ok(JobEvent::Progress { progress, .. }) => return Some(Update::Progress(progress)),
             Ok(JobEvent::Status { .. }) => {
                 let job = store.job(id).await.ok()?;
-                return Job::try_from(job).ok().map(Update::Status);
+                return Job::try_from(job).ok().map(|job| Update::Status(Box::new(job)));
             }
             // A slow reader skipped some progress; the next event brings it up to date.
             Err(broadcast::error::RecvError::Lagged(_)) => continue,

@@ -46,12 +46,12 @@ impl RunnerOptions {
 
     /// Whether the step that brings the run to `step_after` (1-based) records metrics.
     pub fn records(&self, step_after: u64, total: u64) -> bool {
-        step_after % self.log_every == 0 || step_after == total
+        step_after.is_multiple_of(self.log_every) || step_after == total
     }
 
     /// Whether to checkpoint after `step_after` steps (never after the last: the run is done).
     pub fn checkpoints(&self, step_after: u64, total: u64) -> bool {
-        step_after % self.checkpoint_every == 0 && step_after < total
+        step_after.is_multiple_of(self.checkpoint_every) && step_after < total
     }
 }
 
