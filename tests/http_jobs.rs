@@ -201,6 +201,9 @@ async fn cancel_stops_a_running_job_keeping_its_metrics_and_a_queued_one_at_once
         j["status"] == "running" && j["progress"]["step"].as_u64().unwrap() >= 20
     })
     .await;
+    let metrics = app.get("/metrics").send().await.unwrap().text().await.unwrap();
+    assert!(metrics.lines().any(|l| l == "safedice_job_queue_depth 1"), "{metrics}");
+    assert!(metrics.lines().any(|l| l == r#"safedice_jobs{status="running"} 1"#), "{metrics}");
     // One worker: the second job is still queued and is cancelled without running.
     let cancelled = app
         .post(&format!("/v1/jobs/{}/cancel", queued["id"].as_str().unwrap()))

@@ -100,10 +100,14 @@ async fn the_inference_token_reaches_only_action_endpoints() {
     assert_error(response, StatusCode::FORBIDDEN, "forbidden").await;
     let response = as_agent(reqwest::Method::GET, "/v1/datasets").send().await.unwrap();
     assert_error(response, StatusCode::FORBIDDEN, "forbidden").await;
-    // Action routes pass auth (they do not exist yet, so routing answers 404, not 401/403).
-    let response = as_agent(reqwest::Method::POST, "/v1/policies/p1/act").send().await.unwrap();
+    // Action routes pass auth (no policy p1, so they answer 404, not 401/403).
+    let act = serde_json::json!({"observations": [[0.0]]});
+    let response =
+        as_agent(reqwest::Method::POST, "/v1/policies/p1/act").json(&act).send().await.unwrap();
     assert_error(response, StatusCode::NOT_FOUND, "not_found").await;
-    let response = as_agent(reqwest::Method::POST, "/v2/models/p1/infer").send().await.unwrap();
+    let infer = serde_json::json!({"inputs": []});
+    let response =
+        as_agent(reqwest::Method::POST, "/v2/models/p1/infer").json(&infer).send().await.unwrap();
     assert_error(response, StatusCode::NOT_FOUND, "not_found").await;
     // ... and stay closed to anonymous callers.
     let response = app.client.post(app.url("/v1/policies/p1/act")).send().await.unwrap();
@@ -117,8 +121,10 @@ async fn metrics_count_requests_by_route_and_read_the_job_queue() {
         app.get("/healthz").send().await.unwrap();
     }
     app.get("/v1/no-such-route").send().await.unwrap();
-    app.insert_job("job-1", "queued", "ds-a", None).await;
-    app.insert_job("job-2", "queued", "ds-a", Some("ds-b")).await;
+    // No queued rows: the worker pool would claim them (and fail them, as they name no real
+    // dataset). Queue depth with real jobs is checked in tests/http_jobs.rs.
+    app.insert_job("job-1", "succeeded", "ds-a", None).await;
+    app.insert_job("job-2", "failed", "ds-a", Some("ds-b")).await;
     app.insert_job("job-3", "running", "ds-a", None).await;
 
     let response = app.get("/metrics").send().await.unwrap();
@@ -144,10 +150,11 @@ async fn metrics_count_requests_by_route_and_read_the_job_queue() {
         "{text}"
     );
     assert!(text.contains(r#"safedice_http_request_duration_seconds_bucket{le="+Inf",method="GET",route="/healthz",status="200"} 3"#), "{text}");
-    assert!(has("safedice_job_queue_depth 2"), "{text}");
-    assert!(has(r#"safedice_jobs{status="queued"} 2"#), "{text}");
+    assert!(has("safedice_job_queue_depth 0"), "{text}");
+    assert!(has(r#"safedice_jobs{status="queued"} 0"#), "{text}");
     assert!(has(r#"safedice_jobs{status="running"} 1"#), "{text}");
-    assert!(has(r#"safedice_jobs{status="succeeded"} 0"#), "{text}");
+    assert!(has(r#"safedice_jobs{status="succeeded"} 1"#), "{text}");
+    assert!(has(r#"safedice_jobs{status="failed"} 1"#), "{text}");
     assert!(text.trim_end().ends_with("# EOF"));
 }
 
@@ -187,14 +194,16 @@ async fn a_public_bind_without_a_token_is_refused() {
 #[tokio::test]
 async fn restart_keeps_the_database_and_clears_interrupted_uploads() {
     let mut app = TestApp::spawn().await;
-    app.insert_job("job-1", "queued", "ds-a", None).await;
+    // Finished, so the worker pool leaves it alone (a queued job naming no real dataset would
+    // be claimed and failed).
+    app.insert_job("job-1", "succeeded", "ds-a", None).await;
     let leftover = app.data_dir().join("tmp").join("upload-interrupted");
     std::fs::write(&leftover, b"half an upload").unwrap();
     app.restart().await;
     assert!(!leftover.exists(), "interrupted upload survived the restart");
     assert_eq!(app.count_rows("jobs").await, 1);
     let text = app.get("/metrics").send().await.unwrap().text().await.unwrap();
-    assert!(text.lines().any(|l| l == "safedice_job_queue_depth 1"), "{text}");
+    assert!(text.lines().any(|l| l == r#"safedice_jobs{status="succeeded"} 1"#), "{text}");
     let journal: String =
         sqlx::query_scalar("PRAGMA journal_mode").fetch_one(&mut app.db().await).await.unwrap();
     assert_eq!(journal, "wal");

@@ -72,7 +72,7 @@ pub fn weighted_nll(log_prob: &Tensor, weights: &Tensor) -> Result<Tensor> {
 
 /// Whether a scalar loss is finite; reads it back to the host.
 pub fn scalar(loss: &Tensor) -> Result<f64> {
-    Ok(loss.to_dtype(candle_core::DType::F64)?.to_scalar::<f64>()?)
+    loss.to_dtype(candle_core::DType::F64)?.to_scalar::<f64>()
 }
 
 #[cfg(test)]

@@ -160,7 +160,8 @@ pub fn check_data(config: &ResolvedConfig, data: &TrainingData) -> Result<(), Co
         }
     }
     if let ActionSpace::Continuous { low, high, .. } = &unlabeled.action_space {
-        if low.iter().zip(high).any(|(l, h)| !(h > l)) {
+        if low.iter().zip(high).any(|(l, h)| h.partial_cmp(l) != Some(std::cmp::Ordering::Greater))
+        {
             return Err(bad("unlabeled", "action box has a dimension with high <= low".into()));
         }
     }

@@ -240,7 +240,7 @@ impl Policy {
         rng: &mut ChaCha8Rng,
     ) -> std::result::Result<Actions, TrainError> {
         let dim = self.spec.obs_dim;
-        if dim == 0 || observations.len() % dim != 0 {
+        if dim == 0 || !observations.len().is_multiple_of(dim) {
             return Err(TrainError::Other(format!(
                 "observations must be rows of {dim} values, got {} values",
                 observations.len()
@@ -427,6 +427,12 @@ mod tests {
                 }
             }
         }
+    }
+
+    #[test]
+    fn policies_can_be_shared_between_request_threads() {
+        fn shared<T: Send + Sync>() {}
+        shared::<Policy>();
     }
 
     #[test]

@@ -145,7 +145,11 @@ async fn upload_dataset(
     let mut multipart = multipart?;
     let limit = state.config.max_upload_bytes;
     if content_length(&headers).is_some_and(|len| len > limit.saturating_add(FORM_OVERHEAD_BYTES)) {
-        drain(&mut multipart).await;
+        // A client waiting for `100 Continue` (curl does for large bodies) has sent nothing yet:
+        // reading the body would invite it to send, so answer at once.
+        if !expects_continue(&headers) {
+            drain(&mut multipart).await;
+        }
         return Err(ApiError::PayloadTooLarge { limit });
     }
     let upload = match receive_form(&mut multipart, &state.store.tmp_dir(), limit).await {
@@ -173,6 +177,13 @@ struct Upload {
 
 fn content_length(headers: &HeaderMap) -> Option<u64> {
     headers.get(header::CONTENT_LENGTH)?.to_str().ok()?.parse().ok()
+}
+
+fn expects_continue(headers: &HeaderMap) -> bool {
+    headers
+        .get(header::EXPECT)
+        .and_then(|v| v.to_str().ok())
+        .is_some_and(|v| v.eq_ignore_ascii_case("100-continue"))
 }
 
 /// Reads and discards up to [`DRAIN_BYTES`] of what is left of the request.
