@@ -21,7 +21,7 @@ const BIN = resolve(process.env.SAFEDICE_BIN || join(here, '../../target/debug/s
 const CHROMIUM = process.env.CHROMIUM || execFileSync('sh', ['-c', 'command -v chromium || command -v chromium-browser']).toString().trim();
 const SCREENSHOT_DIR = process.env.SCREENSHOT_DIR ? resolve(process.env.SCREENSHOT_DIR) : null;
 // A tiny SafeDICE run: small networks so CI trains it in seconds, long enough to be watched.
-const ITERATIONS = Number(process.env.BROWSER_TEST_ITERATIONS || 4000);
+const ITERATIONS = Number(process.env.BROWSER_TEST_ITERATIONS || 6000);
 const TOKEN = 'browser-test-token';
 
 let work; // temp dir: data dirs, generated datasets, the browser profile
