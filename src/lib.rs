@@ -7,9 +7,11 @@
 //! - [`envs`]: built-in benchmark environments, demonstrators and evaluation metrics.
 //! - [`store`]: all SQL and artefact storage.
 //! - [`jobs`]: the training queue and worker pool.
-//! - [`http`]: the HTTP API, one module per resource.
+//! - [`http`]: the HTTP API, one module per resource, and the dashboard at `/`.
+//! - [`charts`]: server-side SVG charts for the dashboard.
 
 pub mod algo;
+pub mod charts;
 pub mod config;
 pub mod data;
 pub mod envs;

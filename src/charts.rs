@@ -1,0 +1,503 @@
+//! Server-side SVG charts for the dashboard: line charts of metric histories and scatter plots of
+//! per-job results, with axes, tick labels, axis titles (units included) and a legend. Rendering
+//! on the server keeps the browser side free of any charting dependency; the output is
+//! self-contained SVG (no scripts, no external references) with every text escaped.
+
+use serde::Deserialize;
+use std::fmt::Write;
+
+const WIDTH: f64 = 640.0;
+const HEIGHT: f64 = 300.0;
+const MARGIN_LEFT: f64 = 64.0;
+const MARGIN_RIGHT: f64 = 16.0;
+const MARGIN_TOP: f64 = 34.0;
+const MARGIN_BOTTOM: f64 = 46.0;
+/// Colours of further series when the caller names none (distinct, readable on white).
+const PALETTE: [&str; 8] =
+    ["#2563eb", "#d97706", "#059669", "#7c3aed", "#dc2626", "#0891b2", "#65a30d", "#db2777"];
+/// Point markers are drawn on a line chart only when the series are this short or shorter;
+/// longer ones would be a smear of dots.
+const MARKER_LIMIT: usize = 60;
+
+/// One named series of (x, y) points of a line chart.
+#[derive(Debug, Clone, Deserialize)]
+pub struct Series {
+    pub name: String,
+    pub points: Vec<[f64; 2]>,
+    /// CSS colour; a palette colour when absent.
+    pub color: Option<String>,
+}
+
+/// A line chart: several series over a shared x axis.
+#[derive(Debug, Clone, Deserialize)]
+pub struct LineChart {
+    pub title: String,
+    pub x_label: String,
+    pub y_label: String,
+    pub series: Vec<Series>,
+}
+
+/// One labelled point of a scatter plot.
+#[derive(Debug, Clone, Deserialize)]
+pub struct ScatterPoint {
+    pub label: String,
+    pub x: f64,
+    pub y: f64,
+    pub color: Option<String>,
+    /// Legend group (e.g. the algorithm); points of a group share its first colour.
+    pub group: Option<String>,
+}
+
+/// A scatter plot of labelled points.
+#[derive(Debug, Clone, Deserialize)]
+pub struct ScatterChart {
+    pub title: String,
+    pub x_label: String,
+    pub y_label: String,
+    pub points: Vec<ScatterPoint>,
+}
+
+/// A linear map of a data range onto a pixel range, with "nice" tick values.
+struct Axis {
+    low: f64,
+    high: f64,
+    ticks: Vec<f64>,
+}
+
+impl Axis {
+    /// An axis covering `values` (finite ones), widened to round tick values.
+    fn covering(values: impl Iterator<Item = f64>) -> Axis {
+        let (mut low, mut high) = values
+            .filter(|v| v.is_finite())
+            .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), v| (lo.min(v), hi.max(v)));
+        if !low.is_finite() {
+            (low, high) = (0.0, 1.0);
+        }
+        if high - low <= f64::EPSILON * high.abs().max(1.0) {
+            // A constant series: centre it in a band of ±10 % of its magnitude (±1 around 0).
+            let pad = if low == 0.0 { 1.0 } else { low.abs() * 0.1 };
+            (low, high) = (low - pad, high + pad);
+        }
+        let step = nice_step((high - low) / 5.0);
+        let low = (low / step).floor() * step;
+        let high = (high / step).ceil() * step;
+        let count = ((high - low) / step).round() as usize;
+        let ticks = (0..=count).map(|i| low + i as f64 * step).collect();
+        Axis { low, high, ticks }
+    }
+
+    /// Position of `v` in `[0, 1]`.
+    fn fraction(&self, v: f64) -> f64 {
+        (v - self.low) / (self.high - self.low)
+    }
+}
+
+/// The round number (1, 2 or 5 times a power of ten) nearest above `raw`.
+fn nice_step(raw: f64) -> f64 {
+    let magnitude = 10f64.powf(raw.log10().floor());
+    let normalised = raw / magnitude;
+    let nice = if normalised <= 1.0 {
+        1.0
+    } else if normalised <= 2.0 {
+        2.0
+    } else if normalised <= 5.0 {
+        5.0
+    } else {
+        10.0
+    };
+    nice * magnitude
+}
+
+/// A tick label: short, without float noise (0.30000000000000004 → "0.3"), exponent form for
+/// very large or small magnitudes.
+fn tick_label(v: f64) -> String {
+    if v == 0.0 {
+        return "0".into();
+    }
+    let magnitude = v.abs();
+    if !(1e-3..1e5).contains(&magnitude) {
+        return format!("{v:.1e}");
+    }
+    let text = format!("{v:.4}");
+    let text = text.trim_end_matches('0').trim_end_matches('.');
+    text.to_string()
+}
+
+/// Escapes text for SVG character data and attribute values.
+fn escape(text: &str) -> String {
+    let mut out = String::with_capacity(text.len());
+    for c in text.chars() {
+        match c {
+            '&' => out.push_str("&amp;"),
+            '<' => out.push_str("&lt;"),
+            '>' => out.push_str("&gt;"),
+            '"' => out.push_str("&quot;"),
+            '\'' => out.push_str("&#39;"),
+            c => out.push(c),
+        }
+    }
+    out
+}
+
+/// A colour the caller gave, kept only when it is a plain CSS colour (hex or a name), so no
+/// markup can ride along in an attribute.
+fn safe_color(color: Option<&str>, fallback_index: usize) -> String {
+    match color {
+        Some(c)
+            if !c.is_empty()
+                && c.len() <= 32
+                && c.chars().all(|ch| ch.is_ascii_alphanumeric() || ch == '#') =>
+        {
+            c.to_string()
+        }
+        _ => PALETTE[fallback_index % PALETTE.len()].to_string(),
+    }
+}
+
+/// The plot area in pixels: below the title and the legend rows.
+struct Frame {
+    x: Axis,
+    y: Axis,
+    top: f64,
+}
+
+impl Frame {
+    fn px(&self, x: f64) -> f64 {
+        MARGIN_LEFT + self.x.fraction(x) * (WIDTH - MARGIN_LEFT - MARGIN_RIGHT)
+    }
+
+    fn py(&self, y: f64) -> f64 {
+        HEIGHT - MARGIN_BOTTOM - self.y.fraction(y) * (HEIGHT - self.top - MARGIN_BOTTOM)
+    }
+}
+
+/// Opening tag, title, axes with grid lines and tick labels, and the axis titles.
+fn frame_svg(out: &mut String, kind: &str, title: &str, x_label: &str, y_label: &str, f: &Frame) {
+    let (w, h) = (WIDTH, HEIGHT);
+    let _ = write!(
+        out,
+        r#"<svg xmlns="http://www.w3.org/2000/svg" class="chart chart-{kind}" viewBox="0 0 {w} {h}" role="img" aria-label="{t}" font-family="system-ui, sans-serif" font-size="11">"#,
+        t = escape(title)
+    );
+    let _ = write!(out, r#"<title>{}</title>"#, escape(title));
+    let _ = write!(
+        out,
+        r##"<text class="chart-title" x="{MARGIN_LEFT}" y="20" font-size="13" font-weight="600" fill="#111827">{}</text>"##,
+        escape(title)
+    );
+    let (left, right) = (MARGIN_LEFT, WIDTH - MARGIN_RIGHT);
+    let (top, bottom) = (f.top, HEIGHT - MARGIN_BOTTOM);
+    out.push_str(r##"<g class="grid" stroke="#e5e7eb" stroke-width="1">"##);
+    for &t in &f.y.ticks {
+        let y = f.py(t);
+        let _ = write!(out, r#"<line x1="{left}" x2="{right}" y1="{y:.1}" y2="{y:.1}"/>"#);
+    }
+    for &t in &f.x.ticks {
+        let x = f.px(t);
+        let _ = write!(out, r#"<line x1="{x:.1}" x2="{x:.1}" y1="{top}" y2="{bottom}"/>"#);
+    }
+    out.push_str("</g>");
+    let _ = write!(
+        out,
+        r##"<g class="axes" stroke="#6b7280" stroke-width="1"><line x1="{left}" x2="{right}" y1="{bottom}" y2="{bottom}"/><line x1="{left}" x2="{left}" y1="{top}" y2="{bottom}"/></g>"##
+    );
+    out.push_str(r##"<g class="y-ticks" fill="#374151" text-anchor="end">"##);
+    for &t in &f.y.ticks {
+        let _ = write!(
+            out,
+            r#"<text x="{}" y="{:.1}">{}</text>"#,
+            left - 6.0,
+            f.py(t) + 4.0,
+            tick_label(t)
+        );
+    }
+    out.push_str("</g>");
+    out.push_str(r##"<g class="x-ticks" fill="#374151" text-anchor="middle">"##);
+    for &t in &f.x.ticks {
+        let _ = write!(
+            out,
+            r#"<text x="{:.1}" y="{}">{}</text>"#,
+            f.px(t),
+            bottom + 15.0,
+            tick_label(t)
+        );
+    }
+    out.push_str("</g>");
+    let _ = write!(
+        out,
+        r##"<text class="x-label" x="{:.1}" y="{}" text-anchor="middle" fill="#111827">{}</text>"##,
+        (left + right) / 2.0,
+        HEIGHT - 8.0,
+        escape(x_label)
+    );
+    let mid = (top + bottom) / 2.0;
+    let _ = write!(
+        out,
+        r##"<text class="y-label" x="14" y="{mid:.1}" text-anchor="middle" fill="#111827" transform="rotate(-90 14 {mid:.1})">{}</text>"##,
+        escape(y_label)
+    );
+}
+
+/// The "nothing to draw" message inside an empty frame.
+fn empty_note(out: &mut String) {
+    let _ = write!(
+        out,
+        r##"<text class="chart-empty" x="{:.1}" y="{:.1}" text-anchor="middle" fill="#6b7280">No data points yet</text>"##,
+        (MARGIN_LEFT + WIDTH - MARGIN_RIGHT) / 2.0,
+        (MARGIN_TOP + HEIGHT - MARGIN_BOTTOM) / 2.0
+    );
+}
+
+/// Height of one legend row.
+const LEGEND_ROW: f64 = 15.0;
+
+/// Legend entries placed left to right under the title, wrapping at the chart's width:
+/// (row, x, name, colour).
+fn legend_layout(entries: &[(String, String)]) -> Vec<(usize, f64, &str, &str)> {
+    let mut placed = Vec::with_capacity(entries.len());
+    let (mut row, mut x) = (0, MARGIN_LEFT);
+    for (name, color) in entries {
+        // Approximate text width: 6.2 px per character at font-size 11.
+        let width = 20.0 + 6.2 * name.chars().count() as f64;
+        if x + width > WIDTH - MARGIN_RIGHT && x > MARGIN_LEFT {
+            (row, x) = (row + 1, MARGIN_LEFT);
+        }
+        placed.push((row, x, name.as_str(), color.as_str()));
+        x += width;
+    }
+    placed
+}
+
+fn legend_rows(entries: &[(String, String)]) -> usize {
+    legend_layout(entries).last().map_or(0, |&(row, ..)| row + 1)
+}
+
+/// Top of the plot area below `rows` legend rows.
+fn plot_top(rows: usize) -> f64 {
+    MARGIN_TOP + LEGEND_ROW * rows as f64
+}
+
+fn legend(out: &mut String, entries: &[(String, String)]) {
+    out.push_str(r#"<g class="legend">"#);
+    for (row, x, name, color) in legend_layout(entries) {
+        let y = 36.0 + LEGEND_ROW * row as f64;
+        let _ = write!(
+            out,
+            r##"<rect x="{x:.1}" y="{:.1}" width="10" height="10" rx="2" fill="{color}"/><text x="{:.1}" y="{y:.1}" fill="#374151">{}</text>"##,
+            y - 9.0,
+            x + 14.0,
+            escape(name)
+        );
+    }
+    out.push_str("</g>");
+}
+
+/// Renders a line chart. Non-finite points are skipped; each series is a `<polyline>` with a
+/// `data-series` name and a `data-points` count (markers too when the series are short).
+pub fn line_svg(chart: &LineChart) -> String {
+    let finite = |p: &&[f64; 2]| p[0].is_finite() && p[1].is_finite();
+    let all = || chart.series.iter().flat_map(|s| s.points.iter().filter(finite));
+    let entries: Vec<(String, String)> = chart
+        .series
+        .iter()
+        .enumerate()
+        .map(|(i, s)| (s.name.clone(), safe_color(s.color.as_deref(), i)))
+        .collect();
+    let rows = if entries.len() > 1 { legend_rows(&entries) } else { 0 };
+    let frame = Frame {
+        x: Axis::covering(all().map(|p| p[0])),
+        y: Axis::covering(all().map(|p| p[1])),
+        top: plot_top(rows),
+    };
+    let mut out = String::new();
+    frame_svg(&mut out, "line", &chart.title, &chart.x_label, &chart.y_label, &frame);
+    if all().next().is_none() {
+        empty_note(&mut out);
+    }
+    let markers = chart.series.iter().all(|s| s.points.len() <= MARKER_LIMIT);
+    for (series, (_, color)) in chart.series.iter().zip(&entries) {
+        let points: Vec<(f64, f64)> =
+            series.points.iter().filter(finite).map(|p| (frame.px(p[0]), frame.py(p[1]))).collect();
+        let coordinates: Vec<String> =
+            points.iter().map(|(x, y)| format!("{x:.1},{y:.1}")).collect();
+        let _ = write!(
+            out,
+            r#"<polyline class="series" data-series="{}" data-points="{}" fill="none" stroke="{color}" stroke-width="1.8" stroke-linejoin="round" points="{}"/>"#,
+            escape(&series.name),
+            points.len(),
+            coordinates.join(" ")
+        );
+        if markers || points.len() == 1 {
+            for (x, y) in &points {
+                let _ = write!(
+                    out,
+                    r#"<circle class="point" cx="{x:.1}" cy="{y:.1}" r="2.5" fill="{color}"/>"#
+                );
+            }
+        }
+    }
+    if rows > 0 {
+        legend(&mut out, &entries);
+    }
+    out.push_str("</svg>");
+    out
+}
+
+/// Renders a scatter plot: a labelled `<circle class="point">` per finite point, a legend of the
+/// groups.
+pub fn scatter_svg(chart: &ScatterChart) -> String {
+    let points: Vec<&ScatterPoint> =
+        chart.points.iter().filter(|p| p.x.is_finite() && p.y.is_finite()).collect();
+    let mut groups: Vec<(String, String)> = Vec::new();
+    let mut colors = Vec::with_capacity(points.len());
+    for (i, p) in points.iter().enumerate() {
+        let group = p.group.clone().unwrap_or_else(|| p.label.clone());
+        let color = match groups.iter().find(|(g, _)| *g == group) {
+            Some((_, c)) => c.clone(),
+            None => {
+                let c = safe_color(p.color.as_deref(), i);
+                groups.push((group, c.clone()));
+                c
+            }
+        };
+        colors.push(color);
+    }
+    let frame = Frame {
+        x: Axis::covering(points.iter().map(|p| p.x)),
+        y: Axis::covering(points.iter().map(|p| p.y)),
+        top: plot_top(legend_rows(&groups)),
+    };
+    let mut out = String::new();
+    frame_svg(&mut out, "scatter", &chart.title, &chart.x_label, &chart.y_label, &frame);
+    if points.is_empty() {
+        empty_note(&mut out);
+    }
+    for (p, color) in points.iter().zip(&colors) {
+        let (x, y) = (frame.px(p.x), frame.py(p.y));
+        // Labels of points near the right edge go to their left, so they are not cut off.
+        let near_right = x > WIDTH - MARGIN_RIGHT - 90.0;
+        let anchor = if near_right { "end" } else { "start" };
+        let _ = write!(
+            out,
+            r##"<g class="point" data-label="{l}"><circle cx="{x:.1}" cy="{y:.1}" r="5" fill="{color}" fill-opacity="0.85" stroke="#111827" stroke-width="0.6"><title>{l}: ({}, {})</title></circle><text x="{:.1}" y="{:.1}" text-anchor="{anchor}" fill="#374151">{l}</text></g>"##,
+            tick_label(p.x),
+            tick_label(p.y),
+            if near_right { x - 7.0 } else { x + 7.0 },
+            y - 6.0,
+            l = escape(&p.label)
+        );
+    }
+    legend(&mut out, &groups);
+    out.push_str("</svg>");
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn chart(series: Vec<Series>) -> LineChart {
+        LineChart {
+            title: "Losses".into(),
+            x_label: "step".into(),
+            y_label: "loss (nats)".into(),
+            series,
+        }
+    }
+
+    #[test]
+    fn nice_steps_are_one_two_or_five_times_a_power_of_ten() {
+        assert_eq!(nice_step(0.8), 1.0);
+        assert_eq!(nice_step(1.3), 2.0);
+        assert_eq!(nice_step(3.0), 5.0);
+        assert_eq!(nice_step(7.0), 10.0);
+        assert!((nice_step(0.031) - 0.05).abs() < 1e-12);
+        assert_eq!(nice_step(2400.0), 5000.0);
+    }
+
+    #[test]
+    fn axes_cover_the_data_with_round_ticks() {
+        let axis = Axis::covering([0.3, 9.7, f64::NAN].into_iter());
+        assert_eq!((axis.low, axis.high), (0.0, 10.0));
+        assert_eq!(axis.ticks, [0.0, 2.0, 4.0, 6.0, 8.0, 10.0]);
+        let constant = Axis::covering([5.0, 5.0].into_iter());
+        assert!(constant.low < 5.0 && constant.high > 5.0);
+        let empty = Axis::covering(std::iter::empty());
+        assert_eq!((empty.low, empty.high), (0.0, 1.0));
+    }
+
+    #[test]
+    fn tick_labels_drop_float_noise() {
+        assert_eq!(tick_label(0.1 + 0.2), "0.3");
+        assert_eq!(tick_label(200.0), "200");
+        assert_eq!(tick_label(-1.5), "-1.5");
+        assert_eq!(tick_label(0.0), "0");
+        assert_eq!(tick_label(2.0e6), "2.0e6");
+    }
+
+    #[test]
+    fn a_line_chart_maps_points_inside_the_plot_area() {
+        let svg = line_svg(&chart(vec![Series {
+            name: "policy_loss".into(),
+            points: vec![[0.0, 0.0], [10.0, 10.0], [5.0, f64::NAN]],
+            color: Some("#123456".into()),
+        }]));
+        // The NaN point is dropped; (0,0) is the bottom-left corner, (10,10) the top-right.
+        assert!(svg.contains(r#"data-series="policy_loss" data-points="2""#), "{svg}");
+        let (left, bottom) = (MARGIN_LEFT, HEIGHT - MARGIN_BOTTOM);
+        let (right, top) = (WIDTH - MARGIN_RIGHT, MARGIN_TOP);
+        assert!(svg.contains(&format!(r#"points="{left:.1},{bottom:.1} {right:.1},{top:.1}""#)));
+        assert_eq!(svg.matches(r#"class="point""#).count(), 2);
+        assert!(svg.contains("stroke=\"#123456\""));
+        assert!(svg.contains(">loss (nats)</text>") && svg.contains(">step</text>"));
+        assert!(!svg.contains("No data points yet"));
+    }
+
+    #[test]
+    fn an_empty_chart_says_so() {
+        let svg = line_svg(&chart(vec![]));
+        assert!(svg.contains("No data points yet"));
+        assert!(svg.starts_with("<svg") && svg.ends_with("</svg>"));
+    }
+
+    #[test]
+    fn text_and_colours_cannot_inject_markup() {
+        let svg = line_svg(&LineChart {
+            title: "<script>alert(1)</script>".into(),
+            x_label: "a\"b".into(),
+            y_label: "y".into(),
+            series: vec![Series {
+                name: "x' onload='evil".into(),
+                points: vec![[1.0, 2.0]],
+                color: Some("red\" onload=\"evil".into()),
+            }],
+        });
+        assert!(!svg.contains("<script>") && !svg.contains("onload=\""));
+        assert!(svg.contains("&lt;script&gt;") && svg.contains("a&quot;b"));
+        assert!(svg.contains("x&#39; onload=&#39;evil"));
+    }
+
+    #[test]
+    fn a_scatter_plot_labels_each_point_and_colours_groups_alike() {
+        let point = |label: &str, x, y, group: &str, color: &str| ScatterPoint {
+            label: label.into(),
+            x,
+            y,
+            group: Some(group.into()),
+            color: Some(color.into()),
+        };
+        let svg = scatter_svg(&ScatterChart {
+            title: "Cost vs return".into(),
+            x_label: "average cost".into(),
+            y_label: "return".into(),
+            points: vec![
+                point("job a", 1.0, 10.0, "safedice", "#2563eb"),
+                point("job b", 2.0, 20.0, "safedice", "#000000"),
+                point("job c", 3.0, f64::INFINITY, "bc", "#6b7280"),
+            ],
+        });
+        assert_eq!(svg.matches(r#"<g class="point""#).count(), 2);
+        assert_eq!(svg.matches("fill=\"#2563eb\"").count(), 3, "two points and a legend swatch");
+        assert!(!svg.contains("job c"));
+    }
+}
