@@ -24,6 +24,9 @@ enum Command {
     /// fresh non-preferred episodes, and manifest.json (counts, seed, data profile, reference
     /// statistics), in an upload format.
     Datagen(DatagenArgs),
+    /// Train every algorithm on every built-in environment, evaluate with the paper's metrics
+    /// and write results.md (mean ± standard error over seeds), results.json and SVG plots.
+    Bench(safedice::bench::BenchArgs),
 }
 
 #[derive(clap::Args)]
@@ -93,6 +96,11 @@ fn main() -> anyhow::Result<()> {
     let cli = Cli::parse();
     match cli.command {
         Command::Datagen(args) => datagen(args),
+        Command::Bench(args) => {
+            server::init_logging(safedice::config::LogFormat::Pretty);
+            let command: Vec<String> = std::env::args().collect();
+            safedice::bench::run_cli(&args, &command.join(" "))
+        }
         Command::Serve(config) => serve(config),
         Command::Openapi => {
             print!("{}", safedice::http::openapi::yaml()?);
