@@ -204,6 +204,8 @@ fn run_jobs(
                 let job = jobs[i];
                 let result = train_and_evaluate(config, &config.envs[job.env], &prepared[job.env], job);
                 if let Ok(r) = &result {
+                    // One JSON line per finished run, so a run cut short still leaves its data.
+                    tracing::info!(target: "safedice::bench::run", "{}", serde_json::to_string(r).unwrap_or_default());
                     tracing::info!(
                         "bench: [{}/{}] {}/{}/seed {}: normalized return {:.1}, average cost {:.2} ({:.0} s, {:.1} steps/s)",
                         done.fetch_add(1, Ordering::SeqCst) + 1,
