@@ -19,8 +19,8 @@ pub enum LogFormat {
     Pretty,
 }
 
-/// Settings of the HTTP service.
-#[derive(Clone, Debug, clap::Args)]
+/// Settings of the HTTP service. `Debug` shows whether tokens are set, never their values.
+#[derive(Clone, clap::Args)]
 pub struct ServeConfig {
     /// Address to listen on (IP:port; port 0 picks a free one). A non-loopback address needs
     /// --api-token, or --insecure-public to serve without one.
@@ -62,6 +62,23 @@ pub struct ServeConfig {
     /// Training jobs run concurrently.
     #[arg(long, env = "SAFEDICE_WORKERS", default_value_t = 1, value_parser = clap::value_parser!(u16).range(1..))]
     pub workers: u16,
+}
+
+impl std::fmt::Debug for ServeConfig {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let redacted = |token: &Option<String>| token.as_ref().map(|_| "<redacted>");
+        f.debug_struct("ServeConfig")
+            .field("bind", &self.bind)
+            .field("data_dir", &self.data_dir)
+            .field("api_token", &redacted(&self.api_token))
+            .field("inference_token", &redacted(&self.inference_token))
+            .field("insecure_public", &self.insecure_public)
+            .field("cors_origins", &self.cors_origins)
+            .field("max_upload_bytes", &self.max_upload_bytes)
+            .field("log_format", &self.log_format)
+            .field("workers", &self.workers)
+            .finish()
+    }
 }
 
 /// A configuration the server refuses to start with.
@@ -165,6 +182,13 @@ mod tests {
         assert_eq!(c.validate(), Err(ConfigError::InferenceTokenWithoutApiToken));
         let c = ServeConfig { api_token: Some(String::new()), ..config("127.0.0.1:0") };
         assert_eq!(c.validate(), Err(ConfigError::EmptyToken("--api-token")));
+    }
+
+    #[test]
+    fn debug_output_hides_tokens() {
+        let c = ServeConfig { api_token: Some("s3cret-value".into()), ..config("127.0.0.1:0") };
+        let shown = format!("{c:?}");
+        assert!(!shown.contains("s3cret-value") && shown.contains("<redacted>"), "{shown}");
     }
 
     #[test]

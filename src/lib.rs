@@ -16,5 +16,6 @@ pub mod config;
 pub mod data;
 pub mod envs;
 pub mod http;
+pub mod jobs;
 pub mod server;
 pub mod store;

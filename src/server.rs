@@ -9,6 +9,7 @@ use tokio_util::sync::CancellationToken;
 
 use crate::config::{LogFormat, ServeConfig};
 use crate::http::{self, AppState};
+use crate::jobs::JobRunner;
 use crate::store::Store;
 
 /// How long a graceful shutdown waits for in-flight requests before dropping them.
@@ -20,6 +21,7 @@ pub struct Server {
     shutdown: CancellationToken,
     task: JoinHandle<std::io::Result<()>>,
     store: Store,
+    jobs: JobRunner,
 }
 
 impl Server {
@@ -28,6 +30,7 @@ impl Server {
     pub async fn start(config: ServeConfig) -> anyhow::Result<Server> {
         config.validate()?;
         let store = Store::open(&config.data_dir).await?;
+        store.remove_leftovers().await?;
         let listener = tokio::net::TcpListener::bind(config.bind)
             .await
             .with_context(|| format!("cannot listen on {}", config.bind))?;
@@ -40,12 +43,15 @@ impl Server {
             auth,
             "safedice listening"
         );
-        let app = http::app(AppState::new(config, store.clone(), shutdown.clone()))?;
+        let state = AppState::new(config, store.clone(), shutdown.clone());
+        let jobs = state.jobs.clone();
+        jobs.start().await?;
+        let app = http::app(state)?;
         let stopped = shutdown.clone().cancelled_owned();
         let task = tokio::spawn(async move {
             axum::serve(listener, app).with_graceful_shutdown(stopped).await
         });
-        Ok(Server { local_addr, shutdown, task, store })
+        Ok(Server { local_addr, shutdown, task, store, jobs })
     }
 
     /// The bound address (the actual port when the configuration asked for port 0).
@@ -78,6 +84,8 @@ impl Server {
                 Ok(())
             }
         };
+        // Workers checkpoint their jobs and hand them back to the queue before the store closes.
+        self.jobs.stopped().await;
         self.store.close().await;
         tracing::info!("safedice stopped");
         served

@@ -211,6 +211,21 @@ next_obs_0,action,obs_0,episode
 }
 
 #[test]
+fn crlf_line_endings_and_pandas_habits_are_accepted() {
+    let crlf = JSONL_CONTINUOUS.replace('\n', "\r\n");
+    assert_eq!(ok("d.jsonl", &crlf), ok("d.jsonl", JSONL_CONTINUOUS));
+    let crlf = CSV_CONTINUOUS.replace('\n', "\r\n");
+    assert_eq!(ok("d.csv", &crlf), ok("d.csv", CSV_CONTINUOUS));
+    // pandas: True/False flags, integer columns written as 3.0 once they held a NaN.
+    let d = ok("d.csv", "episode,obs_0,action,terminal\n3.0,1,2.0,False\n3.0,2,0,True\n");
+    assert_eq!(d.episode_ids, vec![3, 3]);
+    assert_eq!(d.actions, Actions::Discrete(vec![2, 0]));
+    assert_eq!(d.terminals, vec![false, true]);
+    let text = format!(",{}", CSV_CONTINUOUS.replace('\n', "\n0,"));
+    rejected(parse("d.csv", text.trim_end_matches("0,")), "invalid_dataset", &["index=False"]);
+}
+
+#[test]
 fn csv_rejects_ragged_rows_and_bad_cells_with_line_and_column() {
     let text = CSV_CONTINUOUS.replace("1.5,2,0.2", "1.5,0.2");
     rejected(parse("d.csv", &text), "invalid_dataset", &["line 3", "7 fields", "header has 8"]);
@@ -251,6 +266,15 @@ fn csv_rejects_non_contiguous_episodes_and_fractional_discrete_actions() {
 // ---------------------------------------------------------------- detection, empty, unknown
 
 #[test]
+fn format_names_round_trip_through_str_and_serde() {
+    for f in [Format::Jsonl, Format::Csv, Format::Npz, Format::Hdf5] {
+        assert_eq!(f.as_str().parse::<Format>().unwrap(), f);
+        assert_eq!(serde_json::to_string(&f).unwrap(), format!("\"{f}\""));
+    }
+    assert_eq!("parquet".parse::<Format>().unwrap_err().code, "unknown_format");
+}
+
+#[test]
 fn empty_and_unknown_files() {
     rejected(parse("d.jsonl", ""), "empty_dataset", &["d.jsonl"]);
     rejected(parse("d.csv", " \n\n"), "empty_dataset", &[]);
@@ -270,8 +294,9 @@ fn names_that_contradict_the_content_are_rejected() {
 #[cfg(not(feature = "hdf5"))]
 #[test]
 fn hdf5_without_the_feature_says_how_to_enable_it() {
-    let h5 = upload("dsrl.hdf5", b"\x89HDF\r\n\x1a\n\0\0\0\0rest of a superblock");
-    rejected(parse_file(&h5.path, &h5.name), "unsupported_format", &["--features hdf5"]);
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/dsrl_like.hdf5");
+    let result = parse_file(&path, "dsrl_like.hdf5");
+    rejected(result, "unsupported_format", &["--features hdf5", "libhdf5"]);
 }
 
 // ---------------------------------------------------------------- NPZ
@@ -482,4 +507,40 @@ fn writers_fixture(path: &Path) {
         costs: None,
     };
     safedice::data::write_npz(&d, path).unwrap();
+}
+
+// ---------------------------------------------------------------- NPZ written by numpy itself
+
+fn fixture(name: &str) -> (Format, Dataset) {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures").join(name);
+    parse_file(&path, name).unwrap_or_else(|e| panic!("{name}: {e}"))
+}
+
+/// tests/fixtures/make_npz_fixtures.py: compressed, Fortran-ordered float64 observations, bool
+/// terminals, uint8 timeouts, a big-endian float64 cost column, an ignored `infos/qpos` key.
+#[test]
+fn numpy_savez_compressed_d4rl_layout() {
+    let (format, d) = fixture("d4rl_like.npz");
+    assert_eq!(format, Format::Npz);
+    let obs: Vec<f32> = (0..18).map(|x| x as f32 / 4.0).collect();
+    assert_eq!(d.observations, obs);
+    assert_eq!(d.next_observations, obs.iter().map(|x| x + 0.25).collect::<Vec<_>>());
+    let Actions::Continuous(actions) = &d.actions else { panic!("continuous expected") };
+    let linspace = (0..12).map(|i| (-1.0 + i as f64 * 2.0 / 11.0) as f32);
+    assert!(actions.iter().zip(linspace).all(|(a, b)| (a - b).abs() < 1e-6), "{actions:?}");
+    assert_eq!(d.action_space.width(), 2);
+    assert_eq!(d.terminals, vec![false, false, true, false, false, false]);
+    assert_eq!(d.episode_ids, vec![0, 0, 0, 1, 1, 2]);
+    assert_eq!(d.rewards, Some(vec![1.0; 6]));
+    assert_eq!(d.costs, Some(vec![0., 1., 0., 1., 1., 0.]));
+}
+
+#[test]
+fn numpy_savez_discrete_omnisafe_names() {
+    let (_, d) = fixture("discrete.npz");
+    assert_eq!(d.actions, Actions::Discrete(vec![0, 2, 1, 1, 0, 2]));
+    assert_eq!(d.action_space, ActionSpace::Discrete { n: 3 });
+    assert_eq!(d.terminals, vec![false, false, false, true, false, true]);
+    assert_eq!(d.episode_ids, vec![0, 0, 0, 0, 1, 1]);
+    assert_eq!(d.obs_dim, 3);
 }

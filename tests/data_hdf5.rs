@@ -63,3 +63,21 @@ fn hdf5_rejects_non_finite_values_and_truncation_naming_the_key() {
     assert_eq!(err.code, "invalid_dataset");
     assert!(err.message.contains("truncated or corrupt"), "{}", err.message);
 }
+
+/// tests/fixtures/make_hdf5_fixture.py: written by h5py (HDF5 2.0), gzip-compressed datasets,
+/// h5py's bool enum.
+#[test]
+fn hdf5_written_by_h5py() {
+    let path =
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/dsrl_like.hdf5");
+    let (format, d) = parse_file(&path, "dsrl_like.hdf5").unwrap();
+    assert_eq!(format, Format::Hdf5);
+    let obs: Vec<f32> = (0..12).map(|x| x as f32 / 2.0).collect();
+    assert_eq!(d.observations, obs);
+    assert_eq!(d.next_observations, obs.iter().map(|x| x + 0.5).collect::<Vec<_>>());
+    assert_eq!(d.actions, Actions::Continuous(vec![0.5, -0.5, 0.25, 1.0]));
+    assert_eq!(d.terminals, vec![false, true, false, false]);
+    assert_eq!(d.episode_ids, vec![0, 0, 1, 1]);
+    assert_eq!(d.rewards, Some(vec![1., 2., 3., 4.]));
+    assert_eq!(d.costs, Some(vec![0., 1., 1., 0.]));
+}

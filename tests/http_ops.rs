@@ -20,16 +20,13 @@ async fn spawn_with_tokens() -> TestApp {
 }
 
 #[tokio::test]
-async fn health_readiness_and_index_answer() {
+async fn health_and_readiness_answer() {
     let app = TestApp::spawn().await;
     let health: serde_json::Value = app.get("/healthz").send().await.unwrap().json().await.unwrap();
     assert_eq!(health, serde_json::json!({"status": "ok"}));
     let ready = app.get("/readyz").send().await.unwrap();
     assert_eq!(ready.status(), StatusCode::OK);
     assert_eq!(ready.json::<serde_json::Value>().await.unwrap()["status"], "ready");
-    let index: serde_json::Value = app.get("/").send().await.unwrap().json().await.unwrap();
-    assert_eq!(index["service"], "safedice");
-    assert_eq!(index["openapi"], "/v1/openapi.json");
 }
 
 #[tokio::test]
@@ -88,7 +85,7 @@ async fn api_routes_need_the_bearer_token_and_operations_stay_open() {
         .unwrap();
     assert_eq!(lowercase_scheme.status(), StatusCode::OK);
 
-    for open in ["/", "/healthz", "/readyz", "/metrics"] {
+    for open in ["/healthz", "/readyz", "/metrics"] {
         assert_eq!(anonymous(open).send().await.unwrap().status(), StatusCode::OK, "{open}");
     }
 }

@@ -17,6 +17,9 @@ use safetensors::SafeTensors;
 use super::error::ParseError;
 use super::model::{ActionSpace, Actions, Dataset};
 
+/// One tensor to write: name, dtype, shape, little-endian bytes.
+type Column<'a> = (&'static str, Dtype, Vec<usize>, Cow<'a, [u8]>);
+
 const FORMAT_TAG: &str = "safedice-dataset";
 const VERSION: &str = "1";
 
@@ -24,7 +27,7 @@ const VERSION: &str = "1";
 pub fn encode_canonical(d: &Dataset) -> Vec<u8> {
     let n = d.len();
     let terminals: Vec<u8> = d.terminals.iter().map(|&t| t as u8).collect();
-    let mut tensors: Vec<(&str, Dtype, Vec<usize>, Cow<[u8]>)> = vec![
+    let mut tensors: Vec<Column> = vec![
         ("observations", Dtype::F32, vec![n, d.obs_dim], f32_bytes(&d.observations)),
         ("next_observations", Dtype::F32, vec![n, d.obs_dim], f32_bytes(&d.next_observations)),
         ("terminals", Dtype::U8, vec![n], Cow::Borrowed(&terminals)),

@@ -101,11 +101,16 @@ impl Columns {
                         named.insert(name.clone(), i).is_some()
                     }
                     _ => {
+                        let hint = if name.is_empty() || name.starts_with("Unnamed") {
+                            " (a pandas index column? write the file with index=False)"
+                        } else {
+                            ""
+                        };
                         return Err(ParseError::invalid(format!(
-                            "header: unknown column `{name}`; expected episode, obs_0.., \
+                            "header: unknown column `{name}`{hint}; expected episode, obs_0.., \
                              act_0.. or action, and optionally next_obs_0.., terminal, reward, \
                              cost"
-                        )))
+                        )));
                     }
                 },
             };
@@ -205,9 +210,20 @@ impl Field<'_> {
         Ok(value)
     }
 
+    /// A non-negative integer; `3.0` is accepted too, since pandas writes integer columns that
+    /// way once they held a missing value.
     fn integer(&self, what: &str) -> Result<u64, ParseError> {
         let text = self.str()?;
-        text.parse().map_err(|_| self.error(&format!("`{text}` is not {what}")))
+        let integral_float = || {
+            text.parse::<f64>()
+                .ok()
+                .filter(|v| v.fract() == 0.0 && *v >= 0.0 && *v < 2f64.powi(53))
+                .map(|v| v as u64)
+        };
+        text.parse()
+            .ok()
+            .or_else(integral_float)
+            .ok_or_else(|| self.error(&format!("`{text}` is not {what}")))
     }
 
     fn index(&self) -> Result<u64, ParseError> {

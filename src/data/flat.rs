@@ -29,6 +29,39 @@ pub enum ArrayData {
     Bool(Vec<bool>),
 }
 
+/// Bounds the decoded size of a compressed container relative to its size on disk, so that a
+/// small archive cannot expand into an unbounded allocation (a zip / gzip bomb). Generous for
+/// real data: a column of all-false terminals compresses ~1000x, but it is small next to the
+/// observations.
+pub struct DecodeBudget {
+    left: u64,
+}
+
+impl DecodeBudget {
+    const PER_FILE_BYTE: u64 = 64;
+    const ALLOWANCE: u64 = 256 << 20;
+
+    pub fn for_file(path: &std::path::Path) -> Result<DecodeBudget, ParseError> {
+        let bytes = std::fs::metadata(path).map_err(|e| ParseError::io("reading the upload", e))?;
+        Ok(DecodeBudget {
+            left: bytes.len().saturating_mul(Self::PER_FILE_BYTE).saturating_add(Self::ALLOWANCE),
+        })
+    }
+
+    /// Reserves `count` elements of `element_bytes` for `key`, or refuses.
+    pub fn take(&mut self, key: &str, count: u64, element_bytes: u64) -> Result<(), ParseError> {
+        let bytes = count.saturating_mul(element_bytes);
+        if bytes > self.left {
+            return Err(ParseError::invalid(format!(
+                "key `{key}` would decode to {bytes} bytes, far more than the file's size \
+                 suggests; refusing (corrupt or malicious file)"
+            )));
+        }
+        self.left -= bytes;
+        Ok(())
+    }
+}
+
 /// A container of named arrays (an NPZ archive, an HDF5 file).
 pub trait ArraySource {
     /// `Ok(None)` when the key is absent.

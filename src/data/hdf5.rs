@@ -9,17 +9,19 @@ use h5::types::TypeDescriptor;
 use hdf5_metno as h5;
 
 use super::error::ParseError;
-use super::flat::{self, Array, ArrayData, ArraySource};
+use super::flat::{self, Array, ArrayData, ArraySource, DecodeBudget};
 use super::model::Dataset;
 
 pub fn parse(path: &Path) -> Result<Dataset, ParseError> {
     let file = h5::File::open(path)
         .map_err(|e| ParseError::invalid(format!("the HDF5 file is truncated or corrupt ({e})")))?;
-    flat::assemble(&mut Hdf5Source { file })
+    let budget = DecodeBudget::for_file(path)?;
+    flat::assemble(&mut Hdf5Source { file, budget })
 }
 
 struct Hdf5Source {
     file: h5::File,
+    budget: DecodeBudget,
 }
 
 impl ArraySource for Hdf5Source {
@@ -30,6 +32,8 @@ impl ArraySource for Hdf5Source {
         let fail = |e: h5::Error| ParseError::invalid(format!("key `{key}`: unreadable ({e})"));
         let dataset = self.file.dataset(key).map_err(fail)?;
         let shape = dataset.shape();
+        // Reads go through f64 / i64 (8 bytes per element) before conversion.
+        self.budget.take(key, shape.iter().product::<usize>() as u64, 8)?;
         let descriptor = dataset.dtype().and_then(|t| t.to_descriptor()).map_err(fail)?;
         let data = match descriptor {
             TypeDescriptor::Float(_) => ArrayData::Float(

@@ -69,6 +69,18 @@ impl Format {
     }
 }
 
+impl std::str::FromStr for Format {
+    type Err = ParseError;
+
+    /// The inverse of [`Format::as_str`] (for reading a stored format back).
+    fn from_str(s: &str) -> Result<Format, ParseError> {
+        [Format::Jsonl, Format::Csv, Format::Npz, Format::Hdf5]
+            .into_iter()
+            .find(|f| f.as_str() == s)
+            .ok_or_else(|| ParseError::unknown_format(format!("unknown format `{s}`")))
+    }
+}
+
 impl std::fmt::Display for Format {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.write_str(self.as_str())

@@ -1,7 +1,6 @@
 //! NPZ archives (`numpy.savez` / `savez_compressed`) in the flat layout of [`super::flat`].
 //! Each array's bytes are decoded in fixed-size chunks straight into its column, so memory is
-//! the columns themselves; the decoded size is bounded relative to the file size so that a
-//! small compressed archive cannot expand into an unbounded allocation.
+//! the columns themselves; the decoded size is bounded by a [`DecodeBudget`].
 
 use std::fs::File;
 use std::io::{self, BufReader, Read};
@@ -11,33 +10,24 @@ use npyz::npz::NpzArchive;
 use npyz::{DType, Endianness, Order, TypeChar, TypeStr};
 
 use super::error::ParseError;
-use super::flat::{self, Array, ArrayData, ArraySource};
+use super::flat::{self, Array, ArrayData, ArraySource, DecodeBudget};
 use super::model::Dataset;
 
-/// Decoded bytes allowed per byte of archive, plus a fixed allowance: generous for real data
-/// (a column of all-false terminals compresses ~1000×, but it is small next to the observations).
-const EXPANSION_PER_FILE_BYTE: u64 = 64;
-const EXPANSION_ALLOWANCE: u64 = 256 << 20;
-
 pub fn parse(path: &Path) -> Result<Dataset, ParseError> {
-    let file_bytes = std::fs::metadata(path).map_err(|e| ParseError::io("NPZ", e))?.len();
+    let budget = DecodeBudget::for_file(path)?;
     let archive = NpzArchive::open(path).map_err(|e| {
         ParseError::invalid(format!(
             "the NPZ archive is truncated or corrupt ({e}); re-create it with numpy.savez or \
              numpy.savez_compressed"
         ))
     })?;
-    let mut source = NpzSource {
-        archive,
-        budget: file_bytes.saturating_mul(EXPANSION_PER_FILE_BYTE) + EXPANSION_ALLOWANCE,
-    };
+    let mut source = NpzSource { archive, budget };
     flat::assemble(&mut source)
 }
 
 struct NpzSource {
     archive: NpzArchive<BufReader<File>>,
-    /// Decoded bytes still allowed.
-    budget: u64,
+    budget: DecodeBudget,
 }
 
 impl ArraySource for NpzSource {
@@ -60,14 +50,7 @@ impl ArraySource for NpzSource {
         let shape: Vec<usize> = npy.shape().iter().map(|&s| s as usize).collect();
         let fortran = npy.order() == Order::Fortran;
         let count: usize = shape.iter().product();
-        let bytes = (count as u64).saturating_mul(type_str.size_field());
-        if bytes > self.budget {
-            return Err(ParseError::invalid(format!(
-                "key `{key}` would decode to {bytes} bytes, far more than the archive's size \
-                 suggests; refusing (corrupt or malicious archive)"
-            )));
-        }
-        self.budget -= bytes;
+        self.budget.take(key, count as u64, type_str.size_field())?;
         let reader = npy.into_inner();
         let data = decode(key, &type_str, count, reader)?;
         let data = if fortran && shape.len() == 2 { transpose(data, &shape) } else { data };

@@ -150,7 +150,7 @@ impl RowAssembler {
 
     fn check_action(&mut self, line: usize, action: &RowAction<'_>) -> Result<(), ParseError> {
         let kind = match action {
-            RowAction::Continuous(a) if a.is_empty() => {
+            RowAction::Continuous([]) => {
                 return Err(ParseError::invalid(format!("line {line}: `action` is empty")))
             }
             RowAction::Continuous(a) => ActionKind::Continuous(a.len()),

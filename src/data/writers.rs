@@ -122,7 +122,7 @@ pub fn write_jsonl(d: &Dataset, path: &Path) -> io::Result<()> {
         serde_json::to_writer(&mut out, &row)?;
         out.write_all(b"\n")?;
     }
-    out.into_inner().map_err(|e| e.into_error())?.sync_all()
+    out.flush()
 }
 
 /// CSV with the header `episode, obs_*, act_*|action, next_obs_*, terminal[, reward][, cost]`.

@@ -163,6 +163,13 @@ impl From<crate::store::StoreError> for ApiError {
     }
 }
 
+impl From<crate::data::ParseError> for ApiError {
+    /// A rejected upload: 422 with the parser's code and its message naming the line/row/key.
+    fn from(e: crate::data::ParseError) -> Self {
+        ApiError::Unprocessable { code: e.code, message: e.message }
+    }
+}
+
 impl From<sqlx::Error> for ApiError {
     fn from(e: sqlx::Error) -> Self {
         ApiError::Internal(e.into())
@@ -191,7 +198,17 @@ macro_rules! from_rejection {
     )*};
 }
 
-from_rejection!(JsonRejection, QueryRejection, PathRejection, MultipartRejection, MultipartError);
+from_rejection!(JsonRejection, QueryRejection, PathRejection, MultipartError);
+
+impl From<MultipartRejection> for ApiError {
+    fn from(_: MultipartRejection) -> Self {
+        ApiError::bad_request(
+            "not_multipart",
+            "send the upload as multipart/form-data with a `file` field, e.g. \
+             `curl -F file=@demos.jsonl -F name=walker-unlabeled .../v1/datasets`",
+        )
+    }
+}
 
 /// Answers requests for routes that do not exist (the router's fallback).
 pub async fn route_not_found(uri: axum::http::Uri) -> ApiError {

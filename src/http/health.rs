@@ -1,4 +1,4 @@
-//! Liveness, readiness and the service index.
+//! Liveness and readiness. (`/` is left to the dashboard.)
 
 use axum::extract::State;
 use serde::Serialize;
@@ -17,36 +17,13 @@ pub struct Health {
     pub status: &'static str,
 }
 
-/// What this server is and where its API is described.
-#[derive(Debug, Serialize, ToSchema)]
-pub struct ServiceIndex {
-    #[schema(example = "safedice")]
-    pub service: &'static str,
-    #[schema(example = "0.1.0")]
-    pub version: &'static str,
-    /// Path of the OpenAPI description.
-    #[schema(example = "/v1/openapi.json")]
-    pub openapi: &'static str,
-}
-
 pub fn router() -> OpenApiRouter<AppState> {
-    OpenApiRouter::new().routes(routes!(index)).routes(routes!(healthz)).routes(routes!(readyz))
-}
-
-/// Service name, version and the location of the API description.
-#[utoipa::path(get, path = "/", tag = "operations",
-    responses((status = 200, body = ServiceIndex)))]
-async fn index() -> Json<ServiceIndex> {
-    Json(ServiceIndex {
-        service: "safedice",
-        version: env!("CARGO_PKG_VERSION"),
-        openapi: "/v1/openapi.json",
-    })
+    OpenApiRouter::new().routes(routes!(healthz)).routes(routes!(readyz))
 }
 
 /// Liveness: the process answers HTTP.
 #[utoipa::path(get, path = "/healthz", tag = "operations",
-    responses((status = 200, body = Health)))]
+    responses((status = 200, description = "The process is alive", body = Health)))]
 async fn healthz() -> Json<Health> {
     Json(Health { status: "ok" })
 }
@@ -54,7 +31,7 @@ async fn healthz() -> Json<Health> {
 /// Readiness: the database answers a query.
 #[utoipa::path(get, path = "/readyz", tag = "operations",
     responses(
-        (status = 200, body = Health),
+        (status = 200, description = "The database answers", body = Health),
         (status = 503, description = "The database is unreachable", body = ErrorBody),
     ))]
 async fn readyz(State(state): State<AppState>) -> Result<Json<Health>, ApiError> {

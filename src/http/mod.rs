@@ -6,12 +6,16 @@
 //! streams) → handler.
 
 pub mod auth;
+pub mod datasets;
 pub mod error;
 pub mod extract;
 pub mod health;
+pub mod inference;
+pub mod jobs;
 pub mod metrics;
 pub mod openapi;
 pub mod pagination;
+pub mod policies;
 
 use std::sync::Arc;
 use std::time::Duration;
@@ -49,6 +53,10 @@ pub struct AppState {
     pub tokens: Arc<auth::Tokens>,
     /// Cancelled when the server begins a graceful shutdown (long-running work stops on it).
     pub shutdown: CancellationToken,
+    /// The training worker pool (started by the server).
+    pub jobs: crate::jobs::JobRunner,
+    /// Trained policies loaded for inference.
+    pub policies: Arc<inference::PolicyCache>,
 }
 
 impl AppState {
@@ -56,11 +64,17 @@ impl AppState {
         let tokens =
             auth::Tokens::new(config.api_token.as_deref(), config.inference_token.as_deref());
         AppState {
-            config: Arc::new(config),
-            store,
             metrics: Arc::new(metrics::Metrics::new()),
             tokens: Arc::new(tokens),
+            jobs: crate::jobs::JobRunner::new(
+                store.clone(),
+                usize::from(config.workers),
+                shutdown.clone(),
+            ),
+            policies: Arc::new(inference::PolicyCache::new(store.clone())),
             shutdown,
+            config: Arc::new(config),
+            store,
         }
     }
 }
@@ -71,10 +85,13 @@ fn routes() -> OpenApiRouter<AppState> {
         .merge(health::router())
         .merge(metrics::router())
         .merge(openapi::router())
+        .merge(datasets::router())
+        .merge(jobs::router())
+        .merge(policies::router())
+        .merge(inference::router())
         .layer(middleware::from_fn(timeout));
-    // Routes that legitimately take long: uploads of up to --max-upload-bytes (and, later,
-    // event streams).
-    let long_running = OpenApiRouter::new();
+    // Routes that legitimately take long: uploads of up to --max-upload-bytes, event streams.
+    let long_running = OpenApiRouter::new().merge(datasets::upload_router()).merge(jobs::streams());
     OpenApiRouter::with_openapi(openapi::base()).merge(bounded).merge(long_running)
 }
 

@@ -21,3 +21,433 @@ impl Store {
             .collect())
     }
 }
+
+// ---------------------------------------------------------------------------------------------
+// The job runner's side: creating, claiming, progressing and finishing jobs, their metrics and
+// checkpoints.
+
+use sqlx::{Sqlite, SqliteConnection, Transaction};
+
+use super::policies::NewPolicy;
+use super::StoreError;
+
+/// A job as stored (the HTTP layer turns it into the API's resource).
+#[derive(Clone, Debug, sqlx::FromRow)]
+pub struct JobRow {
+    pub id: String,
+    pub algorithm: String,
+    pub status: String,
+    pub unlabeled_dataset_id: String,
+    pub non_preferred_dataset_id: Option<String>,
+    /// JSON of the resolved algorithm configuration.
+    pub config: String,
+    /// JSON of the job-runner options.
+    pub runner: String,
+    pub step: i64,
+    pub total_steps: i64,
+    pub phase: Option<String>,
+    pub iterations_per_second: Option<f64>,
+    pub alpha_hat: Option<f64>,
+    pub policy_id: Option<String>,
+    pub error: Option<String>,
+    pub cancel_requested: bool,
+    pub created_at: String,
+    pub updated_at: String,
+    pub started_at: Option<String>,
+    pub finished_at: Option<String>,
+}
+
+impl JobRow {
+    pub fn is_terminal(&self) -> bool {
+        matches!(self.status.as_str(), "succeeded" | "failed" | "cancelled")
+    }
+}
+
+/// What `POST /v1/jobs` stores.
+#[derive(Clone, Debug)]
+pub struct NewJob<'a> {
+    pub id: &'a str,
+    pub algorithm: &'a str,
+    pub unlabeled_dataset_id: &'a str,
+    pub non_preferred_dataset_id: Option<&'a str>,
+    pub config: &'a str,
+    pub runner: &'a str,
+    pub total_steps: u64,
+}
+
+/// One recorded scalar of a training step.
+#[derive(Clone, Debug, PartialEq, sqlx::FromRow)]
+pub struct MetricRow {
+    pub name: String,
+    pub step: i64,
+    pub value: f64,
+    pub time: String,
+}
+
+/// A running job's progress as the worker reports it.
+#[derive(Clone, Debug)]
+pub struct ProgressUpdate<'a> {
+    pub step: u64,
+    pub phase: &'a str,
+    pub iterations_per_second: Option<f64>,
+    pub alpha_hat: Option<f64>,
+}
+
+/// What a cancel request did.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum CancelOutcome {
+    /// The job was queued and is now cancelled.
+    Cancelled,
+    /// The job is running; its worker stops at the next step.
+    Requested,
+    /// The job had already finished with this status.
+    AlreadyFinished(String),
+}
+
+/// Current time as stored: RFC 3339, UTC, milliseconds.
+pub fn now() -> String {
+    chrono::Utc::now().to_rfc3339_opts(chrono::SecondsFormat::Millis, true)
+}
+
+const JOB_COLUMNS: &str = "id, algorithm, status, unlabeled_dataset_id, non_preferred_dataset_id, \
+     config, runner, step, total_steps, phase, iterations_per_second, alpha_hat, policy_id, \
+     error, cancel_requested, created_at, updated_at, started_at, finished_at";
+
+impl Store {
+    pub async fn insert_job(&self, job: &NewJob<'_>) -> Result<JobRow, StoreError> {
+        let now = now();
+        sqlx::query(
+            "INSERT INTO jobs (id, algorithm, status, unlabeled_dataset_id, \
+             non_preferred_dataset_id, config, runner, total_steps, created_at, updated_at) \
+             VALUES (?, ?, 'queued', ?, ?, ?, ?, ?, ?, ?)",
+        )
+        .bind(job.id)
+        .bind(job.algorithm)
+        .bind(job.unlabeled_dataset_id)
+        .bind(job.non_preferred_dataset_id)
+        .bind(job.config)
+        .bind(job.runner)
+        .bind(job.total_steps as i64)
+        .bind(&now)
+        .bind(&now)
+        .execute(self.pool())
+        .await?;
+        self.job(job.id).await
+    }
+
+    pub async fn job(&self, id: &str) -> Result<JobRow, StoreError> {
+        sqlx::query_as(&format!("SELECT {JOB_COLUMNS} FROM jobs WHERE id = ?"))
+            .bind(id)
+            .fetch_optional(self.pool())
+            .await?
+            .ok_or_else(|| StoreError::NotFound { kind: "job", id: id.to_owned() })
+    }
+
+    /// A page of jobs, newest first, optionally only those in `status`; and the total count.
+    pub async fn list_jobs(
+        &self,
+        status: Option<&str>,
+        limit: u32,
+        offset: u64,
+    ) -> Result<(Vec<JobRow>, u64), StoreError> {
+        let rows = sqlx::query_as(&format!(
+            "SELECT {JOB_COLUMNS} FROM jobs WHERE (?1 IS NULL OR status = ?1) \
+             ORDER BY created_at DESC, id DESC LIMIT ?2 OFFSET ?3"
+        ))
+        .bind(status)
+        .bind(i64::from(limit))
+        .bind(offset as i64)
+        .fetch_all(self.pool())
+        .await?;
+        let total: i64 =
+            sqlx::query_scalar("SELECT COUNT(*) FROM jobs WHERE ?1 IS NULL OR status = ?1")
+                .bind(status)
+                .fetch_one(self.pool())
+                .await?;
+        Ok((rows, total as u64))
+    }
+
+    /// Atomically moves the next job from `queued` to `running` and returns it. Jobs that were
+    /// already started once (interrupted by a shutdown or crash) go first, then the oldest.
+    pub async fn claim_next_job(&self) -> Result<Option<JobRow>, StoreError> {
+        let now = now();
+        let claimed: Option<String> = sqlx::query_scalar(
+            "UPDATE jobs SET status = 'running', updated_at = ?1, \
+                 started_at = COALESCE(started_at, ?1) \
+             WHERE id = (SELECT id FROM jobs WHERE status = 'queued' \
+                         ORDER BY started_at IS NULL, created_at, id LIMIT 1) \
+               AND status = 'queued' \
+             RETURNING id",
+        )
+        .bind(&now)
+        .fetch_optional(self.pool())
+        .await?;
+        match claimed {
+            Some(id) => Ok(Some(self.job(&id).await?)),
+            None => Ok(None),
+        }
+    }
+
+    /// At start-up: jobs left `running` by a process that died go back to the queue (they
+    /// resume from their checkpoint). Returns how many.
+    pub async fn requeue_interrupted_jobs(&self) -> Result<u64, StoreError> {
+        let done = sqlx::query(
+            "UPDATE jobs SET status = 'queued', updated_at = ?, iterations_per_second = NULL \
+             WHERE status = 'running'",
+        )
+        .bind(now())
+        .execute(self.pool())
+        .await?;
+        Ok(done.rows_affected())
+    }
+
+    /// A running job handed back to the queue (graceful shutdown after its checkpoint).
+    pub async fn release_job(&self, id: &str) -> Result<(), StoreError> {
+        sqlx::query(
+            "UPDATE jobs SET status = 'queued', updated_at = ?, iterations_per_second = NULL \
+             WHERE id = ? AND status = 'running'",
+        )
+        .bind(now())
+        .bind(id)
+        .execute(self.pool())
+        .await?;
+        Ok(())
+    }
+
+    /// Records progress; returns whether a cancel was requested meanwhile.
+    pub async fn update_progress(
+        &self,
+        id: &str,
+        progress: &ProgressUpdate<'_>,
+    ) -> Result<bool, StoreError> {
+        let cancel: Option<bool> = sqlx::query_scalar(
+            "UPDATE jobs SET step = ?, phase = ?, iterations_per_second = ?, \
+                 alpha_hat = COALESCE(?, alpha_hat), updated_at = ? \
+             WHERE id = ? RETURNING cancel_requested",
+        )
+        .bind(progress.step as i64)
+        .bind(progress.phase)
+        .bind(progress.iterations_per_second)
+        .bind(progress.alpha_hat)
+        .bind(now())
+        .bind(id)
+        .fetch_optional(self.pool())
+        .await?;
+        Ok(cancel.unwrap_or(false))
+    }
+
+    pub async fn insert_metrics(&self, id: &str, rows: &[MetricRow]) -> Result<(), StoreError> {
+        if rows.is_empty() {
+            return Ok(());
+        }
+        let mut tx = self.pool().begin().await?;
+        insert_metric_rows(&mut tx, id, rows).await?;
+        tx.commit().await?;
+        Ok(())
+    }
+
+    /// Writes the pending metrics and replaces the job's checkpoint in one transaction, so the
+    /// checkpoint never refers to metrics that are not stored.
+    pub async fn save_checkpoint(
+        &self,
+        id: &str,
+        step: u64,
+        data: &[u8],
+        pending_metrics: &[MetricRow],
+    ) -> Result<(), StoreError> {
+        let mut tx = self.pool().begin().await?;
+        insert_metric_rows(&mut tx, id, pending_metrics).await?;
+        sqlx::query(
+            "INSERT INTO job_checkpoints (job_id, step, data, created_at) VALUES (?, ?, ?, ?) \
+             ON CONFLICT (job_id) DO UPDATE SET step = excluded.step, data = excluded.data, \
+                 created_at = excluded.created_at",
+        )
+        .bind(id)
+        .bind(step as i64)
+        .bind(data)
+        .bind(now())
+        .execute(&mut *tx)
+        .await?;
+        tx.commit().await?;
+        Ok(())
+    }
+
+    /// The job's last checkpoint: (step, bytes).
+    pub async fn checkpoint(&self, id: &str) -> Result<Option<(u64, Vec<u8>)>, StoreError> {
+        let row: Option<(i64, Vec<u8>)> =
+            sqlx::query_as("SELECT step, data FROM job_checkpoints WHERE job_id = ?")
+                .bind(id)
+                .fetch_optional(self.pool())
+                .await?;
+        Ok(row.map(|(step, data)| (step as u64, data)))
+    }
+
+    /// Deletes the metrics recorded after `step` (a resume from the checkpoint at `step`
+    /// recomputes them; deleting first keeps every (name, step) row exactly once).
+    pub async fn discard_metrics_after(&self, id: &str, step: u64) -> Result<u64, StoreError> {
+        let done = sqlx::query("DELETE FROM job_metrics WHERE job_id = ? AND step > ?")
+            .bind(id)
+            .bind(step as i64)
+            .execute(self.pool())
+            .await?;
+        Ok(done.rows_affected())
+    }
+
+    /// Every metric row of a job (only `names` when given), ordered by name then step.
+    pub async fn job_metrics(
+        &self,
+        id: &str,
+        names: Option<&[String]>,
+    ) -> Result<Vec<MetricRow>, StoreError> {
+        let names_json = names.map(|n| serde_json::to_string(n).expect("names serialize"));
+        let rows = sqlx::query_as(
+            "SELECT name, step, value, time FROM job_metrics WHERE job_id = ?1 \
+               AND (?2 IS NULL OR name IN (SELECT value FROM json_each(?2))) \
+             ORDER BY name, step",
+        )
+        .bind(id)
+        .bind(names_json)
+        .fetch_all(self.pool())
+        .await?;
+        Ok(rows)
+    }
+
+    /// The last recorded value of each metric of a job.
+    pub async fn last_metric_values(&self, id: &str) -> Result<Vec<(String, f64)>, StoreError> {
+        let rows = sqlx::query_as(
+            "SELECT name, value FROM job_metrics AS m WHERE job_id = ?1 \
+               AND step = (SELECT MAX(step) FROM job_metrics WHERE job_id = ?1 AND name = m.name) \
+             ORDER BY name",
+        )
+        .bind(id)
+        .fetch_all(self.pool())
+        .await?;
+        Ok(rows)
+    }
+
+    /// Completes a job: its last metrics, its policy and the `succeeded` status in one
+    /// transaction; the checkpoint is no longer needed.
+    pub async fn finish_job_succeeded(
+        &self,
+        id: &str,
+        pending_metrics: &[MetricRow],
+        policy: &NewPolicy<'_>,
+        step: u64,
+    ) -> Result<(), StoreError> {
+        let mut tx = self.pool().begin().await?;
+        insert_metric_rows(&mut tx, id, pending_metrics).await?;
+        super::policies::insert_policy(&mut tx, policy).await?;
+        let now = now();
+        sqlx::query(
+            "UPDATE jobs SET status = 'succeeded', policy_id = ?, step = ?, \
+                 alpha_hat = COALESCE(?, alpha_hat), updated_at = ?, finished_at = ? \
+             WHERE id = ?",
+        )
+        .bind(policy.id)
+        .bind(step as i64)
+        .bind(policy.alpha_hat)
+        .bind(&now)
+        .bind(&now)
+        .bind(id)
+        .execute(&mut *tx)
+        .await?;
+        sqlx::query("DELETE FROM job_checkpoints WHERE job_id = ?")
+            .bind(id)
+            .execute(&mut *tx)
+            .await?;
+        tx.commit().await?;
+        Ok(())
+    }
+
+    /// Ends a job as `failed` (with `error`) or `cancelled`, storing its last metrics; its
+    /// metrics history stays.
+    pub async fn finish_job(
+        &self,
+        id: &str,
+        status: &str,
+        error: Option<&str>,
+        pending_metrics: &[MetricRow],
+    ) -> Result<(), StoreError> {
+        let mut tx = self.pool().begin().await?;
+        insert_metric_rows(&mut tx, id, pending_metrics).await?;
+        let now = now();
+        sqlx::query(
+            "UPDATE jobs SET status = ?, error = ?, iterations_per_second = NULL, updated_at = ?, \
+                 finished_at = ? WHERE id = ?",
+        )
+        .bind(status)
+        .bind(error)
+        .bind(&now)
+        .bind(&now)
+        .bind(id)
+        .execute(&mut *tx)
+        .await?;
+        sqlx::query("DELETE FROM job_checkpoints WHERE job_id = ?")
+            .bind(id)
+            .execute(&mut *tx)
+            .await?;
+        tx.commit().await?;
+        Ok(())
+    }
+
+    /// Cancels a queued job at once, or flags a running one for its worker.
+    pub async fn request_cancel(&self, id: &str) -> Result<CancelOutcome, StoreError> {
+        let now = now();
+        let mut tx = self.pool().begin().await?;
+        let status: String = sqlx::query_scalar("SELECT status FROM jobs WHERE id = ?")
+            .bind(id)
+            .fetch_optional(&mut *tx)
+            .await?
+            .ok_or_else(|| StoreError::NotFound { kind: "job", id: id.to_owned() })?;
+        let outcome = match status.as_str() {
+            "queued" => {
+                sqlx::query(
+                    "UPDATE jobs SET status = 'cancelled', cancel_requested = 1, updated_at = ?1, \
+                         finished_at = ?1 WHERE id = ?2",
+                )
+                .bind(&now)
+                .bind(id)
+                .execute(&mut *tx)
+                .await?;
+                sqlx::query("DELETE FROM job_checkpoints WHERE job_id = ?")
+                    .bind(id)
+                    .execute(&mut *tx)
+                    .await?;
+                CancelOutcome::Cancelled
+            }
+            "running" => {
+                sqlx::query("UPDATE jobs SET cancel_requested = 1, updated_at = ? WHERE id = ?")
+                    .bind(&now)
+                    .bind(id)
+                    .execute(&mut *tx)
+                    .await?;
+                CancelOutcome::Requested
+            }
+            _ => CancelOutcome::AlreadyFinished(status),
+        };
+        tx.commit().await?;
+        Ok(outcome)
+    }
+}
+
+async fn insert_metric_rows(
+    tx: &mut Transaction<'_, Sqlite>,
+    id: &str,
+    rows: &[MetricRow],
+) -> Result<(), sqlx::Error> {
+    // SQLite's bound-parameter limit is 32766; 4 per row plus the job id.
+    for chunk in rows.chunks(4000) {
+        let mut insert = sqlx::QueryBuilder::<Sqlite>::new(
+            "INSERT INTO job_metrics (job_id, name, step, value, time) ",
+        );
+        insert.push_values(chunk, |mut row, metric| {
+            row.push_bind(id)
+                .push_bind(&metric.name)
+                .push_bind(metric.step)
+                .push_bind(metric.value)
+                .push_bind(&metric.time);
+        });
+        insert.build().execute(&mut **tx as &mut SqliteConnection).await?;
+    }
+    Ok(())
+}

@@ -10,7 +10,9 @@
 //! `--max-upload-bytes` (1 GiB by default) and SQLite caps a blob at 1 GB; a row is only inserted
 //! once its file is durably in place, and files without a row are removed at start-up.
 
+pub mod datasets;
 pub mod jobs;
+pub mod policies;
 
 use std::path::{Path, PathBuf};
 use std::str::FromStr;
@@ -19,6 +21,8 @@ use std::time::Duration;
 use anyhow::Context;
 use sqlx::sqlite::{SqliteConnectOptions, SqliteJournalMode, SqlitePoolOptions, SqliteSynchronous};
 use sqlx::SqlitePool;
+
+pub use datasets::{DatasetRecord, DeleteOutcome, NewDataset};
 
 const DATABASE_FILE: &str = "safedice.sqlite";
 const DATASETS_DIR: &str = "datasets";
@@ -45,8 +49,9 @@ pub struct Store {
 }
 
 impl Store {
-    /// Opens (creating on first start) the data directory and its database, runs the pending
-    /// migrations and clears what an interrupted run left behind.
+    /// Opens (creating on first start) the data directory and its database and runs the pending
+    /// migrations. Safe while a server runs on the same directory (tests and tools use it to
+    /// inspect the store); only the server calls [`Store::remove_leftovers`].
     pub async fn open(data_dir: &Path) -> anyhow::Result<Store> {
         for dir in [data_dir.to_path_buf(), data_dir.join(DATASETS_DIR), data_dir.join(TMP_DIR)] {
             std::fs::create_dir_all(&dir)
@@ -71,9 +76,7 @@ impl Store {
             .run(&pool)
             .await
             .with_context(|| format!("cannot migrate the database {}", database.display()))?;
-        let store = Store { pool, data_dir: data_dir.to_path_buf() };
-        store.remove_leftovers().await?;
-        Ok(store)
+        Ok(Store { pool, data_dir: data_dir.to_path_buf() })
     }
 
     pub fn pool(&self) -> &SqlitePool {
@@ -90,6 +93,10 @@ impl Store {
         self.data_dir.join(TMP_DIR)
     }
 
+    fn datasets_dir(&self) -> PathBuf {
+        self.data_dir.join(DATASETS_DIR)
+    }
+
     /// Whether the database answers a query (readiness).
     pub async fn ping(&self) -> Result<(), sqlx::Error> {
         sqlx::query("SELECT 1").execute(&self.pool).await.map(|_| ())
@@ -102,11 +109,23 @@ impl Store {
 
     /// Removes temp uploads and dataset files without a database row: what a crash between
     /// writing a file and committing its row (or between deleting a row and its file) leaves.
-    async fn remove_leftovers(&self) -> anyhow::Result<()> {
+    /// Call it at start-up, before serving: it would also remove uploads in flight.
+    pub async fn remove_leftovers(&self) -> anyhow::Result<()> {
         for entry in std::fs::read_dir(self.tmp_dir())? {
             let path = entry?.path();
             tracing::info!(path = %path.display(), "removing an interrupted upload");
             remove_path(&path)?;
+        }
+        let known: std::collections::HashSet<String> =
+            self.dataset_ids().await?.into_iter().collect();
+        for entry in std::fs::read_dir(self.datasets_dir())? {
+            let path = entry?.path();
+            let is_known =
+                datasets::id_of_canonical_file(&path).is_some_and(|id| known.contains(id));
+            if !is_known {
+                tracing::warn!(path = %path.display(), "removing a dataset file without a row");
+                remove_path(&path)?;
+            }
         }
         Ok(())
     }

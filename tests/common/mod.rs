@@ -78,6 +78,39 @@ impl TestApp {
         self.request(reqwest::Method::DELETE, path)
     }
 
+    /// Uploads `contents` as a dataset file named `file_name` (multipart `file` field), with an
+    /// optional `name` field.
+    pub async fn upload_dataset(
+        &self,
+        file_name: &str,
+        contents: Vec<u8>,
+        name: Option<&str>,
+    ) -> Response {
+        let mut form = reqwest::multipart::Form::new().part(
+            "file",
+            reqwest::multipart::Part::bytes(contents).file_name(file_name.to_owned()),
+        );
+        if let Some(name) = name {
+            form = form.text("name", name.to_owned());
+        }
+        self.post("/v1/datasets").multipart(form).send().await.expect("upload request")
+    }
+
+    /// Uploads a dataset and returns its id, panicking unless the server answers 201.
+    pub async fn create_dataset(&self, file_name: &str, contents: Vec<u8>) -> String {
+        let response = self.upload_dataset(file_name, contents, None).await;
+        assert_eq!(response.status(), StatusCode::CREATED, "upload of {file_name} failed");
+        let body: serde_json::Value = response.json().await.unwrap();
+        body["id"].as_str().unwrap().to_owned()
+    }
+
+    /// Asserts that no dataset is stored: no row, no canonical file, no temp upload left.
+    pub async fn assert_no_datasets_stored(&self) {
+        assert_eq!(self.count_rows("datasets").await, 0, "a dataset row was stored");
+        assert_eq!(self.files_in("datasets"), Vec::<PathBuf>::new(), "a dataset file was stored");
+        assert_eq!(self.files_in("tmp"), Vec::<PathBuf>::new(), "a temp upload was left behind");
+    }
+
     /// Graceful shutdown; the data directory stays.
     pub async fn stop(&mut self) {
         if let Some(server) = self.server.take() {

@@ -1,0 +1,529 @@
+//! `/v1/jobs`: queue a training run, follow it (resource, metrics history, event stream), cancel
+//! it. The work itself happens in [`crate::jobs`].
+
+use std::convert::Infallible;
+use std::time::Duration;
+
+use axum::extract::State;
+use axum::http::{header, StatusCode};
+use axum::response::sse::{Event, KeepAlive, Sse};
+use axum::response::IntoResponse;
+use futures::{Stream, StreamExt};
+use serde::{Deserialize, Serialize};
+use tokio::sync::broadcast;
+use utoipa::{IntoParams, ToSchema};
+use utoipa_axum::router::OpenApiRouter;
+use utoipa_axum::routes;
+
+use super::error::ErrorBody;
+use super::extract::{Json, Path, Query};
+use super::pagination::{Page, PageParams};
+use super::{ApiError, AppState};
+use crate::algo::{self, Algorithm};
+use crate::jobs::{JobEvent, JobProgress, RunnerOptions};
+use crate::store::jobs::{CancelOutcome, JobRow, MetricRow, NewJob};
+use crate::store::{Store, StoreError};
+
+/// A job's lifecycle: `queued` → `running` → `succeeded` | `failed` | `cancelled` (a running job
+/// goes back to `queued` when the server shuts down, and resumes from its checkpoint).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, ToSchema)]
+#[serde(rename_all = "lowercase")]
+pub enum JobStatus {
+    Queued,
+    Running,
+    Succeeded,
+    Failed,
+    Cancelled,
+}
+
+impl JobStatus {
+    fn as_str(self) -> &'static str {
+        match self {
+            JobStatus::Queued => "queued",
+            JobStatus::Running => "running",
+            JobStatus::Succeeded => "succeeded",
+            JobStatus::Failed => "failed",
+            JobStatus::Cancelled => "cancelled",
+        }
+    }
+}
+
+/// `POST /v1/jobs` body.
+#[derive(Debug, Deserialize, ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct CreateJob {
+    pub algorithm: Algorithm,
+    /// Id of the unlabeled dataset D^U.
+    pub unlabeled_dataset: String,
+    /// Id of the labeled non-preferred dataset D^N; required by every algorithm except `bc`.
+    pub non_preferred_dataset: Option<String>,
+    /// The algorithm's configuration: `"preset"` plus overrides of any knob; absent keys take
+    /// the preset's values, unknown keys and out-of-range values are rejected (422
+    /// `invalid_config`). The job resource shows the resolved configuration.
+    ///
+    /// Presets: `service` (default), `paper` (Tables 2/4 of the paper), `authors-code` (what
+    /// the authors' published code runs).
+    ///
+    /// Keys of every algorithm, `service` defaults: `seed` 0; `iterations` 100000 (paper:
+    /// 1000000, cut tenfold so a default job takes minutes, not hours, on a CPU); `batch_size`
+    /// 512; `hidden_sizes` [256, 256]; `lr_actor` 3e-4 (SafeDICE: 1e-4; paper 3e-4, authors'
+    /// code 1e-5); `normalize_observations` true (paper: false; the stats travel with the
+    /// policy).
+    ///
+    /// `safedice`: `discriminator_iterations` iterations/10 unless set (the authors' ratio:
+    /// 100k discriminator steps for 1M iterations); `lr_discriminator` 1e-4 and `lr_nu` 1e-4
+    /// (paper 3e-4, which diverged on small continuous tasks); `discriminator_gp` 10 (paper
+    /// 0.1); `nu_gp` 1e-6 (paper 0); `gamma` 0.99; `terminal_handling` `reset` (paper `none`;
+    /// also `mask`, `absorbing`); `standardize_reward` true (paper false); `alpha_hat_quantile`
+    /// 0 (the paper's minimum); `ess_warning_fraction` 0.01.
+    ///
+    /// `dwbc`: `eta` 0.2, `lr_discriminator` 3e-4, `discriminator_gp` 0.1. `ppl`:
+    /// `reward_model_iterations` iterations/10, `lr_reward_model` 3e-4, `pairs_per_batch` 16,
+    /// `segment_length` 32, `ppl_weight` `sigmoid` (paper `raw`). `dexperts`: `alpha` 0.2.
+    /// `bc`: no further keys.
+    #[schema(value_type = Object, example = json!({"preset": "service", "iterations": 20000, "seed": 0}))]
+    pub config: Option<serde_json::Value>,
+    /// Job-runner options (how often metrics and checkpoints are stored), beside the algorithm's
+    /// configuration: they never change the trained policy.
+    #[schema(value_type = Option<RunnerOptions>)]
+    pub runner: Option<serde_json::Value>,
+}
+
+/// A training job.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct Job {
+    pub id: String,
+    pub algorithm: Algorithm,
+    pub status: JobStatus,
+    pub unlabeled_dataset: String,
+    pub non_preferred_dataset: Option<String>,
+    /// The resolved configuration: every knob of the algorithm with its value.
+    #[schema(value_type = Object)]
+    pub config: serde_json::Value,
+    pub runner: RunnerOptions,
+    pub progress: JobProgress,
+    /// SafeDICE's alpha-hat (Eq. 15) once the discriminator phase has computed it.
+    pub alpha_hat: Option<f64>,
+    /// The trained policy, once the job succeeded.
+    pub policy_id: Option<String>,
+    /// Why the job failed.
+    pub error: Option<String>,
+    /// A cancel was requested while the job ran.
+    pub cancel_requested: bool,
+    pub created_at: String,
+    pub updated_at: String,
+    pub started_at: Option<String>,
+    pub finished_at: Option<String>,
+}
+
+impl TryFrom<JobRow> for Job {
+    type Error = ApiError;
+
+    fn try_from(row: JobRow) -> Result<Self, ApiError> {
+        let corrupt = |what: &str, e: serde_json::Error| {
+            ApiError::Internal(anyhow::anyhow!("job {}: stored {what} does not parse: {e}", row.id))
+        };
+        let algorithm = serde_json::from_value(row.algorithm.clone().into())
+            .map_err(|e| corrupt("algorithm", e))?;
+        let status =
+            serde_json::from_value(row.status.clone().into()).map_err(|e| corrupt("status", e))?;
+        let config = serde_json::from_str(&row.config).map_err(|e| corrupt("config", e))?;
+        let runner = serde_json::from_str(&row.runner).map_err(|e| corrupt("runner", e))?;
+        let running = row.status == "running";
+        let progress = JobProgress::new(
+            row.step as u64,
+            row.total_steps as u64,
+            row.phase,
+            row.iterations_per_second.filter(|_| running),
+        );
+        Ok(Job {
+            id: row.id,
+            algorithm,
+            status,
+            unlabeled_dataset: row.unlabeled_dataset_id,
+            non_preferred_dataset: row.non_preferred_dataset_id,
+            config,
+            runner,
+            progress,
+            alpha_hat: row.alpha_hat,
+            policy_id: row.policy_id,
+            error: row.error,
+            cancel_requested: row.cancel_requested,
+            created_at: row.created_at,
+            updated_at: row.updated_at,
+            started_at: row.started_at,
+            finished_at: row.finished_at,
+        })
+    }
+}
+
+/// `?status=&limit=&offset=`
+#[derive(Debug, Deserialize, IntoParams)]
+#[into_params(parameter_in = Query)]
+pub struct JobFilter {
+    /// Only jobs in this status.
+    pub status: Option<JobStatus>,
+}
+
+/// `?names=&max_points=`
+#[derive(Debug, Deserialize, IntoParams)]
+#[into_params(parameter_in = Query)]
+pub struct MetricsParams {
+    /// Comma-separated metric names (default: every metric of the job).
+    pub names: Option<String>,
+    /// Most points returned per metric, 2 to 10000 (default 500). Longer histories are
+    /// downsampled: consecutive points are averaged into buckets (each reported at its last
+    /// step), and the last recorded point is always returned as is.
+    #[param(minimum = 2, maximum = 10000, default = 500)]
+    pub max_points: Option<usize>,
+}
+
+/// One recorded value of a metric.
+#[derive(Debug, Clone, PartialEq, Serialize, ToSchema)]
+pub struct MetricPoint {
+    pub name: String,
+    /// Steps done when the value was recorded (every phase counted).
+    pub step: u64,
+    pub value: f64,
+    /// When it was recorded (RFC 3339); for a bucket, its last point's time.
+    pub time: String,
+}
+
+/// A job's metrics history.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct JobMetrics {
+    pub job_id: String,
+    /// Whether any metric had more than `max_points` points and was downsampled.
+    pub downsampled: bool,
+    /// Ordered by name, then step.
+    pub rows: Vec<MetricPoint>,
+}
+
+const DEFAULT_MAX_POINTS: usize = 500;
+const MAX_POINTS_LIMIT: usize = 10_000;
+/// How long `cancel` waits for a running job's worker to stop before answering.
+const CANCEL_WAIT: Duration = Duration::from_secs(3);
+
+pub fn router() -> OpenApiRouter<AppState> {
+    OpenApiRouter::new()
+        .routes(routes!(create_job, list_jobs))
+        .routes(routes!(get_job))
+        .routes(routes!(cancel_job))
+        .routes(routes!(job_metrics))
+}
+
+/// Routes that stay open for long (exempt from the request timeout).
+pub fn streams() -> OpenApiRouter<AppState> {
+    OpenApiRouter::new().routes(routes!(job_events))
+}
+
+/// Queue a training job.
+#[utoipa::path(post, path = "/v1/jobs", tag = "jobs", request_body = CreateJob,
+    responses(
+        (status = 201, description = "Queued", body = Job),
+        (status = 404, description = "A dataset does not exist", body = ErrorBody),
+        (status = 422, description = "Invalid configuration or datasets that do not fit it \
+            (`invalid_config`), or a malformed body (`invalid_body`)", body = ErrorBody),
+    ))]
+async fn create_job(
+    State(state): State<AppState>,
+    Json(request): Json<CreateJob>,
+) -> Result<impl IntoResponse, ApiError> {
+    let algorithm = request.algorithm;
+    let config = algo::resolve_config(
+        algorithm,
+        request.config.as_ref().unwrap_or(&serde_json::Value::Null),
+    )
+    .map_err(|e| ApiError::unprocessable("invalid_config", e.message))?;
+    let runner = RunnerOptions::parse(request.runner.as_ref())
+        .map_err(|e| ApiError::unprocessable("invalid_config", e.0))?;
+    if algorithm.needs_non_preferred() && request.non_preferred_dataset.is_none() {
+        return Err(ApiError::unprocessable(
+            "invalid_config",
+            format!("algorithm {algorithm} needs non_preferred_dataset (a labeled non-preferred dataset id)"),
+        ));
+    }
+    let data = crate::jobs::load_training_data(
+        &state.store,
+        &request.unlabeled_dataset,
+        request.non_preferred_dataset.as_deref(),
+    )
+    .await?;
+    algo::check_data(&config, &data)
+        .map_err(|e| ApiError::unprocessable("invalid_config", e.message))?;
+    let id = uuid::Uuid::new_v4().to_string();
+    let config_json = serde_json::to_string(&config).map_err(anyhow::Error::from)?;
+    let runner_json = serde_json::to_string(&runner).map_err(anyhow::Error::from)?;
+    let row = state
+        .store
+        .insert_job(&NewJob {
+            id: &id,
+            algorithm: algorithm.as_str(),
+            unlabeled_dataset_id: &request.unlabeled_dataset,
+            non_preferred_dataset_id: request.non_preferred_dataset.as_deref(),
+            config: &config_json,
+            runner: &runner_json,
+            total_steps: config.total_steps(),
+        })
+        .await?;
+    state.jobs.wake();
+    tracing::info!(job_id = %id, %algorithm, total_steps = config.total_steps(), "job queued");
+    let location = format!("/v1/jobs/{id}");
+    Ok((StatusCode::CREATED, [(header::LOCATION, location)], Json(Job::try_from(row)?)))
+}
+
+/// List jobs, newest first.
+#[utoipa::path(get, path = "/v1/jobs", tag = "jobs", params(JobFilter, PageParams),
+    responses(
+        (status = 200, body = Page<Job>),
+        (status = 400, description = "Bad status or pagination", body = ErrorBody),
+    ))]
+async fn list_jobs(
+    State(state): State<AppState>,
+    Query(filter): Query<JobFilter>,
+    Query(page): Query<PageParams>,
+) -> Result<Json<Page<Job>>, ApiError> {
+    let page = page.validate()?;
+    let status = filter.status.map(JobStatus::as_str);
+    let (rows, total) = state.store.list_jobs(status, page.limit, page.offset).await?;
+    let jobs = rows.into_iter().map(Job::try_from).collect::<Result<_, _>>()?;
+    Ok(Json(Page::new(jobs, total, page)))
+}
+
+/// A job: status, resolved configuration, progress, result.
+#[utoipa::path(get, path = "/v1/jobs/{id}", tag = "jobs", params(("id" = String, Path)),
+    responses((status = 200, body = Job), (status = 404, body = ErrorBody)))]
+async fn get_job(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+) -> Result<Json<Job>, ApiError> {
+    Ok(Json(state.store.job(&id).await?.try_into()?))
+}
+
+/// Cancel a job. A queued job is cancelled at once; a running one stops at its next step
+/// (normally within milliseconds; the answer waits up to 3 s for it) and keeps its metrics.
+#[utoipa::path(post, path = "/v1/jobs/{id}/cancel", tag = "jobs", params(("id" = String, Path)),
+    responses(
+        (status = 200, description = "The job after the request (`cancelled`, or still \
+            `running` with `cancel_requested` if its worker has not stopped yet)", body = Job),
+        (status = 404, body = ErrorBody),
+        (status = 409, description = "The job already finished (`job_finished`)", body = ErrorBody),
+    ))]
+async fn cancel_job(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+) -> Result<Json<Job>, ApiError> {
+    match state.store.request_cancel(&id).await? {
+        CancelOutcome::Cancelled => {
+            tracing::info!(job_id = %id, "queued job cancelled");
+        }
+        CancelOutcome::Requested => {
+            state.jobs.cancel_running(&id);
+            wait_until_stopped(&state.store, &id).await?;
+        }
+        CancelOutcome::AlreadyFinished(status) => {
+            return Err(ApiError::conflict(
+                "job_finished",
+                format!("job {id} already finished with status {status}"),
+            ));
+        }
+    }
+    Ok(Json(state.store.job(&id).await?.try_into()?))
+}
+
+async fn wait_until_stopped(store: &Store, id: &str) -> Result<(), StoreError> {
+    let deadline = tokio::time::Instant::now() + CANCEL_WAIT;
+    while tokio::time::Instant::now() < deadline {
+        if store.job(id).await?.status != "running" {
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    Ok(())
+}
+
+/// A job's metrics history (losses, alpha-hat, weight statistics), downsampled on the server.
+#[utoipa::path(get, path = "/v1/jobs/{id}/metrics", tag = "jobs",
+    params(("id" = String, Path), MetricsParams),
+    responses(
+        (status = 200, body = JobMetrics),
+        (status = 400, description = "Bad max_points or names", body = ErrorBody),
+        (status = 404, body = ErrorBody),
+    ))]
+async fn job_metrics(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+    Query(params): Query<MetricsParams>,
+) -> Result<Json<JobMetrics>, ApiError> {
+    let max_points = params.max_points.unwrap_or(DEFAULT_MAX_POINTS);
+    if !(2..=MAX_POINTS_LIMIT).contains(&max_points) {
+        return Err(ApiError::bad_request(
+            "invalid_max_points",
+            format!("max_points must be between 2 and {MAX_POINTS_LIMIT}, got {max_points}"),
+        ));
+    }
+    let names: Option<Vec<String>> = params.names.as_deref().map(|names| {
+        names.split(',').map(str::trim).filter(|n| !n.is_empty()).map(str::to_owned).collect()
+    });
+    state.store.job(&id).await?;
+    let rows = state.store.job_metrics(&id, names.as_deref()).await?;
+    let (rows, downsampled) = downsample(rows, max_points);
+    Ok(Json(JobMetrics { job_id: id, downsampled, rows }))
+}
+
+/// Per metric (rows come ordered by name, then step): at most `max_points` points. A longer
+/// series keeps its last point exactly and averages the others into `max_points - 1` buckets of
+/// consecutive points, each reported at its last step and time.
+fn downsample(rows: Vec<MetricRow>, max_points: usize) -> (Vec<MetricPoint>, bool) {
+    let mut out = Vec::with_capacity(rows.len().min(max_points * 16));
+    let mut downsampled = false;
+    for series in rows.chunk_by(|a, b| a.name == b.name) {
+        if series.len() <= max_points {
+            out.extend(series.iter().map(point));
+            continue;
+        }
+        downsampled = true;
+        let (last, head) = series.split_last().expect("a series has a point");
+        let buckets = max_points - 1;
+        for i in 0..buckets {
+            let bucket = &head[i * head.len() / buckets..(i + 1) * head.len() / buckets];
+            let Some(end) = bucket.last() else { continue };
+            let mean = bucket.iter().map(|r| r.value).sum::<f64>() / bucket.len() as f64;
+            out.push(MetricPoint { value: mean, ..point(end) });
+        }
+        out.push(point(last));
+    }
+    (out, downsampled)
+}
+
+fn point(row: &MetricRow) -> MetricPoint {
+    MetricPoint {
+        name: row.name.clone(),
+        step: row.step as u64,
+        value: row.value,
+        time: row.time.clone(),
+    }
+}
+
+/// Server-Sent Events of a job: first a `status` event with the job resource, then `progress`
+/// events (a [`JobProgress`], about twice a second while it runs) and a `status` event with the
+/// job at every status change. The stream ends after a final status (`succeeded`, `failed`,
+/// `cancelled`) or when the server shuts down.
+#[utoipa::path(get, path = "/v1/jobs/{id}/events", tag = "jobs", params(("id" = String, Path)),
+    responses(
+        (status = 200, description = "`event: status` (data: Job) and `event: progress` \
+            (data: JobProgress)", content_type = "text/event-stream", body = String),
+        (status = 404, body = ErrorBody),
+    ))]
+async fn job_events(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+) -> Result<Sse<impl Stream<Item = Result<Event, Infallible>>>, ApiError> {
+    // Subscribe before reading the job, so no change between the two is missed.
+    let receiver = state.jobs.subscribe();
+    let job: Job = state.store.job(&id).await?.try_into()?;
+    let finished = is_final(job.status);
+    let first = status_event(&job);
+    let updates = futures::stream::unfold(
+        (receiver, state.store.clone(), id, finished),
+        |(mut receiver, store, id, finished)| async move {
+            if finished {
+                return None;
+            }
+            let event = next_event(&mut receiver, &store, &id).await?;
+            let finished = matches!(&event, Update::Status(job) if is_final(job.status));
+            let event = match event {
+                Update::Progress(progress) => json_event("progress", &progress),
+                Update::Status(job) => status_event(&job),
+            };
+            Some((event, (receiver, store, id, finished)))
+        },
+    );
+    let stream = futures::stream::once(std::future::ready(first))
+        .chain(updates)
+        .take_until(state.shutdown.clone().cancelled_owned())
+        .map(Ok);
+    Ok(Sse::new(stream).keep_alive(KeepAlive::default()))
+}
+
+enum Update {
+    Progress(JobProgress),
+    Status(Job),
+}
+
+/// The next event of job `id`; None when the runner is gone or the job cannot be read.
+async fn next_event(
+    receiver: &mut broadcast::Receiver<JobEvent>,
+    store: &Store,
+    id: &str,
+) -> Option<Update> {
+    loop {
+        match receiver.recv().await {
+            Ok(event) if event.job_id() != id => continue,
+            Ok(JobEvent::Progress { progress, .. }) => return Some(Update::Progress(progress)),
+            Ok(JobEvent::Status { .. }) => {
+                let job = store.job(id).await.ok()?;
+                return Job::try_from(job).ok().map(Update::Status);
+            }
+            // A slow reader skipped some progress; the next event brings it up to date.
+            Err(broadcast::error::RecvError::Lagged(_)) => continue,
+            Err(broadcast::error::RecvError::Closed) => return None,
+        }
+    }
+}
+
+fn is_final(status: JobStatus) -> bool {
+    matches!(status, JobStatus::Succeeded | JobStatus::Failed | JobStatus::Cancelled)
+}
+
+fn status_event(job: &Job) -> Event {
+    json_event("status", job)
+}
+
+fn json_event(name: &str, data: &impl Serialize) -> Event {
+    Event::default().event(name).json_data(data).unwrap_or_else(|e| {
+        tracing::error!(error = %e, "cannot serialise an event");
+        Event::default().event("error").data("event serialisation failed")
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn series(name: &str, values: &[f64]) -> Vec<MetricRow> {
+        values
+            .iter()
+            .enumerate()
+            .map(|(i, &value)| MetricRow {
+                name: name.into(),
+                step: (i as i64 + 1) * 10,
+                value,
+                time: format!("t{i}"),
+            })
+            .collect()
+    }
+
+    #[test]
+    fn short_series_are_returned_whole() {
+        let rows = series("loss", &[1.0, 2.0, 3.0]);
+        let (out, downsampled) = downsample(rows.clone(), 3);
+        assert!(!downsampled);
+        assert_eq!(out, rows.iter().map(point).collect::<Vec<_>>());
+    }
+
+    #[test]
+    fn long_series_average_buckets_and_keep_the_last_point() {
+        // 10 points into 4: buckets of the first 9 points (3 each), then the 10th as is.
+        let values: Vec<f64> = (1..=10).map(f64::from).collect();
+        let mut rows = series("a", &values);
+        rows.extend(series("b", &[5.0, 6.0]));
+        let (out, downsampled) = downsample(rows, 4);
+        assert!(downsampled);
+        let a: Vec<(u64, f64)> =
+            out.iter().filter(|p| p.name == "a").map(|p| (p.step, p.value)).collect();
+        assert_eq!(a, [(30, 2.0), (60, 5.0), (90, 8.0), (100, 10.0)]);
+        assert_eq!(out.iter().filter(|p| p.name == "b").count(), 2);
+        assert_eq!(out.iter().find(|p| p.step == 100).unwrap().time, "t9");
+    }
+}

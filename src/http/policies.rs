@@ -1,0 +1,210 @@
+//! `/v1/policies`: the policies trained jobs produced, their artefacts, and actions from them.
+
+use axum::extract::State;
+use axum::http::{header, HeaderName, HeaderValue};
+use axum::response::{IntoResponse, Response};
+use serde::{Deserialize, Serialize};
+use utoipa::{IntoParams, ToSchema};
+use utoipa_axum::router::OpenApiRouter;
+use utoipa_axum::routes;
+
+use super::error::ErrorBody;
+use super::extract::{Json, Path, Query};
+use super::inference::{self, Observations};
+use super::pagination::{Page, PageParams};
+use super::{ApiError, AppState};
+use crate::algo::Algorithm;
+use crate::data::Actions;
+use crate::store::policies::PolicyRow;
+
+/// Header of `GET /v1/policies/{id}/weights` carrying the policy's spec (JSON), which
+/// `algo::Policy::load` needs beside the weights.
+pub const SPEC_HEADER: HeaderName = HeaderName::from_static("x-safedice-policy-spec");
+
+/// A trained policy.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct PolicyResource {
+    pub id: String,
+    pub algorithm: Algorithm,
+    /// The job that trained it.
+    pub job_id: String,
+    pub obs_dim: usize,
+    /// The dataset's action space; actions are returned in its units.
+    #[schema(value_type = Object)]
+    pub action_space: serde_json::Value,
+    /// The last recorded value of each training metric.
+    #[schema(value_type = Object)]
+    pub final_metrics: serde_json::Value,
+    /// SafeDICE's alpha-hat (Eq. 15).
+    pub alpha_hat: Option<f64>,
+    /// Everything needed besides the weights to rebuild the policy (architecture, action
+    /// scaling, observation normalisation); also sent as the `x-safedice-policy-spec` header of
+    /// the weights download.
+    #[schema(value_type = Object)]
+    pub spec: serde_json::Value,
+    /// Where the safetensors weights are downloaded.
+    pub weights_url: String,
+    pub created_at: String,
+}
+
+impl TryFrom<PolicyRow> for PolicyResource {
+    type Error = ApiError;
+
+    fn try_from(row: PolicyRow) -> Result<Self, ApiError> {
+        let parse = |what: &str, text: &str| {
+            serde_json::from_str::<serde_json::Value>(text).map_err(|e| {
+                ApiError::Internal(anyhow::anyhow!("policy {}: stored {what}: {e}", row.id))
+            })
+        };
+        let algorithm = serde_json::from_value(row.algorithm.clone().into())
+            .map_err(|e| ApiError::Internal(e.into()))?;
+        Ok(PolicyResource {
+            algorithm,
+            job_id: row.job_id.clone(),
+            obs_dim: row.obs_dim as usize,
+            action_space: parse("action space", &row.action_space)?,
+            final_metrics: parse("final metrics", &row.final_metrics)?,
+            alpha_hat: row.alpha_hat,
+            spec: parse("spec", &row.spec)?,
+            weights_url: format!("/v1/policies/{}/weights", row.id),
+            created_at: row.created_at.clone(),
+            id: row.id,
+        })
+    }
+}
+
+/// `?job_id=`
+#[derive(Debug, Deserialize, IntoParams)]
+#[into_params(parameter_in = Query)]
+pub struct PolicyFilter {
+    /// Only the policy of this job.
+    pub job_id: Option<String>,
+}
+
+/// `POST /v1/policies/{id}/act` body.
+#[derive(Debug, Deserialize, ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct ActRequest {
+    /// A batch of observations (1 to 16384 rows of `obs_dim` finite numbers each), in the
+    /// dataset's original units.
+    pub observations: Vec<Vec<f64>>,
+    /// true (default): tanh of the Gaussian mean / argmax. false: sample.
+    #[serde(default = "yes")]
+    pub deterministic: bool,
+    /// Seed for sampling (`deterministic: false`); the same seed gives the same actions.
+    pub seed: Option<u64>,
+}
+
+fn yes() -> bool {
+    true
+}
+
+/// One action per observation.
+#[derive(Debug, Serialize, ToSchema)]
+#[serde(untagged)]
+pub enum ActionList {
+    /// Continuous spaces: a list of floats inside the action box per observation.
+    Continuous(Vec<Vec<f32>>),
+    /// Discrete spaces: an action index per observation.
+    Discrete(Vec<u32>),
+}
+
+/// Actions for the observations, in order.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct ActResponse {
+    pub actions: ActionList,
+}
+
+pub fn router() -> OpenApiRouter<AppState> {
+    OpenApiRouter::new()
+        .routes(routes!(list_policies))
+        .routes(routes!(get_policy))
+        .routes(routes!(policy_weights))
+        .routes(routes!(act))
+}
+
+/// List trained policies, newest first.
+#[utoipa::path(get, path = "/v1/policies", tag = "policies", params(PolicyFilter, PageParams),
+    responses((status = 200, body = Page<PolicyResource>), (status = 400, body = ErrorBody)))]
+async fn list_policies(
+    State(state): State<AppState>,
+    Query(filter): Query<PolicyFilter>,
+    Query(page): Query<PageParams>,
+) -> Result<Json<Page<PolicyResource>>, ApiError> {
+    let page = page.validate()?;
+    let (rows, total) =
+        state.store.list_policies(filter.job_id.as_deref(), page.limit, page.offset).await?;
+    let items = rows.into_iter().map(PolicyResource::try_from).collect::<Result<_, _>>()?;
+    Ok(Json(Page::new(items, total, page)))
+}
+
+/// A trained policy.
+#[utoipa::path(get, path = "/v1/policies/{id}", tag = "policies", params(("id" = String, Path)),
+    responses((status = 200, body = PolicyResource), (status = 404, body = ErrorBody)))]
+async fn get_policy(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+) -> Result<Json<PolicyResource>, ApiError> {
+    Ok(Json(state.store.policy(&id).await?.try_into()?))
+}
+
+/// Download the policy's weights (safetensors). The `x-safedice-policy-spec` header (and the
+/// policy resource's `spec`) holds the JSON spec needed to rebuild it.
+#[utoipa::path(get, path = "/v1/policies/{id}/weights", tag = "policies",
+    params(("id" = String, Path)),
+    responses(
+        (status = 200, description = "safetensors file", content_type = "application/octet-stream",
+         body = Vec<u8>,
+         headers(("x-safedice-policy-spec" = String, description = "The policy spec (JSON)"))),
+        (status = 404, body = ErrorBody),
+    ))]
+async fn policy_weights(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+) -> Result<Response, ApiError> {
+    let (spec, weights) = state.store.policy_artifact(&id).await?;
+    let spec = HeaderValue::from_str(&spec)
+        .map_err(|e| ApiError::Internal(anyhow::anyhow!("policy {id}: spec header: {e}")))?;
+    let disposition = format!("attachment; filename=\"policy-{id}.safetensors\"");
+    Ok((
+        [
+            (header::CONTENT_TYPE, HeaderValue::from_static("application/octet-stream")),
+            (
+                header::CONTENT_DISPOSITION,
+                HeaderValue::from_str(&disposition).map_err(anyhow::Error::from)?,
+            ),
+            (SPEC_HEADER, spec),
+        ],
+        weights,
+    )
+        .into_response())
+}
+
+/// Actions for a batch of observations. Callable with the inference token.
+#[utoipa::path(post, path = "/v1/policies/{id}/act", tag = "policies",
+    params(("id" = String, Path)), request_body = ActRequest,
+    responses(
+        (status = 200, body = ActResponse),
+        (status = 404, body = ErrorBody),
+        (status = 422, description = "Empty batch, wrong observation width or a non-finite \
+            value (`invalid_observations`), too many rows (`batch_too_large`), malformed body \
+            (`invalid_body`)", body = ErrorBody),
+    ))]
+async fn act(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+    Json(request): Json<ActRequest>,
+) -> Result<Json<ActResponse>, ApiError> {
+    let policy = state.policies.get(&id).await?;
+    let spec = policy.spec();
+    let observations = Observations::from_rows(&request.observations, spec.obs_dim)?;
+    let width = spec.action_space.width();
+    let actions = inference::act(policy, observations, request.deterministic, request.seed).await?;
+    let actions = match actions {
+        Actions::Continuous(values) => {
+            ActionList::Continuous(values.chunks(width).map(<[f32]>::to_vec).collect())
+        }
+        Actions::Discrete(indices) => ActionList::Discrete(indices),
+    };
+    Ok(Json(ActResponse { actions }))
+}

@@ -1,0 +1,259 @@
+//! One worker: claim a job, drive its trainer on a blocking thread, store what it produces.
+
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use anyhow::Context;
+use tokio::runtime::Handle;
+
+use super::{JobEvent, JobProgress, JobRunner, RunnerOptions};
+use crate::algo::{self, ResolvedConfig, Trainer};
+use crate::store::jobs::{now, JobRow, MetricRow, ProgressUpdate};
+use crate::store::policies::NewPolicy;
+
+/// How often a running job's progress is written and published (and pending metrics flushed).
+const PROGRESS_INTERVAL: Duration = Duration::from_millis(500);
+/// How long an idle worker sleeps before looking at the queue again without being woken
+/// (covers jobs queued by another process on the same database).
+const IDLE_POLL: Duration = Duration::from_secs(5);
+/// Back-off after a database error while claiming.
+const ERROR_BACKOFF: Duration = Duration::from_secs(1);
+
+/// How a run ended.
+#[derive(Debug)]
+enum Outcome {
+    Succeeded,
+    Cancelled,
+    Failed(String),
+    /// Shutdown: checkpointed and back in the queue.
+    Released,
+}
+
+#[tracing::instrument(skip(runner))]
+pub(super) async fn run_worker(runner: JobRunner, index: usize) {
+    let shutdown = runner.inner.shutdown.clone();
+    while !shutdown.is_cancelled() {
+        match runner.store().claim_next_job().await {
+            Ok(Some(job)) => run_job(&runner, job).await,
+            Ok(None) => {
+                tokio::select! {
+                    () = runner.inner.wake.notified() => {}
+                    () = shutdown.cancelled() => {}
+                    () = tokio::time::sleep(IDLE_POLL) => {}
+                }
+            }
+            Err(e) => {
+                tracing::error!(error = %e, "cannot claim a job; retrying");
+                tokio::select! {
+                    () = shutdown.cancelled() => {}
+                    () = tokio::time::sleep(ERROR_BACKOFF) => {}
+                }
+            }
+        }
+    }
+}
+
+#[tracing::instrument(skip_all, fields(job_id = %job.id, algorithm = %job.algorithm))]
+async fn run_job(runner: &JobRunner, job: JobRow) {
+    let id = job.id.clone();
+    let cancel = runner.register_cancel_flag(&id);
+    // A cancel may have been requested between the claim and the flag's registration.
+    if job.cancel_requested {
+        cancel.store(true, Ordering::Relaxed);
+    }
+    runner.publish(JobEvent::Status { job_id: id.clone(), status: "running".into() });
+    tracing::info!("job started");
+    let run = TrainingRun::new(runner.clone(), Handle::current(), job, cancel);
+    let outcome = match tokio::task::spawn_blocking(move || run.drive()).await {
+        Ok(Ok(outcome)) => outcome,
+        Ok(Err(e)) => Outcome::Failed(format!("{e:#}")),
+        Err(e) => Outcome::Failed(format!("the training thread panicked: {e}")),
+    };
+    runner.forget_cancel_flag(&id);
+    let status = match &outcome {
+        Outcome::Succeeded => "succeeded",
+        Outcome::Cancelled => "cancelled",
+        Outcome::Released => "queued",
+        Outcome::Failed(message) => {
+            tracing::warn!(error = %message, "job failed");
+            if let Err(e) = runner.store().finish_job(&id, "failed", Some(message), &[]).await {
+                tracing::error!(error = %e, "cannot record the job's failure");
+            }
+            "failed"
+        }
+    };
+    tracing::info!(status, "job stopped");
+    runner.publish(JobEvent::Status { job_id: id, status: status.into() });
+}
+
+/// One job's training, on a blocking thread; talks to the store through the runtime handle.
+struct TrainingRun {
+    runner: JobRunner,
+    rt: Handle,
+    job: JobRow,
+    cancel: Arc<AtomicBool>,
+    /// Metrics recorded since the last write.
+    pending: Vec<MetricRow>,
+}
+
+impl TrainingRun {
+    fn new(runner: JobRunner, rt: Handle, job: JobRow, cancel: Arc<AtomicBool>) -> Self {
+        TrainingRun { runner, rt, job, cancel, pending: Vec::new() }
+    }
+
+    fn drive(mut self) -> anyhow::Result<Outcome> {
+        let config: ResolvedConfig = serde_json::from_str(&self.job.config)
+            .context("the stored job configuration does not parse")?;
+        let options: RunnerOptions = serde_json::from_str(&self.job.runner)
+            .context("the stored runner options do not parse")?;
+        let store = self.runner.store().clone();
+        let data = self.rt.block_on(super::load_training_data(
+            &store,
+            &self.job.unlabeled_dataset_id,
+            self.job.non_preferred_dataset_id.as_deref(),
+        ))?;
+        let checkpoint = self.rt.block_on(store.checkpoint(&self.job.id))?;
+        let resumed_at = checkpoint.as_ref().map_or(0, |(step, _)| *step);
+        // Rows past the checkpoint are recomputed (bitwise the same) by the resumed run.
+        self.rt.block_on(store.discard_metrics_after(&self.job.id, resumed_at))?;
+        let mut trainer =
+            match algo::build_trainer(&config, &data, checkpoint.as_ref().map(|(_, b)| &b[..])) {
+                Ok(trainer) => trainer,
+                Err(e) => return Ok(Outcome::Failed(e.to_string())),
+            };
+        if resumed_at > 0 {
+            tracing::info!(step = resumed_at, "resuming from checkpoint");
+        }
+        self.report_progress(trainer.as_ref(), None)?;
+        self.train(trainer.as_mut(), &options)
+    }
+
+    fn train(
+        &mut self,
+        trainer: &mut dyn Trainer,
+        options: &RunnerOptions,
+    ) -> anyhow::Result<Outcome> {
+        let shutdown = self.runner.inner.shutdown.clone();
+        let mut window = (Instant::now(), trainer.progress().step);
+        while !trainer.is_finished() {
+            if self.cancel.load(Ordering::Relaxed) {
+                self.finish("cancelled", None)?;
+                return Ok(Outcome::Cancelled);
+            }
+            if shutdown.is_cancelled() {
+                self.save_checkpoint(trainer)?;
+                self.rt.block_on(self.runner.store().release_job(&self.job.id))?;
+                return Ok(Outcome::Released);
+            }
+            let progress = trainer.progress();
+            let record = options.records(progress.step + 1, progress.total);
+            let scalars = match trainer.step(record) {
+                Ok(scalars) => scalars,
+                Err(e) => {
+                    let message = e.to_string();
+                    self.finish("failed", Some(&message))?;
+                    return Ok(Outcome::Failed(message));
+                }
+            };
+            let step = trainer.progress().step;
+            self.record(step, &scalars);
+            if options.checkpoints(step, progress.total) {
+                self.save_checkpoint(trainer)?;
+            }
+            if window.0.elapsed() >= PROGRESS_INTERVAL {
+                let speed = (step - window.1) as f64 / window.0.elapsed().as_secs_f64();
+                self.flush_metrics()?;
+                if self.report_progress(trainer, Some(speed))? {
+                    self.cancel.store(true, Ordering::Relaxed);
+                }
+                window = (Instant::now(), step);
+            }
+        }
+        self.complete(trainer)?;
+        Ok(Outcome::Succeeded)
+    }
+
+    /// Keeps the finite scalars of a recorded step (non-finite ones end the run in the trainer).
+    fn record(&mut self, step: u64, scalars: &[(&'static str, f64)]) {
+        if scalars.is_empty() {
+            return;
+        }
+        let time = now();
+        self.pending.extend(scalars.iter().filter(|(_, v)| v.is_finite()).map(|(name, value)| {
+            MetricRow {
+                name: (*name).to_owned(),
+                step: step as i64,
+                value: *value,
+                time: time.clone(),
+            }
+        }));
+    }
+
+    fn flush_metrics(&mut self) -> anyhow::Result<()> {
+        let rows = std::mem::take(&mut self.pending);
+        self.rt.block_on(self.runner.store().insert_metrics(&self.job.id, &rows))?;
+        Ok(())
+    }
+
+    fn save_checkpoint(&mut self, trainer: &dyn Trainer) -> anyhow::Result<()> {
+        let bytes = trainer.checkpoint()?;
+        let rows = std::mem::take(&mut self.pending);
+        let step = trainer.progress().step;
+        self.rt.block_on(self.runner.store().save_checkpoint(&self.job.id, step, &bytes, &rows))?;
+        tracing::debug!(step, bytes = bytes.len(), "checkpoint saved");
+        Ok(())
+    }
+
+    /// Writes and publishes progress; returns whether a cancel was requested in the database.
+    fn report_progress(&self, trainer: &dyn Trainer, speed: Option<f64>) -> anyhow::Result<bool> {
+        let p = trainer.progress();
+        let update = ProgressUpdate {
+            step: p.step,
+            phase: p.phase,
+            iterations_per_second: speed,
+            alpha_hat: trainer.alpha_hat(),
+        };
+        let cancel =
+            self.rt.block_on(self.runner.store().update_progress(&self.job.id, &update))?;
+        self.runner.publish(JobEvent::Progress {
+            job_id: self.job.id.clone(),
+            progress: JobProgress::new(p.step, p.total, Some(p.phase.to_owned()), speed),
+        });
+        Ok(cancel)
+    }
+
+    fn finish(&mut self, status: &str, error: Option<&str>) -> anyhow::Result<()> {
+        let rows = std::mem::take(&mut self.pending);
+        self.rt.block_on(self.runner.store().finish_job(&self.job.id, status, error, &rows))?;
+        Ok(())
+    }
+
+    /// Stores the policy and marks the job succeeded.
+    fn complete(&mut self, trainer: &dyn Trainer) -> anyhow::Result<()> {
+        let artifact = trainer.export_policy()?;
+        self.flush_metrics()?;
+        let store = self.runner.store().clone();
+        let last: serde_json::Map<String, serde_json::Value> = self
+            .rt
+            .block_on(store.last_metric_values(&self.job.id))?
+            .into_iter()
+            .map(|(name, value)| (name, value.into()))
+            .collect();
+        let policy_id = uuid::Uuid::new_v4().to_string();
+        let policy = NewPolicy {
+            id: &policy_id,
+            job_id: &self.job.id,
+            algorithm: artifact.spec.algorithm.as_str(),
+            obs_dim: artifact.spec.obs_dim,
+            action_space: &serde_json::to_string(&artifact.spec.action_space)?,
+            spec: &serde_json::to_string(&artifact.spec)?,
+            weights: &artifact.weights,
+            final_metrics: &serde_json::Value::Object(last).to_string(),
+            alpha_hat: trainer.alpha_hat(),
+        };
+        let step = trainer.progress().step;
+        self.rt.block_on(store.finish_job_succeeded(&self.job.id, &[], &policy, step))?;
+        Ok(())
+    }
+}

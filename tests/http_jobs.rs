@@ -1,0 +1,379 @@
+//! Jobs, policies and inference through the real server: train SafeDICE and BC on uploaded
+//! gridworld data, follow them, query actions over /act and the KServe v2 protocol, download the
+//! weights; cancel; and the exact status and code of every bad request.
+
+mod common;
+mod jobs_support;
+
+use std::time::Duration;
+
+use common::{assert_error, TestApp};
+use futures::StreamExt;
+use jobs_support::*;
+use rand::SeedableRng;
+use reqwest::StatusCode;
+use safedice::algo::{Policy, PolicySpec};
+use safedice::data::Actions;
+use serde_json::{json, Value};
+
+async fn upload_grid(app: &TestApp) -> (String, String) {
+    let (unlabeled, non_preferred) = grid_datasets();
+    let u = upload(&app.client, &app.base_url, &unlabeled, "grid-unlabeled").await;
+    let n = upload(&app.client, &app.base_url, &non_preferred, "grid-non-preferred").await;
+    (u, n)
+}
+
+/// Reads server-sent events until the stream ends: (event name, data JSON) pairs.
+async fn read_events(app: &TestApp, job_id: &str) -> Vec<(String, Value)> {
+    let response = app.get(&format!("/v1/jobs/{job_id}/events")).send().await.unwrap();
+    assert_eq!(response.status(), StatusCode::OK);
+    assert!(response.headers()["content-type"].to_str().unwrap().starts_with("text/event-stream"));
+    let mut text = String::new();
+    let mut body = response.bytes_stream();
+    while let Some(chunk) = tokio::time::timeout(Duration::from_secs(300), body.next())
+        .await
+        .expect("the event stream goes quiet")
+    {
+        text.push_str(std::str::from_utf8(&chunk.unwrap()).unwrap());
+    }
+    text.split("\n\n")
+        .filter_map(|block| {
+            let field = |name: &str| {
+                block.lines().find_map(|l| l.strip_prefix(name)).map(|v| v.trim().to_owned())
+            };
+            Some((field("event:")?, serde_json::from_str(&field("data:")?).unwrap()))
+        })
+        .collect()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn safedice_and_bc_train_and_serve_identical_actions_over_act_and_v2() {
+    let app = TestApp::spawn_with(|c| c.workers = 2).await;
+    let (u, n) = upload_grid(&app).await;
+    let safedice = create_job(
+        &app.client,
+        &app.base_url,
+        json!({"algorithm": "safedice", "unlabeled_dataset": u, "non_preferred_dataset": n,
+               "config": small_config(300, 1), "runner": {"log_every": 10, "checkpoint_every": 100}}),
+    )
+    .await;
+    // BC needs no non-preferred dataset.
+    let bc = create_job(
+        &app.client,
+        &app.base_url,
+        json!({"algorithm": "bc", "unlabeled_dataset": u, "config": small_config(200, 1)}),
+    )
+    .await;
+    assert_eq!(safedice["config"]["discriminator_iterations"], 30, "10% of iterations");
+    assert_eq!(safedice["progress"]["total"], 330);
+    assert_eq!(safedice["runner"], json!({"log_every": 10, "checkpoint_every": 100}));
+    assert_eq!(bc["runner"]["log_every"], 100, "default runner options");
+
+    let events = read_events(&app, safedice["id"].as_str().unwrap()).await;
+    let (last_name, last_job) = events.last().unwrap();
+    assert_eq!((last_name.as_str(), last_job["status"].as_str()), ("status", Some("succeeded")));
+    assert_eq!(events[0].0, "status");
+    for (name, data) in &events {
+        if name == "progress" {
+            assert!(data["step"].as_u64().unwrap() <= 330 && data["total"] == 330, "{data}");
+        }
+    }
+
+    let sd =
+        wait_for_status(&app.client, &app.base_url, safedice["id"].as_str().unwrap(), "succeeded")
+            .await;
+    let bc =
+        wait_for_status(&app.client, &app.base_url, bc["id"].as_str().unwrap(), "succeeded").await;
+    assert_eq!(sd["progress"]["step"], 330);
+    assert_eq!(sd["progress"]["fraction"], 1.0);
+    assert!(sd["alpha_hat"].as_f64().unwrap().is_finite(), "{sd}");
+    assert!(bc["alpha_hat"].is_null());
+    let listed = get_json(&app.client, &app.url("/v1/jobs?status=succeeded&limit=1")).await;
+    assert_eq!((listed["total"].as_u64(), listed["items"].as_array().unwrap().len()), (Some(2), 1));
+    assert_eq!(listed["next_offset"], 1);
+
+    // Metrics: recorded every 10 steps (+ the last); downsampled on request, last point kept.
+    let full = get_json(
+        &app.client,
+        &app.url(&format!("/v1/jobs/{}/metrics", sd["id"].as_str().unwrap())),
+    )
+    .await;
+    assert_eq!(full["downsampled"], false);
+    let rows = full["rows"].as_array().unwrap();
+    let steps: std::collections::BTreeSet<u64> =
+        rows.iter().map(|r| r["step"].as_u64().unwrap()).collect();
+    assert_eq!(steps, (1..=33).map(|k| k * 10).collect());
+    let name = rows.last().unwrap()["name"].as_str().unwrap().to_owned();
+    let series: Vec<&Value> = rows.iter().filter(|r| r["name"] == name.as_str()).collect();
+    let small = get_json(
+        &app.client,
+        &app.url(&format!(
+            "/v1/jobs/{}/metrics?names={name}&max_points=4",
+            sd["id"].as_str().unwrap()
+        )),
+    )
+    .await;
+    let points = small["rows"].as_array().unwrap();
+    assert!(series.len() > 4 && small["downsampled"] == true);
+    assert_eq!(points.len(), 4);
+    assert!(points.iter().all(|p| p["name"] == name.as_str()));
+    assert_eq!(points[3], *series[series.len() - 1], "the last point is kept exactly");
+
+    for job in [&sd, &bc] {
+        let policy_id = job["policy_id"].as_str().unwrap();
+        let policy = get_json(&app.client, &app.url(&format!("/v1/policies/{policy_id}"))).await;
+        assert_eq!(
+            (policy["job_id"].clone(), policy["obs_dim"].clone()),
+            (job["id"].clone(), json!(GRID_OBS_DIM))
+        );
+        let discrete =
+            serde_json::to_value(safedice::data::ActionSpace::Discrete { n: 4 }).unwrap();
+        assert_eq!(policy["action_space"], discrete);
+        assert!(policy["final_metrics"].as_object().is_some_and(|m| !m.is_empty()));
+
+        let observations = grid_observations();
+        let act = app
+            .post(&format!("/v1/policies/{policy_id}/act"))
+            .json(&json!({"observations": observations}))
+            .send()
+            .await
+            .unwrap();
+        assert_eq!(act.status(), StatusCode::OK);
+        let actions: Value = act.json().await.unwrap();
+        let actions = actions["actions"].as_array().unwrap().clone();
+        assert_eq!(actions.len(), GRID_OBS_DIM);
+        assert!(actions.iter().all(|a| a.as_u64().is_some_and(|a| a < 4)));
+
+        let flat: Vec<f32> = observations.iter().flatten().copied().collect();
+        let infer = app
+            .post(&format!("/v2/models/{policy_id}/infer"))
+            .json(&json!({"id": "r1", "inputs": [{"name": "observations", "datatype": "FP32",
+                          "shape": [GRID_OBS_DIM, GRID_OBS_DIM], "data": flat}]}))
+            .send()
+            .await
+            .unwrap();
+        assert_eq!(infer.status(), StatusCode::OK);
+        let infer: Value = infer.json().await.unwrap();
+        assert_eq!(infer["id"], "r1");
+        assert_eq!(infer["outputs"][0]["datatype"], "INT64");
+        assert_eq!(infer["outputs"][0]["shape"], json!([GRID_OBS_DIM]));
+        assert_eq!(infer["outputs"][0]["data"].as_array().unwrap(), &actions, "v2 == /act");
+
+        let meta = get_json(&app.client, &app.url(&format!("/v2/models/{policy_id}"))).await;
+        assert_eq!(meta["inputs"][0]["shape"], json!([-1, GRID_OBS_DIM]));
+
+        // The downloaded artefact rebuilds the same policy.
+        let weights = app.get(&format!("/v1/policies/{policy_id}/weights")).send().await.unwrap();
+        assert_eq!(weights.status(), StatusCode::OK);
+        let spec: PolicySpec =
+            serde_json::from_str(weights.headers()["x-safedice-policy-spec"].to_str().unwrap())
+                .unwrap();
+        assert_eq!(spec, serde_json::from_value::<PolicySpec>(policy["spec"].clone()).unwrap());
+        let local = Policy::load(&spec, &weights.bytes().await.unwrap()).unwrap();
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(0);
+        let Actions::Discrete(local) = local.act(&flat, true, &mut rng).unwrap() else { panic!() };
+        assert_eq!(serde_json::to_value(local).unwrap(), Value::Array(actions));
+
+        // Sampling with a seed is reproducible.
+        let sample = |seed: u64| {
+            app.post(&format!("/v1/policies/{policy_id}/act"))
+                .json(&json!({"observations": grid_observations(), "deterministic": false, "seed": seed}))
+                .send()
+        };
+        let a: Value = sample(7).await.unwrap().json().await.unwrap();
+        let b: Value = sample(7).await.unwrap().json().await.unwrap();
+        assert_eq!(a, b);
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn cancel_stops_a_running_job_keeping_its_metrics_and_a_queued_one_at_once() {
+    let app = TestApp::spawn().await;
+    let (u, n) = upload_grid(&app).await;
+    let body = |iterations: u64| {
+        json!({"algorithm": "safedice", "unlabeled_dataset": u, "non_preferred_dataset": n,
+               "config": small_config(iterations, 0), "runner": {"log_every": 1}})
+    };
+    let running = create_job(&app.client, &app.base_url, body(10_000_000)).await;
+    let queued = create_job(&app.client, &app.base_url, body(100)).await;
+    let running_id = running["id"].as_str().unwrap();
+    wait_for_job(&app.client, &app.base_url, running_id, Duration::from_secs(120), |j| {
+        j["status"] == "running" && j["progress"]["step"].as_u64().unwrap() >= 20
+    })
+    .await;
+    // One worker: the second job is still queued and is cancelled without running.
+    let cancelled = app
+        .post(&format!("/v1/jobs/{}/cancel", queued["id"].as_str().unwrap()))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(cancelled.status(), StatusCode::OK);
+    let cancelled: Value = cancelled.json().await.unwrap();
+    assert_eq!(
+        (cancelled["status"].as_str(), cancelled["progress"]["step"].as_u64()),
+        (Some("cancelled"), Some(0))
+    );
+
+    let response = app.post(&format!("/v1/jobs/{running_id}/cancel")).send().await.unwrap();
+    assert_eq!(response.status(), StatusCode::OK);
+    let job = wait_for_status(&app.client, &app.base_url, running_id, "cancelled").await;
+    assert!(job["cancel_requested"].as_bool().unwrap());
+    assert!(job["policy_id"].is_null());
+    let metrics =
+        get_json(&app.client, &app.url(&format!("/v1/jobs/{running_id}/metrics?max_points=10000")))
+            .await;
+    assert!(metrics["rows"].as_array().unwrap().len() >= 20, "partial metrics stay");
+    assert_eq!(app.count_rows("job_checkpoints").await, 0);
+    assert_eq!(app.count_rows("policies").await, 0);
+
+    let again = app.post(&format!("/v1/jobs/{running_id}/cancel")).send().await.unwrap();
+    assert_error(again, StatusCode::CONFLICT, "job_finished").await;
+    let missing = app.post("/v1/jobs/nope/cancel").send().await.unwrap();
+    assert_error(missing, StatusCode::NOT_FOUND, "not_found").await;
+}
+
+#[tokio::test]
+async fn bad_job_requests_get_the_exact_status_and_code_and_store_nothing() {
+    let app = TestApp::spawn().await;
+    let (u, n) = upload_grid(&app).await;
+    // Continuous actions: its spaces disagree with the discrete gridworld's.
+    let point = jobs_support::algo_support::point_dataset(5, 5, 0);
+    let p = upload(&app.client, &app.base_url, &point, "point").await;
+    let cases = [
+        (
+            json!({"algorithm": "safedice", "unlabeled_dataset": u, "non_preferred_dataset": n,
+                "config": {"iterations": 0}}),
+            StatusCode::UNPROCESSABLE_ENTITY,
+            "invalid_config",
+            Some("config.iterations: must be between 1 and 100000000, got 0"),
+        ),
+        (
+            json!({"algorithm": "bc", "unlabeled_dataset": u, "config": {"lr_nu": 0.1}}),
+            StatusCode::UNPROCESSABLE_ENTITY,
+            "invalid_config",
+            None,
+        ),
+        (
+            json!({"algorithm": "safedice", "unlabeled_dataset": u}),
+            StatusCode::UNPROCESSABLE_ENTITY,
+            "invalid_config",
+            None,
+        ),
+        (
+            json!({"algorithm": "safedice", "unlabeled_dataset": u, "non_preferred_dataset": p}),
+            StatusCode::UNPROCESSABLE_ENTITY,
+            "invalid_config",
+            None,
+        ),
+        (
+            json!({"algorithm": "bc", "unlabeled_dataset": u, "runner": {"log_every": 0}}),
+            StatusCode::UNPROCESSABLE_ENTITY,
+            "invalid_config",
+            Some("runner.log_every: must be between 1 and 1000000, got 0"),
+        ),
+        (
+            json!({"algorithm": "bc", "unlabeled_dataset": "no-such-dataset"}),
+            StatusCode::NOT_FOUND,
+            "not_found",
+            None,
+        ),
+        (
+            json!({"algorithm": "sac", "unlabeled_dataset": u}),
+            StatusCode::UNPROCESSABLE_ENTITY,
+            "invalid_body",
+            None,
+        ),
+    ];
+    for (body, status, code, message) in cases {
+        let response = app.post("/v1/jobs").json(&body).send().await.unwrap();
+        let got = assert_error(response, status, code).await;
+        if let Some(message) = message {
+            assert_eq!(got, message);
+        }
+        if code == "invalid_config" && body.get("config").is_some_and(|c| c.get("lr_nu").is_some())
+        {
+            assert!(got.starts_with("config.lr_nu: unknown key for algorithm bc"), "{got}");
+        }
+    }
+    assert_eq!(app.count_rows("jobs").await, 0);
+    assert_error(
+        app.get("/v1/jobs/nope").send().await.unwrap(),
+        StatusCode::NOT_FOUND,
+        "not_found",
+    )
+    .await;
+    assert_error(
+        app.get("/v1/jobs?status=done").send().await.unwrap(),
+        StatusCode::BAD_REQUEST,
+        "bad_request",
+    )
+    .await;
+}
+
+#[tokio::test]
+async fn bad_observations_get_the_exact_status_and_code() {
+    let app = TestApp::spawn().await;
+    let (u, _) = upload_grid(&app).await;
+    let job = create_job(
+        &app.client,
+        &app.base_url,
+        json!({"algorithm": "bc", "unlabeled_dataset": u, "config": small_config(5, 0)}),
+    )
+    .await;
+    let job =
+        wait_for_status(&app.client, &app.base_url, job["id"].as_str().unwrap(), "succeeded").await;
+    let id = job["policy_id"].as_str().unwrap();
+    let act = |body: Value| app.post(&format!("/v1/policies/{id}/act")).json(&body).send();
+    let row = vec![0.0f64; GRID_OBS_DIM];
+    let mut huge = row.clone();
+    huge[3] = 1e39; // finite in JSON, infinite as a 32-bit float
+    let cases = [
+        (json!({"observations": []}), StatusCode::UNPROCESSABLE_ENTITY, "invalid_observations"),
+        (
+            json!({"observations": [[0.0, 1.0]]}),
+            StatusCode::UNPROCESSABLE_ENTITY,
+            "invalid_observations",
+        ),
+        (json!({"observations": [huge]}), StatusCode::UNPROCESSABLE_ENTITY, "invalid_observations"),
+        (json!({"observations": [[null]]}), StatusCode::UNPROCESSABLE_ENTITY, "invalid_body"),
+        (
+            json!({"observations": [row], "temperature": 1}),
+            StatusCode::UNPROCESSABLE_ENTITY,
+            "invalid_body",
+        ),
+    ];
+    for (body, status, code) in cases {
+        assert_error(act(body).await.unwrap(), status, code).await;
+    }
+    let unknown = app
+        .post("/v1/policies/nope/act")
+        .json(&json!({"observations": [row]}))
+        .send()
+        .await
+        .unwrap();
+    assert_error(unknown, StatusCode::NOT_FOUND, "not_found").await;
+    let infer = |input: Value| {
+        app.post(&format!("/v2/models/{id}/infer")).json(&json!({"inputs": [input]})).send()
+    };
+    let wrong_type =
+        json!({"name": "o", "datatype": "FP64", "shape": [1, GRID_OBS_DIM], "data": row});
+    assert_error(
+        infer(wrong_type).await.unwrap(),
+        StatusCode::UNPROCESSABLE_ENTITY,
+        "invalid_input",
+    )
+    .await;
+    let wrong_shape = json!({"name": "o", "datatype": "FP32", "shape": [1, 3], "data": [0, 0, 0]});
+    assert_error(
+        infer(wrong_shape).await.unwrap(),
+        StatusCode::UNPROCESSABLE_ENTITY,
+        "invalid_input",
+    )
+    .await;
+    let short = json!({"name": "o", "datatype": "FP32", "shape": [2, GRID_OBS_DIM], "data": row});
+    assert_error(infer(short).await.unwrap(), StatusCode::UNPROCESSABLE_ENTITY, "invalid_input")
+        .await;
+    let missing = app.get("/v2/models/nope").send().await.unwrap();
+    assert_error(missing, StatusCode::NOT_FOUND, "not_found").await;
+    assert_eq!(app.get("/v2/health/ready").send().await.unwrap().status(), StatusCode::OK);
+}

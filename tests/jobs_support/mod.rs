@@ -1,0 +1,92 @@
+//! Helpers of the job and policy tests: small datasets uploaded through the real API, jobs
+//! queued and polled over HTTP. The data is the training core's gridworld
+//! (tests/algo_support), written with the library's own NPZ writer.
+#![allow(dead_code)] // each test binary uses a different subset
+
+use std::time::{Duration, Instant};
+
+use reqwest::{Client, StatusCode};
+use serde_json::{json, Value};
+
+#[path = "../algo_support/mod.rs"]
+pub mod algo_support;
+
+use safedice::data::Dataset;
+
+/// Observation width of the gridworld (one-hot cells).
+pub const GRID_OBS_DIM: usize = algo_support::GRID_CELLS;
+
+/// A small network config: jobs of a few hundred steps take seconds in a debug build.
+pub fn small_config(iterations: u64, seed: u64) -> Value {
+    json!({"iterations": iterations, "seed": seed, "hidden_sizes": [32, 32], "batch_size": 64})
+}
+
+/// The gridworld's unlabeled (40 safe + 60 unsafe episodes) and non-preferred (20 unsafe) sets.
+pub fn grid_datasets() -> (Dataset, Dataset) {
+    (algo_support::grid_dataset(40, 60, 3), algo_support::grid_dataset(0, 20, 1003))
+}
+
+/// Uploads `dataset` as NPZ through `POST /v1/datasets`; returns its id.
+pub async fn upload(client: &Client, base_url: &str, dataset: &Dataset, name: &str) -> String {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join(format!("{name}.npz"));
+    safedice::data::write_npz(dataset, &path).unwrap();
+    let bytes = std::fs::read(&path).unwrap();
+    let form = reqwest::multipart::Form::new()
+        .part("file", reqwest::multipart::Part::bytes(bytes).file_name(format!("{name}.npz")))
+        .text("name", name.to_owned());
+    let response =
+        client.post(format!("{base_url}/v1/datasets")).multipart(form).send().await.unwrap();
+    assert_eq!(response.status(), StatusCode::CREATED, "upload {name}");
+    let body: Value = response.json().await.unwrap();
+    body["id"].as_str().unwrap().to_owned()
+}
+
+/// `POST /v1/jobs`; asserts 201 and returns the job.
+pub async fn create_job(client: &Client, base_url: &str, body: Value) -> Value {
+    let response = client.post(format!("{base_url}/v1/jobs")).json(&body).send().await.unwrap();
+    let status = response.status();
+    let job: Value = response.json().await.unwrap();
+    assert_eq!(status, StatusCode::CREATED, "create job: {job}");
+    assert_eq!(job["status"], "queued");
+    job
+}
+
+pub async fn get_json(client: &Client, url: &str) -> Value {
+    let response = client.get(url).send().await.unwrap();
+    assert_eq!(response.status(), StatusCode::OK, "GET {url}");
+    response.json().await.unwrap()
+}
+
+/// Polls the job until `done(job)` holds; panics after `timeout`.
+pub async fn wait_for_job(
+    client: &Client,
+    base_url: &str,
+    id: &str,
+    timeout: Duration,
+    done: impl Fn(&Value) -> bool,
+) -> Value {
+    let started = Instant::now();
+    loop {
+        let job = get_json(client, &format!("{base_url}/v1/jobs/{id}")).await;
+        if done(&job) {
+            return job;
+        }
+        assert!(started.elapsed() < timeout, "job {id} did not get there in time: {job}");
+        assert!(job["status"] != "failed", "job {id} failed: {job}");
+        tokio::time::sleep(Duration::from_millis(25)).await;
+    }
+}
+
+/// Polls the job until it reaches `status`.
+pub async fn wait_for_status(client: &Client, base_url: &str, id: &str, status: &str) -> Value {
+    wait_for_job(client, base_url, id, Duration::from_secs(300), |job| job["status"] == status)
+        .await
+}
+
+/// Every grid cell as a one-hot observation.
+pub fn grid_observations() -> Vec<Vec<f32>> {
+    (0..GRID_OBS_DIM)
+        .map(|cell| (0..GRID_OBS_DIM).map(|i| (i == cell) as u8 as f32).collect())
+        .collect()
+}
