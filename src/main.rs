@@ -27,6 +27,10 @@ enum Command {
     /// Train every algorithm on every built-in environment, evaluate with the paper's metrics
     /// and write results.md (mean ± standard error over seeds), results.json and SVG plots.
     Bench(safedice::bench::BenchArgs),
+    /// Start the service in-process on a temporary directory, generate a small dataset, train
+    /// SafeDICE and BC through the HTTP API, and print their metrics side by side with the curl
+    /// commands used.
+    Demo(safedice::bench::demo::DemoArgs),
 }
 
 #[derive(clap::Args)]
@@ -96,6 +100,7 @@ fn main() -> anyhow::Result<()> {
     let cli = Cli::parse();
     match cli.command {
         Command::Datagen(args) => datagen(args),
+        Command::Demo(args) => safedice::bench::demo::run_cli(&args),
         Command::Bench(args) => {
             server::init_logging(safedice::config::LogFormat::Pretty);
             let command: Vec<String> = std::env::args().collect();

@@ -11,6 +11,7 @@
 //! Files: [`runner`] (data, training, evaluation, the worker threads), [`report`] (aggregation
 //! and the markdown), [`plot`] (the SVG).
 
+pub mod demo;
 pub mod plot;
 pub mod report;
 pub mod runner;

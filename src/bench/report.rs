@@ -221,16 +221,6 @@ pub fn write_outputs(
     Ok(written)
 }
 
-fn git_commit() -> String {
-    std::process::Command::new("git")
-        .args(["rev-parse", "--short=12", "HEAD"])
-        .output()
-        .ok()
-        .filter(|o| o.status.success())
-        .map(|o| String::from_utf8_lossy(&o.stdout).trim().to_string())
-        .unwrap_or_else(|| "unknown".to_string())
-}
-
 /// The report: run description, one table per environment, SafeDICE diagnostics, speeds.
 pub fn markdown(results: &BenchResults, summary: &Summary, command: &str) -> String {
     let c = &results.config;
@@ -238,7 +228,7 @@ pub fn markdown(results: &BenchResults, summary: &Summary, command: &str) -> Str
     let _ = writeln!(md, "# Benchmark results\n");
     let _ = writeln!(md, "- Command: `{command}`");
     let _ = writeln!(md, "- Date: {} (UTC start)", results.started.format("%Y-%m-%d %H:%M"));
-    let _ = writeln!(md, "- Git commit: {}", git_commit());
+    let _ = writeln!(md, "- Git commit: {}", results.git_commit);
     let _ = writeln!(
         md,
         "- Training: service preset, {} policy iterations per run (+10% pretraining for SafeDICE's \

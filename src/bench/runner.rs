@@ -87,6 +87,8 @@ pub struct BenchResults {
     /// In (env, algorithm, seed) order of the configuration.
     pub runs: Vec<RunResult>,
     pub started: chrono::DateTime<chrono::Utc>,
+    /// `git rev-parse --short=12 HEAD` when the run started ("unknown" outside a checkout).
+    pub git_commit: String,
     pub wall_seconds: f64,
 }
 
@@ -109,6 +111,7 @@ struct Job {
 pub fn run(config: &BenchConfig) -> Result<BenchResults, BenchError> {
     config.validate()?;
     let started = chrono::Utc::now();
+    let git_commit = git_commit();
     let clock = Instant::now();
     let mut prepared = Vec::new();
     let mut data = Vec::new();
@@ -124,8 +127,19 @@ pub fn run(config: &BenchConfig) -> Result<BenchResults, BenchError> {
         data,
         runs,
         started,
+        git_commit,
         wall_seconds: clock.elapsed().as_secs_f64(),
     })
+}
+
+fn git_commit() -> String {
+    std::process::Command::new("git")
+        .args(["rev-parse", "--short=12", "HEAD"])
+        .output()
+        .ok()
+        .filter(|o| o.status.success())
+        .map(|o| String::from_utf8_lossy(&o.stdout).trim().to_string())
+        .unwrap_or_else(|| "unknown".to_string())
 }
 
 fn prepare(config: &BenchConfig, env: &str) -> Result<(Prepared, EnvData), BenchError> {
