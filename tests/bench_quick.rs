@@ -94,6 +94,8 @@ fn arguments_select_envs_algorithms_and_modes() {
     assert_eq!(quick.envs, ["point-goal"]);
     assert_eq!(quick.algorithms, [Algorithm::Safedice, Algorithm::Bc]);
     assert_eq!(quick.data, DataSize::QUICK);
+    assert_eq!(quick.training_config(0)["batch_size"], 256, "quick runs small networks");
+    assert!(full.training_config(0).get("batch_size").is_none(), "full runs the service's");
     let custom = parse(&["--quick", "--iterations", "7", "--hidden-sizes", "8,8"]).unwrap();
     assert_eq!(custom.iterations, 7);
     assert_eq!(custom.training_config(3)["hidden_sizes"], serde_json::json!([8, 8]));

@@ -126,7 +126,7 @@ async fn drive(args: &DemoArgs, base: &str, dir: &Path) -> anyhow::Result<()> {
     let mut rows = Vec::new();
     for (algorithm, job) in &finished {
         let policy_id = job["policy_id"].as_str().context("succeeded job without a policy")?;
-        let policy = download_policy(&client, &mut transcript, policy_id).await?;
+        let policy = download_policy(&client, &mut transcript, policy_id, *algorithm).await?;
         let episodes = args.episodes;
         let env = args.env.clone();
         let seed = args.seed;
@@ -186,9 +186,7 @@ async fn post_json(
     body: &Value,
 ) -> anyhow::Result<Value> {
     let url = format!("{}{path}", transcript.base);
-    transcript.record(format!(
-        "curl -s -H 'content-type: application/json' -d '{body}' {url}"
-    ));
+    transcript.record(format!("curl -s -H 'content-type: application/json' -d '{body}' {url}"));
     checked_json(client.post(&url).json(body).send().await?).await
 }
 
@@ -230,9 +228,12 @@ async fn download_policy(
     client: &reqwest::Client,
     transcript: &mut Transcript,
     policy_id: &str,
+    algorithm: Algorithm,
 ) -> anyhow::Result<Policy> {
     let url = format!("{}/v1/policies/{policy_id}/weights", transcript.base);
-    transcript.record(format!("curl -s -D headers.txt -o policy.safetensors {url}"));
+    // The spec travels in the x-safedice-policy-spec response header.
+    transcript
+        .record(format!("curl -s -D {algorithm}-headers.txt -o {algorithm}.safetensors {url}"));
     let response = client.get(&url).send().await?;
     if !response.status().is_success() {
         bail!("HTTP {} downloading {url}", response.status());

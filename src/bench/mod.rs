@@ -92,9 +92,14 @@ impl BenchConfig {
         }
     }
 
-    /// A smoke run that finishes in a few minutes on 2 cores.
+    /// A smoke run that finishes in a few minutes on 2 cores: few iterations, little data,
+    /// and 64-64 networks with batch 256 (the service's 256-256/512 is ~5x slower per step).
     pub fn quick() -> BenchConfig {
+        let mut overrides = serde_json::Map::new();
+        overrides.insert("batch_size".into(), 256.into());
+        overrides.insert("hidden_sizes".into(), serde_json::json!([64, 64]));
         BenchConfig {
+            overrides,
             seeds: 2,
             iterations: 300,
             data: DataSize::QUICK,
@@ -126,7 +131,7 @@ pub struct BenchArgs {
     #[arg(long)]
     pub seeds: Option<u64>,
     /// Small smoke-test run (300 iterations, 40+40/10 episodes of data, 50 evaluation
-    /// episodes): a few minutes on 2 cores.
+    /// episodes, 64-64 networks with batch 256): a few minutes on 2 cores.
     #[arg(long)]
     pub quick: bool,
     /// Output directory for results.md, results.json and the plots.
@@ -162,6 +167,10 @@ pub struct BenchArgs {
     /// Override the service default hidden layer widths (256,256) of every network.
     #[arg(long, value_delimiter = ',')]
     pub hidden_sizes: Option<Vec<usize>>,
+    /// Further config keys for every selected algorithm, as a JSON object (e.g.
+    /// '{"discriminator_iterations": 500}' with --algorithms safedice); for diagnostics.
+    #[arg(long)]
+    pub config: Option<String>,
 }
 
 impl BenchArgs {
@@ -181,12 +190,22 @@ impl BenchArgs {
             non_preferred: self.non_preferred.unwrap_or(base.data.non_preferred),
             labeled: self.labeled.unwrap_or(base.data.labeled),
         };
-        let mut overrides = serde_json::Map::new();
+        let mut overrides = base.overrides.clone();
         if let Some(b) = self.batch_size {
             overrides.insert("batch_size".into(), b.into());
         }
         if let Some(h) = &self.hidden_sizes {
             overrides.insert("hidden_sizes".into(), h.clone().into());
+        }
+        if let Some(text) = &self.config {
+            match serde_json::from_str(text) {
+                Ok(serde_json::Value::Object(extra)) => overrides.extend(extra),
+                _ => {
+                    return Err(BenchError::Config(format!(
+                        "--config must be a JSON object, got {text}"
+                    )))
+                }
+            }
         }
         let config = BenchConfig {
             envs,
