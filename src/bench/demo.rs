@@ -52,10 +52,20 @@ pub fn run_cli(args: &DemoArgs) -> anyhow::Result<()> {
         std::env::set_var("RAYON_NUM_THREADS", "1");
     }
     let runtime = tokio::runtime::Builder::new_multi_thread().enable_all().build()?;
-    runtime.block_on(run(args))
+    runtime.block_on(run(args)).map(|_| ())
 }
 
-async fn run(args: &DemoArgs) -> anyhow::Result<()> {
+/// One trained policy's evaluation, as the demo prints it.
+#[derive(Clone, Debug)]
+pub struct DemoRow {
+    pub algorithm: Algorithm,
+    /// The job's alpha-hat (SafeDICE only).
+    pub alpha_hat: Option<f64>,
+    pub report: EvalReport,
+}
+
+/// The demo on the current Tokio runtime: serve, upload, train over HTTP, evaluate, print.
+pub async fn run(args: &DemoArgs) -> anyhow::Result<Vec<DemoRow>> {
     let dir = tempfile::tempdir()?;
     let mut config = ServeConfig::new(dir.path().join("data"));
     config.bind = "127.0.0.1:0".parse()?;
@@ -68,7 +78,7 @@ async fn run(args: &DemoArgs) -> anyhow::Result<()> {
     result
 }
 
-async fn drive(args: &DemoArgs, base: &str, dir: &Path) -> anyhow::Result<()> {
+async fn drive(args: &DemoArgs, base: &str, dir: &Path) -> anyhow::Result<Vec<DemoRow>> {
     let client = reqwest::Client::new();
     let mut transcript = Transcript { base: base.to_string(), lines: Vec::new() };
 
@@ -136,7 +146,7 @@ async fn drive(args: &DemoArgs, base: &str, dir: &Path) -> anyhow::Result<()> {
             Ok(envs::evaluate(&env, act, episodes, seed, false)?)
         })
         .await??;
-        rows.push((*algorithm, job["alpha_hat"].as_f64(), report));
+        rows.push(DemoRow { algorithm: *algorithm, alpha_hat: job["alpha_hat"].as_f64(), report });
     }
     let (_, first) = &finished[0];
     let first_policy = first["policy_id"].as_str().unwrap_or_default();
@@ -156,7 +166,7 @@ async fn drive(args: &DemoArgs, base: &str, dir: &Path) -> anyhow::Result<()> {
     for line in &transcript.lines {
         println!("  {line}");
     }
-    Ok(())
+    Ok(rows)
 }
 
 async fn upload(
@@ -249,12 +259,12 @@ async fn download_policy(
     Ok(Policy::load(&spec, &weights)?)
 }
 
-fn print_table(rows: &[(Algorithm, Option<f64>, EvalReport)]) {
+fn print_table(rows: &[DemoRow]) {
     println!(
         "\n{:<10} {:>14} {:>13} {:>15} {:>13} {:>10}",
         "algorithm", "norm. return", "avg cost", "violation ratio", "CVaR 10%", "alpha-hat"
     );
-    for (algorithm, alpha, report) in rows {
+    for DemoRow { algorithm, alpha_hat: alpha, report } in rows {
         let m = &report.metrics;
         println!(
             "{:<10} {:>14.1} {:>13.2} {:>15.3} {:>13.2} {:>10}",
