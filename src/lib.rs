@@ -5,12 +5,14 @@
 //! - [`algo`]: the learning algorithms on candle (no HTTP or SQL).
 //! - [`data`]: the dataset model, upload parsers and validation.
 //! - [`envs`]: built-in benchmark environments, demonstrators and evaluation metrics.
+//! - [`bench`]: `safedice bench`, the paper's comparison on the built-in environments.
 //! - [`store`]: all SQL and artefact storage.
 //! - [`jobs`]: the training queue and worker pool.
 //! - [`http`]: the HTTP API, one module per resource, and the dashboard at `/`.
 //! - [`charts`]: server-side SVG charts for the dashboard.
 
 pub mod algo;
+pub mod bench;
 pub mod charts;
 pub mod config;
 pub mod data;

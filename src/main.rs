@@ -29,6 +29,13 @@ enum Command {
     /// s, s', s0 + policy step, discriminator frozen), discriminator steps/s (with its gradient
     /// penalty), and the achieved GFLOP/s of each.
     Speed(SpeedArgs),
+    /// Train every algorithm on every built-in environment, evaluate with the paper's metrics
+    /// and write results.md (mean ± standard error over seeds), results.json and SVG plots.
+    Bench(safedice::bench::BenchArgs),
+    /// Start the service in-process on a temporary directory, generate a small dataset, train
+    /// SafeDICE and BC through the HTTP API, and print their metrics side by side with the curl
+    /// commands used.
+    Demo(safedice::bench::demo::DemoArgs),
 }
 
 #[derive(clap::Args)]
@@ -156,6 +163,12 @@ fn main() -> anyhow::Result<()> {
             let results = speed::run(&cfg)?;
             print!("{}", speed::report(&cfg, &results));
             Ok(())
+        }
+        Command::Demo(args) => safedice::bench::demo::run_cli(&args),
+        Command::Bench(args) => {
+            server::init_logging(safedice::config::LogFormat::Pretty);
+            let command: Vec<String> = std::env::args().collect();
+            safedice::bench::run_cli(&args, &command.join(" "))
         }
         Command::Serve(config) => serve(config),
         Command::Openapi => {

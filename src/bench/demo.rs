@@ -1,0 +1,279 @@
+//! `safedice demo`: the whole service in one command for a newcomer. Starts the server
+//! in-process on a temporary directory, generates a small dataset from a built-in environment,
+//! uploads it, trains SafeDICE and BC through the real HTTP API, downloads both policies over
+//! HTTP, evaluates them with the paper's metrics, and prints the metrics side by side together
+//! with the curl commands that do the same against a running `safedice serve`.
+
+use std::path::Path;
+use std::time::Duration;
+
+use anyhow::{bail, Context};
+use rand_chacha::ChaCha8Rng;
+use serde_json::{json, Value};
+
+use super::report::display_name;
+use crate::algo::{Algorithm, Policy, PolicySpec};
+use crate::config::ServeConfig;
+use crate::envs::{self, DatagenSpec, EvalReport};
+use crate::server::Server;
+
+/// `safedice demo` arguments.
+#[derive(Clone, Debug, clap::Args)]
+pub struct DemoArgs {
+    /// Built-in environment to generate data from.
+    #[arg(long, default_value = "six-rooms")]
+    pub env: String,
+    /// Policy-learning iterations of each job.
+    #[arg(long, default_value_t = 1500)]
+    pub iterations: u64,
+    /// Evaluation episodes per policy.
+    #[arg(long, default_value_t = 200)]
+    pub episodes: usize,
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+}
+
+/// The curl commands the demo's requests correspond to, printed at the end.
+struct Transcript {
+    base: String,
+    lines: Vec<String>,
+}
+
+impl Transcript {
+    fn record(&mut self, line: String) {
+        println!("  $ {line}");
+        self.lines.push(line);
+    }
+}
+
+/// Runs the demo on a fresh Tokio runtime.
+pub fn run_cli(args: &DemoArgs) -> anyhow::Result<()> {
+    if std::env::var_os("RAYON_NUM_THREADS").is_none() {
+        std::env::set_var("RAYON_NUM_THREADS", "1");
+    }
+    let runtime = tokio::runtime::Builder::new_multi_thread().enable_all().build()?;
+    runtime.block_on(run(args)).map(|_| ())
+}
+
+/// One trained policy's evaluation, as the demo prints it.
+#[derive(Clone, Debug)]
+pub struct DemoRow {
+    pub algorithm: Algorithm,
+    /// The job's alpha-hat (SafeDICE only).
+    pub alpha_hat: Option<f64>,
+    pub report: EvalReport,
+}
+
+/// The demo on the current Tokio runtime: serve, upload, train over HTTP, evaluate, print.
+pub async fn run(args: &DemoArgs) -> anyhow::Result<Vec<DemoRow>> {
+    let dir = tempfile::tempdir()?;
+    let mut config = ServeConfig::new(dir.path().join("data"));
+    config.bind = "127.0.0.1:0".parse()?;
+    config.workers = 2;
+    let server = Server::start(config).await?;
+    let base = format!("http://{}", server.local_addr());
+    println!("safedice service running at {base} (data in a temporary directory)\n");
+    let result = drive(args, &base, dir.path()).await;
+    server.stop().await?;
+    result
+}
+
+async fn drive(args: &DemoArgs, base: &str, dir: &Path) -> anyhow::Result<Vec<DemoRow>> {
+    let client = reqwest::Client::new();
+    let mut transcript = Transcript { base: base.to_string(), lines: Vec::new() };
+
+    println!("1. Generating demonstrations from `{}`", args.env);
+    let spec = DatagenSpec {
+        env: args.env.clone(),
+        preferred: 80,
+        non_preferred: 120,
+        labeled: 20,
+        seed: args.seed,
+    };
+    let generated = envs::generate(&spec)?;
+    let files = dir.join("demo-data");
+    let manifest = envs::write_generated(&generated, &files, crate::data::Format::Npz)?;
+    println!(
+        "   unlabeled: {} preferred (mean cost {:.2}) + {} non-preferred (mean cost {:.2}) \
+         episodes, shuffled; labeled non-preferred: {} episodes",
+        manifest.unlabeled_preferred.episodes,
+        manifest.unlabeled_preferred.mean_cost,
+        manifest.unlabeled_non_preferred.episodes,
+        manifest.unlabeled_non_preferred.mean_cost,
+        manifest.labeled_non_preferred.episodes
+    );
+    transcript.record(format!(
+        "safedice datagen --env {} --preferred 80 --non-preferred 120 --labeled 20 --seed {} --out demo-data",
+        args.env, args.seed
+    ));
+
+    println!("\n2. Uploading both sets");
+    let unlabeled = upload(&client, &mut transcript, &files, "unlabeled").await?;
+    let non_preferred = upload(&client, &mut transcript, &files, "non_preferred").await?;
+
+    println!("\n3. Training SafeDICE and BC (both jobs run side by side)");
+    let config = json!({"iterations": args.iterations, "seed": args.seed,
+                        "hidden_sizes": [64, 64], "batch_size": 256});
+    let mut jobs = Vec::new();
+    for algorithm in [Algorithm::Safedice, Algorithm::Bc] {
+        let mut body = json!({"algorithm": algorithm, "unlabeled_dataset": unlabeled,
+                              "config": config});
+        if algorithm.needs_non_preferred() {
+            body["non_preferred_dataset"] = json!(non_preferred);
+        }
+        let job = post_json(&client, &mut transcript, "/v1/jobs", &body).await?;
+        let id = job["id"].as_str().context("job without id")?.to_string();
+        jobs.push((algorithm, id));
+    }
+    let mut finished = Vec::new();
+    for (algorithm, id) in &jobs {
+        transcript.record(format!("curl -s {base}/v1/jobs/{id}"));
+        let job = wait_for_job(&client, base, id).await?;
+        finished.push((*algorithm, job));
+    }
+
+    println!("\n4. Downloading the policies and evaluating them ({} episodes)", args.episodes);
+    let mut rows = Vec::new();
+    for (algorithm, job) in &finished {
+        let policy_id = job["policy_id"].as_str().context("succeeded job without a policy")?;
+        let policy = download_policy(&client, &mut transcript, policy_id, *algorithm).await?;
+        let episodes = args.episodes;
+        let env = args.env.clone();
+        let seed = args.seed;
+        // Evaluation steps the environment on this thread: keep it off the async workers.
+        let report = tokio::task::spawn_blocking(move || -> anyhow::Result<EvalReport> {
+            let act = |obs: &[f32], det: bool, rng: &mut ChaCha8Rng| policy.act(obs, det, rng);
+            Ok(envs::evaluate(&env, act, episodes, seed, false)?)
+        })
+        .await??;
+        rows.push(DemoRow { algorithm: *algorithm, alpha_hat: job["alpha_hat"].as_f64(), report });
+    }
+    let (_, first) = &finished[0];
+    let first_policy = first["policy_id"].as_str().unwrap_or_default();
+    let obs_dim = generated.unlabeled.obs_dim;
+    let observation: Vec<f32> = generated.unlabeled.obs(0).to_vec();
+    let act = post_json(
+        &client,
+        &mut transcript,
+        &format!("/v1/policies/{first_policy}/act"),
+        &json!({"observations": [observation]}),
+    )
+    .await?;
+    println!("   /act on the first observation ({obs_dim} values) answered {}", act["actions"]);
+
+    print_table(&rows);
+    println!("\nThe same against a running `safedice serve` ({}):", transcript.base);
+    for line in &transcript.lines {
+        println!("  {line}");
+    }
+    Ok(rows)
+}
+
+async fn upload(
+    client: &reqwest::Client,
+    transcript: &mut Transcript,
+    dir: &Path,
+    stem: &str,
+) -> anyhow::Result<String> {
+    let file = format!("{stem}.npz");
+    let bytes = std::fs::read(dir.join(&file))?;
+    let form = reqwest::multipart::Form::new()
+        .part("file", reqwest::multipart::Part::bytes(bytes).file_name(file.clone()))
+        .text("name", stem.to_string());
+    let url = format!("{}/v1/datasets", transcript.base);
+    transcript.record(format!("curl -s -F file=@demo-data/{file} -F name={stem} {url}"));
+    let response = client.post(&url).multipart(form).send().await?;
+    let body = checked_json(response).await?;
+    let id = body["id"].as_str().context("dataset without id")?.to_string();
+    println!("   -> dataset {id}");
+    Ok(id)
+}
+
+async fn post_json(
+    client: &reqwest::Client,
+    transcript: &mut Transcript,
+    path: &str,
+    body: &Value,
+) -> anyhow::Result<Value> {
+    let url = format!("{}{path}", transcript.base);
+    transcript.record(format!("curl -s -H 'content-type: application/json' -d '{body}' {url}"));
+    checked_json(client.post(&url).json(body).send().await?).await
+}
+
+async fn checked_json(response: reqwest::Response) -> anyhow::Result<Value> {
+    let status = response.status();
+    let body: Value = response.json().await.context("response is not JSON")?;
+    if !status.is_success() {
+        bail!("HTTP {status}: {body}");
+    }
+    Ok(body)
+}
+
+/// Polls `GET /v1/jobs/{id}` until the job succeeds, printing its progress.
+async fn wait_for_job(client: &reqwest::Client, base: &str, id: &str) -> anyhow::Result<Value> {
+    let mut last_print = std::time::Instant::now();
+    loop {
+        let job = checked_json(client.get(format!("{base}/v1/jobs/{id}")).send().await?).await?;
+        match job["status"].as_str() {
+            Some("succeeded") => {
+                println!("   job {id} ({}) succeeded", job["algorithm"]);
+                return Ok(job);
+            }
+            Some("failed") | Some("cancelled") => bail!("job {id} ended: {job}"),
+            _ => {}
+        }
+        if last_print.elapsed() > Duration::from_secs(5) {
+            println!(
+                "   job {id} ({}): step {} of {}",
+                job["algorithm"], job["progress"]["step"], job["progress"]["total"]
+            );
+            last_print = std::time::Instant::now();
+        }
+        tokio::time::sleep(Duration::from_millis(250)).await;
+    }
+}
+
+/// `GET /v1/policies/{id}/weights`: safetensors bytes, spec in a header.
+async fn download_policy(
+    client: &reqwest::Client,
+    transcript: &mut Transcript,
+    policy_id: &str,
+    algorithm: Algorithm,
+) -> anyhow::Result<Policy> {
+    let url = format!("{}/v1/policies/{policy_id}/weights", transcript.base);
+    // The spec travels in the x-safedice-policy-spec response header.
+    transcript
+        .record(format!("curl -s -D {algorithm}-headers.txt -o {algorithm}.safetensors {url}"));
+    let response = client.get(&url).send().await?;
+    if !response.status().is_success() {
+        bail!("HTTP {} downloading {url}", response.status());
+    }
+    let spec = response
+        .headers()
+        .get("x-safedice-policy-spec")
+        .context("weights response without x-safedice-policy-spec")?
+        .to_str()?
+        .to_string();
+    let spec: PolicySpec = serde_json::from_str(&spec)?;
+    let weights = response.bytes().await?;
+    Ok(Policy::load(&spec, &weights)?)
+}
+
+fn print_table(rows: &[DemoRow]) {
+    println!(
+        "\n{:<10} {:>14} {:>13} {:>15} {:>13} {:>10}",
+        "algorithm", "norm. return", "avg cost", "violation ratio", "CVaR 10%", "alpha-hat"
+    );
+    for DemoRow { algorithm, alpha_hat: alpha, report } in rows {
+        let m = &report.metrics;
+        println!(
+            "{:<10} {:>14.1} {:>13.2} {:>15.3} {:>13.2} {:>10}",
+            display_name(*algorithm),
+            m.normalized_return,
+            m.average_cost,
+            m.cost_violation_ratio,
+            m.cvar_cost.k10,
+            alpha.map_or("-".to_string(), |a| format!("{a:.4}"))
+        );
+    }
+}

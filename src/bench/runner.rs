@@ -1,0 +1,342 @@
+//! Data generation, training and evaluation of every (environment, algorithm, seed), spread over
+//! a few worker threads.
+
+use std::collections::BTreeMap;
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::Instant;
+
+use rand_chacha::ChaCha8Rng;
+use serde::Serialize;
+
+use super::BenchConfig;
+use crate::algo::{self, Algorithm, Policy, TrainError, TrainingData};
+use crate::envs::{self, DatagenSpec, GroupProfile, Metrics, ReferenceStats};
+
+/// Why the benchmark stopped.
+#[derive(Debug, thiserror::Error)]
+pub enum BenchError {
+    #[error("{0}")]
+    Config(String),
+    #[error("{env}: data generation failed: {message}")]
+    Datagen { env: String, message: String },
+    #[error("{env}/{algorithm}/seed {seed}: {message}")]
+    Run { env: String, algorithm: Algorithm, seed: u64, message: String },
+}
+
+/// The generated data of one environment, as the report describes it.
+#[derive(Clone, Debug, Serialize)]
+pub struct EnvData {
+    pub env: String,
+    pub unlabeled_preferred: GroupProfile,
+    pub unlabeled_non_preferred: GroupProfile,
+    pub labeled_non_preferred: GroupProfile,
+    pub reference: ReferenceStats,
+    pub datagen_seconds: f64,
+}
+
+/// Where SafeDICE's alpha-hat came from (Eq. 15), from the trainer's recorded scalars.
+#[derive(Clone, Debug, Serialize)]
+pub struct AlphaDiagnostics {
+    pub alpha_hat: f64,
+    /// `min over D^U of e^{-logit}`: the statistic alpha-hat is (the minimum minus 1e-5).
+    pub min_ratio: f64,
+    /// The 1% quantile of the same ratio (diagnostic, not the paper).
+    pub quantile_01: f64,
+    /// D^U episode holding the minimum, and whether it is a non-preferred one (ground truth the
+    /// learner never sees, from the data generator's manifest).
+    pub argmin_episode: u32,
+    pub argmin_episode_is_non_preferred: bool,
+    /// Effective sample size of the policy weights as a fraction of the batch, averaged over
+    /// the recorded policy steps, and at the last one.
+    pub ess_fraction_mean: f64,
+    pub ess_fraction_last: f64,
+    /// Rows of D^U whose Eq. 10 reward had to be floored (0 with the paper's alpha-hat).
+    pub reward_clipped_rows: f64,
+}
+
+/// One trained and evaluated policy.
+#[derive(Clone, Debug, Serialize)]
+pub struct RunResult {
+    pub env: String,
+    pub algorithm: Algorithm,
+    pub seed: u64,
+    /// Training steps, every phase included.
+    pub steps: u64,
+    pub train_seconds: f64,
+    pub eval_seconds: f64,
+    pub metrics: Metrics,
+    pub mean_episode_length: f64,
+    /// SafeDICE only.
+    pub alpha: Option<AlphaDiagnostics>,
+    /// The trainer's last recorded scalars (losses and the like).
+    pub last_recorded: BTreeMap<String, f64>,
+}
+
+impl RunResult {
+    pub fn steps_per_second(&self) -> f64 {
+        self.steps as f64 / self.train_seconds.max(1e-9)
+    }
+}
+
+/// Everything a benchmark run produced.
+#[derive(Clone, Debug, Serialize)]
+pub struct BenchResults {
+    pub config: BenchConfig,
+    pub data: Vec<EnvData>,
+    /// In (env, algorithm, seed) order of the configuration.
+    pub runs: Vec<RunResult>,
+    pub started: chrono::DateTime<chrono::Utc>,
+    /// `git rev-parse --short=12 HEAD` when the run started ("unknown" outside a checkout).
+    pub git_commit: String,
+    pub wall_seconds: f64,
+}
+
+/// A generated dataset and the ground truth the diagnostics need.
+struct Prepared {
+    data: TrainingData,
+    non_preferred_ids: Vec<u32>,
+}
+
+/// One training to do.
+#[derive(Clone, Copy)]
+struct Job {
+    env: usize,
+    algorithm: Algorithm,
+    seed: u64,
+}
+
+/// Generates the data, then trains and evaluates every (environment, algorithm, seed) on
+/// `config.threads` threads. The first failing run stops the benchmark.
+pub fn run(config: &BenchConfig) -> Result<BenchResults, BenchError> {
+    config.validate()?;
+    let started = chrono::Utc::now();
+    let git_commit = git_commit();
+    let clock = Instant::now();
+    let mut prepared = Vec::new();
+    let mut data = Vec::new();
+    for env in &config.envs {
+        let (p, d) = prepare(config, env)?;
+        prepared.push(p);
+        data.push(d);
+    }
+    let jobs = schedule(config);
+    let runs = run_jobs(config, &prepared, &jobs)?;
+    Ok(BenchResults {
+        config: config.clone(),
+        data,
+        runs,
+        started,
+        git_commit,
+        wall_seconds: clock.elapsed().as_secs_f64(),
+    })
+}
+
+fn git_commit() -> String {
+    std::process::Command::new("git")
+        .args(["rev-parse", "--short=12", "HEAD"])
+        .output()
+        .ok()
+        .filter(|o| o.status.success())
+        .map(|o| String::from_utf8_lossy(&o.stdout).trim().to_string())
+        .unwrap_or_else(|| "unknown".to_string())
+}
+
+fn prepare(config: &BenchConfig, env: &str) -> Result<(Prepared, EnvData), BenchError> {
+    let clock = Instant::now();
+    let spec = DatagenSpec {
+        env: env.to_string(),
+        preferred: config.data.preferred,
+        non_preferred: config.data.non_preferred,
+        labeled: config.data.labeled,
+        seed: config.data_seed,
+    };
+    let generated = envs::generate(&spec)
+        .map_err(|e| BenchError::Datagen { env: env.to_string(), message: e.to_string() })?;
+    let m = generated.manifest;
+    tracing::info!(
+        env,
+        preferred_cost = m.unlabeled_preferred.mean_cost,
+        non_preferred_cost = m.unlabeled_non_preferred.mean_cost,
+        transitions = generated.unlabeled.len(),
+        "bench: data generated"
+    );
+    let non_preferred =
+        (config.data.labeled > 0).then(|| Arc::new(generated.labeled_non_preferred));
+    let prepared = Prepared {
+        data: TrainingData { unlabeled: Arc::new(generated.unlabeled), non_preferred },
+        non_preferred_ids: m.unlabeled_non_preferred_episode_ids,
+    };
+    let summary = EnvData {
+        env: env.to_string(),
+        unlabeled_preferred: m.unlabeled_preferred,
+        unlabeled_non_preferred: m.unlabeled_non_preferred,
+        labeled_non_preferred: m.labeled_non_preferred,
+        reference: m.reference,
+        datagen_seconds: clock.elapsed().as_secs_f64(),
+    };
+    Ok((prepared, summary))
+}
+
+/// Every job, the slowest algorithms first so the last ones to finish are short (SafeDICE and
+/// PPL have a pretraining phase on top of the policy iterations).
+fn schedule(config: &BenchConfig) -> Vec<Job> {
+    let cost = |a: Algorithm| match a {
+        Algorithm::Safedice => 0,
+        Algorithm::Ppl => 1,
+        Algorithm::Dwbc => 2,
+        Algorithm::Dexperts => 3,
+        Algorithm::Bc => 4,
+    };
+    let mut jobs: Vec<Job> = (0..config.envs.len())
+        .flat_map(|env| {
+            config.algorithms.iter().flat_map(move |&algorithm| {
+                (0..config.seeds).map(move |seed| Job { env, algorithm, seed })
+            })
+        })
+        .collect();
+    jobs.sort_by_key(|j| (cost(j.algorithm), j.seed, j.env));
+    jobs
+}
+
+fn run_jobs(
+    config: &BenchConfig,
+    prepared: &[Prepared],
+    jobs: &[Job],
+) -> Result<Vec<RunResult>, BenchError> {
+    let next = AtomicUsize::new(0);
+    let done = AtomicUsize::new(0);
+    let results: Mutex<Vec<Result<RunResult, BenchError>>> = Mutex::new(Vec::new());
+    let failed = std::sync::atomic::AtomicBool::new(false);
+    std::thread::scope(|scope| {
+        for _ in 0..config.threads.min(jobs.len()) {
+            scope.spawn(|| loop {
+                let i = next.fetch_add(1, Ordering::SeqCst);
+                if i >= jobs.len() || failed.load(Ordering::SeqCst) {
+                    break;
+                }
+                let job = jobs[i];
+                let result = train_and_evaluate(config, &config.envs[job.env], &prepared[job.env], job);
+                if let Ok(r) = &result {
+                    // One JSON line per finished run, so a run cut short still leaves its data.
+                    tracing::info!(target: "safedice::bench::run", "{}", serde_json::to_string(r).unwrap_or_default());
+                    tracing::info!(
+                        "bench: [{}/{}] {}/{}/seed {}: normalized return {:.1}, average cost {:.2} ({:.0} s, {:.1} steps/s)",
+                        done.fetch_add(1, Ordering::SeqCst) + 1,
+                        jobs.len(),
+                        r.env,
+                        r.algorithm,
+                        r.seed,
+                        r.metrics.normalized_return,
+                        r.metrics.average_cost,
+                        r.train_seconds + r.eval_seconds,
+                        r.steps_per_second()
+                    );
+                } else {
+                    failed.store(true, Ordering::SeqCst);
+                }
+                results.lock().unwrap_or_else(|p| p.into_inner()).push(result);
+            });
+        }
+    });
+    let mut runs = results
+        .into_inner()
+        .unwrap_or_else(|p| p.into_inner())
+        .into_iter()
+        .collect::<Result<Vec<_>, _>>()?;
+    let env_index = |name: &str| config.envs.iter().position(|e| e == name);
+    let algorithm_index = |a: Algorithm| config.algorithms.iter().position(|&b| b == a);
+    runs.sort_by_key(|r| (env_index(&r.env), algorithm_index(r.algorithm), r.seed));
+    Ok(runs)
+}
+
+/// Trains one policy to the end and evaluates it.
+fn train_and_evaluate(
+    config: &BenchConfig,
+    env: &str,
+    prepared: &Prepared,
+    job: Job,
+) -> Result<RunResult, BenchError> {
+    let fail = |message: String| BenchError::Run {
+        env: env.to_string(),
+        algorithm: job.algorithm,
+        seed: job.seed,
+        message,
+    };
+    let train_error = |e: TrainError| fail(e.to_string());
+    let resolved = algo::resolve_config(job.algorithm, &config.training_config(job.seed))
+        .map_err(|e| fail(e.message))?;
+    let clock = Instant::now();
+    let mut trainer = algo::build_trainer(&resolved, &prepared.data, None).map_err(train_error)?;
+    let pretraining = resolved.pretraining_steps();
+    let total = resolved.total_steps();
+    let mut recorder = Recorder::default();
+    while !trainer.is_finished() {
+        let step = trainer.progress().step;
+        // Always record the last pretraining step: it carries the alpha-hat computation.
+        let record =
+            step % config.record_every == 0 || step + 1 == pretraining || step + 1 == total;
+        let scalars = trainer.step(record).map_err(train_error)?;
+        recorder.add(&scalars);
+    }
+    let artifact = trainer.export_policy().map_err(train_error)?;
+    let train_seconds = clock.elapsed().as_secs_f64();
+    let policy = Policy::load(&artifact.spec, &artifact.weights).map_err(train_error)?;
+    let clock = Instant::now();
+    let act = |obs: &[f32], det: bool, rng: &mut ChaCha8Rng| policy.act(obs, det, rng);
+    // The evaluation seed is the training seed: every algorithm meets the same initial states.
+    let report =
+        envs::evaluate(env, act, config.eval_episodes, job.seed, config.deterministic_eval)
+            .map_err(|e| fail(e.to_string()))?;
+    let alpha = trainer.alpha_hat().map(|value| recorder.alpha(value, &prepared.non_preferred_ids));
+    Ok(RunResult {
+        env: env.to_string(),
+        algorithm: job.algorithm,
+        seed: job.seed,
+        steps: total,
+        train_seconds,
+        eval_seconds: clock.elapsed().as_secs_f64(),
+        metrics: report.metrics,
+        mean_episode_length: report.mean_episode_length,
+        alpha,
+        last_recorded: recorder.last,
+    })
+}
+
+/// The trainer's recorded scalars: the last value of each, and the ESS history.
+#[derive(Default)]
+struct Recorder {
+    last: BTreeMap<String, f64>,
+    ess: Vec<f64>,
+}
+
+impl Recorder {
+    fn add(&mut self, scalars: &[(&'static str, f64)]) {
+        for &(name, value) in scalars {
+            if name == "ess_fraction" {
+                self.ess.push(value);
+            }
+            self.last.insert(name.to_string(), value);
+        }
+    }
+
+    fn get(&self, name: &str) -> f64 {
+        self.last.get(name).copied().unwrap_or(f64::NAN)
+    }
+
+    fn alpha(&self, alpha_hat: f64, non_preferred_ids: &[u32]) -> AlphaDiagnostics {
+        let argmin_episode = self.get("alpha_hat_argmin_episode");
+        let argmin = if argmin_episode.is_finite() { argmin_episode as u32 } else { u32::MAX };
+        let mean = self.ess.iter().sum::<f64>() / self.ess.len().max(1) as f64;
+        AlphaDiagnostics {
+            alpha_hat,
+            min_ratio: self.get("alpha_hat_min_ratio"),
+            quantile_01: self.get("alpha_hat_q01_diagnostic_not_paper"),
+            argmin_episode: argmin,
+            argmin_episode_is_non_preferred: non_preferred_ids.contains(&argmin),
+            ess_fraction_mean: if self.ess.is_empty() { f64::NAN } else { mean },
+            ess_fraction_last: self.ess.last().copied().unwrap_or(f64::NAN),
+            reward_clipped_rows: self.get("reward_clipped_rows"),
+        }
+    }
+}

@@ -1,0 +1,111 @@
+//! A tiny benchmark run in-process (the CI smoke test of `safedice bench`): every algorithm on
+//! six-rooms with small networks and few iterations. Checks the report's shape and that every
+//! number in it is finite, not the algorithms' quality (that is bench/results.md's job).
+
+use clap::Parser;
+use safedice::algo::Algorithm;
+use safedice::bench::{self, BenchArgs, BenchConfig, DataSize};
+
+fn tiny_config() -> BenchConfig {
+    let mut config = BenchConfig::quick();
+    config.envs = vec!["six-rooms".to_string()];
+    config.seeds = 2;
+    config.iterations = 20;
+    config.data = DataSize { preferred: 6, non_preferred: 6, labeled: 3 };
+    config.eval_episodes = 10;
+    config.record_every = 5;
+    config.overrides.insert("batch_size".into(), 32.into());
+    config.overrides.insert("hidden_sizes".into(), serde_json::json!([16, 16]));
+    config
+}
+
+#[test]
+fn tiny_bench_reports_every_algorithm_with_finite_numbers() {
+    let config = tiny_config();
+    let results = bench::run(&config).unwrap();
+    assert_eq!(results.runs.len(), Algorithm::ALL.len() * 2);
+    let summary = bench::summarize(&results);
+    let env = &summary.envs[0];
+    assert_eq!(env.env, "six-rooms");
+    assert_eq!(
+        env.rows.iter().map(|r| r.algorithm).collect::<Vec<_>>(),
+        Algorithm::ALL.to_vec(),
+        "one row per algorithm, in order"
+    );
+    for row in &env.rows {
+        assert_eq!(row.seeds, 2);
+        for stat in [
+            row.normalized_return,
+            row.average_cost,
+            row.cost_violation_ratio,
+            row.cvar_50,
+            row.cvar_20,
+            row.cvar_10,
+            row.cvar_5,
+            row.normalized_cost,
+        ] {
+            assert!(stat.mean.is_finite() && stat.se.is_finite(), "{row:?}");
+        }
+        assert!((0.0..=1.0).contains(&row.cost_violation_ratio.mean));
+        // CVaR over a smaller worst share can only be higher.
+        assert!(row.cvar_5.mean >= row.cvar_50.mean - 1e-9, "{row:?}");
+        assert_eq!(row.alpha_hat.is_some(), row.algorithm == Algorithm::Safedice);
+    }
+    let alpha = results.runs[0].alpha.as_ref().expect("SafeDICE runs first in config order");
+    assert!(alpha.alpha_hat.is_finite() && alpha.min_ratio.is_finite(), "{alpha:?}");
+    assert!(env.safedice_vs_bc.as_ref().is_some_and(|c| c.cost_ratio.is_finite()));
+
+    let dir = tempfile::tempdir().unwrap();
+    bench::write_outputs(&results, &summary, dir.path(), "safedice bench (test)").unwrap();
+    let md = std::fs::read_to_string(dir.path().join("results.md")).unwrap();
+    assert!(md.contains("Command: `safedice bench (test)`"));
+    for name in ["SafeDICE", "BC", "DWBC", "PPL", "DExperts"] {
+        let rows = md.lines().filter(|l| l.starts_with(&format!("| {name} |"))).count();
+        assert_eq!(rows, 1, "one table row for {name}\n{md}");
+    }
+    assert!(!md.contains("NaN") && !md.contains("inf"), "{md}");
+    let svg = std::fs::read_to_string(dir.path().join("six-rooms.svg")).unwrap();
+    assert!(svg.starts_with("<svg") && svg.trim_end().ends_with("</svg>"));
+    assert_eq!(svg.matches("<circle").count(), 2 * Algorithm::ALL.len(), "point + legend each");
+    let json: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.path().join("results.json")).unwrap()).unwrap();
+    assert_eq!(json["results"]["runs"].as_array().unwrap().len(), 10);
+}
+
+#[derive(Parser)]
+struct Cli {
+    #[command(flatten)]
+    bench: BenchArgs,
+}
+
+fn parse(args: &[&str]) -> Result<BenchConfig, String> {
+    let cli = Cli::try_parse_from(std::iter::once("bench").chain(args.iter().copied()))
+        .map_err(|e| e.to_string())?;
+    cli.bench.to_config().map_err(|e| e.to_string())
+}
+
+#[test]
+fn arguments_select_envs_algorithms_and_modes() {
+    let full = parse(&[]).unwrap();
+    assert_eq!(full.envs, ["six-rooms", "point-goal", "cartpole-slider"]);
+    assert_eq!((full.iterations, full.seeds, full.eval_episodes), (1_000_000, 5, 500));
+    assert_eq!(full.data, DataSize::PAPER);
+    let quick = parse(&["--quick", "--envs", "point-goal", "--algorithms", "safedice,bc"]).unwrap();
+    assert_eq!(quick.envs, ["point-goal"]);
+    assert_eq!(quick.algorithms, [Algorithm::Safedice, Algorithm::Bc]);
+    assert_eq!(quick.data, DataSize::QUICK);
+    assert_eq!(quick.training_config(0)["batch_size"], 256, "quick runs small networks");
+    assert!(full.training_config(0).get("batch_size").is_none(), "full runs the service's");
+    let custom = parse(&["--quick", "--iterations", "7", "--hidden-sizes", "8,8"]).unwrap();
+    assert_eq!(custom.iterations, 7);
+    assert_eq!(custom.training_config(3)["hidden_sizes"], serde_json::json!([8, 8]));
+    assert_eq!(custom.training_config(3)["seed"], 3);
+
+    let err = parse(&["--envs", "walker"]).unwrap_err();
+    assert!(err.contains("unknown environment `walker`"), "{err}");
+    let err = parse(&["--algorithms", "safedice,sac"]).unwrap_err();
+    assert!(err.contains("unknown algorithm `sac`"), "{err}");
+    assert!(parse(&["--seeds", "0"]).unwrap_err().contains("--seeds"));
+    assert!(parse(&["--labeled", "0"]).unwrap_err().contains("--labeled"));
+    assert!(parse(&["--algorithms", "bc", "--labeled", "0"]).is_ok(), "BC needs no D^N");
+}
