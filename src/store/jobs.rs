@@ -351,10 +351,7 @@ impl Store {
         .bind(id)
         .execute(&mut *tx)
         .await?;
-        sqlx::query("DELETE FROM job_checkpoints WHERE job_id = ?")
-            .bind(id)
-            .execute(&mut *tx)
-            .await?;
+        delete_checkpoint(&mut tx, id).await?;
         tx.commit().await?;
         Ok(())
     }
@@ -382,10 +379,7 @@ impl Store {
         .bind(id)
         .execute(&mut *tx)
         .await?;
-        sqlx::query("DELETE FROM job_checkpoints WHERE job_id = ?")
-            .bind(id)
-            .execute(&mut *tx)
-            .await?;
+        delete_checkpoint(&mut tx, id).await?;
         tx.commit().await?;
         Ok(())
     }
@@ -409,10 +403,7 @@ impl Store {
                 .bind(id)
                 .execute(&mut *tx)
                 .await?;
-                sqlx::query("DELETE FROM job_checkpoints WHERE job_id = ?")
-                    .bind(id)
-                    .execute(&mut *tx)
-                    .await?;
+                delete_checkpoint(&mut tx, id).await?;
                 CancelOutcome::Cancelled
             }
             "running" => {
@@ -428,6 +419,15 @@ impl Store {
         tx.commit().await?;
         Ok(outcome)
     }
+}
+
+/// A finished job keeps no checkpoint: it would only be read to resume.
+async fn delete_checkpoint(tx: &mut Transaction<'_, Sqlite>, id: &str) -> Result<(), sqlx::Error> {
+    sqlx::query("DELETE FROM job_checkpoints WHERE job_id = ?")
+        .bind(id)
+        .execute(&mut **tx as &mut SqliteConnection)
+        .await?;
+    Ok(())
 }
 
 async fn insert_metric_rows(
