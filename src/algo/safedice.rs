@@ -134,6 +134,15 @@ struct FlowColumns {
 }
 
 impl FlowColumns {
+    /// A main-loop minibatch: `b` rows of the flow table and `b` initial states of p0, both
+    /// uniform with replacement. The candle and fused paths share it so they draw the same
+    /// random numbers.
+    fn sample_batch(&self, rng: &mut impl Rng, b: usize) -> (Vec<u32>, Vec<u32>) {
+        let rows = (0..b).map(|_| rng.random_range(0..self.rows as u32)).collect();
+        let initial = (0..b).map(|_| self.starts[rng.random_range(0..self.starts.len())]).collect();
+        (rows, initial)
+    }
+
     fn build(
         u: &Columns,
         rewards: Vec<f32>,
@@ -466,10 +475,7 @@ impl SafediceTrainer {
         let flow = self.flow.as_ref().expect("set when the discriminator phase ends");
         let b = self.run.batch();
         let device = self.run.device.clone();
-        let rng = &mut self.run.rng;
-        let rows: Vec<u32> = (0..b).map(|_| rng.random_range(0..flow.rows as u32)).collect();
-        let initial: Vec<u32> =
-            (0..b).map(|_| flow.starts[rng.random_range(0..flow.starts.len())]).collect();
+        let (rows, initial) = flow.sample_batch(&mut self.run.rng, b);
         let idx = Tensor::from_vec(rows.clone(), b, &device)?;
         let s = flow.obs.index_select(&idx, 0)?;
         let s_next = flow.next_obs.index_select(&idx, 0)?;
@@ -530,10 +536,7 @@ impl SafediceTrainer {
         let flow = self.flow.as_ref().expect("set when the discriminator phase ends");
         let b = self.run.batch();
         let device = self.run.device.clone();
-        let rng = &mut self.run.rng;
-        let rows: Vec<u32> = (0..b).map(|_| rng.random_range(0..flow.rows as u32)).collect();
-        let initial: Vec<u32> =
-            (0..b).map(|_| flow.starts[rng.random_range(0..flow.starts.len())]).collect();
+        let (rows, initial) = flow.sample_batch(&mut self.run.rng, b);
         let idx = Tensor::from_vec(rows.clone(), b, &device)?;
         let s = host(&flow.obs.index_select(&idx, 0)?)?;
         let s_next = host(&flow.next_obs.index_select(&idx, 0)?)?;
