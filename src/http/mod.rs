@@ -7,6 +7,7 @@
 
 pub mod auth;
 pub mod datasets;
+pub mod envs;
 pub mod error;
 pub mod extract;
 pub mod health;
@@ -88,6 +89,7 @@ fn routes() -> OpenApiRouter<AppState> {
         .merge(openapi::router())
         .merge(ui::router())
         .merge(datasets::router())
+        .merge(envs::router())
         .merge(jobs::router())
         .merge(policies::router())
         .merge(inference::router())

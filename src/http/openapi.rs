@@ -30,6 +30,7 @@ const SECURITY_SCHEME: &str = "bearer";
     ),
     tags(
         (name = "datasets", description = "Demonstration datasets (JSONL, CSV, NPZ, HDF5 uploads)"),
+        (name = "environments", description = "Built-in benchmark environments"),
         (name = "operations", description = "Health, readiness, metrics, API description"),
     ),
     components(schemas(ErrorBody)),
