@@ -18,7 +18,7 @@ use std::sync::Mutex;
 
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 use super::rollout::{demonstration_records, run_episodes, EpisodeOutcome, RolloutError};
 use super::{demonstrator, derive_seed, make, Profile, UnknownEnv};
@@ -36,7 +36,7 @@ const STREAM_EVAL_POLICY: u64 = 102;
 const STREAM_REFERENCE: u64 = 103;
 
 /// Mean return and cost of the two demonstrators on one environment, and the derived threshold.
-#[derive(Clone, Debug, PartialEq, Serialize, utoipa::ToSchema)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct ReferenceStats {
     pub env: String,
     /// Episodes per demonstrator.
@@ -128,7 +128,7 @@ pub fn reference_stats(env: &str) -> Result<ReferenceStats, UnknownEnv> {
 }
 
 /// CVaR k% cost for the paper's k (Appendix E.1).
-#[derive(Clone, Debug, PartialEq, Serialize, utoipa::ToSchema)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct CvarCost {
     #[serde(rename = "50")]
     pub k50: f64,
@@ -141,7 +141,7 @@ pub struct CvarCost {
 }
 
 /// The paper's metrics over a set of episodes (see the module docs for the definitions).
-#[derive(Clone, Debug, PartialEq, Serialize, utoipa::ToSchema)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct Metrics {
     pub normalized_return: f64,
     pub average_return: f64,
@@ -154,6 +154,26 @@ pub struct Metrics {
     /// DSRL's normalized cost: average cost / threshold.
     pub normalized_cost: f64,
     pub cost_threshold: f64,
+}
+
+impl Metrics {
+    /// The metrics as named scalars, as a job's `eval` block records them in its metrics
+    /// history (`eval/<name>`; the CVaR ones as `eval/cvar_cost_<k>`).
+    pub fn named_values(&self) -> [(&'static str, f64); 11] {
+        [
+            ("eval/normalized_return", self.normalized_return),
+            ("eval/average_return", self.average_return),
+            ("eval/return_std", self.return_std),
+            ("eval/average_cost", self.average_cost),
+            ("eval/cost_std", self.cost_std),
+            ("eval/cost_violation_ratio", self.cost_violation_ratio),
+            ("eval/cvar_cost_50", self.cvar_cost.k50),
+            ("eval/cvar_cost_20", self.cvar_cost.k20),
+            ("eval/cvar_cost_10", self.cvar_cost.k10),
+            ("eval/cvar_cost_5", self.cvar_cost.k5),
+            ("eval/normalized_cost", self.normalized_cost),
+        ]
+    }
 }
 
 /// Mean of the worst `⌈k/100 · n⌉` (at least one) episode costs.
@@ -192,7 +212,7 @@ pub fn compute_metrics(returns: &[f64], costs: &[f64], reference: &ReferenceStat
 }
 
 /// The result of evaluating a policy on a built-in environment.
-#[derive(Clone, Debug, PartialEq, Serialize, utoipa::ToSchema)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct EvalReport {
     pub env: String,
     pub episodes: usize,

@@ -150,6 +150,56 @@ pub fn info(name: &str) -> Result<EnvInfo, UnknownEnv> {
     list().into_iter().find(|i| i.name == name).ok_or_else(|| UnknownEnv { name: name.into() })
 }
 
+/// Why a policy (or the data it is trained on) cannot act in an environment.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum SpaceMismatch {
+    #[error(transparent)]
+    UnknownEnv(#[from] UnknownEnv),
+    #[error("{0}")]
+    Spaces(String),
+}
+
+/// Checks that a policy over `obs_dim` observations and `action_space` actions can act in
+/// environment `name`; `whose` names them in the message (e.g. "the policy's"): the same observation width and the same kind of action with the same
+/// width. A discrete policy may know fewer actions than the environment (a dataset re-inferred
+/// from JSONL or CSV counts only the actions it uses); continuous actions are clipped to the
+/// environment's box.
+pub fn check_spaces(
+    name: &str,
+    obs_dim: usize,
+    action_space: &ActionSpace,
+    whose: &str,
+) -> Result<(), SpaceMismatch> {
+    let env = info(name)?;
+    let mismatch = |what: String| Err(SpaceMismatch::Spaces(format!("{name}: {what}")));
+    if env.obs_dim != obs_dim {
+        return mismatch(format!(
+            "observations have {} values, {whose} have {obs_dim}",
+            env.obs_dim
+        ));
+    }
+    match (&env.action_space, action_space) {
+        (ActionSpace::Discrete { n: env_n }, ActionSpace::Discrete { n }) if n <= env_n => Ok(()),
+        (ActionSpace::Continuous { dim: env_dim, .. }, ActionSpace::Continuous { dim, .. })
+            if dim == env_dim =>
+        {
+            Ok(())
+        }
+        (expected, got) => mismatch(format!(
+            "actions are {}, {whose} are {}",
+            describe_space(expected),
+            describe_space(got)
+        )),
+    }
+}
+
+fn describe_space(space: &ActionSpace) -> String {
+    match space {
+        ActionSpace::Discrete { n } => format!("discrete with {n} choices"),
+        ActionSpace::Continuous { dim, .. } => format!("continuous with {dim} dimensions"),
+    }
+}
+
 /// A fresh environment whose `reset(None)` episodes follow the stream seeded by `seed`.
 pub fn make(name: &str, seed: u64) -> Result<Box<dyn Env>, UnknownEnv> {
     REGISTRY
@@ -233,6 +283,37 @@ mod tests {
         assert_eq!(json["action_space"]["dim"], 2);
         let json = serde_json::to_value(info("six-rooms").unwrap()).unwrap();
         assert_eq!(json["action_space"], serde_json::json!({"type": "discrete", "n": 4}));
+    }
+
+    #[test]
+    fn spaces_must_match_the_environment() {
+        const P: &str = "the policy's";
+        let obs = info("six-rooms").unwrap().obs_dim;
+        assert_eq!(check_spaces("six-rooms", obs, &ActionSpace::Discrete { n: 4 }, P), Ok(()));
+        assert_eq!(check_spaces("six-rooms", obs, &ActionSpace::Discrete { n: 3 }, P), Ok(()));
+        let err = check_spaces("six-rooms", obs, &ActionSpace::Discrete { n: 5 }, P).unwrap_err();
+        assert_eq!(
+            err.to_string(),
+            "six-rooms: actions are discrete with 4 choices, the policy's are discrete with 5 choices"
+        );
+        let err =
+            check_spaces("six-rooms", obs + 1, &ActionSpace::Discrete { n: 4 }, P).unwrap_err();
+        assert_eq!(
+            err.to_string(),
+            format!("six-rooms: observations have {obs} values, the policy's have {}", obs + 1)
+        );
+        let point = info("point-goal").unwrap();
+        let square =
+            |dim| ActionSpace::Continuous { dim, low: vec![-1.0; dim], high: vec![1.0; dim] };
+        assert_eq!(check_spaces("point-goal", point.obs_dim, &square(2), P), Ok(()));
+        assert!(check_spaces("point-goal", point.obs_dim, &square(3), P).is_err());
+        assert!(
+            check_spaces("point-goal", point.obs_dim, &ActionSpace::Discrete { n: 2 }, P).is_err()
+        );
+        assert!(matches!(
+            check_spaces("walker", 1, &square(1), P),
+            Err(SpaceMismatch::UnknownEnv(_))
+        ));
     }
 
     #[test]

@@ -20,7 +20,7 @@ use super::extract::{Json, Path, Query};
 use super::pagination::{Page, PageParams};
 use super::{ApiError, AppState};
 use crate::algo::{self, Algorithm};
-use crate::jobs::{JobEvent, JobProgress, RunnerOptions};
+use crate::jobs::{EvalOptions, JobEvent, JobProgress, RunnerOptions};
 use crate::store::jobs::{CancelOutcome, JobRow, MetricRow, NewJob};
 use crate::store::{Store, StoreError};
 
@@ -87,6 +87,11 @@ pub struct CreateJob {
     /// configuration: they never change the trained policy.
     #[schema(value_type = Option<RunnerOptions>)]
     pub runner: Option<serde_json::Value>,
+    /// Evaluate the policy on a built-in environment every `every` policy-learning steps and at
+    /// the end; the paper's metrics go to the metrics history as `eval/...` (absent: no
+    /// evaluation). The environment's spaces must match the datasets'.
+    #[schema(value_type = Option<EvalOptions>)]
+    pub eval: Option<serde_json::Value>,
 }
 
 /// A training job.
@@ -101,6 +106,8 @@ pub struct Job {
     #[schema(value_type = Object)]
     pub config: serde_json::Value,
     pub runner: RunnerOptions,
+    /// The eval block, if the job evaluates its policy while it trains.
+    pub eval: Option<EvalOptions>,
     pub progress: JobProgress,
     /// SafeDICE's alpha-hat (Eq. 15) once the discriminator phase has computed it.
     pub alpha_hat: Option<f64>,
@@ -129,6 +136,10 @@ impl TryFrom<JobRow> for Job {
             serde_json::from_value(row.status.clone().into()).map_err(|e| corrupt("status", e))?;
         let config = serde_json::from_str(&row.config).map_err(|e| corrupt("config", e))?;
         let runner = serde_json::from_str(&row.runner).map_err(|e| corrupt("runner", e))?;
+        let eval = match &row.eval {
+            Some(eval) => Some(serde_json::from_str(eval).map_err(|e| corrupt("eval", e))?),
+            None => None,
+        };
         let running = row.status == "running";
         let progress = JobProgress::new(
             row.step as u64,
@@ -144,6 +155,7 @@ impl TryFrom<JobRow> for Job {
             non_preferred_dataset: row.non_preferred_dataset_id,
             config,
             runner,
+            eval,
             progress,
             alpha_hat: row.alpha_hat,
             policy_id: row.policy_id,
@@ -237,6 +249,8 @@ async fn create_job(
     .map_err(|e| ApiError::unprocessable("invalid_config", e.message))?;
     let runner = RunnerOptions::parse(request.runner.as_ref())
         .map_err(|e| ApiError::unprocessable("invalid_config", e.0))?;
+    let eval = EvalOptions::parse(request.eval.as_ref())
+        .map_err(|e| ApiError::unprocessable("invalid_config", e.0))?;
     if algorithm.needs_non_preferred() && request.non_preferred_dataset.is_none() {
         return Err(ApiError::unprocessable(
             "invalid_config",
@@ -251,9 +265,17 @@ async fn create_job(
     .await?;
     algo::check_data(&config, &data)
         .map_err(|e| ApiError::unprocessable("invalid_config", e.message))?;
+    if let Some(eval) = &eval {
+        let unlabeled = &data.unlabeled;
+        let whose = "the datasets'";
+        crate::envs::check_spaces(&eval.env, unlabeled.obs_dim, &unlabeled.action_space, whose)
+            .map_err(|e| ApiError::unprocessable("invalid_config", format!("eval.env: {e}")))?;
+    }
     let id = uuid::Uuid::new_v4().to_string();
     let config_json = serde_json::to_string(&config).map_err(anyhow::Error::from)?;
     let runner_json = serde_json::to_string(&runner).map_err(anyhow::Error::from)?;
+    let eval_json =
+        eval.as_ref().map(serde_json::to_string).transpose().map_err(anyhow::Error::from)?;
     let row = state
         .store
         .insert_job(&NewJob {
@@ -263,6 +285,7 @@ async fn create_job(
             non_preferred_dataset_id: request.non_preferred_dataset.as_deref(),
             config: &config_json,
             runner: &runner_json,
+            eval: eval_json.as_deref(),
             total_steps: config.total_steps(),
         })
         .await?;

@@ -9,6 +9,7 @@ pub mod auth;
 pub mod datasets;
 pub mod envs;
 pub mod error;
+pub mod evaluations;
 pub mod extract;
 pub mod health;
 pub mod inference;
@@ -92,6 +93,7 @@ fn routes() -> OpenApiRouter<AppState> {
         .merge(envs::router())
         .merge(jobs::router())
         .merge(policies::router())
+        .merge(evaluations::router())
         .merge(inference::router())
         .layer(middleware::from_fn(timeout));
     // Routes that legitimately take long: uploads of up to --max-upload-bytes, event streams.

@@ -31,6 +31,8 @@ const SECURITY_SCHEME: &str = "bearer";
     tags(
         (name = "datasets", description = "Demonstration datasets (JSONL, CSV, NPZ, HDF5 uploads)"),
         (name = "environments", description = "Built-in benchmark environments"),
+        (name = "evaluations", description = "Policies evaluated on the built-in environments \
+            with the paper's metrics"),
         (name = "operations", description = "Health, readiness, metrics, API description"),
     ),
     components(schemas(ErrorBody)),

@@ -1,13 +1,15 @@
-//! The training queue and worker pool.
+//! The training queue and worker pool, and the background policy evaluator ([`evaluations`]).
 //!
 //! Jobs wait in the `jobs` table (status `queued`), so the queue survives restarts. Each of
 //! `--workers` worker tasks claims the next job atomically ([`Store::claim_next_job`]) and drives
 //! its [`crate::algo::Trainer`] step by step on a blocking thread ([`worker`]), so training never
 //! stalls the HTTP side. Between steps the worker checks for a cancel request and for shutdown,
 //! records metrics every `log_every` steps, saves a checkpoint every `checkpoint_every` steps,
-//! and publishes progress ([`JobEvent`]) for the event streams. At start-up, jobs a dead process
+//! evaluates the policy when the job has an `eval` block ([`EvalOptions`]), and publishes
+//! progress ([`JobEvent`]) for the event streams. At start-up, jobs a dead process
 //! left `running` go back to the queue first and resume from their last checkpoint.
 
+pub mod evaluations;
 pub mod options;
 pub mod progress;
 mod worker;
@@ -21,7 +23,8 @@ use tokio::task::JoinHandle;
 use tokio_util::sync::CancellationToken;
 
 use crate::store::Store;
-pub use options::RunnerOptions;
+pub use evaluations::{evaluate_policy, Evaluator};
+pub use options::{EvalOptions, EvalSpec, RunnerOptions};
 pub use progress::JobProgress;
 
 /// Something a watcher of a job wants to know.
@@ -57,6 +60,8 @@ struct Inner {
     cancels: Mutex<HashMap<String, Arc<AtomicBool>>>,
     shutdown: CancellationToken,
     tasks: Mutex<Vec<JoinHandle<()>>>,
+    /// Runs policy evaluations beside the training workers.
+    evaluator: Evaluator,
 }
 
 /// Events buffered per subscriber; a slow event stream skips ahead rather than blocking workers.
@@ -68,19 +73,22 @@ impl JobRunner {
         let (events, _) = broadcast::channel(EVENT_BUFFER);
         JobRunner {
             inner: Arc::new(Inner {
-                store,
                 workers: workers.max(1),
                 wake: Notify::new(),
                 events,
                 cancels: Mutex::new(HashMap::new()),
+                evaluator: Evaluator::new(store.clone(), shutdown.clone()),
+                store,
                 shutdown,
                 tasks: Mutex::new(Vec::new()),
             }),
         }
     }
 
-    /// Requeues jobs interrupted by a previous process, then starts the workers.
+    /// Requeues jobs interrupted by a previous process, then starts the workers and the
+    /// evaluator.
     pub async fn start(&self) -> anyhow::Result<()> {
+        self.inner.evaluator.start().await?;
         let requeued = self.inner.store.requeue_interrupted_jobs().await?;
         if requeued > 0 {
             tracing::info!(jobs = requeued, "resuming jobs interrupted by the last shutdown");
@@ -96,6 +104,7 @@ impl JobRunner {
     /// Waits for the workers to finish after shutdown was requested (each checkpoints its job
     /// and hands it back to the queue).
     pub async fn stopped(&self) {
+        self.inner.evaluator.stopped().await;
         let tasks = std::mem::take(&mut *self.inner.tasks.lock().expect("runner lock"));
         for task in tasks {
             if let Err(e) = task.await {
@@ -119,6 +128,11 @@ impl JobRunner {
     /// Progress and status changes of every job, from now on.
     pub fn subscribe(&self) -> broadcast::Receiver<JobEvent> {
         self.inner.events.subscribe()
+    }
+
+    /// The background policy evaluator.
+    pub fn evaluator(&self) -> &Evaluator {
+        &self.inner.evaluator
     }
 
     pub fn store(&self) -> &Store {

@@ -7,8 +7,8 @@ use std::time::{Duration, Instant};
 use anyhow::Context;
 use tokio::runtime::Handle;
 
-use super::{JobEvent, JobProgress, JobRunner, RunnerOptions};
-use crate::algo::{self, ResolvedConfig, Trainer};
+use super::{EvalOptions, JobEvent, JobProgress, JobRunner, RunnerOptions};
+use crate::algo::{self, Policy, ResolvedConfig, Trainer};
 use crate::store::jobs::{now, JobRow, MetricRow, ProgressUpdate};
 use crate::store::policies::NewPolicy;
 
@@ -87,6 +87,29 @@ async fn run_job(runner: &JobRunner, job: JobRow) {
     runner.publish(JobEvent::Status { job_id: id, status: status.into() });
 }
 
+/// When a run records, checkpoints and evaluates.
+struct Schedule {
+    options: RunnerOptions,
+    eval: Option<EvalOptions>,
+    /// Steps before policy learning starts (not evaluated).
+    pretraining: u64,
+}
+
+impl Schedule {
+    /// The eval block if an evaluation is due after `step` steps.
+    fn eval_due(&self, step: u64, total: u64) -> Option<&EvalOptions> {
+        self.eval.as_ref().filter(|eval| eval.due(step, self.pretraining, total))
+    }
+}
+
+/// How an evaluation during training ended.
+enum EvalOutcome {
+    Recorded,
+    /// A cancel or shutdown stopped it; nothing was recorded.
+    Interrupted,
+    Failed(String),
+}
+
 /// One job's training, on a blocking thread; talks to the store through the runtime handle.
 struct TrainingRun {
     runner: JobRunner,
@@ -107,6 +130,13 @@ impl TrainingRun {
             .context("the stored job configuration does not parse")?;
         let options: RunnerOptions = serde_json::from_str(&self.job.runner)
             .context("the stored runner options do not parse")?;
+        let eval: Option<EvalOptions> = match &self.job.eval {
+            Some(json) => {
+                Some(serde_json::from_str(json).context("the stored eval block does not parse")?)
+            }
+            None => None,
+        };
+        let schedule = Schedule { options, eval, pretraining: config.pretraining_steps() };
         let store = self.runner.store().clone();
         let data = self.rt.block_on(super::load_training_data(
             &store,
@@ -126,14 +156,11 @@ impl TrainingRun {
             tracing::info!(step = resumed_at, "resuming from checkpoint");
         }
         self.report_progress(trainer.as_ref(), None)?;
-        self.train(trainer.as_mut(), &options)
+        self.train(trainer.as_mut(), &schedule)
     }
 
-    fn train(
-        &mut self,
-        trainer: &mut dyn Trainer,
-        options: &RunnerOptions,
-    ) -> anyhow::Result<Outcome> {
+    fn train(&mut self, trainer: &mut dyn Trainer, schedule: &Schedule) -> anyhow::Result<Outcome> {
+        let options = &schedule.options;
         let shutdown = self.runner.inner.shutdown.clone();
         let mut window = (Instant::now(), trainer.progress().step);
         while !trainer.is_finished() {
@@ -158,6 +185,23 @@ impl TrainingRun {
             };
             let step = trainer.progress().step;
             self.record(step, &scalars);
+            if let Some(eval) = schedule.eval_due(step, progress.total) {
+                match self.evaluate(trainer, eval, step)? {
+                    EvalOutcome::Recorded => {}
+                    // The loop's next turn sees the cancel flag.
+                    EvalOutcome::Interrupted if !shutdown.is_cancelled() => continue,
+                    EvalOutcome::Interrupted => {
+                        // Back to the last checkpoint: the resumed run recomputes this step
+                        // and its evaluation bitwise the same.
+                        self.rt.block_on(self.runner.store().release_job(&self.job.id))?;
+                        return Ok(Outcome::Released);
+                    }
+                    EvalOutcome::Failed(message) => {
+                        self.finish("failed", Some(&message))?;
+                        return Ok(Outcome::Failed(message));
+                    }
+                }
+            }
             if options.checkpoints(step, progress.total) {
                 self.save_checkpoint(trainer)?;
             }
@@ -172,6 +216,36 @@ impl TrainingRun {
         }
         self.complete(trainer)?;
         Ok(Outcome::Succeeded)
+    }
+
+    /// Evaluates the current policy and records the paper's metrics at `step` (`eval/...`).
+    fn evaluate(
+        &mut self,
+        trainer: &dyn Trainer,
+        eval: &EvalOptions,
+        step: u64,
+    ) -> anyhow::Result<EvalOutcome> {
+        let artifact = trainer.export_policy()?;
+        let policy = Policy::load(&artifact.spec, &artifact.weights)?;
+        let shutdown = self.runner.inner.shutdown.clone();
+        let interrupted = || self.cancel.load(Ordering::Relaxed) || shutdown.is_cancelled();
+        let started = Instant::now();
+        match super::evaluate_policy(&policy, &eval.spec(), &interrupted) {
+            Ok(report) => {
+                let m = &report.metrics;
+                tracing::debug!(
+                    step,
+                    normalized_return = m.normalized_return,
+                    average_cost = m.average_cost,
+                    seconds = started.elapsed().as_secs_f64(),
+                    "evaluated"
+                );
+                self.record(step, &m.named_values());
+                Ok(EvalOutcome::Recorded)
+            }
+            Err(_) if interrupted() => Ok(EvalOutcome::Interrupted),
+            Err(e) => Ok(EvalOutcome::Failed(format!("evaluation at step {step} failed: {e}"))),
+        }
     }
 
     /// Keeps the finite scalars of a recorded step (non-finite ones end the run in the trainer).

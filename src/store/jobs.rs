@@ -43,6 +43,8 @@ pub struct JobRow {
     pub config: String,
     /// JSON of the job-runner options.
     pub runner: String,
+    /// JSON of the eval block (`jobs::EvalOptions`), if any.
+    pub eval: Option<String>,
     pub step: i64,
     pub total_steps: i64,
     pub phase: Option<String>,
@@ -72,6 +74,7 @@ pub struct NewJob<'a> {
     pub non_preferred_dataset_id: Option<&'a str>,
     pub config: &'a str,
     pub runner: &'a str,
+    pub eval: Option<&'a str>,
     pub total_steps: u64,
 }
 
@@ -110,7 +113,7 @@ pub fn now() -> String {
 }
 
 const JOB_COLUMNS: &str = "id, algorithm, status, unlabeled_dataset_id, non_preferred_dataset_id, \
-     config, runner, step, total_steps, phase, iterations_per_second, alpha_hat, policy_id, \
+     config, runner, eval, step, total_steps, phase, iterations_per_second, alpha_hat, policy_id, \
      error, cancel_requested, created_at, updated_at, started_at, finished_at";
 
 impl Store {
@@ -118,8 +121,8 @@ impl Store {
         let now = now();
         sqlx::query(
             "INSERT INTO jobs (id, algorithm, status, unlabeled_dataset_id, \
-             non_preferred_dataset_id, config, runner, total_steps, created_at, updated_at) \
-             VALUES (?, ?, 'queued', ?, ?, ?, ?, ?, ?, ?)",
+             non_preferred_dataset_id, config, runner, eval, total_steps, created_at, updated_at) \
+             VALUES (?, ?, 'queued', ?, ?, ?, ?, ?, ?, ?, ?)",
         )
         .bind(job.id)
         .bind(job.algorithm)
@@ -127,6 +130,7 @@ impl Store {
         .bind(job.non_preferred_dataset_id)
         .bind(job.config)
         .bind(job.runner)
+        .bind(job.eval)
         .bind(job.total_steps as i64)
         .bind(&now)
         .bind(&now)

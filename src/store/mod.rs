@@ -11,6 +11,7 @@
 //! once its file is durably in place, and files without a row are removed at start-up.
 
 pub mod datasets;
+pub mod evaluations;
 pub mod jobs;
 pub mod policies;
 

@@ -1,0 +1,177 @@
+//! `/v1/evaluations`: a trained policy evaluated on a built-in environment with the paper's
+//! metrics, as a background task (`POST /v1/policies/{id}/evaluate` queues one). The work
+//! happens in [`crate::jobs::evaluations`].
+
+use axum::extract::State;
+use axum::http::{header, StatusCode};
+use axum::response::IntoResponse;
+use serde::{Deserialize, Serialize};
+use utoipa::{IntoParams, ToSchema};
+use utoipa_axum::router::OpenApiRouter;
+use utoipa_axum::routes;
+
+use super::error::ErrorBody;
+use super::extract::{Json, Path, Query};
+use super::pagination::{Page, PageParams};
+use super::{ApiError, AppState};
+use crate::data::ActionSpace;
+use crate::envs::{self, EvalReport, Metrics, ReferenceStats};
+use crate::jobs::EvalSpec;
+use crate::store::evaluations::{EvaluationRow, NewEvaluation};
+
+/// An evaluation's lifecycle: `queued` → `running` → `succeeded` | `failed` (a running one goes
+/// back to `queued` when the server shuts down and runs again at the next start).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, ToSchema)]
+#[serde(rename_all = "lowercase")]
+pub enum EvaluationStatus {
+    Queued,
+    Running,
+    Succeeded,
+    Failed,
+}
+
+/// A policy's evaluation on a built-in environment.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct Evaluation {
+    pub id: String,
+    pub policy_id: String,
+    pub env: String,
+    pub episodes: usize,
+    pub seed: u64,
+    pub deterministic: bool,
+    pub status: EvaluationStatus,
+    /// The paper's metrics over the episodes, once succeeded: normalized return, average cost,
+    /// cost-violation ratio, CVaR k% cost and DSRL's normalized cost (definitions in
+    /// README "Evaluation metrics").
+    pub metrics: Option<Metrics>,
+    pub mean_episode_length: Option<f64>,
+    /// The environment's demonstrator statistics the normalized return and the cost threshold
+    /// come from.
+    pub reference: Option<ReferenceStats>,
+    /// Why it failed.
+    pub error: Option<String>,
+    pub created_at: String,
+    pub started_at: Option<String>,
+    pub finished_at: Option<String>,
+}
+
+impl TryFrom<EvaluationRow> for Evaluation {
+    type Error = ApiError;
+
+    fn try_from(row: EvaluationRow) -> Result<Self, ApiError> {
+        let corrupt = |what: &str, e: serde_json::Error| {
+            ApiError::Internal(anyhow::anyhow!("evaluation {}: stored {what}: {e}", row.id))
+        };
+        let status =
+            serde_json::from_value(row.status.clone().into()).map_err(|e| corrupt("status", e))?;
+        let report: Option<EvalReport> = match &row.report {
+            Some(json) => Some(serde_json::from_str(json).map_err(|e| corrupt("report", e))?),
+            None => None,
+        };
+        let (metrics, mean_episode_length, reference) = match report {
+            Some(r) => (Some(r.metrics), Some(r.mean_episode_length), Some(r.reference)),
+            None => (None, None, None),
+        };
+        Ok(Evaluation {
+            id: row.id,
+            policy_id: row.policy_id,
+            env: row.env,
+            episodes: row.episodes as usize,
+            seed: row.seed as u64,
+            deterministic: row.deterministic,
+            status,
+            metrics,
+            mean_episode_length,
+            reference,
+            error: row.error,
+            created_at: row.created_at,
+            started_at: row.started_at,
+            finished_at: row.finished_at,
+        })
+    }
+}
+
+/// `?policy_id=`
+#[derive(Debug, Deserialize, IntoParams)]
+#[into_params(parameter_in = Query)]
+pub struct EvaluationFilter {
+    /// Only the evaluations of this policy.
+    pub policy_id: Option<String>,
+}
+
+pub fn router() -> OpenApiRouter<AppState> {
+    OpenApiRouter::new()
+        .routes(routes!(evaluate_policy))
+        .routes(routes!(list_evaluations))
+        .routes(routes!(get_evaluation))
+}
+
+/// Evaluate a policy on a built-in environment with the paper's metrics, in the background.
+/// Poll the returned evaluation (`Location`) until `succeeded` (500 episodes take about a
+/// second) or `failed`. The same policy, environment, episodes, seed and `deterministic` give
+/// the same metrics.
+#[utoipa::path(post, path = "/v1/policies/{id}/evaluate", tag = "evaluations",
+    params(("id" = String, Path, description = "Policy id")), request_body = EvalSpec,
+    responses(
+        (status = 202, description = "Queued", body = Evaluation),
+        (status = 404, description = "No such policy", body = ErrorBody),
+        (status = 422, description = "Unknown environment, episodes out of range or an \
+            environment whose spaces do not match the policy's (`invalid_evaluation`), or a \
+            malformed body (`invalid_body`)", body = ErrorBody),
+    ))]
+async fn evaluate_policy(
+    State(state): State<AppState>,
+    Path(policy_id): Path<String>,
+    Json(spec): Json<EvalSpec>,
+) -> Result<impl IntoResponse, ApiError> {
+    let policy = state.store.policy(&policy_id).await?;
+    spec.validate("").map_err(|e| ApiError::unprocessable("invalid_evaluation", e.0))?;
+    let action_space: ActionSpace = serde_json::from_str(&policy.action_space).map_err(|e| {
+        ApiError::Internal(anyhow::anyhow!("policy {policy_id}: stored action space: {e}"))
+    })?;
+    envs::check_spaces(&spec.env, policy.obs_dim as usize, &action_space, "the policy's")
+        .map_err(|e| ApiError::unprocessable("invalid_evaluation", format!("env: {e}")))?;
+    let id = uuid::Uuid::new_v4().to_string();
+    let row = state
+        .store
+        .insert_evaluation(&NewEvaluation {
+            id: &id,
+            policy_id: &policy_id,
+            env: &spec.env,
+            episodes: spec.episodes,
+            seed: spec.seed,
+            deterministic: spec.deterministic,
+        })
+        .await?;
+    state.jobs.evaluator().wake();
+    tracing::info!(evaluation_id = %id, %policy_id, env = %spec.env, "evaluation queued");
+    let location = format!("/v1/evaluations/{id}");
+    Ok((StatusCode::ACCEPTED, [(header::LOCATION, location)], Json(Evaluation::try_from(row)?)))
+}
+
+/// List evaluations, newest first.
+#[utoipa::path(get, path = "/v1/evaluations", tag = "evaluations",
+    params(EvaluationFilter, PageParams),
+    responses((status = 200, body = Page<Evaluation>), (status = 400, body = ErrorBody)))]
+async fn list_evaluations(
+    State(state): State<AppState>,
+    Query(filter): Query<EvaluationFilter>,
+    Query(page): Query<PageParams>,
+) -> Result<Json<Page<Evaluation>>, ApiError> {
+    let page = page.validate()?;
+    let (rows, total) =
+        state.store.list_evaluations(filter.policy_id.as_deref(), page.limit, page.offset).await?;
+    let items = rows.into_iter().map(Evaluation::try_from).collect::<Result<_, _>>()?;
+    Ok(Json(Page::new(items, total, page)))
+}
+
+/// An evaluation: status, and the paper's metrics once it succeeded.
+#[utoipa::path(get, path = "/v1/evaluations/{id}", tag = "evaluations",
+    params(("id" = String, Path)),
+    responses((status = 200, body = Evaluation), (status = 404, body = ErrorBody)))]
+async fn get_evaluation(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+) -> Result<Json<Evaluation>, ApiError> {
+    Ok(Json(state.store.evaluation(&id).await?.try_into()?))
+}

@@ -1,0 +1,252 @@
+//! Evaluations through the real server: a job's `eval` block records the paper's metrics in its
+//! history while it trains; `POST /v1/policies/{id}/evaluate` runs in the background and gives
+//! exactly the metrics of evaluating the downloaded weights locally; bad requests get their exact
+//! status and store nothing; an evaluation interrupted by a restart runs again.
+
+mod common;
+mod jobs_support;
+
+use std::time::{Duration, Instant};
+
+use common::{assert_error, TestApp};
+use jobs_support::*;
+use rand_chacha::ChaCha8Rng;
+use reqwest::StatusCode;
+use safedice::algo::{Policy, PolicySpec};
+use safedice::envs::{self, DatagenSpec};
+use serde_json::{json, Value};
+
+/// Six-rooms demonstrations (the env's own demonstrators) uploaded through the API.
+async fn upload_six_rooms(app: &TestApp) -> (String, String) {
+    let spec = DatagenSpec {
+        env: "six-rooms".into(),
+        preferred: 20,
+        non_preferred: 30,
+        labeled: 10,
+        seed: 0,
+    };
+    let generated = envs::generate(&spec).unwrap();
+    let u = upload(&app.client, &app.base_url, &generated.unlabeled, "rooms-unlabeled").await;
+    let n =
+        upload(&app.client, &app.base_url, &generated.labeled_non_preferred, "rooms-labeled").await;
+    (u, n)
+}
+
+/// A finished BC job on six-rooms that evaluated itself every 40 policy steps.
+async fn trained_bc(app: &TestApp, unlabeled: &str) -> Value {
+    let job = create_job(
+        &app.client,
+        &app.base_url,
+        json!({"algorithm": "bc", "unlabeled_dataset": unlabeled, "config": small_config(100, 2),
+               "runner": {"log_every": 20},
+               "eval": {"env": "six-rooms", "every": 40, "episodes": 30, "seed": 5}}),
+    )
+    .await;
+    assert_eq!(
+        job["eval"],
+        json!({"env": "six-rooms", "every": 40, "episodes": 30, "seed": 5, "deterministic": false})
+    );
+    let id = job["id"].as_str().unwrap();
+    wait_for_job(&app.client, &app.base_url, id, Duration::from_secs(120), |j| {
+        j["status"] == "succeeded"
+    })
+    .await
+}
+
+async fn wait_for_evaluation(app: &TestApp, location: &str) -> Value {
+    let started = Instant::now();
+    loop {
+        let evaluation = get_json(&app.client, &app.url(location)).await;
+        match evaluation["status"].as_str().unwrap() {
+            "succeeded" => return evaluation,
+            "failed" => panic!("evaluation failed: {evaluation}"),
+            _ => {}
+        }
+        assert!(started.elapsed() < Duration::from_secs(120), "evaluation stuck: {evaluation}");
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+}
+
+/// Equal up to the last bit or so: numbers cross JSON, whose parser (serde_json without
+/// `float_roundtrip`) may round the last bit differently.
+fn assert_same_numbers(api: &Value, local: &Value) {
+    match (api, local) {
+        (Value::Number(a), Value::Number(b)) => {
+            let (a, b) = (a.as_f64().unwrap(), b.as_f64().unwrap());
+            assert!((a - b).abs() <= 1e-12 * a.abs().max(b.abs()), "{a} vs {b}");
+        }
+        (Value::Object(a), Value::Object(b)) => {
+            assert_eq!(a.keys().collect::<Vec<_>>(), b.keys().collect::<Vec<_>>());
+            for (key, value) in a {
+                assert_same_numbers(value, &b[key]);
+            }
+        }
+        _ => assert_eq!(api, local),
+    }
+}
+
+async fn download_policy(app: &TestApp, policy_id: &str) -> Policy {
+    let response = app.get(&format!("/v1/policies/{policy_id}/weights")).send().await.unwrap();
+    let spec: PolicySpec =
+        serde_json::from_str(response.headers()["x-safedice-policy-spec"].to_str().unwrap())
+            .unwrap();
+    Policy::load(&spec, &response.bytes().await.unwrap()).unwrap()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn jobs_record_eval_metrics_and_evaluations_match_a_local_run() {
+    let app = TestApp::spawn().await;
+    let (u, _) = upload_six_rooms(&app).await;
+    let job = trained_bc(&app, &u).await;
+    let job_id = job["id"].as_str().unwrap();
+
+    // The eval block's history: after policy steps 40 and 80, and at the end (100).
+    let history =
+        get_json(&app.client, &app.url(&format!("/v1/jobs/{job_id}/metrics?names=eval/average_cost,eval/cvar_cost_5,eval/normalized_return"))).await;
+    let steps = |name: &str| -> Vec<u64> {
+        let rows = history["rows"].as_array().unwrap();
+        rows.iter().filter(|r| r["name"] == name).map(|r| r["step"].as_u64().unwrap()).collect()
+    };
+    for name in ["eval/average_cost", "eval/cvar_cost_5", "eval/normalized_return"] {
+        assert_eq!(steps(name), [40, 80, 100], "{name}");
+    }
+
+    // The last in-training evaluation is the final policy's: the same as evaluating it locally.
+    let policy_id = job["policy_id"].as_str().unwrap();
+    let policy = download_policy(&app, policy_id).await;
+    let act = |obs: &[f32], det: bool, rng: &mut ChaCha8Rng| policy.act(obs, det, rng);
+    let local = envs::evaluate("six-rooms", act, 30, 5, false).unwrap();
+    let last = |name: &str| {
+        history["rows"].as_array().unwrap().iter().rfind(|r| r["name"] == name).unwrap()["value"]
+            .as_f64()
+            .unwrap()
+    };
+    assert_same_numbers(&last("eval/average_cost").into(), &local.metrics.average_cost.into());
+    let local_return = local.metrics.normalized_return.into();
+    assert_same_numbers(&last("eval/normalized_return").into(), &local_return);
+    let resource = get_json(&app.client, &app.url(&format!("/v1/policies/{policy_id}"))).await;
+    let local_cvar = local.metrics.cvar_cost.k5.into();
+    assert_same_numbers(&resource["final_metrics"]["eval/cvar_cost_5"], &local_cvar);
+
+    // A background evaluation with other episodes and seed.
+    let response = app
+        .post(&format!("/v1/policies/{policy_id}/evaluate"))
+        .json(&json!({"env": "six-rooms", "episodes": 200, "seed": 9}))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(response.status(), StatusCode::ACCEPTED);
+    let location = response.headers()["location"].to_str().unwrap().to_owned();
+    let queued: Value = response.json().await.unwrap();
+    assert_eq!(location, format!("/v1/evaluations/{}", queued["id"].as_str().unwrap()));
+    assert_eq!(queued["metrics"], Value::Null);
+    assert_eq!(
+        (queued["episodes"].as_u64(), queued["deterministic"].as_bool()),
+        (Some(200), Some(false))
+    );
+    let done = wait_for_evaluation(&app, &location).await;
+    let local = envs::evaluate("six-rooms", act, 200, 9, false).unwrap();
+    assert_same_numbers(&done["metrics"], &serde_json::to_value(&local.metrics).unwrap());
+    assert_same_numbers(&done["reference"], &serde_json::to_value(&local.reference).unwrap());
+    assert_same_numbers(&done["mean_episode_length"], &local.mean_episode_length.into());
+    assert!(done["finished_at"].is_string() && done["error"].is_null());
+    let metrics = &done["metrics"];
+    for key in ["normalized_return", "average_cost", "cost_violation_ratio", "normalized_cost"] {
+        assert!(metrics[key].is_f64(), "{key} in {metrics}");
+    }
+    for k in ["50", "20", "10", "5"] {
+        assert!(metrics["cvar_cost"][k].is_f64(), "CVaR {k}% in {metrics}");
+    }
+
+    let listed =
+        get_json(&app.client, &app.url(&format!("/v1/evaluations?policy_id={policy_id}"))).await;
+    assert_eq!(listed["total"], 1);
+    assert_eq!(listed["items"][0]["id"], done["id"]);
+    let none = get_json(&app.client, &app.url("/v1/evaluations?policy_id=nope")).await;
+    assert_eq!(none["total"], 0);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn bad_evaluations_and_eval_blocks_are_refused_and_store_nothing() {
+    let app = TestApp::spawn().await;
+    let (u, n) = upload_six_rooms(&app).await;
+
+    // Jobs: the eval block is checked before anything is queued.
+    let bad_blocks = [
+        (json!({"env": "walker", "every": 10}), "eval.env: unknown environment `walker`"),
+        (json!({"env": "point-goal", "every": 10}), "eval.env: point-goal: observations have"),
+        (json!({"env": "six-rooms", "every": 0}), "eval.every: must be between 1"),
+        (json!({"env": "six-rooms", "every": 5, "episodes": 100001}), "eval.episodes: must be"),
+        (json!({"env": "six-rooms", "every": 5, "sed": 1}), "eval: unknown field `sed`"),
+    ];
+    for (eval, expected) in bad_blocks {
+        let response = app
+            .post("/v1/jobs")
+            .json(&json!({"algorithm": "safedice", "unlabeled_dataset": u,
+                          "non_preferred_dataset": n, "eval": eval}))
+            .send()
+            .await
+            .unwrap();
+        let message =
+            assert_error(response, StatusCode::UNPROCESSABLE_ENTITY, "invalid_config").await;
+        assert!(message.starts_with(expected), "{message}");
+    }
+    assert_eq!(app.count_rows("jobs").await, 0);
+
+    let job = trained_bc(&app, &u).await;
+    let policy_id = job["policy_id"].as_str().unwrap();
+    let evaluate =
+        |body: Value| app.post(&format!("/v1/policies/{policy_id}/evaluate")).json(&body).send();
+    let unprocessable = [
+        (json!({"env": "walker"}), "invalid_evaluation", "env: unknown environment `walker`"),
+        (json!({"env": "six-rooms", "episodes": 0}), "invalid_evaluation", "episodes: must be"),
+        (
+            json!({"env": "cartpole-slider"}),
+            "invalid_evaluation",
+            "env: cartpole-slider: observations have",
+        ),
+        (json!({"env": "six-rooms", "episode": 3}), "invalid_body", ""),
+        (json!({"episodes": 3}), "invalid_body", ""),
+    ];
+    for (body, code, expected) in unprocessable {
+        let response = evaluate(body.clone()).await.unwrap();
+        let message = assert_error(response, StatusCode::UNPROCESSABLE_ENTITY, code).await;
+        assert!(message.contains(expected), "{body}: {message}");
+    }
+    let response = app
+        .post("/v1/policies/no-such-policy/evaluate")
+        .json(&json!({"env": "six-rooms"}))
+        .send()
+        .await
+        .unwrap();
+    assert_error(response, StatusCode::NOT_FOUND, "not_found").await;
+    let response = app.get("/v1/evaluations/no-such-evaluation").send().await.unwrap();
+    assert_error(response, StatusCode::NOT_FOUND, "not_found").await;
+    assert_eq!(app.count_rows("evaluations").await, 0);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_evaluation_left_running_by_a_dead_process_runs_again_at_start() {
+    let mut app = TestApp::spawn().await;
+    let (u, _) = upload_six_rooms(&app).await;
+    let job = trained_bc(&app, &u).await;
+    let policy_id = job["policy_id"].as_str().unwrap();
+    app.stop().await;
+    let mut db = app.db().await;
+    sqlx::query(
+        "INSERT INTO evaluations (id, policy_id, env, episodes, seed, deterministic, status, \
+         created_at, started_at) VALUES ('e1', ?, 'six-rooms', 50, 1, 1, 'running', \
+         '2026-01-01T00:00:00Z', '2026-01-01T00:00:01Z')",
+    )
+    .bind(policy_id)
+    .execute(&mut db)
+    .await
+    .unwrap();
+    drop(db);
+    app.restart().await;
+    let done = wait_for_evaluation(&app, "/v1/evaluations/e1").await;
+    let policy = download_policy(&app, policy_id).await;
+    let act = |obs: &[f32], det: bool, rng: &mut ChaCha8Rng| policy.act(obs, det, rng);
+    let local = envs::evaluate("six-rooms", act, 50, 1, true).unwrap();
+    assert_same_numbers(&done["metrics"], &serde_json::to_value(&local.metrics).unwrap());
+}
