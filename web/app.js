@@ -318,7 +318,14 @@ function parseKnob(knob, text) {
   return Number(text);
 }
 
-function jobForm(datasets, onCreated) {
+/** Whether a policy over `obsDim` observations and `space` actions can act in `env` (mirrors the
+ *  server's check: same observation width; discrete n at most the env's, or the same box width). */
+function envFits(env, obsDim, space) {
+  if (env.obs_dim !== obsDim || env.action_space.type !== space.type) return false;
+  return space.type === 'discrete' ? space.n <= env.action_space.n : space.dim === env.action_space.dim;
+}
+
+function jobForm(datasets, envs, onCreated) {
   const algorithm = h('select', { name: 'algorithm', id: 'job-algorithm' },
     Object.entries(ALGORITHMS).map(([value, a]) => h('option', { value }, a.label)));
   const datasetOptions = (blank) => [blank && h('option', { value: '' }, blank),
@@ -333,6 +340,18 @@ function jobForm(datasets, onCreated) {
     h('option', { value: 'paper' }, 'paper (Tables 2/4)'),
     h('option', { value: 'authors-code' }, "authors' code"));
   const logEvery = h('input', { name: 'log_every', id: 'job-log_every', inputmode: 'numeric', placeholder: '100' });
+  const evalEnv = h('select', { name: 'eval_env', id: 'job-eval-env' });
+  const evalEvery = h('input', { name: 'eval_every', id: 'job-eval-every', inputmode: 'numeric', placeholder: 'iterations / 10' });
+  const evalEpisodes = h('input', { name: 'eval_episodes', id: 'job-eval-episodes', inputmode: 'numeric', placeholder: '500' });
+  // Only the environments whose spaces match the unlabeled dataset's can evaluate the policy.
+  const showEnvs = () => {
+    const dataset = datasets.find((d) => d.id === unlabeled.value);
+    const fitting = dataset ? envs.filter((e) => envFits(e, dataset.obs_dim, dataset.action_space)) : [];
+    evalEnv.replaceChildren(h('option', { value: '' }, fitting.length ? '— no evaluation —' : '— no built-in environment fits these data —'),
+      ...fitting.map((e) => h('option', { value: e.name }, e.name)));
+    if (fitting.length) evalEnv.value = fitting[0].name;
+  };
+  unlabeled.addEventListener('change', showEnvs);
   const knobInputs = KNOBS.map((knob) => {
     const input = h('input', { name: knob.key, id: `job-${knob.key}`, placeholder: knob.placeholder, inputmode: knob.type === 'list' ? 'text' : 'decimal' });
     const label = h('label', { 'data-knob': knob.key }, knob.label, input);
@@ -343,6 +362,7 @@ function jobForm(datasets, onCreated) {
   };
   algorithm.addEventListener('change', showKnobs);
   showKnobs();
+  showEnvs();
   const result = h('div', { id: 'job-form-result' });
   const submit = h('button', { type: 'submit', id: 'job-submit' }, 'Queue job');
 
@@ -354,8 +374,11 @@ function jobForm(datasets, onCreated) {
       h('label', {}, 'Non-preferred dataset Dᴺ', nonPreferred),
       h('label', {}, 'Preset', preset),
       knobInputs.map((k) => k.label),
-      h('label', {}, 'Record metrics every (steps)', logEvery)),
-    h('p', { class: 'hint' }, 'Empty fields take the preset’s value (placeholders show the service preset). The resolved configuration is on the job page.'),
+      h('label', {}, 'Record metrics every (steps)', logEvery),
+      h('label', {}, 'Evaluate on environment', evalEnv),
+      h('label', {}, 'Evaluate every (policy steps)', evalEvery),
+      h('label', {}, 'Evaluation episodes', evalEpisodes)),
+    h('p', { class: 'hint' }, 'Empty fields take the preset’s value (placeholders show the service preset). The resolved configuration is on the job page. With an environment, the policy is evaluated every N policy-learning steps and at the end (the paper’s metrics, charted on the job page).'),
     h('div', { class: 'form-actions' }, submit), result);
 
   form.addEventListener('submit', async (event) => {
@@ -368,6 +391,12 @@ function jobForm(datasets, onCreated) {
     const body = { algorithm: algorithm.value, unlabeled_dataset: unlabeled.value, config };
     if (nonPreferred.value) body.non_preferred_dataset = nonPreferred.value;
     if (logEvery.value.trim()) body.runner = { log_every: Number(logEvery.value.trim()) };
+    if (evalEnv.value) {
+      const iterations = Number(config.iterations || 100000);
+      // Default: about ten evaluations over the run.
+      body.eval = { env: evalEnv.value, every: Number(evalEvery.value.trim() || Math.max(1, Math.round(iterations / 10))) };
+      if (evalEpisodes.value.trim()) body.eval.episodes = Number(evalEpisodes.value.trim());
+    }
     submit.disabled = true;
     try {
       const job = await api('/v1/jobs', { method: 'POST', json: body });
@@ -416,13 +445,13 @@ function jobsPage(view) {
   const listError = h('div', {});
   view.append(h('h1', {}, 'Jobs'), formSlot, h('div', { class: 'card' }, h('h2', {}, 'Jobs'), listError, list));
 
-  api('/v1/datasets?limit=500').then((page) => {
+  Promise.all([api('/v1/datasets?limit=500'), api('/v1/envs')]).then(([page, envs]) => {
     if (!page.items.length) {
       formSlot.replaceChildren(h('div', { class: 'card' }, h('div', { class: 'empty' },
         'Upload datasets first: a job trains on an unlabeled dataset and (except BC) a non-preferred one. ',
         h('a', { href: '#/datasets' }, 'Go to Datasets.'))));
     } else {
-      formSlot.replaceChildren(jobForm(page.items, () => refresh()));
+      formSlot.replaceChildren(jobForm(page.items, envs.items, () => refresh()));
     }
   }).catch((err) => formSlot.replaceChildren(errorBox(err)));
 
@@ -446,8 +475,17 @@ const METRIC_GROUPS = [
   { key: 'alpha', title: 'α̂ (Eq. 15)', y: 'α̂', test: (n) => n === 'alpha_hat' },
   { key: 'weights', title: 'Weight statistics', y: 'value', test: (n) => /^(ess|weight|advantage|reward_(mean|std|clipped))/.test(n) },
   { key: 'discriminator', title: 'Discriminator', y: 'value', test: (n) => n.startsWith('discriminator_') },
-  { key: 'eval', title: 'Evaluation', y: 'value', test: (n) => /^eval/.test(n) },
 ];
+
+// The evaluation charts of a job with an eval block (the paper's metrics over training steps);
+// the other eval/ metrics are listed in the latest-evaluation table.
+const EVAL_CHARTS = [
+  { key: 'eval-return', title: 'Normalized return', y: 'normalized return (100 = preferred demos)', names: ['eval/normalized_return'] },
+  { key: 'eval-cost', title: 'Average cost', y: 'cost per episode', names: ['eval/average_cost'] },
+  { key: 'eval-violation', title: 'Cost-violation ratio', y: 'share of episodes with cost > κ', names: ['eval/cost_violation_ratio'] },
+  { key: 'eval-cvar', title: 'CVaR k% cost', y: 'mean cost of the worst k% episodes', names: ['eval/cvar_cost_50', 'eval/cvar_cost_20', 'eval/cvar_cost_10', 'eval/cvar_cost_5'] },
+];
+const isEval = (name) => name.startsWith('eval/');
 
 function groupMetrics(rows) {
   const series = new Map();
@@ -458,7 +496,13 @@ function groupMetrics(rows) {
   return series;
 }
 
-/** Chart specs for a job's metrics: one chart per group, evaluation metrics one chart each. */
+/** Colour of the i-th series of a chart: the algorithm's accent first. */
+function seriesColor(job, i) {
+  return i === 0 ? algoColor(job.algorithm) : PALETTE[(i - 1) % PALETTE.length];
+}
+
+/** Chart specs for a job's training metrics: one chart per group (weight statistics one chart
+ *  each), then one per remaining metric. */
 function chartSpecs(job, series) {
   const specs = [];
   const used = new Set();
@@ -466,7 +510,7 @@ function chartSpecs(job, series) {
     const names = [...series.keys()].filter((n) => !used.has(n) && group.test(n));
     names.forEach((n) => used.add(n));
     if (!names.length) continue;
-    const perMetric = group.key === 'eval' || group.key === 'weights';
+    const perMetric = group.key === 'weights';
     const sets = perMetric ? names.map((n) => [n]) : [names];
     for (const set of sets) {
       specs.push({
@@ -474,9 +518,7 @@ function chartSpecs(job, series) {
         title: perMetric ? `${group.title}: ${set[0]}` : group.title,
         x_label: 'training step (all phases)',
         y_label: perMetric ? set[0] : group.y,
-        series: set.map((name, i) => ({
-          name, points: series.get(name), color: i === 0 ? algoColor(job.algorithm) : PALETTE[(i - 1) % PALETTE.length],
-        })),
+        series: set.map((name, i) => ({ name, points: series.get(name), color: seriesColor(job, i) })),
       });
     }
   }
@@ -488,9 +530,48 @@ function chartSpecs(job, series) {
   return specs;
 }
 
-async function drawCharts(container, job) {
+/** Chart specs of the evaluation metrics recorded so far. */
+function evalChartSpecs(job, series) {
+  return EVAL_CHARTS.filter((chart) => chart.names.some((n) => series.has(n))).map((chart) => ({
+    key: chart.key,
+    title: `${chart.title} on ${job.eval.env}`,
+    x_label: 'training step (all phases)',
+    y_label: chart.y,
+    series: chart.names.filter((n) => series.has(n)).map((name, i) => ({
+      name: name.replace('eval/cvar_cost_', 'CVaR ').replace(/^CVaR (\d+)$/, 'CVaR $1%'), points: series.get(name), color: seriesColor(job, i) })),
+  }));
+}
+
+async function chartBoxes(specs) {
+  const svgs = await Promise.all(specs.map((spec) => renderChart('line', spec)));
+  return specs.map((spec, i) => {
+    const box = h('div', { class: 'chart-box', 'data-chart': spec.key });
+    box.innerHTML = svgs[i]; // server-rendered SVG: every text in it is escaped on the server
+    return box;
+  });
+}
+
+/** The evaluation section of a job page: charts over steps and the latest evaluation's numbers. */
+async function evaluationSection(job, series) {
+  const e = job.eval;
+  const about = h('p', { class: 'hint' }, `${fmt(e.episodes)} episodes on ${e.env} every ${fmt(e.every)} policy steps and at the end, seed ${e.seed}, ${e.deterministic ? 'deterministic' : 'sampled'} actions.`);
+  const names = [...series.keys()].filter(isEval).sort();
+  if (!names.length) {
+    return h('div', { id: 'evaluation' }, about, h('div', { class: 'empty', id: 'eval-empty' },
+      'No evaluation yet: the first one runs after the first evaluation interval of policy learning.'));
+  }
+  const lastStep = Math.max(...names.map((n) => series.get(n).at(-1)[0]));
+  const latest = h('div', { class: 'card', id: 'eval-latest', style: 'margin-top:18px' },
+    h('h2', {}, `Latest evaluation (step ${fmt(lastStep)})`),
+    h('table', {}, h('tbody', {}, names.map((n) => h('tr', {}, h('td', { class: 'mono' }, n), h('td', { class: 'num' }, fmt(series.get(n).at(-1)[1])))))));
+  return h('div', { id: 'evaluation' }, about, h('div', { class: 'grid2', id: 'eval-charts' }, await chartBoxes(evalChartSpecs(job, series))), latest);
+}
+
+async function drawCharts(container, evalContainer, job) {
   const metrics = await api(`/v1/jobs/${job.id}/metrics?max_points=300`);
   const series = groupMetrics(metrics.rows);
+  if (job.eval) evalContainer.replaceChildren(await evaluationSection(job, series));
+  [...series.keys()].filter(isEval).forEach((n) => series.delete(n));
   if (!series.size) {
     container.replaceChildren(h('div', { class: 'empty', id: 'charts-empty' },
       job.status === 'queued' ? 'The job is queued: charts appear once it starts training.'
@@ -501,13 +582,7 @@ async function drawCharts(container, job) {
   // read better as numbers than as one-point charts.
   const once = [...series.entries()].filter(([name, points]) => points.length === 1 && name !== 'alpha_hat');
   once.forEach(([name]) => series.delete(name));
-  const specs = chartSpecs(job, series);
-  const svgs = await Promise.all(specs.map((spec) => renderChart('line', spec)));
-  const boxes = specs.map((spec, i) => {
-    const box = h('div', { class: 'chart-box', 'data-chart': spec.key });
-    box.innerHTML = svgs[i]; // server-rendered SVG: every text in it is escaped on the server
-    return box;
-  });
+  const boxes = await chartBoxes(chartSpecs(job, series));
   const onceTable = once.length ? h('div', { class: 'card', id: 'single-values', style: 'margin-top:18px' },
     h('h2', {}, 'Recorded once'), h('table', {}, h('tbody', {}, once.map(([name, [[step, value]]]) =>
       h('tr', {}, h('td', { class: 'mono' }, name), h('td', { class: 'num' }, fmt(value)), h('td', { class: 'muted' }, `at step ${fmt(step)}`)))))) : null;
@@ -542,10 +617,12 @@ function jobSummary(job, onCancel) {
 function jobPage(view, id) {
   const summary = h('div', {});
   const charts = h('div', { id: 'charts-slot' }, h('div', { class: 'muted' }, 'Loading metrics…'));
+  const evaluation = h('div', { id: 'eval-slot' });
+  const evalHeading = h('h2', { hidden: true }, 'Evaluation');
   const details = h('div', {});
   const problem = h('div', {});
   view.append(h('h1', {}, 'Job ', h('span', { class: 'mono' }, shortId(id))), problem, summary,
-    h('h2', {}, 'Training metrics'), charts, details);
+    evalHeading, evaluation, h('h2', {}, 'Training metrics'), charts, details);
   let lastChartStep = -1;
   let shownDetails = false;
   every(JOB_POLL_MS, async () => {
@@ -556,13 +633,15 @@ function jobPage(view, id) {
     }));
     if (job.progress.step !== lastChartStep || FINAL.has(job.status)) {
       lastChartStep = job.progress.step;
-      await drawCharts(charts, job);
+      evalHeading.hidden = !job.eval;
+      await drawCharts(charts, evaluation, job);
     }
     if (!shownDetails) {
       shownDetails = true;
       details.replaceChildren(h('div', { class: 'grid2', style: 'margin-top:18px' },
         h('div', { class: 'card' }, h('h2', {}, 'Resolved configuration'), configTable(job.config),
-          h('h2', { style: 'margin-top:14px' }, 'Runner'), configTable(job.runner)),
+          h('h2', { style: 'margin-top:14px' }, 'Runner'), configTable(job.runner),
+          job.eval ? [h('h2', { style: 'margin-top:14px' }, 'Evaluation'), configTable(job.eval)] : null),
         h('div', { class: 'card' }, h('h2', {}, 'Job'), h('dl', { class: 'kv' },
           h('dt', {}, 'id'), h('dd', { class: 'mono' }, job.id),
           h('dt', {}, 'unlabeled dataset'), h('dd', { class: 'mono' }, job.unlabeled_dataset),
@@ -585,11 +664,15 @@ async function finalMetrics(job) {
   return last;
 }
 
-/** The default scatter axis: an evaluation metric matching `pattern` (cost, return), else any
- *  metric matching it, else a metric every chosen job has (other than `avoid`). */
-function pickAxis(names, common, pattern, avoid) {
-  return names.find((n) => /^eval/.test(n) && pattern.test(n)) || names.find((n) => pattern.test(n))
-    || common.find((n) => n !== avoid) || common[0] || names[0] || '';
+/** The default scatter axis: for the first pattern (e.g. average cost, then any cost) that
+ *  matches, an evaluation metric, else any metric; failing all, a metric every chosen job has
+ *  (other than `avoid`). */
+function pickAxis(names, common, patterns, avoid) {
+  for (const pattern of patterns) {
+    const found = names.find((n) => isEval(n) && pattern.test(n)) || names.find((n) => pattern.test(n));
+    if (found) return found;
+  }
+  return common.find((n) => n !== avoid) || common[0] || names[0] || '';
 }
 
 function comparePage(view) {
@@ -620,12 +703,13 @@ function comparePage(view) {
       h('tbody', {},
         h('tr', {}, h('td', {}, 'α̂'), chosen.map((j) => h('td', { class: 'num' }, fmt(j.alpha_hat)))),
         h('tr', {}, h('td', {}, 'iterations · seed'), chosen.map((j) => h('td', { class: 'num' }, `${fmt(j.config.iterations)} · ${j.config.seed}`))),
+        h('tr', {}, h('td', {}, 'evaluated on'), chosen.map((j) => h('td', { class: 'num eval-env' }, j.eval ? `${j.eval.env} · ${fmt(j.eval.episodes)} episodes` : '—'))),
         names.map((n) => h('tr', {}, h('td', { class: 'mono' }, n), finals.map((f) => h('td', { class: 'num' }, fmt(f[n])))))));
     const xSelect = h('select', { id: 'scatter-x' }, names.map((n) => h('option', { value: n }, n)));
     const ySelect = h('select', { id: 'scatter-y' }, names.map((n) => h('option', { value: n }, n)));
     const common = names.filter((n) => finals.every((f) => typeof f[n] === 'number'));
-    xSelect.value = pickAxis(names, common, /cost/, null);
-    ySelect.value = pickAxis(names, common, /return/, xSelect.value);
+    xSelect.value = pickAxis(names, common, [/average_cost/, /cost/], null);
+    ySelect.value = pickAxis(names, common, [/normalized_return/, /return/], xSelect.value);
     const scatter = h('div', { class: 'chart-box', 'data-chart': 'scatter' });
     const drawScatter = async () => {
       const [x, y] = [xSelect.value, ySelect.value];
@@ -721,10 +805,87 @@ async function downloadWeights(policy) {
   setTimeout(() => URL.revokeObjectURL(url), 10000);
 }
 
+const RUNNING = new Set(['queued', 'running']);
+
+function evaluationsTable(items) {
+  if (!items.length) return h('div', { class: 'empty', id: 'evaluations-empty' }, 'No evaluations of this policy yet.');
+  const m = (e, key) => (e.metrics ? fmt(e.metrics[key]) : '—');
+  return h('table', { id: 'evaluations-table' },
+    h('thead', {}, h('tr', {}, h('th', {}, 'Environment'), h('th', { class: 'num' }, 'Episodes'), h('th', { class: 'num' }, 'Seed'),
+      h('th', {}, 'Actions'), h('th', {}, 'Status'), h('th', { class: 'num' }, 'Normalized return'), h('th', { class: 'num' }, 'Average cost'),
+      h('th', { class: 'num' }, 'Violation ratio'), h('th', { class: 'num' }, 'CVaR 10%'), h('th', { class: 'num' }, 'CVaR 5%'), h('th', {}, 'Finished'))),
+    h('tbody', {}, items.map((e) => h('tr', { 'data-id': e.id, 'data-status': e.status },
+      h('td', {}, e.env), h('td', { class: 'num' }, fmt(e.episodes)), h('td', { class: 'num' }, String(e.seed)),
+      h('td', {}, e.deterministic ? 'deterministic' : 'sampled'),
+      h('td', {}, statusPill(e.status), e.error ? h('div', { class: 'error-message' }, e.error) : null),
+      h('td', { class: 'num eval-return' }, m(e, 'normalized_return')), h('td', { class: 'num eval-cost' }, m(e, 'average_cost')),
+      h('td', { class: 'num' }, m(e, 'cost_violation_ratio')),
+      h('td', { class: 'num' }, e.metrics ? fmt(e.metrics.cvar_cost['10']) : '—'),
+      h('td', { class: 'num' }, e.metrics ? fmt(e.metrics.cvar_cost['5']) : '—'),
+      h('td', {}, fmtTime(e.finished_at))))));
+}
+
+/** Evaluate the policy on a built-in environment (background task) and list its evaluations. */
+function evaluationCard(policy, envs) {
+  const fitting = envs.filter((e) => envFits(e, policy.obs_dim, policy.action_space));
+  const list = h('div', { id: 'evaluations-list' });
+  const problem = h('div', {});
+  const refresh = async () => {
+    const page = await api(`/v1/evaluations?policy_id=${policy.id}&limit=50`);
+    problem.replaceChildren();
+    list.replaceChildren(evaluationsTable(page.items));
+    return page.items.some((e) => RUNNING.has(e.status));
+  };
+  // One polling loop at a time; it ends once no evaluation is queued or running.
+  let polling = false;
+  const poll = () => {
+    if (polling) return;
+    polling = true;
+    every(1000, async () => {
+      const more = await refresh();
+      polling = more;
+      return more;
+    }, (err) => problem.replaceChildren(errorBox(err)));
+  };
+  const card = h('div', { class: 'card', id: 'evaluate-card' }, h('h2', {}, 'Evaluate on a built-in environment'));
+  if (!fitting.length) {
+    card.append(h('div', { class: 'empty' }, 'No built-in environment has this policy’s observation and action spaces (see GET /v1/envs).'), list, problem);
+    poll();
+    return card;
+  }
+  const env = h('select', { id: 'eval-env' }, fitting.map((e) => h('option', { value: e.name }, e.name)));
+  const episodes = h('input', { id: 'eval-episodes', inputmode: 'numeric', placeholder: '500', style: 'width:110px' });
+  const seed = h('input', { id: 'eval-seed', inputmode: 'numeric', placeholder: '0', style: 'width:90px' });
+  const deterministic = h('input', { type: 'checkbox', id: 'eval-deterministic' });
+  const submit = h('button', { type: 'submit', id: 'eval-submit' }, 'Evaluate');
+  const form = h('form', { id: 'evaluate-form', class: 'form-actions' }, h('label', {}, 'Environment ', env),
+    h('label', {}, 'Episodes ', episodes), h('label', {}, 'Seed ', seed), h('label', {}, deterministic, ' deterministic'), submit);
+  form.addEventListener('submit', async (event) => {
+    event.preventDefault();
+    const body = { env: env.value, deterministic: deterministic.checked };
+    if (episodes.value.trim()) body.episodes = Number(episodes.value.trim());
+    if (seed.value.trim()) body.seed = Number(seed.value.trim());
+    submit.disabled = true;
+    try {
+      await api(`/v1/policies/${policy.id}/evaluate`, { method: 'POST', json: body });
+      problem.replaceChildren();
+      poll();
+    } catch (err) {
+      problem.replaceChildren(errorBox(err, 'eval-error'));
+    } finally {
+      submit.disabled = false;
+    }
+  });
+  card.append(form, h('p', { class: 'hint' }, 'The paper’s metrics over the episodes (sampled actions unless deterministic): normalized return (100 = the preferred demonstrations), average cost, share of episodes over the cost threshold κ, CVaR k% cost. Same seed, same numbers.'),
+    problem, list);
+  poll();
+  return card;
+}
+
 function policyPage(view, id) {
   const slot = h('div', {});
   view.append(h('h1', {}, 'Policy ', h('span', { class: 'mono' }, shortId(id))), slot);
-  api(`/v1/policies/${id}`).then((policy) => {
+  Promise.all([api(`/v1/policies/${id}`), api('/v1/envs')]).then(([policy, envs]) => {
     const input = h('textarea', { id: 'act-input', spellcheck: 'false',
       placeholder: `One observation per line (${policy.obs_dim} numbers), or JSON like [${Array(policy.obs_dim).fill(0).join(', ')}]` });
     input.value = Array(policy.obs_dim).fill(0).join(', ');
@@ -771,6 +932,7 @@ function policyPage(view, id) {
         h('div', { class: 'card' }, h('h2', {}, 'Final training metrics'), finals.length
           ? h('table', {}, h('tbody', {}, finals.map(([k, v]) => h('tr', {}, h('td', { class: 'mono' }, k), h('td', { class: 'num' }, fmt(v))))))
           : h('div', { class: 'empty' }, 'No metrics were recorded for this policy.'))),
+      evaluationCard(policy, envs.items),
       actForm,
       h('div', { class: 'card' }, h('h2', {}, 'Call it from an agent'),
         h('p', { class: 'hint' }, 'JSON API:'), h('pre', { id: 'snippet-curl' }, act),

@@ -161,6 +161,10 @@ test('the submit form creates a job with the chosen algorithm, datasets and knob
   await page.fill('#job-hidden_sizes', '32, 32');
   await page.fill('#job-batch_size', '64');
   await page.fill('#job-log_every', '25');
+  // The six-rooms data fit the six-rooms environment, which the form offers for evaluation.
+  assert.equal(await page.inputValue('#job-eval-env'), 'six-rooms');
+  await page.fill('#job-eval-every', String(ITERATIONS / 4));
+  await page.fill('#job-eval-episodes', '100');
   await page.click('#job-submit');
   await page.waitForSelector('#job-created');
 
@@ -175,6 +179,7 @@ test('the submit form creates a job with the chosen algorithm, datasets and knob
   assert.deepEqual(job.config.hidden_sizes, [32, 32]);
   assert.equal(job.config.batch_size, 64);
   assert.equal(job.runner.log_every, 25);
+  assert.deepEqual(job.eval, { env: 'six-rooms', every: ITERATIONS / 4, episodes: 100, seed: 0, deterministic: false });
   assert.ok(await page.isVisible(`#job-created a[href="#/jobs/${job.id}"]`));
   state.job = job;
 });
@@ -227,6 +232,20 @@ test('the job page charts the training metrics with their data points', async ()
   const alphaPoints = await page.$eval('.chart-box[data-chart="alpha"] svg polyline.series', (e) => Number(e.dataset.points));
   assert.ok(alphaPoints >= 1);
   assert.match(await page.textContent('#job-config'), new RegExp(`iterations\\s*${ITERATIONS}`));
+
+  // The evaluation section: the paper's metrics at policy steps ITERATIONS/4, /2, 3/4 and the end.
+  await page.waitForSelector('#eval-charts .chart-box[data-chart="eval-cost"] svg polyline.series');
+  const evalLines = await page.$$eval('#eval-charts polyline.series', (els) => els.map((e) => ({
+    name: e.dataset.series, points: Number(e.dataset.points) })));
+  const evalRows = metrics.filter((r) => r.name.startsWith('eval/'));
+  assert.equal(evalRows.filter((r) => r.name === 'eval/average_cost').length, 4);
+  const charted = evalLines.map((l) => l.name).sort();
+  assert.deepEqual(charted, ['CVaR 10%', 'CVaR 20%', 'CVaR 50%', 'CVaR 5%', 'eval/average_cost',
+    'eval/cost_violation_ratio', 'eval/normalized_return'].sort());
+  assert.ok(evalLines.every((l) => l.points === 4), JSON.stringify(evalLines));
+  const lastCost = evalRows.filter((r) => r.name === 'eval/average_cost').at(-1).value;
+  const latestCost = page.locator('#eval-latest tr', { hasText: 'eval/average_cost' }).locator('td.num');
+  assert.equal(Number(await latestCost.textContent()), Number(lastCost.toPrecision(4)));
   await screenshot('job');
 });
 
@@ -255,6 +274,19 @@ test('the policy page turns pasted observations into the same actions as the API
   await page.fill('#act-input', observations.map((o) => o.join(', ')).join('\n'));
   await page.click('#act-submit');
   await page.waitForSelector('#act-result');
+
+  // Evaluate it in the background: the table fills in with the API's metrics.
+  await page.fill('#eval-episodes', '200');
+  await page.fill('#eval-seed', '3');
+  await page.click('#eval-submit');
+  await page.waitForSelector('#evaluations-table tr[data-status="succeeded"]', { timeout: 60_000 });
+  const evaluations = (await api(`/v1/evaluations?policy_id=${job.policy_id}`)).body.items;
+  assert.equal(evaluations.length, 1);
+  const [evaluation] = evaluations;
+  assert.deepEqual([evaluation.env, evaluation.episodes, evaluation.seed, evaluation.deterministic], ['six-rooms', 200, 3, false]);
+  const row = page.locator(`#evaluations-table tr[data-id="${evaluation.id}"]`);
+  assert.equal(Number(await row.locator('.eval-cost').textContent()), Number(evaluation.metrics.average_cost.toPrecision(4)));
+  assert.equal(Number(await row.locator('.eval-return').textContent()), Number(evaluation.metrics.normalized_return.toPrecision(4)));
   await screenshot('policy');
 });
 
@@ -263,7 +295,8 @@ test('compare shows finished jobs side by side and as a scatter', async () => {
   const created = await api('/v1/jobs', {
     method: 'POST', headers: { 'content-type': 'application/json' },
     body: JSON.stringify({ algorithm: 'bc', unlabeled_dataset: state.unlabeled.id,
-      config: { iterations: 300, hidden_sizes: [32, 32], batch_size: 64, seed: 1 }, runner: { log_every: 25 } }),
+      config: { iterations: 300, hidden_sizes: [32, 32], batch_size: 64, seed: 1 }, runner: { log_every: 25 },
+      eval: { env: 'six-rooms', every: 100, episodes: 100 } }),
   });
   assert.equal(created.status, 201);
   for (let i = 0; i < 600; i += 1) {
@@ -280,6 +313,10 @@ test('compare shows finished jobs side by side and as a scatter', async () => {
   assert.ok(headers.some((t) => t.includes('SafeDICE')) && headers.some((t) => t.includes('BC')));
   const points = await page.$$eval('.chart-box[data-chart="scatter"] svg g.point', (gs) => gs.map((g) => g.dataset.label));
   assert.equal(points.length, 2);
+  // Both jobs evaluated themselves: the scatter is the paper's cost vs return by default.
+  assert.equal(await page.inputValue('#scatter-x'), 'eval/average_cost');
+  assert.equal(await page.inputValue('#scatter-y'), 'eval/normalized_return');
+  assert.match(await page.textContent('.chart-box[data-chart="scatter"] svg'), /Cost vs return/);
   await screenshot('compare');
 });
 
