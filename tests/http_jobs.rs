@@ -235,6 +235,34 @@ async fn cancel_stops_a_running_job_keeping_its_metrics_and_a_queued_one_at_once
     assert_error(missing, StatusCode::NOT_FOUND, "not_found").await;
 }
 
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn two_workers_train_two_jobs_at_the_same_time() {
+    let app = TestApp::spawn_with(|c| c.workers = 2).await;
+    let (u, _) = upload_grid(&app).await;
+    let body = json!({"algorithm": "bc", "unlabeled_dataset": u,
+                      "config": small_config(10_000_000, 0)});
+    let first = create_job(&app.client, &app.base_url, body.clone()).await;
+    let second = create_job(&app.client, &app.base_url, body).await;
+    let ids = [first["id"].as_str().unwrap(), second["id"].as_str().unwrap()];
+    // Both advance while the other runs: each is seen running past step 50 while the other is
+    // still running too.
+    for (me, other) in [(ids[0], ids[1]), (ids[1], ids[0])] {
+        wait_for_job(&app.client, &app.base_url, me, Duration::from_secs(120), |j| {
+            j["status"] == "running" && j["progress"]["step"].as_u64().unwrap() >= 50
+        })
+        .await;
+        let other = get_json(&app.client, &app.url(&format!("/v1/jobs/{other}"))).await;
+        assert_eq!(other["status"], "running", "{other}");
+    }
+    let metrics = app.get("/metrics").send().await.unwrap().text().await.unwrap();
+    assert!(metrics.lines().any(|l| l == r#"safedice_jobs{status="running"} 2"#), "{metrics}");
+    for id in ids {
+        let response = app.post(&format!("/v1/jobs/{id}/cancel")).send().await.unwrap();
+        assert_eq!(response.status(), StatusCode::OK);
+        wait_for_status(&app.client, &app.base_url, id, "cancelled").await;
+    }
+}
+
 #[tokio::test]
 async fn bad_job_requests_get_the_exact_status_and_code_and_store_nothing() {
     let app = TestApp::spawn().await;
