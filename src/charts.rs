@@ -46,6 +46,37 @@ pub struct ScatterPoint {
     pub color: Option<String>,
     /// Legend group (e.g. the algorithm); points of a group share its first colour.
     pub group: Option<String>,
+    /// Half-widths of error bars (e.g. standard errors over seeds), drawn when given.
+    #[serde(default)]
+    pub x_error: Option<f64>,
+    #[serde(default)]
+    pub y_error: Option<f64>,
+}
+
+impl ScatterPoint {
+    /// The point's extent along x, its error bar included.
+    fn x_range(&self) -> [f64; 2] {
+        let e = self.x_error.filter(|e| e.is_finite()).unwrap_or(0.0).abs();
+        [self.x - e, self.x + e]
+    }
+
+    fn y_range(&self) -> [f64; 2] {
+        let e = self.y_error.filter(|e| e.is_finite()).unwrap_or(0.0).abs();
+        [self.y - e, self.y + e]
+    }
+}
+
+/// The accent colour of each algorithm, the same everywhere (dashboard, benchmark plots): the
+/// `--algo-*` variables of `web/style.css` and `ALGORITHMS` of `web/app.js`.
+pub fn algorithm_color(algorithm: crate::algo::Algorithm) -> &'static str {
+    use crate::algo::Algorithm;
+    match algorithm {
+        Algorithm::Safedice => "#2563eb",
+        Algorithm::Bc => "#6b7280",
+        Algorithm::Dwbc => "#d97706",
+        Algorithm::Ppl => "#059669",
+        Algorithm::Dexperts => "#7c3aed",
+    }
 }
 
 /// A scatter plot of labelled points.
@@ -343,8 +374,8 @@ pub fn line_svg(chart: &LineChart) -> String {
     out
 }
 
-/// Renders a scatter plot: a labelled `<circle class="point">` per finite point, a legend of the
-/// groups.
+/// Renders a scatter plot: a labelled `<circle class="point">` per finite point (with its error
+/// bars when given), a legend of the groups.
 pub fn scatter_svg(chart: &ScatterChart) -> String {
     let points: Vec<&ScatterPoint> =
         chart.points.iter().filter(|p| p.x.is_finite() && p.y.is_finite()).collect();
@@ -363,8 +394,8 @@ pub fn scatter_svg(chart: &ScatterChart) -> String {
         colors.push(color);
     }
     let frame = Frame {
-        x: Axis::covering(points.iter().map(|p| p.x)),
-        y: Axis::covering(points.iter().map(|p| p.y)),
+        x: Axis::covering(points.iter().flat_map(|p| p.x_range())),
+        y: Axis::covering(points.iter().flat_map(|p| p.y_range())),
         top: plot_top(legend_rows(&groups)),
     };
     let mut out = String::new();
@@ -373,6 +404,7 @@ pub fn scatter_svg(chart: &ScatterChart) -> String {
         empty_note(&mut out);
     }
     for (p, color) in points.iter().zip(&colors) {
+        error_bars(&mut out, &frame, p, color);
         let (x, y) = (frame.px(p.x), frame.py(p.y));
         // Labels of points near the right edge go to their left, so they are not cut off.
         let near_right = x > WIDTH - MARGIN_RIGHT - 90.0;
@@ -390,6 +422,23 @@ pub fn scatter_svg(chart: &ScatterChart) -> String {
     legend(&mut out, &groups);
     out.push_str("</svg>");
     out
+}
+
+/// The horizontal and vertical error bars of a point, when it has them.
+fn error_bars(out: &mut String, frame: &Frame, p: &ScatterPoint, color: &str) {
+    if p.x_error.is_none() && p.y_error.is_none() {
+        return;
+    }
+    let ([x0, x1], [y0, y1]) = (p.x_range(), p.y_range());
+    let (x, y) = (frame.px(p.x), frame.py(p.y));
+    let _ = write!(
+        out,
+        r#"<g class="error-bars" stroke="{color}" stroke-width="1.5"><line x1="{:.1}" y1="{y:.1}" x2="{:.1}" y2="{y:.1}"/><line x1="{x:.1}" y1="{:.1}" x2="{x:.1}" y2="{:.1}"/></g>"#,
+        frame.px(x0),
+        frame.px(x1),
+        frame.py(y0),
+        frame.py(y1)
+    );
 }
 
 #[cfg(test)]
@@ -485,6 +534,8 @@ mod tests {
             y,
             group: Some(group.into()),
             color: Some(color.into()),
+            x_error: None,
+            y_error: None,
         };
         let svg = scatter_svg(&ScatterChart {
             title: "Cost vs return".into(),
@@ -499,5 +550,43 @@ mod tests {
         assert_eq!(svg.matches(r#"<g class="point""#).count(), 2);
         assert_eq!(svg.matches("fill=\"#2563eb\"").count(), 3, "two points and a legend swatch");
         assert!(!svg.contains("job c"));
+    }
+
+    #[test]
+    fn error_bars_span_the_given_half_widths_and_widen_the_axes() {
+        let point = ScatterPoint {
+            label: "SafeDICE".into(),
+            x: 5.0,
+            y: 50.0,
+            color: None,
+            group: None,
+            x_error: Some(1.0),
+            y_error: Some(30.0),
+        };
+        let chart = ScatterChart {
+            title: "t".into(),
+            x_label: "x".into(),
+            y_label: "y".into(),
+            points: vec![point.clone()],
+        };
+        let svg = scatter_svg(&chart);
+        assert_eq!(svg.matches(r#"<g class="error-bars""#).count(), 1);
+        let frame = Frame {
+            x: Axis::covering(point.x_range().into_iter()),
+            y: Axis::covering(point.y_range().into_iter()),
+            top: plot_top(1),
+        };
+        // The bars end at mean ± error, inside the axes (which cover them).
+        let expected = format!(
+            r#"<line x1="{:.1}" y1="{:.1}" x2="{:.1}""#,
+            frame.px(4.0),
+            frame.py(50.0),
+            frame.px(6.0)
+        );
+        assert!(svg.contains(&expected), "{svg}");
+        assert!(frame.y.low <= 20.0 && frame.y.high >= 80.0);
+        let without = ScatterPoint { x_error: None, y_error: None, ..point };
+        let svg = scatter_svg(&ScatterChart { points: vec![without], ..chart });
+        assert!(!svg.contains("error-bars"));
     }
 }
