@@ -158,6 +158,15 @@ async fn jobs_record_eval_metrics_and_evaluations_match_a_local_run() {
         assert!(metrics["cvar_cost"][k].is_f64(), "CVaR {k}% in {metrics}");
     }
 
+    let metrics = app.get("/metrics").send().await.unwrap().text().await.unwrap();
+    assert!(
+        metrics.lines().any(|l| l == r#"safedice_evaluations{status="succeeded"} 1"#),
+        "{metrics}"
+    );
+    assert!(
+        metrics.lines().any(|l| l == r#"safedice_evaluations{status="queued"} 0"#),
+        "{metrics}"
+    );
     let listed =
         get_json(&app.client, &app.url(&format!("/v1/evaluations?policy_id={policy_id}"))).await;
     assert_eq!(listed["total"], 1);

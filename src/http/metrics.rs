@@ -1,6 +1,6 @@
 //! `GET /metrics`: request counts and latency histograms by method, route template and status,
-//! plus the training queue read from the database at scrape time. OpenMetrics text (the
-//! Prometheus exposition format Prometheus scrapes natively).
+//! plus the training queue and the evaluations by status, read from the database at scrape
+//! time. OpenMetrics text (the Prometheus exposition format Prometheus scrapes natively).
 
 use std::time::Instant;
 
@@ -44,6 +44,7 @@ pub struct Metrics {
     latency: HistogramFamily,
     queue_depth: Gauge,
     jobs: Family<StatusLabel, Gauge>,
+    evaluations: Family<StatusLabel, Gauge>,
 }
 
 fn latency_histogram() -> Histogram {
@@ -70,7 +71,9 @@ impl Metrics {
             queue_depth.clone(),
         );
         registry.register("jobs", "Training jobs by status", jobs.clone());
-        Metrics { registry, requests, latency, queue_depth, jobs }
+        let evaluations = Family::<StatusLabel, Gauge>::default();
+        registry.register("evaluations", "Policy evaluations by status", evaluations.clone());
+        Metrics { registry, requests, latency, queue_depth, jobs, evaluations }
     }
 
     fn observe(&self, labels: RequestLabels, seconds: f64) {
@@ -121,6 +124,9 @@ async fn metrics(State(state): State<AppState>) -> Result<Response, ApiError> {
         if status == "queued" {
             state.metrics.queue_depth.set(count);
         }
+    }
+    for (status, count) in state.store.evaluation_counts_by_status().await? {
+        state.metrics.evaluations.get_or_create(&StatusLabel { status }).set(count);
     }
     let mut body = String::new();
     prometheus_client::encoding::text::encode(&mut body, &state.metrics.registry)

@@ -34,10 +34,20 @@ pub struct NewEvaluation<'a> {
     pub deterministic: bool,
 }
 
+/// Every evaluation status, in lifecycle order.
+pub const EVALUATION_STATUSES: [&str; 4] = ["queued", "running", "succeeded", "failed"];
+
 const EVALUATION_COLUMNS: &str = "id, policy_id, env, episodes, seed, deterministic, status, \
      report, error, created_at, started_at, finished_at";
 
 impl Store {
+    /// Number of evaluations in each status, every status listed.
+    pub async fn evaluation_counts_by_status(
+        &self,
+    ) -> Result<Vec<(&'static str, i64)>, sqlx::Error> {
+        self.counts_by_status("evaluations", &EVALUATION_STATUSES).await
+    }
+
     pub async fn insert_evaluation(
         &self,
         evaluation: &NewEvaluation<'_>,

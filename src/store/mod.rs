@@ -50,6 +50,26 @@ pub struct Store {
 }
 
 impl Store {
+    /// Number of rows of `table` in each of `statuses`, every status listed (zero when there are
+    /// none). `table` is one of ours, never user input.
+    async fn counts_by_status(
+        &self,
+        table: &str,
+        statuses: &[&'static str],
+    ) -> Result<Vec<(&'static str, i64)>, sqlx::Error> {
+        let rows: Vec<(String, i64)> =
+            sqlx::query_as(&format!("SELECT status, COUNT(*) FROM {table} GROUP BY status"))
+                .fetch_all(self.pool())
+                .await?;
+        Ok(statuses
+            .iter()
+            .map(|&status| {
+                let count = rows.iter().find(|(s, _)| s == status).map_or(0, |(_, n)| *n);
+                (status, count)
+            })
+            .collect())
+    }
+
     /// Opens (creating on first start) the data directory and its database and runs the pending
     /// migrations. Safe while a server runs on the same directory (tests and tools use it to
     /// inspect the store); only the server calls [`Store::remove_leftovers`].
