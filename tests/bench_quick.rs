@@ -66,7 +66,12 @@ fn tiny_bench_reports_every_algorithm_with_finite_numbers() {
     assert!(!md.contains("NaN") && !md.contains("inf"), "{md}");
     let svg = std::fs::read_to_string(dir.path().join("six-rooms.svg")).unwrap();
     assert!(svg.starts_with("<svg") && svg.trim_end().ends_with("</svg>"));
-    assert_eq!(svg.matches("<circle").count(), 2 * Algorithm::ALL.len(), "point + legend each");
+    assert_eq!(svg.matches(r#"<g class="point""#).count(), Algorithm::ALL.len(), "a point each");
+    assert_eq!(svg.matches(r#"<g class="error-bars""#).count(), Algorithm::ALL.len());
+    for algorithm in Algorithm::ALL {
+        let color = safedice::charts::algorithm_color(algorithm);
+        assert!(svg.contains(&format!(r#"fill="{color}""#)), "{algorithm:?} in its accent colour");
+    }
     let json: serde_json::Value =
         serde_json::from_slice(&std::fs::read(dir.path().join("results.json")).unwrap()).unwrap();
     assert_eq!(json["results"]["runs"].as_array().unwrap().len(), 10);
