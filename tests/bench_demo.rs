@@ -1,5 +1,5 @@
 //! `safedice demo` end to end through the real server: datasets uploaded over HTTP, SafeDICE and
-//! BC trained as jobs, both policies downloaded over HTTP and evaluated.
+//! BC trained as jobs, both policies evaluated through `POST /v1/policies/{id}/evaluate`.
 
 use safedice::algo::Algorithm;
 use safedice::bench::demo::{self, DemoArgs};
@@ -13,8 +13,8 @@ async fn demo_trains_safedice_and_bc_over_http_and_evaluates_both() {
         [Algorithm::Safedice, Algorithm::Bc]
     );
     for row in &rows {
-        assert_eq!(row.report.episodes, 20);
-        let m = &row.report.metrics;
+        assert_eq!(row.episodes, 20);
+        let m = &row.metrics;
         assert!(m.normalized_return.is_finite() && m.average_cost.is_finite(), "{row:?}");
         assert_eq!(row.alpha_hat.is_some(), row.algorithm == Algorithm::Safedice, "{row:?}");
     }
