@@ -220,6 +220,14 @@ impl Policy {
         Ok(Policy { spec: spec.clone(), nets, device })
     }
 
+    /// A policy as the store keeps it: the spec as JSON beside the safetensors weights.
+    pub fn from_stored(spec_json: &str, weights: &[u8]) -> std::result::Result<Policy, TrainError> {
+        let spec: PolicySpec = serde_json::from_str(spec_json).map_err(|e| {
+            TrainError::Other(format!("the stored policy spec does not parse: {e}"))
+        })?;
+        Policy::load(&spec, weights)
+    }
+
     /// A policy over networks already in memory (e.g. a trainer's), on their device.
     pub fn from_nets(spec: PolicySpec, nets: Vec<PolicyNet>) -> Policy {
         let device = nets[0].mlp.named_vars()[0].1.device().clone();

@@ -22,7 +22,7 @@ use utoipa_axum::routes;
 use super::error::ErrorBody;
 use super::extract::{Json, Path};
 use super::{ApiError, AppState};
-use crate::algo::{Policy, PolicySpec};
+use crate::algo::Policy;
 use crate::data::{ActionSpace, Actions};
 use crate::store::Store;
 
@@ -51,8 +51,8 @@ impl PolicyCache {
         let (spec, weights) = self.store.policy_artifact(id).await?;
         let id_owned = id.to_owned();
         let policy = tokio::task::spawn_blocking(move || {
-            let spec: PolicySpec = serde_json::from_str(&spec)?;
-            Policy::load(&spec, &weights).map_err(|e| anyhow::anyhow!("policy {id_owned}: {e}"))
+            Policy::from_stored(&spec, &weights)
+                .map_err(|e| anyhow::anyhow!("policy {id_owned}: {e}"))
         })
         .await??;
         let mut loaded = self.loaded.write().expect("policy cache lock");

@@ -16,7 +16,7 @@ use tokio::task::JoinHandle;
 use tokio_util::sync::CancellationToken;
 
 use super::EvalSpec;
-use crate::algo::{Policy, PolicySpec};
+use crate::algo::Policy;
 use crate::envs::{self, EvalError, EvalReport};
 use crate::store::evaluations::EvaluationRow;
 use crate::store::Store;
@@ -160,9 +160,7 @@ impl Evaluator {
         };
         let shutdown = self.inner.shutdown.clone();
         let run = move || -> Result<EvalReport, String> {
-            let policy_spec: PolicySpec = serde_json::from_str(&spec_json)
-                .map_err(|e| format!("the stored policy spec does not parse: {e}"))?;
-            let policy = Policy::load(&policy_spec, &weights).map_err(|e| e.to_string())?;
+            let policy = Policy::from_stored(&spec_json, &weights).map_err(|e| e.to_string())?;
             evaluate_policy(&policy, &spec, &|| shutdown.is_cancelled()).map_err(|e| e.to_string())
         };
         tokio::task::spawn_blocking(run)
