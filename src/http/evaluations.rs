@@ -64,10 +64,8 @@ impl TryFrom<EvaluationRow> for Evaluation {
         };
         let status =
             serde_json::from_value(row.status.clone().into()).map_err(|e| corrupt("status", e))?;
-        let report: Option<EvalReport> = match &row.report {
-            Some(json) => Some(serde_json::from_str(json).map_err(|e| corrupt("report", e))?),
-            None => None,
-        };
+        let report = row.report.as_deref().map(serde_json::from_str::<EvalReport>).transpose();
+        let report = report.map_err(|e| corrupt("report", e))?;
         let (metrics, mean_episode_length, reference) = match report {
             Some(r) => (Some(r.metrics), Some(r.mean_episode_length), Some(r.reference)),
             None => (None, None, None),

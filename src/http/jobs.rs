@@ -136,10 +136,8 @@ impl TryFrom<JobRow> for Job {
             serde_json::from_value(row.status.clone().into()).map_err(|e| corrupt("status", e))?;
         let config = serde_json::from_str(&row.config).map_err(|e| corrupt("config", e))?;
         let runner = serde_json::from_str(&row.runner).map_err(|e| corrupt("runner", e))?;
-        let eval = match &row.eval {
-            Some(eval) => Some(serde_json::from_str(eval).map_err(|e| corrupt("eval", e))?),
-            None => None,
-        };
+        let eval = row.eval.as_deref().map(serde_json::from_str).transpose();
+        let eval = eval.map_err(|e| corrupt("eval", e))?;
         let running = row.status == "running";
         let progress = JobProgress::new(
             row.step as u64,

@@ -9,7 +9,6 @@
 //! policy and its spec.
 
 use std::sync::{Arc, Mutex};
-use std::time::Duration;
 
 use tokio::sync::Notify;
 use tokio::task::JoinHandle;
@@ -20,11 +19,6 @@ use crate::algo::Policy;
 use crate::envs::{self, EvalError, EvalReport};
 use crate::store::evaluations::EvaluationRow;
 use crate::store::Store;
-
-/// How long the idle evaluator sleeps before looking at the queue again without being woken.
-const IDLE_POLL: Duration = Duration::from_secs(5);
-/// Back-off after a database error while claiming.
-const ERROR_BACKOFF: Duration = Duration::from_secs(1);
 
 /// Runs `spec` with `policy` and the paper's metrics. `interrupted` is asked between
 /// environment steps; once it says yes the evaluation stops with [`EvalError::Policy`].
@@ -97,19 +91,10 @@ impl Evaluator {
         while !shutdown.is_cancelled() {
             match self.inner.store.claim_next_evaluation().await {
                 Ok(Some(row)) => self.run_one(row).await,
-                Ok(None) => {
-                    tokio::select! {
-                        () = self.inner.wake.notified() => {}
-                        () = shutdown.cancelled() => {}
-                        () = tokio::time::sleep(IDLE_POLL) => {}
-                    }
-                }
+                Ok(None) => super::wait_for_work(&self.inner.wake, &shutdown).await,
                 Err(e) => {
                     tracing::error!(error = %e, "cannot claim an evaluation; retrying");
-                    tokio::select! {
-                        () = shutdown.cancelled() => {}
-                        () = tokio::time::sleep(ERROR_BACKOFF) => {}
-                    }
+                    super::back_off(&shutdown).await;
                 }
             }
         }

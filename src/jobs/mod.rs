@@ -17,6 +17,7 @@ mod worker;
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
+use std::time::Duration;
 
 use tokio::sync::{broadcast, Notify};
 use tokio::task::JoinHandle;
@@ -152,6 +153,29 @@ impl JobRunner {
 
     fn forget_cancel_flag(&self, job_id: &str) {
         self.inner.cancels.lock().expect("runner lock").remove(job_id);
+    }
+}
+
+/// How long an idle queue loop (a training worker, the evaluator) sleeps before looking at its
+/// queue again without being woken: covers work queued by another process on the same database.
+const IDLE_POLL: Duration = Duration::from_secs(5);
+/// Back-off of a queue loop after a database error while claiming.
+const ERROR_BACKOFF: Duration = Duration::from_secs(1);
+
+/// An idle queue loop's wait: until `wake` fires, shutdown begins, or [`IDLE_POLL`] passes.
+async fn wait_for_work(wake: &Notify, shutdown: &CancellationToken) {
+    tokio::select! {
+        () = wake.notified() => {}
+        () = shutdown.cancelled() => {}
+        () = tokio::time::sleep(IDLE_POLL) => {}
+    }
+}
+
+/// A queue loop's wait after a failed claim: [`ERROR_BACKOFF`], or until shutdown begins.
+async fn back_off(shutdown: &CancellationToken) {
+    tokio::select! {
+        () = shutdown.cancelled() => {}
+        () = tokio::time::sleep(ERROR_BACKOFF) => {}
     }
 }
 

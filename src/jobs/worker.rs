@@ -14,11 +14,6 @@ use crate::store::policies::NewPolicy;
 
 /// How often a running job's progress is written and published (and pending metrics flushed).
 const PROGRESS_INTERVAL: Duration = Duration::from_millis(500);
-/// How long an idle worker sleeps before looking at the queue again without being woken
-/// (covers jobs queued by another process on the same database).
-const IDLE_POLL: Duration = Duration::from_secs(5);
-/// Back-off after a database error while claiming.
-const ERROR_BACKOFF: Duration = Duration::from_secs(1);
 
 /// How a run ended.
 #[derive(Debug)]
@@ -36,19 +31,10 @@ pub(super) async fn run_worker(runner: JobRunner, index: usize) {
     while !shutdown.is_cancelled() {
         match runner.store().claim_next_job().await {
             Ok(Some(job)) => run_job(&runner, job).await,
-            Ok(None) => {
-                tokio::select! {
-                    () = runner.inner.wake.notified() => {}
-                    () = shutdown.cancelled() => {}
-                    () = tokio::time::sleep(IDLE_POLL) => {}
-                }
-            }
+            Ok(None) => super::wait_for_work(&runner.inner.wake, &shutdown).await,
             Err(e) => {
                 tracing::error!(error = %e, "cannot claim a job; retrying");
-                tokio::select! {
-                    () = shutdown.cancelled() => {}
-                    () = tokio::time::sleep(ERROR_BACKOFF) => {}
-                }
+                super::back_off(&shutdown).await;
             }
         }
     }
@@ -130,12 +116,8 @@ impl TrainingRun {
             .context("the stored job configuration does not parse")?;
         let options: RunnerOptions = serde_json::from_str(&self.job.runner)
             .context("the stored runner options do not parse")?;
-        let eval: Option<EvalOptions> = match &self.job.eval {
-            Some(json) => {
-                Some(serde_json::from_str(json).context("the stored eval block does not parse")?)
-            }
-            None => None,
-        };
+        let eval = self.job.eval.as_deref().map(serde_json::from_str::<EvalOptions>);
+        let eval = eval.transpose().context("the stored eval block does not parse")?;
         let schedule = Schedule { options, eval, pretraining: config.pretraining_steps() };
         let store = self.runner.store().clone();
         let data = self.rt.block_on(super::load_training_data(
