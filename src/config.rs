@@ -9,6 +9,7 @@ pub const DEFAULT_BIND: &str = "127.0.0.1:8080";
 pub const DEFAULT_DATA_DIR: &str = "./safedice-data";
 /// 1 GiB.
 pub const DEFAULT_MAX_UPLOAD_BYTES: u64 = 1 << 30;
+pub const DEFAULT_MAX_CONNECTIONS: u32 = 1024;
 
 /// Log line format.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
@@ -59,6 +60,26 @@ pub struct ServeConfig {
     #[arg(long, env = "SAFEDICE_LOG_FORMAT", value_enum, default_value_t = LogFormat::Pretty)]
     pub log_format: LogFormat,
 
+    /// Client connections open at once (lowered to fit the process's open-file limit); more
+    /// wait until one closes.
+    #[arg(long, env = "SAFEDICE_MAX_CONNECTIONS", default_value_t = DEFAULT_MAX_CONNECTIONS, value_parser = clap::value_parser!(u32).range(1..))]
+    pub max_connections: u32,
+
+    /// Seconds a client may take to send a request's headers; also how long an idle
+    /// keep-alive connection stays open.
+    #[arg(long, env = "SAFEDICE_HEADER_TIMEOUT_SECS", default_value_t = 15, value_parser = clap::value_parser!(u64).range(1..))]
+    pub header_timeout_secs: u64,
+
+    /// Seconds a request body (an upload) may pause between two pieces before the request is
+    /// abandoned with 408.
+    #[arg(long, env = "SAFEDICE_BODY_IDLE_TIMEOUT_SECS", default_value_t = 30, value_parser = clap::value_parser!(u64).range(1..))]
+    pub body_idle_timeout_secs: u64,
+
+    /// Dataset uploads received at once; one more is answered 503 `too_many_uploads` with
+    /// Retry-After.
+    #[arg(long, env = "SAFEDICE_MAX_CONCURRENT_UPLOADS", default_value_t = 8, value_parser = clap::value_parser!(u16).range(1..))]
+    pub max_concurrent_uploads: u16,
+
     /// Training jobs run concurrently.
     #[arg(long, env = "SAFEDICE_WORKERS", default_value_t = 1, value_parser = clap::value_parser!(u16).range(1..))]
     pub workers: u16,
@@ -76,6 +97,10 @@ impl std::fmt::Debug for ServeConfig {
             .field("cors_origins", &self.cors_origins)
             .field("max_upload_bytes", &self.max_upload_bytes)
             .field("log_format", &self.log_format)
+            .field("max_connections", &self.max_connections)
+            .field("header_timeout_secs", &self.header_timeout_secs)
+            .field("body_idle_timeout_secs", &self.body_idle_timeout_secs)
+            .field("max_concurrent_uploads", &self.max_concurrent_uploads)
             .field("workers", &self.workers)
             .finish()
     }
@@ -94,7 +119,7 @@ pub enum ConfigError {
         "--inference-token needs --api-token: without an API token every route is open anyway"
     )]
     InferenceTokenWithoutApiToken,
-    #[error("{0} must not be empty")]
+    #[error("{0} must not be empty or blank")]
     EmptyToken(&'static str),
     #[error(
         "--cors-origin {0:?} is not a valid origin (expected e.g. https://dash.example.com or *)"
@@ -114,16 +139,23 @@ impl ServeConfig {
             cors_origins: Vec::new(),
             max_upload_bytes: DEFAULT_MAX_UPLOAD_BYTES,
             log_format: LogFormat::Pretty,
+            max_connections: DEFAULT_MAX_CONNECTIONS,
+            header_timeout_secs: 15,
+            body_idle_timeout_secs: 30,
+            max_concurrent_uploads: 8,
             workers: 1,
         }
     }
 
     /// Checks the combinations that would expose the API or cannot work.
     pub fn validate(&self) -> Result<(), ConfigError> {
-        if self.api_token.as_deref() == Some("") {
+        // A token of spaces is as good as none, and a stray newline from `$(cat token)` would
+        // never match what a client sends.
+        let blank = |token: &Option<String>| token.as_deref().is_some_and(|t| t.trim().is_empty());
+        if blank(&self.api_token) {
             return Err(ConfigError::EmptyToken("--api-token"));
         }
-        if self.inference_token.as_deref() == Some("") {
+        if blank(&self.inference_token) {
             return Err(ConfigError::EmptyToken("--inference-token"));
         }
         if self.inference_token.is_some() && self.api_token.is_none() {
@@ -182,6 +214,14 @@ mod tests {
         assert_eq!(c.validate(), Err(ConfigError::InferenceTokenWithoutApiToken));
         let c = ServeConfig { api_token: Some(String::new()), ..config("127.0.0.1:0") };
         assert_eq!(c.validate(), Err(ConfigError::EmptyToken("--api-token")));
+        let c = ServeConfig { api_token: Some(" \t\n".into()), ..config("127.0.0.1:0") };
+        assert_eq!(c.validate(), Err(ConfigError::EmptyToken("--api-token")));
+        let c = ServeConfig {
+            api_token: Some("s3cret".into()),
+            inference_token: Some("   ".into()),
+            ..config("127.0.0.1:0")
+        };
+        assert_eq!(c.validate(), Err(ConfigError::EmptyToken("--inference-token")));
     }
 
     #[test]

@@ -2,6 +2,7 @@
 //!
 //! - [`config`]: the settings of `safedice serve`.
 //! - [`server`]: starting and stopping the service.
+//! - [`logging`]: the process's log output (never blocks or fails the service).
 //! - [`algo`]: the learning algorithms on candle (no HTTP or SQL).
 //! - [`data`]: the dataset model, upload parsers and validation.
 //! - [`envs`]: built-in benchmark environments, demonstrators and evaluation metrics.
@@ -10,6 +11,7 @@
 //! - [`jobs`]: the training queue and worker pool.
 //! - [`http`]: the HTTP API, one module per resource, and the dashboard at `/`.
 //! - [`charts`]: server-side SVG charts for the dashboard.
+//! - [`text`]: bounded messages (errors that quote client input stay short).
 
 pub mod algo;
 pub mod bench;
@@ -19,5 +21,7 @@ pub mod data;
 pub mod envs;
 pub mod http;
 pub mod jobs;
+pub mod logging;
 pub mod server;
 pub mod store;
+pub mod text;

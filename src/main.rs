@@ -166,7 +166,7 @@ fn main() -> anyhow::Result<()> {
         }
         Command::Demo(args) => safedice::bench::demo::run_cli(&args),
         Command::Bench(args) => {
-            server::init_logging(safedice::config::LogFormat::Pretty);
+            let _logging = safedice::logging::init(safedice::config::LogFormat::Pretty);
             let command: Vec<String> = std::env::args().collect();
             safedice::bench::run_cli(&args, &command.join(" "))
         }
@@ -179,14 +179,15 @@ fn main() -> anyhow::Result<()> {
 }
 
 fn serve(config: ServeConfig) -> anyhow::Result<()> {
-    server::init_logging(config.log_format);
+    let _logging = safedice::logging::init(config.log_format);
     let runtime = tokio::runtime::Builder::new_multi_thread().enable_all().build()?;
     runtime.block_on(async {
         let server = Server::start(config).await?;
         let stop = server.shutdown_token();
         tokio::spawn(async move {
-            server::shutdown_signal().await;
+            let signal = server::shutdown_signal().await;
             stop.cancel();
+            tracing::info!("{signal} received, shutting down");
         });
         server.wait().await
     })

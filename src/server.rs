@@ -7,7 +7,8 @@ use anyhow::Context;
 use tokio::task::JoinHandle;
 use tokio_util::sync::CancellationToken;
 
-use crate::config::{LogFormat, ServeConfig};
+use crate::config::ServeConfig;
+use crate::http::connections::{self, ConnectionLimits};
 use crate::http::{self, AppState};
 use crate::jobs::JobRunner;
 use crate::store::Store;
@@ -43,14 +44,16 @@ impl Server {
             auth,
             "safedice listening"
         );
+        let config_max_connections = config.max_connections as usize;
+        let header_timeout_secs = config.header_timeout_secs;
         let state = AppState::new(config, store.clone(), shutdown.clone());
         let jobs = state.jobs.clone();
         jobs.start().await?;
+        let limits =
+            ConnectionLimits::new(config_max_connections, Duration::from_secs(header_timeout_secs));
+        tracing::info!(max_connections = limits.max_connections, "connection limits");
         let app = http::app(state)?;
-        let stopped = shutdown.clone().cancelled_owned();
-        let task = tokio::spawn(async move {
-            axum::serve(listener, app).with_graceful_shutdown(stopped).await
-        });
+        let task = tokio::spawn(connections::serve(listener, app, limits, shutdown.clone()));
         Ok(Server { local_addr, shutdown, task, store, jobs })
     }
 
@@ -92,8 +95,9 @@ impl Server {
     }
 }
 
-/// Resolves on SIGINT (Ctrl-C) or SIGTERM.
-pub async fn shutdown_signal() {
+/// Resolves on SIGINT (Ctrl-C) or SIGTERM with the signal's name. Callers start the shutdown
+/// before they log it, so that stopping never depends on a log line.
+pub async fn shutdown_signal() -> &'static str {
     let interrupt = async {
         if let Err(e) = tokio::signal::ctrl_c().await {
             tracing::error!(error = %e, "cannot listen for SIGINT");
@@ -115,18 +119,7 @@ pub async fn shutdown_signal() {
     #[cfg(not(unix))]
     let terminate = std::future::pending::<()>();
     tokio::select! {
-        () = interrupt => tracing::info!("SIGINT received, shutting down"),
-        () = terminate => tracing::info!("SIGTERM received, shutting down"),
-    }
-}
-
-/// Installs the global `tracing` subscriber; `RUST_LOG` overrides the default filter.
-pub fn init_logging(format: LogFormat) {
-    let filter = tracing_subscriber::EnvFilter::try_from_default_env()
-        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info"));
-    let builder = tracing_subscriber::fmt().with_env_filter(filter);
-    match format {
-        LogFormat::Json => builder.json().with_current_span(true).init(),
-        LogFormat::Pretty => builder.init(),
+        () = interrupt => "SIGINT",
+        () = terminate => "SIGTERM",
     }
 }

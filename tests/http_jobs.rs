@@ -386,24 +386,38 @@ async fn bad_observations_get_the_exact_status_and_code() {
     let infer = |input: Value| {
         app.post(&format!("/v2/models/{id}/infer")).json(&json!({"inputs": [input]})).send()
     };
-    let wrong_type =
-        json!({"name": "o", "datatype": "FP64", "shape": [1, GRID_OBS_DIM], "data": row});
+    let wrong_type = json!({"name": "observations", "datatype": "FP64", "shape": [1, GRID_OBS_DIM], "data": row});
     assert_error(
         infer(wrong_type).await.unwrap(),
         StatusCode::UNPROCESSABLE_ENTITY,
         "invalid_input",
     )
     .await;
-    let wrong_shape = json!({"name": "o", "datatype": "FP32", "shape": [1, 3], "data": [0, 0, 0]});
+    let wrong_shape =
+        json!({"name": "observations", "datatype": "FP32", "shape": [1, 3], "data": [0, 0, 0]});
     assert_error(
         infer(wrong_shape).await.unwrap(),
         StatusCode::UNPROCESSABLE_ENTITY,
         "invalid_input",
     )
     .await;
-    let short = json!({"name": "o", "datatype": "FP32", "shape": [2, GRID_OBS_DIM], "data": row});
+    let short = json!({"name": "observations", "datatype": "FP32", "shape": [2, GRID_OBS_DIM], "data": row});
     assert_error(infer(short).await.unwrap(), StatusCode::UNPROCESSABLE_ENTITY, "invalid_input")
         .await;
+    // A declared shape far beyond the data is refused from the data, allocating nothing for it.
+    let huge = json!({"name": "observations", "datatype": "FP32",
+        "shape": [i64::MAX / 2, GRID_OBS_DIM], "data": row});
+    assert_error(infer(huge).await.unwrap(), StatusCode::UNPROCESSABLE_ENTITY, "invalid_input")
+        .await;
+    let wrong_name =
+        json!({"name": "obs", "datatype": "FP32", "shape": [1, GRID_OBS_DIM], "data": row});
+    let message = assert_error(
+        infer(wrong_name).await.unwrap(),
+        StatusCode::UNPROCESSABLE_ENTITY,
+        "invalid_input",
+    )
+    .await;
+    assert!(message.contains("`observations`"), "{message}");
     let missing = app.get("/v2/models/nope").send().await.unwrap();
     assert_error(missing, StatusCode::NOT_FOUND, "not_found").await;
     assert_eq!(app.get("/v2/health/ready").send().await.unwrap().status(), StatusCode::OK);

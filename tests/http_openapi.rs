@@ -24,8 +24,43 @@ fn committed_openapi_yaml_is_up_to_date() {
 }
 
 #[tokio::test]
-async fn the_served_description_is_the_generated_one_and_covers_every_route() {
+async fn without_a_token_the_served_description_claims_no_authentication() {
     let app = TestApp::spawn().await;
+    let served: serde_json::Value =
+        app.get("/v1/openapi.json").send().await.unwrap().json().await.unwrap();
+    assert_eq!(served, serde_json::to_value(safedice::http::openapi_for(false)).unwrap());
+    assert!(served["components"].get("securitySchemes").is_none(), "{}", served["components"]);
+    for (path, item) in served["paths"].as_object().unwrap() {
+        for (method, operation) in item.as_object().unwrap() {
+            assert!(operation.get("security").is_none(), "{method} {path} claims security");
+            let responses = operation["responses"].as_object().unwrap();
+            assert!(!responses.contains_key("401"), "{method} {path} documents 401");
+        }
+    }
+}
+
+#[tokio::test]
+async fn shared_errors_are_documented_where_they_can_happen() {
+    let doc = serde_json::to_value(safedice::http::openapi()).unwrap();
+    let responses = |path: &str, method: &str| -> Vec<String> {
+        doc["paths"][path][method]["responses"].as_object().unwrap().keys().cloned().collect()
+    };
+    let create_job = responses("/v1/jobs", "post");
+    for status in ["400", "401", "403", "413", "415", "422", "503", "507"] {
+        assert!(create_job.contains(&status.to_owned()), "POST /v1/jobs lacks {status}");
+    }
+    let upload = responses("/v1/datasets", "post");
+    for status in ["400", "401", "408", "413", "422", "503", "507"] {
+        assert!(upload.contains(&status.to_owned()), "POST /v1/datasets lacks {status}");
+    }
+    let list = responses("/v1/datasets", "get");
+    assert!(list.contains(&"400".to_owned()) && !list.contains(&"507".to_owned()), "{list:?}");
+    assert!(!responses("/healthz", "get").contains(&"401".to_owned()));
+}
+
+#[tokio::test]
+async fn the_served_description_is_the_generated_one_and_covers_every_route() {
+    let app = TestApp::spawn_with(|c| c.api_token = Some("s3cret".into())).await;
     let served: serde_json::Value =
         app.get("/v1/openapi.json").send().await.unwrap().json().await.unwrap();
     let generated = serde_json::to_value(safedice::http::openapi()).unwrap();

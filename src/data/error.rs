@@ -4,7 +4,8 @@
 use super::model::ModelError;
 
 /// A rejected upload. `code` is a stable snake_case API error code; `message` names the line /
-/// row / key and says how to fix it.
+/// row / key and says how to fix it, at most [`crate::text::MAX_MESSAGE_BYTES`] long however
+/// much of the input it quotes.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 #[error("{message}")]
 pub struct ParseError {
@@ -13,6 +14,10 @@ pub struct ParseError {
 }
 
 impl ParseError {
+    fn new(code: &'static str, message: impl Into<String>) -> Self {
+        ParseError { code, message: crate::text::bounded_message(message.into()) }
+    }
+
     /// The data is readable but wrong: ragged, non-finite, inconsistent, truncated, ...
     pub const INVALID: &'static str = "invalid_dataset";
     /// Neither the file name nor the content identify a supported format.
@@ -25,23 +30,23 @@ impl ParseError {
     pub const CORRUPT_CANONICAL: &'static str = "corrupt_canonical";
 
     pub fn invalid(message: impl Into<String>) -> Self {
-        ParseError { code: Self::INVALID, message: message.into() }
+        Self::new(Self::INVALID, message)
     }
 
     pub fn unknown_format(message: impl Into<String>) -> Self {
-        ParseError { code: Self::UNKNOWN_FORMAT, message: message.into() }
+        Self::new(Self::UNKNOWN_FORMAT, message)
     }
 
     pub fn empty(message: impl Into<String>) -> Self {
-        ParseError { code: Self::EMPTY, message: message.into() }
+        Self::new(Self::EMPTY, message)
     }
 
     pub fn unsupported_format(message: impl Into<String>) -> Self {
-        ParseError { code: Self::UNSUPPORTED_FORMAT, message: message.into() }
+        Self::new(Self::UNSUPPORTED_FORMAT, message)
     }
 
     pub fn corrupt_canonical(message: impl Into<String>) -> Self {
-        ParseError { code: Self::CORRUPT_CANONICAL, message: message.into() }
+        Self::new(Self::CORRUPT_CANONICAL, message)
     }
 
     /// An I/O failure while reading the (already stored) upload: the service's problem, but

@@ -48,6 +48,18 @@ impl DecodeBudget {
         })
     }
 
+    /// Refuses an entry whose declared (uncompressed) size alone is beyond what is left, before
+    /// anything of it is read.
+    pub fn check_declared(&self, key: &str, declared_bytes: u64) -> Result<(), ParseError> {
+        if declared_bytes > self.left {
+            return Err(ParseError::invalid(format!(
+                "key `{key}` declares {declared_bytes} bytes uncompressed, far more than the \
+                 file's size suggests; refusing (corrupt or malicious file)"
+            )));
+        }
+        Ok(())
+    }
+
     /// Reserves `count` elements of `element_bytes` for `key`, or refuses.
     pub fn take(&mut self, key: &str, count: u64, element_bytes: u64) -> Result<(), ParseError> {
         let bytes = count.saturating_mul(element_bytes);

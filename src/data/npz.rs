@@ -1,21 +1,31 @@
 //! NPZ archives (`numpy.savez` / `savez_compressed`) in the flat layout of [`super::flat`].
 //! Each array's bytes are decoded in fixed-size chunks straight into its column, so memory is
 //! the columns themselves; the decoded size is bounded by a [`DecodeBudget`].
+//!
+//! Nothing an archive declares is trusted before it is bounded: each entry's declared size is
+//! checked against the budget, and an `.npy` header (whose length the file states as a u32) is
+//! refused above [`MAX_NPY_HEADER_BYTES`] before a byte of it is read.
 
 use std::fs::File;
-use std::io::{self, BufReader, Read};
+use std::io::{self, BufReader, Cursor, Read};
 use std::path::Path;
 
-use npyz::npz::NpzArchive;
-use npyz::{DType, Endianness, Order, TypeChar, TypeStr};
+use npyz::{DType, Endianness, NpyFile, Order, TypeChar, TypeStr};
+use zip::result::ZipError;
+use zip::ZipArchive;
 
 use super::error::ParseError;
 use super::flat::{self, Array, ArrayData, ArraySource, DecodeBudget};
 use super::model::Dataset;
 
+/// numpy itself refuses to read headers longer than this (`max_header_size` of `numpy.load`);
+/// the headers it writes are under 200 bytes.
+pub const MAX_NPY_HEADER_BYTES: usize = 10_000;
+
 pub fn parse(path: &Path) -> Result<Dataset, ParseError> {
     let budget = DecodeBudget::for_file(path)?;
-    let archive = NpzArchive::open(path).map_err(|e| {
+    let file = File::open(path).map_err(|e| ParseError::io("opening the upload", e))?;
+    let archive = ZipArchive::new(BufReader::new(file)).map_err(|e| {
         ParseError::invalid(format!(
             "the NPZ archive is truncated or corrupt ({e}); re-create it with numpy.savez or \
              numpy.savez_compressed"
@@ -26,7 +36,7 @@ pub fn parse(path: &Path) -> Result<Dataset, ParseError> {
 }
 
 struct NpzSource {
-    archive: NpzArchive<BufReader<File>>,
+    archive: ZipArchive<BufReader<File>>,
     budget: DecodeBudget,
 }
 
@@ -37,7 +47,14 @@ impl ArraySource for NpzSource {
                 "key `{key}`: the array is truncated or corrupt ({e}); re-create the archive"
             ))
         };
-        let Some(npy) = self.archive.by_name(key).map_err(corrupt)? else { return Ok(None) };
+        let mut entry = match self.archive.by_name(&format!("{key}.npy")) {
+            Ok(entry) => entry,
+            Err(ZipError::FileNotFound) => return Ok(None),
+            Err(e) => return Err(corrupt(e.into())),
+        };
+        self.budget.check_declared(key, entry.size())?;
+        let header = read_npy_header(key, &mut entry)?;
+        let npy = NpyFile::new(Cursor::new(header).chain(entry)).map_err(corrupt)?;
         let type_str = match npy.dtype() {
             DType::Plain(t) if !t.uses_pickled_array() => t,
             other => {
@@ -49,13 +66,56 @@ impl ArraySource for NpzSource {
         };
         let shape: Vec<usize> = npy.shape().iter().map(|&s| s as usize).collect();
         let fortran = npy.order() == Order::Fortran;
-        let count: usize = shape.iter().product();
+        let count = shape.iter().try_fold(1usize, |n, &d| n.checked_mul(d)).ok_or_else(|| {
+            ParseError::invalid(format!("key `{key}`: shape {shape:?} overflows; corrupt file"))
+        })?;
         self.budget.take(key, count as u64, type_str.size_field())?;
         let reader = npy.into_inner();
         let data = decode(key, &type_str, count, reader)?;
         let data = if fortran && shape.len() == 2 { transpose(data, &shape) } else { data };
         Ok(Some(Array { shape, data }))
     }
+}
+
+/// Reads an `.npy` preamble (magic, version, header length) and its header text, refusing a
+/// declared header length above [`MAX_NPY_HEADER_BYTES`] before allocating for it. Returns the
+/// bytes read, for `npyz` to interpret.
+fn read_npy_header(key: &str, reader: &mut impl Read) -> Result<Vec<u8>, ParseError> {
+    let not_npy = || {
+        ParseError::invalid(format!(
+            "key `{key}` is not an .npy array (no NUMPY magic); re-create the archive with numpy"
+        ))
+    };
+    let mut preamble = [0u8; 12];
+    reader.read_exact(&mut preamble[..10]).map_err(|_| not_npy())?;
+    if &preamble[..6] != b"\x93NUMPY" {
+        return Err(not_npy());
+    }
+    let (len_bytes, declared) = match preamble[6] {
+        1 => (2, u16::from_le_bytes([preamble[8], preamble[9]]) as usize),
+        2 | 3 => {
+            reader.read_exact(&mut preamble[10..12]).map_err(|_| not_npy())?;
+            (4, u32::from_le_bytes(preamble[8..12].try_into().expect("4 bytes")) as usize)
+        }
+        v => {
+            return Err(ParseError::invalid(format!(
+                "key `{key}`: .npy format version {v} is not supported (1, 2 or 3)"
+            )))
+        }
+    };
+    if declared > MAX_NPY_HEADER_BYTES {
+        return Err(ParseError::invalid(format!(
+            "key `{key}`: the .npy header declares {declared} bytes, over the limit of \
+             {MAX_NPY_HEADER_BYTES} (numpy writes under 200); corrupt or malicious file"
+        )));
+    }
+    let start = 8 + len_bytes;
+    let mut header = preamble[..start].to_vec();
+    header.resize(start + declared, 0);
+    reader.read_exact(&mut header[start..]).map_err(|e| {
+        ParseError::invalid(format!("key `{key}`: the .npy header is truncated ({e})"))
+    })?;
+    Ok(header)
 }
 
 /// Decodes `count` elements of `type_str` into the matching [`ArrayData`] kind.
@@ -132,7 +192,8 @@ fn read_elements<const N: usize, T>(
             "key `{key}` {what} ({e}); the archive is incomplete or damaged, re-create it"
         ))
     };
-    let mut out = Vec::with_capacity(count);
+    // The shape is the file's claim: grow towards it as bytes actually arrive.
+    let mut out = Vec::with_capacity(count.min(CHUNK_ELEMENTS * 64));
     let mut buf = vec![0u8; CHUNK_ELEMENTS * N];
     while out.len() < count {
         let take = (count - out.len()).min(CHUNK_ELEMENTS);
@@ -146,13 +207,19 @@ fn read_elements<const N: usize, T>(
             convert(bytes)
         }));
     }
-    // Reading to the end also makes the zip reader verify the entry's CRC.
-    let mut rest = Vec::new();
-    reader.read_to_end(&mut rest).map_err(|e| broken(out.len(), e))?;
-    if !rest.is_empty() {
+    // Reading to the end makes the zip reader verify the entry's CRC; one byte is enough to
+    // tell that something follows, and reading no more keeps a deflate bomb from expanding.
+    let mut probe = [0u8; 1];
+    let extra = loop {
+        match reader.read(&mut probe) {
+            Ok(n) => break n,
+            Err(e) if e.kind() == io::ErrorKind::Interrupted => continue,
+            Err(e) => return Err(broken(out.len(), e)),
+        }
+    };
+    if extra > 0 {
         return Err(ParseError::invalid(format!(
-            "key `{key}` holds {} bytes more than its shape says; the array is corrupt",
-            rest.len()
+            "key `{key}` holds more bytes than its {count} elements; the array is corrupt"
         )));
     }
     Ok(out)

@@ -5,7 +5,7 @@ use std::path::Path;
 
 use axum::extract::multipart::{Field, Multipart, MultipartRejection};
 use axum::extract::{DefaultBodyLimit, State};
-use axum::http::{header, HeaderMap, StatusCode};
+use axum::http::{header, HeaderMap, HeaderValue, StatusCode};
 use axum::response::{IntoResponse, Response};
 use chrono::{DateTime, Utc};
 use serde::Serialize;
@@ -25,9 +25,10 @@ use crate::store::{DatasetRecord, DeleteOutcome, NewDataset};
 
 /// Room for the multipart framing and the `name`/`description` fields on top of the file.
 const FORM_OVERHEAD_BYTES: u64 = 64 * 1024;
-/// How much of an oversized upload is still read (and discarded) before answering 413, so that
-/// clients that send the whole body before reading the response see the 413 rather than a reset
-/// connection. Beyond it the connection is dropped.
+/// How much of an upload found oversized while streaming is still read (and discarded) before
+/// answering 413, so that clients that send the whole body before reading the response see the
+/// 413 rather than a reset connection. Beyond it the connection is dropped. (An upload whose
+/// Content-Length already says it is too large is answered at once, reading nothing.)
 const DRAIN_BYTES: u64 = 8 * 1024 * 1024;
 const MAX_NAME_CHARS: usize = 200;
 const MAX_DESCRIPTION_CHARS: usize = 4000;
@@ -133,8 +134,11 @@ pub fn upload_router() -> OpenApiRouter<AppState> {
     responses(
         (status = 201, description = "Stored; `Location` names the new resource", body = DatasetResource),
         (status = 400, description = "Not a multipart form, no `file` field, unknown or repeated field (`bad_request`, `missing_file`, `unknown_field`, `duplicate_field`)", body = ErrorBody),
-        (status = 413, description = "The file exceeds --max-upload-bytes (`payload_too_large`)", body = ErrorBody),
+        (status = 408, description = "The body paused longer than --body-idle-timeout-secs (`request_timeout`); nothing was stored", body = ErrorBody),
+        (status = 413, description = "The file exceeds --max-upload-bytes (`payload_too_large`); a declared Content-Length over the limit is answered before the body is read", body = ErrorBody),
         (status = 422, description = "The file is not a valid dataset (`invalid_dataset`, `unknown_format`, `empty_dataset`, `unsupported_format`) or the name/description is invalid (`invalid_name`, `invalid_description`); the message names the line, row or key", body = ErrorBody),
+        (status = 503, description = "--max-concurrent-uploads uploads are in flight (`too_many_uploads`); retry after `Retry-After` seconds", body = ErrorBody),
+        (status = 507, description = "The server's disk is full (`insufficient_storage`); nothing was stored", body = ErrorBody),
     )
 )]
 async fn upload_dataset(
@@ -142,16 +146,25 @@ async fn upload_dataset(
     headers: HeaderMap,
     multipart: Result<Multipart, MultipartRejection>,
 ) -> Result<Response, ApiError> {
-    let mut multipart = multipart?;
     let limit = state.config.max_upload_bytes;
     if content_length(&headers).is_some_and(|len| len > limit.saturating_add(FORM_OVERHEAD_BYTES)) {
-        // A client waiting for `100 Continue` (curl does for large bodies) has sent nothing yet:
-        // reading the body would invite it to send, so answer at once.
-        if !expects_continue(&headers) {
-            drain(&mut multipart).await;
-        }
-        return Err(ApiError::PayloadTooLarge { limit });
+        // Declared too large: answer before reading a byte, and close the connection rather
+        // than read (or make the client send) a body that will be thrown away.
+        let mut response = ApiError::PayloadTooLarge { limit }.into_response();
+        response.headers_mut().insert(header::CONNECTION, HeaderValue::from_static("close"));
+        return Ok(response);
     }
+    let mut multipart = multipart?;
+    // Each upload in flight holds a connection, a temp file and a parser thread at the end.
+    let Ok(_receiving) = state.uploads.clone().try_acquire_owned() else {
+        return Err(ApiError::unavailable(
+            "too_many_uploads",
+            format!(
+                "{} uploads are being received already (--max-concurrent-uploads); retry shortly",
+                state.config.max_concurrent_uploads
+            ),
+        ));
+    };
     let upload = match receive_form(&mut multipart, &state.store.tmp_dir(), limit).await {
         Err(too_large @ ApiError::PayloadTooLarge { .. }) => {
             drain(&mut multipart).await;
@@ -177,13 +190,6 @@ struct Upload {
 
 fn content_length(headers: &HeaderMap) -> Option<u64> {
     headers.get(header::CONTENT_LENGTH)?.to_str().ok()?.parse().ok()
-}
-
-fn expects_continue(headers: &HeaderMap) -> bool {
-    headers
-        .get(header::EXPECT)
-        .and_then(|v| v.to_str().ok())
-        .is_some_and(|v| v.eq_ignore_ascii_case("100-continue"))
 }
 
 /// Reads and discards up to [`DRAIN_BYTES`] of what is left of the request.

@@ -9,6 +9,12 @@ use axum::response::{IntoResponse, Response};
 use serde::Serialize;
 use utoipa::ToSchema;
 
+/// nginx's status for a request the client abandoned.
+const CLIENT_CLOSED_REQUEST: StatusCode = match StatusCode::from_u16(499) {
+    Ok(status) => status,
+    Err(_) => panic!("499 is a valid status code"),
+};
+
 /// Every error the API answers with.
 #[derive(Debug, thiserror::Error)]
 pub enum ApiError {
@@ -39,6 +45,23 @@ pub enum ApiError {
     /// A rejection from one of axum's extractors, with the status axum chose.
     #[error("{message}")]
     Rejected { status: StatusCode, code: &'static str, message: String },
+    /// 408: the client paused its request body longer than `--body-idle-timeout-secs`.
+    #[error(
+        "the request body paused for longer than the server waits (--body-idle-timeout-secs); \
+         the request was abandoned and nothing was stored, send it again"
+    )]
+    RequestTimeout,
+    /// 499 (as nginx logs it): the client closed the connection before its request was read.
+    /// Nobody reads the answer; the status keeps such requests apart from server errors in
+    /// the log and the metrics.
+    #[error("the client closed the connection before the request was complete")]
+    ClientClosed,
+    /// 507: the data directory's disk is full.
+    #[error(
+        "the server's storage is full; nothing was stored. Retry once an operator has freed \
+         space (delete unused datasets, or grow the data directory's volume)"
+    )]
+    InsufficientStorage,
     /// 503: the service cannot answer now (database unreachable, request timed out).
     #[error("{message}")]
     Unavailable { code: &'static str, message: String },
@@ -96,6 +119,9 @@ impl ApiError {
             ApiError::PayloadTooLarge { .. } => StatusCode::PAYLOAD_TOO_LARGE,
             ApiError::Unprocessable { .. } => StatusCode::UNPROCESSABLE_ENTITY,
             ApiError::Rejected { status, .. } => *status,
+            ApiError::RequestTimeout => StatusCode::REQUEST_TIMEOUT,
+            ApiError::ClientClosed => CLIENT_CLOSED_REQUEST,
+            ApiError::InsufficientStorage => StatusCode::INSUFFICIENT_STORAGE,
             ApiError::Unavailable { .. } => StatusCode::SERVICE_UNAVAILABLE,
             ApiError::Internal(_) => StatusCode::INTERNAL_SERVER_ERROR,
         }
@@ -113,8 +139,17 @@ impl ApiError {
             ApiError::NotFound(_) => "not_found",
             ApiError::MethodNotAllowed => "method_not_allowed",
             ApiError::PayloadTooLarge { .. } => "payload_too_large",
+            ApiError::RequestTimeout => "request_timeout",
+            ApiError::ClientClosed => "client_closed_request",
+            ApiError::InsufficientStorage => "insufficient_storage",
             ApiError::Internal(_) => "internal_error",
         }
+    }
+
+    /// The disk is full: logged for the operator (it needs one), answered 507.
+    fn storage_full(cause: anyhow::Error) -> Self {
+        tracing::error!(error = %cause, "storage full: a write was refused");
+        ApiError::InsufficientStorage
     }
 
     /// Maps an extractor rejection, keeping axum's status and its explanation.
@@ -141,14 +176,22 @@ impl IntoResponse for ApiError {
                 tracing::error!(error = ?cause, "internal error");
                 "internal error; the server log has the details".to_owned()
             }
-            other => other.to_string(),
+            // Messages may quote what the client sent (a JSON value, a query string): bounded
+            // so that an error answer stays small whatever the request held.
+            other => crate::text::bounded_message(other.to_string()),
         };
         let body = ErrorBody { error: ErrorDetail { code: self.code().to_owned(), message } };
         let mut response = (status, axum::Json(body)).into_response();
-        if status == StatusCode::UNAUTHORIZED {
-            response
-                .headers_mut()
-                .insert(header::WWW_AUTHENTICATE, HeaderValue::from_static("Bearer"));
+        let headers = response.headers_mut();
+        match status {
+            StatusCode::UNAUTHORIZED => {
+                headers.insert(header::WWW_AUTHENTICATE, HeaderValue::from_static("Bearer"));
+            }
+            // Busy or not ready: worth retrying soon.
+            StatusCode::SERVICE_UNAVAILABLE => {
+                headers.insert(header::RETRY_AFTER, HeaderValue::from_static("1"));
+            }
+            _ => {}
         }
         response
     }
@@ -158,6 +201,7 @@ impl From<crate::store::StoreError> for ApiError {
     fn from(e: crate::store::StoreError) -> Self {
         match e {
             crate::store::StoreError::NotFound { kind, id } => ApiError::not_found(kind, &id),
+            full if full.is_storage_full() => ApiError::storage_full(full.into()),
             other => ApiError::Internal(other.into()),
         }
     }
@@ -172,12 +216,18 @@ impl From<crate::data::ParseError> for ApiError {
 
 impl From<sqlx::Error> for ApiError {
     fn from(e: sqlx::Error) -> Self {
+        if crate::store::sqlx_is_storage_full(&e) {
+            return ApiError::storage_full(e.into());
+        }
         ApiError::Internal(e.into())
     }
 }
 
 impl From<std::io::Error> for ApiError {
     fn from(e: std::io::Error) -> Self {
+        if crate::store::io_is_storage_full(&e) {
+            return ApiError::storage_full(e.into());
+        }
         ApiError::Internal(e.into())
     }
 }
@@ -198,7 +248,44 @@ macro_rules! from_rejection {
     )*};
 }
 
-from_rejection!(JsonRejection, QueryRejection, PathRejection, MultipartError);
+from_rejection!(JsonRejection, QueryRejection, PathRejection);
+
+impl From<MultipartError> for ApiError {
+    /// A multipart body that stopped arriving is the client's doing (it paused past the body
+    /// deadline, or went away), not a malformed form.
+    fn from(e: MultipartError) -> Self {
+        if find_source::<tower_http::timeout::TimeoutError>(&e).is_some() {
+            return ApiError::RequestTimeout;
+        }
+        if find_source::<hyper::Error>(&e).is_some_and(|h| h.is_incomplete_message())
+            || find_source::<std::io::Error>(&e).is_some_and(|io| {
+                matches!(
+                    io.kind(),
+                    std::io::ErrorKind::ConnectionReset
+                        | std::io::ErrorKind::UnexpectedEof
+                        | std::io::ErrorKind::BrokenPipe
+                )
+            })
+        {
+            return ApiError::ClientClosed;
+        }
+        ApiError::rejected(e.status(), e.body_text())
+    }
+}
+
+/// The first error of type `T` in `error`'s chain of sources.
+fn find_source<'a, T: std::error::Error + 'static>(
+    error: &'a (dyn std::error::Error + 'static),
+) -> Option<&'a T> {
+    let mut current = Some(error);
+    while let Some(e) = current {
+        if let Some(found) = e.downcast_ref::<T>() {
+            return Some(found);
+        }
+        current = e.source();
+    }
+    None
+}
 
 impl From<MultipartRejection> for ApiError {
     fn from(_: MultipartRejection) -> Self {

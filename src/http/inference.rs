@@ -26,6 +26,9 @@ use crate::algo::Policy;
 use crate::data::{ActionSpace, Actions};
 use crate::store::Store;
 
+/// The name of a model's one input tensor (KServe v2 metadata and `infer`).
+const INPUT_NAME: &str = "observations";
+
 /// Largest batch one request may send.
 pub const MAX_BATCH_ROWS: usize = 16_384;
 /// Batches up to this many rows run on the request's task (a few microseconds of matrix
@@ -229,7 +232,7 @@ async fn model_metadata(
         versions: vec!["1".into()],
         platform: format!("safedice-{}", spec.algorithm),
         inputs: vec![TensorMetadata {
-            name: "observations".into(),
+            name: INPUT_NAME.into(),
             datatype: "FP32".into(),
             shape: vec![-1, spec.obs_dim as i64],
         }],
@@ -330,6 +333,12 @@ async fn infer(
             request.inputs.len()
         )));
     };
+    if input.name != INPUT_NAME {
+        return Err(bad_input(format!(
+            "unknown input `{}`; this model's only input is `{INPUT_NAME}` (see its metadata)",
+            input.name
+        )));
+    }
     if input.datatype != "FP32" {
         return Err(bad_input(format!("input datatype must be FP32, got {}", input.datatype)));
     }
@@ -342,14 +351,15 @@ async fn infer(
             )))
         }
     };
-    let mut flat = Vec::with_capacity(rows * obs_dim);
+    // Sized by the data that came, never by the shape the client declared.
+    let mut flat = Vec::new();
     flatten_numbers(&input.data, &mut flat)?;
-    if flat.len() != rows * obs_dim {
+    if rows.checked_mul(obs_dim) != Some(flat.len()) {
         return Err(bad_input(format!(
             "input data has {} values; shape {:?} needs {}",
             flat.len(),
             input.shape,
-            rows * obs_dim
+            (rows as u128) * (obs_dim as u128)
         )));
     }
     let observations = Observations::from_flat(&flat, rows, obs_dim)?;

@@ -2,10 +2,12 @@
 //! with their OpenAPI description; this module merges them and adds the middleware.
 //!
 //! Request path, outermost first: request id (`x-request-id`, generated when absent) → trace
-//! span → CORS → panic catcher → per-route metrics → bearer auth → timeout (not on uploads and
-//! streams) → handler.
+//! span → CORS → panic catcher → body idle timeout → per-route metrics → bearer auth → timeout
+//! (not on uploads and streams) → handler. Connection-level limits (count, header deadline)
+//! are in [`connections`].
 
 pub mod auth;
+pub mod connections;
 pub mod datasets;
 pub mod envs;
 pub mod error;
@@ -60,6 +62,8 @@ pub struct AppState {
     pub jobs: crate::jobs::JobRunner,
     /// Trained policies loaded for inference.
     pub policies: Arc<inference::PolicyCache>,
+    /// One permit per upload being received (`--max-concurrent-uploads`).
+    pub uploads: Arc<tokio::sync::Semaphore>,
 }
 
 impl AppState {
@@ -75,6 +79,9 @@ impl AppState {
                 shutdown.clone(),
             ),
             policies: Arc::new(inference::PolicyCache::new(store.clone())),
+            uploads: Arc::new(tokio::sync::Semaphore::new(usize::from(
+                config.max_concurrent_uploads,
+            ))),
             shutdown,
             config: Arc::new(config),
             store,
@@ -101,22 +108,35 @@ fn routes() -> OpenApiRouter<AppState> {
     OpenApiRouter::with_openapi(openapi::base()).merge(bounded).merge(long_running)
 }
 
-/// The OpenAPI description of the whole API, generated from the handlers.
+/// The OpenAPI description of the whole API, generated from the handlers, for a server with
+/// an API token (as committed in `api/openapi.yaml`).
 pub fn openapi() -> utoipa::openapi::OpenApi {
+    openapi_for(true)
+}
+
+/// The description for a server with (`secured`) or without an API token.
+pub fn openapi_for(secured: bool) -> utoipa::openapi::OpenApi {
     let mut doc = routes().into_openapi();
-    openapi::secure_api_routes(&mut doc);
+    openapi::document_shared_errors(&mut doc);
+    if secured {
+        openapi::secure_api_routes(&mut doc);
+    } else {
+        openapi::open_api_routes(&mut doc);
+    }
     doc
 }
 
 /// The complete application: routes, fallbacks and middleware.
 pub fn app(state: AppState) -> anyhow::Result<Router> {
     let cors = cors_layer(&state.config)?;
+    let body_idle = Duration::from_secs(state.config.body_idle_timeout_secs);
     let (router, _) = routes().split_for_parts();
     let router = router
         .fallback(error::route_not_found)
         .method_not_allowed_fallback(error::method_not_allowed)
         .layer(middleware::from_fn_with_state(state.clone(), auth::require_token))
         .layer(middleware::from_fn_with_state(state.clone(), metrics::track))
+        .layer(middleware::from_fn_with_state(body_idle, body_idle_timeout))
         .with_state(state);
     let trace = TraceLayer::new_for_http()
         .make_span_with(|request: &Request| {
@@ -174,6 +194,18 @@ async fn timeout(request: Request, next: Next) -> Response {
         )
         .into_response(),
     }
+}
+
+/// Fails a request body that pauses longer than `limit` between two pieces (a client trickling
+/// an upload would otherwise hold its connection and temp file for as long as it likes).
+async fn body_idle_timeout(
+    axum::extract::State(limit): axum::extract::State<Duration>,
+    request: Request,
+    next: Next,
+) -> Response {
+    let (parts, body) = request.into_parts();
+    let body = axum::body::Body::new(tower_http::timeout::TimeoutBody::new(limit, body));
+    next.run(Request::from_parts(parts, body)).await
 }
 
 /// A panicking handler becomes a logged 500 with the usual error body.

@@ -4,10 +4,14 @@
 
 use std::sync::OnceLock;
 
+use axum::extract::State;
 use axum::http::header;
 use axum::response::{IntoResponse, Response};
+use utoipa::openapi::content::ContentBuilder;
+use utoipa::openapi::path::{Operation, PathItem};
+use utoipa::openapi::response::ResponseBuilder;
 use utoipa::openapi::security::{Http, HttpAuthScheme, SecurityScheme};
-use utoipa::openapi::{OpenApi as OpenApiDoc, SecurityRequirement};
+use utoipa::openapi::{OpenApi as OpenApiDoc, Ref, SecurityRequirement};
 use utoipa::OpenApi;
 use utoipa_axum::router::OpenApiRouter;
 use utoipa_axum::routes;
@@ -24,7 +28,8 @@ const SECURITY_SCHEME: &str = "bearer";
         description = "Offline safe imitation learning (SafeDICE, NeurIPS 2023) as a service: \
             upload unlabeled and non-preferred demonstrations, train policies, query actions.\n\n\
             Every `/v1` and `/v2` route needs `Authorization: Bearer <token>` when the server \
-            runs with an API token. Every 4xx/5xx body is \
+            runs with an API token (the document a server serves at `/v1/openapi.json` says \
+            whether it does). Every 4xx/5xx body is \
             `{\"error\": {\"code\": \"snake_case_code\", \"message\": \"...\"}}`.",
         license(name = "MIT"),
     ),
@@ -51,29 +56,128 @@ pub fn base() -> OpenApiDoc {
     doc
 }
 
+/// The operations of a path item, whichever methods it has.
+fn operations(item: &mut PathItem) -> impl Iterator<Item = &mut Operation> {
+    [
+        &mut item.get,
+        &mut item.put,
+        &mut item.post,
+        &mut item.delete,
+        &mut item.options,
+        &mut item.head,
+        &mut item.patch,
+        &mut item.trace,
+    ]
+    .into_iter()
+    .flatten()
+}
+
+fn is_api_path(path: &str) -> bool {
+    ["/v1/", "/v2/"].iter().any(|prefix| path.starts_with(prefix))
+}
+
 /// Marks every operation under `/v1` and `/v2` as needing the bearer token, mirroring
-/// [`super::auth::requirement`].
+/// [`super::auth::requirement`], with the 401 and 403 answers the token check gives.
 pub fn secure_api_routes(doc: &mut OpenApiDoc) {
     for (path, item) in doc.paths.paths.iter_mut() {
-        let is_api = ["/v1/", "/v2/"].iter().any(|prefix| path.starts_with(prefix));
-        if !is_api {
+        if !is_api_path(path) {
             continue;
         }
-        let operations = [
-            &mut item.get,
-            &mut item.put,
-            &mut item.post,
-            &mut item.delete,
-            &mut item.options,
-            &mut item.head,
-            &mut item.patch,
-            &mut item.trace,
-        ];
-        for operation in operations.into_iter().flatten() {
+        for operation in operations(item) {
             operation.security =
                 Some(vec![SecurityRequirement::new(SECURITY_SCHEME, Vec::<String>::new())]);
+            add_error(
+                operation,
+                401,
+                "No bearer token, or not one of this server's (`unauthorized`)",
+            );
+            add_error(
+                operation,
+                403,
+                "The inference token on a route other than the action endpoints (`forbidden`)",
+            );
         }
     }
+}
+
+/// Without an API token nothing is enforced: the document then names no security scheme, so
+/// that clients generated from it send no credentials and expect no 401/403.
+pub fn open_api_routes(doc: &mut OpenApiDoc) {
+    if let Some(components) = doc.components.as_mut() {
+        components.security_schemes.remove(SECURITY_SCHEME);
+    }
+}
+
+/// Documents the answers that the shared extractors and middleware give, wherever they can
+/// happen: a JSON body that does not parse (400), has the wrong content type (415), is over
+/// the body limit (413) or does not fit the schema (422); a path or query that does not parse
+/// (400); a write refused because the disk is full (507); and the request deadline (503).
+pub fn document_shared_errors(doc: &mut OpenApiDoc) {
+    for (path, item) in doc.paths.paths.iter_mut() {
+        let api = is_api_path(path);
+        for operation in operations(item) {
+            let takes_json = operation.request_body.as_ref().is_some_and(|body| {
+                body.content.keys().any(|content_type| content_type == "application/json")
+            });
+            if takes_json {
+                add_error(operation, 400, "The body is not valid JSON (`bad_request`)");
+                add_error(operation, 413, "The body exceeds 2 MiB (`payload_too_large`)");
+                add_error(
+                    operation,
+                    415,
+                    "The body is not sent as `application/json` (`unsupported_media_type`)",
+                );
+                add_error(
+                    operation,
+                    422,
+                    "The body does not fit the schema: a missing or unknown field, a value of \
+                     the wrong type or out of range (`invalid_body`)",
+                );
+            }
+            let has_params = operation.parameters.as_ref().is_some_and(|p| !p.is_empty());
+            if has_params {
+                add_error(
+                    operation,
+                    400,
+                    "A path or query parameter does not parse or is out of range \
+                     (`bad_request`, `invalid_pagination`, ...)",
+                );
+            }
+            if api {
+                add_error(
+                    operation,
+                    503,
+                    "The request took longer than 30 s (`timeout`), or the service is busy; \
+                     retry after `Retry-After` seconds",
+                );
+            }
+        }
+        if api {
+            for write in [&mut item.post, &mut item.delete].into_iter().flatten() {
+                add_error(
+                    write,
+                    507,
+                    "The server's disk is full (`insufficient_storage`); nothing was stored",
+                );
+            }
+        }
+    }
+}
+
+/// Adds an error answer with the shared error body, unless the operation documents that status
+/// already (its own description is more specific).
+fn add_error(operation: &mut Operation, status: u16, description: &str) {
+    let responses = &mut operation.responses.responses;
+    responses.entry(status.to_string()).or_insert_with(|| {
+        ResponseBuilder::new()
+            .description(description)
+            .content(
+                "application/json",
+                ContentBuilder::new().schema(Some(Ref::from_schema_name("ErrorBody"))).build(),
+            )
+            .build()
+            .into()
+    });
 }
 
 /// The description as YAML, as committed in `api/openapi.yaml`.
@@ -85,13 +189,17 @@ pub fn router() -> OpenApiRouter<AppState> {
     OpenApiRouter::new().routes(routes!(openapi_json))
 }
 
-/// This API's OpenAPI description.
+/// This API's OpenAPI description, as this server enforces it: with an API token every
+/// `/v1` and `/v2` operation carries the bearer requirement; without one, none does.
 #[utoipa::path(get, path = "/v1/openapi.json", tag = "operations",
     responses((status = 200, description = "OpenAPI 3.1 document", content_type = "application/json")))]
-async fn openapi_json() -> Response {
-    static DOCUMENT: OnceLock<String> = OnceLock::new();
-    let body = DOCUMENT.get_or_init(|| {
-        super::openapi().to_pretty_json().expect("the OpenAPI document serializes")
+async fn openapi_json(State(state): State<AppState>) -> Response {
+    static SECURED: OnceLock<String> = OnceLock::new();
+    static OPEN: OnceLock<String> = OnceLock::new();
+    let secured = state.config.api_token.is_some();
+    let cell = if secured { &SECURED } else { &OPEN };
+    let body = cell.get_or_init(|| {
+        super::openapi_for(secured).to_pretty_json().expect("the OpenAPI document serializes")
     });
     ([(header::CONTENT_TYPE, "application/json")], body.as_str()).into_response()
 }

@@ -8,6 +8,8 @@ use super::error::ApiError;
 
 pub const DEFAULT_LIMIT: u32 = 50;
 pub const MAX_LIMIT: u32 = 500;
+/// i64::MAX, the largest offset SQL can take.
+pub const MAX_OFFSET: u64 = i64::MAX as u64;
 
 /// `?limit=50&offset=0`: at most `limit` items (1..=500, default 50), skipping `offset`.
 #[derive(Debug, Clone, Copy, Deserialize, IntoParams)]
@@ -16,8 +18,8 @@ pub struct PageParams {
     /// Items per page, 1 to 500 (default 50).
     #[param(minimum = 1, maximum = 500, default = 50)]
     pub limit: Option<u32>,
-    /// Items to skip (default 0).
-    #[param(minimum = 0, default = 0)]
+    /// Items to skip (default 0), at most 2^63 - 1.
+    #[param(minimum = 0, maximum = 9223372036854775807_i64, default = 0)]
     pub offset: Option<u64>,
 }
 
@@ -37,7 +39,15 @@ impl PageParams {
                 format!("limit must be between 1 and {MAX_LIMIT}, got {limit}"),
             ));
         }
-        Ok(PageRequest { limit, offset: self.offset.unwrap_or(0) })
+        let offset = self.offset.unwrap_or(0);
+        // The database counts in i64: a larger offset would wrap to the first page.
+        if offset > MAX_OFFSET {
+            return Err(ApiError::bad_request(
+                "invalid_pagination",
+                format!("offset must be between 0 and {MAX_OFFSET}, got {offset}"),
+            ));
+        }
+        Ok(PageRequest { limit, offset })
     }
 }
 
@@ -55,7 +65,7 @@ pub struct Page<T> {
 
 impl<T> Page<T> {
     pub fn new(items: Vec<T>, total: u64, request: PageRequest) -> Self {
-        let end = request.offset + items.len() as u64;
+        let end = request.offset.saturating_add(items.len() as u64);
         let next_offset = (end < total).then_some(end);
         Page { items, total, limit: request.limit, offset: request.offset, next_offset }
     }

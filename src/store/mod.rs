@@ -42,6 +42,44 @@ pub enum StoreError {
     Io(#[from] std::io::Error),
 }
 
+/// errno of "no space left on device" and "disk quota exceeded" (Linux).
+const ENOSPC: i32 = 28;
+const EDQUOT: i32 = 122;
+/// SQLite's primary result code SQLITE_FULL ("database or disk is full").
+const SQLITE_FULL: i64 = 13;
+
+impl StoreError {
+    /// Whether the failure is the disk (or quota) being full: the request was fine and may
+    /// succeed once space is freed, so it is neither the caller's fault nor a bug.
+    pub fn is_storage_full(&self) -> bool {
+        match self {
+            StoreError::Io(e) => io_is_storage_full(e),
+            StoreError::Database(e) => sqlx_is_storage_full(e),
+            _ => false,
+        }
+    }
+}
+
+/// An I/O error that means the file system (or the user's quota) is full.
+pub fn io_is_storage_full(e: &std::io::Error) -> bool {
+    e.kind() == std::io::ErrorKind::StorageFull
+        || e.kind() == std::io::ErrorKind::QuotaExceeded
+        || matches!(e.raw_os_error(), Some(ENOSPC | EDQUOT))
+}
+
+/// A database error that means the disk is full (SQLITE_FULL, or an I/O error saying so).
+pub fn sqlx_is_storage_full(e: &sqlx::Error) -> bool {
+    match e {
+        sqlx::Error::Database(db) => {
+            // Extended result codes keep the primary code in their low byte.
+            let primary = db.code().and_then(|c| c.parse::<i64>().ok()).map(|c| c & 0xff);
+            primary == Some(SQLITE_FULL)
+        }
+        sqlx::Error::Io(io) => io_is_storage_full(io),
+        _ => false,
+    }
+}
+
 /// The database pool and the data directory; cheap to clone.
 #[derive(Clone, Debug)]
 pub struct Store {

@@ -1,0 +1,383 @@
+//! Soak benchmark: concurrent clients mixing every kind of request against a real
+//! `safedice serve` child process for minutes; reports the request count, every answer that is
+//! neither 2xx nor 4xx, the server's resident memory over time (it must plateau), and whether
+//! every upload and job the server accepted is still listed at the end (minus the ones the
+//! clients deleted).
+//!
+//! ```text
+//! cargo build --release && cargo run --release --example soak -- \
+//!     [--clients 8] [--seconds 300] [--workers 2] [--bin target/release/safedice]
+//! ```
+//! The mix per client step: upload a small dataset (one in five invalid), submit a short job
+//! (BC or SafeDICE), cancel a job, delete a dataset (refused while a job uses it), read a job's
+//! metrics, list jobs, and `/act` on a trained policy. Exits non-zero on any 5xx, any transport
+//! error, or anything accepted and then missing.
+
+use std::collections::{BTreeMap, BTreeSet};
+use std::process::{Child, Command, Stdio};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use anyhow::{bail, Context};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use serde_json::{json, Value};
+
+const OBS_DIM: usize = 4;
+
+struct Args {
+    clients: usize,
+    seconds: u64,
+    workers: u16,
+    bin: String,
+}
+
+fn parse_args() -> anyhow::Result<Args> {
+    let mut args =
+        Args { clients: 8, seconds: 300, workers: 2, bin: "target/release/safedice".into() };
+    let mut it = std::env::args().skip(1);
+    while let Some(flag) = it.next() {
+        let mut value = || it.next().with_context(|| format!("{flag} needs a value"));
+        match flag.as_str() {
+            "--clients" => args.clients = value()?.parse()?,
+            "--seconds" => args.seconds = value()?.parse()?,
+            "--workers" => args.workers = value()?.parse()?,
+            "--bin" => args.bin = value()?,
+            other => bail!("unknown argument {other}"),
+        }
+    }
+    Ok(args)
+}
+
+/// The server under test, killed when dropped.
+struct ServerProcess {
+    child: Child,
+    url: String,
+    _data_dir: tempfile::TempDir,
+}
+
+impl ServerProcess {
+    async fn start(args: &Args) -> anyhow::Result<ServerProcess> {
+        let data_dir = tempfile::tempdir()?;
+        let port = std::net::TcpListener::bind("127.0.0.1:0")?.local_addr()?.port();
+        let child = Command::new(&args.bin)
+            .args(["serve", "--bind", &format!("127.0.0.1:{port}"), "--workers"])
+            .arg(args.workers.to_string())
+            .arg("--data-dir")
+            .arg(data_dir.path())
+            .env("RUST_LOG", "warn")
+            .stdout(Stdio::null())
+            .spawn()
+            .with_context(|| format!("cannot start {} (build it first)", args.bin))?;
+        let server =
+            ServerProcess { child, url: format!("http://127.0.0.1:{port}"), _data_dir: data_dir };
+        let started = Instant::now();
+        while reqwest::get(format!("{}/healthz", server.url)).await.is_err() {
+            if started.elapsed() > Duration::from_secs(60) {
+                bail!("the server did not come up");
+            }
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+        Ok(server)
+    }
+
+    /// Resident memory now, in MiB.
+    fn rss_mib(&self) -> f64 {
+        let status = std::fs::read_to_string(format!("/proc/{}/status", self.child.id()))
+            .unwrap_or_default();
+        let kib: f64 = status
+            .lines()
+            .find(|l| l.starts_with("VmRSS:"))
+            .and_then(|l| l.split_whitespace().nth(1))
+            .and_then(|v| v.parse().ok())
+            .unwrap_or(0.0);
+        kib / 1024.0
+    }
+}
+
+impl Drop for ServerProcess {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// What the clients saw, shared between them.
+#[derive(Default)]
+struct Ledger {
+    requests: u64,
+    by_status: BTreeMap<u16, u64>,
+    by_kind: BTreeMap<&'static str, u64>,
+    failures: Vec<String>,
+    datasets: BTreeSet<String>,
+    deleted_datasets: BTreeSet<String>,
+    jobs: BTreeSet<String>,
+}
+
+impl Ledger {
+    fn record(&mut self, kind: &'static str, status: u16) {
+        self.requests += 1;
+        *self.by_status.entry(status).or_default() += 1;
+        *self.by_kind.entry(kind).or_default() += 1;
+        if !(200..500).contains(&status) {
+            self.failures.push(format!("{kind}: {status}"));
+        }
+    }
+}
+
+/// A small JSONL dataset of `episodes` × 20 transitions; `valid` false makes one row ragged.
+fn jsonl_dataset(rng: &mut ChaCha8Rng, episodes: usize, valid: bool) -> Vec<u8> {
+    let mut out = String::new();
+    for episode in 0..episodes {
+        for t in 0..20 {
+            let obs: Vec<f32> = (0..OBS_DIM).map(|_| rng.random_range(-1.0..1.0)).collect();
+            let next: Vec<f32> = (0..OBS_DIM).map(|_| rng.random_range(-1.0..1.0)).collect();
+            let action = (obs[0] * 0.5).tanh();
+            let obs = if !valid && episode == 1 && t == 3 { &obs[..2] } else { &obs[..] };
+            let row = json!({"episode": episode, "obs": obs, "action": [action],
+                "next_obs": next, "reward": 1.0, "cost": f32::from(t % 5 == 0),
+                "terminal": t == 19});
+            out.push_str(&row.to_string());
+            out.push('\n');
+        }
+    }
+    out.into_bytes()
+}
+
+struct Client {
+    http: reqwest::Client,
+    url: String,
+    rng: ChaCha8Rng,
+    ledger: Arc<Mutex<Ledger>>,
+    policy: String,
+}
+
+impl Client {
+    fn pick<'a>(&mut self, set: &'a [String]) -> Option<&'a String> {
+        (!set.is_empty()).then(|| &set[self.rng.random_range(0..set.len())])
+    }
+
+    fn known(&self) -> (Vec<String>, Vec<String>) {
+        let ledger = self.ledger.lock().unwrap();
+        let live = ledger.datasets.difference(&ledger.deleted_datasets).cloned().collect();
+        (live, ledger.jobs.iter().cloned().collect())
+    }
+
+    async fn send(
+        &mut self,
+        kind: &'static str,
+        request: reqwest::RequestBuilder,
+    ) -> anyhow::Result<(u16, Value)> {
+        let response = match request.send().await {
+            Ok(response) => response,
+            Err(e) => {
+                self.ledger.lock().unwrap().failures.push(format!("{kind}: transport {e}"));
+                return Ok((0, Value::Null));
+            }
+        };
+        let status = response.status().as_u16();
+        let body = response.json::<Value>().await.unwrap_or(Value::Null);
+        self.ledger.lock().unwrap().record(kind, status);
+        Ok((status, body))
+    }
+
+    async fn step(&mut self) -> anyhow::Result<()> {
+        let (datasets, jobs) = self.known();
+        let url = self.url.clone();
+        match self.rng.random_range(0..100) {
+            0..=14 => {
+                let valid = self.rng.random_range(0..5) != 0;
+                let episodes = self.rng.random_range(2..6);
+                let bytes = jsonl_dataset(&mut self.rng, episodes, valid);
+                let form = reqwest::multipart::Form::new()
+                    .part("file", reqwest::multipart::Part::bytes(bytes).file_name("soak.jsonl"));
+                let request = self.http.post(format!("{url}/v1/datasets")).multipart(form);
+                let (status, body) = self.send("upload", request).await?;
+                if status == 201 {
+                    let id = body["id"].as_str().context("dataset id")?.to_owned();
+                    self.ledger.lock().unwrap().datasets.insert(id);
+                }
+            }
+            15..=29 => {
+                let Some(dataset) = self.pick(&datasets).cloned() else { return Ok(()) };
+                let algorithm = if self.rng.random_bool(0.5) { "bc" } else { "safedice" };
+                let mut body = json!({"algorithm": algorithm, "unlabeled_dataset": dataset,
+                    "config": {"iterations": self.rng.random_range(50..400), "seed": 0,
+                               "hidden_sizes": [32, 32], "batch_size": 64}});
+                if algorithm == "safedice" {
+                    body["non_preferred_dataset"] = json!(dataset);
+                }
+                let request = self.http.post(format!("{url}/v1/jobs")).json(&body);
+                let (status, body) = self.send("submit", request).await?;
+                if status == 201 {
+                    let id = body["id"].as_str().context("job id")?.to_owned();
+                    self.ledger.lock().unwrap().jobs.insert(id);
+                }
+            }
+            30..=39 => {
+                let Some(job) = self.pick(&jobs).cloned() else { return Ok(()) };
+                let request = self.http.post(format!("{url}/v1/jobs/{job}/cancel"));
+                self.send("cancel", request).await?;
+            }
+            40..=47 => {
+                let Some(dataset) = self.pick(&datasets).cloned() else { return Ok(()) };
+                let request = self.http.delete(format!("{url}/v1/datasets/{dataset}"));
+                let (status, _) = self.send("delete", request).await?;
+                if status == 204 {
+                    self.ledger.lock().unwrap().deleted_datasets.insert(dataset);
+                }
+            }
+            48..=62 => {
+                let Some(job) = self.pick(&jobs).cloned() else { return Ok(()) };
+                let request = self.http.get(format!("{url}/v1/jobs/{job}/metrics?max_points=200"));
+                self.send("metrics", request).await?;
+            }
+            63..=69 => {
+                let request = self.http.get(format!("{url}/v1/jobs?limit=100"));
+                self.send("list", request).await?;
+            }
+            _ => {
+                let obs: Vec<f32> =
+                    (0..OBS_DIM).map(|_| self.rng.random_range(-1.0..1.0)).collect();
+                let request = self
+                    .http
+                    .post(format!("{url}/v1/policies/{}/act", self.policy))
+                    .json(&json!({"observations": [obs], "deterministic": true}));
+                self.send("act", request).await?;
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Trains the policy the `/act` requests use.
+async fn train_policy(http: &reqwest::Client, url: &str) -> anyhow::Result<String> {
+    let mut rng = ChaCha8Rng::seed_from_u64(1);
+    let form = reqwest::multipart::Form::new().part(
+        "file",
+        reqwest::multipart::Part::bytes(jsonl_dataset(&mut rng, 10, true)).file_name("p.jsonl"),
+    );
+    let dataset: Value =
+        http.post(format!("{url}/v1/datasets")).multipart(form).send().await?.json().await?;
+    let job: Value = http
+        .post(format!("{url}/v1/jobs"))
+        .json(&json!({"algorithm": "bc", "unlabeled_dataset": dataset["id"],
+                      "config": {"iterations": 100, "seed": 0, "hidden_sizes": [32, 32]}}))
+        .send()
+        .await?
+        .json()
+        .await?;
+    let job_url = format!("{url}/v1/jobs/{}", job["id"].as_str().context("job id")?);
+    loop {
+        let job: Value = http.get(&job_url).send().await?.json().await?;
+        match job["status"].as_str() {
+            Some("succeeded") => return Ok(job["policy_id"].as_str().context("policy")?.into()),
+            Some("failed" | "cancelled") => bail!("training failed: {job}"),
+            _ => tokio::time::sleep(Duration::from_millis(100)).await,
+        }
+    }
+}
+
+/// Every id of a list endpoint, following its pages.
+async fn list_all(
+    http: &reqwest::Client,
+    url: &str,
+    path: &str,
+) -> anyhow::Result<BTreeSet<String>> {
+    let mut ids = BTreeSet::new();
+    let mut offset = 0u64;
+    loop {
+        let page: Value =
+            http.get(format!("{url}{path}?limit=500&offset={offset}")).send().await?.json().await?;
+        for item in page["items"].as_array().context("items")? {
+            ids.insert(item["id"].as_str().context("id")?.to_owned());
+        }
+        match page["next_offset"].as_u64() {
+            Some(next) => offset = next,
+            None => return Ok(ids),
+        }
+    }
+}
+
+#[tokio::main]
+async fn main() -> anyhow::Result<()> {
+    let args = parse_args()?;
+    let server = ServerProcess::start(&args).await?;
+    let http = reqwest::Client::builder().timeout(Duration::from_secs(60)).build()?;
+    let policy = train_policy(&http, &server.url).await?;
+    let ledger = Arc::new(Mutex::new(Ledger::default()));
+    let started = Instant::now();
+    let deadline = started + Duration::from_secs(args.seconds);
+    let clients: Vec<_> = (0..args.clients)
+        .map(|i| {
+            let mut client = Client {
+                http: http.clone(),
+                url: server.url.clone(),
+                rng: ChaCha8Rng::seed_from_u64(100 + i as u64),
+                ledger: ledger.clone(),
+                policy: policy.clone(),
+            };
+            tokio::spawn(async move {
+                while Instant::now() < deadline {
+                    client.step().await?;
+                }
+                anyhow::Ok(())
+            })
+        })
+        .collect();
+    println!("{:>6}  {:>9}  {:>9}", "t (s)", "RSS (MiB)", "requests");
+    let mut samples = Vec::new();
+    while Instant::now() < deadline {
+        tokio::time::sleep(Duration::from_secs(10).min(deadline - Instant::now())).await;
+        let rss = server.rss_mib();
+        let requests = ledger.lock().unwrap().requests;
+        println!("{:>6.0}  {:>9.1}  {:>9}", started.elapsed().as_secs_f64(), rss, requests);
+        samples.push(rss);
+    }
+    for client in clients {
+        client.await??;
+    }
+    let elapsed = started.elapsed().as_secs_f64();
+    let listed_datasets = list_all(&http, &server.url, "/v1/datasets").await?;
+    let listed_jobs = list_all(&http, &server.url, "/v1/jobs").await?;
+    let ledger = ledger.lock().unwrap();
+    let expected: BTreeSet<_> =
+        ledger.datasets.difference(&ledger.deleted_datasets).cloned().collect();
+    let missing_datasets: Vec<_> = expected.difference(&listed_datasets).collect();
+    let missing_jobs: Vec<_> = ledger.jobs.difference(&listed_jobs).collect();
+    println!(
+        "\n{} requests in {elapsed:.0} s ({:.1}/s) from {} clients, --workers {}",
+        ledger.requests,
+        ledger.requests as f64 / elapsed,
+        args.clients,
+        args.workers
+    );
+    println!("by kind:   {:?}", ledger.by_kind);
+    println!("by status: {:?}", ledger.by_status);
+    println!(
+        "accepted: {} uploads ({} deleted), {} jobs; missing afterwards: {} datasets, {} jobs",
+        ledger.datasets.len(),
+        ledger.deleted_datasets.len(),
+        ledger.jobs.len(),
+        missing_datasets.len(),
+        missing_jobs.len()
+    );
+    let third = samples.len() / 3;
+    if third > 0 {
+        let mean = |s: &[f64]| s.iter().sum::<f64>() / s.len() as f64;
+        println!(
+            "RSS: first third {:.1} MiB, last third {:.1} MiB, max {:.1} MiB",
+            mean(&samples[..third]),
+            mean(&samples[samples.len() - third..]),
+            samples.iter().cloned().fold(0.0, f64::max)
+        );
+    }
+    println!("failures (neither 2xx nor 4xx, or transport): {}", ledger.failures.len());
+    for failure in ledger.failures.iter().take(20) {
+        println!("  {failure}");
+    }
+    if !ledger.failures.is_empty() || !missing_datasets.is_empty() || !missing_jobs.is_empty() {
+        bail!("the soak found failures");
+    }
+    Ok(())
+}

@@ -1,0 +1,133 @@
+//! Accepting connections, with the limits that keep slow or idle clients from exhausting the
+//! process: a cap on open connections (below the file-descriptor limit, so the database and
+//! uploads always find descriptors), a deadline for a request's headers (slowloris; it also
+//! closes keep-alive connections left idle that long), and a deadline between two pieces of a
+//! request body (a body that trickles one byte per minute). `axum::serve` has none of these
+//! knobs, so this is its loop on `hyper-util` with them set.
+
+use std::io;
+use std::sync::Arc;
+use std::time::Duration;
+
+use axum::Router;
+use hyper_util::rt::{TokioExecutor, TokioIo, TokioTimer};
+use hyper_util::server::conn::auto;
+use hyper_util::server::graceful::GracefulShutdown;
+use hyper_util::service::TowerToHyperService;
+use tokio::net::{TcpListener, TcpStream};
+use tokio::sync::Semaphore;
+use tokio_util::sync::CancellationToken;
+
+/// Descriptors kept free for everything that is not a client connection: the database pool
+/// and its WAL, upload temp files, dataset reads, the log.
+const RESERVED_DESCRIPTORS: u64 = 64;
+
+/// How long accepting pauses after the kernel refuses a descriptor (EMFILE/ENFILE).
+const ACCEPT_BACKOFF: Duration = Duration::from_millis(100);
+
+/// errno values of "too many open files" for the process (EMFILE) and the system (ENFILE).
+const EMFILE: i32 = 24;
+const ENFILE: i32 = 23;
+
+/// The limits in force for client connections.
+#[derive(Clone, Copy, Debug)]
+pub struct ConnectionLimits {
+    /// Open client connections at most; more wait in the listen backlog.
+    pub max_connections: usize,
+    /// A request's headers must arrive within this (also the keep-alive idle limit).
+    pub header_read_timeout: Duration,
+}
+
+impl ConnectionLimits {
+    /// `configured`, lowered to what the process's open-file limit leaves after
+    /// [`RESERVED_DESCRIPTORS`]. Raises the soft limit to the hard one first, as servers do.
+    pub fn new(configured: usize, header_read_timeout: Duration) -> Self {
+        let descriptors = rlimit::increase_nofile_limit(u64::MAX).unwrap_or(1024);
+        let affordable = descriptors.saturating_sub(RESERVED_DESCRIPTORS).max(8);
+        let max_connections = configured.min(usize::try_from(affordable).unwrap_or(usize::MAX));
+        if max_connections < configured {
+            tracing::warn!(
+                configured,
+                max_connections,
+                open_file_limit = descriptors,
+                "--max-connections lowered to fit the open-file limit"
+            );
+        }
+        ConnectionLimits { max_connections, header_read_timeout }
+    }
+}
+
+/// Serves `app` on `listener` until `shutdown` is cancelled, then stops accepting, asks every
+/// connection to finish its request in flight, and waits for them (the caller bounds the wait).
+pub async fn serve(
+    listener: TcpListener,
+    app: Router,
+    limits: ConnectionLimits,
+    shutdown: CancellationToken,
+) -> io::Result<()> {
+    let slots = Arc::new(Semaphore::new(limits.max_connections));
+    let graceful = GracefulShutdown::new();
+    let mut builder = auto::Builder::new(TokioExecutor::new());
+    builder.http1().timer(TokioTimer::new()).header_read_timeout(limits.header_read_timeout);
+    builder.http2().timer(TokioTimer::new());
+    loop {
+        let slot = tokio::select! {
+            slot = slots.clone().acquire_owned() => slot.expect("the semaphore is never closed"),
+            () = shutdown.cancelled() => break,
+        };
+        let stream = tokio::select! {
+            accepted = listener.accept() => match accepted {
+                Ok((stream, _)) => stream,
+                Err(e) => {
+                    accept_failed(&e).await;
+                    continue;
+                }
+            },
+            () = shutdown.cancelled() => break,
+        };
+        // Small responses (/act) go out at once instead of waiting for Nagle's timer.
+        let _ = stream.set_nodelay(true);
+        let (builder, app, watcher) = (builder.clone(), app.clone(), graceful.watcher());
+        let (header_timeout, shutdown) = (limits.header_read_timeout, shutdown.clone());
+        tokio::spawn(async move {
+            // hyper's header deadline starts once it knows the protocol, which it learns from
+            // the first bytes: a connection that sends none is bounded here.
+            if first_byte(&stream, header_timeout, &shutdown).await {
+                let service = TowerToHyperService::new(app);
+                let connection =
+                    builder.serve_connection_with_upgrades(TokioIo::new(stream), service);
+                // A client that goes away or breaks the protocol is its own problem, not an
+                // error of the service: nothing to report beyond the request's own trace.
+                if let Err(e) = watcher.watch(connection.into_owned()).await {
+                    tracing::debug!(error = %e, "connection ended with an error");
+                }
+            }
+            drop(slot);
+        });
+    }
+    drop(listener);
+    graceful.shutdown().await;
+    Ok(())
+}
+
+/// Whether the client sent something within `limit` (and before a shutdown began).
+async fn first_byte(stream: &TcpStream, limit: Duration, shutdown: &CancellationToken) -> bool {
+    let mut byte = [0u8; 1];
+    tokio::select! {
+        peeked = tokio::time::timeout(limit, stream.peek(&mut byte)) => {
+            matches!(peeked, Ok(Ok(n)) if n > 0)
+        }
+        () = shutdown.cancelled() => false,
+    }
+}
+
+/// Accept errors are about one connection (reset before accept) or a passing shortage of
+/// descriptors: never a reason to stop serving.
+async fn accept_failed(error: &io::Error) {
+    if matches!(error.raw_os_error(), Some(EMFILE | ENFILE)) {
+        tracing::warn!(error = %error, "out of file descriptors; pausing accept");
+        tokio::time::sleep(ACCEPT_BACKOFF).await;
+    } else {
+        tracing::debug!(error = %error, "accept failed");
+    }
+}

@@ -1,0 +1,341 @@
+//! Regression tests of the hardening issue, each through the real server: crafted uploads stay
+//! within bounded memory and get short answers, slow or idle clients are cut off, a closed log
+//! pipe neither stops the service nor its shutdown, and out-of-range inputs get 400/422.
+
+mod common;
+
+use std::io::{Read, Write};
+use std::net::{Shutdown, TcpStream};
+use std::path::Path;
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use common::{assert_error, TestApp};
+use reqwest::StatusCode;
+
+/// Longest any liveness wait below lasts before the test gives up (a bound, not a timing claim).
+const PATIENCE: Duration = Duration::from_secs(60);
+
+/// A `safedice serve` child process on a free port, its stdout a pipe the test controls.
+struct ServerProcess {
+    child: Child,
+    base_url: String,
+}
+
+impl ServerProcess {
+    async fn start(data_dir: &Path, extra: &[&str]) -> ServerProcess {
+        let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
+        let child = Command::new(env!("CARGO_BIN_EXE_safedice"))
+            .args(["serve", "--bind", &format!("127.0.0.1:{port}"), "--data-dir"])
+            .arg(data_dir)
+            .args(extra)
+            .env("RUST_LOG", "info")
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped())
+            .spawn()
+            .expect("start safedice serve");
+        let server = ServerProcess { child, base_url: format!("http://127.0.0.1:{port}") };
+        let started = Instant::now();
+        while reqwest::get(server.url("/healthz")).await.is_err() {
+            assert!(started.elapsed() < PATIENCE, "server did not come up");
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+        server
+    }
+
+    fn url(&self, path: &str) -> String {
+        format!("{}{path}", self.base_url)
+    }
+
+    /// The peak resident set size so far (VmHWM), in bytes.
+    fn peak_rss(&self) -> u64 {
+        let status = std::fs::read_to_string(format!("/proc/{}/status", self.child.id())).unwrap();
+        let line = status.lines().find(|l| l.starts_with("VmHWM:")).expect("VmHWM line");
+        let kib: u64 = line.split_whitespace().nth(1).unwrap().parse().unwrap();
+        kib * 1024
+    }
+
+    fn terminate(&self) {
+        let pid = self.child.id().to_string();
+        assert!(Command::new("kill").args(["-TERM", &pid]).status().unwrap().success());
+    }
+
+    /// Waits for the process to exit by itself; `None` if it is still running after PATIENCE.
+    async fn wait_for_exit(&mut self) -> Option<std::process::ExitStatus> {
+        let started = Instant::now();
+        while started.elapsed() < PATIENCE {
+            if let Some(status) = self.child.try_wait().unwrap() {
+                return Some(status);
+            }
+            tokio::time::sleep(Duration::from_millis(100)).await;
+        }
+        None
+    }
+}
+
+impl Drop for ServerProcess {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// An NPZ archive whose `observations.npy` (deflated) declares a `header_len`-byte header and
+/// holds that many spaces: tiny compressed, huge if a parser believes it.
+fn npy_header_bomb(header_len: u32) -> Vec<u8> {
+    let mut npy = b"\x93NUMPY\x02\x00".to_vec();
+    npy.extend_from_slice(&header_len.to_le_bytes());
+    npy.resize(npy.len() + header_len as usize, b' ');
+    let mut zip = zip::ZipWriter::new(std::io::Cursor::new(Vec::new()));
+    let options =
+        zip::write::FileOptions::default().compression_method(zip::CompressionMethod::Deflated);
+    zip.start_file("observations.npy", options).unwrap();
+    zip.write_all(&npy).unwrap();
+    zip.finish().unwrap().into_inner()
+}
+
+#[tokio::test]
+async fn an_npy_header_length_bomb_gets_a_short_422_within_bounded_memory() {
+    let data_dir = tempfile::tempdir().unwrap();
+    let server = ServerProcess::start(data_dir.path(), &[]).await;
+    let baseline = server.peak_rss();
+    let bomb = npy_header_bomb(128 << 20);
+    assert!(bomb.len() < 1 << 20, "the bomb is {} bytes compressed", bomb.len());
+    let form = reqwest::multipart::Form::new()
+        .part("file", reqwest::multipart::Part::bytes(bomb).file_name("bomb.npz"));
+    let response = reqwest::Client::new()
+        .post(server.url("/v1/datasets"))
+        .multipart(form)
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(response.status(), StatusCode::UNPROCESSABLE_ENTITY);
+    let body = response.bytes().await.unwrap();
+    assert!(body.len() < 2048, "a {}-byte answer", body.len());
+    let body: serde_json::Value = serde_json::from_slice(&body).unwrap();
+    assert_eq!(body["error"]["code"], "invalid_dataset");
+    let message = body["error"]["message"].as_str().unwrap();
+    assert!(message.contains("header declares 134217728 bytes"), "{message}");
+    // The 128 MiB header was never allocated (before the fix it cost ~1 GB of RSS).
+    let grown = server.peak_rss().saturating_sub(baseline);
+    assert!(grown < 64 << 20, "peak RSS grew by {grown} bytes");
+    let datasets = reqwest::get(server.url("/v1/datasets")).await.unwrap();
+    let listed: serde_json::Value = datasets.json().await.unwrap();
+    assert_eq!(listed["total"], 0, "{listed}");
+}
+
+#[tokio::test]
+async fn an_npz_entry_declaring_more_than_the_budget_is_refused_before_reading() {
+    let app = TestApp::spawn().await;
+    // An entry whose central directory says 4 GiB: refused from the declaration alone.
+    // (0xFFFFFFFF itself means "see the zip64 field", hence one less.)
+    let mut archive = npy_header_bomb(64);
+    let name_at = archive.windows(16).rposition(|w| w == b"observations.npy").unwrap();
+    // Central directory record: the uncompressed size sits 22 bytes before the 46-byte header's
+    // end, i.e. at offset 24 of the record, which starts 46 bytes before the name.
+    let record = name_at - 46;
+    assert_eq!(&archive[record..record + 4], b"PK\x01\x02");
+    archive[record + 24..record + 28].copy_from_slice(&(u32::MAX - 1).to_le_bytes());
+    let response = app.upload_dataset("declared.npz", archive, None).await;
+    let message = assert_error(response, StatusCode::UNPROCESSABLE_ENTITY, "invalid_dataset").await;
+    assert!(message.contains("declares 4294967294 bytes uncompressed"), "{message}");
+    app.assert_no_datasets_stored().await;
+}
+
+#[tokio::test]
+async fn error_messages_quote_at_most_a_bounded_fragment_of_the_input() {
+    let app = TestApp::spawn().await;
+    let long = "x".repeat(5 << 20);
+    let jsonl = format!(
+        "{{\"episode\": 0, \"obs\": [0.0], \"action\": [0.5]}}\n{{\"episode\": \"{long}\", \"obs\": [0.0], \"action\": [0.5]}}\n"
+    );
+    let response = app.upload_dataset("long.jsonl", jsonl.into_bytes(), None).await;
+    assert_eq!(response.status(), StatusCode::UNPROCESSABLE_ENTITY);
+    let body = response.bytes().await.unwrap();
+    assert!(body.len() <= 1200, "a {}-byte answer", body.len());
+    let body: serde_json::Value = serde_json::from_slice(&body).unwrap();
+    assert!(body["error"]["message"].as_str().unwrap().starts_with("line 2"), "{body}");
+    app.assert_no_datasets_stored().await;
+
+    let csv = format!("episode,obs_0,action_0\n0,{long},0.5\n");
+    let response = app.upload_dataset("long.csv", csv.into_bytes(), None).await;
+    assert_eq!(response.status(), StatusCode::UNPROCESSABLE_ENTITY);
+    assert!(response.bytes().await.unwrap().len() <= 1200);
+
+    // A JSON body whose unknown key is 5 MB long.
+    let job = format!("{{\"{long}\": 1}}");
+    let response = app
+        .post("/v1/jobs")
+        .header("content-type", "application/json")
+        .body(job)
+        .send()
+        .await
+        .unwrap();
+    assert!(response.status().is_client_error(), "{}", response.status());
+    assert!(response.bytes().await.unwrap().len() <= 1200);
+    app.assert_no_datasets_stored().await;
+    assert_eq!(app.count_rows("jobs").await, 0);
+}
+
+/// Writes `request` to a fresh connection and returns it.
+fn connect(app: &TestApp, request: &[u8]) -> TcpStream {
+    let mut stream = TcpStream::connect(app.addr).unwrap();
+    stream.set_read_timeout(Some(PATIENCE)).unwrap();
+    stream.write_all(request).unwrap();
+    stream
+}
+
+/// Reads until the server closes the connection (or PATIENCE passes); what it sent.
+fn read_until_closed(stream: &mut TcpStream) -> String {
+    let mut received = Vec::new();
+    let _ = stream.read_to_end(&mut received);
+    String::from_utf8_lossy(&received).into_owned()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_client_that_never_finishes_its_headers_is_disconnected() {
+    let app = TestApp::spawn_with(|c| c.header_timeout_secs = 1).await;
+    let mut stream = connect(&app, b"GET /healthz HTTP/1.1\r\nHost: x\r\nX-Slow: ");
+    let started = Instant::now();
+    let received =
+        tokio::task::spawn_blocking(move || read_until_closed(&mut stream)).await.unwrap();
+    assert!(started.elapsed() < PATIENCE, "the connection was never closed");
+    assert!(!received.contains("200 OK"), "{received}");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_upload_that_stalls_mid_body_gets_408_and_leaves_no_temp_file() {
+    let app = TestApp::spawn_with(|c| c.body_idle_timeout_secs = 1).await;
+    let head = "POST /v1/datasets HTTP/1.1\r\nHost: x\r\n\
+                Content-Type: multipart/form-data; boundary=XyZ\r\nContent-Length: 100000\r\n\r\n\
+                --XyZ\r\nContent-Disposition: form-data; name=\"file\"; filename=\"d.jsonl\"\r\n\r\n\
+                {\"episode\": 0, \"obs\": [0.0], \"action\": [0.5]}\n";
+    let mut stream = connect(&app, head.as_bytes());
+    let received =
+        tokio::task::spawn_blocking(move || read_until_closed(&mut stream)).await.unwrap();
+    assert!(received.starts_with("HTTP/1.1 408"), "{received}");
+    assert!(received.contains("request_timeout"), "{received}");
+    app.assert_no_datasets_stored().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_declared_oversized_upload_is_answered_413_before_its_body_is_sent() {
+    let app = TestApp::spawn_with(|c| c.max_upload_bytes = 1 << 20).await;
+    let head = "POST /v1/datasets HTTP/1.1\r\nHost: x\r\n\
+                Content-Type: multipart/form-data; boundary=XyZ\r\n\
+                Content-Length: 10000000000\r\n\r\n";
+    let mut stream = connect(&app, head.as_bytes());
+    // Not a byte of the body is sent: the answer must come anyway.
+    let received =
+        tokio::task::spawn_blocking(move || read_until_closed(&mut stream)).await.unwrap();
+    assert!(received.starts_with("HTTP/1.1 413"), "{received}");
+    assert!(received.to_ascii_lowercase().contains("connection: close"), "{received}");
+    app.assert_no_datasets_stored().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn uploads_beyond_the_concurrency_cap_get_503_with_retry_after() {
+    let app = TestApp::spawn_with(|c| {
+        c.max_concurrent_uploads = 1;
+        c.body_idle_timeout_secs = 30;
+    })
+    .await;
+    // One upload in flight, its body paused.
+    let head = "POST /v1/datasets HTTP/1.1\r\nHost: x\r\n\
+                Content-Type: multipart/form-data; boundary=XyZ\r\nContent-Length: 100000\r\n\r\n\
+                --XyZ\r\nContent-Disposition: form-data; name=\"file\"; filename=\"d.jsonl\"\r\n\r\n";
+    let slow = connect(&app, head.as_bytes());
+    let mut second = None;
+    let started = Instant::now();
+    // The first upload holds the only permit once its handler runs; until then a second upload
+    // may still win it, so retry until the cap is seen.
+    while started.elapsed() < PATIENCE {
+        let response = app.upload_dataset("d.jsonl", b"{}\n".to_vec(), None).await;
+        if response.status() == StatusCode::SERVICE_UNAVAILABLE {
+            second = Some(response);
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    let response = second.expect("the second concurrent upload was never refused");
+    assert_eq!(response.headers()["retry-after"], "1");
+    assert_error(response, StatusCode::SERVICE_UNAVAILABLE, "too_many_uploads").await;
+    slow.shutdown(Shutdown::Both).unwrap();
+    // With the first one gone, uploads go through again.
+    let started = Instant::now();
+    loop {
+        let response = app.upload_dataset("d.jsonl", b"{}\n".to_vec(), None).await;
+        if response.status() != StatusCode::SERVICE_UNAVAILABLE {
+            assert_eq!(response.status(), StatusCode::UNPROCESSABLE_ENTITY);
+            break;
+        }
+        assert!(started.elapsed() < PATIENCE, "the permit was never released");
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    app.assert_no_datasets_stored().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn idle_connections_beyond_the_cap_do_not_lock_out_healthz() {
+    let app = TestApp::spawn_with(|c| {
+        c.max_connections = 4;
+        c.header_timeout_secs = 1;
+    })
+    .await;
+    // Twice the cap of connections that never send a byte.
+    let idle: Vec<TcpStream> = (0..8).map(|_| TcpStream::connect(app.addr).unwrap()).collect();
+    let client = reqwest::Client::builder().timeout(PATIENCE).build().unwrap();
+    let response = client.get(app.url("/healthz")).send().await.unwrap();
+    assert_eq!(response.status(), StatusCode::OK);
+    drop(idle);
+}
+
+#[tokio::test]
+async fn offsets_beyond_what_sql_can_count_are_refused() {
+    let app = TestApp::spawn().await;
+    for offset in ["9223372036854775808", "18446744073709551615"] {
+        for list in ["/v1/datasets", "/v1/jobs", "/v1/policies"] {
+            let response = app.get(&format!("{list}?offset={offset}")).send().await.unwrap();
+            let message =
+                assert_error(response, StatusCode::BAD_REQUEST, "invalid_pagination").await;
+            assert!(message.contains("offset"), "{message}");
+        }
+    }
+    let last = app.get("/v1/datasets?offset=9223372036854775807").send().await.unwrap();
+    assert_eq!(last.status(), StatusCode::OK);
+    let page: serde_json::Value = last.json().await.unwrap();
+    assert_eq!(page["items"], serde_json::json!([]));
+    assert_eq!(page["next_offset"], serde_json::Value::Null);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_closed_log_pipe_neither_stops_the_service_nor_its_shutdown() {
+    let data_dir = tempfile::tempdir().unwrap();
+    let mut server = ServerProcess::start(data_dir.path(), &["--log-format", "json"]).await;
+    // Whatever read the logs goes away (as `| head` does); every request logs a line.
+    drop(server.child.stdout.take());
+    drop(server.child.stderr.take());
+    let client = reqwest::Client::new();
+    for _ in 0..200 {
+        let response = client.get(server.url("/healthz")).send().await.unwrap();
+        assert_eq!(response.status(), StatusCode::OK);
+    }
+    let missing = client.get(server.url("/v1/datasets/nope")).send().await.unwrap();
+    assert_eq!(missing.status(), StatusCode::NOT_FOUND);
+    server.terminate();
+    let status = server.wait_for_exit().await.expect("SIGTERM did not stop the server");
+    assert!(status.success(), "{status:?}");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn logs_written_to_a_pipe_carry_no_terminal_colours() {
+    let data_dir = tempfile::tempdir().unwrap();
+    let mut server = ServerProcess::start(data_dir.path(), &["--log-format", "pretty"]).await;
+    let _ = reqwest::get(server.url("/healthz")).await.unwrap();
+    server.terminate();
+    server.wait_for_exit().await.expect("SIGTERM did not stop the server");
+    let mut logs = String::new();
+    server.child.stdout.take().unwrap().read_to_string(&mut logs).unwrap();
+    assert!(logs.contains("safedice listening"), "{logs}");
+    assert!(!logs.contains('\u{1b}'), "ANSI escape codes in piped logs: {logs}");
+}
