@@ -77,16 +77,25 @@ impl From<DatasetRecord> for DatasetResource {
 }
 
 /// The upload form (only describes `multipart/form-data` to OpenAPI; the handler streams it).
+/// Other fields are refused (400 `unknown_field`).
 #[derive(ToSchema)]
+#[serde(deny_unknown_fields)]
 #[allow(dead_code)]
 struct UploadForm {
     /// The dataset file: JSONL, CSV, NPZ (D4RL/DSRL flat layout) or HDF5; the format is
     /// detected from the file name and the content.
     #[schema(value_type = String, format = Binary)]
     file: Vec<u8>,
-    /// Display name (1-200 characters); defaults to the file name.
+    /// Display name (1-200 characters, not all blank, no control characters; surrounding
+    /// space is trimmed); defaults to the file name.
+    #[schema(
+        min_length = 1,
+        max_length = 200,
+        pattern = r"^[^\x00-\x1f\x7f-\x9f]*[^\s\x00-\x1f\x7f-\x9f][^\x00-\x1f\x7f-\x9f]*$"
+    )]
     name: Option<String>,
     /// Free text, up to 4000 characters.
+    #[schema(max_length = 4000)]
     description: Option<String>,
 }
 

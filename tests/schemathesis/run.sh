@@ -6,11 +6,11 @@
 #   tests/schemathesis/run.sh [path/to/safedice]     (default: target/debug/safedice)
 #
 # Installs schemathesis into .venv-schemathesis/ on first use. SCHEMATHESIS_EXAMPLES (default
-# 25) sets the examples per operation.
+# 50) sets the examples per operation.
 set -euo pipefail
 cd "$(dirname "$0")/../.."
 BIN="${1:-target/debug/safedice}"
-EXAMPLES="${SCHEMATHESIS_EXAMPLES:-25}"
+EXAMPLES="${SCHEMATHESIS_EXAMPLES:-50}"
 VENV=.venv-schemathesis
 SCHEMATHESIS_VERSION=4.32.5
 
@@ -52,7 +52,8 @@ stop_server() {
 run_schemathesis() {
   local name="$1"; shift
   echo "== schemathesis: $name (max $EXAMPLES examples per operation)"
-  "$VENV/bin/schemathesis" run "http://127.0.0.1:$PORT/v1/openapi.json" \
+  "$VENV/bin/schemathesis" --config-file tests/schemathesis/schemathesis.toml \
+    run "http://127.0.0.1:$PORT/v1/openapi.json" \
     --checks all --max-examples "$EXAMPLES" --seed 1 --workers 1 \
     --generation-database none --no-color "$@" || {
       echo "schemathesis ($name) failed; the server's log:"; tail -50 "$DATA_DIR/$name.log"; exit 1; }
