@@ -9,6 +9,10 @@ use axum::response::{IntoResponse, Response};
 use serde::Serialize;
 use utoipa::ToSchema;
 
+/// `Retry-After` of a 503 `database_busy`: writes hold the lock for milliseconds, so a second
+/// is plenty for the burst that caused it to pass.
+const DATABASE_BUSY_RETRY_SECS: u32 = 1;
+
 /// Every error the API answers with.
 #[derive(Debug, thiserror::Error)]
 pub enum ApiError {
@@ -39,7 +43,7 @@ pub enum ApiError {
     /// A rejection from one of axum's extractors, with the status axum chose.
     #[error("{message}")]
     Rejected { status: StatusCode, code: &'static str, message: String },
-    /// 503: the service cannot answer now (database unreachable, request timed out).
+    /// 503: the service cannot answer now (database unreachable or busy, request timed out).
     #[error("{message}")]
     Unavailable { code: &'static str, message: String },
     /// 500: anything unexpected. Logged, never shown to the client.
@@ -117,6 +121,23 @@ impl ApiError {
         }
     }
 
+    /// A lock another writer held for too long: the request was fine and is worth repeating.
+    fn database_busy() -> Self {
+        ApiError::unavailable(
+            "database_busy",
+            "the database is busy with other writes; nothing was changed, retry in a moment",
+        )
+    }
+
+    /// Seconds a client should wait before repeating the request (`Retry-After`), where that is
+    /// known.
+    fn retry_after(&self) -> Option<u32> {
+        match self {
+            ApiError::Unavailable { code: "database_busy", .. } => Some(DATABASE_BUSY_RETRY_SECS),
+            _ => None,
+        }
+    }
+
     /// Maps an extractor rejection, keeping axum's status and its explanation.
     fn rejected(status: StatusCode, message: String) -> Self {
         let code = match status {
@@ -150,6 +171,9 @@ impl IntoResponse for ApiError {
                 .headers_mut()
                 .insert(header::WWW_AUTHENTICATE, HeaderValue::from_static("Bearer"));
         }
+        if let Some(seconds) = self.retry_after() {
+            response.headers_mut().insert(header::RETRY_AFTER, HeaderValue::from(seconds));
+        }
         response
     }
 }
@@ -158,6 +182,10 @@ impl From<crate::store::StoreError> for ApiError {
     fn from(e: crate::store::StoreError) -> Self {
         match e {
             crate::store::StoreError::NotFound { kind, id } => ApiError::not_found(kind, &id),
+            e if e.is_busy() => {
+                tracing::warn!(error = %e, "database busy; answering 503");
+                ApiError::database_busy()
+            }
             other => ApiError::Internal(other.into()),
         }
     }
@@ -172,7 +200,7 @@ impl From<crate::data::ParseError> for ApiError {
 
 impl From<sqlx::Error> for ApiError {
     fn from(e: sqlx::Error) -> Self {
-        ApiError::Internal(e.into())
+        crate::store::StoreError::Database(e).into()
     }
 }
 
@@ -218,4 +246,21 @@ pub async fn route_not_found(uri: axum::http::Uri) -> ApiError {
 /// Answers requests whose route exists but not for this method.
 pub async fn method_not_allowed() -> ApiError {
     ApiError::MethodNotAllowed
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::store::StoreError;
+
+    #[test]
+    fn a_busy_database_is_503_with_retry_after_not_500() {
+        let response =
+            ApiError::from(StoreError::Database(sqlx::Error::PoolTimedOut)).into_response();
+        assert_eq!(response.status(), StatusCode::SERVICE_UNAVAILABLE);
+        assert_eq!(response.headers()[header::RETRY_AFTER], "1");
+        let other = ApiError::from(StoreError::Database(sqlx::Error::RowNotFound)).into_response();
+        assert_eq!(other.status(), StatusCode::INTERNAL_SERVER_ERROR);
+        assert!(other.headers().get(header::RETRY_AFTER).is_none());
+    }
 }

@@ -105,6 +105,7 @@ fn routes() -> OpenApiRouter<AppState> {
 pub fn openapi() -> utoipa::openapi::OpenApi {
     let mut doc = routes().into_openapi();
     openapi::secure_api_routes(&mut doc);
+    openapi::document_unavailable(&mut doc);
     doc
 }
 

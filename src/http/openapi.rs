@@ -6,8 +6,13 @@ use std::sync::OnceLock;
 
 use axum::http::header;
 use axum::response::{IntoResponse, Response};
+use utoipa::openapi::header::HeaderBuilder;
+use utoipa::openapi::path::Operation;
+use utoipa::openapi::schema::{ObjectBuilder, Type};
 use utoipa::openapi::security::{Http, HttpAuthScheme, SecurityScheme};
-use utoipa::openapi::{OpenApi as OpenApiDoc, SecurityRequirement};
+use utoipa::openapi::{
+    Content, OpenApi as OpenApiDoc, Ref, RefOr, ResponseBuilder, SecurityRequirement,
+};
 use utoipa::OpenApi;
 use utoipa_axum::router::OpenApiRouter;
 use utoipa_axum::routes;
@@ -54,11 +59,16 @@ pub fn base() -> OpenApiDoc {
 /// Marks every operation under `/v1` and `/v2` as needing the bearer token, mirroring
 /// [`super::auth::requirement`].
 pub fn secure_api_routes(doc: &mut OpenApiDoc) {
-    for (path, item) in doc.paths.paths.iter_mut() {
+    for (_, operation) in api_operations(doc) {
+        operation.security =
+            Some(vec![SecurityRequirement::new(SECURITY_SCHEME, Vec::<String>::new())]);
+    }
+}
+
+/// Every operation of `operations` under `/v1` and `/v2`, mutably.
+fn api_operations(doc: &mut OpenApiDoc) -> impl Iterator<Item = (&str, &mut Operation)> {
+    doc.paths.paths.iter_mut().flat_map(|(path, item)| {
         let is_api = ["/v1/", "/v2/"].iter().any(|prefix| path.starts_with(prefix));
-        if !is_api {
-            continue;
-        }
         let operations = [
             &mut item.get,
             &mut item.put,
@@ -69,10 +79,34 @@ pub fn secure_api_routes(doc: &mut OpenApiDoc) {
             &mut item.patch,
             &mut item.trace,
         ];
-        for operation in operations.into_iter().flatten() {
-            operation.security =
-                Some(vec![SecurityRequirement::new(SECURITY_SCHEME, Vec::<String>::new())]);
-        }
+        operations.into_iter().flatten().filter(move |_| is_api).map(move |op| (path.as_str(), op))
+    })
+}
+
+/// Documents the 503 every API operation can answer: any of them may meet a database that
+/// stays locked by other writers past the busy timeout (`database_busy`, with `Retry-After`),
+/// and the bounded ones time out after 30 s (`timeout`). Operations that describe their own
+/// 503 keep it.
+pub fn document_unavailable(doc: &mut OpenApiDoc) {
+    let retry_after = HeaderBuilder::new()
+        .schema(ObjectBuilder::new().schema_type(Type::Integer).minimum(Some(0)))
+        .description(Some("Seconds to wait before retrying (with `database_busy`)"))
+        .build();
+    let response = ResponseBuilder::new()
+        .description(
+            "The service cannot answer now: the database stayed locked by other writes \
+             (`database_busy`; nothing was changed, retry after `Retry-After` seconds), or the \
+             request took longer than 30 s (`timeout`)",
+        )
+        .header("Retry-After", retry_after)
+        .content("application/json", Content::new(Some(Ref::from_schema_name("ErrorBody"))))
+        .build();
+    for (_, operation) in api_operations(doc) {
+        operation
+            .responses
+            .responses
+            .entry("503".to_owned())
+            .or_insert_with(|| RefOr::T(response.clone()));
     }
 }
 

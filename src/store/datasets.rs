@@ -236,36 +236,39 @@ impl Store {
     }
 
     /// Deletes a dataset unless a queued or running job uses it. The check and the delete are
-    /// one statement, so a job queued concurrently cannot slip in between.
+    /// one write transaction (the write lock taken up front), so a job queued concurrently
+    /// either commits first and is seen here, or sees the dataset gone (see
+    /// [`Store::insert_job`]); and the answer describes the state the delete saw, not one read
+    /// after it.
     pub async fn delete_dataset(&self, id: &str) -> Result<DeleteOutcome, StoreError> {
-        const ACTIVE_JOBS_USING: &str =
-            "SELECT id FROM jobs WHERE status IN ('queued', 'running') \
-             AND (unlabeled_dataset_id = ?1 OR non_preferred_dataset_id = ?1)";
-        let deleted = sqlx::query(&format!(
-            "DELETE FROM datasets WHERE id = ?1 AND NOT EXISTS ({ACTIVE_JOBS_USING})"
-        ))
-        .bind(id)
-        .execute(self.pool())
-        .await?;
-        if deleted.rows_affected() == 1 {
-            match tokio::fs::remove_file(self.canonical_path(id)).await {
-                Ok(()) => {}
-                Err(e) if e.kind() == std::io::ErrorKind::NotFound => {}
-                // The row is gone; the next start-up removes the orphaned file.
-                Err(e) => tracing::warn!(dataset = id, error = %e, "cannot remove dataset file"),
-            }
-            return Ok(DeleteOutcome::Deleted);
+        let mut tx = self.begin_write().await?;
+        let exists: bool =
+            sqlx::query_scalar("SELECT EXISTS (SELECT 1 FROM datasets WHERE id = ?)")
+                .bind(id)
+                .fetch_one(&mut *tx)
+                .await?;
+        if !exists {
+            return Ok(DeleteOutcome::NotFound);
         }
-        let jobs: Vec<String> = sqlx::query_scalar(&format!("{ACTIVE_JOBS_USING} ORDER BY id"))
-            .bind(id)
-            .fetch_all(self.pool())
-            .await?;
-        let exists = self.dataset(id).await?.is_some();
-        Ok(if exists && !jobs.is_empty() {
-            DeleteOutcome::InUse(jobs)
-        } else {
-            DeleteOutcome::NotFound
-        })
+        let jobs: Vec<String> = sqlx::query_scalar(
+            "SELECT id FROM jobs WHERE status IN ('queued', 'running') \
+             AND (unlabeled_dataset_id = ?1 OR non_preferred_dataset_id = ?1) ORDER BY id",
+        )
+        .bind(id)
+        .fetch_all(&mut *tx)
+        .await?;
+        if !jobs.is_empty() {
+            return Ok(DeleteOutcome::InUse(jobs));
+        }
+        sqlx::query("DELETE FROM datasets WHERE id = ?").bind(id).execute(&mut *tx).await?;
+        tx.commit().await?;
+        match tokio::fs::remove_file(self.canonical_path(id)).await {
+            Ok(()) => {}
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => {}
+            // The row is gone; the next start-up removes the orphaned file.
+            Err(e) => tracing::warn!(dataset = id, error = %e, "cannot remove dataset file"),
+        }
+        Ok(DeleteOutcome::Deleted)
     }
 
     /// Loads a stored dataset for training, checking the file against the hash recorded at

@@ -234,7 +234,7 @@ impl Store {
         if rows.is_empty() {
             return Ok(());
         }
-        let mut tx = self.pool().begin().await?;
+        let mut tx = self.begin_write().await?;
         insert_metric_rows(&mut tx, id, rows).await?;
         tx.commit().await?;
         Ok(())
@@ -249,7 +249,7 @@ impl Store {
         data: &[u8],
         pending_metrics: &[MetricRow],
     ) -> Result<(), StoreError> {
-        let mut tx = self.pool().begin().await?;
+        let mut tx = self.begin_write().await?;
         insert_metric_rows(&mut tx, id, pending_metrics).await?;
         sqlx::query(
             "INSERT INTO job_checkpoints (job_id, step, data, created_at) VALUES (?, ?, ?, ?) \
@@ -328,7 +328,7 @@ impl Store {
         policy: &NewPolicy<'_>,
         step: u64,
     ) -> Result<(), StoreError> {
-        let mut tx = self.pool().begin().await?;
+        let mut tx = self.begin_write().await?;
         insert_metric_rows(&mut tx, id, pending_metrics).await?;
         super::policies::insert_policy(&mut tx, policy).await?;
         let now = now();
@@ -359,7 +359,7 @@ impl Store {
         error: Option<&str>,
         pending_metrics: &[MetricRow],
     ) -> Result<(), StoreError> {
-        let mut tx = self.pool().begin().await?;
+        let mut tx = self.begin_write().await?;
         insert_metric_rows(&mut tx, id, pending_metrics).await?;
         let now = now();
         sqlx::query(
@@ -378,10 +378,11 @@ impl Store {
         Ok(())
     }
 
-    /// Cancels a queued job at once, or flags a running one for its worker.
+    /// Cancels a queued job at once, or flags a running one for its worker. The status read and
+    /// the update are one write transaction, so a worker's claim cannot slip in between.
     pub async fn request_cancel(&self, id: &str) -> Result<CancelOutcome, StoreError> {
         let now = now();
-        let mut tx = self.pool().begin().await?;
+        let mut tx = self.begin_write().await?;
         let status: String = sqlx::query_scalar("SELECT status FROM jobs WHERE id = ?")
             .bind(id)
             .fetch_optional(&mut *tx)

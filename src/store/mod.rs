@@ -21,13 +21,26 @@ use std::time::Duration;
 
 use anyhow::Context;
 use sqlx::sqlite::{SqliteConnectOptions, SqliteJournalMode, SqlitePoolOptions, SqliteSynchronous};
-use sqlx::SqlitePool;
+use sqlx::{Sqlite, SqlitePool, Transaction};
 
 pub use datasets::{DatasetRecord, DeleteOutcome, NewDataset};
 
 const DATABASE_FILE: &str = "safedice.sqlite";
 const DATASETS_DIR: &str = "datasets";
 const TMP_DIR: &str = "tmp";
+
+/// How long a statement waits for another connection's write lock before SQLite gives up with
+/// SQLITE_BUSY. Writes hold the lock for milliseconds, but SQLite's busy handler polls with
+/// back-off (up to 100 ms between tries) and is not fair, so under a burst of writers one can
+/// wait far longer than the others; 15 s rides out such bursts and still answers (503
+/// `database_busy`) well before the 30 s request timeout.
+const BUSY_TIMEOUT: Duration = Duration::from_secs(15);
+/// How long a request waits for a free pooled connection before it is answered 503.
+const ACQUIRE_TIMEOUT: Duration = Duration::from_secs(10);
+
+/// SQLite's primary result codes we tell apart (extended codes carry them in the low byte).
+const SQLITE_BUSY: i32 = 5;
+const SQLITE_LOCKED: i32 = 6;
 
 /// A failure of the store that callers may want to tell apart.
 #[derive(Debug, thiserror::Error)]
@@ -40,6 +53,27 @@ pub enum StoreError {
     Database(#[from] sqlx::Error),
     #[error(transparent)]
     Io(#[from] std::io::Error),
+}
+
+impl StoreError {
+    /// A lock or a connection was not available in time: nothing is wrong with the request or
+    /// the data, and the same call succeeds once the other writers are through.
+    pub fn is_busy(&self) -> bool {
+        matches!(self, StoreError::Database(e) if is_busy(e))
+    }
+}
+
+/// SQLite's primary result code of a database error (the low byte of the extended code sqlx
+/// reports).
+fn sqlite_code(e: &sqlx::Error) -> Option<i32> {
+    let sqlx::Error::Database(db) = e else { return None };
+    db.code()?.parse::<i32>().ok().map(|code| code & 0xff)
+}
+
+/// SQLITE_BUSY / SQLITE_LOCKED (every extended variant) or no pooled connection in time.
+pub fn is_busy(e: &sqlx::Error) -> bool {
+    matches!(e, sqlx::Error::PoolTimedOut)
+        || matches!(sqlite_code(e), Some(SQLITE_BUSY | SQLITE_LOCKED))
 }
 
 /// The database pool and the data directory; cheap to clone.
@@ -87,9 +121,10 @@ impl Store {
             // power loss can drop the last commits.
             .synchronous(SqliteSynchronous::Normal)
             .foreign_keys(true)
-            .busy_timeout(Duration::from_secs(5));
+            .busy_timeout(BUSY_TIMEOUT);
         let pool = SqlitePoolOptions::new()
             .max_connections(8)
+            .acquire_timeout(ACQUIRE_TIMEOUT)
             .connect_with(options)
             .await
             .with_context(|| format!("cannot open the database {}", database.display()))?;
@@ -102,6 +137,17 @@ impl Store {
 
     pub fn pool(&self) -> &SqlitePool {
         &self.pool
+    }
+
+    /// Begins a transaction that writes. `BEGIN IMMEDIATE` takes the write lock up front
+    /// (waiting up to the busy timeout for it). A plain (deferred) `BEGIN` only takes a read
+    /// snapshot, and its first write then has to upgrade it: if another connection committed in
+    /// between, SQLite cannot upgrade the stale snapshot and fails at once with SQLITE_BUSY
+    /// ("database is locked") without waiting, which clients saw as 500s under concurrent
+    /// writes. Every transaction that writes, and above all one that reads and then writes,
+    /// starts here.
+    pub async fn begin_write(&self) -> Result<Transaction<'static, Sqlite>, sqlx::Error> {
+        self.pool.begin_with("BEGIN IMMEDIATE").await
     }
 
     pub fn data_dir(&self) -> &Path {
@@ -157,5 +203,55 @@ fn remove_path(path: &Path) -> std::io::Result<()> {
         std::fs::remove_dir_all(path)
     } else {
         std::fs::remove_file(path)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use sqlx::{Connection, SqliteConnection};
+
+    use super::*;
+
+    async fn connect(path: &Path, busy_timeout: Duration) -> SqliteConnection {
+        let options = SqliteConnectOptions::from_str("sqlite:")
+            .unwrap()
+            .filename(path)
+            .create_if_missing(true)
+            .journal_mode(SqliteJournalMode::Wal)
+            .busy_timeout(busy_timeout);
+        SqliteConnection::connect_with(&options).await.unwrap()
+    }
+
+    /// The failure behind the 500s: a deferred transaction that read before another connection
+    /// committed cannot upgrade its snapshot to write, and SQLite says SQLITE_BUSY at once
+    /// whatever the busy timeout. `BEGIN IMMEDIATE` takes the lock first and cannot meet it.
+    #[tokio::test]
+    async fn a_stale_read_snapshot_cannot_write_and_is_classified_busy() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("db.sqlite");
+        let mut reader = connect(&path, Duration::from_secs(5)).await;
+        let mut writer = connect(&path, Duration::from_secs(5)).await;
+        sqlx::query("CREATE TABLE t (v INTEGER)").execute(&mut writer).await.unwrap();
+        sqlx::query("INSERT INTO t VALUES (1)").execute(&mut writer).await.unwrap();
+
+        sqlx::query("BEGIN").execute(&mut reader).await.unwrap();
+        let _: i64 = sqlx::query_scalar("SELECT v FROM t").fetch_one(&mut reader).await.unwrap();
+        sqlx::query("UPDATE t SET v = 2").execute(&mut writer).await.unwrap();
+        let stale = sqlx::query("UPDATE t SET v = 3").execute(&mut reader).await.unwrap_err();
+        assert!(is_busy(&stale), "{stale}");
+        assert!(StoreError::Database(stale).is_busy());
+        sqlx::query("ROLLBACK").execute(&mut reader).await.unwrap();
+
+        sqlx::query("BEGIN IMMEDIATE").execute(&mut reader).await.unwrap();
+        let _: i64 = sqlx::query_scalar("SELECT v FROM t").fetch_one(&mut reader).await.unwrap();
+        // The lock is taken: another writer waits (here: gives up after its timeout of 0).
+        let mut impatient = connect(&path, Duration::ZERO).await;
+        let waiting = sqlx::query("UPDATE t SET v = 4").execute(&mut impatient).await.unwrap_err();
+        assert!(is_busy(&waiting), "{waiting}");
+        sqlx::query("UPDATE t SET v = 3").execute(&mut reader).await.unwrap();
+        sqlx::query("COMMIT").execute(&mut reader).await.unwrap();
+
+        let other = sqlx::query("SELECT * FROM missing").execute(&mut reader).await.unwrap_err();
+        assert!(!is_busy(&other), "{other}");
     }
 }
