@@ -128,3 +128,81 @@ async fn concurrent_submits_cancels_uploads_and_deletes_never_answer_5xx() {
     assert_eq!(app.count_rows("datasets").await, 2, "only the shared datasets remain");
     eprintln!("{} requests from {TASKS} clients: {:?}", tally.total(), tally.0.lock().unwrap());
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn a_submit_racing_a_delete_of_its_dataset_is_either_queued_or_refused() {
+    const RACES: u64 = 60;
+    let app = TestApp::spawn().await;
+    let (unlabeled, non_preferred) = grid_datasets();
+    let (unlabeled, non_preferred) = (npz_bytes(&unlabeled), npz_bytes(&non_preferred));
+    let (mut accepted, mut deleted) = (0, 0);
+    let mut refusals = BTreeMap::<String, usize>::new();
+    for race in 0..RACES {
+        let u = app.create_dataset("u.npz", unlabeled.clone()).await;
+        let n = app.create_dataset("n.npz", non_preferred.clone()).await;
+        // Alternate which of the two datasets is deleted, and land the delete at different
+        // points of the submit (which reads both datasets before it queues the job).
+        let victim = if race % 2 == 0 { &u } else { &n };
+        // A job far too long to finish during the race: while it is queued or running its
+        // datasets cannot be deleted.
+        let submit = app.post("/v1/jobs").json(&churn_job(&u, &n, 1_000_000)).send();
+        let delete = async {
+            tokio::time::sleep(Duration::from_micros(race / 2 % 10 * 150)).await;
+            app.delete(&format!("/v1/datasets/{victim}")).send().await
+        };
+        let (submit, delete) = tokio::join!(submit, delete);
+        let (submit, delete) = (submit.unwrap(), delete.unwrap());
+        let (submitted, delete_status) = (submit.status(), delete.status());
+        let submit_body: Value = submit.json().await.unwrap();
+        let delete_body: Value = delete.json().await.unwrap_or(Value::Null);
+        let outcome = format!(
+            "race {race}: submit {submitted} {submit_body}, delete {delete_status} {delete_body}"
+        );
+        let dataset = app.get(&format!("/v1/datasets/{victim}")).send().await.unwrap().status();
+        let mut db = app.db().await;
+        let jobs_using: i64 = sqlx::query_scalar(
+            "SELECT COUNT(*) FROM jobs WHERE unlabeled_dataset_id = ?1 OR non_preferred_dataset_id = ?1",
+        )
+        .bind(victim)
+        .fetch_one(&mut db)
+        .await
+        .unwrap();
+        match (submitted, delete_status) {
+            (StatusCode::CREATED, StatusCode::CONFLICT) => {
+                assert_eq!(delete_body["error"]["code"], "dataset_in_use", "{outcome}");
+                assert_eq!((dataset, jobs_using), (StatusCode::OK, 1), "{outcome}");
+                accepted += 1;
+                // The job is not what this test is about: stop it so the races stay light.
+                let id = submit_body["id"].as_str().unwrap();
+                let response = app.post(&format!("/v1/jobs/{id}/cancel")).send().await.unwrap();
+                assert_eq!(response.status(), StatusCode::OK, "{outcome}");
+            }
+            (
+                StatusCode::NOT_FOUND | StatusCode::CONFLICT | StatusCode::UNPROCESSABLE_ENTITY,
+                StatusCode::NO_CONTENT,
+            ) => {
+                assert_eq!((dataset, jobs_using), (StatusCode::NOT_FOUND, 0), "{outcome}");
+                assert!(
+                    submit_body["error"]["message"].as_str().unwrap().contains(victim.as_str()),
+                    "{outcome}"
+                );
+                deleted += 1;
+                let code = submit_body["error"]["code"].as_str().unwrap().to_owned();
+                *refusals.entry(format!("{submitted} {code}")).or_default() += 1;
+            }
+            _ => panic!("an inconsistent outcome: {outcome}"),
+        }
+        assert!(app.files_in("datasets").len() == app.count_rows("datasets").await as usize);
+    }
+    // Never a job whose dataset is gone.
+    let mut db = app.db().await;
+    let orphans: i64 = sqlx::query_scalar(
+        "SELECT COUNT(*) FROM jobs WHERE unlabeled_dataset_id NOT IN (SELECT id FROM datasets) \
+         OR non_preferred_dataset_id NOT IN (SELECT id FROM datasets)",
+    )
+    .fetch_one(&mut db)
+    .await
+    .unwrap();
+    assert_eq!(orphans, 0);
+    eprintln!("{RACES} races: {accepted} jobs queued (delete refused), {deleted} datasets deleted (submit refused: {refusals:?})");
+}

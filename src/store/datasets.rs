@@ -279,9 +279,26 @@ impl Store {
             .await?
             .ok_or_else(|| StoreError::NotFound { kind: "dataset", id: id.to_owned() })?;
         let path = self.canonical_path(id);
+        let read_path = path.clone();
+        let read = tokio::task::spawn_blocking(move || std::fs::read(read_path))
+            .await
+            .map_err(std::io::Error::other)?;
+        let bytes = match read {
+            Ok(bytes) => bytes,
+            // Deleted between reading its row and its file: as if it had never been found. A
+            // file missing under a row that is still there is damage, not a race.
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+                return Err(match self.dataset(id).await? {
+                    None => StoreError::NotFound { kind: "dataset", id: id.to_owned() },
+                    Some(_) => {
+                        StoreError::Corrupt(id.to_owned(), format!("{} is missing", path.display()))
+                    }
+                });
+            }
+            Err(e) => return Err(e.into()),
+        };
         let id = id.to_owned();
         tokio::task::spawn_blocking(move || {
-            let bytes = std::fs::read(&path)?;
             if bytes.len() as u64 != record.canonical_bytes
                 || sha256_hex(&bytes) != record.canonical_sha256
             {
@@ -291,5 +308,39 @@ impl Store {
         })
         .await
         .map_err(std::io::Error::other)?
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::data::Actions;
+
+    async fn store_with_a_dataset() -> (tempfile::TempDir, Store, String) {
+        let dir = tempfile::tempdir().unwrap();
+        let store = Store::open(dir.path()).await.unwrap();
+        let dataset = Dataset {
+            obs_dim: 1,
+            action_space: ActionSpace::Discrete { n: 2 },
+            observations: vec![0.0, 1.0],
+            actions: Actions::Discrete(vec![0, 1]),
+            next_observations: vec![1.0, 2.0],
+            terminals: vec![false, true],
+            episode_ids: vec![0, 0],
+            rewards: None,
+            costs: None,
+        };
+        let new = NewDataset::describe(&dataset, Format::Jsonl, "d".into(), None, "0".into(), 1);
+        let record = store.create_dataset(new, data::encode_canonical(&dataset)).await.unwrap();
+        (dir, store, record.id)
+    }
+
+    /// A missing file is only "not found" when the row went with it (a concurrent delete); a
+    /// file missing under a row that is still there is damage, reported as such.
+    #[tokio::test]
+    async fn a_missing_file_under_an_existing_row_is_corrupt() {
+        let (_dir, store, id) = store_with_a_dataset().await;
+        std::fs::remove_file(store.canonical_path(&id)).unwrap();
+        assert!(matches!(store.load_dataset(&id).await, Err(StoreError::Corrupt(..))));
     }
 }
