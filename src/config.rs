@@ -9,6 +9,9 @@ pub const DEFAULT_BIND: &str = "127.0.0.1:8080";
 pub const DEFAULT_DATA_DIR: &str = "./safedice-data";
 /// 1 GiB.
 pub const DEFAULT_MAX_UPLOAD_BYTES: u64 = 1 << 30;
+/// 4 GiB: about forty times what a default job (batch 512, two layers of 256) on a
+/// 100k-transition dataset needs, so only configurations far off the defaults meet it.
+pub const DEFAULT_MAX_JOB_MEMORY: u64 = 4 << 30;
 
 /// Log line format.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
@@ -62,6 +65,12 @@ pub struct ServeConfig {
     /// Training jobs run concurrently.
     #[arg(long, env = "SAFEDICE_WORKERS", default_value_t = 1, value_parser = clap::value_parser!(u16).range(1..))]
     pub workers: u16,
+
+    /// Largest estimated peak memory of one training job, in bytes: POST /v1/jobs refuses (422
+    /// job_too_large) a job whose configuration and datasets need more. Each worker runs one
+    /// job, so training may use up to --workers times this.
+    #[arg(long, env = "SAFEDICE_MAX_JOB_MEMORY", default_value_t = DEFAULT_MAX_JOB_MEMORY, value_parser = clap::value_parser!(u64).range(1..))]
+    pub max_job_memory: u64,
 }
 
 impl std::fmt::Debug for ServeConfig {
@@ -77,6 +86,7 @@ impl std::fmt::Debug for ServeConfig {
             .field("max_upload_bytes", &self.max_upload_bytes)
             .field("log_format", &self.log_format)
             .field("workers", &self.workers)
+            .field("max_job_memory", &self.max_job_memory)
             .finish()
     }
 }
@@ -115,6 +125,7 @@ impl ServeConfig {
             max_upload_bytes: DEFAULT_MAX_UPLOAD_BYTES,
             log_format: LogFormat::Pretty,
             workers: 1,
+            max_job_memory: DEFAULT_MAX_JOB_MEMORY,
         }
     }
 
