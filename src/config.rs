@@ -12,6 +12,9 @@ pub const DEFAULT_MAX_UPLOAD_BYTES: u64 = 1 << 30;
 /// 4 GiB: about forty times what a default job (batch 512, two layers of 256) on a
 /// 100k-transition dataset needs, so only configurations far off the defaults meet it.
 pub const DEFAULT_MAX_JOB_MEMORY: u64 = 4 << 30;
+/// 1 GiB: room for one upload of the default --max-upload-bytes, and for thousands of
+/// checkpoints of default-sized networks.
+pub const DEFAULT_MIN_FREE_DISK: u64 = 1 << 30;
 
 /// Log line format.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
@@ -71,6 +74,11 @@ pub struct ServeConfig {
     /// job, so training may use up to --workers times this.
     #[arg(long, env = "SAFEDICE_MAX_JOB_MEMORY", default_value_t = DEFAULT_MAX_JOB_MEMORY, value_parser = clap::value_parser!(u64).range(1..))]
     pub max_job_memory: u64,
+
+    /// Free space (bytes) the data directory's file system must have for /readyz to answer
+    /// ready; below it /readyz answers 503 low_disk_space.
+    #[arg(long, env = "SAFEDICE_MIN_FREE_DISK", default_value_t = DEFAULT_MIN_FREE_DISK)]
+    pub min_free_disk: u64,
 }
 
 impl std::fmt::Debug for ServeConfig {
@@ -87,6 +95,7 @@ impl std::fmt::Debug for ServeConfig {
             .field("log_format", &self.log_format)
             .field("workers", &self.workers)
             .field("max_job_memory", &self.max_job_memory)
+            .field("min_free_disk", &self.min_free_disk)
             .finish()
     }
 }
@@ -126,6 +135,7 @@ impl ServeConfig {
             log_format: LogFormat::Pretty,
             workers: 1,
             max_job_memory: DEFAULT_MAX_JOB_MEMORY,
+            min_free_disk: DEFAULT_MIN_FREE_DISK,
         }
     }
 

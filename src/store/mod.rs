@@ -14,6 +14,7 @@ pub mod datasets;
 pub mod evaluations;
 pub mod jobs;
 pub mod policies;
+pub mod storage;
 
 use std::path::{Path, PathBuf};
 use std::str::FromStr;
@@ -24,6 +25,7 @@ use sqlx::sqlite::{SqliteConnectOptions, SqliteJournalMode, SqlitePoolOptions, S
 use sqlx::{Sqlite, SqlitePool, Transaction};
 
 pub use datasets::{DatasetRecord, DeleteOutcome, NewDataset};
+pub use storage::StorageProblem;
 
 const DATABASE_FILE: &str = "safedice.sqlite";
 const DATASETS_DIR: &str = "datasets";
