@@ -76,7 +76,8 @@ pub struct ServeConfig {
     pub max_job_memory: u64,
 
     /// Free space (bytes) the data directory's file system must have for /readyz to answer
-    /// ready; below it /readyz answers 503 low_disk_space.
+    /// ready; below it /readyz answers 503 low_disk_space, and training paused by a full disk
+    /// waits for it before resuming.
     #[arg(long, env = "SAFEDICE_MIN_FREE_DISK", default_value_t = DEFAULT_MIN_FREE_DISK)]
     pub min_free_disk: u64,
 }

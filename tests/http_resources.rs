@@ -1,6 +1,7 @@
 //! The service's resources through the real server: a job is refused before it is queued when
 //! its estimated memory is above `--max-job-memory`; /readyz reports a data directory that cannot
-//! be written or whose disk is (nearly) full.
+//! be written or whose disk is (nearly) full; a job whose checkpoint does not fit on the disk
+//! goes back to the queue and finishes once there is room.
 //!
 //! The full-disk tests mount a small tmpfs as the data directory (a real file system that
 //! really runs out of space); where mounting is not permitted (not root, no CAP_SYS_ADMIN) they
@@ -13,6 +14,7 @@ mod jobs_support;
 use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::process::Command;
+use std::time::Duration;
 
 use common::{assert_error, TestApp};
 use jobs_support::*;
@@ -56,6 +58,13 @@ impl Tmpfs {
 
     fn path(&self) -> &Path {
         self.dir.path()
+    }
+
+    /// Grows or shrinks it in place (files stay).
+    fn resize(&self, size: &str) {
+        let options = format!("remount,size={size}");
+        let status = Command::new("mount").args(["-o", &options]).arg(self.path()).status();
+        assert!(status.unwrap().success(), "remount the tmpfs with {size}");
     }
 
     /// Writes zeros to `name` until the file system is full; returns the file.
@@ -189,6 +198,50 @@ async fn readyz_reports_a_full_disk_and_recovers_when_space_is_freed() {
     let message = assert_error(response, StatusCode::SERVICE_UNAVAILABLE, "low_disk_space").await;
     assert!(message.contains("below the 1048576 bytes required"), "{message}");
     std::fs::remove_file(filler).unwrap();
+    assert_eq!(app.get("/readyz").send().await.unwrap().status(), StatusCode::OK);
+    app.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_job_whose_checkpoint_does_not_fit_goes_back_to_the_queue_and_resumes_with_room() {
+    let test = "a_job_whose_checkpoint_does_not_fit_goes_back_to_the_queue_and_resumes_with_room";
+    let Some(disk) = Tmpfs::mount(test, "6m") else { return };
+    let data_dir = disk.path().join("data");
+    let mut app = TestApp::spawn_with(|c| {
+        c.data_dir = data_dir.clone();
+        c.min_free_disk = 1 << 20;
+    })
+    .await;
+    let (unlabeled, non_preferred) = grid_datasets();
+    let u = upload(&app.client, &app.base_url, &unlabeled, "grid-unlabeled").await;
+    let n = upload(&app.client, &app.base_url, &non_preferred, "grid-non-preferred").await;
+    // Three networks of two 512-wide layers: a checkpoint (weights and Adam moments) of about
+    // 10 MB, which a 6 MiB disk cannot take.
+    let job = create_job(
+        &app.client,
+        &app.base_url,
+        json!({"algorithm": "safedice", "unlabeled_dataset": u, "non_preferred_dataset": n,
+               "config": {"iterations": 40, "seed": 0, "hidden_sizes": [512, 512], "batch_size": 32},
+               "runner": {"log_every": 5, "checkpoint_every": 10}}),
+    )
+    .await;
+    let id = job["id"].as_str().unwrap();
+    // It starts, its first checkpoint fails with SQLITE_FULL, and it is queued again (never
+    // failed: wait_for_job asserts that on every poll).
+    let requeued = wait_for_job(&app.client, &app.base_url, id, Duration::from_secs(120), |job| {
+        job["status"] == "queued" && job["started_at"].is_string()
+    })
+    .await;
+    assert!(requeued["error"].is_null(), "{requeued}");
+    // The write filled the disk as far as it went: not ready.
+    let ready = app.get("/readyz").send().await.unwrap();
+    assert_error(ready, StatusCode::SERVICE_UNAVAILABLE, "low_disk_space").await;
+
+    // Room again: the paused worker sees it, claims the job again and finishes it.
+    disk.resize("128m");
+    let done = wait_for_status(&app.client, &app.base_url, id, "succeeded").await;
+    assert_eq!(done["progress"]["step"], done["progress"]["total"]);
+    assert!(done["policy_id"].is_string() && done["error"].is_null(), "{done}");
     assert_eq!(app.get("/readyz").send().await.unwrap().status(), StatusCode::OK);
     app.stop().await;
 }

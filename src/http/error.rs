@@ -46,6 +46,12 @@ pub enum ApiError {
     /// 503: the service cannot answer now (database unreachable or busy, request timed out).
     #[error("{message}")]
     Unavailable { code: &'static str, message: String },
+    /// 507: the server's disk is full; nothing was stored.
+    #[error(
+        "the server's disk is full; nothing was stored. Retry once space is freed (GET /readyz \
+         answers 200 again then)"
+    )]
+    InsufficientStorage,
     /// 500: anything unexpected. Logged, never shown to the client.
     #[error("internal error")]
     Internal(#[from] anyhow::Error),
@@ -101,6 +107,7 @@ impl ApiError {
             ApiError::Unprocessable { .. } => StatusCode::UNPROCESSABLE_ENTITY,
             ApiError::Rejected { status, .. } => *status,
             ApiError::Unavailable { .. } => StatusCode::SERVICE_UNAVAILABLE,
+            ApiError::InsufficientStorage => StatusCode::INSUFFICIENT_STORAGE,
             ApiError::Internal(_) => StatusCode::INTERNAL_SERVER_ERROR,
         }
     }
@@ -117,6 +124,7 @@ impl ApiError {
             ApiError::NotFound(_) => "not_found",
             ApiError::MethodNotAllowed => "method_not_allowed",
             ApiError::PayloadTooLarge { .. } => "payload_too_large",
+            ApiError::InsufficientStorage => "storage_full",
             ApiError::Internal(_) => "internal_error",
         }
     }
@@ -185,6 +193,10 @@ impl From<crate::store::StoreError> for ApiError {
             e if e.is_busy() => {
                 tracing::warn!(error = %e, "database busy; answering 503");
                 ApiError::database_busy()
+            }
+            e if e.is_storage_full() => {
+                tracing::error!(error = %e, "storage full; answering 507");
+                ApiError::InsufficientStorage
             }
             other => ApiError::Internal(other.into()),
         }
@@ -262,5 +274,15 @@ mod tests {
         let other = ApiError::from(StoreError::Database(sqlx::Error::RowNotFound)).into_response();
         assert_eq!(other.status(), StatusCode::INTERNAL_SERVER_ERROR);
         assert!(other.headers().get(header::RETRY_AFTER).is_none());
+    }
+
+    #[test]
+    fn a_full_disk_is_507_storage_full_not_500() {
+        let enospc = std::io::Error::from(std::io::ErrorKind::StorageFull);
+        let error = ApiError::from(StoreError::Io(enospc));
+        assert_eq!(
+            (error.status(), error.code()),
+            (StatusCode::INSUFFICIENT_STORAGE, "storage_full")
+        );
     }
 }

@@ -72,6 +72,7 @@ impl AppState {
             jobs: crate::jobs::JobRunner::new(
                 store.clone(),
                 usize::from(config.workers),
+                config.min_free_disk,
                 shutdown.clone(),
             ),
             policies: Arc::new(inference::PolicyCache::new(store.clone())),
@@ -106,6 +107,7 @@ pub fn openapi() -> utoipa::openapi::OpenApi {
     let mut doc = routes().into_openapi();
     openapi::secure_api_routes(&mut doc);
     openapi::document_unavailable(&mut doc);
+    openapi::document_storage_full(&mut doc);
     doc
 }
 

@@ -110,6 +110,31 @@ pub fn document_unavailable(doc: &mut OpenApiDoc) {
     }
 }
 
+/// The operations that write to the data directory (the others only read it).
+const WRITING_OPERATIONS: [&str; 5] =
+    ["upload_dataset", "delete_dataset", "create_job", "cancel_job", "evaluate_policy"];
+
+/// Documents the 507 every API operation that stores something can answer when the disk is full
+/// (`storage_full`; nothing was stored). Operations that describe their own 507 keep it.
+pub fn document_storage_full(doc: &mut OpenApiDoc) {
+    let response = ResponseBuilder::new()
+        .description(
+            "The server's disk is full (`storage_full`); nothing was stored. Retry once space is \
+             freed: `GET /readyz` answers 200 again then",
+        )
+        .content("application/json", Content::new(Some(Ref::from_schema_name("ErrorBody"))))
+        .build();
+    for (_, operation) in api_operations(doc) {
+        if operation.operation_id.as_deref().is_some_and(|id| WRITING_OPERATIONS.contains(&id)) {
+            operation
+                .responses
+                .responses
+                .entry("507".to_owned())
+                .or_insert_with(|| RefOr::T(response.clone()));
+        }
+    }
+}
+
 /// The description as YAML, as committed in `api/openapi.yaml`.
 pub fn yaml() -> anyhow::Result<String> {
     Ok(super::openapi().to_yaml()?)

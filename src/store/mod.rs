@@ -22,7 +22,7 @@ use std::time::Duration;
 
 use anyhow::Context;
 use sqlx::sqlite::{SqliteConnectOptions, SqliteJournalMode, SqlitePoolOptions, SqliteSynchronous};
-use sqlx::{Sqlite, SqlitePool, Transaction};
+use sqlx::{Connection, Sqlite, SqlitePool, Transaction};
 
 pub use datasets::{DatasetRecord, DeleteOutcome, NewDataset};
 pub use storage::StorageProblem;
@@ -78,6 +78,22 @@ pub fn is_busy(e: &sqlx::Error) -> bool {
         || matches!(sqlite_code(e), Some(SQLITE_BUSY | SQLITE_LOCKED))
 }
 
+/// How the pool hands out and takes back connections.
+fn pool_options() -> SqlitePoolOptions {
+    SqlitePoolOptions::new().acquire_timeout(ACQUIRE_TIMEOUT).after_release(|conn, _| {
+        Box::pin(async move {
+            // SQLite rolls a transaction back by itself on some errors (SQLITE_FULL, I/O errors,
+            // out of memory). sqlx does not notice: the ROLLBACK of the dropped transaction then
+            // fails, sqlx still counts the transaction as open, and the connection would refuse
+            // every later BEGIN (a full disk turned into failed jobs that way). The ping lets
+            // that rollback run first; a connection still counted in a transaction is closed
+            // rather than reused.
+            conn.ping().await?;
+            Ok(!conn.is_in_transaction())
+        })
+    })
+}
+
 /// The database pool and the data directory; cheap to clone.
 #[derive(Clone, Debug)]
 pub struct Store {
@@ -124,9 +140,8 @@ impl Store {
             .synchronous(SqliteSynchronous::Normal)
             .foreign_keys(true)
             .busy_timeout(BUSY_TIMEOUT);
-        let pool = SqlitePoolOptions::new()
+        let pool = pool_options()
             .max_connections(8)
-            .acquire_timeout(ACQUIRE_TIMEOUT)
             .connect_with(options)
             .await
             .with_context(|| format!("cannot open the database {}", database.display()))?;
@@ -210,9 +225,49 @@ fn remove_path(path: &Path) -> std::io::Result<()> {
 
 #[cfg(test)]
 mod tests {
-    use sqlx::{Connection, SqliteConnection};
+    use sqlx::SqliteConnection;
 
     use super::*;
+
+    /// A write transaction that SQLite rolls back by itself (here: the database file reaches its
+    /// page limit, as a full disk does) must not leave its pooled connection unusable.
+    #[tokio::test]
+    async fn a_transaction_sqlite_rolled_back_does_not_poison_the_pool() {
+        let dir = tempfile::tempdir().unwrap();
+        let options = SqliteConnectOptions::from_str("sqlite:")
+            .unwrap()
+            .filename(dir.path().join("db.sqlite"))
+            .create_if_missing(true)
+            .journal_mode(SqliteJournalMode::Wal);
+        // One connection, whichever the pool opens, each with a database size limit.
+        let pool = pool_options()
+            .max_connections(1)
+            .after_connect(|conn, _| {
+                Box::pin(async move {
+                    sqlx::query("PRAGMA max_page_count = 16").execute(conn).await.map(|_| ())
+                })
+            })
+            .connect_with(options)
+            .await
+            .unwrap();
+        sqlx::query("CREATE TABLE t (data BLOB)").execute(&pool).await.unwrap();
+        let store = Store { pool, data_dir: dir.path().to_path_buf() };
+        let mut tx = store.begin_write().await.unwrap();
+        sqlx::query("INSERT INTO t VALUES (x'00')").execute(&mut *tx).await.unwrap();
+        let full = sqlx::query("INSERT INTO t VALUES (?)")
+            .bind(vec![0u8; 4 << 20])
+            .execute(&mut *tx)
+            .await
+            .unwrap_err();
+        assert!(StoreError::Database(full).is_storage_full());
+        drop(tx);
+        let mut tx = store.begin_write().await.expect("the pool still begins transactions");
+        sqlx::query("INSERT INTO t VALUES (x'01')").execute(&mut *tx).await.unwrap();
+        tx.commit().await.unwrap();
+        let rows: i64 =
+            sqlx::query_scalar("SELECT COUNT(*) FROM t").fetch_one(store.pool()).await.unwrap();
+        assert_eq!(rows, 1, "only the committed row");
+    }
 
     async fn connect(path: &Path, busy_timeout: Duration) -> SqliteConnection {
         let options = SqliteConnectOptions::from_str("sqlite:")

@@ -4,7 +4,37 @@
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
-use super::Store;
+use super::{sqlite_code, Store, StoreError};
+
+/// SQLite's primary result code for "database or disk is full".
+const SQLITE_FULL: i32 = 13;
+
+impl StoreError {
+    /// The disk (or the database's size limit) is full: the write failed, nothing of it was
+    /// stored, and it succeeds once space is freed.
+    pub fn is_storage_full(&self) -> bool {
+        match self {
+            StoreError::Database(e) => is_storage_full(e),
+            StoreError::Io(e) => is_io_storage_full(e),
+            _ => false,
+        }
+    }
+}
+
+/// SQLITE_FULL (the file system refused to grow the database or its WAL, SQLite's VFS turns
+/// ENOSPC into it, or the database reached `max_page_count`), or an I/O error of a full disk.
+pub fn is_storage_full(e: &sqlx::Error) -> bool {
+    match e {
+        sqlx::Error::Io(io) => is_io_storage_full(io),
+        other => sqlite_code(other) == Some(SQLITE_FULL),
+    }
+}
+
+/// ENOSPC (`StorageFull`) or EDQUOT (`QuotaExceeded`): the file system, or the user's quota on
+/// it, has no room for the write.
+pub fn is_io_storage_full(e: &std::io::Error) -> bool {
+    matches!(e.kind(), std::io::ErrorKind::StorageFull | std::io::ErrorKind::QuotaExceeded)
+}
 
 /// Why the data directory cannot take the service's writes now.
 #[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
@@ -89,4 +119,55 @@ fn available_bytes(dir: &Path) -> std::io::Result<u64> {
 #[cfg(not(unix))]
 fn available_bytes(_dir: &Path) -> std::io::Result<u64> {
     Ok(u64::MAX)
+}
+
+#[cfg(test)]
+mod tests {
+    use std::str::FromStr;
+
+    use sqlx::sqlite::SqliteConnectOptions;
+    use sqlx::{Connection, SqliteConnection};
+
+    use super::*;
+
+    /// A real ENOSPC: Linux's /dev/full fails every write with it.
+    #[cfg(target_os = "linux")]
+    #[test]
+    fn a_write_to_a_full_device_is_storage_full() {
+        let mut full = std::fs::OpenOptions::new().write(true).open("/dev/full").unwrap();
+        let e = full.write_all(b"checkpoint").and_then(|()| full.flush()).unwrap_err();
+        assert_eq!(e.raw_os_error(), Some(rustix::io::Errno::NOSPC.raw_os_error()));
+        assert!(is_io_storage_full(&e));
+        assert!(StoreError::Io(e).is_storage_full());
+        let quota = std::io::Error::from_raw_os_error(rustix::io::Errno::DQUOT.raw_os_error());
+        assert!(is_io_storage_full(&quota));
+        let other = std::io::Error::from_raw_os_error(rustix::io::Errno::ACCESS.raw_os_error());
+        assert!(!is_io_storage_full(&other) && !StoreError::Io(other).is_storage_full());
+    }
+
+    /// A real SQLITE_FULL from a real database file: `max_page_count` caps the file's size, and
+    /// SQLite answers a write past it exactly as it answers a full disk.
+    #[tokio::test]
+    async fn a_database_past_its_page_limit_is_storage_full() {
+        let dir = tempfile::tempdir().unwrap();
+        let options = SqliteConnectOptions::from_str("sqlite:")
+            .unwrap()
+            .filename(dir.path().join("db.sqlite"))
+            .create_if_missing(true);
+        let mut db = SqliteConnection::connect_with(&options).await.unwrap();
+        sqlx::query("CREATE TABLE checkpoints (data BLOB)").execute(&mut db).await.unwrap();
+        sqlx::query("PRAGMA max_page_count = 8").execute(&mut db).await.unwrap();
+        let full = sqlx::query("INSERT INTO checkpoints VALUES (?)")
+            .bind(vec![0u8; 1 << 20])
+            .execute(&mut db)
+            .await
+            .unwrap_err();
+        assert!(full.to_string().contains("database or disk is full"), "{full}");
+        assert!(is_storage_full(&full));
+        assert!(!super::super::is_busy(&full));
+        assert!(StoreError::Database(full).is_storage_full());
+        let other =
+            sqlx::query("INSERT INTO missing VALUES (1)").execute(&mut db).await.unwrap_err();
+        assert!(!is_storage_full(&other));
+    }
 }
