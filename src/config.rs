@@ -10,6 +10,12 @@ pub const DEFAULT_DATA_DIR: &str = "./safedice-data";
 /// 1 GiB.
 pub const DEFAULT_MAX_UPLOAD_BYTES: u64 = 1 << 30;
 pub const DEFAULT_MAX_CONNECTIONS: u32 = 1024;
+/// 4 GiB: about forty times what a default job (batch 512, two layers of 256) on a
+/// 100k-transition dataset needs, so only configurations far off the defaults meet it.
+pub const DEFAULT_MAX_JOB_MEMORY: u64 = 4 << 30;
+/// 1 GiB: room for one upload of the default --max-upload-bytes, and for thousands of
+/// checkpoints of default-sized networks.
+pub const DEFAULT_MIN_FREE_DISK: u64 = 1 << 30;
 
 /// Log line format.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
@@ -83,6 +89,18 @@ pub struct ServeConfig {
     /// Training jobs run concurrently.
     #[arg(long, env = "SAFEDICE_WORKERS", default_value_t = 1, value_parser = clap::value_parser!(u16).range(1..))]
     pub workers: u16,
+
+    /// Largest estimated peak memory of one training job, in bytes: POST /v1/jobs refuses (422
+    /// job_too_large) a job whose configuration and datasets need more. Each worker runs one
+    /// job, so training may use up to --workers times this.
+    #[arg(long, env = "SAFEDICE_MAX_JOB_MEMORY", default_value_t = DEFAULT_MAX_JOB_MEMORY, value_parser = clap::value_parser!(u64).range(1..))]
+    pub max_job_memory: u64,
+
+    /// Free space (bytes) the data directory's file system must have for /readyz to answer
+    /// ready; below it /readyz answers 503 low_disk_space, and training paused by a full disk
+    /// waits for it before resuming.
+    #[arg(long, env = "SAFEDICE_MIN_FREE_DISK", default_value_t = DEFAULT_MIN_FREE_DISK)]
+    pub min_free_disk: u64,
 }
 
 impl std::fmt::Debug for ServeConfig {
@@ -102,6 +120,8 @@ impl std::fmt::Debug for ServeConfig {
             .field("body_idle_timeout_secs", &self.body_idle_timeout_secs)
             .field("max_concurrent_uploads", &self.max_concurrent_uploads)
             .field("workers", &self.workers)
+            .field("max_job_memory", &self.max_job_memory)
+            .field("min_free_disk", &self.min_free_disk)
             .finish()
     }
 }
@@ -144,6 +164,8 @@ impl ServeConfig {
             body_idle_timeout_secs: 30,
             max_concurrent_uploads: 8,
             workers: 1,
+            max_job_memory: DEFAULT_MAX_JOB_MEMORY,
+            min_free_disk: DEFAULT_MIN_FREE_DISK,
         }
     }
 

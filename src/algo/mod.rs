@@ -9,7 +9,7 @@
 //! Files: one per algorithm ([`safedice`], [`bc`], [`dwbc`], [`ppl`], [`dexperts`]), the shared
 //! networks ([`mlp`]), policy heads and artefacts ([`policy`]), the optimiser ([`optim`]), the
 //! training tensors built from a [`Dataset`] ([`columns`]), checkpoints ([`checkpoint`]) and the
-//! configuration with its presets ([`config`]).
+//! configuration with its presets ([`config`]), and a run's memory estimate ([`memory`]).
 
 pub mod bc;
 pub mod checkpoint;
@@ -19,6 +19,7 @@ pub mod dexperts;
 pub mod dwbc;
 pub mod fused_mlp;
 pub mod losses;
+pub mod memory;
 pub mod mlp;
 pub mod optim;
 pub mod policy;

@@ -58,11 +58,11 @@ pub enum ApiError {
     ClientClosed,
     /// 507: the data directory's disk is full.
     #[error(
-        "the server's storage is full; nothing was stored. Retry once an operator has freed \
-         space (delete unused datasets, or grow the data directory's volume)"
+        "the server's disk is full; nothing was stored. Retry once an operator has freed space \
+         (GET /readyz answers 200 again then)"
     )]
     InsufficientStorage,
-    /// 503: the service cannot answer now (database unreachable, request timed out).
+    /// 503: the service cannot answer now (database unreachable or busy, request timed out).
     #[error("{message}")]
     Unavailable { code: &'static str, message: String },
     /// 500: anything unexpected. Logged, never shown to the client.
@@ -146,6 +146,14 @@ impl ApiError {
         }
     }
 
+    /// A lock another writer held for too long: the request was fine and is worth repeating.
+    fn database_busy() -> Self {
+        ApiError::unavailable(
+            "database_busy",
+            "the database is busy with other writes; nothing was changed, retry in a moment",
+        )
+    }
+
     /// The disk is full: logged for the operator (it needs one), answered 507.
     fn storage_full(cause: anyhow::Error) -> Self {
         tracing::error!(error = %cause, "storage full: a write was refused");
@@ -187,7 +195,7 @@ impl IntoResponse for ApiError {
             StatusCode::UNAUTHORIZED => {
                 headers.insert(header::WWW_AUTHENTICATE, HeaderValue::from_static("Bearer"));
             }
-            // Busy or not ready: worth retrying soon.
+            // Busy or not ready (a burst of writes, an upload slot): worth retrying in a second.
             StatusCode::SERVICE_UNAVAILABLE => {
                 headers.insert(header::RETRY_AFTER, HeaderValue::from_static("1"));
             }
@@ -201,7 +209,11 @@ impl From<crate::store::StoreError> for ApiError {
     fn from(e: crate::store::StoreError) -> Self {
         match e {
             crate::store::StoreError::NotFound { kind, id } => ApiError::not_found(kind, &id),
-            full if full.is_storage_full() => ApiError::storage_full(full.into()),
+            e if e.is_busy() => {
+                tracing::warn!(error = %e, "database busy; answering 503");
+                ApiError::database_busy()
+            }
+            e if e.is_storage_full() => ApiError::storage_full(e.into()),
             other => ApiError::Internal(other.into()),
         }
     }
@@ -216,16 +228,13 @@ impl From<crate::data::ParseError> for ApiError {
 
 impl From<sqlx::Error> for ApiError {
     fn from(e: sqlx::Error) -> Self {
-        if crate::store::sqlx_is_storage_full(&e) {
-            return ApiError::storage_full(e.into());
-        }
-        ApiError::Internal(e.into())
+        crate::store::StoreError::Database(e).into()
     }
 }
 
 impl From<std::io::Error> for ApiError {
     fn from(e: std::io::Error) -> Self {
-        if crate::store::io_is_storage_full(&e) {
+        if crate::store::storage::is_io_storage_full(&e) {
             return ApiError::storage_full(e.into());
         }
         ApiError::Internal(e.into())
@@ -305,4 +314,31 @@ pub async fn route_not_found(uri: axum::http::Uri) -> ApiError {
 /// Answers requests whose route exists but not for this method.
 pub async fn method_not_allowed() -> ApiError {
     ApiError::MethodNotAllowed
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::store::StoreError;
+
+    #[test]
+    fn a_busy_database_is_503_with_retry_after_not_500() {
+        let response =
+            ApiError::from(StoreError::Database(sqlx::Error::PoolTimedOut)).into_response();
+        assert_eq!(response.status(), StatusCode::SERVICE_UNAVAILABLE);
+        assert_eq!(response.headers()[header::RETRY_AFTER], "1");
+        let other = ApiError::from(StoreError::Database(sqlx::Error::RowNotFound)).into_response();
+        assert_eq!(other.status(), StatusCode::INTERNAL_SERVER_ERROR);
+        assert!(other.headers().get(header::RETRY_AFTER).is_none());
+    }
+
+    #[test]
+    fn a_full_disk_is_507_storage_full_not_500() {
+        let enospc = std::io::Error::from(std::io::ErrorKind::StorageFull);
+        let error = ApiError::from(StoreError::Io(enospc));
+        assert_eq!(
+            (error.status(), error.code()),
+            (StatusCode::INSUFFICIENT_STORAGE, "insufficient_storage")
+        );
+    }
 }

@@ -19,10 +19,11 @@ use super::error::ErrorBody;
 use super::extract::{Json, Path, Query};
 use super::pagination::{Page, PageParams};
 use super::{ApiError, AppState};
+use crate::algo::memory::{estimate_job_memory, DataShape};
 use crate::algo::{self, Algorithm};
 use crate::jobs::{EvalOptions, JobEvent, JobProgress, RunnerOptions};
 use crate::store::jobs::{CancelOutcome, JobRow, MetricRow, NewJob};
-use crate::store::{Store, StoreError};
+use crate::store::{DatasetRecord, Store, StoreError};
 
 /// A job's lifecycle: `queued` → `running` → `succeeded` | `failed` | `cancelled` (a running job
 /// goes back to `queued` when the server shuts down, and resumes from its checkpoint).
@@ -233,7 +234,9 @@ pub fn streams() -> OpenApiRouter<AppState> {
         (status = 201, description = "Queued", body = Job),
         (status = 404, description = "A dataset does not exist", body = ErrorBody),
         (status = 422, description = "Invalid configuration or datasets that do not fit it \
-            (`invalid_config`), or a malformed body (`invalid_body`)", body = ErrorBody),
+            (`invalid_config`), a job whose estimated memory is above the server's \
+            `--max-job-memory` (`job_too_large`; the message names the estimate and the limit), \
+            or a malformed body (`invalid_body`)", body = ErrorBody),
     ))]
 async fn create_job(
     State(state): State<AppState>,
@@ -255,6 +258,7 @@ async fn create_job(
             format!("algorithm {algorithm} needs non_preferred_dataset (a labeled non-preferred dataset id)"),
         ));
     }
+    check_memory(&state, &config, &request).await?;
     let data = crate::jobs::load_training_data(
         &state.store,
         &request.unlabeled_dataset,
@@ -291,6 +295,62 @@ async fn create_job(
     tracing::info!(job_id = %id, %algorithm, total_steps = config.total_steps(), "job queued");
     let location = format!("/v1/jobs/{id}");
     Ok((StatusCode::CREATED, [(header::LOCATION, location)], Json(Job::try_from(row)?)))
+}
+
+/// Refuses (422 `job_too_large`), before any dataset is loaded, a job whose estimated peak
+/// memory is above `--max-job-memory`: accepted, it would take the worker's machine down when it
+/// starts rather than fail here with a message saying what to change.
+async fn check_memory(
+    state: &AppState,
+    config: &algo::ResolvedConfig,
+    request: &CreateJob,
+) -> Result<(), ApiError> {
+    let shape = |id: &str, record: Option<DatasetRecord>| match record {
+        Some(record) => Ok(DataShape {
+            transitions: record.transitions,
+            obs_dim: record.obs_dim,
+            action_space: record.action_space,
+            longest_episode: record.stats.episode_length.max as u64,
+        }),
+        None => Err(ApiError::not_found("dataset", id)),
+    };
+    let unlabeled_id = &request.unlabeled_dataset;
+    let unlabeled = shape(unlabeled_id, state.store.dataset(unlabeled_id).await?)?;
+    let non_preferred = match request.non_preferred_dataset.as_deref() {
+        Some(id) => Some(shape(id, state.store.dataset(id).await?)?),
+        None => None,
+    };
+    let estimate = estimate_job_memory(config, &unlabeled, non_preferred.as_ref());
+    let limit = state.config.max_job_memory;
+    if estimate.total <= limit {
+        return Ok(());
+    }
+    let ppl =
+        if config.algorithm() == Algorithm::Ppl { ", pairs_per_batch, segment_length" } else { "" };
+    Err(ApiError::unprocessable(
+        "job_too_large",
+        format!(
+            "this job needs an estimated {} of memory ({} for the datasets, {} for the networks, \
+             {} per training step), above the server's limit of {} (--max-job-memory); lower \
+             batch_size, hidden_sizes{ppl}, or train on a smaller dataset",
+            human_bytes(estimate.total),
+            human_bytes(estimate.data),
+            human_bytes(estimate.networks),
+            human_bytes(estimate.step),
+            human_bytes(limit),
+        ),
+    ))
+}
+
+/// `3.6 GiB (3865470976 bytes)`.
+fn human_bytes(bytes: u64) -> String {
+    const UNITS: [&str; 5] = ["bytes", "KiB", "MiB", "GiB", "TiB"];
+    let exponent = ((63 - bytes.max(1).leading_zeros()) / 10).min(UNITS.len() as u32 - 1);
+    if exponent == 0 {
+        return format!("{bytes} bytes");
+    }
+    let value = bytes as f64 / (1u64 << (10 * exponent)) as f64;
+    format!("{value:.1} {} ({bytes} bytes)", UNITS[exponent as usize])
 }
 
 /// List jobs, newest first.
@@ -523,6 +583,14 @@ mod tests {
                 time: format!("t{i}"),
             })
             .collect()
+    }
+
+    #[test]
+    fn byte_counts_read_in_binary_units_with_the_exact_count() {
+        assert_eq!(human_bytes(0), "0 bytes");
+        assert_eq!(human_bytes(1023), "1023 bytes");
+        assert_eq!(human_bytes(1536), "1.5 KiB (1536 bytes)");
+        assert_eq!(human_bytes(4 << 30), "4.0 GiB (4294967296 bytes)");
     }
 
     #[test]

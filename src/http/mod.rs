@@ -76,6 +76,7 @@ impl AppState {
             jobs: crate::jobs::JobRunner::new(
                 store.clone(),
                 usize::from(config.workers),
+                config.min_free_disk,
                 shutdown.clone(),
             ),
             policies: Arc::new(inference::PolicyCache::new(store.clone())),

@@ -147,7 +147,9 @@ pub fn document_shared_errors(doc: &mut OpenApiDoc) {
                 add_error(
                     operation,
                     503,
-                    "The request took longer than 30 s (`timeout`), or the service is busy; \
+                    "The service cannot answer now: the database stayed locked by other \
+                     writes (`database_busy`; nothing was changed), the request took longer \
+                     than 30 s (`timeout`), or the upload slots are taken (`too_many_uploads`); \
                      retry after `Retry-After` seconds",
                 );
             }

@@ -8,6 +8,12 @@
 //! evaluates the policy when the job has an `eval` block ([`EvalOptions`]), and publishes
 //! progress ([`JobEvent`]) for the event streams. At start-up, jobs a dead process
 //! left `running` go back to the queue first and resume from their last checkpoint.
+//!
+//! A run whose write the store cannot take (a full disk, SQLITE_FULL, a lock held past the busy
+//! timeout) is not the job's fault: the job goes back to the queue, to resume from its last
+//! checkpoint, and every worker pauses claiming until the data directory takes writes and has
+//! `--min-free-disk` free again (at least [`STORAGE_RETRY`], doubling while runs keep failing so,
+//! up to [`STORAGE_RETRY_MAX`]), rather than failing job after job for good.
 
 pub mod evaluations;
 pub mod options;
@@ -15,7 +21,7 @@ pub mod progress;
 mod worker;
 
 use std::collections::HashMap;
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU32, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
@@ -63,14 +69,25 @@ struct Inner {
     tasks: Mutex<Vec<JoinHandle<()>>>,
     /// Runs policy evaluations beside the training workers.
     evaluator: Evaluator,
+    /// Free space the data directory needs before paused training resumes (`--min-free-disk`).
+    min_free_disk: u64,
+    /// Runs in a row that ended because the store could not take their writes; while above
+    /// zero, workers wait for the storage before claiming.
+    storage_failures: AtomicU32,
 }
 
 /// Events buffered per subscriber; a slow event stream skips ahead rather than blocking workers.
 const EVENT_BUFFER: usize = 1024;
 
 impl JobRunner {
-    /// A pool of `workers` workers (not started) that stops when `shutdown` is cancelled.
-    pub fn new(store: Store, workers: usize, shutdown: CancellationToken) -> Self {
+    /// A pool of `workers` workers (not started) that stops when `shutdown` is cancelled;
+    /// training paused by a full disk resumes once `min_free_disk` bytes are free.
+    pub fn new(
+        store: Store,
+        workers: usize,
+        min_free_disk: u64,
+        shutdown: CancellationToken,
+    ) -> Self {
         let (events, _) = broadcast::channel(EVENT_BUFFER);
         JobRunner {
             inner: Arc::new(Inner {
@@ -82,6 +99,8 @@ impl JobRunner {
                 store,
                 shutdown,
                 tasks: Mutex::new(Vec::new()),
+                min_free_disk,
+                storage_failures: AtomicU32::new(0),
             }),
         }
     }
@@ -153,6 +172,82 @@ impl JobRunner {
 
     fn forget_cancel_flag(&self, job_id: &str) {
         self.inner.cancels.lock().expect("runner lock").remove(job_id);
+    }
+
+    /// A run ended because the store could not take its writes: workers pause before claiming.
+    fn pause_for_storage(&self) {
+        self.inner.storage_failures.fetch_add(1, Ordering::Relaxed);
+    }
+
+    /// A run's writes went through: no pause any more.
+    fn storage_recovered(&self) {
+        self.inner.storage_failures.store(0, Ordering::Relaxed);
+    }
+
+    /// While training is paused for storage: waits the back-off, then until the data directory
+    /// takes writes and has `--min-free-disk` free (or shutdown begins). Returns at once
+    /// otherwise.
+    async fn wait_for_storage(&self) {
+        let failures = self.inner.storage_failures.load(Ordering::Relaxed);
+        if failures == 0 {
+            return;
+        }
+        let shutdown = &self.inner.shutdown;
+        let pause =
+            STORAGE_RETRY.saturating_mul(1 << (failures - 1).min(16)).min(STORAGE_RETRY_MAX);
+        tracing::warn!(
+            seconds = pause.as_secs(),
+            "training paused: the store could not take writes"
+        );
+        if sleep_unless_shutdown(shutdown, pause).await {
+            return;
+        }
+        loop {
+            match self.store().check_storage(self.inner.min_free_disk).await {
+                Ok(()) => {
+                    tracing::info!("the data directory takes writes again; training resumes");
+                    return;
+                }
+                Err(problem) => {
+                    tracing::warn!(%problem, "training stays paused");
+                    if sleep_unless_shutdown(shutdown, STORAGE_RETRY).await {
+                        return;
+                    }
+                }
+            }
+        }
+    }
+
+    /// Puts a job whose run stopped on a failed write back in the queue. That write may fail
+    /// too while the disk is full: it is retried until it goes through or shutdown begins (the
+    /// next start-up requeues a job left `running`).
+    async fn release_when_possible(&self, job_id: &str) {
+        let mut delay = STORAGE_RETRY;
+        loop {
+            match self.store().release_job(job_id).await {
+                Ok(()) => return,
+                Err(e) => {
+                    tracing::warn!(error = %e, "cannot hand the job back to the queue yet");
+                    if sleep_unless_shutdown(&self.inner.shutdown, delay).await {
+                        return;
+                    }
+                    delay = (delay * 2).min(STORAGE_RETRY_MAX);
+                }
+            }
+        }
+    }
+}
+
+/// The shortest pause of training after a run failed to write (doubled while runs keep failing).
+pub const STORAGE_RETRY: Duration = Duration::from_secs(5);
+/// The longest.
+pub const STORAGE_RETRY_MAX: Duration = Duration::from_secs(300);
+
+/// Sleeps `duration`; true if shutdown began first.
+async fn sleep_unless_shutdown(shutdown: &CancellationToken, duration: Duration) -> bool {
+    tokio::select! {
+        () = shutdown.cancelled() => true,
+        () = tokio::time::sleep(duration) => false,
     }
 }
 

@@ -11,6 +11,8 @@ use super::{EvalOptions, JobEvent, JobProgress, JobRunner, RunnerOptions};
 use crate::algo::{self, Policy, ResolvedConfig, Trainer};
 use crate::store::jobs::{now, JobRow, MetricRow, ProgressUpdate};
 use crate::store::policies::NewPolicy;
+use crate::store::storage::{is_io_storage_full, is_storage_full};
+use crate::store::{is_busy, StoreError};
 
 /// How often a running job's progress is written and published (and pending metrics flushed).
 const PROGRESS_INTERVAL: Duration = Duration::from_millis(500);
@@ -23,15 +25,44 @@ enum Outcome {
     Failed(String),
     /// Shutdown: checkpointed and back in the queue.
     Released,
+    /// A write of the run failed because the store could not take it (full disk, SQLITE_FULL,
+    /// or a lock held past the busy timeout): nothing is wrong with the job, so it goes back to
+    /// the queue and resumes from its last checkpoint once the store takes writes again.
+    StoreUnavailable(String),
+}
+
+/// Whether a run's error is the store failing to take a write for want of room or a lock, not
+/// a fault of the job (anywhere in the error's chain of causes).
+fn store_unavailable(e: &anyhow::Error) -> bool {
+    e.chain().any(|cause| {
+        if let Some(e) = cause.downcast_ref::<StoreError>() {
+            e.is_storage_full() || e.is_busy()
+        } else if let Some(e) = cause.downcast_ref::<sqlx::Error>() {
+            is_storage_full(e) || is_busy(e)
+        } else if let Some(e) = cause.downcast_ref::<std::io::Error>() {
+            is_io_storage_full(e)
+        } else {
+            false
+        }
+    })
 }
 
 #[tracing::instrument(skip(runner))]
 pub(super) async fn run_worker(runner: JobRunner, index: usize) {
     let shutdown = runner.inner.shutdown.clone();
     while !shutdown.is_cancelled() {
+        runner.wait_for_storage().await;
+        if shutdown.is_cancelled() {
+            break;
+        }
         match runner.store().claim_next_job().await {
             Ok(Some(job)) => run_job(&runner, job).await,
             Ok(None) => super::wait_for_work(&runner.inner.wake, &shutdown).await,
+            // A claim is a write too: on a full disk, pause like a run that could not write.
+            Err(e) if e.is_storage_full() => {
+                tracing::error!(error = %e, "cannot claim a job: the disk is full");
+                runner.pause_for_storage();
+            }
             Err(e) => {
                 tracing::error!(error = %e, "cannot claim a job; retrying");
                 super::back_off(&shutdown).await;
@@ -53,14 +84,28 @@ async fn run_job(runner: &JobRunner, job: JobRow) {
     let run = TrainingRun::new(runner.clone(), Handle::current(), job, cancel);
     let outcome = match tokio::task::spawn_blocking(move || run.drive()).await {
         Ok(Ok(outcome)) => outcome,
+        Ok(Err(e)) if store_unavailable(&e) => Outcome::StoreUnavailable(format!("{e:#}")),
         Ok(Err(e)) => Outcome::Failed(format!("{e:#}")),
         Err(e) => Outcome::Failed(format!("the training thread panicked: {e}")),
     };
     runner.forget_cancel_flag(&id);
+    if !matches!(outcome, Outcome::StoreUnavailable(_) | Outcome::Released) {
+        runner.storage_recovered();
+    }
     let status = match &outcome {
         Outcome::Succeeded => "succeeded",
         Outcome::Cancelled => "cancelled",
         Outcome::Released => "queued",
+        Outcome::StoreUnavailable(message) => {
+            tracing::error!(
+                error = %message,
+                "the store cannot take the job's writes; the job goes back to the queue and \
+                 training pauses until the data directory takes writes again"
+            );
+            runner.pause_for_storage();
+            runner.release_when_possible(&id).await;
+            "queued"
+        }
         Outcome::Failed(message) => {
             tracing::warn!(error = %message, "job failed");
             if let Err(e) = runner.store().finish_job(&id, "failed", Some(message), &[]).await {
@@ -311,5 +356,26 @@ impl TrainingRun {
         let step = trainer.progress().step;
         self.rt.block_on(store.finish_job_succeeded(&self.job.id, &[], &policy, step))?;
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use anyhow::Context;
+
+    use super::*;
+
+    #[test]
+    fn a_full_disk_or_a_busy_database_anywhere_in_the_chain_is_the_store_not_the_job() {
+        let full = StoreError::Io(std::io::Error::from(std::io::ErrorKind::StorageFull));
+        let full = Err::<(), _>(full).context("saving the checkpoint").unwrap_err();
+        assert!(store_unavailable(&full));
+        let busy = anyhow::Error::from(StoreError::Database(sqlx::Error::PoolTimedOut));
+        assert!(store_unavailable(&busy.context("recording progress")));
+        let corrupt = StoreError::Corrupt("d".into(), "changed on disk".into());
+        assert!(!store_unavailable(&anyhow::Error::from(corrupt)));
+        assert!(!store_unavailable(&anyhow::anyhow!(
+            "the stored job configuration does not parse"
+        )));
     }
 }

@@ -236,36 +236,39 @@ impl Store {
     }
 
     /// Deletes a dataset unless a queued or running job uses it. The check and the delete are
-    /// one statement, so a job queued concurrently cannot slip in between.
+    /// one write transaction (the write lock taken up front), so a job queued concurrently
+    /// either commits first and is seen here, or sees the dataset gone (see
+    /// [`Store::insert_job`]); and the answer describes the state the delete saw, not one read
+    /// after it.
     pub async fn delete_dataset(&self, id: &str) -> Result<DeleteOutcome, StoreError> {
-        const ACTIVE_JOBS_USING: &str =
-            "SELECT id FROM jobs WHERE status IN ('queued', 'running') \
-             AND (unlabeled_dataset_id = ?1 OR non_preferred_dataset_id = ?1)";
-        let deleted = sqlx::query(&format!(
-            "DELETE FROM datasets WHERE id = ?1 AND NOT EXISTS ({ACTIVE_JOBS_USING})"
-        ))
-        .bind(id)
-        .execute(self.pool())
-        .await?;
-        if deleted.rows_affected() == 1 {
-            match tokio::fs::remove_file(self.canonical_path(id)).await {
-                Ok(()) => {}
-                Err(e) if e.kind() == std::io::ErrorKind::NotFound => {}
-                // The row is gone; the next start-up removes the orphaned file.
-                Err(e) => tracing::warn!(dataset = id, error = %e, "cannot remove dataset file"),
-            }
-            return Ok(DeleteOutcome::Deleted);
+        let mut tx = self.begin_write().await?;
+        let exists: bool =
+            sqlx::query_scalar("SELECT EXISTS (SELECT 1 FROM datasets WHERE id = ?)")
+                .bind(id)
+                .fetch_one(&mut *tx)
+                .await?;
+        if !exists {
+            return Ok(DeleteOutcome::NotFound);
         }
-        let jobs: Vec<String> = sqlx::query_scalar(&format!("{ACTIVE_JOBS_USING} ORDER BY id"))
-            .bind(id)
-            .fetch_all(self.pool())
-            .await?;
-        let exists = self.dataset(id).await?.is_some();
-        Ok(if exists && !jobs.is_empty() {
-            DeleteOutcome::InUse(jobs)
-        } else {
-            DeleteOutcome::NotFound
-        })
+        let jobs: Vec<String> = sqlx::query_scalar(
+            "SELECT id FROM jobs WHERE status IN ('queued', 'running') \
+             AND (unlabeled_dataset_id = ?1 OR non_preferred_dataset_id = ?1) ORDER BY id",
+        )
+        .bind(id)
+        .fetch_all(&mut *tx)
+        .await?;
+        if !jobs.is_empty() {
+            return Ok(DeleteOutcome::InUse(jobs));
+        }
+        sqlx::query("DELETE FROM datasets WHERE id = ?").bind(id).execute(&mut *tx).await?;
+        tx.commit().await?;
+        match tokio::fs::remove_file(self.canonical_path(id)).await {
+            Ok(()) => {}
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => {}
+            // The row is gone; the next start-up removes the orphaned file.
+            Err(e) => tracing::warn!(dataset = id, error = %e, "cannot remove dataset file"),
+        }
+        Ok(DeleteOutcome::Deleted)
     }
 
     /// Loads a stored dataset for training, checking the file against the hash recorded at
@@ -276,9 +279,26 @@ impl Store {
             .await?
             .ok_or_else(|| StoreError::NotFound { kind: "dataset", id: id.to_owned() })?;
         let path = self.canonical_path(id);
+        let read_path = path.clone();
+        let read = tokio::task::spawn_blocking(move || std::fs::read(read_path))
+            .await
+            .map_err(std::io::Error::other)?;
+        let bytes = match read {
+            Ok(bytes) => bytes,
+            // Deleted between reading its row and its file: as if it had never been found. A
+            // file missing under a row that is still there is damage, not a race.
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+                return Err(match self.dataset(id).await? {
+                    None => StoreError::NotFound { kind: "dataset", id: id.to_owned() },
+                    Some(_) => {
+                        StoreError::Corrupt(id.to_owned(), format!("{} is missing", path.display()))
+                    }
+                });
+            }
+            Err(e) => return Err(e.into()),
+        };
         let id = id.to_owned();
         tokio::task::spawn_blocking(move || {
-            let bytes = std::fs::read(&path)?;
             if bytes.len() as u64 != record.canonical_bytes
                 || sha256_hex(&bytes) != record.canonical_sha256
             {
@@ -288,5 +308,39 @@ impl Store {
         })
         .await
         .map_err(std::io::Error::other)?
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::data::Actions;
+
+    async fn store_with_a_dataset() -> (tempfile::TempDir, Store, String) {
+        let dir = tempfile::tempdir().unwrap();
+        let store = Store::open(dir.path()).await.unwrap();
+        let dataset = Dataset {
+            obs_dim: 1,
+            action_space: ActionSpace::Discrete { n: 2 },
+            observations: vec![0.0, 1.0],
+            actions: Actions::Discrete(vec![0, 1]),
+            next_observations: vec![1.0, 2.0],
+            terminals: vec![false, true],
+            episode_ids: vec![0, 0],
+            rewards: None,
+            costs: None,
+        };
+        let new = NewDataset::describe(&dataset, Format::Jsonl, "d".into(), None, "0".into(), 1);
+        let record = store.create_dataset(new, data::encode_canonical(&dataset)).await.unwrap();
+        (dir, store, record.id)
+    }
+
+    /// A missing file is only "not found" when the row went with it (a concurrent delete); a
+    /// file missing under a row that is still there is damage, reported as such.
+    #[tokio::test]
+    async fn a_missing_file_under_an_existing_row_is_corrupt() {
+        let (_dir, store, id) = store_with_a_dataset().await;
+        std::fs::remove_file(store.canonical_path(&id)).unwrap();
+        assert!(matches!(store.load_dataset(&id).await, Err(StoreError::Corrupt(..))));
     }
 }

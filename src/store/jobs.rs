@@ -107,8 +107,23 @@ const JOB_COLUMNS: &str = "id, algorithm, status, unlabeled_dataset_id, non_pref
      error, cancel_requested, created_at, updated_at, started_at, finished_at";
 
 impl Store {
+    /// Queues a job if its datasets still exist. The check and the insert are one write
+    /// transaction, so a concurrent [`Store::delete_dataset`] either commits first (and this
+    /// answers `NotFound` for the dataset) or sees the queued job and refuses.
     pub async fn insert_job(&self, job: &NewJob<'_>) -> Result<JobRow, StoreError> {
         let now = now();
+        let mut tx = self.begin_write().await?;
+        for dataset in std::iter::once(job.unlabeled_dataset_id).chain(job.non_preferred_dataset_id)
+        {
+            let exists: bool =
+                sqlx::query_scalar("SELECT EXISTS (SELECT 1 FROM datasets WHERE id = ?)")
+                    .bind(dataset)
+                    .fetch_one(&mut *tx)
+                    .await?;
+            if !exists {
+                return Err(StoreError::NotFound { kind: "dataset", id: dataset.to_owned() });
+            }
+        }
         sqlx::query(
             "INSERT INTO jobs (id, algorithm, status, unlabeled_dataset_id, \
              non_preferred_dataset_id, config, runner, eval, total_steps, created_at, updated_at) \
@@ -124,9 +139,14 @@ impl Store {
         .bind(job.total_steps as i64)
         .bind(&now)
         .bind(&now)
-        .execute(self.pool())
+        .execute(&mut *tx)
         .await?;
-        self.job(job.id).await
+        let row = sqlx::query_as(&format!("SELECT {JOB_COLUMNS} FROM jobs WHERE id = ?"))
+            .bind(job.id)
+            .fetch_one(&mut *tx)
+            .await?;
+        tx.commit().await?;
+        Ok(row)
     }
 
     pub async fn job(&self, id: &str) -> Result<JobRow, StoreError> {
@@ -234,7 +254,7 @@ impl Store {
         if rows.is_empty() {
             return Ok(());
         }
-        let mut tx = self.pool().begin().await?;
+        let mut tx = self.begin_write().await?;
         insert_metric_rows(&mut tx, id, rows).await?;
         tx.commit().await?;
         Ok(())
@@ -249,7 +269,7 @@ impl Store {
         data: &[u8],
         pending_metrics: &[MetricRow],
     ) -> Result<(), StoreError> {
-        let mut tx = self.pool().begin().await?;
+        let mut tx = self.begin_write().await?;
         insert_metric_rows(&mut tx, id, pending_metrics).await?;
         sqlx::query(
             "INSERT INTO job_checkpoints (job_id, step, data, created_at) VALUES (?, ?, ?, ?) \
@@ -328,7 +348,7 @@ impl Store {
         policy: &NewPolicy<'_>,
         step: u64,
     ) -> Result<(), StoreError> {
-        let mut tx = self.pool().begin().await?;
+        let mut tx = self.begin_write().await?;
         insert_metric_rows(&mut tx, id, pending_metrics).await?;
         super::policies::insert_policy(&mut tx, policy).await?;
         let now = now();
@@ -359,7 +379,7 @@ impl Store {
         error: Option<&str>,
         pending_metrics: &[MetricRow],
     ) -> Result<(), StoreError> {
-        let mut tx = self.pool().begin().await?;
+        let mut tx = self.begin_write().await?;
         insert_metric_rows(&mut tx, id, pending_metrics).await?;
         let now = now();
         sqlx::query(
@@ -378,10 +398,11 @@ impl Store {
         Ok(())
     }
 
-    /// Cancels a queued job at once, or flags a running one for its worker.
+    /// Cancels a queued job at once, or flags a running one for its worker. The status read and
+    /// the update are one write transaction, so a worker's claim cannot slip in between.
     pub async fn request_cancel(&self, id: &str) -> Result<CancelOutcome, StoreError> {
         let now = now();
-        let mut tx = self.pool().begin().await?;
+        let mut tx = self.begin_write().await?;
         let status: String = sqlx::query_scalar("SELECT status FROM jobs WHERE id = ?")
             .bind(id)
             .fetch_optional(&mut *tx)

@@ -14,6 +14,7 @@ pub mod datasets;
 pub mod evaluations;
 pub mod jobs;
 pub mod policies;
+pub mod storage;
 
 use std::path::{Path, PathBuf};
 use std::str::FromStr;
@@ -21,13 +22,27 @@ use std::time::Duration;
 
 use anyhow::Context;
 use sqlx::sqlite::{SqliteConnectOptions, SqliteJournalMode, SqlitePoolOptions, SqliteSynchronous};
-use sqlx::SqlitePool;
+use sqlx::{Connection, Sqlite, SqlitePool, Transaction};
 
 pub use datasets::{DatasetRecord, DeleteOutcome, NewDataset};
+pub use storage::StorageProblem;
 
 const DATABASE_FILE: &str = "safedice.sqlite";
 const DATASETS_DIR: &str = "datasets";
 const TMP_DIR: &str = "tmp";
+
+/// How long a statement waits for another connection's write lock before SQLite gives up with
+/// SQLITE_BUSY. Writes hold the lock for milliseconds, but SQLite's busy handler polls with
+/// back-off (up to 100 ms between tries) and is not fair, so under a burst of writers one can
+/// wait far longer than the others; 15 s rides out such bursts and still answers (503
+/// `database_busy`) well before the 30 s request timeout.
+const BUSY_TIMEOUT: Duration = Duration::from_secs(15);
+/// How long a request waits for a free pooled connection before it is answered 503.
+const ACQUIRE_TIMEOUT: Duration = Duration::from_secs(10);
+
+/// SQLite's primary result codes we tell apart (extended codes carry them in the low byte).
+const SQLITE_BUSY: i32 = 5;
+const SQLITE_LOCKED: i32 = 6;
 
 /// A failure of the store that callers may want to tell apart.
 #[derive(Debug, thiserror::Error)]
@@ -42,42 +57,41 @@ pub enum StoreError {
     Io(#[from] std::io::Error),
 }
 
-/// errno of "no space left on device" and "disk quota exceeded" (Linux).
-const ENOSPC: i32 = 28;
-const EDQUOT: i32 = 122;
-/// SQLite's primary result code SQLITE_FULL ("database or disk is full").
-const SQLITE_FULL: i64 = 13;
-
 impl StoreError {
-    /// Whether the failure is the disk (or quota) being full: the request was fine and may
-    /// succeed once space is freed, so it is neither the caller's fault nor a bug.
-    pub fn is_storage_full(&self) -> bool {
-        match self {
-            StoreError::Io(e) => io_is_storage_full(e),
-            StoreError::Database(e) => sqlx_is_storage_full(e),
-            _ => false,
-        }
+    /// A lock or a connection was not available in time: nothing is wrong with the request or
+    /// the data, and the same call succeeds once the other writers are through.
+    pub fn is_busy(&self) -> bool {
+        matches!(self, StoreError::Database(e) if is_busy(e))
     }
 }
 
-/// An I/O error that means the file system (or the user's quota) is full.
-pub fn io_is_storage_full(e: &std::io::Error) -> bool {
-    e.kind() == std::io::ErrorKind::StorageFull
-        || e.kind() == std::io::ErrorKind::QuotaExceeded
-        || matches!(e.raw_os_error(), Some(ENOSPC | EDQUOT))
+/// SQLite's primary result code of a database error (the low byte of the extended code sqlx
+/// reports).
+fn sqlite_code(e: &sqlx::Error) -> Option<i32> {
+    let sqlx::Error::Database(db) = e else { return None };
+    db.code()?.parse::<i32>().ok().map(|code| code & 0xff)
 }
 
-/// A database error that means the disk is full (SQLITE_FULL, or an I/O error saying so).
-pub fn sqlx_is_storage_full(e: &sqlx::Error) -> bool {
-    match e {
-        sqlx::Error::Database(db) => {
-            // Extended result codes keep the primary code in their low byte.
-            let primary = db.code().and_then(|c| c.parse::<i64>().ok()).map(|c| c & 0xff);
-            primary == Some(SQLITE_FULL)
-        }
-        sqlx::Error::Io(io) => io_is_storage_full(io),
-        _ => false,
-    }
+/// SQLITE_BUSY / SQLITE_LOCKED (every extended variant) or no pooled connection in time.
+pub fn is_busy(e: &sqlx::Error) -> bool {
+    matches!(e, sqlx::Error::PoolTimedOut)
+        || matches!(sqlite_code(e), Some(SQLITE_BUSY | SQLITE_LOCKED))
+}
+
+/// How the pool hands out and takes back connections.
+fn pool_options() -> SqlitePoolOptions {
+    SqlitePoolOptions::new().acquire_timeout(ACQUIRE_TIMEOUT).after_release(|conn, _| {
+        Box::pin(async move {
+            // SQLite rolls a transaction back by itself on some errors (SQLITE_FULL, I/O errors,
+            // out of memory). sqlx does not notice: the ROLLBACK of the dropped transaction then
+            // fails, sqlx still counts the transaction as open, and the connection would refuse
+            // every later BEGIN (a full disk turned into failed jobs that way). The ping lets
+            // that rollback run first; a connection still counted in a transaction is closed
+            // rather than reused.
+            conn.ping().await?;
+            Ok(!conn.is_in_transaction())
+        })
+    })
 }
 
 /// The database pool and the data directory; cheap to clone.
@@ -125,8 +139,8 @@ impl Store {
             // power loss can drop the last commits.
             .synchronous(SqliteSynchronous::Normal)
             .foreign_keys(true)
-            .busy_timeout(Duration::from_secs(5));
-        let pool = SqlitePoolOptions::new()
+            .busy_timeout(BUSY_TIMEOUT);
+        let pool = pool_options()
             .max_connections(8)
             .connect_with(options)
             .await
@@ -140,6 +154,17 @@ impl Store {
 
     pub fn pool(&self) -> &SqlitePool {
         &self.pool
+    }
+
+    /// Begins a transaction that writes. `BEGIN IMMEDIATE` takes the write lock up front
+    /// (waiting up to the busy timeout for it). A plain (deferred) `BEGIN` only takes a read
+    /// snapshot, and its first write then has to upgrade it: if another connection committed in
+    /// between, SQLite cannot upgrade the stale snapshot and fails at once with SQLITE_BUSY
+    /// ("database is locked") without waiting, which clients saw as 500s under concurrent
+    /// writes. Every transaction that writes, and above all one that reads and then writes,
+    /// starts here.
+    pub async fn begin_write(&self) -> Result<Transaction<'static, Sqlite>, sqlx::Error> {
+        self.pool.begin_with("BEGIN IMMEDIATE").await
     }
 
     pub fn data_dir(&self) -> &Path {
@@ -195,5 +220,95 @@ fn remove_path(path: &Path) -> std::io::Result<()> {
         std::fs::remove_dir_all(path)
     } else {
         std::fs::remove_file(path)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use sqlx::SqliteConnection;
+
+    use super::*;
+
+    /// A write transaction that SQLite rolls back by itself (here: the database file reaches its
+    /// page limit, as a full disk does) must not leave its pooled connection unusable.
+    #[tokio::test]
+    async fn a_transaction_sqlite_rolled_back_does_not_poison_the_pool() {
+        let dir = tempfile::tempdir().unwrap();
+        let options = SqliteConnectOptions::from_str("sqlite:")
+            .unwrap()
+            .filename(dir.path().join("db.sqlite"))
+            .create_if_missing(true)
+            .journal_mode(SqliteJournalMode::Wal);
+        // One connection, whichever the pool opens, each with a database size limit.
+        let pool = pool_options()
+            .max_connections(1)
+            .after_connect(|conn, _| {
+                Box::pin(async move {
+                    sqlx::query("PRAGMA max_page_count = 16").execute(conn).await.map(|_| ())
+                })
+            })
+            .connect_with(options)
+            .await
+            .unwrap();
+        sqlx::query("CREATE TABLE t (data BLOB)").execute(&pool).await.unwrap();
+        let store = Store { pool, data_dir: dir.path().to_path_buf() };
+        let mut tx = store.begin_write().await.unwrap();
+        sqlx::query("INSERT INTO t VALUES (x'00')").execute(&mut *tx).await.unwrap();
+        let full = sqlx::query("INSERT INTO t VALUES (?)")
+            .bind(vec![0u8; 4 << 20])
+            .execute(&mut *tx)
+            .await
+            .unwrap_err();
+        assert!(StoreError::Database(full).is_storage_full());
+        drop(tx);
+        let mut tx = store.begin_write().await.expect("the pool still begins transactions");
+        sqlx::query("INSERT INTO t VALUES (x'01')").execute(&mut *tx).await.unwrap();
+        tx.commit().await.unwrap();
+        let rows: i64 =
+            sqlx::query_scalar("SELECT COUNT(*) FROM t").fetch_one(store.pool()).await.unwrap();
+        assert_eq!(rows, 1, "only the committed row");
+    }
+
+    async fn connect(path: &Path, busy_timeout: Duration) -> SqliteConnection {
+        let options = SqliteConnectOptions::from_str("sqlite:")
+            .unwrap()
+            .filename(path)
+            .create_if_missing(true)
+            .journal_mode(SqliteJournalMode::Wal)
+            .busy_timeout(busy_timeout);
+        SqliteConnection::connect_with(&options).await.unwrap()
+    }
+
+    /// The failure behind the 500s: a deferred transaction that read before another connection
+    /// committed cannot upgrade its snapshot to write, and SQLite says SQLITE_BUSY at once
+    /// whatever the busy timeout. `BEGIN IMMEDIATE` takes the lock first and cannot meet it.
+    #[tokio::test]
+    async fn a_stale_read_snapshot_cannot_write_and_is_classified_busy() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("db.sqlite");
+        let mut reader = connect(&path, Duration::from_secs(5)).await;
+        let mut writer = connect(&path, Duration::from_secs(5)).await;
+        sqlx::query("CREATE TABLE t (v INTEGER)").execute(&mut writer).await.unwrap();
+        sqlx::query("INSERT INTO t VALUES (1)").execute(&mut writer).await.unwrap();
+
+        sqlx::query("BEGIN").execute(&mut reader).await.unwrap();
+        let _: i64 = sqlx::query_scalar("SELECT v FROM t").fetch_one(&mut reader).await.unwrap();
+        sqlx::query("UPDATE t SET v = 2").execute(&mut writer).await.unwrap();
+        let stale = sqlx::query("UPDATE t SET v = 3").execute(&mut reader).await.unwrap_err();
+        assert!(is_busy(&stale), "{stale}");
+        assert!(StoreError::Database(stale).is_busy());
+        sqlx::query("ROLLBACK").execute(&mut reader).await.unwrap();
+
+        sqlx::query("BEGIN IMMEDIATE").execute(&mut reader).await.unwrap();
+        let _: i64 = sqlx::query_scalar("SELECT v FROM t").fetch_one(&mut reader).await.unwrap();
+        // The lock is taken: another writer waits (here: gives up after its timeout of 0).
+        let mut impatient = connect(&path, Duration::ZERO).await;
+        let waiting = sqlx::query("UPDATE t SET v = 4").execute(&mut impatient).await.unwrap_err();
+        assert!(is_busy(&waiting), "{waiting}");
+        sqlx::query("UPDATE t SET v = 3").execute(&mut reader).await.unwrap();
+        sqlx::query("COMMIT").execute(&mut reader).await.unwrap();
+
+        let other = sqlx::query("SELECT * FROM missing").execute(&mut reader).await.unwrap_err();
+        assert!(!is_busy(&other), "{other}");
     }
 }
