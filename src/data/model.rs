@@ -48,8 +48,12 @@ impl ActionSpace {
         }
         for j in 0..dim {
             if high[j] - low[j] < 1e-6 {
-                low[j] -= 0.5;
-                high[j] += 0.5;
+                // Half a unit each side; from 2^24 on that is below the spacing of f32 and
+                // would leave the box empty (0/0 when rescaling), so widen by the value's own
+                // precision there, staying finite.
+                let pad = 0.5f32.max(low[j].abs().max(high[j].abs()) * f32::EPSILON);
+                low[j] = (low[j] - pad).max(f32::MIN);
+                high[j] = (high[j] + pad).min(f32::MAX);
             }
         }
         ActionSpace::Continuous { dim, low, high }
@@ -266,5 +270,19 @@ mod tests {
             space,
             ActionSpace::Continuous { dim: 2, low: vec![-3.0, 1.5], high: vec![5.0, 2.5] }
         );
+    }
+
+    #[test]
+    fn a_constant_dimension_gets_a_box_of_positive_width_at_any_magnitude() {
+        // Regression: from 2^24 on, value ± 0.5 rounds back to the value, and the box of a
+        // constant dimension was empty (the NPZ reader then refused the writer's own file).
+        for v in [3.0, 16_777_216.0, -1e30, 3e38, f32::MAX, f32::MIN] {
+            let ActionSpace::Continuous { low, high, .. } = ActionSpace::infer_continuous(&[v], 1)
+            else {
+                unreachable!()
+            };
+            assert!(low[0] < high[0] && low[0] <= v && v <= high[0], "{v}: [{low:?}, {high:?}]");
+            assert!(low[0].is_finite() && high[0].is_finite(), "{v}: [{low:?}, {high:?}]");
+        }
     }
 }

@@ -21,6 +21,13 @@ pub fn small_config(iterations: u64, seed: u64) -> Value {
     json!({"iterations": iterations, "seed": seed, "hidden_sizes": [32, 32], "batch_size": 64})
 }
 
+/// Iterations of a job a test interrupts (kill, restart, cancel) or must see running: the API's
+/// maximum, far more steps than any test waits for (a few thousand), so the interruption lands
+/// mid-run whatever the build's speed. A job of a few thousand iterations instead finishes
+/// between two progress reports on a fast build, and the interruption then tests nothing.
+/// Such jobs never end by themselves: a test stops them and checks them at a checkpoint.
+pub const ENDLESS_ITERATIONS: u64 = 100_000_000;
+
 /// The gridworld's unlabeled (40 safe + 60 unsafe episodes) and non-preferred (20 unsafe) sets.
 pub fn grid_datasets() -> (Dataset, Dataset) {
     (algo_support::grid_dataset(40, 60, 3), algo_support::grid_dataset(0, 20, 1003))
