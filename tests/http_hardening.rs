@@ -143,6 +143,26 @@ async fn an_npz_entry_declaring_more_than_the_budget_is_refused_before_reading()
 }
 
 #[tokio::test]
+async fn an_npy_shape_whose_size_overflows_is_a_422() {
+    let app = TestApp::spawn().await;
+    let mut header =
+        b"{'descr': '<f4', 'fortran_order': False, 'shape': (4294967296, 4294967296), }".to_vec();
+    header.resize(118, b' ');
+    header.push(b'\n');
+    let mut npy = b"\x93NUMPY\x01\x00".to_vec();
+    npy.extend_from_slice(&(header.len() as u16).to_le_bytes());
+    npy.extend_from_slice(&header);
+    let mut zip = zip::ZipWriter::new(std::io::Cursor::new(Vec::new()));
+    zip.start_file("observations.npy", zip::write::FileOptions::default()).unwrap();
+    zip.write_all(&npy).unwrap();
+    let archive = zip.finish().unwrap().into_inner();
+    let response = app.upload_dataset("overflow.npz", archive, None).await;
+    let message = assert_error(response, StatusCode::UNPROCESSABLE_ENTITY, "invalid_dataset").await;
+    assert!(message.contains("observations") && message.contains("overflows"), "{message}");
+    app.assert_no_datasets_stored().await;
+}
+
+#[tokio::test]
 async fn error_messages_quote_at_most_a_bounded_fragment_of_the_input() {
     let app = TestApp::spawn().await;
     let long = "x".repeat(5 << 20);

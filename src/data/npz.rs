@@ -54,7 +54,7 @@ impl ArraySource for NpzSource {
         };
         self.budget.check_declared(key, entry.size())?;
         let header = read_npy_header(key, &mut entry)?;
-        let npy = NpyFile::new(Cursor::new(header).chain(entry)).map_err(corrupt)?;
+        let npy = interpret_header(key, header, entry)?;
         let type_str = match npy.dtype() {
             DType::Plain(t) if !t.uses_pickled_array() => t,
             other => {
@@ -74,6 +74,27 @@ impl ArraySource for NpzSource {
         let data = decode(key, &type_str, count, reader)?;
         let data = if fortran && shape.len() == 2 { transpose(data, &shape) } else { data };
         Ok(Some(Array { shape, data }))
+    }
+}
+
+/// `npyz`'s reading of the header; a shape whose element count overflows u64 makes it panic
+/// (an overflow check in its `product()`), which here is a corrupt file like any other.
+fn interpret_header<R: Read>(
+    key: &str,
+    header: Vec<u8>,
+    data: R,
+) -> Result<NpyFile<io::Chain<Cursor<Vec<u8>>, R>>, ParseError> {
+    let parsed = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+        NpyFile::new(Cursor::new(header).chain(data))
+    }));
+    match parsed {
+        Ok(Ok(npy)) => Ok(npy),
+        Ok(Err(e)) => Err(ParseError::invalid(format!(
+            "key `{key}`: the array is truncated or corrupt ({e}); re-create the archive"
+        ))),
+        Err(_) => Err(ParseError::invalid(format!(
+            "key `{key}`: the .npy header declares a shape whose size overflows; corrupt file"
+        ))),
     }
 }
 
