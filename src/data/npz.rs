@@ -77,13 +77,16 @@ impl ArraySource for NpzSource {
     }
 }
 
+/// An entry's bytes with its already-read header put back in front.
+type HeaderThen<R> = io::Chain<Cursor<Vec<u8>>, R>;
+
 /// `npyz`'s reading of the header; a shape whose element count overflows u64 makes it panic
 /// (an overflow check in its `product()`), which here is a corrupt file like any other.
 fn interpret_header<R: Read>(
     key: &str,
     header: Vec<u8>,
     data: R,
-) -> Result<NpyFile<io::Chain<Cursor<Vec<u8>>, R>>, ParseError> {
+) -> Result<NpyFile<HeaderThen<R>>, ParseError> {
     let parsed = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
         NpyFile::new(Cursor::new(header).chain(data))
     }));
