@@ -239,6 +239,32 @@ async fn an_upload_that_stalls_mid_body_gets_408_and_leaves_no_temp_file() {
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_upload_the_client_abandons_counts_as_499_not_as_a_server_error() {
+    let app = TestApp::spawn().await;
+    let head = "POST /v1/datasets HTTP/1.1\r\nHost: x\r\n\
+                Content-Type: multipart/form-data; boundary=XyZ\r\nContent-Length: 100000\r\n\r\n\
+                --XyZ\r\nContent-Disposition: form-data; name=\"file\"; filename=\"d.jsonl\"\r\n\r\n\
+                {\"episode\": 0, \"obs\": [0.0], \"action\": [0.5]}\n";
+    let stream = connect(&app, head.as_bytes());
+    // The client goes away mid-body.
+    stream.shutdown(Shutdown::Both).unwrap();
+    drop(stream);
+    let abandoned =
+        r#"safedice_http_requests_total{method="POST",route="/v1/datasets",status="499"} 1"#;
+    let started = Instant::now();
+    let metrics = loop {
+        let text = app.get("/metrics").send().await.unwrap().text().await.unwrap();
+        if text.contains(abandoned) || started.elapsed() > PATIENCE {
+            break text;
+        }
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    };
+    assert!(metrics.contains(abandoned), "{metrics}");
+    assert!(!metrics.contains(r#"route="/v1/datasets",status="500""#), "{metrics}");
+    app.assert_no_datasets_stored().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_declared_oversized_upload_is_answered_413_before_its_body_is_sent() {
     let app = TestApp::spawn_with(|c| c.max_upload_bytes = 1 << 20).await;
     let head = "POST /v1/datasets HTTP/1.1\r\nHost: x\r\n\
