@@ -4,9 +4,11 @@
 //! - [`server`]: starting and stopping the service.
 //! - [`logging`]: the process's log output (never blocks or fails the service).
 //! - [`algo`]: the learning algorithms on candle (no HTTP or SQL).
+//! - [`domain`]: typed ids, job and evaluation lifecycles, the records the store hands out.
 //! - [`data`]: the dataset model, upload parsers and validation.
 //! - [`envs`]: built-in benchmark environments, demonstrators and evaluation metrics.
 //! - [`bench`]: `safedice bench`, the paper's comparison on the built-in environments.
+//! - [`serving`]: trained policies kept loaded for serving actions.
 //! - [`store`]: all SQL and artefact storage.
 //! - [`jobs`]: the training queue and worker pool.
 //! - [`http`]: the HTTP API, one module per resource, and the dashboard at `/`.
@@ -18,10 +20,12 @@ pub mod bench;
 pub mod charts;
 pub mod config;
 pub mod data;
+pub mod domain;
 pub mod envs;
 pub mod http;
 pub mod jobs;
 pub mod logging;
 pub mod server;
+pub mod serving;
 pub mod store;
 pub mod text;

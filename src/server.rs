@@ -1,6 +1,7 @@
 //! Starting and stopping the HTTP service: open the store, bind, serve until shut down.
 
 use std::net::SocketAddr;
+use std::sync::Arc;
 use std::time::Duration;
 
 use anyhow::Context;
@@ -11,6 +12,7 @@ use crate::config::ServeConfig;
 use crate::http::connections::{self, ConnectionLimits};
 use crate::http::{self, AppState};
 use crate::jobs::JobRunner;
+use crate::serving::PolicyCache;
 use crate::store::Store;
 
 /// How long a graceful shutdown waits for in-flight requests before dropping them.
@@ -46,9 +48,15 @@ impl Server {
         );
         let config_max_connections = config.max_connections as usize;
         let header_timeout_secs = config.header_timeout_secs;
-        let state = AppState::new(config, store.clone(), shutdown.clone());
-        let jobs = state.jobs.clone();
+        let jobs = JobRunner::new(
+            store.clone(),
+            usize::from(config.workers),
+            config.min_free_disk,
+            shutdown.clone(),
+        );
         jobs.start().await?;
+        let policies = Arc::new(PolicyCache::new(store.clone()));
+        let state = AppState::new(config, store.clone(), jobs.clone(), policies, shutdown.clone());
         let limits =
             ConnectionLimits::new(config_max_connections, Duration::from_secs(header_timeout_secs));
         tracing::info!(max_connections = limits.max_connections, "connection limits");

@@ -68,6 +68,17 @@ pub struct DataShape {
 }
 
 impl DataShape {
+    /// The shape of a dataset in memory.
+    pub fn of(dataset: &crate::data::Dataset) -> DataShape {
+        let longest = dataset.episode_ranges().iter().map(|r| r.len()).max().unwrap_or(0);
+        DataShape {
+            transitions: dataset.len() as u64,
+            obs_dim: dataset.obs_dim as u64,
+            action_space: dataset.action_space.clone(),
+            longest_episode: longest as u64,
+        }
+    }
+
     /// Values stored per transition for the action: the continuous vector, or one index.
     fn action_values(&self) -> u64 {
         match self.action_space {

@@ -34,6 +34,7 @@ use std::sync::Arc;
 use serde::{Deserialize, Serialize};
 
 use crate::data::{ActionSpace, Dataset};
+use memory::DataShape;
 
 pub use config::{resolve_config, ConfigError, Preset, ResolvedConfig, TerminalHandling};
 pub use policy::{Policy, PolicyArtifact, PolicySpec};
@@ -126,24 +127,35 @@ pub trait Trainer: Send {
     fn export_policy(&self) -> Result<PolicyArtifact, TrainError>;
 }
 
-/// Check the datasets fit the config (non-preferred present when needed, spaces agree, ...).
+/// Check the datasets fit the config: both internally consistent, and [`check_fit`].
 pub fn check_data(config: &ResolvedConfig, data: &TrainingData) -> Result<(), ConfigError> {
-    let algorithm = config.algorithm();
-    let unlabeled = &data.unlabeled;
     let bad = |key: &str, message: String| ConfigError { key: key.to_string(), message };
+    let unlabeled = &data.unlabeled;
     unlabeled.check().map_err(|e| bad("unlabeled", format!("unlabeled dataset: {e}")))?;
-    let non_preferred = match (&data.non_preferred, algorithm.needs_non_preferred()) {
-        (None, true) => {
-            return Err(bad(
-                "non_preferred",
-                format!("algorithm {algorithm} needs a labeled non-preferred dataset"),
-            ))
-        }
-        (Some(n), _) => Some(n),
-        (None, false) => None,
-    };
-    if let Some(n) = non_preferred {
+    if let Some(n) = &data.non_preferred {
         n.check().map_err(|e| bad("non_preferred", format!("non-preferred dataset: {e}")))?;
+    }
+    let non_preferred = data.non_preferred.as_deref().map(DataShape::of);
+    check_fit(config, &DataShape::of(unlabeled), non_preferred.as_ref())
+}
+
+/// Check datasets of these shapes fit the config (non-preferred present when needed, spaces
+/// agree, a usable action box). Shapes are the stored datasets' metadata, so a job is checked
+/// without loading its data.
+pub fn check_fit(
+    config: &ResolvedConfig,
+    unlabeled: &DataShape,
+    non_preferred: Option<&DataShape>,
+) -> Result<(), ConfigError> {
+    let algorithm = config.algorithm();
+    let bad = |key: &str, message: String| ConfigError { key: key.to_string(), message };
+    if non_preferred.is_none() && algorithm.needs_non_preferred() {
+        return Err(bad(
+            "non_preferred",
+            format!("algorithm {algorithm} needs a labeled non-preferred dataset"),
+        ));
+    }
+    if let Some(n) = non_preferred {
         if n.obs_dim != unlabeled.obs_dim {
             return Err(bad(
                 "non_preferred",

@@ -219,6 +219,28 @@ impl From<crate::store::StoreError> for ApiError {
     }
 }
 
+impl From<crate::jobs::SubmitError> for ApiError {
+    fn from(e: crate::jobs::SubmitError) -> Self {
+        use crate::jobs::SubmitError;
+        match e {
+            SubmitError::InvalidConfig(message) => {
+                ApiError::unprocessable("invalid_config", message)
+            }
+            SubmitError::TooLarge(message) => ApiError::unprocessable("job_too_large", message),
+            SubmitError::Store(e) => e.into(),
+        }
+    }
+}
+
+impl From<crate::serving::PolicyLoadError> for ApiError {
+    fn from(e: crate::serving::PolicyLoadError) -> Self {
+        match e {
+            crate::serving::PolicyLoadError::Store(e) => e.into(),
+            unreadable => ApiError::Internal(unreadable.into()),
+        }
+    }
+}
+
 impl From<crate::data::ParseError> for ApiError {
     /// A rejected upload: 422 with the parser's code and its message naming the line/row/key.
     fn from(e: crate::data::ParseError) -> Self {

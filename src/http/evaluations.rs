@@ -15,20 +15,9 @@ use super::extract::{Json, Path, Query};
 use super::pagination::{Page, PageParams};
 use super::{ApiError, AppState};
 use crate::data::ActionSpace;
-use crate::envs::{self, EvalReport, Metrics, ReferenceStats};
-use crate::jobs::EvalSpec;
-use crate::store::evaluations::{EvaluationRow, NewEvaluation};
-
-/// An evaluation's lifecycle: `queued` → `running` → `succeeded` | `failed` (a running one goes
-/// back to `queued` when the server shuts down and runs again at the next start).
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, ToSchema)]
-#[serde(rename_all = "lowercase")]
-pub enum EvaluationStatus {
-    Queued,
-    Running,
-    Succeeded,
-    Failed,
-}
+use crate::domain::{rfc3339, EvalSpec, EvaluationId, EvaluationRecord, EvaluationStatus};
+use crate::envs::{self, Metrics, ReferenceStats};
+use crate::store::evaluations::NewEvaluation;
 
 /// A policy's evaluation on a built-in environment.
 #[derive(Debug, Serialize, ToSchema)]
@@ -55,37 +44,29 @@ pub struct Evaluation {
     pub finished_at: Option<String>,
 }
 
-impl TryFrom<EvaluationRow> for Evaluation {
-    type Error = ApiError;
-
-    fn try_from(row: EvaluationRow) -> Result<Self, ApiError> {
-        let corrupt = |what: &str, e: serde_json::Error| {
-            ApiError::Internal(anyhow::anyhow!("evaluation {}: stored {what}: {e}", row.id))
-        };
-        let status =
-            serde_json::from_value(row.status.clone().into()).map_err(|e| corrupt("status", e))?;
-        let report = row.report.as_deref().map(serde_json::from_str::<EvalReport>).transpose();
-        let report = report.map_err(|e| corrupt("report", e))?;
-        let (metrics, mean_episode_length, reference) = match report {
+impl From<EvaluationRecord> for Evaluation {
+    fn from(evaluation: EvaluationRecord) -> Self {
+        let (metrics, mean_episode_length, reference) = match evaluation.report {
             Some(r) => (Some(r.metrics), Some(r.mean_episode_length), Some(r.reference)),
             None => (None, None, None),
         };
-        Ok(Evaluation {
-            id: row.id,
-            policy_id: row.policy_id,
-            env: row.env,
-            episodes: row.episodes as usize,
-            seed: row.seed as u64,
-            deterministic: row.deterministic,
-            status,
+        let spec = evaluation.spec;
+        Evaluation {
+            id: evaluation.id.into_string(),
+            policy_id: evaluation.policy_id.into_string(),
+            env: spec.env,
+            episodes: spec.episodes,
+            seed: spec.seed,
+            deterministic: spec.deterministic,
+            status: evaluation.status,
             metrics,
             mean_episode_length,
             reference,
-            error: row.error,
-            created_at: row.created_at,
-            started_at: row.started_at,
-            finished_at: row.finished_at,
-        })
+            error: evaluation.error,
+            created_at: rfc3339(&evaluation.created_at),
+            started_at: evaluation.started_at.as_ref().map(rfc3339),
+            finished_at: evaluation.finished_at.as_ref().map(rfc3339),
+        }
     }
 }
 
@@ -129,22 +110,14 @@ async fn evaluate_policy(
     })?;
     envs::check_spaces(&spec.env, policy.obs_dim as usize, &action_space, "the policy's")
         .map_err(|e| ApiError::unprocessable("invalid_evaluation", format!("env: {e}")))?;
-    let id = uuid::Uuid::new_v4().to_string();
-    let row = state
-        .store
-        .insert_evaluation(&NewEvaluation {
-            id: &id,
-            policy_id: &policy_id,
-            env: &spec.env,
-            episodes: spec.episodes,
-            seed: spec.seed,
-            deterministic: spec.deterministic,
-        })
-        .await?;
+    let env = spec.env.clone();
+    let new = NewEvaluation { id: EvaluationId::generate(), policy_id: policy_id.into(), spec };
+    let evaluation = state.store.insert_evaluation(&new).await?;
     state.jobs.evaluator().wake();
-    tracing::info!(evaluation_id = %id, %policy_id, env = %spec.env, "evaluation queued");
+    let id = &evaluation.id;
+    tracing::info!(evaluation_id = %id, policy_id = %evaluation.policy_id, %env, "evaluation queued");
     let location = format!("/v1/evaluations/{id}");
-    Ok((StatusCode::ACCEPTED, [(header::LOCATION, location)], Json(Evaluation::try_from(row)?)))
+    Ok((StatusCode::ACCEPTED, [(header::LOCATION, location)], Json(Evaluation::from(evaluation))))
 }
 
 /// List evaluations, newest first.
@@ -157,9 +130,9 @@ async fn list_evaluations(
     Query(page): Query<PageParams>,
 ) -> Result<Json<Page<Evaluation>>, ApiError> {
     let page = page.validate()?;
-    let (rows, total) =
+    let (records, total) =
         state.store.list_evaluations(filter.policy_id.as_deref(), page.limit, page.offset).await?;
-    let items = rows.into_iter().map(Evaluation::try_from).collect::<Result<_, _>>()?;
+    let items = records.into_iter().map(Evaluation::from).collect();
     Ok(Json(Page::new(items, total, page)))
 }
 
@@ -171,5 +144,5 @@ async fn get_evaluation(
     State(state): State<AppState>,
     Path(id): Path<String>,
 ) -> Result<Json<Evaluation>, ApiError> {
-    Ok(Json(state.store.evaluation(&id).await?.try_into()?))
+    Ok(Json(state.store.evaluation(&id).await?.into()))
 }

@@ -1,5 +1,5 @@
-//! Actions from trained policies: the loaded-policy cache shared by `POST /v1/policies/{id}/act`
-//! and the Open Inference Protocol (KServe v2) routes served here:
+//! Actions from trained policies ([`crate::serving::PolicyCache`], shared with
+//! `POST /v1/policies/{id}/act`) over the Open Inference Protocol (KServe v2) routes served here:
 //! `GET /v2/health/live`, `GET /v2/health/ready`, `GET /v2/models/{id}`,
 //! `GET /v2/models/{id}/ready`, `POST /v2/models/{id}/infer`.
 //!
@@ -8,8 +8,7 @@
 //! spaces, INT64 `[B]` for discrete ones; deterministic unless the request's `parameters` say
 //! `"deterministic": false` (with an optional `"seed"`), exactly as `/act`.
 
-use std::collections::HashMap;
-use std::sync::{Arc, RwLock};
+use std::sync::Arc;
 
 use axum::extract::State;
 use rand::SeedableRng;
@@ -24,7 +23,6 @@ use super::extract::{Json, Path};
 use super::{ApiError, AppState};
 use crate::algo::Policy;
 use crate::data::{ActionSpace, Actions};
-use crate::store::Store;
 
 /// The name of a model's one input tensor (KServe v2 metadata and `infer`).
 const INPUT_NAME: &str = "observations";
@@ -34,35 +32,6 @@ pub const MAX_BATCH_ROWS: usize = 16_384;
 /// Batches up to this many rows run on the request's task (a few microseconds of matrix
 /// products); larger ones move to a blocking thread so they cannot stall other requests.
 const INLINE_ROWS: usize = 64;
-
-/// Policies loaded once from the store and shared by every request.
-pub struct PolicyCache {
-    store: Store,
-    loaded: RwLock<HashMap<String, Arc<Policy>>>,
-}
-
-impl PolicyCache {
-    pub fn new(store: Store) -> Self {
-        PolicyCache { store, loaded: RwLock::new(HashMap::new()) }
-    }
-
-    /// The policy `id`, loading it on first use (404 if it does not exist).
-    pub async fn get(&self, id: &str) -> Result<Arc<Policy>, ApiError> {
-        if let Some(policy) = self.loaded.read().expect("policy cache lock").get(id) {
-            return Ok(policy.clone());
-        }
-        let (spec, weights) = self.store.policy_artifact(id).await?;
-        let id_owned = id.to_owned();
-        let policy = tokio::task::spawn_blocking(move || {
-            Policy::from_stored(&spec, &weights)
-                .map_err(|e| anyhow::anyhow!("policy {id_owned}: {e}"))
-        })
-        .await??;
-        let mut loaded = self.loaded.write().expect("policy cache lock");
-        // Two first requests may both load it; every later one shares the first stored.
-        Ok(loaded.entry(id.to_owned()).or_insert_with(|| Arc::new(policy)).clone())
-    }
-}
 
 /// Validated observations: `rows × obs_dim`, row-major, all finite.
 pub struct Observations {

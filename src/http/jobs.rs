@@ -19,35 +19,11 @@ use super::error::ErrorBody;
 use super::extract::{Json, Path, Query};
 use super::pagination::{Page, PageParams};
 use super::{ApiError, AppState};
-use crate::algo::memory::{estimate_job_memory, DataShape};
-use crate::algo::{self, Algorithm};
-use crate::jobs::{EvalOptions, JobEvent, JobProgress, RunnerOptions};
-use crate::store::jobs::{CancelOutcome, JobRow, MetricRow, NewJob};
-use crate::store::{DatasetRecord, Store, StoreError};
-
-/// A job's lifecycle: `queued` → `running` → `succeeded` | `failed` | `cancelled` (a running job
-/// goes back to `queued` when the server shuts down, and resumes from its checkpoint).
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, ToSchema)]
-#[serde(rename_all = "lowercase")]
-pub enum JobStatus {
-    Queued,
-    Running,
-    Succeeded,
-    Failed,
-    Cancelled,
-}
-
-impl JobStatus {
-    fn as_str(self) -> &'static str {
-        match self {
-            JobStatus::Queued => "queued",
-            JobStatus::Running => "running",
-            JobStatus::Succeeded => "succeeded",
-            JobStatus::Failed => "failed",
-            JobStatus::Cancelled => "cancelled",
-        }
-    }
-}
+use crate::algo::Algorithm;
+use crate::domain::{rfc3339, EvalOptions, JobProgress, JobRecord, JobStatus, RunnerOptions};
+use crate::jobs::{JobEvent, JobRequest};
+use crate::store::jobs::{CancelOutcome, MetricRow};
+use crate::store::{Store, StoreError};
 
 /// `POST /v1/jobs` body.
 #[derive(Debug, Deserialize, ToSchema)]
@@ -124,47 +100,28 @@ pub struct Job {
     pub finished_at: Option<String>,
 }
 
-impl TryFrom<JobRow> for Job {
-    type Error = ApiError;
-
-    fn try_from(row: JobRow) -> Result<Self, ApiError> {
-        let corrupt = |what: &str, e: serde_json::Error| {
-            ApiError::Internal(anyhow::anyhow!("job {}: stored {what} does not parse: {e}", row.id))
-        };
-        let algorithm = serde_json::from_value(row.algorithm.clone().into())
-            .map_err(|e| corrupt("algorithm", e))?;
-        let status =
-            serde_json::from_value(row.status.clone().into()).map_err(|e| corrupt("status", e))?;
-        let config = serde_json::from_str(&row.config).map_err(|e| corrupt("config", e))?;
-        let runner = serde_json::from_str(&row.runner).map_err(|e| corrupt("runner", e))?;
-        let eval = row.eval.as_deref().map(serde_json::from_str).transpose();
-        let eval = eval.map_err(|e| corrupt("eval", e))?;
-        let running = row.status == "running";
-        let progress = JobProgress::new(
-            row.step as u64,
-            row.total_steps as u64,
-            row.phase,
-            row.iterations_per_second.filter(|_| running),
-        );
-        Ok(Job {
-            id: row.id,
-            algorithm,
-            status,
-            unlabeled_dataset: row.unlabeled_dataset_id,
-            non_preferred_dataset: row.non_preferred_dataset_id,
-            config,
-            runner,
-            eval,
+impl From<JobRecord> for Job {
+    fn from(job: JobRecord) -> Self {
+        let progress = job.progress();
+        Job {
+            id: job.id.into_string(),
+            algorithm: job.algorithm,
+            status: job.status,
+            unlabeled_dataset: job.unlabeled_dataset.into_string(),
+            non_preferred_dataset: job.non_preferred_dataset.map(|id| id.into_string()),
+            config: serde_json::to_value(&job.config).unwrap_or_default(),
+            runner: job.runner,
+            eval: job.eval,
             progress,
-            alpha_hat: row.alpha_hat,
-            policy_id: row.policy_id,
-            error: row.error,
-            cancel_requested: row.cancel_requested,
-            created_at: row.created_at,
-            updated_at: row.updated_at,
-            started_at: row.started_at,
-            finished_at: row.finished_at,
-        })
+            alpha_hat: job.alpha_hat,
+            policy_id: job.policy_id.map(|id| id.into_string()),
+            error: job.error,
+            cancel_requested: job.cancel_requested,
+            created_at: rfc3339(&job.created_at),
+            updated_at: rfc3339(&job.updated_at),
+            started_at: job.started_at.as_ref().map(rfc3339),
+            finished_at: job.finished_at.as_ref().map(rfc3339),
+        }
     }
 }
 
@@ -242,115 +199,18 @@ async fn create_job(
     State(state): State<AppState>,
     Json(request): Json<CreateJob>,
 ) -> Result<impl IntoResponse, ApiError> {
-    let algorithm = request.algorithm;
-    let config = algo::resolve_config(
-        algorithm,
-        request.config.as_ref().unwrap_or(&serde_json::Value::Null),
-    )
-    .map_err(|e| ApiError::unprocessable("invalid_config", e.message))?;
-    let runner = RunnerOptions::parse(request.runner.as_ref())
-        .map_err(|e| ApiError::unprocessable("invalid_config", e.0))?;
-    let eval = EvalOptions::parse(request.eval.as_ref())
-        .map_err(|e| ApiError::unprocessable("invalid_config", e.0))?;
-    if algorithm.needs_non_preferred() && request.non_preferred_dataset.is_none() {
-        return Err(ApiError::unprocessable(
-            "invalid_config",
-            format!("algorithm {algorithm} needs non_preferred_dataset (a labeled non-preferred dataset id)"),
-        ));
-    }
-    check_memory(&state, &config, &request).await?;
-    let data = crate::jobs::load_training_data(
-        &state.store,
-        &request.unlabeled_dataset,
-        request.non_preferred_dataset.as_deref(),
-    )
-    .await?;
-    algo::check_data(&config, &data)
-        .map_err(|e| ApiError::unprocessable("invalid_config", e.message))?;
-    if let Some(eval) = &eval {
-        let unlabeled = &data.unlabeled;
-        let whose = "the datasets'";
-        crate::envs::check_spaces(&eval.env, unlabeled.obs_dim, &unlabeled.action_space, whose)
-            .map_err(|e| ApiError::unprocessable("invalid_config", format!("eval.env: {e}")))?;
-    }
-    let id = uuid::Uuid::new_v4().to_string();
-    let config_json = serde_json::to_string(&config).map_err(anyhow::Error::from)?;
-    let runner_json = serde_json::to_string(&runner).map_err(anyhow::Error::from)?;
-    let eval_json =
-        eval.as_ref().map(serde_json::to_string).transpose().map_err(anyhow::Error::from)?;
-    let row = state
-        .store
-        .insert_job(&NewJob {
-            id: &id,
-            algorithm: algorithm.as_str(),
-            unlabeled_dataset_id: &request.unlabeled_dataset,
-            non_preferred_dataset_id: request.non_preferred_dataset.as_deref(),
-            config: &config_json,
-            runner: &runner_json,
-            eval: eval_json.as_deref(),
-            total_steps: config.total_steps(),
-        })
-        .await?;
+    let request = JobRequest {
+        algorithm: request.algorithm,
+        unlabeled_dataset: request.unlabeled_dataset.into(),
+        non_preferred_dataset: request.non_preferred_dataset.map(Into::into),
+        config: request.config,
+        runner: request.runner,
+        eval: request.eval,
+    };
+    let job = crate::jobs::submit(&state.store, request, state.config.max_job_memory).await?;
     state.jobs.wake();
-    tracing::info!(job_id = %id, %algorithm, total_steps = config.total_steps(), "job queued");
-    let location = format!("/v1/jobs/{id}");
-    Ok((StatusCode::CREATED, [(header::LOCATION, location)], Json(Job::try_from(row)?)))
-}
-
-/// Refuses (422 `job_too_large`), before any dataset is loaded, a job whose estimated peak
-/// memory is above `--max-job-memory`: accepted, it would take the worker's machine down when it
-/// starts rather than fail here with a message saying what to change.
-async fn check_memory(
-    state: &AppState,
-    config: &algo::ResolvedConfig,
-    request: &CreateJob,
-) -> Result<(), ApiError> {
-    let shape = |id: &str, record: Option<DatasetRecord>| match record {
-        Some(record) => Ok(DataShape {
-            transitions: record.transitions,
-            obs_dim: record.obs_dim,
-            action_space: record.action_space,
-            longest_episode: record.stats.episode_length.max as u64,
-        }),
-        None => Err(ApiError::not_found("dataset", id)),
-    };
-    let unlabeled_id = &request.unlabeled_dataset;
-    let unlabeled = shape(unlabeled_id, state.store.dataset(unlabeled_id).await?)?;
-    let non_preferred = match request.non_preferred_dataset.as_deref() {
-        Some(id) => Some(shape(id, state.store.dataset(id).await?)?),
-        None => None,
-    };
-    let estimate = estimate_job_memory(config, &unlabeled, non_preferred.as_ref());
-    let limit = state.config.max_job_memory;
-    if estimate.total <= limit {
-        return Ok(());
-    }
-    let ppl =
-        if config.algorithm() == Algorithm::Ppl { ", pairs_per_batch, segment_length" } else { "" };
-    Err(ApiError::unprocessable(
-        "job_too_large",
-        format!(
-            "this job needs an estimated {} of memory ({} for the datasets, {} for the networks, \
-             {} per training step), above the server's limit of {} (--max-job-memory); lower \
-             batch_size, hidden_sizes{ppl}, or train on a smaller dataset",
-            human_bytes(estimate.total),
-            human_bytes(estimate.data),
-            human_bytes(estimate.networks),
-            human_bytes(estimate.step),
-            human_bytes(limit),
-        ),
-    ))
-}
-
-/// `3.6 GiB (3865470976 bytes)`.
-fn human_bytes(bytes: u64) -> String {
-    const UNITS: [&str; 5] = ["bytes", "KiB", "MiB", "GiB", "TiB"];
-    let exponent = ((63 - bytes.max(1).leading_zeros()) / 10).min(UNITS.len() as u32 - 1);
-    if exponent == 0 {
-        return format!("{bytes} bytes");
-    }
-    let value = bytes as f64 / (1u64 << (10 * exponent)) as f64;
-    format!("{value:.1} {} ({bytes} bytes)", UNITS[exponent as usize])
+    let location = format!("/v1/jobs/{}", job.id);
+    Ok((StatusCode::CREATED, [(header::LOCATION, location)], Json(Job::from(job))))
 }
 
 /// List jobs, newest first.
@@ -365,9 +225,8 @@ async fn list_jobs(
     Query(page): Query<PageParams>,
 ) -> Result<Json<Page<Job>>, ApiError> {
     let page = page.validate()?;
-    let status = filter.status.map(JobStatus::as_str);
-    let (rows, total) = state.store.list_jobs(status, page.limit, page.offset).await?;
-    let jobs = rows.into_iter().map(Job::try_from).collect::<Result<_, _>>()?;
+    let (records, total) = state.store.list_jobs(filter.status, page.limit, page.offset).await?;
+    let jobs = records.into_iter().map(Job::from).collect();
     Ok(Json(Page::new(jobs, total, page)))
 }
 
@@ -378,7 +237,7 @@ async fn get_job(
     State(state): State<AppState>,
     Path(id): Path<String>,
 ) -> Result<Json<Job>, ApiError> {
-    Ok(Json(state.store.job(&id).await?.try_into()?))
+    Ok(Json(state.store.job(&id).await?.into()))
 }
 
 /// Cancel a job. A queued job is cancelled at once; a running one stops at its next step
@@ -409,13 +268,13 @@ async fn cancel_job(
             ));
         }
     }
-    Ok(Json(state.store.job(&id).await?.try_into()?))
+    Ok(Json(state.store.job(&id).await?.into()))
 }
 
 async fn wait_until_stopped(store: &Store, id: &str) -> Result<(), StoreError> {
     let deadline = tokio::time::Instant::now() + CANCEL_WAIT;
     while tokio::time::Instant::now() < deadline {
-        if store.job(id).await?.status != "running" {
+        if store.job_status(id).await? != JobStatus::Running {
             break;
         }
         tokio::time::sleep(Duration::from_millis(20)).await;
@@ -502,8 +361,8 @@ async fn job_events(
 ) -> Result<Sse<impl Stream<Item = Result<Event, Infallible>>>, ApiError> {
     // Subscribe before reading the job, so no change between the two is missed.
     let receiver = state.jobs.subscribe();
-    let job: Job = state.store.job(&id).await?.try_into()?;
-    let finished = is_final(job.status);
+    let job = Job::from(state.store.job(&id).await?);
+    let finished = job.status.is_final();
     let first = status_event(&job);
     let updates = futures::stream::unfold(
         (receiver, state.store.clone(), id, finished),
@@ -512,7 +371,7 @@ async fn job_events(
                 return None;
             }
             let event = next_event(&mut receiver, &store, &id).await?;
-            let finished = matches!(&event, Update::Status(job) if is_final(job.status));
+            let finished = matches!(&event, Update::Status(job) if job.status.is_final());
             let event = match event {
                 Update::Progress(progress) => json_event("progress", &progress),
                 Update::Status(job) => status_event(&job),
@@ -540,21 +399,17 @@ async fn next_event(
 ) -> Option<Update> {
     loop {
         match receiver.recv().await {
-            Ok(event) if event.job_id() != id => continue,
+            Ok(event) if event.job_id().as_str() != id => continue,
             Ok(JobEvent::Progress { progress, .. }) => return Some(Update::Progress(progress)),
             Ok(JobEvent::Status { .. }) => {
                 let job = store.job(id).await.ok()?;
-                return Job::try_from(job).ok().map(|job| Update::Status(Box::new(job)));
+                return Some(Update::Status(Box::new(job.into())));
             }
             // A slow reader skipped some progress; the next event brings it up to date.
             Err(broadcast::error::RecvError::Lagged(_)) => continue,
             Err(broadcast::error::RecvError::Closed) => return None,
         }
     }
-}
-
-fn is_final(status: JobStatus) -> bool {
-    matches!(status, JobStatus::Succeeded | JobStatus::Failed | JobStatus::Cancelled)
 }
 
 fn status_event(job: &Job) -> Event {
@@ -583,14 +438,6 @@ mod tests {
                 time: format!("t{i}"),
             })
             .collect()
-    }
-
-    #[test]
-    fn byte_counts_read_in_binary_units_with_the_exact_count() {
-        assert_eq!(human_bytes(0), "0 bytes");
-        assert_eq!(human_bytes(1023), "1023 bytes");
-        assert_eq!(human_bytes(1536), "1.5 KiB (1536 bytes)");
-        assert_eq!(human_bytes(4 << 30), "4.0 GiB (4294967296 bytes)");
     }
 
     #[test]

@@ -16,10 +16,10 @@ pub mod extract;
 pub mod health;
 pub mod inference;
 pub mod jobs;
-pub mod metrics;
 pub mod openapi;
 pub mod pagination;
 pub mod policies;
+pub mod prometheus;
 pub mod ui;
 
 use std::sync::Arc;
@@ -39,6 +39,8 @@ use tower_http::trace::{DefaultOnResponse, TraceLayer};
 use utoipa_axum::router::OpenApiRouter;
 
 use crate::config::ServeConfig;
+use crate::jobs::JobRunner;
+use crate::serving::PolicyCache;
 use crate::store::Store;
 pub use error::ApiError;
 
@@ -48,41 +50,41 @@ pub const REQUEST_TIMEOUT: Duration = Duration::from_secs(30);
 
 const REQUEST_ID: HeaderName = HeaderName::from_static("x-request-id");
 
-/// What every handler can reach; cheap to clone. Later resources (the job runner's handle, the
-/// policy cache) become further fields here.
+/// What every handler can reach; cheap to clone. The services in it (store, job runner, policy
+/// cache) are built and started by [`crate::server`]; this layer only uses them.
 #[derive(Clone)]
 pub struct AppState {
     pub config: Arc<ServeConfig>,
     pub store: Store,
-    pub metrics: Arc<metrics::Metrics>,
+    pub metrics: Arc<prometheus::Metrics>,
     pub tokens: Arc<auth::Tokens>,
     /// Cancelled when the server begins a graceful shutdown (long-running work stops on it).
     pub shutdown: CancellationToken,
-    /// The training worker pool (started by the server).
-    pub jobs: crate::jobs::JobRunner,
+    /// The training worker pool.
+    pub jobs: JobRunner,
     /// Trained policies loaded for inference.
-    pub policies: Arc<inference::PolicyCache>,
+    pub policies: Arc<PolicyCache>,
     /// One permit per upload being received (`--max-concurrent-uploads`).
     pub uploads: Arc<tokio::sync::Semaphore>,
 }
 
 impl AppState {
-    pub fn new(config: ServeConfig, store: Store, shutdown: CancellationToken) -> Self {
+    pub fn new(
+        config: ServeConfig,
+        store: Store,
+        jobs: JobRunner,
+        policies: Arc<PolicyCache>,
+        shutdown: CancellationToken,
+    ) -> Self {
         let tokens =
             auth::Tokens::new(config.api_token.as_deref(), config.inference_token.as_deref());
+        let uploads = tokio::sync::Semaphore::new(usize::from(config.max_concurrent_uploads));
         AppState {
-            metrics: Arc::new(metrics::Metrics::new()),
+            metrics: Arc::new(prometheus::Metrics::new()),
             tokens: Arc::new(tokens),
-            jobs: crate::jobs::JobRunner::new(
-                store.clone(),
-                usize::from(config.workers),
-                config.min_free_disk,
-                shutdown.clone(),
-            ),
-            policies: Arc::new(inference::PolicyCache::new(store.clone())),
-            uploads: Arc::new(tokio::sync::Semaphore::new(usize::from(
-                config.max_concurrent_uploads,
-            ))),
+            jobs,
+            policies,
+            uploads: Arc::new(uploads),
             shutdown,
             config: Arc::new(config),
             store,
@@ -94,7 +96,7 @@ impl AppState {
 fn routes() -> OpenApiRouter<AppState> {
     let bounded = OpenApiRouter::new()
         .merge(health::router())
-        .merge(metrics::router())
+        .merge(prometheus::router())
         .merge(openapi::router())
         .merge(ui::router())
         .merge(datasets::router())
@@ -136,7 +138,7 @@ pub fn app(state: AppState) -> anyhow::Result<Router> {
         .fallback(error::route_not_found)
         .method_not_allowed_fallback(error::method_not_allowed)
         .layer(middleware::from_fn_with_state(state.clone(), auth::require_token))
-        .layer(middleware::from_fn_with_state(state.clone(), metrics::track))
+        .layer(middleware::from_fn_with_state(state.clone(), prometheus::track))
         .layer(middleware::from_fn_with_state(body_idle, body_idle_timeout))
         .with_state(state);
     let trace = TraceLayer::new_for_http()

@@ -16,8 +16,8 @@ use tokio_util::sync::CancellationToken;
 
 use super::EvalSpec;
 use crate::algo::Policy;
+use crate::domain::EvaluationRecord;
 use crate::envs::{self, EvalError, EvalReport};
-use crate::store::evaluations::EvaluationRow;
 use crate::store::Store;
 
 /// Runs `spec` with `policy` and the paper's metrics. `interrupted` is asked between
@@ -100,8 +100,8 @@ impl Evaluator {
         }
     }
 
-    #[tracing::instrument(skip_all, fields(evaluation_id = %row.id, policy_id = %row.policy_id, env = %row.env))]
-    async fn run_one(&self, row: EvaluationRow) {
+    #[tracing::instrument(skip_all, fields(evaluation_id = %row.id, policy_id = %row.policy_id, env = %row.spec.env))]
+    async fn run_one(&self, row: EvaluationRecord) {
         let store = &self.inner.store;
         let outcome = self.evaluate(&row).await;
         let stored = match &outcome {
@@ -112,10 +112,7 @@ impl Evaluator {
                     average_cost = m.average_cost,
                     "evaluation succeeded"
                 );
-                match serde_json::to_string(report) {
-                    Ok(json) => store.finish_evaluation(&row.id, Ok(&json)).await,
-                    Err(e) => store.finish_evaluation(&row.id, Err(&e.to_string())).await,
-                }
+                store.finish_evaluation(&row.id, Ok(report)).await
             }
             Err(_) if self.inner.shutdown.is_cancelled() => {
                 tracing::info!(
@@ -134,15 +131,10 @@ impl Evaluator {
     }
 
     /// Loads the policy and runs the evaluation on a blocking thread.
-    async fn evaluate(&self, row: &EvaluationRow) -> Result<EvalReport, String> {
+    async fn evaluate(&self, row: &EvaluationRecord) -> Result<EvalReport, String> {
         let (spec_json, weights) =
             self.inner.store.policy_artifact(&row.policy_id).await.map_err(|e| e.to_string())?;
-        let spec = EvalSpec {
-            env: row.env.clone(),
-            episodes: row.episodes as usize,
-            seed: row.seed as u64,
-            deterministic: row.deterministic,
-        };
+        let spec = row.spec.clone();
         let shutdown = self.inner.shutdown.clone();
         let run = move || -> Result<EvalReport, String> {
             let policy = Policy::from_stored(&spec_json, &weights).map_err(|e| e.to_string())?;

@@ -16,8 +16,7 @@
 //! up to [`STORAGE_RETRY_MAX`]), rather than failing job after job for good.
 
 pub mod evaluations;
-pub mod options;
-pub mod progress;
+pub mod submit;
 mod worker;
 
 use std::collections::HashMap;
@@ -29,22 +28,23 @@ use tokio::sync::{broadcast, Notify};
 use tokio::task::JoinHandle;
 use tokio_util::sync::CancellationToken;
 
+pub use crate::domain::{EvalOptions, EvalSpec, JobProgress, RunnerOptions};
+use crate::domain::{JobId, JobStatus};
 use crate::store::Store;
 pub use evaluations::{evaluate_policy, Evaluator};
-pub use options::{EvalOptions, EvalSpec, RunnerOptions};
-pub use progress::JobProgress;
+pub use submit::{submit, JobRequest, SubmitError};
 
 /// Something a watcher of a job wants to know.
 #[derive(Clone, Debug)]
 pub enum JobEvent {
     /// A running job advanced.
-    Progress { job_id: String, progress: JobProgress },
+    Progress { job_id: JobId, progress: JobProgress },
     /// A job changed status (`running`, `queued` again on shutdown, or a final status).
-    Status { job_id: String, status: String },
+    Status { job_id: JobId, status: JobStatus },
 }
 
 impl JobEvent {
-    pub fn job_id(&self) -> &str {
+    pub fn job_id(&self) -> &JobId {
         match self {
             JobEvent::Progress { job_id, .. } | JobEvent::Status { job_id, .. } => job_id,
         }

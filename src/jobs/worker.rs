@@ -4,12 +4,13 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use anyhow::Context;
 use tokio::runtime::Handle;
 
 use super::{EvalOptions, JobEvent, JobProgress, JobRunner, RunnerOptions};
-use crate::algo::{self, Policy, ResolvedConfig, Trainer};
-use crate::store::jobs::{now, JobRow, MetricRow, ProgressUpdate};
+use crate::algo::{self, Policy, Trainer};
+use crate::domain::{JobRecord, JobStatus, PolicyId};
+use crate::store::jobs::{MetricRow, ProgressUpdate};
+use crate::store::now;
 use crate::store::policies::NewPolicy;
 use crate::store::storage::{is_io_storage_full, is_storage_full};
 use crate::store::{is_busy, StoreError};
@@ -72,14 +73,14 @@ pub(super) async fn run_worker(runner: JobRunner, index: usize) {
 }
 
 #[tracing::instrument(skip_all, fields(job_id = %job.id, algorithm = %job.algorithm))]
-async fn run_job(runner: &JobRunner, job: JobRow) {
+async fn run_job(runner: &JobRunner, job: JobRecord) {
     let id = job.id.clone();
     let cancel = runner.register_cancel_flag(&id);
     // A cancel may have been requested between the claim and the flag's registration.
     if job.cancel_requested {
         cancel.store(true, Ordering::Relaxed);
     }
-    runner.publish(JobEvent::Status { job_id: id.clone(), status: "running".into() });
+    runner.publish(JobEvent::Status { job_id: id.clone(), status: JobStatus::Running });
     tracing::info!("job started");
     let run = TrainingRun::new(runner.clone(), Handle::current(), job, cancel);
     let outcome = match tokio::task::spawn_blocking(move || run.drive()).await {
@@ -93,9 +94,9 @@ async fn run_job(runner: &JobRunner, job: JobRow) {
         runner.storage_recovered();
     }
     let status = match &outcome {
-        Outcome::Succeeded => "succeeded",
-        Outcome::Cancelled => "cancelled",
-        Outcome::Released => "queued",
+        Outcome::Succeeded => JobStatus::Succeeded,
+        Outcome::Cancelled => JobStatus::Cancelled,
+        Outcome::Released => JobStatus::Queued,
         Outcome::StoreUnavailable(message) => {
             tracing::error!(
                 error = %message,
@@ -104,18 +105,19 @@ async fn run_job(runner: &JobRunner, job: JobRow) {
             );
             runner.pause_for_storage();
             runner.release_when_possible(&id).await;
-            "queued"
+            JobStatus::Queued
         }
         Outcome::Failed(message) => {
             tracing::warn!(error = %message, "job failed");
-            if let Err(e) = runner.store().finish_job(&id, "failed", Some(message), &[]).await {
+            let store = runner.store();
+            if let Err(e) = store.finish_job(&id, JobStatus::Failed, Some(message), &[]).await {
                 tracing::error!(error = %e, "cannot record the job's failure");
             }
-            "failed"
+            JobStatus::Failed
         }
     };
-    tracing::info!(status, "job stopped");
-    runner.publish(JobEvent::Status { job_id: id, status: status.into() });
+    tracing::info!(%status, "job stopped");
+    runner.publish(JobEvent::Status { job_id: id, status });
 }
 
 /// When a run records, checkpoints and evaluates.
@@ -145,37 +147,36 @@ enum EvalOutcome {
 struct TrainingRun {
     runner: JobRunner,
     rt: Handle,
-    job: JobRow,
+    job: JobRecord,
     cancel: Arc<AtomicBool>,
     /// Metrics recorded since the last write.
     pending: Vec<MetricRow>,
 }
 
 impl TrainingRun {
-    fn new(runner: JobRunner, rt: Handle, job: JobRow, cancel: Arc<AtomicBool>) -> Self {
+    fn new(runner: JobRunner, rt: Handle, job: JobRecord, cancel: Arc<AtomicBool>) -> Self {
         TrainingRun { runner, rt, job, cancel, pending: Vec::new() }
     }
 
     fn drive(mut self) -> anyhow::Result<Outcome> {
-        let config: ResolvedConfig = serde_json::from_str(&self.job.config)
-            .context("the stored job configuration does not parse")?;
-        let options: RunnerOptions = serde_json::from_str(&self.job.runner)
-            .context("the stored runner options do not parse")?;
-        let eval = self.job.eval.as_deref().map(serde_json::from_str::<EvalOptions>);
-        let eval = eval.transpose().context("the stored eval block does not parse")?;
-        let schedule = Schedule { options, eval, pretraining: config.pretraining_steps() };
+        let config = &self.job.config;
+        let schedule = Schedule {
+            options: self.job.runner.clone(),
+            eval: self.job.eval.clone(),
+            pretraining: config.pretraining_steps(),
+        };
         let store = self.runner.store().clone();
         let data = self.rt.block_on(super::load_training_data(
             &store,
-            &self.job.unlabeled_dataset_id,
-            self.job.non_preferred_dataset_id.as_deref(),
+            &self.job.unlabeled_dataset,
+            self.job.non_preferred_dataset.as_deref(),
         ))?;
         let checkpoint = self.rt.block_on(store.checkpoint(&self.job.id))?;
         let resumed_at = checkpoint.as_ref().map_or(0, |(step, _)| *step);
         // Rows past the checkpoint are recomputed (bitwise the same) by the resumed run.
         self.rt.block_on(store.discard_metrics_after(&self.job.id, resumed_at))?;
         let mut trainer =
-            match algo::build_trainer(&config, &data, checkpoint.as_ref().map(|(_, b)| &b[..])) {
+            match algo::build_trainer(config, &data, checkpoint.as_ref().map(|(_, b)| &b[..])) {
                 Ok(trainer) => trainer,
                 Err(e) => return Ok(Outcome::Failed(e.to_string())),
             };
@@ -192,7 +193,7 @@ impl TrainingRun {
         let mut window = (Instant::now(), trainer.progress().step);
         while !trainer.is_finished() {
             if self.cancel.load(Ordering::Relaxed) {
-                self.finish("cancelled", None)?;
+                self.finish(JobStatus::Cancelled, None)?;
                 return Ok(Outcome::Cancelled);
             }
             if shutdown.is_cancelled() {
@@ -206,7 +207,7 @@ impl TrainingRun {
                 Ok(scalars) => scalars,
                 Err(e) => {
                     let message = e.to_string();
-                    self.finish("failed", Some(&message))?;
+                    self.finish(JobStatus::Failed, Some(&message))?;
                     return Ok(Outcome::Failed(message));
                 }
             };
@@ -224,7 +225,7 @@ impl TrainingRun {
                         return Ok(Outcome::Released);
                     }
                     EvalOutcome::Failed(message) => {
-                        self.finish("failed", Some(&message))?;
+                        self.finish(JobStatus::Failed, Some(&message))?;
                         return Ok(Outcome::Failed(message));
                     }
                 }
@@ -324,7 +325,7 @@ impl TrainingRun {
         Ok(cancel)
     }
 
-    fn finish(&mut self, status: &str, error: Option<&str>) -> anyhow::Result<()> {
+    fn finish(&mut self, status: JobStatus, error: Option<&str>) -> anyhow::Result<()> {
         let rows = std::mem::take(&mut self.pending);
         self.rt.block_on(self.runner.store().finish_job(&self.job.id, status, error, &rows))?;
         Ok(())
@@ -341,7 +342,7 @@ impl TrainingRun {
             .into_iter()
             .map(|(name, value)| (name, value.into()))
             .collect();
-        let policy_id = uuid::Uuid::new_v4().to_string();
+        let policy_id = PolicyId::generate();
         let policy = NewPolicy {
             id: &policy_id,
             job_id: &self.job.id,
@@ -374,8 +375,6 @@ mod tests {
         assert!(store_unavailable(&busy.context("recording progress")));
         let corrupt = StoreError::Corrupt("d".into(), "changed on disk".into());
         assert!(!store_unavailable(&anyhow::Error::from(corrupt)));
-        assert!(!store_unavailable(&anyhow::anyhow!(
-            "the stored job configuration does not parse"
-        )));
+        assert!(!store_unavailable(&anyhow::anyhow!("the evaluation at step 10 failed")));
     }
 }

@@ -1,71 +1,96 @@
-//! The training queue's table, as far as the dataset API and /metrics read it.
+//! The training queue's table: creating, claiming, progressing and finishing jobs, their
+//! metrics and checkpoints.
 
-use super::Store;
-
-/// Every job status, in lifecycle order.
-pub const JOB_STATUSES: [&str; 5] = ["queued", "running", "succeeded", "failed", "cancelled"];
-
-impl Store {
-    /// Number of jobs in each status, every status listed (zero when there are none).
-    pub async fn job_counts_by_status(&self) -> Result<Vec<(&'static str, i64)>, sqlx::Error> {
-        self.counts_by_status("jobs", &JOB_STATUSES).await
-    }
-}
-
-// ---------------------------------------------------------------------------------------------
-// The job runner's side: creating, claiming, progressing and finishing jobs, their metrics and
-// checkpoints.
-
+use chrono::{DateTime, Utc};
 use sqlx::{Sqlite, SqliteConnection, Transaction};
 
 use super::policies::NewPolicy;
-use super::StoreError;
+use super::{now, Store, StoreError};
+use crate::algo::ResolvedConfig;
+use crate::domain::{DatasetId, EvalOptions, JobId, JobRecord, JobStatus, RunnerOptions};
 
-/// A job as stored (the HTTP layer turns it into the API's resource).
-#[derive(Clone, Debug, sqlx::FromRow)]
-pub struct JobRow {
-    pub id: String,
-    pub algorithm: String,
-    pub status: String,
-    pub unlabeled_dataset_id: String,
-    pub non_preferred_dataset_id: Option<String>,
-    /// JSON of the resolved algorithm configuration.
-    pub config: String,
-    /// JSON of the job-runner options.
-    pub runner: String,
-    /// JSON of the eval block (`jobs::EvalOptions`), if any.
-    pub eval: Option<String>,
-    pub step: i64,
-    pub total_steps: i64,
-    pub phase: Option<String>,
-    pub iterations_per_second: Option<f64>,
-    pub alpha_hat: Option<f64>,
-    pub policy_id: Option<String>,
-    pub error: Option<String>,
-    pub cancel_requested: bool,
-    pub created_at: String,
-    pub updated_at: String,
-    pub started_at: Option<String>,
-    pub finished_at: Option<String>,
+/// A job row as SQLite returns it; [`JobRecord`] is its typed form.
+#[derive(sqlx::FromRow)]
+struct JobRow {
+    id: String,
+    algorithm: String,
+    status: String,
+    unlabeled_dataset_id: String,
+    non_preferred_dataset_id: Option<String>,
+    config: String,
+    runner: String,
+    eval: Option<String>,
+    step: i64,
+    total_steps: i64,
+    phase: Option<String>,
+    iterations_per_second: Option<f64>,
+    alpha_hat: Option<f64>,
+    policy_id: Option<String>,
+    error: Option<String>,
+    cancel_requested: bool,
+    created_at: DateTime<Utc>,
+    updated_at: DateTime<Utc>,
+    started_at: Option<DateTime<Utc>>,
+    finished_at: Option<DateTime<Utc>>,
 }
 
-impl JobRow {
-    pub fn is_terminal(&self) -> bool {
-        matches!(self.status.as_str(), "succeeded" | "failed" | "cancelled")
+impl TryFrom<JobRow> for JobRecord {
+    type Error = StoreError;
+
+    fn try_from(row: JobRow) -> Result<Self, StoreError> {
+        let corrupt = |what: &str, e: &dyn std::fmt::Display| {
+            StoreError::Corrupt(format!("job {}", row.id), format!("stored {what}: {e}"))
+        };
+        let json = |what: &str, text: &str| -> Result<serde_json::Value, StoreError> {
+            serde_json::from_str(text).map_err(|e| corrupt(what, &e))
+        };
+        let algorithm = serde_json::from_value(row.algorithm.clone().into())
+            .map_err(|e| corrupt("algorithm", &e))?;
+        let status = row.status.parse().map_err(|e: String| corrupt("status", &e))?;
+        let config: ResolvedConfig = serde_json::from_value(json("config", &row.config)?)
+            .map_err(|e| corrupt("config", &e))?;
+        let runner: RunnerOptions = serde_json::from_value(json("runner", &row.runner)?)
+            .map_err(|e| corrupt("runner", &e))?;
+        let eval: Option<EvalOptions> = match row.eval.as_deref() {
+            Some(text) => {
+                Some(serde_json::from_value(json("eval", text)?).map_err(|e| corrupt("eval", &e))?)
+            }
+            None => None,
+        };
+        Ok(JobRecord {
+            id: row.id.into(),
+            algorithm,
+            status,
+            unlabeled_dataset: row.unlabeled_dataset_id.into(),
+            non_preferred_dataset: row.non_preferred_dataset_id.map(DatasetId::from),
+            config,
+            runner,
+            eval,
+            step: row.step as u64,
+            total_steps: row.total_steps as u64,
+            phase: row.phase,
+            iterations_per_second: row.iterations_per_second,
+            alpha_hat: row.alpha_hat,
+            policy_id: row.policy_id.map(Into::into),
+            error: row.error,
+            cancel_requested: row.cancel_requested,
+            created_at: row.created_at,
+            updated_at: row.updated_at,
+            started_at: row.started_at,
+            finished_at: row.finished_at,
+        })
     }
 }
 
-/// What `POST /v1/jobs` stores.
+/// A job to queue: its datasets, resolved configuration and options.
 #[derive(Clone, Debug)]
-pub struct NewJob<'a> {
-    pub id: &'a str,
-    pub algorithm: &'a str,
-    pub unlabeled_dataset_id: &'a str,
-    pub non_preferred_dataset_id: Option<&'a str>,
-    pub config: &'a str,
-    pub runner: &'a str,
-    pub eval: Option<&'a str>,
-    pub total_steps: u64,
+pub struct NewJob {
+    pub id: JobId,
+    pub unlabeled_dataset: DatasetId,
+    pub non_preferred_dataset: Option<DatasetId>,
+    pub config: ResolvedConfig,
+    pub runner: RunnerOptions,
+    pub eval: Option<EvalOptions>,
 }
 
 /// One recorded scalar of a training step.
@@ -94,12 +119,7 @@ pub enum CancelOutcome {
     /// The job is running; its worker stops at the next step.
     Requested,
     /// The job had already finished with this status.
-    AlreadyFinished(String),
-}
-
-/// Current time as stored: RFC 3339, UTC, milliseconds.
-pub fn now() -> String {
-    chrono::Utc::now().to_rfc3339_opts(chrono::SecondsFormat::Millis, true)
+    AlreadyFinished(JobStatus),
 }
 
 const JOB_COLUMNS: &str = "id, algorithm, status, unlabeled_dataset_id, non_preferred_dataset_id, \
@@ -107,64 +127,84 @@ const JOB_COLUMNS: &str = "id, algorithm, status, unlabeled_dataset_id, non_pref
      error, cancel_requested, created_at, updated_at, started_at, finished_at";
 
 impl Store {
+    /// Number of jobs in each status, every status listed (zero when there are none).
+    pub async fn job_counts_by_status(&self) -> Result<Vec<(&'static str, i64)>, sqlx::Error> {
+        self.counts_by_status("jobs", &JobStatus::ALL.map(JobStatus::as_str)).await
+    }
+
     /// Queues a job if its datasets still exist. The check and the insert are one write
     /// transaction, so a concurrent [`Store::delete_dataset`] either commits first (and this
     /// answers `NotFound` for the dataset) or sees the queued job and refuses.
-    pub async fn insert_job(&self, job: &NewJob<'_>) -> Result<JobRow, StoreError> {
+    pub async fn insert_job(&self, job: &NewJob) -> Result<JobRecord, StoreError> {
         let now = now();
+        let config = to_json(&job.config);
+        let runner = to_json(&job.runner);
+        let eval = job.eval.as_ref().map(to_json);
         let mut tx = self.begin_write().await?;
-        for dataset in std::iter::once(job.unlabeled_dataset_id).chain(job.non_preferred_dataset_id)
-        {
+        for dataset in std::iter::once(&job.unlabeled_dataset).chain(&job.non_preferred_dataset) {
             let exists: bool =
                 sqlx::query_scalar("SELECT EXISTS (SELECT 1 FROM datasets WHERE id = ?)")
-                    .bind(dataset)
+                    .bind(dataset.as_str())
                     .fetch_one(&mut *tx)
                     .await?;
             if !exists {
-                return Err(StoreError::NotFound { kind: "dataset", id: dataset.to_owned() });
+                return Err(StoreError::NotFound { kind: "dataset", id: dataset.to_string() });
             }
         }
         sqlx::query(
             "INSERT INTO jobs (id, algorithm, status, unlabeled_dataset_id, \
              non_preferred_dataset_id, config, runner, eval, total_steps, created_at, updated_at) \
-             VALUES (?, ?, 'queued', ?, ?, ?, ?, ?, ?, ?, ?)",
+             VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
         )
-        .bind(job.id)
-        .bind(job.algorithm)
-        .bind(job.unlabeled_dataset_id)
-        .bind(job.non_preferred_dataset_id)
-        .bind(job.config)
-        .bind(job.runner)
-        .bind(job.eval)
-        .bind(job.total_steps as i64)
+        .bind(job.id.as_str())
+        .bind(job.config.algorithm().as_str())
+        .bind(JobStatus::Queued.as_str())
+        .bind(job.unlabeled_dataset.as_str())
+        .bind(job.non_preferred_dataset.as_deref())
+        .bind(config)
+        .bind(runner)
+        .bind(eval)
+        .bind(job.config.total_steps() as i64)
         .bind(&now)
         .bind(&now)
         .execute(&mut *tx)
         .await?;
-        let row = sqlx::query_as(&format!("SELECT {JOB_COLUMNS} FROM jobs WHERE id = ?"))
-            .bind(job.id)
+        let row: JobRow = sqlx::query_as(&format!("SELECT {JOB_COLUMNS} FROM jobs WHERE id = ?"))
+            .bind(job.id.as_str())
             .fetch_one(&mut *tx)
             .await?;
         tx.commit().await?;
-        Ok(row)
+        row.try_into()
     }
 
-    pub async fn job(&self, id: &str) -> Result<JobRow, StoreError> {
-        sqlx::query_as(&format!("SELECT {JOB_COLUMNS} FROM jobs WHERE id = ?"))
+    pub async fn job(&self, id: &str) -> Result<JobRecord, StoreError> {
+        let row: JobRow = sqlx::query_as(&format!("SELECT {JOB_COLUMNS} FROM jobs WHERE id = ?"))
             .bind(id)
             .fetch_optional(self.pool())
             .await?
-            .ok_or_else(|| StoreError::NotFound { kind: "job", id: id.to_owned() })
+            .ok_or_else(|| StoreError::NotFound { kind: "job", id: id.to_owned() })?;
+        row.try_into()
+    }
+
+    /// A job's status alone (what a cancel waits on).
+    pub async fn job_status(&self, id: &str) -> Result<JobStatus, StoreError> {
+        let status: String = sqlx::query_scalar("SELECT status FROM jobs WHERE id = ?")
+            .bind(id)
+            .fetch_optional(self.pool())
+            .await?
+            .ok_or_else(|| StoreError::NotFound { kind: "job", id: id.to_owned() })?;
+        parse_status(id, &status)
     }
 
     /// A page of jobs, newest first, optionally only those in `status`; and the total count.
     pub async fn list_jobs(
         &self,
-        status: Option<&str>,
+        status: Option<JobStatus>,
         limit: u32,
         offset: u64,
-    ) -> Result<(Vec<JobRow>, u64), StoreError> {
-        let rows = sqlx::query_as(&format!(
+    ) -> Result<(Vec<JobRecord>, u64), StoreError> {
+        let status = status.map(JobStatus::as_str);
+        let rows: Vec<JobRow> = sqlx::query_as(&format!(
             "SELECT {JOB_COLUMNS} FROM jobs WHERE (?1 IS NULL OR status = ?1) \
              ORDER BY created_at DESC, id DESC LIMIT ?2 OFFSET ?3"
         ))
@@ -178,12 +218,13 @@ impl Store {
                 .bind(status)
                 .fetch_one(self.pool())
                 .await?;
-        Ok((rows, total as u64))
+        let jobs = rows.into_iter().map(JobRecord::try_from).collect::<Result<_, _>>()?;
+        Ok((jobs, total as u64))
     }
 
     /// Atomically moves the next job from `queued` to `running` and returns it. Jobs that were
     /// already started once (interrupted by a shutdown or crash) go first, then the oldest.
-    pub async fn claim_next_job(&self) -> Result<Option<JobRow>, StoreError> {
+    pub async fn claim_next_job(&self) -> Result<Option<JobRecord>, StoreError> {
         let now = now();
         let claimed: Option<String> = sqlx::query_scalar(
             "UPDATE jobs SET status = 'running', updated_at = ?1, \
@@ -196,9 +237,16 @@ impl Store {
         .bind(&now)
         .fetch_optional(self.pool())
         .await?;
-        match claimed {
-            Some(id) => Ok(Some(self.job(&id).await?)),
-            None => Ok(None),
+        let Some(id) = claimed else { return Ok(None) };
+        match self.job(&id).await {
+            // A row this version cannot read (e.g. written by another version) can never run:
+            // it fails with the reason instead of blocking the queue.
+            Err(StoreError::Corrupt(_, reason)) => {
+                tracing::error!(job_id = %id, %reason, "a queued job cannot be read; it fails");
+                self.finish_job(&id, JobStatus::Failed, Some(&reason), &[]).await?;
+                Box::pin(self.claim_next_job()).await
+            }
+            job => job.map(Some),
         }
     }
 
@@ -375,10 +423,11 @@ impl Store {
     pub async fn finish_job(
         &self,
         id: &str,
-        status: &str,
+        status: JobStatus,
         error: Option<&str>,
         pending_metrics: &[MetricRow],
     ) -> Result<(), StoreError> {
+        debug_assert!(matches!(status, JobStatus::Failed | JobStatus::Cancelled));
         let mut tx = self.begin_write().await?;
         insert_metric_rows(&mut tx, id, pending_metrics).await?;
         let now = now();
@@ -386,7 +435,7 @@ impl Store {
             "UPDATE jobs SET status = ?, error = ?, iterations_per_second = NULL, updated_at = ?, \
                  finished_at = ? WHERE id = ?",
         )
-        .bind(status)
+        .bind(status.as_str())
         .bind(error)
         .bind(&now)
         .bind(&now)
@@ -408,8 +457,8 @@ impl Store {
             .fetch_optional(&mut *tx)
             .await?
             .ok_or_else(|| StoreError::NotFound { kind: "job", id: id.to_owned() })?;
-        let outcome = match status.as_str() {
-            "queued" => {
+        let outcome = match parse_status(id, &status)? {
+            JobStatus::Queued => {
                 sqlx::query(
                     "UPDATE jobs SET status = 'cancelled', cancel_requested = 1, updated_at = ?1, \
                          finished_at = ?1 WHERE id = ?2",
@@ -421,7 +470,7 @@ impl Store {
                 delete_checkpoint(&mut tx, id).await?;
                 CancelOutcome::Cancelled
             }
-            "running" => {
+            JobStatus::Running => {
                 sqlx::query("UPDATE jobs SET cancel_requested = 1, updated_at = ? WHERE id = ?")
                     .bind(&now)
                     .bind(id)
@@ -429,11 +478,21 @@ impl Store {
                     .await?;
                 CancelOutcome::Requested
             }
-            _ => CancelOutcome::AlreadyFinished(status),
+            finished => CancelOutcome::AlreadyFinished(finished),
         };
         tx.commit().await?;
         Ok(outcome)
     }
+}
+
+/// The JSON of a job's configuration or options as stored.
+fn to_json(value: &impl serde::Serialize) -> String {
+    // Plain structs of numbers, strings and enums: serialising them cannot fail.
+    serde_json::to_string(value).expect("job options serialise to JSON")
+}
+
+fn parse_status(id: &str, status: &str) -> Result<JobStatus, StoreError> {
+    status.parse().map_err(|e| StoreError::Corrupt(format!("job {id}"), e))
 }
 
 /// A finished job keeps no checkpoint: it would only be read to resume.

@@ -94,6 +94,11 @@ fn pool_options() -> SqlitePoolOptions {
     })
 }
 
+/// Current time as stored: RFC 3339, UTC, milliseconds (text that sorts in time order).
+pub fn now() -> String {
+    chrono::Utc::now().to_rfc3339_opts(chrono::SecondsFormat::Millis, true)
+}
+
 /// The database pool and the data directory; cheap to clone.
 #[derive(Clone, Debug)]
 pub struct Store {

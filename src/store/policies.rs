@@ -56,7 +56,7 @@ pub(super) async fn insert_policy(
     .bind(policy.weights)
     .bind(policy.final_metrics)
     .bind(policy.alpha_hat)
-    .bind(super::jobs::now())
+    .bind(super::now())
     .execute(&mut **tx)
     .await?;
     Ok(())

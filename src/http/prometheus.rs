@@ -121,7 +121,7 @@ async fn metrics(State(state): State<AppState>) -> Result<Response, ApiError> {
     let counts = state.store.job_counts_by_status().await?;
     for (status, count) in counts {
         state.metrics.jobs.get_or_create(&StatusLabel { status }).set(count);
-        if status == "queued" {
+        if status == crate::domain::JobStatus::Queued.as_str() {
             state.metrics.queue_depth.set(count);
         }
     }

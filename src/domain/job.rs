@@ -1,0 +1,118 @@
+//! A training job: its lifecycle and its stored record.
+
+use chrono::{DateTime, Utc};
+use serde::{Deserialize, Serialize};
+use utoipa::ToSchema;
+
+use super::{DatasetId, EvalOptions, JobId, JobProgress, PolicyId, RunnerOptions};
+use crate::algo::{Algorithm, ResolvedConfig};
+
+/// A job's lifecycle: `queued` → `running` → `succeeded` | `failed` | `cancelled` (a running job
+/// goes back to `queued` when the server shuts down, and resumes from its checkpoint).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize, ToSchema)]
+#[serde(rename_all = "lowercase")]
+pub enum JobStatus {
+    Queued,
+    Running,
+    Succeeded,
+    Failed,
+    Cancelled,
+}
+
+impl JobStatus {
+    /// Every status, in lifecycle order.
+    pub const ALL: [JobStatus; 5] = [
+        JobStatus::Queued,
+        JobStatus::Running,
+        JobStatus::Succeeded,
+        JobStatus::Failed,
+        JobStatus::Cancelled,
+    ];
+
+    /// The status as stored and shown (`queued`, ...).
+    pub fn as_str(self) -> &'static str {
+        match self {
+            JobStatus::Queued => "queued",
+            JobStatus::Running => "running",
+            JobStatus::Succeeded => "succeeded",
+            JobStatus::Failed => "failed",
+            JobStatus::Cancelled => "cancelled",
+        }
+    }
+
+    /// A final status: the job never runs again.
+    pub fn is_final(self) -> bool {
+        matches!(self, JobStatus::Succeeded | JobStatus::Failed | JobStatus::Cancelled)
+    }
+}
+
+impl std::fmt::Display for JobStatus {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.as_str())
+    }
+}
+
+impl std::str::FromStr for JobStatus {
+    type Err = String;
+
+    fn from_str(s: &str) -> Result<Self, String> {
+        JobStatus::ALL
+            .into_iter()
+            .find(|status| status.as_str() == s)
+            .ok_or_else(|| format!("unknown job status {s:?}"))
+    }
+}
+
+/// A job as stored: what was asked for, where it is, and what came of it.
+#[derive(Clone, Debug, PartialEq)]
+pub struct JobRecord {
+    pub id: JobId,
+    pub algorithm: Algorithm,
+    pub status: JobStatus,
+    pub unlabeled_dataset: DatasetId,
+    pub non_preferred_dataset: Option<DatasetId>,
+    /// Every knob of the algorithm with its value.
+    pub config: ResolvedConfig,
+    pub runner: RunnerOptions,
+    pub eval: Option<EvalOptions>,
+    /// Steps done, every phase counted.
+    pub step: u64,
+    pub total_steps: u64,
+    pub phase: Option<String>,
+    /// The recent speed the worker last reported (kept only while the job runs).
+    pub iterations_per_second: Option<f64>,
+    /// SafeDICE's alpha-hat once computed.
+    pub alpha_hat: Option<f64>,
+    pub policy_id: Option<PolicyId>,
+    pub error: Option<String>,
+    pub cancel_requested: bool,
+    pub created_at: DateTime<Utc>,
+    pub updated_at: DateTime<Utc>,
+    pub started_at: Option<DateTime<Utc>>,
+    pub finished_at: Option<DateTime<Utc>>,
+}
+
+impl JobRecord {
+    /// The job's progress; a speed only while it runs.
+    pub fn progress(&self) -> JobProgress {
+        let speed = self.iterations_per_second.filter(|_| self.status == JobStatus::Running);
+        JobProgress::new(self.step, self.total_steps, self.phase.clone(), speed)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn statuses_round_trip_through_their_stored_names_and_serde() {
+        for status in JobStatus::ALL {
+            assert_eq!(status.as_str().parse::<JobStatus>(), Ok(status));
+            let json = serde_json::to_value(status).unwrap();
+            assert_eq!(json, serde_json::Value::String(status.as_str().into()));
+        }
+        assert!("done".parse::<JobStatus>().is_err());
+        let finals: Vec<_> = JobStatus::ALL.into_iter().filter(|s| s.is_final()).collect();
+        assert_eq!(finals, [JobStatus::Succeeded, JobStatus::Failed, JobStatus::Cancelled]);
+    }
+}

@@ -1,0 +1,149 @@
+//! Queueing a job: the request is resolved and checked against the stored datasets' metadata
+//! (never their data, which may be gigabytes), then inserted in one write transaction that also
+//! checks the datasets still exist.
+
+use crate::algo::memory::{estimate_job_memory, DataShape};
+use crate::algo::{self, Algorithm};
+use crate::domain::{DatasetId, EvalOptions, JobId, JobRecord, RunnerOptions};
+use crate::store::jobs::NewJob;
+use crate::store::{DatasetRecord, Store, StoreError};
+
+/// What a client asks for: the algorithm, its datasets, and the raw `config`, `runner` and
+/// `eval` objects (validated here, with messages that name the key).
+#[derive(Clone, Debug)]
+pub struct JobRequest {
+    pub algorithm: Algorithm,
+    pub unlabeled_dataset: DatasetId,
+    pub non_preferred_dataset: Option<DatasetId>,
+    pub config: Option<serde_json::Value>,
+    pub runner: Option<serde_json::Value>,
+    pub eval: Option<serde_json::Value>,
+}
+
+/// Why a job was not queued.
+#[derive(Debug, thiserror::Error)]
+pub enum SubmitError {
+    /// The configuration, the options, or datasets that do not fit them.
+    #[error("{0}")]
+    InvalidConfig(String),
+    /// The job's estimated peak memory is above the limit; the message says what to change.
+    #[error("{0}")]
+    TooLarge(String),
+    /// A dataset does not exist (`NotFound`), or the store failed.
+    #[error(transparent)]
+    Store(#[from] StoreError),
+}
+
+/// Validates `request` and queues it. `max_job_memory` bounds the job's estimated peak memory:
+/// a job above it would take the worker's machine down when it starts, so it is refused here
+/// with a message saying what to change.
+pub async fn submit(
+    store: &Store,
+    request: JobRequest,
+    max_job_memory: u64,
+) -> Result<JobRecord, SubmitError> {
+    let invalid = SubmitError::InvalidConfig;
+    let algorithm = request.algorithm;
+    let raw_config = request.config.as_ref().unwrap_or(&serde_json::Value::Null);
+    let config = algo::resolve_config(algorithm, raw_config).map_err(|e| invalid(e.message))?;
+    let runner = RunnerOptions::parse(request.runner.as_ref()).map_err(|e| invalid(e.0))?;
+    let eval = EvalOptions::parse(request.eval.as_ref()).map_err(|e| invalid(e.0))?;
+    if algorithm.needs_non_preferred() && request.non_preferred_dataset.is_none() {
+        return Err(invalid(format!(
+            "algorithm {algorithm} needs non_preferred_dataset (a labeled non-preferred dataset id)"
+        )));
+    }
+    let unlabeled = shape(&stored_dataset(store, &request.unlabeled_dataset).await?);
+    let non_preferred = match &request.non_preferred_dataset {
+        Some(id) => Some(shape(&stored_dataset(store, id).await?)),
+        None => None,
+    };
+    check_memory(&config, &unlabeled, non_preferred.as_ref(), max_job_memory)?;
+    algo::check_fit(&config, &unlabeled, non_preferred.as_ref()).map_err(|e| invalid(e.message))?;
+    if let Some(eval) = &eval {
+        let (obs_dim, actions) = (unlabeled.obs_dim as usize, &unlabeled.action_space);
+        crate::envs::check_spaces(&eval.env, obs_dim, actions, "the datasets'")
+            .map_err(|e| invalid(format!("eval.env: {e}")))?;
+    }
+    let job = NewJob {
+        id: JobId::generate(),
+        unlabeled_dataset: request.unlabeled_dataset,
+        non_preferred_dataset: request.non_preferred_dataset,
+        config,
+        runner,
+        eval,
+    };
+    let record = store.insert_job(&job).await?;
+    tracing::info!(
+        job_id = %record.id,
+        %algorithm,
+        total_steps = record.total_steps,
+        "job queued"
+    );
+    Ok(record)
+}
+
+async fn stored_dataset(store: &Store, id: &DatasetId) -> Result<DatasetRecord, StoreError> {
+    store
+        .dataset(id)
+        .await?
+        .ok_or_else(|| StoreError::NotFound { kind: "dataset", id: id.to_string() })
+}
+
+/// What training needs to know of a dataset, from its stored metadata.
+fn shape(record: &DatasetRecord) -> DataShape {
+    DataShape {
+        transitions: record.transitions,
+        obs_dim: record.obs_dim,
+        action_space: record.action_space.clone(),
+        longest_episode: record.stats.episode_length.max as u64,
+    }
+}
+
+fn check_memory(
+    config: &algo::ResolvedConfig,
+    unlabeled: &DataShape,
+    non_preferred: Option<&DataShape>,
+    limit: u64,
+) -> Result<(), SubmitError> {
+    let estimate = estimate_job_memory(config, unlabeled, non_preferred);
+    if estimate.total <= limit {
+        return Ok(());
+    }
+    let ppl =
+        if config.algorithm() == Algorithm::Ppl { ", pairs_per_batch, segment_length" } else { "" };
+    Err(SubmitError::TooLarge(format!(
+        "this job needs an estimated {} of memory ({} for the datasets, {} for the networks, {} \
+         per training step), above the server's limit of {} (--max-job-memory); lower \
+         batch_size, hidden_sizes{ppl}, or train on a smaller dataset",
+        human_bytes(estimate.total),
+        human_bytes(estimate.data),
+        human_bytes(estimate.networks),
+        human_bytes(estimate.step),
+        human_bytes(limit),
+    )))
+}
+
+/// `3.6 GiB (3865470976 bytes)`.
+fn human_bytes(bytes: u64) -> String {
+    const UNITS: [&str; 5] = ["bytes", "KiB", "MiB", "GiB", "TiB"];
+    let exponent = ((63 - bytes.max(1).leading_zeros()) / 10).min(UNITS.len() as u32 - 1);
+    if exponent == 0 {
+        return format!("{bytes} bytes");
+    }
+    let value = bytes as f64 / (1u64 << (10 * exponent)) as f64;
+    format!("{value:.1} {} ({bytes} bytes)", UNITS[exponent as usize])
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn byte_counts_read_in_binary_units_with_the_exact_count() {
+        assert_eq!(human_bytes(0), "0 bytes");
+        assert_eq!(human_bytes(1023), "1023 bytes");
+        assert_eq!(human_bytes(1536), "1.5 KiB (1536 bytes)");
+        assert_eq!(human_bytes(4 << 30), "4.0 GiB (4294967296 bytes)");
+    }
+}
