@@ -7,6 +7,7 @@
 //! - [`domain`]: typed ids, job and evaluation lifecycles, the records the store hands out.
 //! - [`data`]: the dataset model, upload parsers and validation.
 //! - [`envs`]: built-in benchmark environments, demonstrators and evaluation metrics.
+//! - [`demo`]: `safedice demo`, the whole service driven over HTTP in one command.
 //! - [`bench`]: `safedice bench`, the paper's comparison on the built-in environments.
 //! - [`serving`]: trained policies kept loaded for serving actions.
 //! - [`store`]: all SQL and artefact storage.
@@ -20,6 +21,7 @@ pub mod bench;
 pub mod charts;
 pub mod config;
 pub mod data;
+pub mod demo;
 pub mod domain;
 pub mod envs;
 pub mod http;

@@ -35,7 +35,7 @@ enum Command {
     /// Start the service in-process on a temporary directory, generate a small dataset, train
     /// SafeDICE and BC through the HTTP API, and print their metrics side by side with the curl
     /// commands used.
-    Demo(safedice::bench::demo::DemoArgs),
+    Demo(safedice::demo::DemoArgs),
 }
 
 #[derive(clap::Args)]
@@ -164,7 +164,7 @@ fn main() -> anyhow::Result<()> {
             print!("{}", speed::report(&cfg, &results));
             Ok(())
         }
-        Command::Demo(args) => safedice::bench::demo::run_cli(&args),
+        Command::Demo(args) => safedice::demo::run_cli(&args),
         Command::Bench(args) => {
             let _logging = safedice::logging::init(safedice::config::LogFormat::Pretty);
             let command: Vec<String> = std::env::args().collect();

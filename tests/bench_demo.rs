@@ -2,7 +2,7 @@
 //! BC trained as jobs, both policies evaluated through `POST /v1/policies/{id}/evaluate`.
 
 use safedice::algo::Algorithm;
-use safedice::bench::demo::{self, DemoArgs};
+use safedice::demo::{self, DemoArgs};
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn demo_trains_safedice_and_bc_over_http_and_evaluates_both() {

@@ -8,13 +8,14 @@
 //! exact command, date, commit, iterations and wall time), `results.json` (every run) and one
 //! SVG plot per environment (average cost against normalized return, with error bars).
 //!
-//! Files: [`runner`] (data, training, evaluation, the worker threads), [`report`] (aggregation
-//! and the markdown), [`plot`] (the SVG).
+//! Files: [`runner`] (data, training, evaluation, the worker threads), [`summary`]
+//! (aggregation over seeds), [`report`] (the markdown, JSON and console outputs), [`plot`] (the
+//! SVG).
 
-pub mod demo;
 pub mod plot;
 pub mod report;
 pub mod runner;
+pub mod summary;
 
 use std::path::PathBuf;
 
@@ -22,8 +23,9 @@ use serde::Serialize;
 
 use crate::algo::Algorithm;
 
-pub use report::{summarize, write_outputs, Summary};
+pub use report::write_outputs;
 pub use runner::{run, BenchError, BenchResults, RunResult};
+pub use summary::{summarize, Summary};
 
 /// Episode counts of the generated data.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]

@@ -3,7 +3,7 @@
 //! renderer ([`crate::charts`]) in the dashboard's colours, so a plot in `bench/` and the
 //! compare page look alike.
 
-use super::report::{display_name, EnvSummary};
+use super::summary::{display_name, EnvSummary};
 use crate::charts::{algorithm_color, scatter_svg, ScatterChart, ScatterPoint};
 
 /// The SVG document for one environment.

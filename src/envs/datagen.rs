@@ -13,14 +13,9 @@ use serde::Serialize;
 use super::metrics::mean_return_and_cost;
 use super::rollout::{assemble, demonstration_records, EpisodeOutcome, RolloutError};
 use super::{
-    demonstrator, derive_seed, make, reference_stats, Profile, ReferenceStats, UnknownEnv,
+    demonstrator, derive_seed, make, reference_stats, stream, Profile, ReferenceStats, UnknownEnv,
 };
 use crate::data::{write_csv, write_jsonl, write_npz, Dataset, Format};
-
-pub(crate) const STREAM_PREFERRED: u64 = 1;
-pub(crate) const STREAM_NON_PREFERRED: u64 = 2;
-const STREAM_LABELED: u64 = 3;
-const STREAM_SHUFFLE: u64 = 4;
 
 /// What to generate.
 #[derive(Clone, Debug, PartialEq, Serialize)]
@@ -111,14 +106,14 @@ pub fn generate(spec: &DatagenSpec) -> Result<Generated, DatagenError> {
     let run = |demo: &dyn super::Demonstrator, episodes, stream| {
         demonstration_records(&spec.env, demo, episodes, spec.seed, stream, true)
     };
-    let (p_out, p_rec) = run(preferred.as_ref(), spec.preferred, STREAM_PREFERRED)?;
-    let (n_out, n_rec) = run(non_preferred.as_ref(), spec.non_preferred, STREAM_NON_PREFERRED)?;
-    let (l_out, l_rec) = run(non_preferred.as_ref(), spec.labeled, STREAM_LABELED)?;
+    let (p_out, p_rec) = run(preferred.as_ref(), spec.preferred, stream::PREFERRED)?;
+    let (n_out, n_rec) = run(non_preferred.as_ref(), spec.non_preferred, stream::NON_PREFERRED)?;
+    let (l_out, l_rec) = run(non_preferred.as_ref(), spec.labeled, stream::LABELED)?;
 
     // Shuffle whole episodes; remember where the non-preferred ones landed.
     let mut order: Vec<(bool, usize)> =
         (0..p_rec.len()).map(|i| (false, i)).chain((0..n_rec.len()).map(|i| (true, i))).collect();
-    order.shuffle(&mut ChaCha8Rng::seed_from_u64(derive_seed(spec.seed, STREAM_SHUFFLE, 0)));
+    order.shuffle(&mut ChaCha8Rng::seed_from_u64(derive_seed(spec.seed, stream::SHUFFLE, 0)));
     let mixed: Vec<_> =
         order.iter().map(|&(np, i)| if np { n_rec[i].clone() } else { p_rec[i].clone() }).collect();
     let non_preferred_ids =

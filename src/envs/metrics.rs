@@ -21,7 +21,7 @@ use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 
 use super::rollout::{demonstration_records, run_episodes, EpisodeOutcome, RolloutError};
-use super::{demonstrator, derive_seed, make, Profile, UnknownEnv};
+use super::{demonstrator, derive_seed, make, stream, Profile, UnknownEnv};
 use crate::data::Actions;
 
 /// Demonstrator episodes per profile behind the reference statistics.
@@ -30,10 +30,6 @@ pub const REFERENCE_EPISODES: usize = 500;
 pub const REFERENCE_SEED: u64 = 20231210;
 /// Most episodes one evaluation may run.
 pub const MAX_EPISODES: usize = 100_000;
-
-const STREAM_EVAL: u64 = 101;
-const STREAM_EVAL_POLICY: u64 = 102;
-const STREAM_REFERENCE: u64 = 103;
 
 /// Mean return and cost of the two demonstrators on one environment, and the derived threshold.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
@@ -102,7 +98,7 @@ pub fn reference_stats(env: &str) -> Result<ReferenceStats, UnknownEnv> {
     }
     let outcomes = |profile| -> Result<Vec<EpisodeOutcome>, UnknownEnv> {
         let demo = demonstrator(env, profile)?;
-        let stream = STREAM_REFERENCE + profile as u64;
+        let stream = stream::REFERENCE + profile as u64;
         let run = demonstration_records(
             env,
             demo.as_ref(),
@@ -270,8 +266,9 @@ where
         return Err(EvalError::Episodes(episodes));
     }
     let reference = reference_stats(env_name)?;
-    let seeds: Vec<u64> = (0..episodes as u64).map(|i| derive_seed(seed, STREAM_EVAL, i)).collect();
-    let mut rng = ChaCha8Rng::seed_from_u64(derive_seed(seed, STREAM_EVAL_POLICY, 0));
+    let seeds: Vec<u64> =
+        (0..episodes as u64).map(|i| derive_seed(seed, stream::EVAL, i)).collect();
+    let mut rng = ChaCha8Rng::seed_from_u64(derive_seed(seed, stream::EVAL_POLICY, 0));
     let (outcomes, _) = run_episodes(
         env_name,
         &seeds,

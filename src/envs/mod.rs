@@ -217,6 +217,25 @@ pub(crate) fn mix(x: u64) -> u64 {
     z ^ (z >> 31)
 }
 
+/// The random streams of one seed, each kept in one place so that no two uses of randomness
+/// share a stream by accident (see [`derive_seed`]).
+pub(crate) mod stream {
+    /// Preferred demonstrations (generated unlabeled data, demonstration datasets).
+    pub const PREFERRED: u64 = 1;
+    /// Non-preferred demonstrations in the unlabeled data.
+    pub const NON_PREFERRED: u64 = 2;
+    /// The labeled non-preferred dataset.
+    pub const LABELED: u64 = 3;
+    /// The order of the generated unlabeled transitions.
+    pub const SHUFFLE: u64 = 4;
+    /// Initial states of evaluation episodes.
+    pub const EVAL: u64 = 101;
+    /// Sampled actions of the evaluated policy.
+    pub const EVAL_POLICY: u64 = 102;
+    /// The demonstrators' reference episodes.
+    pub const REFERENCE: u64 = 103;
+}
+
 /// The seed of item `index` of the named `stream` of a run seeded with `seed`; streams keep the
 /// preferred, non-preferred, labeled and evaluation episodes of one run independent.
 pub(crate) fn derive_seed(seed: u64, stream: u64, index: u64) -> u64 {

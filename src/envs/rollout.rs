@@ -203,8 +203,8 @@ pub fn demonstration_dataset(
 ) -> Result<(Dataset, Vec<EpisodeOutcome>), RolloutError> {
     let demo = super::demonstrator(env_name, profile)?;
     let stream = match profile {
-        Profile::Preferred => super::datagen::STREAM_PREFERRED,
-        Profile::NonPreferred => super::datagen::STREAM_NON_PREFERRED,
+        Profile::Preferred => super::stream::PREFERRED,
+        Profile::NonPreferred => super::stream::NON_PREFERRED,
     };
     let (outcomes, records) =
         demonstration_records(env_name, demo.as_ref(), episodes, seed, stream, true)?;

@@ -161,7 +161,7 @@ impl Store {
         new: NewDataset,
         canonical: Vec<u8>,
     ) -> Result<DatasetRecord, StoreError> {
-        let id = uuid::Uuid::new_v4().to_string();
+        let id = crate::domain::DatasetId::generate().into_string();
         let path = self.canonical_path(&id);
         let dir = self.datasets_dir();
         let canonical_bytes = canonical.len() as u64;

@@ -10,8 +10,8 @@ use std::time::Duration;
 use anyhow::{bail, Context};
 use serde_json::{json, Value};
 
-use super::report::display_name;
 use crate::algo::Algorithm;
+use crate::bench::summary::display_name;
 use crate::config::ServeConfig;
 use crate::envs::{self, DatagenSpec, Metrics};
 use crate::server::Server;

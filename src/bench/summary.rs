@@ -1,0 +1,187 @@
+//! Aggregation over seeds: mean ± standard error of every metric per algorithm and
+//! environment, SafeDICE against BC, and the estimated time of the full mode.
+
+use serde::Serialize;
+
+use super::runner::{BenchResults, RunResult};
+use crate::algo::Algorithm;
+
+/// Mean and standard error of the mean over seeds (0 with a single seed).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct Stat {
+    pub mean: f64,
+    pub se: f64,
+}
+
+impl Stat {
+    pub fn of(values: &[f64]) -> Stat {
+        let n = values.len();
+        if n == 0 {
+            return Stat { mean: f64::NAN, se: f64::NAN };
+        }
+        let mean = values.iter().sum::<f64>() / n as f64;
+        if n < 2 {
+            return Stat { mean, se: 0.0 };
+        }
+        let var = values.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / (n - 1) as f64;
+        Stat { mean, se: (var / n as f64).sqrt() }
+    }
+
+    /// `mean ± se` with `decimals` places.
+    pub fn show(self, decimals: usize) -> String {
+        format!("{:.*} ± {:.*}", decimals, self.mean, decimals, self.se)
+    }
+}
+
+/// One algorithm on one environment, over its seeds.
+#[derive(Clone, Debug, Serialize)]
+pub struct AlgorithmSummary {
+    pub algorithm: Algorithm,
+    pub seeds: usize,
+    pub normalized_return: Stat,
+    pub average_cost: Stat,
+    pub cost_violation_ratio: Stat,
+    pub cvar_50: Stat,
+    pub cvar_20: Stat,
+    pub cvar_10: Stat,
+    pub cvar_5: Stat,
+    pub normalized_cost: Stat,
+    /// SafeDICE only.
+    pub alpha_hat: Option<Stat>,
+    /// Training steps per second (all phases), mean over seeds.
+    pub steps_per_second: f64,
+    pub train_seconds: f64,
+    pub eval_seconds: f64,
+}
+
+/// SafeDICE against BC on one environment (the paper: cost 0.5-0.9x BC's at similar return).
+#[derive(Clone, Debug, Serialize)]
+pub struct Comparison {
+    /// SafeDICE's mean average cost / BC's.
+    pub cost_ratio: f64,
+    /// SafeDICE's mean normalized return minus BC's (points).
+    pub return_difference: f64,
+    /// Cost ratio at most 0.9 with the normalized return no more than 10 points below BC's.
+    pub as_expected: bool,
+}
+
+#[derive(Clone, Debug, Serialize)]
+pub struct EnvSummary {
+    pub env: String,
+    pub rows: Vec<AlgorithmSummary>,
+    pub safedice_vs_bc: Option<Comparison>,
+}
+
+#[derive(Clone, Debug, Serialize)]
+pub struct Summary {
+    pub envs: Vec<EnvSummary>,
+    /// Estimated wall time of the full mode (1M iterations, 5 seeds, 500 evaluation episodes,
+    /// the configured threads) from the measured speeds, in hours.
+    pub full_mode_hours: f64,
+}
+
+/// Mean ± standard error of every metric per (environment, algorithm).
+pub fn summarize(results: &BenchResults) -> Summary {
+    let envs = results
+        .config
+        .envs
+        .iter()
+        .map(|env| {
+            let rows: Vec<AlgorithmSummary> = results
+                .config
+                .algorithms
+                .iter()
+                .map(|&algorithm| {
+                    let runs: Vec<&RunResult> = results
+                        .runs
+                        .iter()
+                        .filter(|r| &r.env == env && r.algorithm == algorithm)
+                        .collect();
+                    summarize_runs(algorithm, &runs)
+                })
+                .collect();
+            let safedice_vs_bc = compare(&rows);
+            EnvSummary { env: env.clone(), rows, safedice_vs_bc }
+        })
+        .collect();
+    Summary { envs, full_mode_hours: full_mode_hours(results) }
+}
+
+fn summarize_runs(algorithm: Algorithm, runs: &[&RunResult]) -> AlgorithmSummary {
+    let stat = |f: fn(&RunResult) -> f64| Stat::of(&runs.iter().map(|r| f(r)).collect::<Vec<_>>());
+    let mean = |f: fn(&RunResult) -> f64| stat(f).mean;
+    let alphas: Vec<f64> =
+        runs.iter().filter_map(|r| r.alpha.as_ref().map(|a| a.alpha_hat)).collect();
+    AlgorithmSummary {
+        algorithm,
+        seeds: runs.len(),
+        normalized_return: stat(|r| r.metrics.normalized_return),
+        average_cost: stat(|r| r.metrics.average_cost),
+        cost_violation_ratio: stat(|r| r.metrics.cost_violation_ratio),
+        cvar_50: stat(|r| r.metrics.cvar_cost.k50),
+        cvar_20: stat(|r| r.metrics.cvar_cost.k20),
+        cvar_10: stat(|r| r.metrics.cvar_cost.k10),
+        cvar_5: stat(|r| r.metrics.cvar_cost.k5),
+        normalized_cost: stat(|r| r.metrics.normalized_cost),
+        alpha_hat: (!alphas.is_empty()).then(|| Stat::of(&alphas)),
+        steps_per_second: mean(RunResult::steps_per_second),
+        train_seconds: mean(|r| r.train_seconds),
+        eval_seconds: mean(|r| r.eval_seconds),
+    }
+}
+
+fn compare(rows: &[AlgorithmSummary]) -> Option<Comparison> {
+    let find = |a: Algorithm| rows.iter().find(|r| r.algorithm == a && r.seeds > 0);
+    let (safedice, bc) = (find(Algorithm::Safedice)?, find(Algorithm::Bc)?);
+    let cost_ratio = safedice.average_cost.mean / bc.average_cost.mean;
+    let return_difference = safedice.normalized_return.mean - bc.normalized_return.mean;
+    Some(Comparison {
+        cost_ratio,
+        return_difference,
+        as_expected: cost_ratio <= 0.9 && return_difference >= -10.0,
+    })
+}
+
+/// Full mode: every algorithm on every environment for 1M iterations plus its pretraining
+/// phase (same 10% share as here, so the measured steps/s carry over), 5 seeds, 500 episodes.
+fn full_mode_hours(results: &BenchResults) -> f64 {
+    let config = &results.config;
+    let full = super::BenchConfig::full();
+    let seconds: f64 = results
+        .runs
+        .iter()
+        .filter(|r| r.seed == 0)
+        .map(|r| {
+            let ratio = full.iterations as f64 / config.iterations as f64;
+            let episodes = full.eval_episodes as f64 / config.eval_episodes as f64;
+            (r.train_seconds * ratio + r.eval_seconds * episodes) * full.seeds as f64
+        })
+        .sum();
+    seconds / config.threads as f64 / 3600.0
+}
+
+/// The algorithm's name as the paper writes it.
+pub fn display_name(algorithm: Algorithm) -> &'static str {
+    match algorithm {
+        Algorithm::Safedice => "SafeDICE",
+        Algorithm::Bc => "BC",
+        Algorithm::Dwbc => "DWBC",
+        Algorithm::Ppl => "PPL",
+        Algorithm::Dexperts => "DExperts",
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn stat_is_mean_and_standard_error() {
+        let s = Stat::of(&[1.0, 2.0, 3.0, 4.0]);
+        assert_eq!(s.mean, 2.5);
+        // Sample variance 5/3, SE = sqrt(5/3 / 4).
+        assert!((s.se - (5.0f64 / 12.0).sqrt()).abs() < 1e-12);
+        assert_eq!(Stat::of(&[7.0]), Stat { mean: 7.0, se: 0.0 });
+        assert!(Stat::of(&[]).mean.is_nan());
+    }
+}
