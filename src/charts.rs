@@ -66,8 +66,8 @@ impl ScatterPoint {
     }
 }
 
-/// The accent colour of each algorithm, the same everywhere (dashboard, benchmark plots): the
-/// `--algo-*` variables of `web/style.css` and `ALGORITHMS` of `web/app.js`.
+/// The accent colour of each algorithm, the same everywhere: benchmark plots, and the dashboard,
+/// which reads it from `GET /v1/algorithms`.
 pub fn algorithm_color(algorithm: crate::algo::Algorithm) -> &'static str {
     use crate::algo::Algorithm;
     match algorithm {

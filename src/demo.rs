@@ -11,7 +11,6 @@ use anyhow::{bail, Context};
 use serde_json::{json, Value};
 
 use crate::algo::Algorithm;
-use crate::bench::summary::display_name;
 use crate::config::ServeConfig;
 use crate::envs::{self, DatagenSpec, Metrics};
 use crate::server::Server;
@@ -268,7 +267,7 @@ fn print_table(rows: &[DemoRow]) {
     for DemoRow { algorithm, alpha_hat: alpha, metrics: m, .. } in rows {
         println!(
             "{:<10} {:>14.1} {:>13.2} {:>15.3} {:>13.2} {:>10}",
-            display_name(*algorithm),
+            algorithm.display_name(),
             m.normalized_return,
             m.average_cost,
             m.cost_violation_ratio,

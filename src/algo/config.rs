@@ -44,6 +44,10 @@ pub enum Preset {
     AuthorsCode,
 }
 
+impl Preset {
+    pub const ALL: [Preset; 3] = [Preset::Service, Preset::Paper, Preset::AuthorsCode];
+}
+
 /// How the nu step treats a transition that ends its episode in a terminal state.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]

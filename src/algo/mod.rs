@@ -68,6 +68,17 @@ impl Algorithm {
             Algorithm::Dexperts => "dexperts",
         }
     }
+
+    /// The name as the paper writes it.
+    pub fn display_name(self) -> &'static str {
+        match self {
+            Algorithm::Safedice => "SafeDICE",
+            Algorithm::Bc => "BC",
+            Algorithm::Dwbc => "DWBC",
+            Algorithm::Ppl => "PPL",
+            Algorithm::Dexperts => "DExperts",
+        }
+    }
 }
 
 impl std::fmt::Display for Algorithm {

@@ -3,7 +3,7 @@
 //! renderer ([`crate::charts`]) in the dashboard's colours, so a plot in `bench/` and the
 //! compare page look alike.
 
-use super::summary::{display_name, EnvSummary};
+use super::summary::EnvSummary;
 use crate::charts::{algorithm_color, scatter_svg, ScatterChart, ScatterPoint};
 
 /// The SVG document for one environment.
@@ -13,11 +13,11 @@ pub fn cost_vs_return(env: &EnvSummary) -> String {
         .iter()
         .filter(|row| row.seeds > 0)
         .map(|row| ScatterPoint {
-            label: display_name(row.algorithm).into(),
+            label: row.algorithm.display_name().into(),
             x: row.average_cost.mean,
             y: row.normalized_return.mean,
             color: Some(algorithm_color(row.algorithm).into()),
-            group: Some(display_name(row.algorithm).into()),
+            group: Some(row.algorithm.display_name().into()),
             x_error: Some(row.average_cost.se),
             y_error: Some(row.normalized_return.se),
         })

@@ -6,7 +6,7 @@ use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
 use super::runner::{BenchResults, RunResult};
-use super::summary::{display_name, EnvSummary, Summary};
+use super::summary::{EnvSummary, Summary};
 use super::{plot, BASELINE_KNOBS};
 
 /// The SafeDICE-vs-BC table printed at the end of `safedice bench`.
@@ -153,7 +153,7 @@ fn write_env(md: &mut String, env: &EnvSummary, data: &super::runner::EnvData) {
         let _ = writeln!(
             md,
             "| {} | {} | {} | {} | {} | {} | {} | {} | {} | {} |",
-            display_name(row.algorithm),
+            row.algorithm.display_name(),
             row.normalized_return.show(1),
             row.average_cost.show(2),
             row.cost_violation_ratio.show(3),
@@ -239,7 +239,7 @@ fn write_speeds(md: &mut String, summary: &Summary) {
                 md,
                 "| {} | {} | {:.1} | {:.1} | {:.1} |",
                 env.env,
-                display_name(r.algorithm),
+                r.algorithm.display_name(),
                 r.steps_per_second,
                 r.train_seconds,
                 r.eval_seconds

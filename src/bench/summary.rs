@@ -160,17 +160,6 @@ fn full_mode_hours(results: &BenchResults) -> f64 {
     seconds / config.threads as f64 / 3600.0
 }
 
-/// The algorithm's name as the paper writes it.
-pub fn display_name(algorithm: Algorithm) -> &'static str {
-    match algorithm {
-        Algorithm::Safedice => "SafeDICE",
-        Algorithm::Bc => "BC",
-        Algorithm::Dwbc => "DWBC",
-        Algorithm::Ppl => "PPL",
-        Algorithm::Dexperts => "DExperts",
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -39,25 +39,18 @@ pub struct CreateJob {
     /// `invalid_config`). The job resource shows the resolved configuration.
     ///
     /// Presets: `service` (default), `paper` (Tables 2/4 of the paper), `authors-code` (what
-    /// the authors' published code runs).
+    /// the authors' published code runs). `GET /v1/algorithms` lists every preset's value of
+    /// every knob.
     ///
-    /// Keys of every algorithm, `service` defaults: `seed` 0; `iterations` 100000 (paper:
-    /// 1000000, cut tenfold so a default job takes minutes, not hours, on a CPU); `batch_size`
-    /// 512; `hidden_sizes` [256, 256]; `lr_actor` 3e-4 (SafeDICE: 1e-4; paper 3e-4, authors'
-    /// code 1e-5); `normalize_observations` true (paper: false; the stats travel with the
-    /// policy).
-    ///
-    /// `safedice`: `discriminator_iterations` iterations/10 unless set (the authors' ratio:
-    /// 100k discriminator steps for 1M iterations); `lr_discriminator` 1e-4 and `lr_nu` 1e-4
-    /// (paper 3e-4, which diverged on small continuous tasks); `discriminator_gp` 10 (paper
-    /// 0.1); `nu_gp` 1e-6 (paper 0); `gamma` 0.99; `terminal_handling` `reset` (paper `none`;
-    /// also `mask`, `absorbing`); `standardize_reward` true (paper false); `alpha_hat_quantile`
-    /// 0 (the paper's minimum); `ess_warning_fraction` 0.01.
-    ///
-    /// `dwbc`: `eta` 0.2, `lr_discriminator` 3e-4, `discriminator_gp` 0.1. `ppl`:
-    /// `reward_model_iterations` iterations/10, `lr_reward_model` 3e-4, `pairs_per_batch` 16,
-    /// `segment_length` 32, `ppl_weight` `sigmoid` (paper `raw`). `dexperts`: `alpha` 0.2.
-    /// `bc`: no further keys.
+    /// Keys of every algorithm: `seed`, `iterations`, `batch_size`, `hidden_sizes`, `lr_actor`,
+    /// `normalize_observations` (the statistics travel with the policy). `safedice`:
+    /// `discriminator_iterations` (a tenth of `iterations` unless set), `lr_discriminator`,
+    /// `lr_nu`, `discriminator_gp`, `nu_gp`, `gamma`, `terminal_handling` (`none`, `mask`,
+    /// `reset`, `absorbing`), `standardize_reward`, `alpha_hat_quantile` (0: the paper's
+    /// minimum), `ess_warning_fraction`. `dwbc`: `eta`, `lr_discriminator`, `discriminator_gp`.
+    /// `ppl`: `reward_model_iterations`, `lr_reward_model`, `pairs_per_batch`,
+    /// `segment_length`, `ppl_weight` (`raw`, `sigmoid`). `dexperts`: `alpha`. `bc`: no further
+    /// keys.
     #[schema(value_type = Object, example = json!({"preset": "service", "iterations": 20000, "seed": 0}))]
     pub config: Option<serde_json::Value>,
     /// Job-runner options (how often metrics and checkpoints are stored), beside the algorithm's

@@ -6,6 +6,7 @@
 //! (not on uploads and streams) → handler. Connection-level limits (count, header deadline)
 //! are in [`connections`].
 
+pub mod algorithms;
 pub mod auth;
 pub mod connections;
 pub mod datasets;
@@ -100,6 +101,7 @@ fn routes() -> OpenApiRouter<AppState> {
         .merge(openapi::router())
         .merge(ui::router())
         .merge(datasets::router())
+        .merge(algorithms::router())
         .merge(envs::router())
         .merge(jobs::router())
         .merge(policies::router())

@@ -34,6 +34,7 @@ const SECURITY_SCHEME: &str = "bearer";
         license(name = "MIT"),
     ),
     tags(
+        (name = "algorithms", description = "The algorithms trained, with every preset's values"),
         (name = "datasets", description = "Demonstration datasets (JSONL, CSV, NPZ, HDF5 uploads)"),
         (name = "environments", description = "Built-in benchmark environments"),
         (name = "evaluations", description = "Policies evaluated on the built-in environments \

@@ -1,0 +1,101 @@
+//! `/v1/algorithms`: the algorithms the service trains, with every preset's resolved
+//! configuration. It is the one place clients (the dashboard among them) learn names, colours and
+//! defaults from, so none of them keeps its own copy.
+
+use utoipa::ToSchema;
+use utoipa_axum::router::OpenApiRouter;
+use utoipa_axum::routes;
+
+use super::extract::Json;
+use super::AppState;
+use crate::algo::{self, Algorithm, Preset};
+
+/// An algorithm and its presets.
+#[derive(Debug, serde::Serialize, ToSchema)]
+pub struct AlgorithmInfo {
+    pub name: Algorithm,
+    /// The name as the paper writes it.
+    #[schema(example = "SafeDICE")]
+    pub label: &'static str,
+    /// Its accent colour in charts and the dashboard (CSS hex).
+    #[schema(example = "#2563eb")]
+    pub color: &'static str,
+    /// Whether a job needs a labeled non-preferred dataset.
+    pub needs_non_preferred: bool,
+    /// Each preset (`service`, `paper`, `authors-code`) with every knob's value: what a job's
+    /// `config` resolves to when it names only the preset.
+    pub presets: Vec<PresetConfig>,
+}
+
+/// One preset's resolved configuration.
+#[derive(Debug, serde::Serialize, ToSchema)]
+pub struct PresetConfig {
+    #[schema(example = "service")]
+    pub name: String,
+    #[schema(value_type = Object)]
+    pub config: serde_json::Value,
+}
+
+/// Every algorithm, in the order the service lists them.
+#[derive(Debug, serde::Serialize, ToSchema)]
+pub struct AlgorithmList {
+    pub items: Vec<AlgorithmInfo>,
+}
+
+pub fn router() -> OpenApiRouter<AppState> {
+    OpenApiRouter::new().routes(routes!(list_algorithms))
+}
+
+/// The algorithms with their labels, colours and every preset's resolved configuration.
+#[utoipa::path(get, path = "/v1/algorithms", tag = "algorithms",
+    responses((status = 200, description = "Every algorithm", body = AlgorithmList)))]
+async fn list_algorithms() -> Json<AlgorithmList> {
+    Json(algorithm_list())
+}
+
+/// The table behind `/v1/algorithms` (and the dashboard's copy of it).
+pub fn algorithm_list() -> AlgorithmList {
+    let items = Algorithm::ALL
+        .into_iter()
+        .map(|algorithm| AlgorithmInfo {
+            name: algorithm,
+            label: algorithm.display_name(),
+            color: crate::charts::algorithm_color(algorithm),
+            needs_non_preferred: algorithm.needs_non_preferred(),
+            presets: Preset::ALL
+                .into_iter()
+                .map(|preset| preset_config(algorithm, preset))
+                .collect(),
+        })
+        .collect();
+    AlgorithmList { items }
+}
+
+fn preset_config(algorithm: Algorithm, preset: Preset) -> PresetConfig {
+    let name = serde_json::to_value(preset).expect("a preset serialises to its name");
+    let config = algo::resolve_config(algorithm, &serde_json::json!({ "preset": name }))
+        .expect("every preset resolves");
+    PresetConfig {
+        name: name.as_str().unwrap_or_default().to_owned(),
+        config: serde_json::to_value(config).expect("a configuration serialises"),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn every_algorithm_lists_its_three_presets_with_the_preset_knob_values() {
+        let list = algorithm_list();
+        assert_eq!(list.items.len(), Algorithm::ALL.len());
+        let safedice = &list.items[0];
+        assert_eq!((safedice.name, safedice.label), (Algorithm::Safedice, "SafeDICE"));
+        let names: Vec<_> = safedice.presets.iter().map(|p| p.name.as_str()).collect();
+        assert_eq!(names, ["service", "paper", "authors-code"]);
+        let service = &safedice.presets[0].config;
+        assert_eq!(service["iterations"], 100_000);
+        assert_eq!(service["batch_size"], 512);
+        assert_eq!(safedice.presets[1].config["iterations"], 1_000_000);
+    }
+}
