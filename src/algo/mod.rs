@@ -9,15 +9,15 @@
 //! Files: one per algorithm ([`safedice`], [`bc`], [`dwbc`], [`ppl`], [`dexperts`]), the shared
 //! networks ([`mlp`]), policy heads and artefacts ([`policy`]), the optimiser ([`optim`]), the
 //! training tensors built from a [`Dataset`] ([`columns`]), checkpoints ([`checkpoint`]) and the
-//! configuration with its presets ([`config`]), and a run's memory estimate ([`memory`]).
+//! hyperparameters with their presets ([`hyperparams`]), and a run's memory estimate ([`memory`]).
 
 pub mod bc;
 pub mod checkpoint;
 pub mod columns;
-pub mod config;
 pub mod dexperts;
 pub mod dwbc;
 pub mod fused_mlp;
+pub mod hyperparams;
 pub mod losses;
 pub mod memory;
 pub mod mlp;
@@ -27,7 +27,6 @@ pub mod ppl;
 pub mod run;
 pub mod safedice;
 pub mod safedice_fused;
-pub mod speed;
 
 use std::sync::Arc;
 
@@ -35,7 +34,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::data::{ActionSpace, Dataset};
 
-pub use config::{resolve_config, ConfigError, Preset, ResolvedConfig, TerminalHandling};
+pub use hyperparams::{resolve_config, HyperparamError, Preset, ResolvedConfig, TerminalHandling};
 pub use policy::{Policy, PolicyArtifact, PolicySpec};
 
 /// The algorithms the service trains.
@@ -127,10 +126,10 @@ pub trait Trainer: Send {
 }
 
 /// Check the datasets fit the config (non-preferred present when needed, spaces agree, ...).
-pub fn check_data(config: &ResolvedConfig, data: &TrainingData) -> Result<(), ConfigError> {
+pub fn check_data(config: &ResolvedConfig, data: &TrainingData) -> Result<(), HyperparamError> {
     let algorithm = config.algorithm();
     let unlabeled = &data.unlabeled;
-    let bad = |key: &str, message: String| ConfigError { key: key.to_string(), message };
+    let bad = |key: &str, message: String| HyperparamError { key: key.to_string(), message };
     unlabeled.check().map_err(|e| bad("unlabeled", format!("unlabeled dataset: {e}")))?;
     let non_preferred = match (&data.non_preferred, algorithm.needs_non_preferred()) {
         (None, true) => {

@@ -16,7 +16,7 @@ use rand::seq::SliceRandom;
 use rand::Rng;
 
 use super::columns::{uniform_column, ActionColumn, Columns};
-use super::config::{AlgorithmConfig, SafediceConfig};
+use super::hyperparams::{AlgorithmConfig, SafediceConfig};
 use super::losses::{
     ess_fraction, interpolate, neg_log_one_minus_sigmoid, neg_log_sigmoid, self_normalized_weights,
     unit_gradient_penalty, weighted_nll, zero_gradient_penalty,

@@ -9,12 +9,14 @@
 //! SVG plot per environment (average cost against normalized return, with error bars).
 //!
 //! Files: [`runner`] (data, training, evaluation, the worker threads), [`report`] (aggregation
-//! and the markdown), [`plot`] (the SVG).
+//! and the markdown), [`plot`] (the SVG). Beside it: [`speed`] (`safedice speed`, the training
+//! speed of the SafeDICE trainer) and [`demo`] (`safedice demo`).
 
 pub mod demo;
 pub mod plot;
 pub mod report;
 pub mod runner;
+pub mod speed;
 
 use std::path::PathBuf;
 
