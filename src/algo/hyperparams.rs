@@ -1,4 +1,5 @@
-//! Run configuration: presets (`service`, `paper`, `authors-code`), user overrides, validation.
+//! A training run's hyperparameters: presets (`service`, `paper`, `authors-code`), user
+//! overrides, validation. (The service's own settings are `crate::config`.)
 //!
 //! A user's `config` object is a flat JSON map: `"preset"` plus any knob of the chosen algorithm.
 //! [`resolve_config`] starts from the preset, overlays the user's keys, rejects unknown keys and

@@ -6,10 +6,13 @@
 //! result is a [`PolicyArtifact`] (safetensors weights + a JSON [`PolicySpec`]) that
 //! [`Policy::load`] turns back into a policy without the training datasets.
 //!
-//! Files: one per algorithm ([`safedice`], [`bc`], [`dwbc`], [`ppl`], [`dexperts`]), the shared
-//! networks ([`mlp`]), policy heads and artefacts ([`policy`]), the optimiser ([`optim`]), the
-//! training tensors built from a [`Dataset`] ([`columns`]), checkpoints ([`checkpoint`]) and the
-//! hyperparameters with their presets ([`hyperparams`]), and a run's memory estimate ([`memory`]).
+//! Files: one per algorithm ([`safedice`], [`bc`], [`dwbc`], [`ppl`], [`dexperts`]), SafeDICE's
+//! fused CPU engine beside its reference ([`safedice_fused`], on [`fused_mlp`]), the shared
+//! networks ([`mlp`]) and loss pieces ([`losses`]), policy heads and artefacts ([`policy`]), the
+//! optimiser ([`optim`]), the training tensors built from a [`Dataset`] ([`columns`]), the state
+//! every trainer shares ([`run`]), checkpoints ([`checkpoint`]), the hyperparameters with their
+//! presets ([`hyperparams`]), and a run's memory estimate ([`memory`]). docs/algorithm.md
+//! describes SafeDICE as implemented.
 
 pub mod bc;
 pub mod checkpoint;

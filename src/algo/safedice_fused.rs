@@ -22,12 +22,12 @@ use super::safedice::{
 };
 use super::TrainError;
 
-/// `log(1 + eˣ)` without overflow.
-pub fn softplus(x: f32) -> f32 {
+/// `log(1 + eˣ)` without overflow (one value; the tensor form is `losses::softplus`).
+fn softplus_f32(x: f32) -> f32 {
     x.max(0.0) + (-x.abs()).exp().ln_1p()
 }
 
-pub fn sigmoid(x: f32) -> f32 {
+fn sigmoid_f32(x: f32) -> f32 {
     1.0 / (1.0 + (-x).exp())
 }
 
@@ -55,7 +55,7 @@ pub enum HostActions<'a> {
 
 /// Tanh-Gaussian `log π(a|s)` (see `policy::tanh_gaussian_log_prob`) from the raw head
 /// `[mean | log_std]`, and its gradient with respect to the raw head (zero outside the clips).
-pub fn tanh_gaussian_log_prob(
+fn tanh_gaussian_log_prob_and_grad(
     out: &[f32],
     pretanh: &[f32],
     log_jacobian: f32,
@@ -79,7 +79,7 @@ pub fn tanh_gaussian_log_prob(
 }
 
 /// `log softmax(logits)[a]` and its gradient with respect to the logits.
-pub fn categorical_log_prob(logits: &[f32], a: usize, grad: &mut [f32]) -> f32 {
+fn categorical_log_prob_and_grad(logits: &[f32], a: usize, grad: &mut [f32]) -> f32 {
     let max = logits.iter().copied().fold(f32::NEG_INFINITY, f32::max);
     let lse = max + logits.iter().map(|&l| (l - max).exp()).sum::<f32>().ln();
     for (g, &l) in grad.iter_mut().zip(logits) {
@@ -216,11 +216,11 @@ impl FusedSafedice {
                 let inv_b = 1.0 / b as f32;
                 for i in 0..b {
                     let (c_n, c_u) = (out[i], out[b + i]);
-                    outcome.classification += (softplus(-c_n) + softplus(c_u)) * inv_b;
-                    outcome.prob_n += sigmoid(c_n) * inv_b;
-                    outcome.prob_u += sigmoid(c_u) * inv_b;
-                    dout[i] = -sigmoid(-c_n) * inv_b;
-                    dout[b + i] = sigmoid(c_u) * inv_b;
+                    outcome.classification += (softplus_f32(-c_n) + softplus_f32(c_u)) * inv_b;
+                    outcome.prob_n += sigmoid_f32(c_n) * inv_b;
+                    outcome.prob_u += sigmoid_f32(c_u) * inv_b;
+                    dout[i] = -sigmoid_f32(-c_n) * inv_b;
+                    dout[b + i] = sigmoid_f32(c_u) * inv_b;
                 }
             },
             |g, dp| {
@@ -341,10 +341,10 @@ impl FusedSafedice {
                     let logp = match &batch.actions {
                         HostActions::Continuous { pretanh, log_jacobian } => {
                             let a = &pretanh[i * k / 2..(i + 1) * k / 2];
-                            tanh_gaussian_log_prob(o, a, log_jacobian[i], head_grad)
+                            tanh_gaussian_log_prob_and_grad(o, a, log_jacobian[i], head_grad)
                         }
                         HostActions::Discrete { index } => {
-                            categorical_log_prob(o, index[i] as usize, head_grad)
+                            categorical_log_prob_and_grad(o, index[i] as usize, head_grad)
                         }
                     };
                     let scale = weights[i] / b as f32;
