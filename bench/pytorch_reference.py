@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """PyTorch CPU reference for `safedice speed`: the same two workloads, the same shapes.
 
-Workloads (see bench/README.md for the exact definition shared with src/algo/speed.rs):
+Workloads (docs/performance.md defines them; src/bench/speed.rs times them in the trainer):
   main loop      one SafeDICE iteration with the discriminator frozen (rewards precomputed):
                  nu on cat(s, s', s0) (Eq. 36, log-mean-exp of A plus (1-gamma) mean nu(s0)),
                  zero-centred nu gradient penalty on 2B interpolated states, Adam step on nu;
@@ -23,7 +23,7 @@ import torch.nn.functional as F
 GAMMA = 0.99
 DISC_GP = 10.0
 NU_GP = 1e-6
-NORM_EPS = 1e-12  # inside sqrt of the gradient norm, as in src/algo/speed.rs
+NORM_EPS = 1e-12  # inside sqrt of the gradient norm, as losses::GRAD_NORM_EPS in src/algo
 ATANH_EPS = 1e-6
 
 

@@ -3,7 +3,7 @@
 use std::path::PathBuf;
 
 use clap::{Args, Parser, Subcommand, ValueEnum};
-use safedice::algo::speed::{self, Engine, SpeedConfig};
+use safedice::bench::speed::{self, Engine, SpeedConfig};
 use safedice::config::ServeConfig;
 use safedice::server::{self, Server};
 
@@ -25,9 +25,10 @@ enum Command {
     /// fresh non-preferred episodes, and manifest.json (counts, seed, data profile, reference
     /// statistics), in an upload format.
     Datagen(DatagenArgs),
-    /// Training-speed benchmark on synthetic data: SafeDICE main-loop iterations/s (nu step on
-    /// s, s', s0 + policy step, discriminator frozen), discriminator steps/s (with its gradient
-    /// penalty), and the achieved GFLOP/s of each.
+    /// Training-speed benchmark of the SafeDICE trainer on synthetic data: main-loop
+    /// iterations/s (nu step on s, s', s0 + policy step, discriminator frozen), discriminator
+    /// steps/s (with its gradient penalty), the achieved GFLOP/s of each and their fraction of
+    /// the GEMM peak measured at start-up.
     Speed(SpeedArgs),
     /// Train every algorithm on every built-in environment, evaluate with the paper's metrics
     /// and write results.md (mean ± standard error over seeds), results.json and SVG plots.
@@ -128,9 +129,9 @@ struct SpeedArgs {
     threads: usize,
     #[arg(long, default_value_t = 0)]
     seed: u64,
-    /// `trainer`: the real SafeDICE trainer (fused CPU engine); `trainer-candle`: the same
-    /// trainer on candle autograd; `fused` / `candle`: the two workloads alone on either engine.
-    #[arg(long, value_enum, default_value_t = Engine::Trainer)]
+    /// Which path of the SafeDICE trainer runs the hot loops: `fused` (the fused CPU engine,
+    /// what training uses on a CPU) or `candle` (candle autograd, the reference path).
+    #[arg(long, value_enum, default_value_t = Engine::Fused)]
     engine: Engine,
 }
 

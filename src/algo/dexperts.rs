@@ -4,7 +4,7 @@
 //! `−E_U[log π] + α E_N[log π]` (Eq. 45).
 
 use super::bc::bc_loss;
-use super::config::{AlgorithmConfig, DexpertsConfig};
+use super::hyperparams::{AlgorithmConfig, DexpertsConfig};
 use super::optim::Adam;
 use super::policy::{Decoder, PolicyArtifact, PolicyNet};
 use super::run::RunData;

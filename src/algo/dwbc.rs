@@ -6,7 +6,7 @@
 use candle_core::Tensor;
 
 use super::columns::uniform_column;
-use super::config::{AlgorithmConfig, DwbcConfig};
+use super::hyperparams::{AlgorithmConfig, DwbcConfig};
 use super::losses::{
     interpolate, neg_log_one_minus_sigmoid, neg_log_sigmoid, unit_gradient_penalty, weighted_nll,
 };

@@ -1,10 +1,11 @@
 //! A whole-MLP fused CPU engine for the training hot loops: forward, backward, the input-gradient
-//! of a scalar-output MLP and the backward of a penalty on it (double backprop), and an in-place
-//! Adam — all on preallocated buffers with one GEMM per layer and pass, no allocation per step.
+//! of a scalar-output MLP and the backward of a penalty on it (double backprop) — all on
+//! preallocated buffers with one GEMM per layer and pass, no allocation per step. The optimiser
+//! stays [`super::optim::Adam`]: the engine only computes gradients.
 //!
 //! Why: on 2 cores with batch 512 and hidden [256, 256], ~70% of a candle autograd step is not
 //! GEMM (slow strided bias-gradient sums, ReLU masks via `ge` + `to_dtype`, zero-filled gradient
-//! accumulators, optimiser temporaries; see the team's candle notes). Here everything that
+//! accumulators, optimiser temporaries; docs/performance.md). Here everything that
 //! is not a GEMM is a single pass over a buffer, and the GEMMs go straight to the `gemm` crate
 //! (the same kernels candle uses, AVX-512 enabled in Cargo.toml).
 //!
@@ -23,10 +24,9 @@
 //! the penalty rows of the activation buffers makes every weight gradient one GEMM over all rows:
 //! `dW_l = A_{l-1}^T D_l`.
 
-use candle_core::{Device, Tensor};
+use std::time::Instant;
+
 use gemm::Parallelism;
-use rand::Rng;
-use rand_distr::{Distribution, Normal};
 
 /// Which way a matrix operand is read: as stored (`N`) or transposed (`T`).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -166,28 +166,6 @@ pub struct FusedMlp {
 }
 
 impl FusedMlp {
-    /// He-normal weights (std `sqrt(2 / fan_in)`, truncated at 2 std and rescaled as the
-    /// authors' initialiser), zero biases, from the caller's seeded RNG.
-    pub fn new_he(shape: MlpShape, rng: &mut impl Rng) -> Self {
-        let (offsets, total) = shape.offsets();
-        let mut params = vec![0f32; total];
-        let normal = Normal::new(0f32, 1f32).expect("unit normal");
-        for l in 1..=shape.layers() {
-            let fan_in = shape.dims[l - 1];
-            let std = (2.0 / fan_in as f32).sqrt() / 0.879_625_7;
-            let (w, _) = offsets[l];
-            for p in &mut params[w..w + shape.dims[l] * fan_in] {
-                *p = loop {
-                    let z: f32 = normal.sample(rng);
-                    if z.abs() <= 2.0 {
-                        break z * std;
-                    }
-                };
-            }
-        }
-        Self { shape, offsets, params }
-    }
-
     /// All parameters zero (to be filled, e.g. by `Mlp::copy_into_fused`).
     pub fn zeros(shape: MlpShape) -> Self {
         let (offsets, total) = shape.offsets();
@@ -212,38 +190,6 @@ impl FusedMlp {
             let (_, b) = self.offsets[l];
             &self.params[b..b + self.shape.dims[l]]
         })
-    }
-
-    /// The parameters as candle tensors, in order `[W_1, b_1, W_2, ...]` (no last bias when the
-    /// shape has none); weights `d[l-1] x d[l]` as in `algo::mlp::Mlp`.
-    pub fn to_tensors(&self, device: &Device) -> candle_core::Result<Vec<Tensor>> {
-        let mut out = Vec::new();
-        for l in 1..=self.shape.layers() {
-            let (dout, din) = (self.shape.dims[l], self.shape.dims[l - 1]);
-            out.push(Tensor::from_slice(self.weight(l), (din, dout), device)?);
-            if let Some(b) = self.bias(l) {
-                out.push(Tensor::from_slice(b, dout, device)?);
-            }
-        }
-        Ok(out)
-    }
-
-    /// Overwrite the parameters from tensors in the order and shapes of [`Self::to_tensors`].
-    pub fn load_tensors(&mut self, tensors: &[Tensor]) -> candle_core::Result<()> {
-        let mut at = 0;
-        for t in tensors {
-            let values = t.flatten_all()?.to_vec1::<f32>()?;
-            let end = at + values.len();
-            if end > self.params.len() {
-                candle_core::bail!("fused mlp: tensors hold more values than the shape");
-            }
-            self.params[at..end].copy_from_slice(&values);
-            at = end;
-        }
-        if at != self.params.len() {
-            candle_core::bail!("fused mlp: {} values for {} parameters", at, self.params.len());
-        }
-        Ok(())
     }
 }
 
@@ -451,45 +397,22 @@ impl FusedMlp {
     }
 }
 
-/// Adam (as `candle_nn::AdamW` with weight decay 0, i.e. PyTorch's Adam), updating a flat
-/// parameter vector in place: one pass, no temporaries.
-#[derive(Clone, Debug)]
-pub struct Adam {
-    pub lr: f64,
-    pub beta1: f64,
-    pub beta2: f64,
-    pub eps: f64,
-    pub step_t: u64,
-    pub m: Vec<f32>,
-    pub v: Vec<f32>,
-}
-
-impl Adam {
-    pub fn new(num_params: usize, lr: f64) -> Self {
-        Self {
-            lr,
-            beta1: 0.9,
-            beta2: 0.999,
-            eps: 1e-8,
-            step_t: 0,
-            m: vec![0.0; num_params],
-            v: vec![0.0; num_params],
-        }
+/// The best GFLOP/s of a few `n × n × n` f32 GEMMs (n = 1024) through [`matmul`], on `threads`
+/// threads: this machine's practical peak for the kernels the engine uses, which
+/// `safedice speed` reports its rates against (about 0.1 s of work at 100 GFLOP/s).
+pub fn peak_gemm_gflops(threads: usize) -> f64 {
+    let n = 1024;
+    let a: Vec<f32> = (0..n * n).map(|i| (i % 7) as f32 * 0.01).collect();
+    let b: Vec<f32> = (0..n * n).map(|i| (i % 5) as f32 * 0.01).collect();
+    let mut c = vec![0f32; n * n];
+    let par = if threads > 1 { Parallelism::Rayon(threads) } else { Parallelism::None };
+    let flops = 2.0 * (n * n * n) as f64;
+    let mut best = 0f64;
+    for _ in 0..6 {
+        let t = Instant::now();
+        matmul(&mut c, &a, Op::N, &b, Op::N, (n, n, n), false, par);
+        best = best.max(flops / t.elapsed().as_secs_f64() / 1e9);
     }
-
-    pub fn step(&mut self, params: &mut [f32], grads: &[f32]) {
-        assert!(params.len() == grads.len() && grads.len() == self.m.len());
-        self.step_t += 1;
-        let t = self.step_t as i32;
-        let scale_m = (1.0 / (1.0 - self.beta1.powi(t))) as f32;
-        let scale_v = (1.0 / (1.0 - self.beta2.powi(t))) as f32;
-        let (b1, b2) = (self.beta1 as f32, self.beta2 as f32);
-        let (c1, c2) = ((1.0 - self.beta1) as f32, (1.0 - self.beta2) as f32);
-        let (lr, eps) = (self.lr as f32, self.eps as f32);
-        for (((p, &g), m), v) in params.iter_mut().zip(grads).zip(&mut self.m).zip(&mut self.v) {
-            *m = *m * b1 + g * c1;
-            *v = *v * b2 + g * g * c2;
-            *p -= (*m * scale_m) / ((*v * scale_v).sqrt() + eps) * lr;
-        }
-    }
+    std::hint::black_box(&c);
+    best
 }

@@ -26,13 +26,16 @@ pub fn interpolate(a: &Tensor, b: &Tensor, u: &Tensor) -> Result<Tensor> {
     (a.broadcast_mul(u)? + b.broadcast_mul(&u.affine(-1.0, 1.0)?)?)?.contiguous()
 }
 
+/// Added to `‖∇ₓ f‖²` under the square root of [`unit_gradient_penalty`] (and the fused
+/// engine's copy of it), so the norm's derivative stays finite at a zero gradient.
+pub const GRAD_NORM_EPS: f64 = 1e-12;
+
 /// WGAN-GP style penalty of a scalar network at points `x`: `mean((‖∇ₓ f(x)‖ − 1)²)`
 /// (the discriminator regulariser of the authors' code for Eq. 9). Differentiable with respect
 /// to the weights through the analytic input-gradient.
 pub fn unit_gradient_penalty(net: &Mlp, x: &Tensor) -> Result<Tensor> {
     let (_, grad) = net.forward_with_input_grad(x)?;
-    // 1e-12 keeps the norm's derivative finite at a zero gradient.
-    let norm = (grad.sqr()?.sum(D::Minus1)? + 1e-12)?.sqrt()?;
+    let norm = (grad.sqr()?.sum(D::Minus1)? + GRAD_NORM_EPS)?.sqrt()?;
     (norm - 1.0)?.sqr()?.mean_all()
 }
 

@@ -40,7 +40,7 @@
 //! On a CUDA build the step buffers live in GPU memory; the estimate still counts them, as
 //! host memory, which keeps it an upper bound of the host's share.
 
-use super::config::{AlgorithmConfig, ResolvedConfig};
+use super::hyperparams::{AlgorithmConfig, ResolvedConfig};
 use super::TerminalHandling;
 use crate::data::ActionSpace;
 

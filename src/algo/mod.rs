@@ -6,18 +6,21 @@
 //! result is a [`PolicyArtifact`] (safetensors weights + a JSON [`PolicySpec`]) that
 //! [`Policy::load`] turns back into a policy without the training datasets.
 //!
-//! Files: one per algorithm ([`safedice`], [`bc`], [`dwbc`], [`ppl`], [`dexperts`]), the shared
-//! networks ([`mlp`]), policy heads and artefacts ([`policy`]), the optimiser ([`optim`]), the
-//! training tensors built from a [`Dataset`] ([`columns`]), checkpoints ([`checkpoint`]) and the
-//! configuration with its presets ([`config`]), and a run's memory estimate ([`memory`]).
+//! Files: one per algorithm ([`safedice`], [`bc`], [`dwbc`], [`ppl`], [`dexperts`]), SafeDICE's
+//! fused CPU engine beside its reference ([`safedice_fused`], on [`fused_mlp`]), the shared
+//! networks ([`mlp`]) and loss pieces ([`losses`]), policy heads and artefacts ([`policy`]), the
+//! optimiser ([`optim`]), the training tensors built from a [`Dataset`] ([`columns`]), the state
+//! every trainer shares ([`run`]), checkpoints ([`checkpoint`]), the hyperparameters with their
+//! presets ([`hyperparams`]), and a run's memory estimate ([`memory`]). docs/algorithm.md
+//! describes SafeDICE as implemented.
 
 pub mod bc;
 pub mod checkpoint;
 pub mod columns;
-pub mod config;
 pub mod dexperts;
 pub mod dwbc;
 pub mod fused_mlp;
+pub mod hyperparams;
 pub mod losses;
 pub mod memory;
 pub mod mlp;
@@ -27,7 +30,6 @@ pub mod ppl;
 pub mod run;
 pub mod safedice;
 pub mod safedice_fused;
-pub mod speed;
 
 use std::sync::Arc;
 
@@ -36,7 +38,7 @@ use serde::{Deserialize, Serialize};
 use crate::data::{ActionSpace, Dataset};
 use memory::DataShape;
 
-pub use config::{resolve_config, ConfigError, Preset, ResolvedConfig, TerminalHandling};
+pub use hyperparams::{resolve_config, HyperparamError, Preset, ResolvedConfig, TerminalHandling};
 pub use policy::{Policy, PolicyArtifact, PolicySpec};
 
 /// The algorithms the service trains.
@@ -139,8 +141,8 @@ pub trait Trainer: Send {
 }
 
 /// Check the datasets fit the config: both internally consistent, and [`check_fit`].
-pub fn check_data(config: &ResolvedConfig, data: &TrainingData) -> Result<(), ConfigError> {
-    let bad = |key: &str, message: String| ConfigError { key: key.to_string(), message };
+pub fn check_data(config: &ResolvedConfig, data: &TrainingData) -> Result<(), HyperparamError> {
+    let bad = |key: &str, message: String| HyperparamError { key: key.to_string(), message };
     let unlabeled = &data.unlabeled;
     unlabeled.check().map_err(|e| bad("unlabeled", format!("unlabeled dataset: {e}")))?;
     if let Some(n) = &data.non_preferred {
@@ -157,9 +159,9 @@ pub fn check_fit(
     config: &ResolvedConfig,
     unlabeled: &DataShape,
     non_preferred: Option<&DataShape>,
-) -> Result<(), ConfigError> {
+) -> Result<(), HyperparamError> {
     let algorithm = config.algorithm();
-    let bad = |key: &str, message: String| ConfigError { key: key.to_string(), message };
+    let bad = |key: &str, message: String| HyperparamError { key: key.to_string(), message };
     if non_preferred.is_none() && algorithm.needs_non_preferred() {
         return Err(bad(
             "non_preferred",

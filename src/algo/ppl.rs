@@ -7,7 +7,7 @@ use rand::Rng;
 use rand_chacha::ChaCha8Rng;
 
 use super::columns::Columns;
-use super::config::{AlgorithmConfig, PplConfig, PplWeight};
+use super::hyperparams::{AlgorithmConfig, PplConfig, PplWeight};
 use super::losses::{softplus, weighted_nll};
 use super::mlp::Mlp;
 use super::optim::Adam;

@@ -6,17 +6,28 @@
 //! 4. each iteration, update ν by Eq. 36 and the policy by the weighted BC of Eq. 37, both on the
 //!    same minibatch and with the pre-update ν.
 //!
-//! Where the paper is silent we follow the authors' code (see `algorithm-notes.md`): the
-//! discriminator's interpolated gradient penalty, ν's zero-centred one, the clipping margins of
-//! alpha-hat. Our additions are options ([`TerminalHandling`], reward standardisation, the
-//! alpha-hat quantile diagnostic) with the faithful behaviour available through the presets.
+//! Where the paper is silent we follow the authors' code: the discriminator's interpolated
+//! gradient penalty, ν's zero-centred one, the clipping margins of alpha-hat. Our additions are
+//! options ([`TerminalHandling`], reward standardisation, the alpha-hat quantile diagnostic) with
+//! the faithful behaviour available through the presets. docs/algorithm.md lists every choice
+//! and where it departs from the paper.
+//!
+//! This file is the reference: every loss is written here once, as candle tensor code with its
+//! equation number, and candle autograd differentiates it. On the CPU the two hot loops run on
+//! the fused engine instead ([`super::safedice_fused`]: the same losses with hand-derived
+//! gradients, checked against this file in its tests). Both engines take their minibatch from
+//! `discriminator_draws` and `main_draws` below, so they consume the run's random numbers
+//! identically.
+//!
+//! The file is longer than our usual ~600 lines on purpose: it is the one reference for the
+//! algorithm, in the paper's order, with the unit tests of its equations at the end.
 
 use candle_core::{DType, Tensor};
 use rand::seq::SliceRandom;
 use rand::Rng;
 
 use super::columns::{uniform_column, ActionColumn, Columns};
-use super::config::{AlgorithmConfig, SafediceConfig};
+use super::hyperparams::{AlgorithmConfig, SafediceConfig};
 use super::losses::{
     ess_fraction, interpolate, neg_log_one_minus_sigmoid, neg_log_sigmoid, self_normalized_weights,
     unit_gradient_penalty, weighted_nll, zero_gradient_penalty,
@@ -25,22 +36,26 @@ use super::mlp::Mlp;
 use super::optim::Adam;
 use super::policy::{Decoder, PolicyArtifact, PolicyNet};
 use super::run::RunData;
-use super::safedice_fused::{DiscBatch, FusedSafedice, HostActions, MainBatch};
+use super::safedice_fused::FusedSafedice;
 use super::{Progress, ResolvedConfig, TerminalHandling, TrainError, Trainer, TrainingData};
 
 /// Alpha-hat's margin below the minimum and its cap, as in the authors' code.
 const ALPHA_MARGIN: f64 = 1e-5;
 /// Rows per forward pass when scoring all of D^U.
 const SCORING_CHUNK: usize = 8192;
+/// Added to the mean of the masked policy weights before dividing by it (a batch of
+/// absorbing-state rows only has no weight left to renormalise); shared with the fused engine.
+pub(super) const MASK_RENORM_EPS: f64 = 1e-12;
 /// Floor of `1 − α e^c` inside Eq. 10's log; reached only with the quantile diagnostic.
 const REWARD_LOG_FLOOR: f64 = 1e-8;
 /// Names and hints of the non-finite guard, shared by the candle and the fused paths.
-const DISC_LOSS: (&str, &str) = ("the discriminator loss (Eq. 9)", "Try a lower lr_discriminator.");
-const NU_LOSS: (&str, &str) = (
+pub(super) const DISC_LOSS: (&str, &str) =
+    ("the discriminator loss (Eq. 9)", "Try a lower lr_discriminator.");
+pub(super) const NU_LOSS: (&str, &str) = (
     "the nu loss (Eq. 36)",
     "Episodes that end in terminal states make Eq. 36 unbounded below: try terminal_handling \"reset\", standardize_reward true, or a lower lr_nu (the authors' code uses 1e-4).",
 );
-const POLICY_LOSS: (&str, &str) = (
+pub(super) const POLICY_LOSS: (&str, &str) = (
     "the policy loss (Eq. 37)",
     "Try a lower lr_actor, or check the weight statistics (ess_fraction) for degeneracy.",
 );
@@ -134,13 +149,21 @@ struct FlowColumns {
 }
 
 impl FlowColumns {
-    /// A main-loop minibatch: `b` rows of the flow table and `b` initial states of p0, both
-    /// uniform with replacement. The candle and fused paths share it so they draw the same
-    /// random numbers.
+    /// `b` rows of the flow table and `b` initial states of p0, both uniform with replacement.
     fn sample_batch(&self, rng: &mut impl Rng, b: usize) -> (Vec<u32>, Vec<u32>) {
         let rows = (0..b).map(|_| rng.random_range(0..self.rows as u32)).collect();
         let initial = (0..b).map(|_| self.starts[rng.random_range(0..self.starts.len())]).collect();
         (rows, initial)
+    }
+
+    /// The policy's rows for flow rows `rows`: D^U rows as they are, absorbing-state rows (only
+    /// with `absorbing`; they carry no action) replaced by a placeholder row and reported in the
+    /// mask (None when every row has an action).
+    fn policy_rows(&self, rows: &[u32]) -> (Vec<u32>, Option<Vec<bool>>) {
+        let real = self.real_rows as u32;
+        let has_action: Vec<bool> = rows.iter().map(|&r| r < real).collect();
+        let policy_rows = rows.iter().map(|&r| r.min(real - 1)).collect();
+        (policy_rows, has_action.contains(&false).then_some(has_action))
     }
 
     fn build(
@@ -212,23 +235,54 @@ impl FlowColumns {
     }
 }
 
+/// One discriminator step's minibatch, drawn once from the run's RNG for whichever engine runs
+/// the step.
+pub(super) struct DiscDraws {
+    /// `cat(s, a)` of `B` rows of D^N and of D^U.
+    pub x_n: Tensor,
+    pub x_u: Tensor,
+    /// `(u1, u2, perm)` of the penalty's points `u1 x_N + (1−u1) x_U` and
+    /// `u2 x_U[perm] + (1−u2) x_U` (`B × 1` each); None without a penalty.
+    pub penalty: Option<(Tensor, Tensor, Vec<u32>)>,
+}
+
+/// One main-loop iteration's minibatch, drawn once from the run's RNG for whichever engine runs
+/// the step.
+pub(super) struct MainDraws {
+    /// `s`, `s'` of `B` flow rows and `B` initial states `s0`.
+    pub s: Tensor,
+    pub s_next: Tensor,
+    pub s0: Tensor,
+    /// Eq. 10 reward and γ' of the same rows.
+    pub reward: Tensor,
+    pub discount: Tensor,
+    /// ν's penalty: interpolation weights `u` (`B × 1`) of the points `u s0 + (1−u) s` and
+    /// `u s' + (1−u) s`; None without a penalty.
+    pub penalty_u: Option<Tensor>,
+    /// The policy's observations and dataset actions (D^U rows).
+    pub policy_obs: Tensor,
+    pub actions: ActionColumn,
+    /// Rows with an action (all but absorbing-state rows); None when all have one.
+    pub has_action: Option<Vec<bool>>,
+}
+
 pub struct SafediceTrainer {
-    run: RunData,
-    cfg: SafediceConfig,
+    pub(super) run: RunData,
+    pub(super) cfg: SafediceConfig,
     /// c(s, a): logit of "non-preferred"; trained in phase 1, frozen after.
-    disc: Mlp,
-    disc_opt: Adam,
-    nu: Mlp,
-    nu_opt: Adam,
-    policy: PolicyNet,
-    policy_opt: Adam,
+    pub(super) disc: Mlp,
+    pub(super) disc_opt: Adam,
+    pub(super) nu: Mlp,
+    pub(super) nu_opt: Adam,
+    pub(super) policy: PolicyNet,
+    pub(super) policy_opt: Adam,
     /// Set once the discriminator phase ends.
     alpha: Option<AlphaHat>,
     flow: Option<FlowColumns>,
     /// Metrics of the alpha-hat/reward computation, reported with the step that made them.
     phase_metrics: Vec<(&'static str, f64)>,
     /// The fused CPU engine for both hot loops (None on other devices: the candle path runs).
-    fused: Option<FusedSafedice>,
+    pub(super) fused: Option<FusedSafedice>,
 }
 
 impl SafediceTrainer {
@@ -299,30 +353,22 @@ impl SafediceTrainer {
     /// Algorithm 1 step 1, one step: Eq. 9 plus the interpolated gradient penalty
     /// `λ mean((‖∇c(x̂)‖ − 1)²)` at `x̂ = u x_N + (1−u) x_U` and `x̂ = u shuffle(x_U) + (1−u) x_U`.
     fn discriminator_step(&mut self, record: bool) -> Result<Vec<(&'static str, f64)>, TrainError> {
+        let batch = self.discriminator_draws()?;
         if self.fused.is_some() {
-            return self.discriminator_step_fused(record);
+            return self.discriminator_step_fused(&batch, record);
         }
         let b = self.run.batch();
-        let idx_n = self.run.sample_n()?;
-        let idx_u = self.run.sample_u()?;
-        let x_n = self.run.non_preferred().state_action(&idx_n)?;
-        let x_u = self.run.u.state_action(&idx_u)?;
-        let logits = self.disc.forward(&Tensor::cat(&[&x_n, &x_u], 0)?)?.squeeze(1)?;
+        let (x_n, x_u) = (&batch.x_n, &batch.x_u);
+        let logits = self.disc.forward(&Tensor::cat(&[x_n, x_u], 0)?)?.squeeze(1)?;
         let (c_n, c_u) = (logits.narrow(0, 0, b)?, logits.narrow(0, b, b)?);
         let classification = discriminator_loss(&c_n, &c_u)?;
         let mut loss = classification.clone();
         let mut penalty_value = 0.0;
-        if self.cfg.discriminator_gp > 0.0 {
-            let device = self.run.device.clone();
-            let u1 = uniform_column(&mut self.run.rng, b, &device)?;
-            let u2 = uniform_column(&mut self.run.rng, b, &device)?;
-            let mut perm: Vec<u32> = (0..b as u32).collect();
-            perm.shuffle(&mut self.run.rng);
-            let shuffled = x_u.index_select(&Tensor::from_vec(perm, b, &device)?, 0)?;
-            let points = Tensor::cat(
-                &[interpolate(&x_n, &x_u, &u1)?, interpolate(&shuffled, &x_u, &u2)?],
-                0,
-            )?;
+        if let Some((u1, u2, perm)) = &batch.penalty {
+            let perm = Tensor::from_slice(perm, b, x_u.device())?;
+            let shuffled = x_u.index_select(&perm, 0)?;
+            let points =
+                Tensor::cat(&[interpolate(x_n, x_u, u1)?, interpolate(&shuffled, x_u, u2)?], 0)?;
             let penalty = unit_gradient_penalty(&self.disc, &points)?;
             if record {
                 penalty_value = super::losses::scalar(&penalty)?;
@@ -343,50 +389,27 @@ impl SafediceTrainer {
         Ok(self.discriminator_metrics([value, classification, penalty_value, prob_n, prob_u]))
     }
 
-    /// [`Self::discriminator_step`] on the fused CPU engine: the same draws from the run's RNG,
-    /// the same loss, gradients without autograd.
-    fn discriminator_step_fused(
-        &mut self,
-        record: bool,
-    ) -> Result<Vec<(&'static str, f64)>, TrainError> {
+    /// A discriminator minibatch: `B` rows of D^N and of D^U, and the penalty's draws.
+    fn discriminator_draws(&mut self) -> Result<DiscDraws, TrainError> {
         let b = self.run.batch();
         let idx_n = self.run.sample_n()?;
         let idx_u = self.run.sample_u()?;
-        let x_n = host(&self.run.non_preferred().state_action(&idx_n)?)?;
-        let x_u = host(&self.run.u.state_action(&idx_u)?)?;
-        let draws = if self.cfg.discriminator_gp > 0.0 {
+        let x_n = self.run.non_preferred().state_action(&idx_n)?;
+        let x_u = self.run.u.state_action(&idx_u)?;
+        let penalty = if self.cfg.discriminator_gp > 0.0 {
             let device = self.run.device.clone();
-            let u1 = host(&uniform_column(&mut self.run.rng, b, &device)?)?;
-            let u2 = host(&uniform_column(&mut self.run.rng, b, &device)?)?;
+            let u1 = uniform_column(&mut self.run.rng, b, &device)?;
+            let u2 = uniform_column(&mut self.run.rng, b, &device)?;
             let mut perm: Vec<u32> = (0..b as u32).collect();
             perm.shuffle(&mut self.run.rng);
             Some((u1, u2, perm))
         } else {
             None
         };
-        let fused = self.fused.as_mut().expect("fused path");
-        let out = fused.disc_grads(
-            &self.disc,
-            &DiscBatch {
-                x_n: &x_n,
-                x_u: &x_u,
-                penalty: draws.as_ref().map(|(u1, u2, p)| (&u1[..], &u2[..], &p[..])),
-                penalty_coef: self.cfg.discriminator_gp as f32,
-            },
-        )?;
-        let value = self.run.checked(&host_scalar(out.loss)?, DISC_LOSS.0, DISC_LOSS.1)?;
-        self.disc_opt.step_with_grads(&self.disc.grads_from_fused(&fused.disc_grads)?)?;
-        self.end_discriminator_step()?;
-        if !record {
-            return Ok(Vec::new());
-        }
-        let values = [out.loss, out.classification, out.penalty, out.prob_n, out.prob_u];
-        let mut values = values.map(|v| v as f64);
-        values[0] = value;
-        Ok(self.discriminator_metrics(values))
+        Ok(DiscDraws { x_n, x_u, penalty })
     }
 
-    fn end_discriminator_step(&mut self) -> Result<(), TrainError> {
+    pub(super) fn end_discriminator_step(&mut self) -> Result<(), TrainError> {
         self.run.step += 1;
         if self.run.step == self.cfg.discriminator_iterations {
             self.finish_discriminator_phase()?;
@@ -396,7 +419,7 @@ impl SafediceTrainer {
 
     /// `[loss, classification loss, penalty, mean σ(c) on D^N, mean σ(c) on D^U]` as named
     /// metrics, plus the alpha-hat metrics if this step ended the phase.
-    fn discriminator_metrics(&mut self, values: [f64; 5]) -> Vec<(&'static str, f64)> {
+    pub(super) fn discriminator_metrics(&mut self, values: [f64; 5]) -> Vec<(&'static str, f64)> {
         let names = [
             "discriminator_loss",
             "discriminator_classification_loss",
@@ -469,30 +492,21 @@ impl SafediceTrainer {
     /// Algorithm 1 steps 4-5: the ν step (Eq. 36, ν on cat(s, s', s0) in one forward) and the
     /// policy step (Eq. 37) on the same batch with the pre-update ν.
     fn main_step(&mut self, record: bool) -> Result<Vec<(&'static str, f64)>, TrainError> {
+        let batch = self.main_draws()?;
         if self.fused.is_some() {
-            return self.main_step_fused(record);
+            return self.main_step_fused(&batch, record);
         }
-        let flow = self.flow.as_ref().expect("set when the discriminator phase ends");
         let b = self.run.batch();
-        let device = self.run.device.clone();
-        let (rows, initial) = flow.sample_batch(&mut self.run.rng, b);
-        let idx = Tensor::from_vec(rows.clone(), b, &device)?;
-        let s = flow.obs.index_select(&idx, 0)?;
-        let s_next = flow.next_obs.index_select(&idx, 0)?;
-        let s0 = flow.obs.index_select(&Tensor::from_vec(initial, b, &device)?, 0)?;
-        let values = self.nu.forward(&Tensor::cat(&[&s, &s_next, &s0], 0)?)?.squeeze(1)?;
+        let (s, s_next, s0) = (&batch.s, &batch.s_next, &batch.s0);
+        let values = self.nu.forward(&Tensor::cat(&[s, s_next, s0], 0)?)?.squeeze(1)?;
         let (nu_s, nu_next, nu_0) =
             (values.narrow(0, 0, b)?, values.narrow(0, b, b)?, values.narrow(0, 2 * b, b)?);
         // A = r + γ' ν(s') − ν(s)
-        let advantages = ((flow.reward.index_select(&idx, 0)?
-            + (flow.discount.index_select(&idx, 0)? * nu_next)?)?
-            - nu_s)?;
+        let advantages = ((&batch.reward + (&batch.discount * nu_next)?)? - nu_s)?;
         let mut loss_nu = nu_loss(&advantages, &nu_0, self.cfg.gamma)?;
         let mut gp_value = 0.0;
-        if self.cfg.nu_gp > 0.0 {
-            let u = uniform_column(&mut self.run.rng, b, &device)?;
-            let points =
-                Tensor::cat(&[interpolate(&s0, &s, &u)?, interpolate(&s_next, &s, &u)?], 0)?;
+        if let Some(u) = &batch.penalty_u {
+            let points = Tensor::cat(&[interpolate(s0, s, u)?, interpolate(s_next, s, u)?], 0)?;
             let penalty = zero_gradient_penalty(&self.nu, &points)?;
             if record {
                 gp_value = super::losses::scalar(&penalty)?;
@@ -500,20 +514,16 @@ impl SafediceTrainer {
             loss_nu = (loss_nu + (penalty * self.cfg.nu_gp)?)?;
         }
 
-        // Policy rows: absorbing-state rows (only with `absorbing`) carry no action.
-        let real = flow.real_rows as u32;
+        // Eq. 37's weights; rows without an action (absorbing states) get none, and the rest are
+        // renormalised to mean 1.
         let mut weights = self_normalized_weights(&advantages)?;
-        if rows.iter().any(|&r| r >= real) {
-            let mask: Vec<f32> = rows.iter().map(|&r| (r < real) as u8 as f32).collect();
-            let masked = (weights * Tensor::from_vec(mask, b, &device)?)?;
+        if let Some(has_action) = &batch.has_action {
+            let mask: Vec<f32> = has_action.iter().map(|&k| k as u8 as f32).collect();
+            let masked = (weights * Tensor::from_vec(mask, b, s.device())?)?;
             let mean = masked.mean_all()?;
-            weights = masked.broadcast_div(&(mean + 1e-12)?)?;
+            weights = masked.broadcast_div(&(mean + MASK_RENORM_EPS)?)?;
         }
-        let policy_rows: Vec<u32> = rows.iter().map(|&r| r.min(real - 1)).collect();
-        let pidx = Tensor::from_vec(policy_rows, b, &device)?;
-        let u = &self.run.u;
-        let log_prob =
-            self.policy.log_prob(&u.obs.index_select(&pidx, 0)?, &u.actions.select(&pidx)?)?;
+        let log_prob = self.policy.log_prob(&batch.policy_obs, &batch.actions)?;
         let loss_pi = policy_loss(&log_prob, &weights)?;
 
         let nu_value = self.run.checked(&loss_nu, NU_LOSS.0, NU_LOSS.1)?;
@@ -530,76 +540,42 @@ impl SafediceTrainer {
         Ok(self.main_metrics([nu_value, gp_value, pi_value, nu_initial], &w, &adv))
     }
 
-    /// [`Self::main_step`] on the fused CPU engine: the same draws from the run's RNG, the same
-    /// losses (Eq. 36 with ν's penalty, Eq. 37), gradients without autograd.
-    fn main_step_fused(&mut self, record: bool) -> Result<Vec<(&'static str, f64)>, TrainError> {
+    /// A main-loop minibatch: `B` rows of the flow table and `B` initial states of p0 (uniform,
+    /// with replacement), ν's penalty draws, and the policy's rows of D^U.
+    fn main_draws(&mut self) -> Result<MainDraws, TrainError> {
         let flow = self.flow.as_ref().expect("set when the discriminator phase ends");
         let b = self.run.batch();
         let device = self.run.device.clone();
         let (rows, initial) = flow.sample_batch(&mut self.run.rng, b);
-        let idx = Tensor::from_vec(rows.clone(), b, &device)?;
-        let s = host(&flow.obs.index_select(&idx, 0)?)?;
-        let s_next = host(&flow.next_obs.index_select(&idx, 0)?)?;
-        let s0 = host(&flow.obs.index_select(&Tensor::from_vec(initial, b, &device)?, 0)?)?;
-        let reward = host(&flow.reward.index_select(&idx, 0)?)?;
-        let discount = host(&flow.discount.index_select(&idx, 0)?)?;
-        let u = if self.cfg.nu_gp > 0.0 {
-            Some(host(&uniform_column(&mut self.run.rng, b, &device)?)?)
+        let idx = Tensor::from_slice(&rows, b, &device)?;
+        let penalty_u = if self.cfg.nu_gp > 0.0 {
+            Some(uniform_column(&mut self.run.rng, b, &device)?)
         } else {
             None
         };
-        // Policy rows: absorbing-state rows (only with `absorbing`) carry no action.
-        let real = flow.real_rows as u32;
-        let has_action: Vec<bool> = rows.iter().map(|&r| r < real).collect();
-        let policy_rows: Vec<u32> = rows.iter().map(|&r| r.min(real - 1)).collect();
+        let (policy_rows, has_action) = flow.policy_rows(&rows);
         let pidx = Tensor::from_vec(policy_rows, b, &device)?;
-        let policy_obs = host(&self.run.u.obs.index_select(&pidx, 0)?)?;
-        let (pretanh, log_jacobian, index);
-        let actions = match self.run.u.actions.select(&pidx)? {
-            ActionColumn::Continuous { pretanh: p, log_jacobian: j } => {
-                (pretanh, log_jacobian) = (host(&p)?, host(&j)?);
-                HostActions::Continuous { pretanh: &pretanh, log_jacobian: &log_jacobian }
-            }
-            ActionColumn::Discrete { index: i } => {
-                index = i.to_vec1::<u32>()?;
-                HostActions::Discrete { index: &index }
-            }
-        };
-        let fused = self.fused.as_mut().expect("fused path");
-        let out = fused.main_grads(
-            &self.nu,
-            self.policy.mlp(),
-            &MainBatch {
-                s: &s,
-                s_next: &s_next,
-                s0: &s0,
-                reward: &reward,
-                discount: &discount,
-                gamma: self.cfg.gamma as f32,
-                penalty: u.as_deref().map(|u| (u, self.cfg.nu_gp as f32)),
-                policy_obs: &policy_obs,
-                actions,
-                has_action: has_action.contains(&false).then_some(&has_action[..]),
-            },
-        )?;
-        let nu_value = self.run.checked(&host_scalar(out.nu_loss)?, NU_LOSS.0, NU_LOSS.1)?;
-        let pi_value =
-            self.run.checked(&host_scalar(out.policy_loss)?, POLICY_LOSS.0, POLICY_LOSS.1)?;
-        self.nu_opt.step_with_grads(&self.nu.grads_from_fused(&fused.nu_grads)?)?;
-        let policy_grads = self.policy.mlp().grads_from_fused(&fused.policy_grads)?;
-        self.policy_opt.step_with_grads(&policy_grads)?;
-        self.run.step += 1;
-        if !record {
-            return Ok(Vec::new());
-        }
-        let (w, adv) = (fused.weights.clone(), fused.advantages.clone());
-        let values = [nu_value, out.nu_penalty as f64, pi_value, out.nu_initial_mean as f64];
-        Ok(self.main_metrics(values, &w, &adv))
+        Ok(MainDraws {
+            s: flow.obs.index_select(&idx, 0)?,
+            s_next: flow.next_obs.index_select(&idx, 0)?,
+            s0: flow.obs.index_select(&Tensor::from_vec(initial, b, &device)?, 0)?,
+            reward: flow.reward.index_select(&idx, 0)?,
+            discount: flow.discount.index_select(&idx, 0)?,
+            penalty_u,
+            policy_obs: self.run.u.obs.index_select(&pidx, 0)?,
+            actions: self.run.u.actions.select(&pidx)?,
+            has_action,
+        })
     }
 
     /// The main step's metrics from `[nu loss, nu penalty, policy loss, mean ν(s0)]`, the policy
     /// weights and the advantages.
-    fn main_metrics(&self, values: [f64; 4], w: &[f32], adv: &[f32]) -> Vec<(&'static str, f64)> {
+    pub(super) fn main_metrics(
+        &self,
+        values: [f64; 4],
+        w: &[f32],
+        adv: &[f32],
+    ) -> Vec<(&'static str, f64)> {
         let [nu_value, gp_value, pi_value, nu_initial] = values;
         let b = w.len();
         let ess = ess_fraction(w);
@@ -625,16 +601,6 @@ impl SafediceTrainer {
             ("weight_degenerate", degenerate as u8 as f64),
         ]
     }
-}
-
-/// A tensor's values on the host, flattened (row-major).
-fn host(t: &Tensor) -> candle_core::Result<Vec<f32>> {
-    t.flatten_all()?.to_vec1::<f32>()
-}
-
-/// A host loss as a scalar tensor for [`RunData::checked`].
-fn host_scalar(value: f32) -> candle_core::Result<Tensor> {
-    Tensor::new(value, &candle_core::Device::Cpu)
 }
 
 fn mean_std(values: &[f64]) -> (f64, f64) {

@@ -1,22 +1,33 @@
-//! SafeDICE's two hot loops (the discriminator step of Eq. 9 with its gradient penalty, and the
-//! ν step of Eq. 36 with the policy step of Eq. 37) on the fused CPU engine
-//! ([`super::fused_mlp`]): the same losses as the candle path in `safedice.rs`, with
-//! hand-derived gradients (checked against candle autograd in the tests below) and every buffer
-//! reused between steps. The networks stay candle [`Mlp`]s (checkpoints, export and the
-//! optimiser are unchanged): each step copies their parameters in and hands gradients back.
+//! SafeDICE's two hot loops on the fused CPU engine ([`super::fused_mlp`]): the discriminator
+//! step (Eq. 9 with its gradient penalty) and the main step (Eq. 36 with ν's penalty, then the
+//! policy step of Eq. 37). `safedice.rs` is the reference: it writes every loss once as candle
+//! tensor code, and this file computes the same losses with hand-derived gradients (checked
+//! against candle autograd on that code in the tests) and every buffer reused between steps.
+//! docs/performance.md explains why and what it gains.
+//!
+//! The networks stay candle [`Mlp`]s (checkpoints, export and the optimiser are unchanged): each
+//! step copies their parameters in and hands gradients back to [`super::optim::Adam`]. The
+//! trainer's minibatches come from `safedice.rs` ([`DiscDraws`], [`MainDraws`]), so both engines
+//! consume the run's random numbers identically.
 
-use candle_core::Result;
+use candle_core::{Result, Tensor};
 
+use super::columns::ActionColumn;
 use super::fused_mlp::{FusedMlp, Workspace};
+use super::losses::GRAD_NORM_EPS;
 use super::mlp::Mlp;
 use super::policy::{LOG_STD_MAX, LOG_STD_MIN, MEAN_CLIP};
+use super::safedice::{
+    DiscDraws, MainDraws, SafediceTrainer, DISC_LOSS, MASK_RENORM_EPS, NU_LOSS, POLICY_LOSS,
+};
+use super::TrainError;
 
-/// `log(1 + eˣ)` without overflow.
-pub fn softplus(x: f32) -> f32 {
+/// `log(1 + eˣ)` without overflow (one value; the tensor form is `losses::softplus`).
+fn softplus_f32(x: f32) -> f32 {
     x.max(0.0) + (-x.abs()).exp().ln_1p()
 }
 
-pub fn sigmoid(x: f32) -> f32 {
+fn sigmoid_f32(x: f32) -> f32 {
     1.0 / (1.0 + (-x).exp())
 }
 
@@ -44,7 +55,7 @@ pub enum HostActions<'a> {
 
 /// Tanh-Gaussian `log π(a|s)` (see `policy::tanh_gaussian_log_prob`) from the raw head
 /// `[mean | log_std]`, and its gradient with respect to the raw head (zero outside the clips).
-pub fn tanh_gaussian_log_prob(
+fn tanh_gaussian_log_prob_and_grad(
     out: &[f32],
     pretanh: &[f32],
     log_jacobian: f32,
@@ -68,7 +79,7 @@ pub fn tanh_gaussian_log_prob(
 }
 
 /// `log softmax(logits)[a]` and its gradient with respect to the logits.
-pub fn categorical_log_prob(logits: &[f32], a: usize, grad: &mut [f32]) -> f32 {
+fn categorical_log_prob_and_grad(logits: &[f32], a: usize, grad: &mut [f32]) -> f32 {
     let max = logits.iter().copied().fold(f32::NEG_INFINITY, f32::max);
     let lse = max + logits.iter().map(|&l| (l - max).exp()).sum::<f32>().ln();
     for (g, &l) in grad.iter_mut().zip(logits) {
@@ -80,7 +91,7 @@ pub fn categorical_log_prob(logits: &[f32], a: usize, grad: &mut [f32]) -> f32 {
 
 /// One discriminator step's inputs: `B` rows of D^N and of D^U (`cat(s, a)`), and the penalty's
 /// interpolation draws (None without a penalty).
-pub struct DiscBatch<'a> {
+pub struct HostDiscBatch<'a> {
     pub x_n: &'a [f32],
     pub x_u: &'a [f32],
     /// `(u1, u2, perm)`: points `u1·x_N + (1−u1)·x_U` and `u2·x_U[perm] + (1−u2)·x_U`.
@@ -101,7 +112,7 @@ pub struct DiscOutcome {
 }
 
 /// One main-loop iteration's inputs (host rows gathered by the trainer).
-pub struct MainBatch<'a> {
+pub struct HostMainBatch<'a> {
     pub s: &'a [f32],
     pub s_next: &'a [f32],
     pub s0: &'a [f32],
@@ -169,7 +180,7 @@ impl FusedSafedice {
 
     /// Eq. 9's loss `mean softplus(−c_N) + mean softplus(c_U)` plus `λ mean((‖∇ₓc(x̂)‖ − 1)²)`,
     /// its gradient into `disc_grads` (parameters copied from `net` first).
-    pub fn disc_grads(&mut self, net: &Mlp, batch: &DiscBatch) -> Result<DiscOutcome> {
+    pub fn disc_grads(&mut self, net: &Mlp, batch: &HostDiscBatch) -> Result<DiscOutcome> {
         net.copy_into_fused(&mut self.disc)?;
         let d = self.disc.shape().input();
         let b = batch.x_n.len() / d;
@@ -205,19 +216,19 @@ impl FusedSafedice {
                 let inv_b = 1.0 / b as f32;
                 for i in 0..b {
                     let (c_n, c_u) = (out[i], out[b + i]);
-                    outcome.classification += (softplus(-c_n) + softplus(c_u)) * inv_b;
-                    outcome.prob_n += sigmoid(c_n) * inv_b;
-                    outcome.prob_u += sigmoid(c_u) * inv_b;
-                    dout[i] = -sigmoid(-c_n) * inv_b;
-                    dout[b + i] = sigmoid(c_u) * inv_b;
+                    outcome.classification += (softplus_f32(-c_n) + softplus_f32(c_u)) * inv_b;
+                    outcome.prob_n += sigmoid_f32(c_n) * inv_b;
+                    outcome.prob_u += sigmoid_f32(c_u) * inv_b;
+                    dout[i] = -sigmoid_f32(-c_n) * inv_b;
+                    dout[b + i] = sigmoid_f32(c_u) * inv_b;
                 }
             },
             |g, dp| {
                 let inv_rows = 1.0 / penalty_rows as f32;
                 let mut total = 0.0;
                 for (gr, dr) in g.chunks_exact(d).zip(dp.chunks_exact_mut(d)) {
-                    // 1e-12 keeps the norm's derivative finite (as losses::unit_gradient_penalty).
-                    let norm = (gr.iter().map(|v| v * v).sum::<f32>() + 1e-12).sqrt();
+                    let norm =
+                        (gr.iter().map(|v| v * v).sum::<f32>() + GRAD_NORM_EPS as f32).sqrt();
                     total += (norm - 1.0) * (norm - 1.0);
                     let k = lambda * inv_rows * 2.0 * (norm - 1.0) / norm;
                     for (o, &gv) in dr.iter_mut().zip(gr) {
@@ -234,7 +245,12 @@ impl FusedSafedice {
 
     /// Eq. 36 (+ ν's zero-centred penalty) into `nu_grads` and Eq. 37 into `policy_grads`, with
     /// the pre-update ν; `advantages` and `weights` hold the batch's A and policy weights after.
-    pub fn main_grads(&mut self, nu: &Mlp, policy: &Mlp, batch: &MainBatch) -> Result<MainOutcome> {
+    pub fn main_grads(
+        &mut self,
+        nu: &Mlp,
+        policy: &Mlp,
+        batch: &HostMainBatch,
+    ) -> Result<MainOutcome> {
         nu.copy_into_fused(&mut self.nu)?;
         policy.copy_into_fused(&mut self.policy)?;
         let d = self.nu.shape().input();
@@ -306,7 +322,7 @@ impl FusedSafedice {
                 }
             }
             let mean = weights.iter().sum::<f32>() / b as f32;
-            weights.iter_mut().for_each(|w| *w /= mean + 1e-12);
+            weights.iter_mut().for_each(|w| *w /= mean + MASK_RENORM_EPS as f32);
         }
         let weights = &self.weights;
         let head_grad = &mut self.head_grad;
@@ -325,10 +341,10 @@ impl FusedSafedice {
                     let logp = match &batch.actions {
                         HostActions::Continuous { pretanh, log_jacobian } => {
                             let a = &pretanh[i * k / 2..(i + 1) * k / 2];
-                            tanh_gaussian_log_prob(o, a, log_jacobian[i], head_grad)
+                            tanh_gaussian_log_prob_and_grad(o, a, log_jacobian[i], head_grad)
                         }
                         HostActions::Discrete { index } => {
-                            categorical_log_prob(o, index[i] as usize, head_grad)
+                            categorical_log_prob_and_grad(o, index[i] as usize, head_grad)
                         }
                     };
                     let scale = weights[i] / b as f32;
@@ -345,210 +361,105 @@ impl FusedSafedice {
     }
 }
 
-#[cfg(test)]
-mod tests {
-    use candle_core::backprop::GradStore;
-    use candle_core::{Device, Tensor};
-    use rand::{Rng, SeedableRng};
-    use rand_chacha::ChaCha8Rng;
-    use rand_distr::StandardNormal;
-
-    use super::*;
-    use crate::algo::columns::ActionColumn;
-    use crate::algo::losses::{
-        interpolate, self_normalized_weights, unit_gradient_penalty, zero_gradient_penalty,
-    };
-    use crate::algo::policy::PolicyNet;
-    use crate::algo::safedice::{discriminator_loss, nu_loss, policy_loss};
-    use crate::data::ActionSpace;
-
-    const B: usize = 16;
-
-    fn normals(rng: &mut ChaCha8Rng, n: usize) -> Vec<f32> {
-        (0..n).map(|_| rng.sample::<f32, _>(StandardNormal)).collect()
-    }
-
-    fn uniforms(rng: &mut ChaCha8Rng, n: usize) -> Vec<f32> {
-        (0..n).map(|_| rng.random::<f32>()).collect()
-    }
-
-    fn tensor(values: &[f32], rows: usize) -> Tensor {
-        Tensor::from_slice(values, (rows, values.len() / rows), &Device::Cpu).unwrap()
-    }
-
-    /// Fused gradients against candle autograd, parameter by parameter, to 1e-5 of the largest.
-    fn assert_grads_match(what: &str, net: &Mlp, fused: &[f32], store: &GradStore) {
-        let ours = net.grads_from_fused(fused).unwrap();
-        for ((name, var), g) in net.named_vars().iter().zip(ours) {
-            let ours = g.flatten_all().unwrap().to_vec1::<f32>().unwrap();
-            let theirs = store.get(var.as_tensor()).expect("autograd gradient");
-            let theirs = theirs.flatten_all().unwrap().to_vec1::<f32>().unwrap();
-            let scale = theirs.iter().fold(1e-3f32, |m, v| m.max(v.abs()));
-            for (i, (a, b)) in ours.iter().zip(&theirs).enumerate() {
-                assert!(
-                    (a - b).abs() <= 1e-5 * scale,
-                    "{what} {name}[{i}]: fused {a}, autograd {b}"
-                );
-            }
-        }
-    }
-
-    fn assert_close(what: &str, a: f32, b: f32) {
-        assert!((a - b).abs() <= 1e-5 * b.abs().max(1.0), "{what}: fused {a}, candle {b}");
-    }
-
-    #[test]
-    fn discriminator_step_matches_candle_autograd() {
-        let mut rng = ChaCha8Rng::seed_from_u64(1);
-        let d = 7;
-        let disc =
-            Mlp::new("discriminator", &[d, 12, 10, 1], false, &Device::Cpu, &mut rng).unwrap();
-        let nu = Mlp::new("nu", &[5, 12, 10, 1], false, &Device::Cpu, &mut rng).unwrap();
-        let policy = Mlp::new("policy", &[5, 12, 10, 6], true, &Device::Cpu, &mut rng).unwrap();
-        let (x_n, x_u) = (normals(&mut rng, B * d), normals(&mut rng, B * d));
-        let (u1, u2) = (uniforms(&mut rng, B), uniforms(&mut rng, B));
-        let mut perm: Vec<u32> = (0..B as u32).collect();
-        perm.reverse();
-        let lambda = 10.0;
-        let mut fused = FusedSafedice::new(&disc, &nu, &policy, B).unwrap();
-        let out = fused
-            .disc_grads(
-                &disc,
-                &DiscBatch {
-                    x_n: &x_n,
-                    x_u: &x_u,
-                    penalty: Some((&u1, &u2, &perm)),
-                    penalty_coef: lambda,
-                },
-            )
-            .unwrap();
-
-        let (tn, tu) = (tensor(&x_n, B), tensor(&x_u, B));
-        let logits =
-            disc.forward(&Tensor::cat(&[&tn, &tu], 0).unwrap()).unwrap().squeeze(1).unwrap();
-        let classification =
-            discriminator_loss(&logits.narrow(0, 0, B).unwrap(), &logits.narrow(0, B, B).unwrap())
-                .unwrap();
-        let idx = Tensor::from_slice(&perm, B, &Device::Cpu).unwrap();
-        let shuffled = tu.index_select(&idx, 0).unwrap();
-        let points = Tensor::cat(
-            &[
-                interpolate(&tn, &tu, &tensor(&u1, B)).unwrap(),
-                interpolate(&shuffled, &tu, &tensor(&u2, B)).unwrap(),
-            ],
-            0,
-        )
-        .unwrap();
-        let penalty = unit_gradient_penalty(&disc, &points).unwrap();
-        let loss = (&classification + (&penalty * lambda as f64).unwrap()).unwrap();
-        let scalar = |t: &Tensor| t.to_scalar::<f32>().unwrap();
-        assert_close("classification", out.classification, scalar(&classification));
-        assert_close("penalty", out.penalty, scalar(&penalty));
-        assert_close("loss", out.loss, scalar(&loss));
-        assert_grads_match("discriminator", &disc, &fused.disc_grads, &loss.backward().unwrap());
-    }
-
-    fn check_main_step(space: ActionSpace, masked_rows: bool) {
-        let mut rng = ChaCha8Rng::seed_from_u64(2);
-        let (obs, gamma, lambda) = (5, 0.99f32, 0.3f32);
-        let dev = Device::Cpu;
-        let disc = Mlp::new("discriminator", &[9, 12, 10, 1], false, &dev, &mut rng).unwrap();
-        let nu = Mlp::new("nu", &[obs, 12, 10, 1], false, &dev, &mut rng).unwrap();
-        let policy = PolicyNet::new("policy", obs, &[12, 10], &space, &dev, &mut rng).unwrap();
-        let (s, s_next, s0) =
-            (normals(&mut rng, B * obs), normals(&mut rng, B * obs), normals(&mut rng, B * obs));
-        let reward = normals(&mut rng, B);
-        let discount: Vec<f32> = (0..B).map(|i| if i % 5 == 0 { 0.0 } else { gamma }).collect();
-        let u = uniforms(&mut rng, B);
-        let policy_obs = normals(&mut rng, B * obs);
-        let has_action: Vec<bool> = (0..B).map(|i| !masked_rows || i % 4 != 1).collect();
-        let (pretanh, log_jacobian) = (normals(&mut rng, B * 3), normals(&mut rng, B));
-        let index: Vec<u32> = (0..B as u32).map(|i| i % 4).collect();
-        let (actions, column) = match space {
-            ActionSpace::Continuous { .. } => (
-                HostActions::Continuous { pretanh: &pretanh, log_jacobian: &log_jacobian },
-                ActionColumn::Continuous {
-                    pretanh: tensor(&pretanh, B),
-                    log_jacobian: Tensor::from_slice(&log_jacobian, B, &dev).unwrap(),
-                },
-            ),
-            ActionSpace::Discrete { .. } => (
-                HostActions::Discrete { index: &index },
-                ActionColumn::Discrete { index: Tensor::from_slice(&index, B, &dev).unwrap() },
-            ),
+/// The trainer's steps on this engine: the minibatch `safedice.rs` drew, copied to the host, then
+/// the same guard, optimiser step and metrics as the candle path.
+impl SafediceTrainer {
+    /// [`SafediceTrainer`]'s discriminator step (Eq. 9 + penalty) with fused gradients.
+    pub(super) fn discriminator_step_fused(
+        &mut self,
+        batch: &DiscDraws,
+        record: bool,
+    ) -> std::result::Result<Vec<(&'static str, f64)>, TrainError> {
+        let (x_n, x_u) = (host(&batch.x_n)?, host(&batch.x_u)?);
+        let penalty = match &batch.penalty {
+            Some((u1, u2, perm)) => Some((host(u1)?, host(u2)?, perm)),
+            None => None,
         };
-        let mut fused = FusedSafedice::new(&disc, &nu, policy.mlp(), B).unwrap();
-        let out = fused
-            .main_grads(
-                &nu,
-                policy.mlp(),
-                &MainBatch {
-                    s: &s,
-                    s_next: &s_next,
-                    s0: &s0,
-                    reward: &reward,
-                    discount: &discount,
-                    gamma,
-                    penalty: Some((&u, lambda)),
-                    policy_obs: &policy_obs,
-                    actions,
-                    has_action: masked_rows.then_some(&has_action[..]),
-                },
-            )
-            .unwrap();
-
-        // The candle formulation of safedice.rs's main step.
-        let (ts, tn, t0) = (tensor(&s, B), tensor(&s_next, B), tensor(&s0, B));
-        let values =
-            nu.forward(&Tensor::cat(&[&ts, &tn, &t0], 0).unwrap()).unwrap().squeeze(1).unwrap();
-        let (v, v_next, v0) = (
-            values.narrow(0, 0, B).unwrap(),
-            values.narrow(0, B, B).unwrap(),
-            values.narrow(0, 2 * B, B).unwrap(),
-        );
-        let r = Tensor::from_slice(&reward, B, &dev).unwrap();
-        let g = Tensor::from_slice(&discount, B, &dev).unwrap();
-        let adv = ((r + (g * v_next).unwrap()).unwrap() - v).unwrap();
-        let tu = tensor(&u, B);
-        let points = Tensor::cat(
-            &[interpolate(&t0, &ts, &tu).unwrap(), interpolate(&tn, &ts, &tu).unwrap()],
-            0,
-        )
-        .unwrap();
-        let penalty = zero_gradient_penalty(&nu, &points).unwrap();
-        let loss_nu = (nu_loss(&adv, &v0, gamma as f64).unwrap()
-            + (&penalty * lambda as f64).unwrap())
-        .unwrap();
-        let mut weights = self_normalized_weights(&adv).unwrap();
-        if masked_rows {
-            let mask: Vec<f32> = has_action.iter().map(|&k| k as u8 as f32).collect();
-            let masked = (weights * Tensor::from_vec(mask, B, &dev).unwrap()).unwrap();
-            let mean = masked.mean_all().unwrap();
-            weights = masked.broadcast_div(&(mean + 1e-12).unwrap()).unwrap();
+        let fused = self.fused.as_mut().expect("fused path");
+        let out = fused.disc_grads(
+            &self.disc,
+            &HostDiscBatch {
+                x_n: &x_n,
+                x_u: &x_u,
+                penalty: penalty.as_ref().map(|(u1, u2, p)| (&u1[..], &u2[..], &p[..])),
+                penalty_coef: self.cfg.discriminator_gp as f32,
+            },
+        )?;
+        let value = self.run.checked(&host_scalar(out.loss)?, DISC_LOSS.0, DISC_LOSS.1)?;
+        self.disc_opt.step_with_grads(&self.disc.grads_from_fused(&fused.disc_grads)?)?;
+        self.end_discriminator_step()?;
+        if !record {
+            return Ok(Vec::new());
         }
-        let log_prob = policy.log_prob(&tensor(&policy_obs, B), &column).unwrap();
-        let loss_pi = policy_loss(&log_prob, &weights).unwrap();
-        let scalar = |t: &Tensor| t.to_scalar::<f32>().unwrap();
-        assert_close("nu loss", out.nu_loss, scalar(&loss_nu));
-        assert_close("nu penalty", out.nu_penalty, scalar(&penalty));
-        assert_close("policy loss", out.policy_loss, scalar(&loss_pi));
-        let w = weights.to_vec1::<f32>().unwrap();
-        for (a, b) in fused.weights.iter().zip(&w) {
-            assert_close("weight", *a, *b);
-        }
-        let grads = (&loss_nu + &loss_pi).unwrap().backward().unwrap();
-        assert_grads_match("nu", &nu, &fused.nu_grads, &grads);
-        assert_grads_match("policy", policy.mlp(), &fused.policy_grads, &grads);
+        let values = [out.loss, out.classification, out.penalty, out.prob_n, out.prob_u];
+        let mut values = values.map(|v| v as f64);
+        values[0] = value;
+        Ok(self.discriminator_metrics(values))
     }
 
-    #[test]
-    fn main_step_matches_candle_autograd_continuous() {
-        let space = ActionSpace::Continuous { dim: 3, low: vec![-1.0; 3], high: vec![1.0; 3] };
-        check_main_step(space, false);
-    }
-
-    #[test]
-    fn main_step_matches_candle_autograd_discrete_with_actionless_rows() {
-        check_main_step(ActionSpace::Discrete { n: 4 }, true);
+    /// [`SafediceTrainer`]'s main step (Eq. 36 + ν's penalty, Eq. 37) with fused gradients.
+    pub(super) fn main_step_fused(
+        &mut self,
+        batch: &MainDraws,
+        record: bool,
+    ) -> std::result::Result<Vec<(&'static str, f64)>, TrainError> {
+        let (s, s_next, s0) = (host(&batch.s)?, host(&batch.s_next)?, host(&batch.s0)?);
+        let (reward, discount) = (host(&batch.reward)?, host(&batch.discount)?);
+        let u = batch.penalty_u.as_ref().map(host).transpose()?;
+        let policy_obs = host(&batch.policy_obs)?;
+        let (pretanh, log_jacobian, index);
+        let actions = match &batch.actions {
+            ActionColumn::Continuous { pretanh: p, log_jacobian: j } => {
+                (pretanh, log_jacobian) = (host(p)?, host(j)?);
+                HostActions::Continuous { pretanh: &pretanh, log_jacobian: &log_jacobian }
+            }
+            ActionColumn::Discrete { index: i } => {
+                index = i.to_vec1::<u32>()?;
+                HostActions::Discrete { index: &index }
+            }
+        };
+        let fused = self.fused.as_mut().expect("fused path");
+        let out = fused.main_grads(
+            &self.nu,
+            self.policy.mlp(),
+            &HostMainBatch {
+                s: &s,
+                s_next: &s_next,
+                s0: &s0,
+                reward: &reward,
+                discount: &discount,
+                gamma: self.cfg.gamma as f32,
+                penalty: u.as_deref().map(|u| (u, self.cfg.nu_gp as f32)),
+                policy_obs: &policy_obs,
+                actions,
+                has_action: batch.has_action.as_deref(),
+            },
+        )?;
+        let nu_value = self.run.checked(&host_scalar(out.nu_loss)?, NU_LOSS.0, NU_LOSS.1)?;
+        let pi_value =
+            self.run.checked(&host_scalar(out.policy_loss)?, POLICY_LOSS.0, POLICY_LOSS.1)?;
+        self.nu_opt.step_with_grads(&self.nu.grads_from_fused(&fused.nu_grads)?)?;
+        let policy_grads = self.policy.mlp().grads_from_fused(&fused.policy_grads)?;
+        self.policy_opt.step_with_grads(&policy_grads)?;
+        self.run.step += 1;
+        if !record {
+            return Ok(Vec::new());
+        }
+        let (w, adv) = (fused.weights.clone(), fused.advantages.clone());
+        let values = [nu_value, out.nu_penalty as f64, pi_value, out.nu_initial_mean as f64];
+        Ok(self.main_metrics(values, &w, &adv))
     }
 }
+
+/// A tensor's values on the host, flattened (row-major).
+fn host(t: &Tensor) -> Result<Vec<f32>> {
+    t.flatten_all()?.to_vec1::<f32>()
+}
+
+/// A host loss as a scalar tensor for `RunData::checked`.
+fn host_scalar(value: f32) -> Result<Tensor> {
+    Tensor::new(value, &candle_core::Device::Cpu)
+}
+
+#[cfg(test)]
+mod tests;

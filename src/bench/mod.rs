@@ -10,11 +10,12 @@
 //!
 //! Files: [`runner`] (data, training, evaluation, the worker threads), [`summary`]
 //! (aggregation over seeds), [`report`] (the markdown, JSON and console outputs), [`plot`] (the
-//! SVG).
+//! SVG). Beside it: [`speed`] (`safedice speed`, the training speed of the SafeDICE trainer).
 
 pub mod plot;
 pub mod report;
 pub mod runner;
+pub mod speed;
 pub mod summary;
 
 use std::path::PathBuf;
@@ -275,8 +276,8 @@ fn parse_list<T: Clone>(
 /// command line recorded in results.md.
 pub fn run_cli(args: &BenchArgs, command: &str) -> anyhow::Result<()> {
     let config = args.to_config()?;
-    // One thread per training: candle's own pools collapse under load (candle-notes.md), and the
-    // benchmark already runs `threads` trainings side by side.
+    // One thread per training: candle's own pools collapse under load (docs/performance.md,
+    // "Threads"), and the benchmark already runs `threads` trainings side by side.
     if std::env::var_os("RAYON_NUM_THREADS").is_none() {
         std::env::set_var("RAYON_NUM_THREADS", "1");
     }

@@ -1,4 +1,5 @@
-//! Run configuration: presets (`service`, `paper`, `authors-code`), user overrides, validation.
+//! A training run's hyperparameters: presets (`service`, `paper`, `authors-code`), user
+//! overrides, validation. (The service's own settings are `crate::config`.)
 //!
 //! A user's `config` object is a flat JSON map: `"preset"` plus any knob of the chosen algorithm.
 //! [`resolve_config`] starts from the preset, overlays the user's keys, rejects unknown keys and
@@ -25,14 +26,14 @@ use super::Algorithm;
 /// A config the user got wrong; `message` names the key and what is allowed.
 #[derive(Debug, thiserror::Error)]
 #[error("{message}")]
-pub struct ConfigError {
+pub struct HyperparamError {
     pub key: String,
     pub message: String,
 }
 
-impl ConfigError {
+impl HyperparamError {
     fn new(key: &str, message: impl Into<String>) -> Self {
-        ConfigError { key: key.to_string(), message: message.into() }
+        HyperparamError { key: key.to_string(), message: message.into() }
     }
 }
 
@@ -260,12 +261,15 @@ impl ResolvedConfig {
         ResolvedConfig { common, specific }
     }
 
-    fn validate(&self) -> Result<(), ConfigError> {
+    fn validate(&self) -> Result<(), HyperparamError> {
         let c = &self.common;
         in_range("iterations", c.iterations as f64, 1.0, 1e8)?;
         in_range("batch_size", c.batch_size as f64, 1.0, 65536.0)?;
         in_range("hidden_sizes", c.hidden_sizes.len() as f64, 1.0, 8.0).map_err(|_| {
-            ConfigError::new("hidden_sizes", "config.hidden_sizes: must list 1 to 8 layer widths")
+            HyperparamError::new(
+                "hidden_sizes",
+                "config.hidden_sizes: must list 1 to 8 layer widths",
+            )
         })?;
         for &width in &c.hidden_sizes {
             in_range("hidden_sizes", width as f64, 1.0, 4096.0)?;
@@ -370,22 +374,22 @@ impl SafediceConfig {
     }
 }
 
-fn in_range(key: &str, value: f64, low: f64, high: f64) -> Result<(), ConfigError> {
+fn in_range(key: &str, value: f64, low: f64, high: f64) -> Result<(), HyperparamError> {
     if value.is_finite() && value >= low && value <= high {
         Ok(())
     } else {
-        Err(ConfigError::new(
+        Err(HyperparamError::new(
             key,
             format!("config.{key}: must be between {low} and {high}, got {value}"),
         ))
     }
 }
 
-fn learning_rate(key: &str, value: f64) -> Result<(), ConfigError> {
+fn learning_rate(key: &str, value: f64) -> Result<(), HyperparamError> {
     if value.is_finite() && value > 0.0 && value <= 1.0 {
         Ok(())
     } else {
-        Err(ConfigError::new(
+        Err(HyperparamError::new(
             key,
             format!("config.{key}: must be a learning rate in (0, 1], got {value}"),
         ))
@@ -397,17 +401,20 @@ const PHASE_KEYS: [&str; 2] = ["discriminator_iterations", "reward_model_iterati
 
 /// Parse a user's `config` object for `algorithm` ("preset" plus overrides). Unknown keys and
 /// out-of-range values are errors.
-pub fn resolve_config(algorithm: Algorithm, raw: &Value) -> Result<ResolvedConfig, ConfigError> {
+pub fn resolve_config(
+    algorithm: Algorithm,
+    raw: &Value,
+) -> Result<ResolvedConfig, HyperparamError> {
     let empty = Map::new();
     let user = match raw {
         Value::Null => &empty,
         Value::Object(map) => map,
-        _ => return Err(ConfigError::new("config", "config: must be a JSON object")),
+        _ => return Err(HyperparamError::new("config", "config: must be a JSON object")),
     };
     let preset = match user.get("preset") {
         None => Preset::Service,
         Some(v) => serde_json::from_value(v.clone()).map_err(|_| {
-            ConfigError::new(
+            HyperparamError::new(
                 "preset",
                 format!(
                     "config.preset: must be \"service\", \"paper\" or \"authors-code\", got {v}"
@@ -429,7 +436,7 @@ pub fn resolve_config(algorithm: Algorithm, raw: &Value) -> Result<ResolvedConfi
             let mut known: Vec<&str> =
                 default_map.keys().map(String::as_str).filter(|k| *k != "algorithm").collect();
             known.sort_unstable();
-            return Err(ConfigError::new(
+            return Err(HyperparamError::new(
                 key,
                 format!(
                     "config.{key}: unknown key for algorithm {algorithm} (known: {})",
@@ -449,13 +456,17 @@ pub fn resolve_config(algorithm: Algorithm, raw: &Value) -> Result<ResolvedConfi
         }
     }
     let config: ResolvedConfig = serde_json::from_value(Value::Object(merged))
-        .map_err(|e| ConfigError::new("config", format!("config: {e}")))?;
+        .map_err(|e| HyperparamError::new("config", format!("config: {e}")))?;
     config.validate()?;
     Ok(config)
 }
 
 /// Rejects a value whose JSON type differs from the default's, naming the key.
-fn check_type(key: &str, value: &Value, defaults: &Map<String, Value>) -> Result<(), ConfigError> {
+fn check_type(
+    key: &str,
+    value: &Value,
+    defaults: &Map<String, Value>,
+) -> Result<(), HyperparamError> {
     let mut probe = defaults.clone();
     probe.insert(key.to_string(), value.clone());
     let wrong = |e: serde_json::Error| {
@@ -467,7 +478,7 @@ fn check_type(key: &str, value: &Value, defaults: &Map<String, Value>) -> Result
             Value::String(_) => format!("one of the allowed names ({e})"),
             _ => e.to_string(),
         };
-        ConfigError::new(key, format!("config.{key}: must be {expected}, got {value}"))
+        HyperparamError::new(key, format!("config.{key}: must be {expected}, got {value}"))
     };
     serde_json::from_value::<ResolvedConfig>(Value::Object(probe)).map(|_| ()).map_err(wrong)
 }
