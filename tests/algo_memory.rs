@@ -2,7 +2,10 @@
 //! in the same memory as a run of a hundred. This binary holds one test so that the process's
 //! resident size is this test's alone.
 
-mod algo_support;
+// The tasks are shared with tests/learning; this test needs only the point task's data.
+#[allow(dead_code)]
+#[path = "support/tasks.rs"]
+mod tasks;
 
 use safedice::algo::{build_trainer, resolve_config, Algorithm};
 
@@ -22,7 +25,7 @@ fn resident_memory_stays_flat_over_training_steps() {
     const MEASURED: u64 = 200;
     const ALLOWED_GROWTH_MIB: f64 = 96.0;
     for algorithm in Algorithm::ALL {
-        let data = algo_support::point_training_data(0);
+        let data = tasks::point_training_data(0);
         // Enough iterations that the measured steps include the main (policy) phase.
         let raw = serde_json::json!({"iterations": 1000, "seed": 0});
         let config = resolve_config(algorithm, &raw).expect("config");

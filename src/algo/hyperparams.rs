@@ -334,10 +334,10 @@ impl SafediceConfig {
         }
     }
 
-    /// The service defaults, chosen by measurement (`cargo test --test algo_gridworld --
+    /// The service defaults, chosen by measurement (`cargo test --test learning --
     /// --ignored --nocapture measure_defaults`: SafeDICE with hidden [64, 64], batch 256, 500
     /// discriminator steps + 3000 iterations, seeds 0-2, greedy rollout from the start; the
-    /// gridworld and the 2-D point task of `tests/algo_support`, both with short episodes that
+    /// gridworld and the 2-D point task of `tests/support/tasks.rs`, both with short episodes that
     /// end in a terminal goal, 60% unsafe demonstrations in D^U). Safe route taken to the goal:
     ///
     /// | variant | gridworld | point |

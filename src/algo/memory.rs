@@ -18,7 +18,7 @@
 //! Measured peaks (resident set above the one at start, of a process that loads the datasets
 //! from their canonical bytes, builds the trainer and runs steps of every phase, with a
 //! checkpoint; debug build of this crate, optimised dependencies, 2-core x86-64, `cargo test
-//! --test algo_memory_estimate -- --ignored --nocapture`) against this estimate; every
+//! --test learning memory_estimate -- --ignored --nocapture`) against this estimate; every
 //! estimate is an upper bound, within 2.5x of the measured peak:
 //!
 //! | case | measured MiB | estimate MiB | estimate / measured |
@@ -236,7 +236,7 @@ mod tests {
 
     type Measured = (Algorithm, serde_json::Value, (u64, u64), u64, ActionSpace, f64);
 
-    /// The cases of the module's table as `tests/algo_memory_estimate.rs` measured them:
+    /// The cases of the module's table as `tests/learning/memory_estimate.rs` measured them:
     /// (algorithm, config, D^U (transitions, episode length), obs dim, action space, measured
     /// peak in MiB); D^N has a tenth of D^U's transitions.
     fn measured() -> Vec<Measured> {

@@ -1,6 +1,7 @@
 //! The OpenAPI description: generated from the handlers' annotations, served at
 //! `GET /v1/openapi.json` and committed as `api/openapi.yaml` (a test fails when that file is
-//! stale; `UPDATE_OPENAPI=1 cargo test --test http_openapi` or `safedice openapi` regenerates it).
+//! stale; `UPDATE_OPENAPI=1 cargo test --test http openapi::` or `safedice openapi` regenerates
+//! it).
 
 use std::sync::OnceLock;
 

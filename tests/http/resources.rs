@@ -8,16 +8,13 @@
 //! say so on stderr and skip, and the classification of real ENOSPC and SQLITE_FULL errors is
 //! still covered by the unit tests of `src/store/storage.rs`.
 
-mod common;
-mod jobs_support;
-
 use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::Duration;
 
-use common::{assert_error, TestApp};
-use jobs_support::*;
+use crate::support::app::{assert_error, TestApp};
+use crate::support::jobs::*;
 use reqwest::StatusCode;
 use serde_json::{json, Value};
 

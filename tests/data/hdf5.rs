@@ -1,5 +1,6 @@
 //! HDF5 uploads (DSRL's format), only with `--features hdf5`:
-//! `cargo test --features hdf5 --test data_hdf5` (needs libhdf5, e.g. `apt-get install libhdf5-dev`).
+//! `cargo test --features hdf5 --test data hdf5::` (needs libhdf5, e.g.
+//! `apt-get install libhdf5-dev`).
 #![cfg(feature = "hdf5")]
 
 use hdf5_metno as h5;

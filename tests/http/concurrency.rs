@@ -3,15 +3,12 @@
 //! never a 5xx (a lock SQLite could not upgrade used to surface as 500 "database is locked"),
 //! and a job is never accepted for a dataset deleted at the same moment.
 
-mod common;
-mod jobs_support;
-
 use std::collections::BTreeMap;
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
-use common::TestApp;
-use jobs_support::*;
+use crate::support::app::TestApp;
+use crate::support::jobs::*;
 use reqwest::{Response, StatusCode};
 use serde_json::{json, Value};
 

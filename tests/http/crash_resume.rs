@@ -11,8 +11,6 @@
 //! A checkpoint holds the whole state of a run (src/algo/checkpoint.rs), so equal checkpoints
 //! mean every later step is equal too.
 
-mod jobs_support;
-
 use std::collections::BTreeMap;
 use std::path::Path;
 use std::process::{Child, Command, Stdio};
@@ -20,7 +18,7 @@ use std::str::FromStr;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use jobs_support::*;
+use crate::support::jobs::*;
 use safedice::algo::{self, ResolvedConfig, TrainingData};
 use serde_json::json;
 use sqlx::sqlite::SqliteConnectOptions;

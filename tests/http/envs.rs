@@ -1,9 +1,7 @@
 //! GET /v1/envs through the real server: every built-in environment with the spaces that
 //! datagen's data and the evaluation use, behind the API token like the rest of /v1.
 
-mod common;
-
-use common::{assert_error, TestApp};
+use crate::support::app::{assert_error, TestApp};
 use reqwest::StatusCode;
 use serde_json::{json, Value};
 

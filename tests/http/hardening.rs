@@ -2,15 +2,13 @@
 //! within bounded memory and get short answers, slow or idle clients are cut off, a closed log
 //! pipe neither stops the service nor its shutdown, and out-of-range inputs get 400/422.
 
-mod common;
-
 use std::io::{Read, Write};
 use std::net::{Shutdown, TcpStream};
 use std::path::Path;
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
-use common::{assert_error, TestApp};
+use crate::support::app::{assert_error, TestApp};
 use reqwest::StatusCode;
 
 /// Longest any liveness wait below lasts before the test gives up (a bound, not a timing claim).

@@ -2,9 +2,7 @@
 //! and 40% of a safe detour, with 20 shortcut demonstrations labeled non-preferred: SafeDICE's
 //! greedy policy must take the detour, BC's follows the majority through the hazards.
 
-mod algo_support;
-
-use algo_support::*;
+use crate::support::tasks::*;
 use safedice::algo::Algorithm;
 use serde_json::json;
 
@@ -39,7 +37,7 @@ fn safedice_takes_the_safe_route_and_bc_does_not() {
 }
 
 /// Measurements behind the `service` defaults (not a check: prints a table). Run with
-/// `cargo test --test algo_gridworld -- --ignored --nocapture measure_defaults`; set
+/// `cargo test --test learning -- --ignored --nocapture measure_defaults`; set
 /// `MEASURE_ONLY=<substring>` to run only the matching "task | variant" rows and
 /// `MEASURE_SEEDS=<n>` for fewer seeds (default 3).
 #[test]

@@ -1,7 +1,7 @@
 //! Measures the peak memory of training runs and compares it with the admission estimate
 //! (`safedice::algo::memory`), whose unit test keeps the numbers measured here.
 //!
-//! `cargo test --test algo_memory_estimate -- --ignored --nocapture` runs every case in a fresh
+//! `cargo test --test learning memory_estimate -- --ignored --nocapture` runs every case in a fresh
 //! child process (this binary again, so one case's allocations never count for another): the
 //! child reads the datasets' canonical bytes from files and decodes them as a worker does, builds
 //! the trainer, runs steps of every phase with a checkpoint after each, exports the policy, and
@@ -20,6 +20,8 @@ use serde_json::{json, Value};
 
 const CASE_VAR: &str = "SAFEDICE_MEMORY_CASE";
 const DIR_VAR: &str = "SAFEDICE_MEMORY_DIR";
+/// The child's test, by its full name in the test binary (tests/learning).
+const CHILD_TEST: &str = "memory_estimate::child_measure";
 
 struct Case {
     name: &'static str,
@@ -240,7 +242,7 @@ fn estimates_bound_measured_peaks() {
                 .unwrap();
         }
         let output = Command::new(std::env::current_exe().unwrap())
-            .args(["--exact", "child_measure", "--ignored", "--nocapture", "--test-threads", "1"])
+            .args(["--exact", CHILD_TEST, "--ignored", "--nocapture", "--test-threads", "1"])
             .env(CASE_VAR, index.to_string())
             .env(DIR_VAR, dir.path())
             .output()

@@ -1,10 +1,8 @@
 //! The committed API description (api/openapi.yaml) must be what the code generates, and the
 //! server must serve the same document. Regenerate after changing a handler:
-//! `UPDATE_OPENAPI=1 cargo test --test http_openapi` (or `safedice openapi > api/openapi.yaml`).
+//! `UPDATE_OPENAPI=1 cargo test --test http openapi::` (or `safedice openapi > api/openapi.yaml`).
 
-mod common;
-
-use common::TestApp;
+use crate::support::app::TestApp;
 
 const COMMITTED: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/api/openapi.yaml");
 
@@ -19,7 +17,7 @@ fn committed_openapi_yaml_is_up_to_date() {
     assert!(
         committed == generated,
         "api/openapi.yaml is stale: regenerate it with `UPDATE_OPENAPI=1 cargo test --test \
-         http_openapi` and commit the result"
+         http openapi::` and commit the result"
     );
 }
 

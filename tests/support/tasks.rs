@@ -1,7 +1,6 @@
 //! Small hand-written tasks for the training-core tests: a gridworld with a safe detour and a
 //! hazardous shortcut, and a 2-D point task with the same structure and continuous actions.
 //! (The real benchmark environments live in src/envs; these stay tiny and self-contained.)
-#![allow(dead_code)]
 
 use std::sync::Arc;
 

@@ -2,14 +2,11 @@
 //! gridworld data, follow them, query actions over /act and the KServe v2 protocol, download the
 //! weights; cancel; and the exact status and code of every bad request.
 
-mod common;
-mod jobs_support;
-
 use std::time::Duration;
 
-use common::{assert_error, TestApp};
+use crate::support::app::{assert_error, TestApp};
+use crate::support::jobs::*;
 use futures::StreamExt;
-use jobs_support::*;
 use rand::SeedableRng;
 use reqwest::StatusCode;
 use safedice::algo::{Policy, PolicySpec};
@@ -269,7 +266,7 @@ async fn bad_job_requests_get_the_exact_status_and_code_and_store_nothing() {
     let app = TestApp::spawn().await;
     let (u, n) = upload_grid(&app).await;
     // Continuous actions: its spaces disagree with the discrete gridworld's.
-    let point = jobs_support::algo_support::point_dataset(5, 5, 0);
+    let point = crate::support::tasks::point_dataset(5, 5, 0);
     let p = upload(&app.client, &app.base_url, &point, "point").await;
     let cases = [
         (

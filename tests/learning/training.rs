@@ -3,11 +3,9 @@
 //! the non-finite guard, and alpha-hat against a discriminator trained on data with a known
 //! answer.
 
-mod algo_support;
-
 use std::sync::Arc;
 
-use algo_support::*;
+use crate::support::tasks::*;
 use safedice::algo::{self, Algorithm, Policy, TrainError, Trainer, TrainingData};
 use safedice::data::{ActionSpace, Actions, Dataset};
 use serde_json::{json, Value};

@@ -3,9 +3,7 @@
 //! answer SVG for good input and the usual error body for bad input. What the pages do in a
 //! browser is tested in tests/browser/.
 
-mod common;
-
-use common::{assert_error, TestApp};
+use crate::support::app::{assert_error, TestApp};
 use reqwest::{header, StatusCode};
 use serde_json::json;
 

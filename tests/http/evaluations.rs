@@ -3,13 +3,10 @@
 //! exactly the metrics of evaluating the downloaded weights locally; bad requests get their exact
 //! status and store nothing; an evaluation interrupted by a restart runs again.
 
-mod common;
-mod jobs_support;
-
 use std::time::{Duration, Instant};
 
-use common::{assert_error, TestApp};
-use jobs_support::*;
+use crate::support::app::{assert_error, TestApp};
+use crate::support::jobs::*;
 use rand_chacha::ChaCha8Rng;
 use reqwest::StatusCode;
 use safedice::algo::{Policy, PolicySpec};

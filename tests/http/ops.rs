@@ -1,9 +1,7 @@
 //! The server's operational surface through real HTTP: health, readiness, metrics, request
 //! ids, the error shape of unknown routes and methods, bearer auth, CORS, start-up checks.
 
-mod common;
-
-use common::{assert_error, TestApp};
+use crate::support::app::{assert_error, TestApp};
 use reqwest::StatusCode;
 use safedice::config::ServeConfig;
 use safedice::server::Server;
@@ -122,7 +120,7 @@ async fn metrics_count_requests_by_route_and_read_the_job_queue() {
     }
     app.get("/v1/no-such-route").send().await.unwrap();
     // No queued rows: the worker pool would claim them (and fail them, as they name no real
-    // dataset). Queue depth with real jobs is checked in tests/http_jobs.rs.
+    // dataset). Queue depth with real jobs is checked in tests/http/jobs.rs.
     app.insert_job("job-1", "succeeded", "ds-a", None).await;
     app.insert_job("job-2", "failed", "ds-a", Some("ds-b")).await;
     app.insert_job("job-3", "running", "ds-a", None).await;

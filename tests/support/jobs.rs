@@ -1,20 +1,18 @@
 //! Helpers of the job and policy tests: small datasets uploaded through the real API, jobs
 //! queued and polled over HTTP. The data is the training core's gridworld
-//! (tests/algo_support), written with the library's own NPZ writer.
-#![allow(dead_code)] // each test binary uses a different subset
+//! (tests/support/tasks.rs), written with the library's own NPZ writer.
 
 use std::time::{Duration, Instant};
 
 use reqwest::{Client, StatusCode};
 use serde_json::{json, Value};
 
-#[path = "../algo_support/mod.rs"]
-pub mod algo_support;
+use super::tasks;
 
 use safedice::data::Dataset;
 
 /// Observation width of the gridworld (one-hot cells).
-pub const GRID_OBS_DIM: usize = algo_support::GRID_CELLS;
+pub const GRID_OBS_DIM: usize = tasks::GRID_CELLS;
 
 /// A small network config: jobs of a few hundred steps take seconds in a debug build.
 pub fn small_config(iterations: u64, seed: u64) -> Value {
@@ -30,7 +28,7 @@ pub const ENDLESS_ITERATIONS: u64 = 100_000_000;
 
 /// The gridworld's unlabeled (40 safe + 60 unsafe episodes) and non-preferred (20 unsafe) sets.
 pub fn grid_datasets() -> (Dataset, Dataset) {
-    (algo_support::grid_dataset(40, 60, 3), algo_support::grid_dataset(0, 20, 1003))
+    (tasks::grid_dataset(40, 60, 3), tasks::grid_dataset(0, 20, 1003))
 }
 
 /// Uploads `dataset` as NPZ through `POST /v1/datasets`; returns its id.

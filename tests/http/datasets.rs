@@ -2,9 +2,7 @@
 //! SQLite file, each class of bad input with its status and code and nothing stored, the upload
 //! limit, pagination, deletion (and its refusal while a job needs the data), restart.
 
-mod common;
-
-use common::{assert_error, TestApp};
+use crate::support::app::{assert_error, TestApp};
 use reqwest::StatusCode;
 use safedice::data::{write_csv, write_jsonl, write_npz, ActionSpace, Actions, Dataset};
 use safedice::store::Store;

@@ -1,7 +1,6 @@
 //! Test harness shared by the HTTP tests: starts the real server (the same code path as
 //! `safedice serve`) on a free loopback port with a fresh temp data directory, and talks HTTP
 //! to it. Reusable by every resource's tests: `TestApp::spawn().await`, then `app.get(path)`.
-#![allow(dead_code)] // each test binary uses a different subset
 
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
