@@ -14,6 +14,7 @@ mod support {
     pub mod tasks;
 }
 
+mod algorithms;
 mod concurrency;
 mod crash_resume;
 mod datasets;

@@ -16,6 +16,7 @@ async fn the_dashboard_and_its_assets_are_served_without_a_token() {
     assert_eq!(index.status(), StatusCode::OK);
     assert_eq!(index.headers()[header::CONTENT_TYPE], "text/html; charset=utf-8");
     let html = index.text().await.unwrap();
+    assert!(html.contains(r#"<script src="/ui/algorithms.js" defer></script>"#));
     assert!(html.contains(r#"<script src="/ui/app.js" defer></script>"#));
     assert!(html.contains(r#"href="/ui/style.css""#));
     // Nothing the page loads comes from another origin.
@@ -23,7 +24,8 @@ async fn the_dashboard_and_its_assets_are_served_without_a_token() {
 
     for (path, content_type, marker) in [
         ("/ui/app.js", "text/javascript; charset=utf-8", "function route()"),
-        ("/ui/style.css", "text/css; charset=utf-8", "--algo-safedice"),
+        ("/ui/algorithms.js", "text/javascript; charset=utf-8", "const ALGORITHM_TABLE = ["),
+        ("/ui/style.css", "text/css; charset=utf-8", ".badge"),
         ("/ui/favicon.svg", "image/svg+xml", "<svg"),
     ] {
         let response = anonymous(path).await.unwrap();
