@@ -28,7 +28,7 @@ enum Command {
     /// Training-speed benchmark of the SafeDICE trainer on synthetic data: main-loop
     /// iterations/s (nu step on s, s', s0 + policy step, discriminator frozen), discriminator
     /// steps/s (with its gradient penalty), the achieved GFLOP/s of each and their fraction of
-    /// the GEMM peak measured at start-up.
+    /// the GEMM peak measured after them.
     Speed(SpeedArgs),
     /// Train every algorithm on every built-in environment, evaluate with the paper's metrics
     /// and write results.md (mean ± standard error over seeds), results.json and SVG plots.
