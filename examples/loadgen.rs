@@ -16,7 +16,7 @@ use anyhow::{bail, Context};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use safedice::config::ServeConfig;
-use safedice::data::{ActionSpace, Actions, Dataset};
+use safedice::data::{ActionSpace, Actions, Dataset, DatasetParts};
 use safedice::server::Server;
 use serde_json::{json, Value};
 
@@ -65,7 +65,7 @@ fn synthetic_dataset() -> Dataset {
             (x * 0.5 + rng.random_range(-0.1..0.1)).tanh()
         })
         .collect();
-    Dataset {
+    Dataset::new(DatasetParts {
         obs_dim: OBS_DIM,
         action_space: ActionSpace::Continuous {
             dim: ACTION_DIM,
@@ -79,7 +79,8 @@ fn synthetic_dataset() -> Dataset {
         episode_ids: (0..n).map(|i| (i / length) as u32).collect(),
         rewards: None,
         costs: None,
-    }
+    })
+    .unwrap()
 }
 
 /// An in-process server on its own temporary data directory (removed when dropped).

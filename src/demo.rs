@@ -159,7 +159,7 @@ async fn drive(args: &DemoArgs, base: &str, dir: &Path) -> anyhow::Result<Vec<De
     }
     let (_, first) = &finished[0];
     let first_policy = first["policy_id"].as_str().unwrap_or_default();
-    let obs_dim = generated.unlabeled.obs_dim;
+    let obs_dim = generated.unlabeled.obs_dim();
     let observation: Vec<f32> = generated.unlabeled.obs(0).to_vec();
     let act = post_json(
         &client,

@@ -12,7 +12,7 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use safedice::data::{
     decode_canonical, encode_canonical, parse_file, write_csv, write_jsonl, write_npz, ActionSpace,
-    Actions, Dataset,
+    Actions, Dataset, DatasetParts,
 };
 
 type Writer = fn(&Dataset, &std::path::Path) -> std::io::Result<()>;
@@ -27,7 +27,7 @@ fn walker_sized() -> Dataset {
     let mut normal =
         |len: usize| -> Vec<f32> { (0..len).map(|_| rng.random_range(-3.0f32..3.0)).collect() };
     let actions: Vec<f32> = normal(TRANSITIONS * ACT_DIM).iter().map(|a| a / 3.0).collect();
-    Dataset {
+    Dataset::new(DatasetParts {
         obs_dim: OBS_DIM,
         action_space: ActionSpace::infer_continuous(&actions, ACT_DIM),
         observations: normal(TRANSITIONS * OBS_DIM),
@@ -37,7 +37,8 @@ fn walker_sized() -> Dataset {
         episode_ids: (0..TRANSITIONS).map(|i| (i / EPISODE_LEN) as u32).collect(),
         rewards: Some(normal(TRANSITIONS)),
         costs: Some(normal(TRANSITIONS)),
-    }
+    })
+    .unwrap()
 }
 
 fn reset_peak_rss() {
@@ -59,7 +60,8 @@ fn peak_rss_mib() -> f64 {
 fn parse_throughput_and_peak_memory() {
     let dir = tempfile::tempdir().unwrap();
     let d = walker_sized();
-    let column_mib = (d.observations.len() * 2 + d.len() * (ACT_DIM + 4)) as f64 * 4.0 / 1048576.0;
+    let column_mib =
+        (d.observations().len() * 2 + d.len() * (ACT_DIM + 4)) as f64 * 4.0 / 1048576.0;
     eprintln!("{} transitions, obs {OBS_DIM}, act {ACT_DIM}: columns {column_mib:.1} MiB", d.len());
     let writers: [(&str, Writer); 3] =
         [("d.jsonl", write_jsonl), ("d.csv", write_csv), ("d.npz", write_npz)];

@@ -23,16 +23,16 @@ pub struct ObsNormalizer {
 
 impl ObsNormalizer {
     pub fn from_dataset(d: &Dataset) -> ObsNormalizer {
-        let dim = d.obs_dim;
+        let dim = d.obs_dim();
         let n = d.len().max(1) as f64;
         let mut mean = vec![0f64; dim];
-        for row in d.observations.chunks_exact(dim) {
+        for row in d.observations().chunks_exact(dim) {
             for (m, &x) in mean.iter_mut().zip(row) {
                 *m += x as f64 / n;
             }
         }
         let mut var = vec![0f64; dim];
-        for row in d.observations.chunks_exact(dim) {
+        for row in d.observations().chunks_exact(dim) {
             for ((v, &x), m) in var.iter_mut().zip(row).zip(&mean) {
                 *v += (x as f64 - m).powi(2) / n;
             }
@@ -116,14 +116,14 @@ impl Columns {
         device: &Device,
     ) -> Result<Columns> {
         let n = d.len();
-        let dim = d.obs_dim;
-        let mut obs = d.observations.clone();
-        let mut next_obs = d.next_observations.clone();
+        let dim = d.obs_dim();
+        let mut obs = d.observations().to_vec();
+        let mut next_obs = d.next_observations().to_vec();
         if let Some(norm) = normalizer {
             norm.apply(&mut obs);
             norm.apply(&mut next_obs);
         }
-        let (action_input, actions) = action_tensors(&d.actions, space, n, device)?;
+        let (action_input, actions) = action_tensors(d.actions(), space, n, device)?;
         let mut start_of_row = Vec::with_capacity(n);
         let ranges = d.episode_ranges();
         for r in &ranges {
@@ -136,8 +136,8 @@ impl Columns {
             next_obs: Tensor::from_vec(next_obs, (n, dim), device)?,
             action_input,
             actions,
-            terminals: d.terminals.clone(),
-            episode_ids: d.episode_ids.clone(),
+            terminals: d.terminals().to_vec(),
+            episode_ids: d.episode_ids().to_vec(),
             episode_starts: ranges.iter().map(|r| r.start as u32).collect(),
             start_of_row,
         })
@@ -240,18 +240,18 @@ pub fn one_hot(actions: &[u32], count: usize, device: &Device) -> Result<Tensor>
 /// A short digest of a dataset's columns, so a checkpoint can refuse other data.
 pub fn fingerprint(d: &Dataset) -> String {
     let mut h = Sha256::new();
-    h.update((d.obs_dim as u64).to_le_bytes());
-    for v in [&d.observations, &d.next_observations] {
+    h.update((d.obs_dim() as u64).to_le_bytes());
+    for v in [d.observations(), d.next_observations()] {
         for x in v.iter() {
             h.update(x.to_le_bytes());
         }
     }
-    match &d.actions {
+    match d.actions() {
         Actions::Continuous(a) => a.iter().for_each(|x| h.update(x.to_le_bytes())),
         Actions::Discrete(a) => a.iter().for_each(|x| h.update(x.to_le_bytes())),
     }
-    h.update(d.terminals.iter().map(|&t| t as u8).collect::<Vec<_>>());
-    d.episode_ids.iter().for_each(|x| h.update(x.to_le_bytes()));
+    h.update(d.terminals().iter().map(|&t| t as u8).collect::<Vec<_>>());
+    d.episode_ids().iter().for_each(|x| h.update(x.to_le_bytes()));
     hex::encode(&h.finalize()[..16])
 }
 

@@ -73,8 +73,8 @@ impl DataShape {
         let longest = dataset.episode_ranges().iter().map(|r| r.len()).max().unwrap_or(0);
         DataShape {
             transitions: dataset.len() as u64,
-            obs_dim: dataset.obs_dim as u64,
-            action_space: dataset.action_space.clone(),
+            obs_dim: dataset.obs_dim() as u64,
+            action_space: dataset.action_space().clone(),
             longest_episode: longest as u64,
         }
     }

@@ -140,16 +140,11 @@ pub trait Trainer: Send {
     fn export_policy(&self) -> Result<PolicyArtifact, TrainError>;
 }
 
-/// Check the datasets fit the config: both internally consistent, and [`check_fit`].
+/// Check the datasets fit the config ([`check_fit`]); a [`Dataset`](crate::data::Dataset) is
+/// consistent by construction.
 pub fn check_data(config: &ResolvedConfig, data: &TrainingData) -> Result<(), HyperparamError> {
-    let bad = |key: &str, message: String| HyperparamError { key: key.to_string(), message };
-    let unlabeled = &data.unlabeled;
-    unlabeled.check().map_err(|e| bad("unlabeled", format!("unlabeled dataset: {e}")))?;
-    if let Some(n) = &data.non_preferred {
-        n.check().map_err(|e| bad("non_preferred", format!("non-preferred dataset: {e}")))?;
-    }
     let non_preferred = data.non_preferred.as_deref().map(DataShape::of);
-    check_fit(config, &DataShape::of(unlabeled), non_preferred.as_ref())
+    check_fit(config, &DataShape::of(&data.unlabeled), non_preferred.as_ref())
 }
 
 /// Check datasets of these shapes fit the config (non-preferred present when needed, spaces

@@ -33,7 +33,7 @@ impl RunData {
         let u = &data.unlabeled;
         let normalizer =
             config.common.normalize_observations.then(|| ObsNormalizer::from_dataset(u));
-        let space = u.action_space.clone();
+        let space = u.action_space().clone();
         let mut digest = fingerprint(u);
         let n = match &data.non_preferred {
             Some(n) if config.algorithm().needs_non_preferred() => {
@@ -48,7 +48,7 @@ impl RunData {
             n,
             normalizer,
             space,
-            obs_dim: u.obs_dim,
+            obs_dim: u.obs_dim(),
             fingerprint: digest,
             device,
             rng: ChaCha8Rng::seed_from_u64(config.seed()),

@@ -161,8 +161,7 @@ fn prepare(config: &BenchConfig, env: &str) -> Result<(Prepared, EnvData), Bench
         transitions = generated.unlabeled.len(),
         "bench: data generated"
     );
-    let non_preferred =
-        (config.data.labeled > 0).then(|| Arc::new(generated.labeled_non_preferred));
+    let non_preferred = generated.labeled_non_preferred.map(Arc::new);
     let prepared = Prepared {
         data: TrainingData { unlabeled: Arc::new(generated.unlabeled), non_preferred },
         non_preferred_ids: m.unlabeled_non_preferred_episode_ids,

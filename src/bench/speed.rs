@@ -23,7 +23,7 @@ use rand_distr::{Distribution, StandardNormal};
 use crate::algo::fused_mlp::{peak_gemm_gflops, MlpShape};
 use crate::algo::safedice::SafediceTrainer;
 use crate::algo::{resolve_config, Algorithm, Trainer, TrainingData};
-use crate::data::{ActionSpace, Actions, Dataset};
+use crate::data::{ActionSpace, Actions, Dataset, DatasetParts};
 
 /// Which path of [`SafediceTrainer`] runs the hot loops.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
@@ -146,7 +146,7 @@ fn synthetic_dataset(
             ),
         ),
     };
-    Dataset {
+    Dataset::new(DatasetParts {
         obs_dim: cfg.obs_dim,
         action_space,
         observations,
@@ -156,7 +156,8 @@ fn synthetic_dataset(
         episode_ids: (0..n).map(|i| (i / len) as u32).collect(),
         rewards: None,
         costs: None,
-    }
+    })
+    .unwrap()
 }
 
 /// A SafeDICE trainer (`authors-code` preset: both gradient penalties on) on synthetic data with

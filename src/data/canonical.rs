@@ -15,7 +15,7 @@ use safetensors::tensor::{Dtype, TensorView};
 use safetensors::SafeTensors;
 
 use super::error::ParseError;
-use super::model::{ActionSpace, Actions, Dataset};
+use super::model::{ActionSpace, Actions, Dataset, DatasetParts};
 
 /// One tensor to write: name, dtype, shape, little-endian bytes.
 type Column<'a> = (&'static str, Dtype, Vec<usize>, Cow<'a, [u8]>);
@@ -23,23 +23,23 @@ type Column<'a> = (&'static str, Dtype, Vec<usize>, Cow<'a, [u8]>);
 const FORMAT_TAG: &str = "safedice-dataset";
 const VERSION: &str = "1";
 
-/// Encodes a dataset (assumed to pass [`Dataset::check`]) into the canonical form.
+/// Encodes a dataset into the canonical form.
 pub fn encode_canonical(d: &Dataset) -> Vec<u8> {
     let n = d.len();
-    let terminals: Vec<u8> = d.terminals.iter().map(|&t| t as u8).collect();
+    let terminals: Vec<u8> = d.terminals().iter().map(|&t| t as u8).collect();
     let mut tensors: Vec<Column> = vec![
-        ("observations", Dtype::F32, vec![n, d.obs_dim], f32_bytes(&d.observations)),
-        ("next_observations", Dtype::F32, vec![n, d.obs_dim], f32_bytes(&d.next_observations)),
+        ("observations", Dtype::F32, vec![n, d.obs_dim()], f32_bytes(d.observations())),
+        ("next_observations", Dtype::F32, vec![n, d.obs_dim()], f32_bytes(d.next_observations())),
         ("terminals", Dtype::U8, vec![n], Cow::Borrowed(&terminals)),
-        ("episode_ids", Dtype::U32, vec![n], u32_bytes(&d.episode_ids)),
+        ("episode_ids", Dtype::U32, vec![n], u32_bytes(d.episode_ids())),
     ];
-    match &d.actions {
+    match d.actions() {
         Actions::Continuous(a) => {
-            tensors.push(("actions", Dtype::F32, vec![n, d.action_space.width()], f32_bytes(a)))
+            tensors.push(("actions", Dtype::F32, vec![n, d.action_space().width()], f32_bytes(a)))
         }
         Actions::Discrete(a) => tensors.push(("actions", Dtype::U32, vec![n], u32_bytes(a))),
     }
-    for (name, column) in [("rewards", &d.rewards), ("costs", &d.costs)] {
+    for (name, column) in [("rewards", d.rewards()), ("costs", d.costs())] {
         if let Some(values) = column {
             tensors.push((name, Dtype::F32, vec![n], f32_bytes(values)));
         }
@@ -52,16 +52,17 @@ pub fn encode_canonical(d: &Dataset) -> Vec<u8> {
     let metadata = HashMap::from([
         ("format".to_string(), FORMAT_TAG.to_string()),
         ("version".to_string(), VERSION.to_string()),
-        ("obs_dim".to_string(), d.obs_dim.to_string()),
+        ("obs_dim".to_string(), d.obs_dim().to_string()),
         (
             "action_space".to_string(),
-            serde_json::to_string(&d.action_space).expect("action space serialises"),
+            serde_json::to_string(d.action_space()).expect("action space serialises"),
         ),
     ]);
     safetensors::serialize(views, Some(metadata)).expect("safetensors header fits")
 }
 
-/// Decodes the canonical form, re-running [`Dataset::check`] (storage may have been damaged).
+/// Decodes the canonical form; [`Dataset::new`] checks the columns again (storage may have
+/// been damaged).
 pub fn decode_canonical(bytes: &[u8]) -> Result<Dataset, ParseError> {
     let corrupt =
         |what: String| ParseError::corrupt_canonical(format!("canonical dataset: {what}"));
@@ -101,7 +102,7 @@ pub fn decode_canonical(bytes: &[u8]) -> Result<Dataset, ParseError> {
     if terminals.iter().any(|&t| t > 1) {
         return Err(corrupt("`terminals` holds a value other than 0/1".into()));
     }
-    let dataset = Dataset {
+    Dataset::new(DatasetParts {
         obs_dim,
         action_space,
         observations: f32s(required("observations", Dtype::F32)?),
@@ -111,9 +112,8 @@ pub fn decode_canonical(bytes: &[u8]) -> Result<Dataset, ParseError> {
         episode_ids: u32s(required("episode_ids", Dtype::U32)?),
         rewards: column("rewards", Dtype::F32)?.map(f32s),
         costs: column("costs", Dtype::F32)?.map(f32s),
-    };
-    dataset.check().map_err(|e| corrupt(e.to_string()))?;
-    Ok(dataset)
+    })
+    .map_err(|e| corrupt(e.to_string()))
 }
 
 // Columns as little-endian bytes: a borrow on little-endian machines, a copy elsewhere. Decoding

@@ -57,7 +57,7 @@ impl ParseError {
 }
 
 impl From<ModelError> for ParseError {
-    /// Column-level inconsistencies found by [`super::Dataset::check`] after a parser built the
+    /// Column-level inconsistencies found by [`super::Dataset::new`] when a parser builds the
     /// columns; parsers catch most of these earlier with line numbers, this is the safety net.
     fn from(err: ModelError) -> Self {
         match err {

@@ -12,7 +12,7 @@
 //! set is always the first observation of each episode.
 
 use super::error::ParseError;
-use super::model::{ActionSpace, Actions, Dataset};
+use super::model::{ActionSpace, Actions, Dataset, DatasetParts};
 use super::rows::MAX_DISCRETE_ACTIONS;
 
 /// One array read from a container, converted to one of three element kinds.
@@ -140,7 +140,7 @@ pub fn assemble(source: &mut impl ArraySource) -> Result<Dataset, ParseError> {
         None => split_episodes(&terminals, timeouts.as_deref()),
     };
     let action_space = action_space(source, &actions, action_dim)?;
-    let dataset = Dataset {
+    Ok(Dataset::new(DatasetParts {
         obs_dim,
         action_space,
         observations,
@@ -150,9 +150,7 @@ pub fn assemble(source: &mut impl ArraySource) -> Result<Dataset, ParseError> {
         episode_ids,
         rewards,
         costs,
-    };
-    dataset.check()?;
-    Ok(dataset)
+    })?)
 }
 
 /// A finite float matrix N×d (a 1-D array is N×1).
@@ -309,7 +307,7 @@ fn split_episodes(terminals: &[bool], timeouts: Option<&[bool]>) -> Vec<u32> {
     ids
 }
 
-/// Explicit `episode_ids`: contiguity is checked by `Dataset::check`; here every terminal or
+/// Explicit `episode_ids`: contiguity is checked by `Dataset::new`; here every terminal or
 /// timeout must end its episode.
 fn given_episode_ids(
     array: Array,

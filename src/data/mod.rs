@@ -30,7 +30,7 @@ use serde::{Deserialize, Serialize};
 
 pub use canonical::{decode_canonical, encode_canonical};
 pub use error::ParseError;
-pub use model::{ActionSpace, Actions, Dataset, ModelError};
+pub use model::{ActionSpace, Actions, Dataset, DatasetParts, ModelError};
 pub use rows::MAX_DISCRETE_ACTIONS;
 pub use stats::{stats, DatasetStats, Summary};
 pub use writers::{write_csv, write_jsonl, write_npz};

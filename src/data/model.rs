@@ -81,10 +81,10 @@ pub enum Actions {
     Discrete(Vec<u32>),
 }
 
-/// A dataset of transitions, stored as columns. Episodes are contiguous runs of equal
-/// `episode_ids`; the first transition of each episode gives the initial-state set p0.
+/// The columns of a dataset before they are checked: what parsers and generators assemble,
+/// and what [`Dataset::new`] turns into a [`Dataset`] once the columns agree.
 #[derive(Clone, Debug, PartialEq)]
-pub struct Dataset {
+pub struct DatasetParts {
     pub obs_dim: usize,
     pub action_space: ActionSpace,
     /// `N × obs_dim`, row-major.
@@ -101,6 +101,15 @@ pub struct Dataset {
     /// Per-transition costs, kept for reporting only.
     pub costs: Option<Vec<f32>>,
 }
+
+/// A dataset of transitions, stored as columns. Episodes are contiguous runs of equal
+/// `episode_ids`; the first transition of each episode gives the initial-state set p0.
+///
+/// Valid by construction: the only way to build one is [`Dataset::new`], which checks that
+/// the columns agree (non-empty, matching lengths, finite values, contiguous episodes, actions
+/// inside the action space), so code holding a `Dataset` need not check it again.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Dataset(DatasetParts);
 
 /// Why a [`Dataset`] is internally inconsistent.
 #[derive(Debug, thiserror::Error, PartialEq)]
@@ -120,23 +129,78 @@ pub enum ModelError {
 }
 
 impl Dataset {
+    /// The dataset of these columns, or why they do not agree.
+    pub fn new(parts: DatasetParts) -> Result<Dataset, ModelError> {
+        let dataset = Dataset(parts);
+        dataset.check()?;
+        Ok(dataset)
+    }
+
+    /// The columns, to be reassembled (through [`Dataset::new`] again) or consumed.
+    pub fn into_parts(self) -> DatasetParts {
+        self.0
+    }
+
+    /// Width of one observation row.
+    pub fn obs_dim(&self) -> usize {
+        self.0.obs_dim
+    }
+
+    pub fn action_space(&self) -> &ActionSpace {
+        &self.0.action_space
+    }
+
+    /// `N × obs_dim`, row-major.
+    pub fn observations(&self) -> &[f32] {
+        &self.0.observations
+    }
+
+    pub fn actions(&self) -> &Actions {
+        &self.0.actions
+    }
+
+    /// `N × obs_dim`, row-major.
+    pub fn next_observations(&self) -> &[f32] {
+        &self.0.next_observations
+    }
+
+    /// True where the transition ends its episode in a terminal state (not a time-out).
+    pub fn terminals(&self) -> &[bool] {
+        &self.0.terminals
+    }
+
+    /// Episode id of each transition; equal ids are contiguous.
+    pub fn episode_ids(&self) -> &[u32] {
+        &self.0.episode_ids
+    }
+
+    /// Per-transition rewards, kept for reporting only.
+    pub fn rewards(&self) -> Option<&[f32]> {
+        self.0.rewards.as_deref()
+    }
+
+    /// Per-transition costs, kept for reporting only.
+    pub fn costs(&self) -> Option<&[f32]> {
+        self.0.costs.as_deref()
+    }
+
     /// Number of transitions.
     pub fn len(&self) -> usize {
-        self.terminals.len()
+        self.0.terminals.len()
     }
 
     pub fn is_empty(&self) -> bool {
-        self.terminals.is_empty()
+        self.0.terminals.is_empty()
     }
 
     /// Observation row `i`.
     pub fn obs(&self, i: usize) -> &[f32] {
-        &self.observations[i * self.obs_dim..(i + 1) * self.obs_dim]
+        &self.0.observations[i * self.0.obs_dim..(i + 1) * self.0.obs_dim]
     }
 
     /// Next-observation row `i`.
     pub fn next_obs(&self, i: usize) -> &[f32] {
-        &self.next_observations[i * self.obs_dim..(i + 1) * self.obs_dim]
+        &self.0.next_observations[i * self.0.obs_dim..(i + 1) * self.0.obs_dim]
     }
 
     /// Half-open index ranges of the episodes, in order.
@@ -144,7 +208,7 @@ impl Dataset {
         let mut ranges = Vec::new();
         let mut start = 0;
         for i in 1..=self.len() {
-            if i == self.len() || self.episode_ids[i] != self.episode_ids[start] {
+            if i == self.len() || self.0.episode_ids[i] != self.0.episode_ids[start] {
                 ranges.push(start..i);
                 start = i;
             }
@@ -162,8 +226,8 @@ impl Dataset {
         self.episode_ranges().len()
     }
 
-    /// Checks that the columns agree with each other; parsers call it before accepting data.
-    pub fn check(&self) -> Result<(), ModelError> {
+    /// Checks that the columns agree with each other; [`Dataset::new`] runs it.
+    fn check(&self) -> Result<(), ModelError> {
         let n = self.len();
         if n == 0 {
             return Err(ModelError::Empty);
@@ -175,10 +239,10 @@ impl Dataset {
                 Err(ModelError::ColumnLength { column, expected, actual })
             }
         };
-        expect("observations", n * self.obs_dim, self.observations.len())?;
-        expect("next_observations", n * self.obs_dim, self.next_observations.len())?;
-        expect("episode_ids", n, self.episode_ids.len())?;
-        match (&self.actions, &self.action_space) {
+        expect("observations", n * self.0.obs_dim, self.0.observations.len())?;
+        expect("next_observations", n * self.0.obs_dim, self.0.next_observations.len())?;
+        expect("episode_ids", n, self.0.episode_ids.len())?;
+        match (&self.0.actions, &self.0.action_space) {
             (Actions::Continuous(a), ActionSpace::Continuous { dim, .. }) => {
                 expect("actions", n * dim, a.len())?;
                 check_finite("actions", a, *dim)?;
@@ -193,17 +257,17 @@ impl Dataset {
             }
             _ => return Err(ModelError::ActionKind),
         }
-        check_finite("observations", &self.observations, self.obs_dim)?;
-        check_finite("next_observations", &self.next_observations, self.obs_dim)?;
-        for (column, values) in [("rewards", &self.rewards), ("costs", &self.costs)] {
+        check_finite("observations", &self.0.observations, self.0.obs_dim)?;
+        check_finite("next_observations", &self.0.next_observations, self.0.obs_dim)?;
+        for (column, values) in [("rewards", &self.0.rewards), ("costs", &self.0.costs)] {
             if let Some(v) = values {
                 expect(column, n, v.len())?;
                 check_finite(column, v, 1)?;
             }
         }
         let mut seen = std::collections::HashSet::new();
-        for (i, &id) in self.episode_ids.iter().enumerate() {
-            let continues = i > 0 && self.episode_ids[i - 1] == id;
+        for (i, &id) in self.0.episode_ids.iter().enumerate() {
+            let continues = i > 0 && self.0.episode_ids[i - 1] == id;
             if !continues && !seen.insert(id) {
                 return Err(ModelError::NonContiguousEpisode { episode: id, index: i });
             }
@@ -223,8 +287,8 @@ fn check_finite(column: &'static str, values: &[f32], width: usize) -> Result<()
 mod tests {
     use super::*;
 
-    fn two_episodes() -> Dataset {
-        Dataset {
+    fn two_episodes() -> DatasetParts {
+        DatasetParts {
             obs_dim: 1,
             action_space: ActionSpace::Discrete { n: 2 },
             observations: vec![0.0, 1.0, 2.0, 10.0, 11.0],
@@ -239,23 +303,29 @@ mod tests {
 
     #[test]
     fn episodes_are_contiguous_runs() {
-        let d = two_episodes();
+        let d = Dataset::new(two_episodes()).unwrap();
         assert_eq!(d.episode_ranges(), vec![0..3, 3..5]);
         assert_eq!(d.episode_starts(), vec![0, 3]);
-        assert_eq!(d.check(), Ok(()));
+        assert_eq!(d.clone().into_parts(), two_episodes());
     }
 
     #[test]
-    fn check_rejects_reappearing_episode_and_bad_values() {
+    fn new_rejects_reappearing_episode_and_bad_values() {
         let mut d = two_episodes();
         d.episode_ids = vec![7, 7, 3, 7, 3];
-        assert_eq!(d.check(), Err(ModelError::NonContiguousEpisode { episode: 7, index: 3 }));
+        assert_eq!(Dataset::new(d), Err(ModelError::NonContiguousEpisode { episode: 7, index: 3 }));
         let mut d = two_episodes();
         d.next_observations[4] = f32::NAN;
-        assert_eq!(d.check(), Err(ModelError::NonFinite { column: "next_observations", index: 4 }));
+        assert_eq!(
+            Dataset::new(d),
+            Err(ModelError::NonFinite { column: "next_observations", index: 4 })
+        );
         let mut d = two_episodes();
         d.actions = Actions::Discrete(vec![0, 1, 2, 0, 0]);
-        assert_eq!(d.check(), Err(ModelError::ActionOutOfRange { action: 2, index: 2, n: 2 }));
+        assert_eq!(
+            Dataset::new(d),
+            Err(ModelError::ActionOutOfRange { action: 2, index: 2, n: 2 })
+        );
     }
 
     #[test]

@@ -11,7 +11,7 @@
 use std::collections::HashSet;
 
 use super::error::ParseError;
-use super::model::{ActionSpace, Actions, Dataset};
+use super::model::{ActionSpace, Actions, Dataset, DatasetParts};
 
 /// Discrete actions are one-hot encoded for the networks, so `n` must stay reasonable.
 pub const MAX_DISCRETE_ACTIONS: u64 = 65_536;
@@ -253,7 +253,7 @@ impl RowAssembler {
         }
     }
 
-    /// Closes the last episode, builds the columns and runs [`Dataset::check`].
+    /// Closes the last episode, and builds the dataset through [`Dataset::new`].
     pub fn finish(mut self) -> Result<Dataset, ParseError> {
         if self.len() == 0 {
             return Err(ParseError::empty("the file holds no transitions"));
@@ -269,7 +269,7 @@ impl RowAssembler {
                 (Actions::Discrete(self.discrete_actions), ActionSpace::Discrete { n })
             }
         };
-        let dataset = Dataset {
+        Ok(Dataset::new(DatasetParts {
             obs_dim: self.obs_dim.unwrap_or(0),
             action_space,
             observations: self.observations,
@@ -279,9 +279,7 @@ impl RowAssembler {
             episode_ids: self.episode_ids,
             rewards: self.rewards,
             costs: self.costs,
-        };
-        dataset.check()?;
-        Ok(dataset)
+        })?)
     }
 }
 

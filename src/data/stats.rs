@@ -54,8 +54,8 @@ pub struct DatasetStats {
 pub fn stats(d: &Dataset) -> DatasetStats {
     let ranges = d.episode_ranges();
     let lengths: Vec<f64> = ranges.iter().map(|r| r.len() as f64).collect();
-    let sums = |column: &Option<Vec<f32>>| {
-        column.as_ref().and_then(|v| {
+    let sums = |column: Option<&[f32]>| {
+        column.and_then(|v| {
             let totals: Vec<f64> =
                 ranges.iter().map(|r| v[r.clone()].iter().map(|&x| x as f64).sum()).collect();
             Summary::of(&totals)
@@ -64,7 +64,7 @@ pub fn stats(d: &Dataset) -> DatasetStats {
     DatasetStats {
         transitions: d.len(),
         episodes: ranges.len(),
-        terminal_episodes: ranges.iter().filter(|r| d.terminals[r.end - 1]).count(),
+        terminal_episodes: ranges.iter().filter(|r| d.terminals()[r.end - 1]).count(),
         episode_length: Summary::of(&lengths).unwrap_or(Summary {
             count: 0,
             mean: 0.0,
@@ -72,7 +72,7 @@ pub fn stats(d: &Dataset) -> DatasetStats {
             min: 0.0,
             max: 0.0,
         }),
-        episode_return: sums(&d.rewards),
-        episode_cost: sums(&d.costs),
+        episode_return: sums(d.rewards()),
+        episode_cost: sums(d.costs()),
     }
 }

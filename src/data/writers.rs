@@ -21,8 +21,8 @@ use super::model::{ActionSpace, Actions, Dataset};
 /// the action space so the episodes and the space survive exactly.
 pub fn write_npz(d: &Dataset, path: &Path) -> io::Result<()> {
     let n = d.len() as u64;
-    let obs_shape = [n, d.obs_dim as u64];
-    let total_bytes = (d.observations.len() + d.next_observations.len()) as u64 * 4;
+    let obs_shape = [n, d.obs_dim() as u64];
+    let total_bytes = (d.observations().len() + d.next_observations().len()) as u64 * 4;
     let options = FileOptions::default()
         .compression_method(CompressionMethod::Stored)
         .large_file(total_bytes > u32::MAX as u64 / 2);
@@ -32,17 +32,17 @@ pub fn write_npz(d: &Dataset, path: &Path) -> io::Result<()> {
         w.extend(values)?;
         w.finish()
     };
-    array("observations", &obs_shape, &mut d.observations.iter().copied())?;
-    array("next_observations", &obs_shape, &mut d.next_observations.iter().copied())?;
-    if let Actions::Continuous(a) = &d.actions {
-        array("actions", &[n, d.action_space.width() as u64], &mut a.iter().copied())?;
+    array("observations", &obs_shape, &mut d.observations().iter().copied())?;
+    array("next_observations", &obs_shape, &mut d.next_observations().iter().copied())?;
+    if let Actions::Continuous(a) = d.actions() {
+        array("actions", &[n, d.action_space().width() as u64], &mut a.iter().copied())?;
     }
-    for (name, column) in [("rewards", &d.rewards), ("costs", &d.costs)] {
+    for (name, column) in [("rewards", d.rewards()), ("costs", d.costs())] {
         if let Some(values) = column {
             array(name, &[n], &mut values.iter().copied())?;
         }
     }
-    if let ActionSpace::Continuous { low, high, .. } = &d.action_space {
+    if let ActionSpace::Continuous { low, high, .. } = d.action_space() {
         array("action_low", &[low.len() as u64], &mut low.iter().copied())?;
         array("action_high", &[high.len() as u64], &mut high.iter().copied())?;
     }
@@ -51,23 +51,23 @@ pub fn write_npz(d: &Dataset, path: &Path) -> io::Result<()> {
         w.extend(values)?;
         w.finish()
     };
-    if let Actions::Discrete(a) = &d.actions {
+    if let Actions::Discrete(a) = d.actions() {
         ints("actions", &[n], &mut a.iter().map(|&x| x as i64))?;
     }
-    if let ActionSpace::Discrete { n: count } = d.action_space {
-        ints("action_n", &[], &mut std::iter::once(count as i64))?;
+    if let ActionSpace::Discrete { n: count } = d.action_space() {
+        ints("action_n", &[], &mut std::iter::once(*count as i64))?;
     }
-    ints("episode_ids", &[n], &mut d.episode_ids.iter().map(|&x| x as i64))?;
+    ints("episode_ids", &[n], &mut d.episode_ids().iter().map(|&x| x as i64))?;
     let ends = episode_ends(d);
     let mut flags = |name: &str, values: &mut dyn Iterator<Item = bool>| {
         let mut w = npz.array::<bool>(name, options)?.default_dtype().shape(&[n]).begin_nd()?;
         w.extend(values)?;
         w.finish()
     };
-    flags("terminals", &mut d.terminals.iter().copied())?;
+    flags("terminals", &mut d.terminals().iter().copied())?;
     // A timeout marks every episode end that is not terminal, so tools that split episodes at
     // `terminals | timeouts` (D4RL's convention) see the same episodes.
-    flags("timeouts", &mut ends.iter().zip(&d.terminals).map(|(&end, &t)| end && !t))?;
+    flags("timeouts", &mut ends.iter().zip(d.terminals()).map(|(&end, &t)| end && !t))?;
     npz.zip_writer().finish()?;
     Ok(())
 }
@@ -104,20 +104,20 @@ enum JsonAction<'a> {
 /// JSONL, one transition per line, always with `next_obs` and `terminal`.
 pub fn write_jsonl(d: &Dataset, path: &Path) -> io::Result<()> {
     let mut out = BufWriter::new(File::create(path)?);
-    let width = d.action_space.width();
+    let width = d.action_space().width();
     for i in 0..d.len() {
-        let action = match &d.actions {
+        let action = match d.actions() {
             Actions::Continuous(a) => JsonAction::Continuous(&a[i * width..(i + 1) * width]),
             Actions::Discrete(a) => JsonAction::Discrete(a[i]),
         };
         let row = JsonRow {
-            episode: d.episode_ids[i],
+            episode: d.episode_ids()[i],
             obs: d.obs(i),
             action,
             next_obs: d.next_obs(i),
-            terminal: d.terminals[i],
-            reward: d.rewards.as_ref().map(|r| r[i]),
-            cost: d.costs.as_ref().map(|c| c[i]),
+            terminal: d.terminals()[i],
+            reward: d.rewards().map(|r| r[i]),
+            cost: d.costs().map(|c| c[i]),
         };
         serde_json::to_writer(&mut out, &row)?;
         out.write_all(b"\n")?;
@@ -129,36 +129,36 @@ pub fn write_jsonl(d: &Dataset, path: &Path) -> io::Result<()> {
 pub fn write_csv(d: &Dataset, path: &Path) -> io::Result<()> {
     let mut out = ::csv::Writer::from_writer(BufWriter::new(File::create(path)?));
     let mut header = vec!["episode".to_string()];
-    header.extend((0..d.obs_dim).map(|j| format!("obs_{j}")));
-    match &d.actions {
+    header.extend((0..d.obs_dim()).map(|j| format!("obs_{j}")));
+    match d.actions() {
         Actions::Continuous(_) => {
-            header.extend((0..d.action_space.width()).map(|j| format!("act_{j}")))
+            header.extend((0..d.action_space().width()).map(|j| format!("act_{j}")))
         }
         Actions::Discrete(_) => header.push("action".into()),
     }
-    header.extend((0..d.obs_dim).map(|j| format!("next_obs_{j}")));
+    header.extend((0..d.obs_dim()).map(|j| format!("next_obs_{j}")));
     header.push("terminal".into());
-    header.extend(d.rewards.as_ref().map(|_| "reward".to_string()));
-    header.extend(d.costs.as_ref().map(|_| "cost".to_string()));
+    header.extend(d.rewards().map(|_| "reward".to_string()));
+    header.extend(d.costs().map(|_| "cost".to_string()));
     out.write_record(&header)?;
 
-    let width = d.action_space.width();
+    let width = d.action_space().width();
     let mut record: Vec<String> = Vec::with_capacity(header.len());
     for i in 0..d.len() {
         record.clear();
-        record.push(d.episode_ids[i].to_string());
+        record.push(d.episode_ids()[i].to_string());
         // Rust's float Display is the shortest decimal that parses back to the same f32.
         record.extend(d.obs(i).iter().map(f32::to_string));
-        match &d.actions {
+        match d.actions() {
             Actions::Continuous(a) => {
                 record.extend(a[i * width..(i + 1) * width].iter().map(f32::to_string))
             }
             Actions::Discrete(a) => record.push(a[i].to_string()),
         }
         record.extend(d.next_obs(i).iter().map(f32::to_string));
-        record.push(if d.terminals[i] { "1" } else { "0" }.into());
-        record.extend(d.rewards.as_ref().map(|r| r[i].to_string()));
-        record.extend(d.costs.as_ref().map(|c| c[i].to_string()));
+        record.push(if d.terminals()[i] { "1" } else { "0" }.into());
+        record.extend(d.rewards().map(|r| r[i].to_string()));
+        record.extend(d.costs().map(|c| c[i].to_string()));
         out.write_record(&record)?;
     }
     out.flush()?;

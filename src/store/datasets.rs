@@ -47,8 +47,8 @@ impl NewDataset {
             format,
             transitions: dataset.len(),
             episodes: dataset.episodes(),
-            obs_dim: dataset.obs_dim,
-            action_space: dataset.action_space.clone(),
+            obs_dim: dataset.obs_dim(),
+            action_space: dataset.action_space().clone(),
             stats: data::stats(dataset),
             sha256: upload_sha256,
             bytes: upload_bytes,
@@ -314,12 +314,12 @@ impl Store {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::data::Actions;
+    use crate::data::{Actions, DatasetParts};
 
     async fn store_with_a_dataset() -> (tempfile::TempDir, Store, String) {
         let dir = tempfile::tempdir().unwrap();
         let store = Store::open(dir.path()).await.unwrap();
-        let dataset = Dataset {
+        let dataset = Dataset::new(DatasetParts {
             obs_dim: 1,
             action_space: ActionSpace::Discrete { n: 2 },
             observations: vec![0.0, 1.0],
@@ -329,7 +329,8 @@ mod tests {
             episode_ids: vec![0, 0],
             rewards: None,
             costs: None,
-        };
+        })
+        .unwrap();
         let new = NewDataset::describe(&dataset, Format::Jsonl, "d".into(), None, "0".into(), 1);
         let record = store.create_dataset(new, data::encode_canonical(&dataset)).await.unwrap();
         (dir, store, record.id)

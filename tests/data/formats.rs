@@ -6,7 +6,7 @@ use std::path::{Path, PathBuf};
 
 use npyz::npz::NpzWriter;
 use npyz::WriterBuilder;
-use safedice::data::{parse_file, ActionSpace, Actions, Dataset, Format, ParseError};
+use safedice::data::{parse_file, ActionSpace, Actions, Dataset, DatasetParts, Format, ParseError};
 
 struct Upload {
     _dir: tempfile::TempDir,
@@ -58,19 +58,19 @@ const JSONL_CONTINUOUS: &str = r#"{"episode": 7, "obs": [0, 1], "action": [0.5],
 fn jsonl_continuous_fills_next_obs_from_the_next_row() {
     let (format, d) = parse("demos.jsonl", JSONL_CONTINUOUS).unwrap();
     assert_eq!(format, Format::Jsonl);
-    assert_eq!(d.obs_dim, 2);
-    assert_eq!(d.observations, vec![0., 1., 1., 2., 2., 3., 5., 5.]);
+    assert_eq!(d.obs_dim(), 2);
+    assert_eq!(d.observations(), vec![0., 1., 1., 2., 2., 3., 5., 5.]);
     // Rows 0 and 1 take the next row's obs; the terminal row 2 keeps its own obs.
-    assert_eq!(d.next_observations, vec![1., 2., 2., 3., 2., 3., 6., 6.]);
-    assert_eq!(d.actions, Actions::Continuous(vec![0.5, -0.5, 0.25, 1.0]));
+    assert_eq!(d.next_observations(), vec![1., 2., 2., 3., 2., 3., 6., 6.]);
+    assert_eq!(d.actions(), &Actions::Continuous(vec![0.5, -0.5, 0.25, 1.0]));
     assert_eq!(
-        d.action_space,
-        ActionSpace::Continuous { dim: 1, low: vec![-1.0], high: vec![1.0] }
+        d.action_space(),
+        &ActionSpace::Continuous { dim: 1, low: vec![-1.0], high: vec![1.0] }
     );
-    assert_eq!(d.terminals, vec![false, false, true, false]);
-    assert_eq!(d.episode_ids, vec![7, 7, 7, 3]);
-    assert_eq!(d.rewards, Some(vec![1., 2., 3., 4.]));
-    assert_eq!(d.costs, Some(vec![0., 1., 0., 1.]));
+    assert_eq!(d.terminals(), vec![false, false, true, false]);
+    assert_eq!(d.episode_ids(), vec![7, 7, 7, 3]);
+    assert_eq!(d.rewards(), Some(&[1., 2., 3., 4.][..]));
+    assert_eq!(d.costs(), Some(&[0., 1., 0., 1.][..]));
 }
 
 #[test]
@@ -80,10 +80,10 @@ fn jsonl_integer_actions_are_discrete() {
         "{\"episode\":0,\"obs\":[1.5],\"action\":2,\"next_obs\":[2],\"terminal\":0}\n\
          {\"episode\":0,\"obs\":[2],\"action\":0,\"next_obs\":[3],\"terminal\":1}\n",
     );
-    assert_eq!(d.actions, Actions::Discrete(vec![2, 0]));
-    assert_eq!(d.action_space, ActionSpace::Discrete { n: 3 });
-    assert_eq!(d.terminals, vec![false, true]);
-    assert_eq!(d.rewards, None);
+    assert_eq!(d.actions(), &Actions::Discrete(vec![2, 0]));
+    assert_eq!(d.action_space(), &ActionSpace::Discrete { n: 3 });
+    assert_eq!(d.terminals(), vec![false, true]);
+    assert_eq!(d.rewards(), None);
 }
 
 #[test]
@@ -185,13 +185,13 @@ episode,obs_0,obs_1,act_0,act_1,terminal,reward,cost
 fn csv_continuous_with_derived_next_obs() {
     let (format, d) = parse("demos.csv", CSV_CONTINUOUS).unwrap();
     assert_eq!(format, Format::Csv);
-    assert_eq!(d.obs_dim, 2);
-    assert_eq!(d.observations, vec![0.5, 1., 1.5, 2., 9., 9., 10., 10.]);
-    assert_eq!(d.next_observations, vec![1.5, 2., 1.5, 2., 10., 10., 10., 10.]);
-    assert_eq!(d.actions, Actions::Continuous(vec![0.1, -0.1, 0.2, -0.2, 0.3, -0.3, 0.4, -0.4]));
-    assert_eq!(d.terminals, vec![false, true, false, true]);
-    assert_eq!(d.episode_ids, vec![0, 0, 1, 1]);
-    assert_eq!(d.costs, Some(vec![0., 1., 0., 0.]));
+    assert_eq!(d.obs_dim(), 2);
+    assert_eq!(d.observations(), vec![0.5, 1., 1.5, 2., 9., 9., 10., 10.]);
+    assert_eq!(d.next_observations(), vec![1.5, 2., 1.5, 2., 10., 10., 10., 10.]);
+    assert_eq!(d.actions(), &Actions::Continuous(vec![0.1, -0.1, 0.2, -0.2, 0.3, -0.3, 0.4, -0.4]));
+    assert_eq!(d.terminals(), vec![false, true, false, true]);
+    assert_eq!(d.episode_ids(), vec![0, 0, 1, 1]);
+    assert_eq!(d.costs(), Some(&[0., 1., 0., 0.][..]));
 }
 
 #[test]
@@ -203,11 +203,11 @@ next_obs_0,action,obs_0,episode
 ";
     let (format, d) = parse("upload", text).unwrap();
     assert_eq!(format, Format::Csv);
-    assert_eq!(d.actions, Actions::Discrete(vec![1, 0]));
-    assert_eq!(d.action_space, ActionSpace::Discrete { n: 2 });
-    assert_eq!(d.next_observations, vec![2., 3.]);
-    assert_eq!(d.terminals, vec![false, false]);
-    assert_eq!(d.rewards, None);
+    assert_eq!(d.actions(), &Actions::Discrete(vec![1, 0]));
+    assert_eq!(d.action_space(), &ActionSpace::Discrete { n: 2 });
+    assert_eq!(d.next_observations(), vec![2., 3.]);
+    assert_eq!(d.terminals(), vec![false, false]);
+    assert_eq!(d.rewards(), None);
 }
 
 #[test]
@@ -218,9 +218,9 @@ fn crlf_line_endings_and_pandas_habits_are_accepted() {
     assert_eq!(ok("d.csv", &crlf), ok("d.csv", CSV_CONTINUOUS));
     // pandas: True/False flags, integer columns written as 3.0 once they held a NaN.
     let d = ok("d.csv", "episode,obs_0,action,terminal\n3.0,1,2.0,False\n3.0,2,0,True\n");
-    assert_eq!(d.episode_ids, vec![3, 3]);
-    assert_eq!(d.actions, Actions::Discrete(vec![2, 0]));
-    assert_eq!(d.terminals, vec![false, true]);
+    assert_eq!(d.episode_ids(), vec![3, 3]);
+    assert_eq!(d.actions(), &Actions::Discrete(vec![2, 0]));
+    assert_eq!(d.terminals(), vec![false, true]);
     let text = format!(",{}", CSV_CONTINUOUS.replace('\n', "\n0,"));
     rejected(parse("d.csv", text.trim_end_matches("0,")), "invalid_dataset", &["index=False"]);
 }
@@ -369,13 +369,13 @@ fn npz_upload(
 fn npz_flat_layout_splits_episodes_at_terminals_and_timeouts() {
     let (format, d) = npz_upload(&[], |n| n).unwrap();
     assert_eq!(format, Format::Npz);
-    assert_eq!(d.obs_dim, 2);
-    assert_eq!(d.episode_ids, vec![0, 0, 1, 1, 2]);
-    assert_eq!(d.terminals, vec![false, true, false, false, false]);
-    assert_eq!(d.actions, Actions::Continuous(vec![0.1, 0.2, 0.3, 0.4, 0.5]));
-    assert_eq!(d.next_observations[8..], [5., 5.]);
-    assert_eq!(d.rewards, None);
-    assert_eq!(d.costs, Some(vec![0., 1., 0., 0., 1.]));
+    assert_eq!(d.obs_dim(), 2);
+    assert_eq!(d.episode_ids(), vec![0, 0, 1, 1, 2]);
+    assert_eq!(d.terminals(), vec![false, true, false, false, false]);
+    assert_eq!(d.actions(), &Actions::Continuous(vec![0.1, 0.2, 0.3, 0.4, 0.5]));
+    assert_eq!(d.next_observations()[8..], [5., 5.]);
+    assert_eq!(d.rewards(), None);
+    assert_eq!(d.costs(), Some(&[0., 1., 0., 0., 1.][..]));
 }
 
 #[test]
@@ -390,11 +390,11 @@ fn npz_integer_actions_float_terminals_and_omnisafe_names() {
         .array::<f32>("cost", &[3], &[0., 1., 0.])
         .finish();
     let (_, d) = parse_file(&path, "omnisafe.npz").unwrap();
-    assert_eq!(d.actions, Actions::Discrete(vec![0, 3, 1]));
-    assert_eq!(d.action_space, ActionSpace::Discrete { n: 4 });
-    assert_eq!(d.terminals, vec![false, false, true]);
-    assert_eq!(d.episode_ids, vec![0, 0, 0]);
-    assert_eq!(d.costs, Some(vec![0., 1., 0.]));
+    assert_eq!(d.actions(), &Actions::Discrete(vec![0, 3, 1]));
+    assert_eq!(d.action_space(), &ActionSpace::Discrete { n: 4 });
+    assert_eq!(d.terminals(), vec![false, false, true]);
+    assert_eq!(d.episode_ids(), vec![0, 0, 0]);
+    assert_eq!(d.costs(), Some(&[0., 1., 0.][..]));
 }
 
 #[test]
@@ -495,7 +495,7 @@ fn npz_rejects_truncated_and_empty_archives() {
 }
 
 fn writers_fixture(path: &Path) {
-    let d = Dataset {
+    let d = Dataset::new(DatasetParts {
         obs_dim: 3,
         action_space: ActionSpace::Continuous { dim: 1, low: vec![-1.0], high: vec![1.0] },
         observations: (0..60).map(|x| x as f32).collect(),
@@ -505,7 +505,8 @@ fn writers_fixture(path: &Path) {
         episode_ids: vec![0; 20],
         rewards: None,
         costs: None,
-    };
+    })
+    .unwrap();
     safedice::data::write_npz(&d, path).unwrap();
 }
 
@@ -523,24 +524,24 @@ fn numpy_savez_compressed_d4rl_layout() {
     let (format, d) = fixture("d4rl_like.npz");
     assert_eq!(format, Format::Npz);
     let obs: Vec<f32> = (0..18).map(|x| x as f32 / 4.0).collect();
-    assert_eq!(d.observations, obs);
-    assert_eq!(d.next_observations, obs.iter().map(|x| x + 0.25).collect::<Vec<_>>());
-    let Actions::Continuous(actions) = &d.actions else { panic!("continuous expected") };
+    assert_eq!(d.observations(), obs);
+    assert_eq!(d.next_observations(), obs.iter().map(|x| x + 0.25).collect::<Vec<_>>());
+    let Actions::Continuous(actions) = d.actions() else { panic!("continuous expected") };
     let linspace = (0..12).map(|i| (-1.0 + i as f64 * 2.0 / 11.0) as f32);
     assert!(actions.iter().zip(linspace).all(|(a, b)| (a - b).abs() < 1e-6), "{actions:?}");
-    assert_eq!(d.action_space.width(), 2);
-    assert_eq!(d.terminals, vec![false, false, true, false, false, false]);
-    assert_eq!(d.episode_ids, vec![0, 0, 0, 1, 1, 2]);
-    assert_eq!(d.rewards, Some(vec![1.0; 6]));
-    assert_eq!(d.costs, Some(vec![0., 1., 0., 1., 1., 0.]));
+    assert_eq!(d.action_space().width(), 2);
+    assert_eq!(d.terminals(), vec![false, false, true, false, false, false]);
+    assert_eq!(d.episode_ids(), vec![0, 0, 0, 1, 1, 2]);
+    assert_eq!(d.rewards(), Some(&[1.0; 6][..]));
+    assert_eq!(d.costs(), Some(&[0., 1., 0., 1., 1., 0.][..]));
 }
 
 #[test]
 fn numpy_savez_discrete_omnisafe_names() {
     let (_, d) = fixture("discrete.npz");
-    assert_eq!(d.actions, Actions::Discrete(vec![0, 2, 1, 1, 0, 2]));
-    assert_eq!(d.action_space, ActionSpace::Discrete { n: 3 });
-    assert_eq!(d.terminals, vec![false, false, false, true, false, true]);
-    assert_eq!(d.episode_ids, vec![0, 0, 0, 0, 1, 1]);
-    assert_eq!(d.obs_dim, 3);
+    assert_eq!(d.actions(), &Actions::Discrete(vec![0, 2, 1, 1, 0, 2]));
+    assert_eq!(d.action_space(), &ActionSpace::Discrete { n: 3 });
+    assert_eq!(d.terminals(), vec![false, false, false, true, false, true]);
+    assert_eq!(d.episode_ids(), vec![0, 0, 0, 0, 1, 1]);
+    assert_eq!(d.obs_dim(), 3);
 }

@@ -8,7 +8,7 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use safedice::data::{
     decode_canonical, encode_canonical, parse_file, stats, write_csv, write_jsonl, write_npz,
-    ActionSpace, Actions, Dataset, Format, Summary,
+    ActionSpace, Actions, Dataset, DatasetParts, Format, Summary,
 };
 
 /// A random valid dataset in the shape a parser returns (action space as inferred).
@@ -17,7 +17,7 @@ fn random_dataset(seed: u64, discrete: bool) -> Dataset {
     let obs_dim = rng.random_range(1..5);
     let act_dim = rng.random_range(1..4);
     let episodes = rng.random_range(1..5);
-    let mut d = Dataset {
+    let mut d = DatasetParts {
         obs_dim,
         action_space: ActionSpace::Discrete { n: 1 },
         observations: Vec::new(),
@@ -56,8 +56,7 @@ fn random_dataset(seed: u64, discrete: bool) -> Dataset {
         d.action_space = ActionSpace::infer_continuous(&continuous, act_dim);
         d.actions = Actions::Continuous(continuous);
     }
-    d.check().unwrap();
-    d
+    Dataset::new(d).unwrap()
 }
 
 /// Finite f32 values that stress decimal round trips: arbitrary bit patterns, subnormals,
@@ -92,13 +91,17 @@ fn round_trip(
 fn assert_identical(a: &Dataset, b: &Dataset, what: &str) {
     assert_eq!(a, b, "{what}");
     let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
-    assert_eq!(bits(&a.observations), bits(&b.observations), "{what}: observations");
-    assert_eq!(bits(&a.next_observations), bits(&b.next_observations), "{what}: next_observations");
-    if let (Actions::Continuous(x), Actions::Continuous(y)) = (&a.actions, &b.actions) {
+    assert_eq!(bits(a.observations()), bits(b.observations()), "{what}: observations");
+    assert_eq!(
+        bits(a.next_observations()),
+        bits(b.next_observations()),
+        "{what}: next_observations"
+    );
+    if let (Actions::Continuous(x), Actions::Continuous(y)) = (a.actions(), b.actions()) {
         assert_eq!(bits(x), bits(y), "{what}: actions");
     }
-    for (x, y) in [(&a.rewards, &b.rewards), (&a.costs, &b.costs)] {
-        assert_eq!(x.as_deref().map(bits), y.as_deref().map(bits), "{what}: rewards/costs");
+    for (x, y) in [(a.rewards(), b.rewards()), (a.costs(), b.costs())] {
+        assert_eq!(x.map(bits), y.map(bits), "{what}: rewards/costs");
     }
 }
 
@@ -124,13 +127,16 @@ fn every_writer_round_trips_exactly() {
 
 #[test]
 fn npz_keeps_a_declared_action_space_that_inference_would_change() {
-    let mut d = random_dataset(7, true);
-    d.action_space = ActionSpace::Discrete { n: 9 };
+    let mut parts = random_dataset(7, true).into_parts();
+    parts.action_space = ActionSpace::Discrete { n: 9 };
+    let d = Dataset::new(parts).unwrap();
     assert_eq!(round_trip(&d, "d.npz", write_npz).1, d);
-    let mut d = random_dataset(7, false);
-    let dim = d.action_space.width();
-    d.actions = Actions::Continuous(vec![0.0; d.len() * dim]);
-    d.action_space = ActionSpace::Continuous { dim, low: vec![-2.0; dim], high: vec![3.0; dim] };
+    let mut parts = random_dataset(7, false).into_parts();
+    let dim = parts.action_space.width();
+    parts.actions = Actions::Continuous(vec![0.0; parts.terminals.len() * dim]);
+    parts.action_space =
+        ActionSpace::Continuous { dim, low: vec![-2.0; dim], high: vec![3.0; dim] };
+    let d = Dataset::new(parts).unwrap();
     assert_eq!(round_trip(&d, "d.npz", write_npz).1, d);
 }
 
@@ -177,7 +183,7 @@ fn canonical_form_is_versioned_and_rejects_damage() {
 
 #[test]
 fn stats_sum_rewards_and_costs_per_episode() {
-    let d = Dataset {
+    let d = Dataset::new(DatasetParts {
         obs_dim: 1,
         action_space: ActionSpace::Discrete { n: 2 },
         observations: vec![0.0; 5],
@@ -187,7 +193,8 @@ fn stats_sum_rewards_and_costs_per_episode() {
         episode_ids: vec![4, 4, 9, 9, 9],
         rewards: Some(vec![1.0, 2.0, 0.5, 0.5, 1.0]),
         costs: None,
-    };
+    })
+    .unwrap();
     let s = stats(&d);
     assert_eq!((s.transitions, s.episodes, s.terminal_episodes), (5, 2, 1));
     assert_eq!(s.episode_length, Summary { count: 2, mean: 2.5, std: 0.5, min: 2.0, max: 3.0 });

@@ -4,7 +4,9 @@
 
 use crate::support::app::{assert_error, TestApp};
 use reqwest::StatusCode;
-use safedice::data::{write_csv, write_jsonl, write_npz, ActionSpace, Actions, Dataset};
+use safedice::data::{
+    write_csv, write_jsonl, write_npz, ActionSpace, Actions, Dataset, DatasetParts,
+};
 use safedice::store::Store;
 use sha2::{Digest, Sha256};
 
@@ -12,7 +14,7 @@ use sha2::{Digest, Sha256};
 /// in a terminal state.
 fn continuous_dataset() -> Dataset {
     let actions = vec![0.5, -0.25, 1.0, 0.0, -1.0, 0.75, 0.125, 0.5, -0.5, 0.25];
-    Dataset {
+    Dataset::new(DatasetParts {
         obs_dim: 3,
         action_space: ActionSpace::infer_continuous(&actions, 2),
         observations: (0..15).map(|i| i as f32 * 0.1 - 0.7).collect(),
@@ -22,12 +24,13 @@ fn continuous_dataset() -> Dataset {
         episode_ids: vec![4, 4, 4, 9, 9],
         rewards: Some(vec![1.0, 0.5, 0.25, -1.0, 2.0]),
         costs: Some(vec![0.0, 1.0, 0.0, 0.0, 1.0]),
-    }
+    })
+    .unwrap()
 }
 
 /// One episode with discrete actions 0..3 and neither rewards nor costs.
 fn discrete_dataset() -> Dataset {
-    Dataset {
+    Dataset::new(DatasetParts {
         obs_dim: 2,
         action_space: ActionSpace::Discrete { n: 3 },
         observations: vec![0.0, 1.0, 1.0, 2.0, 2.0, 3.0, 3.0, 4.0],
@@ -37,7 +40,8 @@ fn discrete_dataset() -> Dataset {
         episode_ids: vec![0, 0, 0, 0],
         rewards: None,
         costs: None,
-    }
+    })
+    .unwrap()
 }
 
 type Writer = fn(&Dataset, &std::path::Path) -> std::io::Result<()>;
@@ -73,12 +77,15 @@ async fn every_format_round_trips_into_the_store() {
             assert_eq!(body["format"], extension);
             assert_eq!(body["transitions"], original.len());
             assert_eq!(body["episodes"], original.episodes());
-            assert_eq!(body["obs_dim"], original.obs_dim);
-            assert_eq!(body["action_space"], serde_json::to_value(&original.action_space).unwrap());
+            assert_eq!(body["obs_dim"], original.obs_dim());
+            assert_eq!(
+                body["action_space"],
+                serde_json::to_value(original.action_space()).unwrap()
+            );
             assert_eq!(body["sha256"], hex::encode(Sha256::digest(&bytes)));
             assert_eq!(body["bytes"], bytes.len());
             assert_eq!(body["stats"]["episodes"], original.episodes());
-            assert_eq!(body["stats"]["episode_return"].is_object(), original.rewards.is_some());
+            assert_eq!(body["stats"]["episode_return"].is_object(), original.rewards().is_some());
 
             let fetched: serde_json::Value =
                 app.get(&location).send().await.unwrap().json().await.unwrap();

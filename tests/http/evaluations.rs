@@ -24,8 +24,13 @@ async fn upload_six_rooms(app: &TestApp) -> (String, String) {
     };
     let generated = envs::generate(&spec).unwrap();
     let u = upload(&app.client, &app.base_url, &generated.unlabeled, "rooms-unlabeled").await;
-    let n =
-        upload(&app.client, &app.base_url, &generated.labeled_non_preferred, "rooms-labeled").await;
+    let n = upload(
+        &app.client,
+        &app.base_url,
+        generated.labeled_non_preferred.as_ref().unwrap(),
+        "rooms-labeled",
+    )
+    .await;
     (u, n)
 }
 

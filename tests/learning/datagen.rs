@@ -32,7 +32,7 @@ fn npz_files_round_trip_to_the_generated_sets() {
         assert_eq!(format, Format::Npz);
         assert_eq!(unlabeled, expected.unlabeled, "{env}");
         let (_, labeled) = parse_file(&out.join("non_preferred.npz"), "non_preferred.npz").unwrap();
-        assert_eq!(labeled, expected.labeled_non_preferred, "{env}");
+        assert_eq!(Some(labeled), expected.labeled_non_preferred, "{env}");
 
         let manifest: serde_json::Value =
             serde_json::from_slice(&std::fs::read(out.join("manifest.json")).unwrap()).unwrap();

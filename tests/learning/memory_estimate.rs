@@ -15,7 +15,7 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use safedice::algo::memory::{estimate_job_memory, DataShape};
 use safedice::algo::{build_trainer, resolve_config, Algorithm, TrainingData};
-use safedice::data::{ActionSpace, Actions, Dataset};
+use safedice::data::{ActionSpace, Actions, Dataset, DatasetParts};
 use serde_json::{json, Value};
 
 const CASE_VAR: &str = "SAFEDICE_MEMORY_CASE";
@@ -162,7 +162,7 @@ fn random_dataset(
             Actions::Discrete((0..transitions).map(|i| (i * 7 % n) as u32).collect())
         }
     };
-    let dataset = Dataset {
+    Dataset::new(DatasetParts {
         obs_dim,
         action_space: space.clone(),
         observations,
@@ -172,9 +172,8 @@ fn random_dataset(
         episode_ids: (0..transitions).map(|i| (i / episode) as u32).collect(),
         rewards: Some(rewards),
         costs: Some(costs),
-    };
-    dataset.check().expect("a valid dataset");
-    dataset
+    })
+    .expect("a valid dataset")
 }
 
 fn shape(rows: (usize, usize), case: &Case) -> DataShape {

@@ -38,7 +38,7 @@ fn safedice_avoids_the_costly_rooms_that_bc_walks_through() {
     let generated = generate(&spec).unwrap();
     let data = TrainingData {
         unlabeled: Arc::new(generated.unlabeled),
-        non_preferred: Some(Arc::new(generated.labeled_non_preferred)),
+        non_preferred: generated.labeled_non_preferred.map(Arc::new),
     };
     let common =
         json!({"seed": 1, "iterations": 1500, "batch_size": 256, "hidden_sizes": [64, 64]});

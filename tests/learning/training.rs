@@ -7,7 +7,7 @@ use std::sync::Arc;
 
 use crate::support::tasks::*;
 use safedice::algo::{self, Algorithm, Policy, TrainError, Trainer, TrainingData};
-use safedice::data::{ActionSpace, Actions, Dataset};
+use safedice::data::{ActionSpace, Actions, Dataset, DatasetParts};
 use serde_json::{json, Value};
 
 fn tiny(algorithm: Algorithm, seed: u64) -> Value {
@@ -105,9 +105,9 @@ fn exported_policies_load_and_act_in_the_dataset_units() {
             let policy =
                 Policy::load(&serde_json::from_value(spec_json).unwrap(), &artifact.weights)
                     .unwrap();
-            let obs = &data.unlabeled.observations[..3 * data.unlabeled.obs_dim];
+            let obs = &data.unlabeled.observations()[..3 * data.unlabeled.obs_dim()];
             let mut rng = rand::SeedableRng::seed_from_u64(0);
-            match (policy.act(obs, false, &mut rng).unwrap(), &data.unlabeled.action_space) {
+            match (policy.act(obs, false, &mut rng).unwrap(), data.unlabeled.action_space()) {
                 (Actions::Discrete(a), ActionSpace::Discrete { n }) => {
                     assert_eq!(a.len(), 3);
                     assert!(a.iter().all(|&x| (x as usize) < *n), "{algorithm} on {task}");
@@ -172,7 +172,7 @@ fn alpha_hat_matches_the_known_mixture_ratio() {
             }
         }
         let n = episode_ids.len();
-        Dataset {
+        Dataset::new(DatasetParts {
             obs_dim: 4,
             action_space: ActionSpace::Discrete { n: 2 },
             next_observations: obs.clone(),
@@ -182,7 +182,8 @@ fn alpha_hat_matches_the_known_mixture_ratio() {
             episode_ids,
             rewards: None,
             costs: None,
-        }
+        })
+        .unwrap()
     }
     let data = TrainingData {
         unlabeled: Arc::new(pairs([350, 410, 120, 120])),
@@ -209,8 +210,9 @@ fn alpha_hat_matches_the_known_mixture_ratio() {
 
 #[test]
 fn non_finite_losses_stop_the_run_with_a_clear_error() {
-    let mut data = grid_dataset(3, 3, 0);
-    data.observations.iter_mut().for_each(|x| *x *= 3e38);
+    let mut parts = grid_dataset(3, 3, 0).into_parts();
+    parts.observations.iter_mut().for_each(|x| *x *= 3e38);
+    let data = Dataset::new(parts).unwrap();
     let data = TrainingData {
         unlabeled: Arc::new(data),
         non_preferred: Some(Arc::new(grid_dataset(0, 2, 1))),

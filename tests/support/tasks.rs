@@ -8,7 +8,7 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Normal};
 use safedice::algo::{self, Algorithm, Policy, TrainingData};
-use safedice::data::{ActionSpace, Actions, Dataset};
+use safedice::data::{ActionSpace, Actions, Dataset, DatasetParts};
 
 /// Episode builder: columns grow one transition at a time.
 #[derive(Default)]
@@ -29,7 +29,7 @@ impl Builder {
             ActionSpace::Discrete { .. } => Actions::Discrete(self.discrete),
             ActionSpace::Continuous { .. } => Actions::Continuous(self.continuous),
         };
-        let d = Dataset {
+        Dataset::new(DatasetParts {
             obs_dim: self.obs_dim,
             action_space,
             observations: self.observations,
@@ -39,9 +39,8 @@ impl Builder {
             episode_ids: self.episode_ids,
             rewards: None,
             costs: Some(self.costs),
-        };
-        d.check().expect("generated data is consistent");
-        d
+        })
+        .expect("generated data is consistent")
     }
 }
 
