@@ -1,17 +1,20 @@
 //! The service's vocabulary, shared by every layer that stores, runs or serves work: typed ids,
-//! the lifecycles of jobs and evaluations, and the records the store hands out. No SQL, no HTTP:
+//! the lifecycles of jobs and evaluations, and the records the store hands out (jobs,
+//! evaluations, policies). No SQL, no HTTP:
 //! the store turns rows into these types once, and everything above works with them.
 
 pub mod evaluation;
 pub mod ids;
 pub mod job;
 pub mod options;
+pub mod policy;
 pub mod progress;
 
 pub use evaluation::{EvaluationRecord, EvaluationStatus};
 pub use ids::{DatasetId, EvaluationId, JobId, PolicyId};
 pub use job::{JobRecord, JobStatus};
 pub use options::{EvalOptions, EvalSpec, RunnerOptions};
+pub use policy::PolicyRecord;
 pub use progress::JobProgress;
 
 /// A time as the API shows it: RFC 3339, UTC, milliseconds (`2026-01-31T12:00:00.000Z`).

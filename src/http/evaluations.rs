@@ -14,7 +14,6 @@ use super::error::ErrorBody;
 use super::extract::{Json, Path, Query};
 use super::pagination::{Page, PageParams};
 use super::{ApiError, AppState};
-use crate::data::ActionSpace;
 use crate::domain::{rfc3339, EvalSpec, EvaluationId, EvaluationRecord, EvaluationStatus};
 use crate::envs::{self, Metrics, ReferenceStats};
 use crate::store::evaluations::NewEvaluation;
@@ -105,10 +104,7 @@ async fn evaluate_policy(
 ) -> Result<impl IntoResponse, ApiError> {
     let policy = state.store.policy(&policy_id).await?;
     spec.validate("").map_err(|e| ApiError::unprocessable("invalid_evaluation", e.0))?;
-    let action_space: ActionSpace = serde_json::from_str(&policy.action_space).map_err(|e| {
-        ApiError::Internal(anyhow::anyhow!("policy {policy_id}: stored action space: {e}"))
-    })?;
-    envs::check_spaces(&spec.env, policy.obs_dim as usize, &action_space, "the policy's")
+    envs::check_spaces(&spec.env, policy.obs_dim, &policy.action_space, "the policy's")
         .map_err(|e| ApiError::unprocessable("invalid_evaluation", format!("env: {e}")))?;
     let env = spec.env.clone();
     let new = NewEvaluation { id: EvaluationId::generate(), policy_id: policy_id.into(), spec };

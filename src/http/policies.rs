@@ -15,7 +15,7 @@ use super::pagination::{Page, PageParams};
 use super::{ApiError, AppState};
 use crate::algo::Algorithm;
 use crate::data::Actions;
-use crate::store::policies::PolicyRow;
+use crate::domain::{rfc3339, PolicyRecord};
 
 /// Header of `GET /v1/policies/{id}/weights` carrying the policy's spec (JSON), which
 /// `algo::Policy::load` needs beside the weights.
@@ -47,29 +47,20 @@ pub struct PolicyResource {
     pub created_at: String,
 }
 
-impl TryFrom<PolicyRow> for PolicyResource {
-    type Error = ApiError;
-
-    fn try_from(row: PolicyRow) -> Result<Self, ApiError> {
-        let parse = |what: &str, text: &str| {
-            serde_json::from_str::<serde_json::Value>(text).map_err(|e| {
-                ApiError::Internal(anyhow::anyhow!("policy {}: stored {what}: {e}", row.id))
-            })
-        };
-        let algorithm = serde_json::from_value(row.algorithm.clone().into())
-            .map_err(|e| ApiError::Internal(e.into()))?;
-        Ok(PolicyResource {
-            algorithm,
-            job_id: row.job_id.clone(),
-            obs_dim: row.obs_dim as usize,
-            action_space: parse("action space", &row.action_space)?,
-            final_metrics: parse("final metrics", &row.final_metrics)?,
-            alpha_hat: row.alpha_hat,
-            spec: parse("spec", &row.spec)?,
-            weights_url: format!("/v1/policies/{}/weights", row.id),
-            created_at: row.created_at.clone(),
-            id: row.id,
-        })
+impl From<PolicyRecord> for PolicyResource {
+    fn from(policy: PolicyRecord) -> Self {
+        PolicyResource {
+            weights_url: format!("/v1/policies/{}/weights", policy.id),
+            algorithm: policy.algorithm,
+            job_id: policy.job_id.into_string(),
+            obs_dim: policy.obs_dim,
+            action_space: serde_json::to_value(&policy.action_space).unwrap_or_default(),
+            final_metrics: serde_json::Value::Object(policy.final_metrics),
+            alpha_hat: policy.alpha_hat,
+            spec: serde_json::to_value(&policy.spec).unwrap_or_default(),
+            created_at: rfc3339(&policy.created_at),
+            id: policy.id.into_string(),
+        }
     }
 }
 
@@ -132,9 +123,9 @@ async fn list_policies(
     Query(page): Query<PageParams>,
 ) -> Result<Json<Page<PolicyResource>>, ApiError> {
     let page = page.validate()?;
-    let (rows, total) =
+    let (records, total) =
         state.store.list_policies(filter.job_id.as_deref(), page.limit, page.offset).await?;
-    let items = rows.into_iter().map(PolicyResource::try_from).collect::<Result<_, _>>()?;
+    let items = records.into_iter().map(PolicyResource::from).collect();
     Ok(Json(Page::new(items, total, page)))
 }
 
@@ -145,7 +136,7 @@ async fn get_policy(
     State(state): State<AppState>,
     Path(id): Path<String>,
 ) -> Result<Json<PolicyResource>, ApiError> {
-    Ok(Json(state.store.policy(&id).await?.try_into()?))
+    Ok(Json(state.store.policy(&id).await?.into()))
 }
 
 /// Download the policy's weights (safetensors). The `x-safedice-policy-spec` header (and the

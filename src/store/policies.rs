@@ -2,23 +2,52 @@
 
 use sqlx::{Sqlite, Transaction};
 
-use super::{Store, StoreError};
+use chrono::{DateTime, Utc};
 
-/// A policy as listed (everything but the weights).
-#[derive(Clone, Debug, sqlx::FromRow)]
-pub struct PolicyRow {
-    pub id: String,
-    pub job_id: String,
-    pub algorithm: String,
-    pub obs_dim: i64,
-    /// JSON of the action space.
-    pub action_space: String,
-    /// JSON of `algo::PolicySpec`.
-    pub spec: String,
-    /// JSON object: the last recorded value of each metric of the job.
-    pub final_metrics: String,
-    pub alpha_hat: Option<f64>,
-    pub created_at: String,
+use super::{Store, StoreError};
+use crate::domain::PolicyRecord;
+
+/// A policy row as SQLite returns it (everything but the weights); [`PolicyRecord`] is its typed
+/// form.
+#[derive(sqlx::FromRow)]
+struct PolicyRow {
+    id: String,
+    job_id: String,
+    algorithm: String,
+    obs_dim: i64,
+    action_space: String,
+    spec: String,
+    final_metrics: String,
+    alpha_hat: Option<f64>,
+    created_at: DateTime<Utc>,
+}
+
+impl TryFrom<PolicyRow> for PolicyRecord {
+    type Error = StoreError;
+
+    fn try_from(row: PolicyRow) -> Result<Self, StoreError> {
+        let corrupt = |what: &str, e: serde_json::Error| {
+            StoreError::Corrupt(format!("policy {}", row.id), format!("stored {what}: {e}"))
+        };
+        let algorithm = serde_json::from_value(row.algorithm.clone().into())
+            .map_err(|e| corrupt("algorithm", e))?;
+        let action_space =
+            serde_json::from_str(&row.action_space).map_err(|e| corrupt("action space", e))?;
+        let spec = serde_json::from_str(&row.spec).map_err(|e| corrupt("spec", e))?;
+        let final_metrics =
+            serde_json::from_str(&row.final_metrics).map_err(|e| corrupt("final metrics", e))?;
+        Ok(PolicyRecord {
+            id: row.id.into(),
+            job_id: row.job_id.into(),
+            algorithm,
+            obs_dim: row.obs_dim as usize,
+            action_space,
+            spec,
+            final_metrics,
+            alpha_hat: row.alpha_hat,
+            created_at: row.created_at,
+        })
+    }
 }
 
 /// What a succeeded job stores.
@@ -63,12 +92,14 @@ pub(super) async fn insert_policy(
 }
 
 impl Store {
-    pub async fn policy(&self, id: &str) -> Result<PolicyRow, StoreError> {
-        sqlx::query_as(&format!("SELECT {POLICY_COLUMNS} FROM policies WHERE id = ?"))
-            .bind(id)
-            .fetch_optional(self.pool())
-            .await?
-            .ok_or_else(|| StoreError::NotFound { kind: "policy", id: id.to_owned() })
+    pub async fn policy(&self, id: &str) -> Result<PolicyRecord, StoreError> {
+        let row: PolicyRow =
+            sqlx::query_as(&format!("SELECT {POLICY_COLUMNS} FROM policies WHERE id = ?"))
+                .bind(id)
+                .fetch_optional(self.pool())
+                .await?
+                .ok_or_else(|| StoreError::NotFound { kind: "policy", id: id.to_owned() })?;
+        row.try_into()
     }
 
     /// A page of policies, newest first (only those of `job_id` when given); and the total.
@@ -77,8 +108,8 @@ impl Store {
         job_id: Option<&str>,
         limit: u32,
         offset: u64,
-    ) -> Result<(Vec<PolicyRow>, u64), StoreError> {
-        let rows = sqlx::query_as(&format!(
+    ) -> Result<(Vec<PolicyRecord>, u64), StoreError> {
+        let rows: Vec<PolicyRow> = sqlx::query_as(&format!(
             "SELECT {POLICY_COLUMNS} FROM policies WHERE (?1 IS NULL OR job_id = ?1) \
              ORDER BY created_at DESC, id DESC LIMIT ?2 OFFSET ?3"
         ))
@@ -92,7 +123,8 @@ impl Store {
                 .bind(job_id)
                 .fetch_one(self.pool())
                 .await?;
-        Ok((rows, total as u64))
+        let records = rows.into_iter().map(PolicyRecord::try_from).collect::<Result<_, _>>()?;
+        Ok((records, total as u64))
     }
 
     /// The artefact of a policy: (spec JSON, safetensors weights).
