@@ -3,7 +3,7 @@
 //! 500s are logged with their cause and answered with a generic message.
 
 use axum::extract::multipart::{MultipartError, MultipartRejection};
-use axum::extract::rejection::{JsonRejection, PathRejection, QueryRejection};
+use axum::extract::rejection::{BytesRejection, JsonRejection, PathRejection, QueryRejection};
 use axum::http::{header, HeaderValue, StatusCode};
 use axum::response::{IntoResponse, Response};
 use serde::Serialize;
@@ -161,7 +161,7 @@ impl ApiError {
     }
 
     /// Maps an extractor rejection, keeping axum's status and its explanation.
-    fn rejected(status: StatusCode, message: String) -> Self {
+    pub(super) fn rejected(status: StatusCode, message: String) -> Self {
         let code = match status {
             StatusCode::PAYLOAD_TOO_LARGE => "payload_too_large",
             StatusCode::UNSUPPORTED_MEDIA_TYPE => "unsupported_media_type",
@@ -279,7 +279,7 @@ macro_rules! from_rejection {
     )*};
 }
 
-from_rejection!(JsonRejection, QueryRejection, PathRejection);
+from_rejection!(BytesRejection, JsonRejection, QueryRejection, PathRejection);
 
 impl From<MultipartError> for ApiError {
     /// A multipart body that stopped arriving is the client's doing (it paused past the body

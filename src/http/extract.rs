@@ -22,19 +22,44 @@ impl<T: DeserializeOwned, S: Send + Sync> FromRequest<S> for Json<T> {
     type Rejection = ApiError;
 
     async fn from_request(request: Request, state: &S) -> Result<Self, ApiError> {
-        let axum::Json(mut value) =
+        let axum::Json(value) =
             axum::Json::<serde_json::Value>::from_request(request, state).await?;
-        integral_floats_to_integers(&mut value);
-        serde_path_to_error::deserialize(value).map(Json).map_err(|e| ApiError::Rejected {
-            status: StatusCode::UNPROCESSABLE_ENTITY,
-            code: "invalid_body",
-            message: format!(
-                "Failed to deserialize the JSON body into the target type: {}: {}",
-                e.path(),
-                e.inner()
-            ),
-        })
+        deserialize_body(value).map(Json)
     }
+}
+
+/// A JSON request body whatever content type the client declares, or none: the Open Inference
+/// Protocol's HTTP binding does not require `application/json`, and stock clients leave it out.
+/// Otherwise read exactly like [`Json`] (body limit, 400 for a syntax error, 422 naming the path
+/// of a value that does not fit).
+#[derive(Debug, Clone, Copy, Default)]
+pub struct AnyContentTypeJson<T>(pub T);
+
+impl<T: DeserializeOwned, S: Send + Sync> FromRequest<S> for AnyContentTypeJson<T> {
+    type Rejection = ApiError;
+
+    async fn from_request(request: Request, state: &S) -> Result<Self, ApiError> {
+        let bytes = axum::body::Bytes::from_request(request, state).await?;
+        let value = serde_json::from_slice(&bytes).map_err(|e| {
+            let message = format!("Failed to parse the request body as JSON: {e}");
+            ApiError::rejected(StatusCode::BAD_REQUEST, message)
+        })?;
+        deserialize_body(value).map(AnyContentTypeJson)
+    }
+}
+
+/// A parsed JSON body as `T`, integral floats taken as integers.
+fn deserialize_body<T: DeserializeOwned>(mut value: serde_json::Value) -> Result<T, ApiError> {
+    integral_floats_to_integers(&mut value);
+    serde_path_to_error::deserialize(value).map_err(|e| ApiError::Rejected {
+        status: StatusCode::UNPROCESSABLE_ENTITY,
+        code: "invalid_body",
+        message: format!(
+            "Failed to deserialize the JSON body into the target type: {}: {}",
+            e.path(),
+            e.inner()
+        ),
+    })
 }
 
 /// Rewrites every float with no fractional part that fits an i64 or u64 as that integer.

@@ -19,7 +19,7 @@ use utoipa_axum::router::OpenApiRouter;
 use utoipa_axum::routes;
 
 use super::error::ErrorBody;
-use super::extract::{Json, Path};
+use super::extract::{AnyContentTypeJson, Json, Path};
 use super::{ApiError, AppState};
 use crate::algo::Policy;
 use crate::data::{ActionSpace, Actions};
@@ -292,7 +292,7 @@ pub struct InferResponse {
 async fn infer(
     State(state): State<AppState>,
     Path(id): Path<String>,
-    Json(request): Json<InferRequest>,
+    AnyContentTypeJson(request): AnyContentTypeJson<InferRequest>,
 ) -> Result<Json<InferResponse>, ApiError> {
     let policy = state.policies.get(&id).await?;
     let obs_dim = policy.spec().obs_dim;

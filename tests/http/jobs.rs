@@ -156,6 +156,22 @@ async fn safedice_and_bc_train_and_serve_identical_actions_over_act_and_v2() {
         assert_eq!(infer["outputs"][0]["datatype"], "INT64");
         assert_eq!(infer["outputs"][0]["shape"], json!([GRID_OBS_DIM]));
         assert_eq!(infer["outputs"][0]["data"].as_array().unwrap(), &actions, "v2 == /act");
+        // Open Inference Protocol clients may declare another content type, or none.
+        let body = json!({"inputs": [{"name": "observations", "datatype": "FP32",
+                          "shape": [GRID_OBS_DIM, GRID_OBS_DIM], "data": flat}]})
+        .to_string();
+        for content_type in [None, Some("text/plain"), Some("application/octet-stream")] {
+            let mut request = app.post(&format!("/v2/models/{policy_id}/infer")).body(body.clone());
+            if let Some(content_type) = content_type {
+                request = request.header("content-type", content_type);
+            }
+            let response = request.send().await.unwrap();
+            assert_eq!(response.status(), StatusCode::OK, "{content_type:?}");
+            let answer: Value = response.json().await.unwrap();
+            assert_eq!(answer["outputs"][0]["data"].as_array().unwrap(), &actions);
+        }
+        let broken = app.post(&format!("/v2/models/{policy_id}/infer")).body("{").send();
+        assert_error(broken.await.unwrap(), StatusCode::BAD_REQUEST, "bad_request").await;
 
         let meta = get_json(&app.client, &app.url(&format!("/v2/models/{policy_id}"))).await;
         assert_eq!(meta["inputs"][0]["shape"], json!([-1, GRID_OBS_DIM]));
