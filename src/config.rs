@@ -16,6 +16,11 @@ pub const DEFAULT_MAX_JOB_MEMORY: u64 = 4 << 30;
 /// 1 GiB: room for one upload of the default --max-upload-bytes, and for thousands of
 /// checkpoints of default-sized networks.
 pub const DEFAULT_MIN_FREE_DISK: u64 = 1 << 30;
+/// Long enough that a busy database or a garbage-collection pause does not lose a lease (three
+/// heartbeats must fail in a row), short enough that a dead worker's job resumes within a
+/// minute.
+pub const DEFAULT_LEASE_SECONDS: u64 = 30;
+const LEASE_SECONDS_RANGE: std::ops::RangeInclusive<u64> = 3..=3600;
 
 /// Log line format.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
@@ -34,9 +39,16 @@ pub struct ServeConfig {
     #[arg(long, env = "SAFEDICE_BIND", default_value = DEFAULT_BIND)]
     pub bind: SocketAddr,
 
-    /// Directory for the SQLite database and the stored datasets; created on first start.
+    /// Directory for the SQLite database and the stored datasets (with --database-url: only
+    /// uploads in flight); created on first start.
     #[arg(long, env = "SAFEDICE_DATA_DIR", default_value = DEFAULT_DATA_DIR)]
     pub data_dir: PathBuf,
+
+    /// PostgreSQL database shared by every API node and worker, e.g.
+    /// postgres://safedice:secret@db:5432/safedice. Without it the store is SQLite in
+    /// --data-dir.
+    #[arg(long, env = "SAFEDICE_DATABASE_URL", hide_env_values = true)]
+    pub database_url: Option<String>,
 
     /// Bearer token required on every /v1 and /v2 route. Without it the API is open and the
     /// server only listens on loopback.
@@ -86,9 +98,15 @@ pub struct ServeConfig {
     #[arg(long, env = "SAFEDICE_MAX_CONCURRENT_UPLOADS", default_value_t = 8, value_parser = clap::value_parser!(u16).range(1..))]
     pub max_concurrent_uploads: u16,
 
-    /// Training jobs run concurrently.
-    #[arg(long, env = "SAFEDICE_WORKERS", default_value_t = 1, value_parser = clap::value_parser!(u16).range(1..))]
+    /// Training jobs this process runs concurrently; 0 serves the API only (jobs then run in
+    /// `safedice worker` processes on the same database).
+    #[arg(long, env = "SAFEDICE_WORKERS", default_value_t = 1)]
     pub workers: u16,
+
+    /// Seconds a worker's lease on a running job lasts without a heartbeat (renewed every third
+    /// of it): a job whose worker died is resumed elsewhere this long after its last heartbeat.
+    #[arg(long, env = "SAFEDICE_LEASE_SECONDS", default_value_t = DEFAULT_LEASE_SECONDS, value_parser = clap::value_parser!(u64).range(LEASE_SECONDS_RANGE))]
+    pub lease_seconds: u64,
 
     /// Largest estimated peak memory of one training job, in bytes: POST /v1/jobs refuses (422
     /// job_too_large) a job whose configuration and datasets need more. Each worker runs one
@@ -109,6 +127,7 @@ impl std::fmt::Debug for ServeConfig {
         f.debug_struct("ServeConfig")
             .field("bind", &self.bind)
             .field("data_dir", &self.data_dir)
+            .field("database_url", &self.database_url.as_deref().map(crate::store::redact_url))
             .field("api_token", &redacted(&self.api_token))
             .field("inference_token", &redacted(&self.inference_token))
             .field("insecure_public", &self.insecure_public)
@@ -120,8 +139,54 @@ impl std::fmt::Debug for ServeConfig {
             .field("body_idle_timeout_secs", &self.body_idle_timeout_secs)
             .field("max_concurrent_uploads", &self.max_concurrent_uploads)
             .field("workers", &self.workers)
+            .field("lease_seconds", &self.lease_seconds)
             .field("max_job_memory", &self.max_job_memory)
             .field("min_free_disk", &self.min_free_disk)
+            .finish()
+    }
+}
+
+/// Settings of `safedice worker`: a process that claims and trains jobs and runs evaluations,
+/// without the HTTP API. `Debug` never shows the database password.
+#[derive(Clone, clap::Args)]
+pub struct WorkerConfig {
+    /// The database the API nodes use: a postgres:// URL, or none for SQLite in --data-dir
+    /// (several processes on one machine may share one SQLite data directory).
+    #[arg(long, env = "SAFEDICE_DATABASE_URL", hide_env_values = true)]
+    pub database_url: Option<String>,
+
+    /// The SQLite data directory without --database-url; with it, unused but for the free-space
+    /// check.
+    #[arg(long, env = "SAFEDICE_DATA_DIR", default_value = DEFAULT_DATA_DIR)]
+    pub data_dir: PathBuf,
+
+    /// Training jobs this process runs at once.
+    #[arg(long, env = "SAFEDICE_CONCURRENCY", default_value_t = 1, value_parser = clap::value_parser!(u16).range(1..))]
+    pub concurrency: u16,
+
+    /// Seconds a lease lasts without a heartbeat (see `safedice serve --help`).
+    #[arg(long, env = "SAFEDICE_LEASE_SECONDS", default_value_t = DEFAULT_LEASE_SECONDS, value_parser = clap::value_parser!(u64).range(LEASE_SECONDS_RANGE))]
+    pub lease_seconds: u64,
+
+    /// Free space (bytes) the data directory needs before training paused by a full disk
+    /// resumes.
+    #[arg(long, env = "SAFEDICE_MIN_FREE_DISK", default_value_t = DEFAULT_MIN_FREE_DISK)]
+    pub min_free_disk: u64,
+
+    /// Log format.
+    #[arg(long, env = "SAFEDICE_LOG_FORMAT", value_enum, default_value_t = LogFormat::Pretty)]
+    pub log_format: LogFormat,
+}
+
+impl std::fmt::Debug for WorkerConfig {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("WorkerConfig")
+            .field("database_url", &self.database_url.as_deref().map(crate::store::redact_url))
+            .field("data_dir", &self.data_dir)
+            .field("concurrency", &self.concurrency)
+            .field("lease_seconds", &self.lease_seconds)
+            .field("min_free_disk", &self.min_free_disk)
+            .field("log_format", &self.log_format)
             .finish()
     }
 }
@@ -153,6 +218,7 @@ impl ServeConfig {
         ServeConfig {
             bind: DEFAULT_BIND.parse().expect("default bind address parses"),
             data_dir: data_dir.into(),
+            database_url: None,
             api_token: None,
             inference_token: None,
             insecure_public: false,
@@ -164,6 +230,7 @@ impl ServeConfig {
             body_idle_timeout_secs: 30,
             max_concurrent_uploads: 8,
             workers: 1,
+            lease_seconds: DEFAULT_LEASE_SECONDS,
             max_job_memory: DEFAULT_MAX_JOB_MEMORY,
             min_free_disk: DEFAULT_MIN_FREE_DISK,
         }

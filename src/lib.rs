@@ -31,3 +31,4 @@ pub mod server;
 pub mod serving;
 pub mod store;
 pub mod text;
+pub mod worker;

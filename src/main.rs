@@ -4,7 +4,7 @@ use std::path::PathBuf;
 
 use clap::{Args, Parser, Subcommand, ValueEnum};
 use safedice::bench::speed::{self, Engine, SpeedConfig};
-use safedice::config::ServeConfig;
+use safedice::config::{ServeConfig, WorkerConfig};
 use safedice::server::{self, Server};
 
 #[derive(Parser)]
@@ -16,8 +16,11 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Command {
-    /// Run the HTTP service.
+    /// Run the HTTP service (and, unless --workers 0, training workers).
     Serve(ServeConfig),
+    /// Run training workers without the HTTP API, on the database the API nodes use
+    /// (--database-url), to spread jobs over processes and machines.
+    Worker(WorkerConfig),
     /// Print the HTTP API's OpenAPI description (YAML, as committed in api/openapi.yaml).
     Openapi,
     /// Generate demonstration data from a built-in environment's scripted demonstrators: an
@@ -172,11 +175,27 @@ fn main() -> anyhow::Result<()> {
             safedice::bench::run_cli(&args, &command.join(" "))
         }
         Command::Serve(config) => serve(config),
+        Command::Worker(config) => worker(config),
         Command::Openapi => {
             print!("{}", safedice::http::openapi::yaml()?);
             Ok(())
         }
     }
+}
+
+fn worker(config: WorkerConfig) -> anyhow::Result<()> {
+    let _logging = safedice::logging::init(config.log_format);
+    let runtime = tokio::runtime::Builder::new_multi_thread().enable_all().build()?;
+    runtime.block_on(async {
+        let shutdown = tokio_util::sync::CancellationToken::new();
+        let stop = shutdown.clone();
+        tokio::spawn(async move {
+            let signal = server::shutdown_signal().await;
+            stop.cancel();
+            tracing::info!("{signal} received, stopping the workers");
+        });
+        safedice::worker::run(config, shutdown).await
+    })
 }
 
 fn serve(config: ServeConfig) -> anyhow::Result<()> {

@@ -11,7 +11,7 @@ use tokio_util::sync::CancellationToken;
 use crate::config::ServeConfig;
 use crate::http::connections::{self, ConnectionLimits};
 use crate::http::{self, AppState};
-use crate::jobs::JobRunner;
+use crate::jobs::{JobRunner, WorkerOptions};
 use crate::serving::PolicyCache;
 use crate::store::Store;
 
@@ -32,7 +32,7 @@ impl Server {
     /// binds the listener and starts serving in the background.
     pub async fn start(config: ServeConfig) -> anyhow::Result<Server> {
         config.validate()?;
-        let store = Store::open(&config.data_dir).await?;
+        let store = Store::connect(&config.data_dir, config.database_url.as_deref()).await?;
         store.remove_leftovers().await?;
         let listener = tokio::net::TcpListener::bind(config.bind)
             .await
@@ -43,18 +43,19 @@ impl Server {
         tracing::info!(
             %local_addr,
             data_dir = %config.data_dir.display(),
+            database = store.backend().as_str(),
             auth,
             "safedice listening"
         );
         let config_max_connections = config.max_connections as usize;
         let header_timeout_secs = config.header_timeout_secs;
-        let jobs = JobRunner::new(
-            store.clone(),
+        let options = WorkerOptions::new(
             usize::from(config.workers),
+            Duration::from_secs(config.lease_seconds),
             config.min_free_disk,
-            shutdown.clone(),
         );
-        jobs.start().await?;
+        let jobs = JobRunner::new(store.clone(), options, shutdown.clone());
+        jobs.start(true).await?;
         let policies = Arc::new(PolicyCache::new(store.clone()));
         let state = AppState::new(config, store.clone(), jobs.clone(), policies, shutdown.clone());
         let limits =

@@ -86,6 +86,8 @@ pub struct JobRecord {
     pub policy_id: Option<PolicyId>,
     pub error: Option<String>,
     pub cancel_requested: bool,
+    /// The worker that holds (or last held) the job's lease.
+    pub worker: Option<String>,
     pub created_at: DateTime<Utc>,
     pub updated_at: DateTime<Utc>,
     pub started_at: Option<DateTime<Utc>>,

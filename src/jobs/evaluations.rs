@@ -3,22 +3,25 @@
 //! Evaluations wait in the `evaluations` table (status `queued`) and one evaluator task runs
 //! them in order, each on a blocking thread, beside the training workers: an evaluation is
 //! short next to a training run (500 episodes of the longest environment take about a second),
-//! so one at a time keeps them from crowding training off the cores. A shutdown interrupts the
-//! running one and puts it back in the queue; at start-up, evaluations a dead process left
-//! `running` are queued again. Both are safe because an evaluation is a pure function of the
-//! policy and its spec.
+//! so one at a time keeps them from crowding training off the cores. Like a job, a running
+//! evaluation is held by a lease: a shutdown interrupts it and puts it back in the queue, and
+//! one whose worker died is claimed again once the lease expires. Both are safe because an
+//! evaluation is a pure function of the policy and its spec.
 
+use std::sync::atomic::AtomicBool;
 use std::sync::{Arc, Mutex};
 
 use tokio::sync::Notify;
 use tokio::task::JoinHandle;
 use tokio_util::sync::CancellationToken;
 
+use super::fleet::{self, Announcement, LeaseKeeper, WorkerOptions};
 use super::EvalSpec;
 use crate::algo::Policy;
 use crate::domain::EvaluationRecord;
 use crate::envs::{self, EvalError, EvalReport};
-use crate::store::Store;
+use crate::store::leases::LeaseTable;
+use crate::store::{Lease, Store, StoreError};
 
 /// Runs `spec` with `policy` and the paper's metrics. `interrupted` is asked between
 /// environment steps; once it says yes the evaluation stops with [`EvalError::Policy`].
@@ -44,6 +47,7 @@ pub struct Evaluator {
 
 struct Inner {
     store: Store,
+    options: WorkerOptions,
     wake: Notify,
     shutdown: CancellationToken,
     task: Mutex<Option<JoinHandle<()>>>,
@@ -51,28 +55,27 @@ struct Inner {
 
 impl Evaluator {
     /// An evaluator (not started) that stops when `shutdown` is cancelled.
-    pub fn new(store: Store, shutdown: CancellationToken) -> Self {
-        Evaluator {
-            inner: Arc::new(Inner { store, wake: Notify::new(), shutdown, task: Mutex::new(None) }),
-        }
+    pub fn new(store: Store, options: WorkerOptions, shutdown: CancellationToken) -> Self {
+        let inner =
+            Inner { store, options, wake: Notify::new(), shutdown, task: Mutex::new(None) };
+        Evaluator { inner: Arc::new(inner) }
     }
 
-    /// Requeues evaluations interrupted by a previous process, then starts the evaluator task.
-    pub async fn start(&self) -> anyhow::Result<()> {
-        let requeued = self.inner.store.requeue_evaluations(None).await?;
-        if requeued > 0 {
-            tracing::info!(
-                evaluations = requeued,
-                "rerunning evaluations interrupted by the last shutdown"
-            );
-        }
+    /// Starts the evaluator task.
+    pub fn start(&self) {
         let task = tokio::spawn(self.clone().run());
         *self.inner.task.lock().expect("evaluator lock") = Some(task);
-        Ok(())
     }
 
-    /// Tells the evaluator that an evaluation was queued.
+    /// Tells the evaluator (and, on PostgreSQL, the other processes') that an evaluation was
+    /// queued.
     pub fn wake(&self) {
+        self.wake_local();
+        fleet::announce(&self.inner.store, Announcement::EvaluationQueued);
+    }
+
+    /// Tells this process's evaluator alone.
+    pub(super) fn wake_local(&self) {
         self.inner.wake.notify_one();
     }
 
@@ -88,9 +91,10 @@ impl Evaluator {
 
     async fn run(self) {
         let shutdown = self.inner.shutdown.clone();
+        let options = &self.inner.options;
         while !shutdown.is_cancelled() {
-            match self.inner.store.claim_next_evaluation().await {
-                Ok(Some(row)) => self.run_one(row).await,
+            match self.inner.store.claim_next_evaluation(&options.worker_id, options.lease).await {
+                Ok(Some((row, lease))) => self.run_one(row, lease).await,
                 Ok(None) => super::wait_for_work(&self.inner.wake, &shutdown).await,
                 Err(e) => {
                     tracing::error!(error = %e, "cannot claim an evaluation; retrying");
@@ -101,9 +105,19 @@ impl Evaluator {
     }
 
     #[tracing::instrument(skip_all, fields(evaluation_id = %row.id, policy_id = %row.policy_id, env = %row.spec.env))]
-    async fn run_one(&self, row: EvaluationRecord) {
+    async fn run_one(&self, row: EvaluationRecord, lease: Lease) {
         let store = &self.inner.store;
+        // A lost lease needs no flag here: the evaluation is short, and its result is refused.
+        let lost = Arc::new(AtomicBool::new(false));
+        let keeper = LeaseKeeper::start(
+            store.clone(),
+            LeaseTable::Evaluations,
+            lease.clone(),
+            &self.inner.options,
+            lost,
+        );
         let outcome = self.evaluate(&row).await;
+        drop(keeper);
         let stored = match &outcome {
             Ok(report) => {
                 let m = &report.metrics;
@@ -112,20 +126,20 @@ impl Evaluator {
                     average_cost = m.average_cost,
                     "evaluation succeeded"
                 );
-                store.finish_evaluation(&row.id, Ok(report)).await
+                store.finish_evaluation(&lease, Ok(report)).await
             }
             Err(_) if self.inner.shutdown.is_cancelled() => {
-                tracing::info!(
-                    "evaluation interrupted by the shutdown; it reruns at the next start"
-                );
-                store.requeue_evaluations(Some(&row.id)).await.map(drop)
+                tracing::info!("evaluation interrupted by the shutdown; it goes back to the queue");
+                store.requeue_evaluation(&lease).await
             }
             Err(message) => {
                 tracing::warn!(error = %message, "evaluation failed");
-                store.finish_evaluation(&row.id, Err(message)).await
+                store.finish_evaluation(&lease, Err(message)).await
             }
         };
-        if let Err(e) = stored {
+        if let Err(StoreError::LeaseLost(_)) = stored {
+            tracing::warn!("another worker took the evaluation over; this result is dropped");
+        } else if let Err(e) = stored {
             tracing::error!(error = %e, "cannot record the evaluation's outcome");
         }
     }

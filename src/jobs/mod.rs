@@ -1,13 +1,16 @@
 //! The training queue and worker pool, and the background policy evaluator ([`evaluations`]).
 //!
-//! Jobs wait in the `jobs` table (status `queued`), so the queue survives restarts. Each of
-//! `--workers` worker tasks claims the next job atomically ([`Store::claim_next_job`]) and drives
-//! its [`crate::algo::Trainer`] step by step on a blocking thread ([`worker`]), so training never
-//! stalls the HTTP side. Between steps the worker checks for a cancel request and for shutdown,
-//! records metrics every `log_every` steps, saves a checkpoint every `checkpoint_every` steps,
-//! evaluates the policy when the job has an `eval` block ([`EvalOptions`]), and publishes
-//! progress ([`JobEvent`]) for the event streams. At start-up, jobs a dead process
-//! left `running` go back to the queue first and resume from their last checkpoint.
+//! Jobs wait in the `jobs` table (status `queued`), so the queue survives restarts and is shared
+//! by every process on the same database ([`fleet`]): `safedice serve` with `--workers N`, and
+//! any number of `safedice worker` processes. Each worker task claims the next job with a lease
+//! ([`Store::claim_next_job`]) and drives its [`crate::algo::Trainer`] step by step on a
+//! blocking thread ([`worker`]), so training never stalls the HTTP side; a heartbeat keeps the
+//! lease alive, and every write for the job carries the lease token. Between steps the worker
+//! checks for a cancel request and for shutdown, records metrics every `log_every` steps, saves
+//! a checkpoint every `checkpoint_every` steps, evaluates the policy when the job has an `eval`
+//! block ([`EvalOptions`]), and publishes progress ([`JobEvent`]) for the event streams. A job
+//! whose worker died (its lease expired) is claimed again by any worker and resumes from its
+//! last checkpoint.
 //!
 //! A run whose write the store cannot take (a full disk, SQLITE_FULL, a lock held past the busy
 //! timeout) is not the job's fault: the job goes back to the queue, to resume from its last
@@ -16,6 +19,7 @@
 //! up to [`STORAGE_RETRY_MAX`]), rather than failing job after job for good.
 
 pub mod evaluations;
+pub mod fleet;
 pub mod submit;
 mod worker;
 
@@ -32,6 +36,7 @@ pub use crate::domain::{EvalOptions, EvalSpec, JobProgress, RunnerOptions};
 use crate::domain::{JobId, JobStatus};
 use crate::store::Store;
 pub use evaluations::{evaluate_policy, Evaluator};
+pub use fleet::WorkerOptions;
 pub use submit::{submit, JobRequest, SubmitError};
 
 /// Something a watcher of a job wants to know.
@@ -59,7 +64,7 @@ pub struct JobRunner {
 
 struct Inner {
     store: Store,
-    workers: usize,
+    options: WorkerOptions,
     /// Woken when a job is queued.
     wake: Notify,
     events: broadcast::Sender<JobEvent>,
@@ -69,60 +74,69 @@ struct Inner {
     tasks: Mutex<Vec<JoinHandle<()>>>,
     /// Runs policy evaluations beside the training workers.
     evaluator: Evaluator,
-    /// Free space the data directory needs before paused training resumes (`--min-free-disk`).
-    min_free_disk: u64,
     /// Runs in a row that ended because the store could not take their writes; while above
     /// zero, workers wait for the storage before claiming.
     storage_failures: AtomicU32,
+    /// What this process last published of jobs other processes run.
+    followed: fleet::Followed,
 }
 
 /// Events buffered per subscriber; a slow event stream skips ahead rather than blocking workers.
 const EVENT_BUFFER: usize = 1024;
 
 impl JobRunner {
-    /// A pool of `workers` workers (not started) that stops when `shutdown` is cancelled;
-    /// training paused by a full disk resumes once `min_free_disk` bytes are free.
-    pub fn new(
-        store: Store,
-        workers: usize,
-        min_free_disk: u64,
-        shutdown: CancellationToken,
-    ) -> Self {
+    /// A pool of `options.workers` workers (not started) that stops when `shutdown` is
+    /// cancelled; with 0 workers it trains nothing and runs no evaluations (an API-only node).
+    pub fn new(store: Store, options: WorkerOptions, shutdown: CancellationToken) -> Self {
         let (events, _) = broadcast::channel(EVENT_BUFFER);
         JobRunner {
             inner: Arc::new(Inner {
-                workers: workers.max(1),
                 wake: Notify::new(),
                 events,
                 cancels: Mutex::new(HashMap::new()),
-                evaluator: Evaluator::new(store.clone(), shutdown.clone()),
+                evaluator: Evaluator::new(store.clone(), options.clone(), shutdown.clone()),
                 store,
+                options,
                 shutdown,
                 tasks: Mutex::new(Vec::new()),
-                min_free_disk,
                 storage_failures: AtomicU32::new(0),
+                followed: fleet::Followed::default(),
             }),
         }
     }
 
-    /// Requeues jobs interrupted by a previous process, then starts the workers and the
-    /// evaluator.
-    pub async fn start(&self) -> anyhow::Result<()> {
-        self.inner.evaluator.start().await?;
-        let requeued = self.inner.store.requeue_interrupted_jobs().await?;
-        if requeued > 0 {
-            tracing::info!(jobs = requeued, "resuming jobs interrupted by the last shutdown");
+    /// Registers this process's workers, starts them and the evaluator (none with 0 workers),
+    /// and, when `follow` is set (an API node), the task that brings the progress of jobs run
+    /// by other processes to this process's event streams.
+    pub async fn start(&self, follow: bool) -> anyhow::Result<()> {
+        let workers = self.inner.options.workers;
+        let mut tasks = Vec::new();
+        if workers > 0 {
+            fleet::register(self).await?;
+            tasks.push(tokio::spawn(fleet::registry_heartbeat(self.clone())));
+            self.inner.evaluator.start();
+            for index in 0..workers {
+                tasks.push(tokio::spawn(worker::run_worker(self.clone(), index)));
+            }
         }
-        let mut tasks = self.inner.tasks.lock().expect("runner lock");
-        for index in 0..self.inner.workers {
-            tasks.push(tokio::spawn(worker::run_worker(self.clone(), index)));
+        if follow {
+            tasks.push(tokio::spawn(fleet::follow_jobs(self.clone())));
         }
-        tracing::info!(workers = self.inner.workers, "job workers started");
+        if let Some(url) = self.inner.store.database_url() {
+            tasks.push(tokio::spawn(fleet::listen(self.clone(), url.to_owned())));
+        }
+        self.inner.tasks.lock().expect("runner lock").extend(tasks);
+        tracing::info!(
+            workers,
+            worker_id = %self.inner.options.worker_id,
+            lease_seconds = self.inner.options.lease.as_secs(),
+            "job workers started"
+        );
         Ok(())
     }
 
     /// Waits for the workers to finish after shutdown was requested (each checkpoints its job
-    /// and hands it back to the queue).
+    /// and hands it back to the queue), then removes this process from the worker registry.
     pub async fn stopped(&self) {
         self.inner.evaluator.stopped().await;
         let tasks = std::mem::take(&mut *self.inner.tasks.lock().expect("runner lock"));
@@ -131,18 +145,47 @@ impl JobRunner {
                 tracing::error!(error = %e, "a job worker panicked");
             }
         }
+        if self.inner.options.workers > 0 {
+            if let Err(e) = self.inner.store.remove_worker(&self.inner.options.worker_id).await {
+                tracing::warn!(error = %e, "cannot remove this worker from the registry");
+            }
+        }
     }
 
-    /// Tells an idle worker that a job was queued.
+    /// This process's worker identity and lease settings.
+    pub fn options(&self) -> &WorkerOptions {
+        &self.inner.options
+    }
+
+    /// Tells an idle worker that a job was queued (and, on PostgreSQL, every other process).
     pub fn wake(&self) {
         self.inner.wake.notify_one();
+        fleet::announce(&self.inner.store, fleet::Announcement::Queued);
     }
 
-    /// Stops a job this process is running at its next step (no-op for other jobs).
+    /// Stops a job this process is running at its next step; a job another process runs
+    /// learns of its cancel request at its next progress write (about twice a second), or at
+    /// once through a PostgreSQL notification.
     pub fn cancel_running(&self, job_id: &str) {
-        if let Some(flag) = self.inner.cancels.lock().expect("runner lock").get(job_id) {
-            flag.store(true, Ordering::Relaxed);
+        if !self.cancel_local(job_id) {
+            fleet::announce(&self.inner.store, fleet::Announcement::Cancel(job_id.to_owned()));
         }
+    }
+
+    /// Sets the cancel flag of a job this process runs; false when it runs no such job.
+    fn cancel_local(&self, job_id: &str) -> bool {
+        match self.inner.cancels.lock().expect("runner lock").get(job_id) {
+            Some(flag) => {
+                flag.store(true, Ordering::Relaxed);
+                true
+            }
+            None => false,
+        }
+    }
+
+    /// Whether this process runs the job now.
+    fn runs_locally(&self, job_id: &str) -> bool {
+        self.inner.cancels.lock().expect("runner lock").contains_key(job_id)
     }
 
     /// Progress and status changes of every job, from now on.
@@ -159,7 +202,15 @@ impl JobRunner {
         &self.inner.store
     }
 
+    /// Publishes an event of a job this process runs, to its own event streams and (on
+    /// PostgreSQL) to the API nodes that follow it.
     fn publish(&self, event: JobEvent) {
+        fleet::announce(&self.inner.store, fleet::Announcement::Changed(event.job_id().to_string()));
+        self.publish_followed(event);
+    }
+
+    /// Publishes an event to this process's event streams only.
+    fn publish_followed(&self, event: JobEvent) {
         // No subscriber is fine: nobody is watching.
         let _ = self.inner.events.send(event);
     }
@@ -203,7 +254,7 @@ impl JobRunner {
             return;
         }
         loop {
-            match self.store().check_storage(self.inner.min_free_disk).await {
+            match self.store().check_storage(self.inner.options.min_free_disk).await {
                 Ok(()) => {
                     tracing::info!("the data directory takes writes again; training resumes");
                     return;
@@ -219,13 +270,13 @@ impl JobRunner {
     }
 
     /// Puts a job whose run stopped on a failed write back in the queue. That write may fail
-    /// too while the disk is full: it is retried until it goes through or shutdown begins (the
-    /// next start-up requeues a job left `running`).
-    async fn release_when_possible(&self, job_id: &str) {
+    /// too while the disk is full: it is retried until it goes through, the lease is lost, or
+    /// shutdown begins (a job left `running` is claimed again once its lease expires).
+    async fn release_when_possible(&self, lease: &crate::store::Lease) {
         let mut delay = STORAGE_RETRY;
         loop {
-            match self.store().release_job(job_id).await {
-                Ok(()) => return,
+            match self.store().release_job(lease).await {
+                Ok(()) | Err(crate::store::StoreError::LeaseLost(_)) => return,
                 Err(e) => {
                     tracing::warn!(error = %e, "cannot hand the job back to the queue yet");
                     if sleep_unless_shutdown(&self.inner.shutdown, delay).await {
@@ -252,8 +303,9 @@ async fn sleep_unless_shutdown(shutdown: &CancellationToken, duration: Duration)
 }
 
 /// How long an idle queue loop (a training worker, the evaluator) sleeps before looking at its
-/// queue again without being woken: covers work queued by another process on the same database.
-const IDLE_POLL: Duration = Duration::from_secs(5);
+/// queue again without being woken: covers work queued by another process on the same database
+/// (on PostgreSQL a notification wakes it at once) and leases that expired meanwhile.
+const IDLE_POLL: Duration = Duration::from_secs(2);
 /// Back-off of a queue loop after a database error while claiming.
 const ERROR_BACKOFF: Duration = Duration::from_secs(1);
 

@@ -6,14 +6,16 @@ use std::time::{Duration, Instant};
 
 use tokio::runtime::Handle;
 
+use super::fleet::LeaseKeeper;
 use super::{EvalOptions, JobEvent, JobProgress, JobRunner, RunnerOptions};
 use crate::algo::{self, Policy, Trainer};
 use crate::domain::{JobRecord, JobStatus, PolicyId};
 use crate::store::jobs::{MetricRow, ProgressUpdate};
 use crate::store::now;
 use crate::store::policies::NewPolicy;
+use crate::store::leases::LeaseTable;
 use crate::store::storage::{is_io_storage_full, is_storage_full};
-use crate::store::{is_busy, StoreError};
+use crate::store::{is_busy, Lease, StoreError};
 
 /// How often a running job's progress is written and published (and pending metrics flushed).
 const PROGRESS_INTERVAL: Duration = Duration::from_millis(500);
@@ -30,6 +32,13 @@ enum Outcome {
     /// or a lock held past the busy timeout): nothing is wrong with the job, so it goes back to
     /// the queue and resumes from its last checkpoint once the store takes writes again.
     StoreUnavailable(String),
+    /// Another worker took the job over (this worker's lease expired): nothing more is written.
+    LeaseLost,
+}
+
+/// Whether a run's error is a write refused because another worker holds the job now.
+fn lease_lost(e: &anyhow::Error) -> bool {
+    e.chain().any(|cause| matches!(cause.downcast_ref(), Some(StoreError::LeaseLost(_))))
 }
 
 /// Whether a run's error is the store failing to take a write for want of room or a lock, not
@@ -56,8 +65,9 @@ pub(super) async fn run_worker(runner: JobRunner, index: usize) {
         if shutdown.is_cancelled() {
             break;
         }
-        match runner.store().claim_next_job().await {
-            Ok(Some(job)) => run_job(&runner, job).await,
+        let options = &runner.inner.options;
+        match runner.store().claim_next_job(&options.worker_id, options.lease).await {
+            Ok(Some((job, lease))) => run_job(&runner, job, lease).await,
             Ok(None) => super::wait_for_work(&runner.inner.wake, &shutdown).await,
             // A claim is a write too: on a full disk, pause like a run that could not write.
             Err(e) if e.is_storage_full() => {
@@ -72,28 +82,44 @@ pub(super) async fn run_worker(runner: JobRunner, index: usize) {
     }
 }
 
-#[tracing::instrument(skip_all, fields(job_id = %job.id, algorithm = %job.algorithm))]
-async fn run_job(runner: &JobRunner, job: JobRecord) {
+#[tracing::instrument(skip_all, fields(job_id = %job.id, algorithm = %job.algorithm, claim = lease.token))]
+async fn run_job(runner: &JobRunner, job: JobRecord, lease: Lease) {
     let id = job.id.clone();
     let cancel = runner.register_cancel_flag(&id);
     // A cancel may have been requested between the claim and the flag's registration.
     if job.cancel_requested {
         cancel.store(true, Ordering::Relaxed);
     }
+    let keeper = LeaseKeeper::start(
+        runner.store().clone(),
+        LeaseTable::Jobs,
+        lease.clone(),
+        &runner.inner.options,
+        cancel.clone(),
+    );
     runner.publish(JobEvent::Status { job_id: id.clone(), status: JobStatus::Running });
     tracing::info!("job started");
-    let run = TrainingRun::new(runner.clone(), Handle::current(), job, cancel);
+    let run = TrainingRun::new(runner.clone(), Handle::current(), job, lease.clone(), cancel);
     let outcome = match tokio::task::spawn_blocking(move || run.drive()).await {
         Ok(Ok(outcome)) => outcome,
+        Ok(Err(e)) if lease_lost(&e) => Outcome::LeaseLost,
         Ok(Err(e)) if store_unavailable(&e) => Outcome::StoreUnavailable(format!("{e:#}")),
         Ok(Err(e)) => Outcome::Failed(format!("{e:#}")),
         Err(e) => Outcome::Failed(format!("the training thread panicked: {e}")),
     };
+    drop(keeper);
     runner.forget_cancel_flag(&id);
     if !matches!(outcome, Outcome::StoreUnavailable(_) | Outcome::Released) {
         runner.storage_recovered();
     }
     let status = match &outcome {
+        Outcome::LeaseLost => {
+            tracing::warn!(
+                "another worker took the job over after this worker's lease expired; this \
+                 run stops without writing anything more"
+            );
+            return;
+        }
         Outcome::Succeeded => JobStatus::Succeeded,
         Outcome::Cancelled => JobStatus::Cancelled,
         Outcome::Released => JobStatus::Queued,
@@ -104,14 +130,19 @@ async fn run_job(runner: &JobRunner, job: JobRecord) {
                  training pauses until the data directory takes writes again"
             );
             runner.pause_for_storage();
-            runner.release_when_possible(&id).await;
+            runner.release_when_possible(&lease).await;
             JobStatus::Queued
         }
         Outcome::Failed(message) => {
             tracing::warn!(error = %message, "job failed");
             let store = runner.store();
-            if let Err(e) = store.finish_job(&id, JobStatus::Failed, Some(message), &[]).await {
-                tracing::error!(error = %e, "cannot record the job's failure");
+            match store.finish_job(&lease, JobStatus::Failed, Some(message), &[]).await {
+                Ok(()) => {}
+                Err(StoreError::LeaseLost(_)) => {
+                    tracing::warn!("another worker took the job over; its failure is not recorded");
+                    return;
+                }
+                Err(e) => tracing::error!(error = %e, "cannot record the job's failure"),
             }
             JobStatus::Failed
         }
@@ -148,14 +179,22 @@ struct TrainingRun {
     runner: JobRunner,
     rt: Handle,
     job: JobRecord,
+    /// Carried by every write: refused once another worker took the job over.
+    lease: Lease,
     cancel: Arc<AtomicBool>,
     /// Metrics recorded since the last write.
     pending: Vec<MetricRow>,
 }
 
 impl TrainingRun {
-    fn new(runner: JobRunner, rt: Handle, job: JobRecord, cancel: Arc<AtomicBool>) -> Self {
-        TrainingRun { runner, rt, job, cancel, pending: Vec::new() }
+    fn new(
+        runner: JobRunner,
+        rt: Handle,
+        job: JobRecord,
+        lease: Lease,
+        cancel: Arc<AtomicBool>,
+    ) -> Self {
+        TrainingRun { runner, rt, job, lease, cancel, pending: Vec::new() }
     }
 
     fn drive(mut self) -> anyhow::Result<Outcome> {
@@ -174,7 +213,7 @@ impl TrainingRun {
         let checkpoint = self.rt.block_on(store.checkpoint(&self.job.id))?;
         let resumed_at = checkpoint.as_ref().map_or(0, |(step, _)| *step);
         // Rows past the checkpoint are recomputed (bitwise the same) by the resumed run.
-        self.rt.block_on(store.discard_metrics_after(&self.job.id, resumed_at))?;
+        self.rt.block_on(store.discard_metrics_after(&self.lease, resumed_at))?;
         let mut trainer =
             match algo::build_trainer(config, &data, checkpoint.as_ref().map(|(_, b)| &b[..])) {
                 Ok(trainer) => trainer,
@@ -198,7 +237,7 @@ impl TrainingRun {
             }
             if shutdown.is_cancelled() {
                 self.save_checkpoint(trainer)?;
-                self.rt.block_on(self.runner.store().release_job(&self.job.id))?;
+                self.rt.block_on(self.runner.store().release_job(&self.lease))?;
                 return Ok(Outcome::Released);
             }
             let progress = trainer.progress();
@@ -221,7 +260,7 @@ impl TrainingRun {
                     EvalOutcome::Interrupted => {
                         // Back to the last checkpoint: the resumed run recomputes this step
                         // and its evaluation bitwise the same.
-                        self.rt.block_on(self.runner.store().release_job(&self.job.id))?;
+                        self.rt.block_on(self.runner.store().release_job(&self.lease))?;
                         return Ok(Outcome::Released);
                     }
                     EvalOutcome::Failed(message) => {
@@ -294,7 +333,7 @@ impl TrainingRun {
 
     fn flush_metrics(&mut self) -> anyhow::Result<()> {
         let rows = std::mem::take(&mut self.pending);
-        self.rt.block_on(self.runner.store().insert_metrics(&self.job.id, &rows))?;
+        self.rt.block_on(self.runner.store().insert_metrics(&self.lease, &rows))?;
         Ok(())
     }
 
@@ -302,7 +341,7 @@ impl TrainingRun {
         let bytes = trainer.checkpoint()?;
         let rows = std::mem::take(&mut self.pending);
         let step = trainer.progress().step;
-        self.rt.block_on(self.runner.store().save_checkpoint(&self.job.id, step, &bytes, &rows))?;
+        self.rt.block_on(self.runner.store().save_checkpoint(&self.lease, step, &bytes, &rows))?;
         tracing::debug!(step, bytes = bytes.len(), "checkpoint saved");
         Ok(())
     }
@@ -317,7 +356,7 @@ impl TrainingRun {
             alpha_hat: trainer.alpha_hat(),
         };
         let cancel =
-            self.rt.block_on(self.runner.store().update_progress(&self.job.id, &update))?;
+            self.rt.block_on(self.runner.store().update_progress(&self.lease, &update))?;
         self.runner.publish(JobEvent::Progress {
             job_id: self.job.id.clone(),
             progress: JobProgress::new(p.step, p.total, Some(p.phase.to_owned()), speed),
@@ -327,7 +366,7 @@ impl TrainingRun {
 
     fn finish(&mut self, status: JobStatus, error: Option<&str>) -> anyhow::Result<()> {
         let rows = std::mem::take(&mut self.pending);
-        self.rt.block_on(self.runner.store().finish_job(&self.job.id, status, error, &rows))?;
+        self.rt.block_on(self.runner.store().finish_job(&self.lease, status, error, &rows))?;
         Ok(())
     }
 
@@ -355,7 +394,7 @@ impl TrainingRun {
             alpha_hat: trainer.alpha_hat(),
         };
         let step = trainer.progress().step;
-        self.rt.block_on(store.finish_job_succeeded(&self.job.id, &[], &policy, step))?;
+        self.rt.block_on(store.finish_job_succeeded(&self.lease, &[], &policy, step))?;
         Ok(())
     }
 }

@@ -1,13 +1,15 @@
-//! Dataset rows and their canonical files.
+//! Dataset rows and their canonical bytes: a file per dataset in the data directory on SQLite,
+//! chunks in the `dataset_chunks` table on PostgreSQL (see the module docs of [`super`]).
 
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
 use chrono::{DateTime, Utc};
+use futures::TryStreamExt;
 use sha2::{Digest, Sha256};
-use sqlx::types::Json;
+use sqlx::{Any, Transaction};
 
-use super::{Store, StoreError};
+use super::{now, parse_time, Backend, Store, StoreError};
 use crate::data::{self, ActionSpace, Dataset, DatasetStats, Format};
 
 const CANONICAL_EXTENSION: &str = "canonical";
@@ -84,13 +86,13 @@ struct DatasetRow {
     transitions: i64,
     episodes: i64,
     obs_dim: i64,
-    action_space: Json<ActionSpace>,
-    stats: Json<DatasetStats>,
+    action_space: String,
+    stats: String,
     sha256: String,
     bytes: i64,
     canonical_sha256: String,
     canonical_bytes: i64,
-    created_at: DateTime<Utc>,
+    created_at: String,
 }
 
 impl TryFrom<DatasetRow> for DatasetRecord {
@@ -101,6 +103,13 @@ impl TryFrom<DatasetRow> for DatasetRecord {
             .format
             .parse()
             .map_err(|e: data::ParseError| StoreError::Corrupt(row.id.clone(), e.message))?;
+        let json = |what: &str, e: serde_json::Error| {
+            StoreError::Corrupt(row.id.clone(), format!("stored {what}: {e}"))
+        };
+        let action_space =
+            serde_json::from_str(&row.action_space).map_err(|e| json("action space", e))?;
+        let stats = serde_json::from_str(&row.stats).map_err(|e| json("stats", e))?;
+        let created_at = parse_time(&row.id, &row.created_at)?;
         Ok(DatasetRecord {
             id: row.id,
             name: row.name,
@@ -109,11 +118,11 @@ impl TryFrom<DatasetRow> for DatasetRecord {
             transitions: row.transitions as u64,
             episodes: row.episodes as u64,
             obs_dim: row.obs_dim as u64,
-            action_space: row.action_space.0,
-            stats: row.stats.0,
+            action_space,
+            stats,
             sha256: row.sha256,
             bytes: row.bytes as u64,
-            created_at: row.created_at,
+            created_at,
             canonical_sha256: row.canonical_sha256,
             canonical_bytes: row.canonical_bytes as u64,
         })
@@ -135,6 +144,11 @@ pub(super) fn id_of_canonical_file(path: &Path) -> Option<&str> {
     is_canonical.then(|| path.file_stem()?.to_str()).flatten()
 }
 
+/// The JSON of a stored description (plain data: serialising cannot fail).
+fn to_json(value: &impl serde::Serialize) -> String {
+    serde_json::to_string(value).expect("dataset descriptions serialise to JSON")
+}
+
 fn sha256_hex(bytes: &[u8]) -> String {
     hex::encode(Sha256::digest(bytes))
 }
@@ -149,63 +163,79 @@ fn write_atomically(dir: &Path, path: &Path, bytes: &[u8]) -> std::io::Result<()
     std::fs::File::open(dir)?.sync_all()
 }
 
+/// Bytes per row of `dataset_chunks`: large enough that a 1 GiB dataset is 256 rows, small
+/// enough that a row never holds much memory on either side of the connection.
+const CHUNK_BYTES: usize = 4 << 20;
+
 impl Store {
     fn canonical_path(&self, id: &str) -> PathBuf {
         self.datasets_dir().join(format!("{id}.{CANONICAL_EXTENSION}"))
     }
 
-    /// Stores an accepted upload: its canonical bytes as a file, then its row. Either both
-    /// exist afterwards or neither does.
+    /// Stores an accepted upload: its canonical bytes and its row. Either both exist afterwards
+    /// or neither does (SQLite: the file is durably in place before the row is inserted;
+    /// PostgreSQL: row and chunks are one transaction).
     pub async fn create_dataset(
         &self,
         new: NewDataset,
         canonical: Vec<u8>,
     ) -> Result<DatasetRecord, StoreError> {
         let id = crate::domain::DatasetId::generate().into_string();
-        let path = self.canonical_path(&id);
-        let dir = self.datasets_dir();
-        let canonical_bytes = canonical.len() as u64;
-        let write_path = path.clone();
-        let canonical_sha256 = tokio::task::spawn_blocking(move || {
-            write_atomically(&dir, &write_path, &canonical).map(|()| sha256_hex(&canonical))
-        })
-        .await
-        .map_err(std::io::Error::other)??;
-
-        let inserted = sqlx::query(
-            "INSERT INTO datasets (id, name, description, format, transitions, episodes, obs_dim, \
-             action_space, stats, sha256, bytes, canonical_sha256, canonical_bytes, created_at) \
-             VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
-        )
-        .bind(&id)
-        .bind(&new.name)
-        .bind(&new.description)
-        .bind(new.format.as_str())
-        .bind(new.transitions as i64)
-        .bind(new.episodes as i64)
-        .bind(new.obs_dim as i64)
-        .bind(Json(&new.action_space))
-        .bind(Json(&new.stats))
-        .bind(&new.sha256)
-        .bind(new.bytes as i64)
-        .bind(&canonical_sha256)
-        .bind(canonical_bytes as i64)
-        .bind(Utc::now())
-        .execute(self.pool())
-        .await;
-        if let Err(e) = inserted {
-            let _ = tokio::fs::remove_file(&path).await;
-            return Err(e.into());
+        match self.backend {
+            Backend::Sqlite => self.create_dataset_file(&id, &new, canonical).await?,
+            Backend::Postgres => {
+                let hashed = canonical_sha256(canonical).await?;
+                let mut tx = self.begin_write().await?;
+                insert_dataset_row(&mut tx, &id, &new, &hashed).await?;
+                for (seq, chunk) in hashed.bytes.chunks(CHUNK_BYTES).enumerate() {
+                    sqlx::query(
+                        "INSERT INTO dataset_chunks (dataset_id, seq, data) VALUES ($1, $2, $3)",
+                    )
+                    .bind(&id)
+                    .bind(seq as i64)
+                    .bind(chunk)
+                    .execute(&mut *tx)
+                    .await?;
+                }
+                tx.commit().await?;
+            }
         }
         self.dataset(&id)
             .await?
             .ok_or_else(|| StoreError::NotFound { kind: "dataset", id: id.clone() })
     }
 
+    async fn create_dataset_file(
+        &self,
+        id: &str,
+        new: &NewDataset,
+        canonical: Vec<u8>,
+    ) -> Result<(), StoreError> {
+        let path = self.canonical_path(id);
+        let dir = self.datasets_dir();
+        let write_path = path.clone();
+        let hashed = tokio::task::spawn_blocking(move || {
+            write_atomically(&dir, &write_path, &canonical).map(|()| Hashed::of(canonical))
+        })
+        .await
+        .map_err(std::io::Error::other)??;
+        let mut tx = self.begin_write().await?;
+        let inserted = insert_dataset_row(&mut tx, id, new, &hashed).await;
+        let committed = match inserted {
+            Ok(()) => tx.commit().await.map_err(StoreError::from),
+            Err(e) => Err(e),
+        };
+        if let Err(e) = committed {
+            let _ = tokio::fs::remove_file(&path).await;
+            return Err(e);
+        }
+        Ok(())
+    }
+
     /// One dataset's description.
     pub async fn dataset(&self, id: &str) -> Result<Option<DatasetRecord>, StoreError> {
         let row: Option<DatasetRow> =
-            sqlx::query_as(&format!("SELECT {COLUMNS} FROM datasets WHERE id = ?"))
+            sqlx::query_as(&format!("SELECT {COLUMNS} FROM datasets WHERE id = $1"))
                 .bind(id)
                 .fetch_optional(self.pool())
                 .await?;
@@ -219,7 +249,7 @@ impl Store {
         offset: u64,
     ) -> Result<(Vec<DatasetRecord>, u64), StoreError> {
         let rows: Vec<DatasetRow> = sqlx::query_as(&format!(
-            "SELECT {COLUMNS} FROM datasets ORDER BY rowid DESC LIMIT ? OFFSET ?"
+            "SELECT {COLUMNS} FROM datasets ORDER BY created_at DESC, id DESC LIMIT $1 OFFSET $2"
         ))
         .bind(limit as i64)
         .bind(offset as i64)
@@ -236,23 +266,25 @@ impl Store {
     }
 
     /// Deletes a dataset unless a queued or running job uses it. The check and the delete are
-    /// one write transaction (the write lock taken up front), so a job queued concurrently
+    /// one write transaction (the dataset's row locked first), so a job queued concurrently
     /// either commits first and is seen here, or sees the dataset gone (see
     /// [`Store::insert_job`]); and the answer describes the state the delete saw, not one read
     /// after it.
     pub async fn delete_dataset(&self, id: &str) -> Result<DeleteOutcome, StoreError> {
         let mut tx = self.begin_write().await?;
-        let exists: bool =
-            sqlx::query_scalar("SELECT EXISTS (SELECT 1 FROM datasets WHERE id = ?)")
-                .bind(id)
-                .fetch_one(&mut *tx)
-                .await?;
-        if !exists {
+        let found: Option<String> = sqlx::query_scalar(&format!(
+            "SELECT id FROM datasets WHERE id = $1{}",
+            self.backend.lock_row()
+        ))
+        .bind(id)
+        .fetch_optional(&mut *tx)
+        .await?;
+        if found.is_none() {
             return Ok(DeleteOutcome::NotFound);
         }
         let jobs: Vec<String> = sqlx::query_scalar(
             "SELECT id FROM jobs WHERE status IN ('queued', 'running') \
-             AND (unlabeled_dataset_id = ?1 OR non_preferred_dataset_id = ?1) ORDER BY id",
+             AND (unlabeled_dataset_id = $1 OR non_preferred_dataset_id = $1) ORDER BY id",
         )
         .bind(id)
         .fetch_all(&mut *tx)
@@ -260,55 +292,131 @@ impl Store {
         if !jobs.is_empty() {
             return Ok(DeleteOutcome::InUse(jobs));
         }
-        sqlx::query("DELETE FROM datasets WHERE id = ?").bind(id).execute(&mut *tx).await?;
+        // On PostgreSQL the chunks go with the row (ON DELETE CASCADE).
+        sqlx::query("DELETE FROM datasets WHERE id = $1").bind(id).execute(&mut *tx).await?;
         tx.commit().await?;
-        match tokio::fs::remove_file(self.canonical_path(id)).await {
-            Ok(()) => {}
-            Err(e) if e.kind() == std::io::ErrorKind::NotFound => {}
-            // The row is gone; the next start-up removes the orphaned file.
-            Err(e) => tracing::warn!(dataset = id, error = %e, "cannot remove dataset file"),
+        if self.backend == Backend::Sqlite {
+            match tokio::fs::remove_file(self.canonical_path(id)).await {
+                Ok(()) => {}
+                Err(e) if e.kind() == std::io::ErrorKind::NotFound => {}
+                // The row is gone; the next start-up removes the orphaned file.
+                Err(e) => tracing::warn!(dataset = id, error = %e, "cannot remove dataset file"),
+            }
         }
         Ok(DeleteOutcome::Deleted)
     }
 
-    /// Loads a stored dataset for training, checking the file against the hash recorded at
+    /// Loads a stored dataset for training, checking its bytes against the hash recorded at
     /// upload time.
     pub async fn load_dataset(&self, id: &str) -> Result<Dataset, StoreError> {
         let record = self
             .dataset(id)
             .await?
             .ok_or_else(|| StoreError::NotFound { kind: "dataset", id: id.to_owned() })?;
-        let path = self.canonical_path(id);
-        let read_path = path.clone();
-        let read = tokio::task::spawn_blocking(move || std::fs::read(read_path))
-            .await
-            .map_err(std::io::Error::other)?;
-        let bytes = match read {
-            Ok(bytes) => bytes,
-            // Deleted between reading its row and its file: as if it had never been found. A
-            // file missing under a row that is still there is damage, not a race.
-            Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
-                return Err(match self.dataset(id).await? {
-                    None => StoreError::NotFound { kind: "dataset", id: id.to_owned() },
-                    Some(_) => {
-                        StoreError::Corrupt(id.to_owned(), format!("{} is missing", path.display()))
-                    }
-                });
+        let (bytes, place) = match self.backend {
+            Backend::Sqlite => {
+                let path = self.canonical_path(id);
+                (self.read_canonical_file(id, &path).await?, path.display().to_string())
             }
-            Err(e) => return Err(e.into()),
+            Backend::Postgres => {
+                (self.read_chunks(id, record.canonical_bytes).await?, "its stored chunks".into())
+            }
         };
         let id = id.to_owned();
         tokio::task::spawn_blocking(move || {
             if bytes.len() as u64 != record.canonical_bytes
                 || sha256_hex(&bytes) != record.canonical_sha256
             {
-                return Err(StoreError::Corrupt(id, format!("{} changed on disk", path.display())));
+                return Err(StoreError::Corrupt(id, format!("{place} changed since upload")));
             }
             data::decode_canonical(&bytes).map_err(|e| StoreError::Corrupt(id, e.to_string()))
         })
         .await
         .map_err(std::io::Error::other)?
     }
+
+    async fn read_canonical_file(&self, id: &str, path: &Path) -> Result<Vec<u8>, StoreError> {
+        let read_path = path.to_path_buf();
+        let read = tokio::task::spawn_blocking(move || std::fs::read(read_path))
+            .await
+            .map_err(std::io::Error::other)?;
+        match read {
+            Ok(bytes) => Ok(bytes),
+            // Deleted between reading its row and its file: as if it had never been found. A
+            // file missing under a row that is still there is damage, not a race.
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => Err(match self.dataset(id).await? {
+                None => StoreError::NotFound { kind: "dataset", id: id.to_owned() },
+                Some(_) => {
+                    StoreError::Corrupt(id.to_owned(), format!("{} is missing", path.display()))
+                }
+            }),
+            Err(e) => Err(e.into()),
+        }
+    }
+
+    /// The chunks of a dataset in order, one row at a time (never more than the dataset plus
+    /// one chunk in memory).
+    async fn read_chunks(&self, id: &str, expected: u64) -> Result<Vec<u8>, StoreError> {
+        let mut bytes = Vec::with_capacity(usize::try_from(expected).unwrap_or(0));
+        let mut chunks = sqlx::query_scalar::<_, Vec<u8>>(
+            "SELECT data FROM dataset_chunks WHERE dataset_id = $1 ORDER BY seq",
+        )
+        .bind(id)
+        .fetch(self.pool());
+        while let Some(chunk) = chunks.try_next().await? {
+            bytes.extend_from_slice(&chunk);
+        }
+        Ok(bytes)
+    }
+}
+
+/// Canonical bytes with their SHA-256.
+struct Hashed {
+    bytes: Vec<u8>,
+    sha256: String,
+}
+
+impl Hashed {
+    fn of(bytes: Vec<u8>) -> Self {
+        let sha256 = sha256_hex(&bytes);
+        Hashed { bytes, sha256 }
+    }
+}
+
+async fn canonical_sha256(canonical: Vec<u8>) -> Result<Hashed, StoreError> {
+    Ok(tokio::task::spawn_blocking(move || Hashed::of(canonical))
+        .await
+        .map_err(std::io::Error::other)?)
+}
+
+async fn insert_dataset_row(
+    tx: &mut Transaction<'_, Any>,
+    id: &str,
+    new: &NewDataset,
+    hashed: &Hashed,
+) -> Result<(), StoreError> {
+    sqlx::query(
+        "INSERT INTO datasets (id, name, description, format, transitions, episodes, obs_dim, \
+         action_space, stats, sha256, bytes, canonical_sha256, canonical_bytes, created_at) \
+         VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10, $11, $12, $13, $14)",
+    )
+    .bind(id)
+    .bind(&new.name)
+    .bind(&new.description)
+    .bind(new.format.as_str())
+    .bind(new.transitions as i64)
+    .bind(new.episodes as i64)
+    .bind(new.obs_dim as i64)
+    .bind(to_json(&new.action_space))
+    .bind(to_json(&new.stats))
+    .bind(&new.sha256)
+    .bind(new.bytes as i64)
+    .bind(&hashed.sha256)
+    .bind(hashed.bytes.len() as i64)
+    .bind(now())
+    .execute(&mut **tx)
+    .await?;
+    Ok(())
 }
 
 #[cfg(test)]

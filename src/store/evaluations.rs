@@ -1,13 +1,14 @@
 //! Policy evaluations: a queue like the jobs' (claimed atomically, requeued after a crash) whose
 //! rows end with the evaluation report or the reason it failed.
 
-use chrono::{DateTime, Utc};
+use std::time::Duration;
 
-use super::{now, Store, StoreError};
+use super::leases::{self, Lease, LeaseTable};
+use super::{now, parse_optional_time, parse_time, Store, StoreError};
 use crate::domain::{EvalSpec, EvaluationId, EvaluationRecord, EvaluationStatus, PolicyId};
 use crate::envs::EvalReport;
 
-/// An evaluation row as SQLite returns it; [`EvaluationRecord`] is its typed form.
+/// An evaluation row as the database returns it; [`EvaluationRecord`] is its typed form.
 #[derive(sqlx::FromRow)]
 struct EvaluationRow {
     id: String,
@@ -15,14 +16,14 @@ struct EvaluationRow {
     env: String,
     episodes: i64,
     seed: i64,
-    deterministic: bool,
+    deterministic: i64,
     status: String,
     /// JSON of `envs::EvalReport`, once succeeded.
     report: Option<String>,
     error: Option<String>,
-    created_at: DateTime<Utc>,
-    started_at: Option<DateTime<Utc>>,
-    finished_at: Option<DateTime<Utc>>,
+    created_at: String,
+    started_at: Option<String>,
+    finished_at: Option<String>,
 }
 
 impl TryFrom<EvaluationRow> for EvaluationRecord {
@@ -35,22 +36,23 @@ impl TryFrom<EvaluationRow> for EvaluationRecord {
         let status = row.status.parse().map_err(|e: String| corrupt("status", &e))?;
         let report = row.report.as_deref().map(serde_json::from_str::<EvalReport>).transpose();
         let report = report.map_err(|e| corrupt("report", &e))?;
+        let owner = format!("evaluation {}", row.id);
         Ok(EvaluationRecord {
+            created_at: parse_time(&owner, &row.created_at)?,
+            started_at: parse_optional_time(&owner, row.started_at.as_deref())?,
+            finished_at: parse_optional_time(&owner, row.finished_at.as_deref())?,
             id: row.id.into(),
             policy_id: row.policy_id.into(),
             spec: EvalSpec {
                 env: row.env,
                 episodes: row.episodes as usize,
-                // Stored bit for bit as SQLite's signed integer (see insert_evaluation).
+                // Stored bit for bit as a signed integer (see insert_evaluation).
                 seed: row.seed as u64,
-                deterministic: row.deterministic,
+                deterministic: row.deterministic != 0,
             },
             status,
             report,
             error: row.error,
-            created_at: row.created_at,
-            started_at: row.started_at,
-            finished_at: row.finished_at,
         })
     }
 }
@@ -81,15 +83,15 @@ impl Store {
     ) -> Result<EvaluationRecord, StoreError> {
         sqlx::query(
             "INSERT INTO evaluations (id, policy_id, env, episodes, seed, deterministic, status, \
-             created_at) VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
+             created_at) VALUES ($1, $2, $3, $4, $5, $6, $7, $8)",
         )
         .bind(evaluation.id.as_str())
         .bind(evaluation.policy_id.as_str())
         .bind(&evaluation.spec.env)
         .bind(evaluation.spec.episodes as i64)
-        // SQLite integers are signed: seeds above i64::MAX are stored bit for bit.
+        // SQL integers are signed: seeds above i64::MAX are stored bit for bit.
         .bind(evaluation.spec.seed as i64)
-        .bind(evaluation.spec.deterministic)
+        .bind(i64::from(evaluation.spec.deterministic))
         .bind(EvaluationStatus::Queued.as_str())
         .bind(now())
         .execute(self.pool())
@@ -99,7 +101,7 @@ impl Store {
 
     pub async fn evaluation(&self, id: &str) -> Result<EvaluationRecord, StoreError> {
         let row: EvaluationRow =
-            sqlx::query_as(&format!("SELECT {EVALUATION_COLUMNS} FROM evaluations WHERE id = ?"))
+            sqlx::query_as(&format!("SELECT {EVALUATION_COLUMNS} FROM evaluations WHERE id = $1"))
                 .bind(id)
                 .fetch_optional(self.pool())
                 .await?
@@ -115,8 +117,8 @@ impl Store {
         offset: u64,
     ) -> Result<(Vec<EvaluationRecord>, u64), StoreError> {
         let rows: Vec<EvaluationRow> = sqlx::query_as(&format!(
-            "SELECT {EVALUATION_COLUMNS} FROM evaluations WHERE (?1 IS NULL OR policy_id = ?1) \
-             ORDER BY created_at DESC, id DESC LIMIT ?2 OFFSET ?3"
+            "SELECT {EVALUATION_COLUMNS} FROM evaluations WHERE ($1 IS NULL OR policy_id = $1) \
+             ORDER BY created_at DESC, id DESC LIMIT $2 OFFSET $3"
         ))
         .bind(policy_id)
         .bind(i64::from(limit))
@@ -124,7 +126,7 @@ impl Store {
         .fetch_all(self.pool())
         .await?;
         let total: i64 = sqlx::query_scalar(
-            "SELECT COUNT(*) FROM evaluations WHERE ?1 IS NULL OR policy_id = ?1",
+            "SELECT COUNT(*) FROM evaluations WHERE $1 IS NULL OR policy_id = $1",
         )
         .bind(policy_id)
         .fetch_one(self.pool())
@@ -133,42 +135,59 @@ impl Store {
         Ok((records, total as u64))
     }
 
-    /// Atomically moves the oldest queued evaluation to `running` and returns it.
-    pub async fn claim_next_evaluation(&self) -> Result<Option<EvaluationRecord>, StoreError> {
-        let claimed: Option<String> = sqlx::query_scalar(
-            "UPDATE evaluations SET status = 'running', started_at = ?1 \
-             WHERE id = (SELECT id FROM evaluations WHERE status = 'queued' \
-                         ORDER BY created_at, id LIMIT 1) \
-               AND status = 'queued' \
-             RETURNING id",
-        )
+    /// Claims the oldest queued evaluation (or a running one whose worker's lease expired) for
+    /// `worker` with a lease of `lease_duration`, in one statement. Evaluations are
+    /// deterministic, so one run again after a takeover gives the same report.
+    pub async fn claim_next_evaluation(
+        &self,
+        worker: &str,
+        lease_duration: Duration,
+    ) -> Result<Option<(EvaluationRecord, Lease)>, StoreError> {
+        let now_ms = self.backend.now_ms();
+        let claimable =
+            format!("(status = 'queued' OR (status = 'running' AND lease_expires_ms < {now_ms}))");
+        let claimed: Option<(String, i64)> = sqlx::query_as(&format!(
+            "UPDATE evaluations SET status = 'running', started_at = $1, lease_owner = $2, \
+                 lease_token = lease_token + 1, lease_expires_ms = {now_ms} + $3 \
+             WHERE id = (SELECT id FROM evaluations WHERE {claimable} \
+                         ORDER BY created_at, id LIMIT 1{}) \
+               AND {claimable} \
+             RETURNING id, lease_token",
+            self.backend.skip_locked()
+        ))
         .bind(now())
+        .bind(worker)
+        .bind(leases::millis(lease_duration))
         .fetch_optional(self.pool())
         .await?;
         match claimed {
-            Some(id) => Ok(Some(self.evaluation(&id).await?)),
+            Some((id, token)) => {
+                let record = self.evaluation(&id).await?;
+                Ok(Some((record, Lease::new(id, token))))
+            }
             None => Ok(None),
         }
     }
 
-    /// Puts a running evaluation back in the queue: at start-up for those a dead process left
-    /// `running` (`id` None: all of them), or for one interrupted by a shutdown. Evaluations are
-    /// deterministic, so running one again gives the same report. Returns how many.
-    pub async fn requeue_evaluations(&self, id: Option<&str>) -> Result<u64, StoreError> {
-        let done = sqlx::query(
-            "UPDATE evaluations SET status = 'queued', started_at = NULL \
-             WHERE status = 'running' AND (?1 IS NULL OR id = ?1)",
+    /// Puts an evaluation interrupted by a shutdown back in the queue.
+    pub async fn requeue_evaluation(&self, lease: &Lease) -> Result<(), StoreError> {
+        let mut tx = self.begin_write().await?;
+        leases::hold(&mut tx, LeaseTable::Evaluations, lease).await?;
+        sqlx::query(
+            "UPDATE evaluations SET status = 'queued', started_at = NULL, lease_expires_ms = 0 \
+             WHERE id = $1",
         )
-        .bind(id)
-        .execute(self.pool())
+        .bind(&lease.id)
+        .execute(&mut *tx)
         .await?;
-        Ok(done.rows_affected())
+        tx.commit().await?;
+        Ok(())
     }
 
     /// Ends a running evaluation: `Ok(report)` → `succeeded`, `Err(message)` → `failed`.
     pub async fn finish_evaluation(
         &self,
-        id: &str,
+        lease: &Lease,
         result: Result<&EvalReport, &str>,
     ) -> Result<(), StoreError> {
         let (status, report, error) = match result.map(serde_json::to_string) {
@@ -176,17 +195,20 @@ impl Store {
             Ok(Err(e)) => (EvaluationStatus::Failed, None, Some(e.to_string())),
             Err(message) => (EvaluationStatus::Failed, None, Some(message.to_owned())),
         };
+        let mut tx = self.begin_write().await?;
+        leases::hold(&mut tx, LeaseTable::Evaluations, lease).await?;
         sqlx::query(
-            "UPDATE evaluations SET status = ?, report = ?, error = ?, finished_at = ? \
-             WHERE id = ?",
+            "UPDATE evaluations SET status = $1, report = $2, error = $3, finished_at = $4 \
+             WHERE id = $5",
         )
         .bind(status.as_str())
         .bind(report)
         .bind(error)
         .bind(now())
-        .bind(id)
-        .execute(self.pool())
+        .bind(&lease.id)
+        .execute(&mut *tx)
         .await?;
+        tx.commit().await?;
         Ok(())
     }
 }

@@ -1,15 +1,17 @@
 //! The training queue's table: creating, claiming, progressing and finishing jobs, their
 //! metrics and checkpoints.
 
-use chrono::{DateTime, Utc};
-use sqlx::{Sqlite, SqliteConnection, Transaction};
+use std::time::Duration;
 
+use sqlx::{Any, Transaction};
+
+use super::leases::{self, Lease, LeaseTable};
 use super::policies::NewPolicy;
-use super::{now, Store, StoreError};
+use super::{now, parse_optional_time, parse_time, placeholders, Store, StoreError};
 use crate::algo::ResolvedConfig;
 use crate::domain::{DatasetId, EvalOptions, JobId, JobRecord, JobStatus, RunnerOptions};
 
-/// A job row as SQLite returns it; [`JobRecord`] is its typed form.
+/// A job row as the database returns it; [`JobRecord`] is its typed form.
 #[derive(sqlx::FromRow)]
 struct JobRow {
     id: String,
@@ -27,11 +29,12 @@ struct JobRow {
     alpha_hat: Option<f64>,
     policy_id: Option<String>,
     error: Option<String>,
-    cancel_requested: bool,
-    created_at: DateTime<Utc>,
-    updated_at: DateTime<Utc>,
-    started_at: Option<DateTime<Utc>>,
-    finished_at: Option<DateTime<Utc>>,
+    cancel_requested: i64,
+    lease_owner: Option<String>,
+    created_at: String,
+    updated_at: String,
+    started_at: Option<String>,
+    finished_at: Option<String>,
 }
 
 impl TryFrom<JobRow> for JobRecord {
@@ -57,7 +60,12 @@ impl TryFrom<JobRow> for JobRecord {
             }
             None => None,
         };
+        let owner = format!("job {}", row.id);
         Ok(JobRecord {
+            created_at: parse_time(&owner, &row.created_at)?,
+            updated_at: parse_time(&owner, &row.updated_at)?,
+            started_at: parse_optional_time(&owner, row.started_at.as_deref())?,
+            finished_at: parse_optional_time(&owner, row.finished_at.as_deref())?,
             id: row.id.into(),
             algorithm,
             status,
@@ -73,11 +81,8 @@ impl TryFrom<JobRow> for JobRecord {
             alpha_hat: row.alpha_hat,
             policy_id: row.policy_id.map(Into::into),
             error: row.error,
-            cancel_requested: row.cancel_requested,
-            created_at: row.created_at,
-            updated_at: row.updated_at,
-            started_at: row.started_at,
-            finished_at: row.finished_at,
+            cancel_requested: row.cancel_requested != 0,
+            worker: row.lease_owner,
         })
     }
 }
@@ -124,7 +129,7 @@ pub enum CancelOutcome {
 
 const JOB_COLUMNS: &str = "id, algorithm, status, unlabeled_dataset_id, non_preferred_dataset_id, \
      config, runner, eval, step, total_steps, phase, iterations_per_second, alpha_hat, policy_id, \
-     error, cancel_requested, created_at, updated_at, started_at, finished_at";
+     error, cancel_requested, lease_owner, created_at, updated_at, started_at, finished_at";
 
 impl Store {
     /// Number of jobs in each status, every status listed (zero when there are none).
@@ -133,8 +138,9 @@ impl Store {
     }
 
     /// Queues a job if its datasets still exist. The check and the insert are one write
-    /// transaction, so a concurrent [`Store::delete_dataset`] either commits first (and this
-    /// answers `NotFound` for the dataset) or sees the queued job and refuses.
+    /// transaction that keeps the dataset rows from changing until it commits, so a concurrent
+    /// [`Store::delete_dataset`] either commits first (and this answers `NotFound` for the
+    /// dataset) or sees the queued job and refuses.
     pub async fn insert_job(&self, job: &NewJob) -> Result<JobRecord, StoreError> {
         let now = now();
         let config = to_json(&job.config);
@@ -142,19 +148,21 @@ impl Store {
         let eval = job.eval.as_ref().map(to_json);
         let mut tx = self.begin_write().await?;
         for dataset in std::iter::once(&job.unlabeled_dataset).chain(&job.non_preferred_dataset) {
-            let exists: bool =
-                sqlx::query_scalar("SELECT EXISTS (SELECT 1 FROM datasets WHERE id = ?)")
-                    .bind(dataset.as_str())
-                    .fetch_one(&mut *tx)
-                    .await?;
-            if !exists {
+            let found: Option<String> = sqlx::query_scalar(&format!(
+                "SELECT id FROM datasets WHERE id = $1{}",
+                self.backend.share_row()
+            ))
+            .bind(dataset.as_str())
+            .fetch_optional(&mut *tx)
+            .await?;
+            if found.is_none() {
                 return Err(StoreError::NotFound { kind: "dataset", id: dataset.to_string() });
             }
         }
         sqlx::query(
             "INSERT INTO jobs (id, algorithm, status, unlabeled_dataset_id, \
              non_preferred_dataset_id, config, runner, eval, total_steps, created_at, updated_at) \
-             VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+             VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10, $10)",
         )
         .bind(job.id.as_str())
         .bind(job.config.algorithm().as_str())
@@ -166,10 +174,9 @@ impl Store {
         .bind(eval)
         .bind(job.config.total_steps() as i64)
         .bind(&now)
-        .bind(&now)
         .execute(&mut *tx)
         .await?;
-        let row: JobRow = sqlx::query_as(&format!("SELECT {JOB_COLUMNS} FROM jobs WHERE id = ?"))
+        let row: JobRow = sqlx::query_as(&format!("SELECT {JOB_COLUMNS} FROM jobs WHERE id = $1"))
             .bind(job.id.as_str())
             .fetch_one(&mut *tx)
             .await?;
@@ -178,7 +185,7 @@ impl Store {
     }
 
     pub async fn job(&self, id: &str) -> Result<JobRecord, StoreError> {
-        let row: JobRow = sqlx::query_as(&format!("SELECT {JOB_COLUMNS} FROM jobs WHERE id = ?"))
+        let row: JobRow = sqlx::query_as(&format!("SELECT {JOB_COLUMNS} FROM jobs WHERE id = $1"))
             .bind(id)
             .fetch_optional(self.pool())
             .await?
@@ -188,7 +195,7 @@ impl Store {
 
     /// A job's status alone (what a cancel waits on).
     pub async fn job_status(&self, id: &str) -> Result<JobStatus, StoreError> {
-        let status: String = sqlx::query_scalar("SELECT status FROM jobs WHERE id = ?")
+        let status: String = sqlx::query_scalar("SELECT status FROM jobs WHERE id = $1")
             .bind(id)
             .fetch_optional(self.pool())
             .await?
@@ -205,8 +212,8 @@ impl Store {
     ) -> Result<(Vec<JobRecord>, u64), StoreError> {
         let status = status.map(JobStatus::as_str);
         let rows: Vec<JobRow> = sqlx::query_as(&format!(
-            "SELECT {JOB_COLUMNS} FROM jobs WHERE (?1 IS NULL OR status = ?1) \
-             ORDER BY created_at DESC, id DESC LIMIT ?2 OFFSET ?3"
+            "SELECT {JOB_COLUMNS} FROM jobs WHERE ($1 IS NULL OR status = $1) \
+             ORDER BY created_at DESC, id DESC LIMIT $2 OFFSET $3"
         ))
         .bind(status)
         .bind(i64::from(limit))
@@ -214,7 +221,7 @@ impl Store {
         .fetch_all(self.pool())
         .await?;
         let total: i64 =
-            sqlx::query_scalar("SELECT COUNT(*) FROM jobs WHERE ?1 IS NULL OR status = ?1")
+            sqlx::query_scalar("SELECT COUNT(*) FROM jobs WHERE $1 IS NULL OR status = $1")
                 .bind(status)
                 .fetch_one(self.pool())
                 .await?;
@@ -222,88 +229,114 @@ impl Store {
         Ok((jobs, total as u64))
     }
 
-    /// Atomically moves the next job from `queued` to `running` and returns it. Jobs that were
-    /// already started once (interrupted by a shutdown or crash) go first, then the oldest.
-    pub async fn claim_next_job(&self) -> Result<Option<JobRecord>, StoreError> {
-        let now = now();
-        let claimed: Option<String> = sqlx::query_scalar(
-            "UPDATE jobs SET status = 'running', updated_at = ?1, \
-                 started_at = COALESCE(started_at, ?1) \
-             WHERE id = (SELECT id FROM jobs WHERE status = 'queued' \
-                         ORDER BY started_at IS NULL, created_at, id LIMIT 1) \
-               AND status = 'queued' \
-             RETURNING id",
-        )
-        .bind(&now)
+    /// Jobs changed since `since` (their `updated_at`, RFC 3339 as stored), oldest change first:
+    /// how an API node follows jobs that workers in other processes run.
+    pub async fn jobs_changed_since(&self, since: &str) -> Result<Vec<JobRecord>, StoreError> {
+        let rows: Vec<JobRow> = sqlx::query_as(&format!(
+            "SELECT {JOB_COLUMNS} FROM jobs WHERE updated_at > $1 ORDER BY updated_at, id \
+             LIMIT 1000"
+        ))
+        .bind(since)
+        .fetch_all(self.pool())
+        .await?;
+        rows.into_iter().map(JobRecord::try_from).collect()
+    }
+
+    /// Claims the next job for `worker` with a lease of `lease` from now, in one statement:
+    /// a queued job, or a running one whose lease expired (its worker is gone; this is a
+    /// takeover, and the job resumes from its checkpoint). Jobs that were already started once
+    /// go first, then the oldest. On PostgreSQL concurrent claimers skip each other's rows.
+    pub async fn claim_next_job(
+        &self,
+        worker: &str,
+        lease_duration: Duration,
+    ) -> Result<Option<(JobRecord, Lease)>, StoreError> {
+        let now_ms = self.backend.now_ms();
+        let claimable =
+            format!("(status = 'queued' OR (status = 'running' AND lease_expires_ms < {now_ms}))");
+        let claimed: Option<(String, i64)> = sqlx::query_as(&format!(
+            "UPDATE jobs SET status = 'running', updated_at = $1, \
+                 started_at = COALESCE(started_at, $1), iterations_per_second = NULL, \
+                 lease_owner = $2, lease_token = lease_token + 1, \
+                 lease_expires_ms = {now_ms} + $3, \
+                 lease_takeovers = lease_takeovers + \
+                     CASE WHEN status = 'running' THEN 1 ELSE 0 END \
+             WHERE id = (SELECT id FROM jobs WHERE {claimable} \
+                         ORDER BY started_at IS NULL, created_at, id LIMIT 1{}) \
+               AND {claimable} \
+             RETURNING id, lease_token",
+            self.backend.skip_locked()
+        ))
+        .bind(now())
+        .bind(worker)
+        .bind(leases::millis(lease_duration))
         .fetch_optional(self.pool())
         .await?;
-        let Some(id) = claimed else { return Ok(None) };
-        match self.job(&id).await {
+        let Some((id, token)) = claimed else { return Ok(None) };
+        let lease = Lease::new(id, token);
+        match self.job(&lease.id).await {
             // A row this version cannot read (e.g. written by another version) can never run:
             // it fails with the reason instead of blocking the queue.
             Err(StoreError::Corrupt(_, reason)) => {
-                tracing::error!(job_id = %id, %reason, "a queued job cannot be read; it fails");
-                self.finish_job(&id, JobStatus::Failed, Some(&reason), &[]).await?;
-                Box::pin(self.claim_next_job()).await
+                tracing::error!(job_id = %lease.id, %reason, "a queued job cannot be read; it fails");
+                self.finish_job(&lease, JobStatus::Failed, Some(&reason), &[]).await?;
+                Box::pin(self.claim_next_job(worker, lease_duration)).await
             }
-            job => job.map(Some),
+            job => job.map(|job| Some((job, lease))),
         }
     }
 
-    /// At start-up: jobs left `running` by a process that died go back to the queue (they
-    /// resume from their checkpoint). Returns how many.
-    pub async fn requeue_interrupted_jobs(&self) -> Result<u64, StoreError> {
-        let done = sqlx::query(
-            "UPDATE jobs SET status = 'queued', updated_at = ?, iterations_per_second = NULL \
-             WHERE status = 'running'",
-        )
-        .bind(now())
-        .execute(self.pool())
-        .await?;
-        Ok(done.rows_affected())
-    }
-
-    /// A running job handed back to the queue (graceful shutdown after its checkpoint).
-    pub async fn release_job(&self, id: &str) -> Result<(), StoreError> {
+    /// A running job handed back to the queue by the worker holding its lease (graceful
+    /// shutdown after its checkpoint, or a store that cannot take its writes).
+    pub async fn release_job(&self, lease: &Lease) -> Result<(), StoreError> {
+        let mut tx = self.begin_write().await?;
+        leases::hold(&mut tx, LeaseTable::Jobs, lease).await?;
         sqlx::query(
-            "UPDATE jobs SET status = 'queued', updated_at = ?, iterations_per_second = NULL \
-             WHERE id = ? AND status = 'running'",
+            "UPDATE jobs SET status = 'queued', updated_at = $1, iterations_per_second = NULL, \
+                 lease_expires_ms = 0 WHERE id = $2",
         )
         .bind(now())
-        .bind(id)
-        .execute(self.pool())
+        .bind(&lease.id)
+        .execute(&mut *tx)
         .await?;
+        tx.commit().await?;
         Ok(())
     }
 
     /// Records progress; returns whether a cancel was requested meanwhile.
     pub async fn update_progress(
         &self,
-        id: &str,
+        lease: &Lease,
         progress: &ProgressUpdate<'_>,
     ) -> Result<bool, StoreError> {
-        let cancel: Option<bool> = sqlx::query_scalar(
-            "UPDATE jobs SET step = ?, phase = ?, iterations_per_second = ?, \
-                 alpha_hat = COALESCE(?, alpha_hat), updated_at = ? \
-             WHERE id = ? RETURNING cancel_requested",
+        let cancel: Option<i64> = sqlx::query_scalar(
+            "UPDATE jobs SET step = $1, phase = $2, iterations_per_second = $3, \
+                 alpha_hat = COALESCE($4, alpha_hat), updated_at = $5 \
+             WHERE id = $6 AND lease_token = $7 AND status = 'running' \
+             RETURNING cancel_requested",
         )
         .bind(progress.step as i64)
         .bind(progress.phase)
         .bind(progress.iterations_per_second)
         .bind(progress.alpha_hat)
         .bind(now())
-        .bind(id)
+        .bind(&lease.id)
+        .bind(lease.token)
         .fetch_optional(self.pool())
         .await?;
-        Ok(cancel.unwrap_or(false))
+        match cancel {
+            Some(flag) => Ok(flag != 0),
+            None => Err(StoreError::LeaseLost(lease.id.clone())),
+        }
     }
 
-    pub async fn insert_metrics(&self, id: &str, rows: &[MetricRow]) -> Result<(), StoreError> {
+    pub async fn insert_metrics(&self, lease: &Lease, rows: &[MetricRow]) -> Result<(), StoreError> {
         if rows.is_empty() {
             return Ok(());
         }
         let mut tx = self.begin_write().await?;
-        insert_metric_rows(&mut tx, id, rows).await?;
+        leases::hold(&mut tx, LeaseTable::Jobs, lease).await?;
+        insert_metric_rows(&mut tx, &lease.id, rows).await?;
         tx.commit().await?;
         Ok(())
     }
@@ -312,19 +345,20 @@ impl Store {
     /// checkpoint never refers to metrics that are not stored.
     pub async fn save_checkpoint(
         &self,
-        id: &str,
+        lease: &Lease,
         step: u64,
         data: &[u8],
         pending_metrics: &[MetricRow],
     ) -> Result<(), StoreError> {
         let mut tx = self.begin_write().await?;
-        insert_metric_rows(&mut tx, id, pending_metrics).await?;
+        leases::hold(&mut tx, LeaseTable::Jobs, lease).await?;
+        insert_metric_rows(&mut tx, &lease.id, pending_metrics).await?;
         sqlx::query(
-            "INSERT INTO job_checkpoints (job_id, step, data, created_at) VALUES (?, ?, ?, ?) \
+            "INSERT INTO job_checkpoints (job_id, step, data, created_at) VALUES ($1, $2, $3, $4) \
              ON CONFLICT (job_id) DO UPDATE SET step = excluded.step, data = excluded.data, \
                  created_at = excluded.created_at",
         )
-        .bind(id)
+        .bind(&lease.id)
         .bind(step as i64)
         .bind(data)
         .bind(now())
@@ -337,7 +371,7 @@ impl Store {
     /// The job's last checkpoint: (step, bytes).
     pub async fn checkpoint(&self, id: &str) -> Result<Option<(u64, Vec<u8>)>, StoreError> {
         let row: Option<(i64, Vec<u8>)> =
-            sqlx::query_as("SELECT step, data FROM job_checkpoints WHERE job_id = ?")
+            sqlx::query_as("SELECT step, data FROM job_checkpoints WHERE job_id = $1")
                 .bind(id)
                 .fetch_optional(self.pool())
                 .await?;
@@ -346,12 +380,15 @@ impl Store {
 
     /// Deletes the metrics recorded after `step` (a resume from the checkpoint at `step`
     /// recomputes them; deleting first keeps every (name, step) row exactly once).
-    pub async fn discard_metrics_after(&self, id: &str, step: u64) -> Result<u64, StoreError> {
-        let done = sqlx::query("DELETE FROM job_metrics WHERE job_id = ? AND step > ?")
-            .bind(id)
+    pub async fn discard_metrics_after(&self, lease: &Lease, step: u64) -> Result<u64, StoreError> {
+        let mut tx = self.begin_write().await?;
+        leases::hold(&mut tx, LeaseTable::Jobs, lease).await?;
+        let done = sqlx::query("DELETE FROM job_metrics WHERE job_id = $1 AND step > $2")
+            .bind(&lease.id)
             .bind(step as i64)
-            .execute(self.pool())
+            .execute(&mut *tx)
             .await?;
+        tx.commit().await?;
         Ok(done.rows_affected())
     }
 
@@ -361,24 +398,27 @@ impl Store {
         id: &str,
         names: Option<&[String]>,
     ) -> Result<Vec<MetricRow>, StoreError> {
-        let names_json = names.map(|n| serde_json::to_string(n).expect("names serialize"));
-        let rows = sqlx::query_as(
-            "SELECT name, step, value, time FROM job_metrics WHERE job_id = ?1 \
-               AND (?2 IS NULL OR name IN (SELECT value FROM json_each(?2))) \
-             ORDER BY name, step",
-        )
-        .bind(id)
-        .bind(names_json)
-        .fetch_all(self.pool())
-        .await?;
-        Ok(rows)
+        let filter = match names {
+            Some([]) => return Ok(Vec::new()),
+            Some(names) => format!(" AND name IN ({})", placeholders(2, names.len())),
+            None => String::new(),
+        };
+        let sql = format!(
+            "SELECT name, step, value, time FROM job_metrics WHERE job_id = $1{filter} \
+             ORDER BY name, step"
+        );
+        let mut query = sqlx::query_as(&sql).bind(id);
+        for name in names.unwrap_or_default() {
+            query = query.bind(name);
+        }
+        Ok(query.fetch_all(self.pool()).await?)
     }
 
     /// The last recorded value of each metric of a job.
     pub async fn last_metric_values(&self, id: &str) -> Result<Vec<(String, f64)>, StoreError> {
         let rows = sqlx::query_as(
-            "SELECT name, value FROM job_metrics AS m WHERE job_id = ?1 \
-               AND step = (SELECT MAX(step) FROM job_metrics WHERE job_id = ?1 AND name = m.name) \
+            "SELECT name, value FROM job_metrics AS m WHERE job_id = $1 \
+               AND step = (SELECT MAX(step) FROM job_metrics WHERE job_id = $1 AND name = m.name) \
              ORDER BY name",
         )
         .bind(id)
@@ -391,29 +431,29 @@ impl Store {
     /// transaction; the checkpoint is no longer needed.
     pub async fn finish_job_succeeded(
         &self,
-        id: &str,
+        lease: &Lease,
         pending_metrics: &[MetricRow],
         policy: &NewPolicy<'_>,
         step: u64,
     ) -> Result<(), StoreError> {
         let mut tx = self.begin_write().await?;
-        insert_metric_rows(&mut tx, id, pending_metrics).await?;
+        leases::hold(&mut tx, LeaseTable::Jobs, lease).await?;
+        insert_metric_rows(&mut tx, &lease.id, pending_metrics).await?;
         super::policies::insert_policy(&mut tx, policy).await?;
-        let now = now();
         sqlx::query(
-            "UPDATE jobs SET status = 'succeeded', policy_id = ?, step = ?, \
-                 alpha_hat = COALESCE(?, alpha_hat), updated_at = ?, finished_at = ? \
-             WHERE id = ?",
+            "UPDATE jobs SET status = 'succeeded', policy_id = $1, step = $2, \
+                 alpha_hat = COALESCE($3, alpha_hat), iterations_per_second = NULL, \
+                 updated_at = $4, finished_at = $4 \
+             WHERE id = $5",
         )
         .bind(policy.id)
         .bind(step as i64)
         .bind(policy.alpha_hat)
-        .bind(&now)
-        .bind(&now)
-        .bind(id)
+        .bind(now())
+        .bind(&lease.id)
         .execute(&mut *tx)
         .await?;
-        delete_checkpoint(&mut tx, id).await?;
+        delete_checkpoint(&mut tx, &lease.id).await?;
         tx.commit().await?;
         Ok(())
     }
@@ -422,46 +462,48 @@ impl Store {
     /// metrics history stays.
     pub async fn finish_job(
         &self,
-        id: &str,
+        lease: &Lease,
         status: JobStatus,
         error: Option<&str>,
         pending_metrics: &[MetricRow],
     ) -> Result<(), StoreError> {
         debug_assert!(matches!(status, JobStatus::Failed | JobStatus::Cancelled));
         let mut tx = self.begin_write().await?;
-        insert_metric_rows(&mut tx, id, pending_metrics).await?;
-        let now = now();
+        leases::hold(&mut tx, LeaseTable::Jobs, lease).await?;
+        insert_metric_rows(&mut tx, &lease.id, pending_metrics).await?;
         sqlx::query(
-            "UPDATE jobs SET status = ?, error = ?, iterations_per_second = NULL, updated_at = ?, \
-                 finished_at = ? WHERE id = ?",
+            "UPDATE jobs SET status = $1, error = $2, iterations_per_second = NULL, \
+                 updated_at = $3, finished_at = $3 WHERE id = $4",
         )
         .bind(status.as_str())
         .bind(error)
-        .bind(&now)
-        .bind(&now)
-        .bind(id)
+        .bind(now())
+        .bind(&lease.id)
         .execute(&mut *tx)
         .await?;
-        delete_checkpoint(&mut tx, id).await?;
+        delete_checkpoint(&mut tx, &lease.id).await?;
         tx.commit().await?;
         Ok(())
     }
 
     /// Cancels a queued job at once, or flags a running one for its worker. The status read and
-    /// the update are one write transaction, so a worker's claim cannot slip in between.
+    /// the update are one write transaction (the row locked), so a claim cannot slip in between.
     pub async fn request_cancel(&self, id: &str) -> Result<CancelOutcome, StoreError> {
         let now = now();
         let mut tx = self.begin_write().await?;
-        let status: String = sqlx::query_scalar("SELECT status FROM jobs WHERE id = ?")
-            .bind(id)
-            .fetch_optional(&mut *tx)
-            .await?
-            .ok_or_else(|| StoreError::NotFound { kind: "job", id: id.to_owned() })?;
+        let status: String = sqlx::query_scalar(&format!(
+            "SELECT status FROM jobs WHERE id = $1{}",
+            self.backend.lock_row()
+        ))
+        .bind(id)
+        .fetch_optional(&mut *tx)
+        .await?
+        .ok_or_else(|| StoreError::NotFound { kind: "job", id: id.to_owned() })?;
         let outcome = match parse_status(id, &status)? {
             JobStatus::Queued => {
                 sqlx::query(
-                    "UPDATE jobs SET status = 'cancelled', cancel_requested = 1, updated_at = ?1, \
-                         finished_at = ?1 WHERE id = ?2",
+                    "UPDATE jobs SET status = 'cancelled', cancel_requested = 1, updated_at = $1, \
+                         finished_at = $1 WHERE id = $2",
                 )
                 .bind(&now)
                 .bind(id)
@@ -471,7 +513,7 @@ impl Store {
                 CancelOutcome::Cancelled
             }
             JobStatus::Running => {
-                sqlx::query("UPDATE jobs SET cancel_requested = 1, updated_at = ? WHERE id = ?")
+                sqlx::query("UPDATE jobs SET cancel_requested = 1, updated_at = $1 WHERE id = $2")
                     .bind(&now)
                     .bind(id)
                     .execute(&mut *tx)
@@ -496,32 +538,34 @@ fn parse_status(id: &str, status: &str) -> Result<JobStatus, StoreError> {
 }
 
 /// A finished job keeps no checkpoint: it would only be read to resume.
-async fn delete_checkpoint(tx: &mut Transaction<'_, Sqlite>, id: &str) -> Result<(), sqlx::Error> {
-    sqlx::query("DELETE FROM job_checkpoints WHERE job_id = ?")
-        .bind(id)
-        .execute(&mut **tx as &mut SqliteConnection)
-        .await?;
+async fn delete_checkpoint(tx: &mut Transaction<'_, Any>, id: &str) -> Result<(), sqlx::Error> {
+    sqlx::query("DELETE FROM job_checkpoints WHERE job_id = $1").bind(id).execute(&mut **tx).await?;
     Ok(())
 }
 
+/// Metric rows in as few statements as the parameter limits allow.
 async fn insert_metric_rows(
-    tx: &mut Transaction<'_, Sqlite>,
+    tx: &mut Transaction<'_, Any>,
     id: &str,
     rows: &[MetricRow],
 ) -> Result<(), sqlx::Error> {
-    // SQLite's bound-parameter limit is 32766; 4 per row plus the job id.
+    // SQLite's bound-parameter limit is 32766, PostgreSQL's 65535; 5 per row.
     for chunk in rows.chunks(4000) {
-        let mut insert = sqlx::QueryBuilder::<Sqlite>::new(
-            "INSERT INTO job_metrics (job_id, name, step, value, time) ",
-        );
-        insert.push_values(chunk, |mut row, metric| {
-            row.push_bind(id)
-                .push_bind(&metric.name)
-                .push_bind(metric.step)
-                .push_bind(metric.value)
-                .push_bind(&metric.time);
-        });
-        insert.build().execute(&mut **tx as &mut SqliteConnection).await?;
+        let values = (0..chunk.len())
+            .map(|row| format!("({})", placeholders(row * 5 + 1, 5)))
+            .collect::<Vec<_>>()
+            .join(", ");
+        let sql = format!("INSERT INTO job_metrics (job_id, name, step, value, time) VALUES {values}");
+        let mut insert = sqlx::query(&sql);
+        for metric in chunk {
+            insert = insert
+                .bind(id)
+                .bind(&metric.name)
+                .bind(metric.step)
+                .bind(metric.value)
+                .bind(&metric.time);
+        }
+        insert.execute(&mut **tx).await?;
     }
     Ok(())
 }

@@ -1,48 +1,58 @@
-//! All SQL and artefact storage. One data directory holds everything the service keeps:
+//! All SQL and artefact storage, over one of two databases:
 //!
-//! ```text
-//! <data-dir>/safedice.sqlite   SQLite database (WAL mode; -wal/-shm files beside it)
-//! <data-dir>/datasets/<id>.canonical   each accepted dataset, once, in the canonical form
-//! <data-dir>/tmp/              uploads in flight; emptied at start-up
-//! ```
+//! - **SQLite** (the default, no `--database-url`): one data directory holds everything.
 //!
-//! Dataset bytes live in files rather than SQLite blobs because uploads may reach
-//! `--max-upload-bytes` (1 GiB by default) and SQLite caps a blob at 1 GB; a row is only inserted
-//! once its file is durably in place, and files without a row are removed at start-up.
+//!   ```text
+//!   <data-dir>/safedice.sqlite   SQLite database (WAL mode; -wal/-shm files beside it)
+//!   <data-dir>/datasets/<id>.canonical   each accepted dataset, once, in the canonical form
+//!   <data-dir>/tmp/              uploads in flight; emptied at start-up
+//!   ```
+//!
+//!   Dataset bytes live in files rather than SQLite blobs because uploads may reach
+//!   `--max-upload-bytes` (1 GiB by default) and SQLite caps a blob at 1 GB; a row is only
+//!   inserted once its file is durably in place, and files without a row are removed at
+//!   start-up.
+//! - **PostgreSQL** (`--database-url postgres://…`): every byte a worker on another machine needs
+//!   is in the database (dataset bytes in chunks, [`datasets`]); the data directory only holds
+//!   uploads in flight, so API nodes and workers share nothing but the database.
+//!
+//! One store, one set of queries: both backends are reached through sqlx's `Any` driver, the
+//! SQL is the dialect both speak (`$N` parameters, `RETURNING`, `ON CONFLICT`), and the few
+//! places where they differ (how a writing transaction begins, row locks, the clock) are the
+//! fragments of [`Backend`]. Each backend has its own migrations folder.
 
 pub mod datasets;
 pub mod evaluations;
 pub mod jobs;
+pub mod leases;
 pub mod policies;
 pub mod storage;
 
 use std::path::{Path, PathBuf};
-use std::str::FromStr;
 use std::time::Duration;
 
 use anyhow::Context;
-use sqlx::sqlite::{SqliteConnectOptions, SqliteJournalMode, SqlitePoolOptions, SqliteSynchronous};
-use sqlx::{Connection, Sqlite, SqlitePool, Transaction};
+use sqlx::any::{AnyConnectOptions, AnyPoolOptions};
+use sqlx::sqlite::SqliteConnectOptions;
+use sqlx::{Any, AnyPool, Connection, Transaction};
 
 pub use datasets::{DatasetRecord, DeleteOutcome, NewDataset};
+pub use leases::Lease;
 pub use storage::StorageProblem;
 
 const DATABASE_FILE: &str = "safedice.sqlite";
 const DATASETS_DIR: &str = "datasets";
 const TMP_DIR: &str = "tmp";
 
-/// How long a statement waits for another connection's write lock before SQLite gives up with
-/// SQLITE_BUSY. Writes hold the lock for milliseconds, but SQLite's busy handler polls with
-/// back-off (up to 100 ms between tries) and is not fair, so under a burst of writers one can
-/// wait far longer than the others; 15 s rides out such bursts and still answers (503
-/// `database_busy`) well before the 30 s request timeout.
-const BUSY_TIMEOUT: Duration = Duration::from_secs(15);
 /// How long a request waits for a free pooled connection before it is answered 503.
 const ACQUIRE_TIMEOUT: Duration = Duration::from_secs(10);
 
 /// SQLite's primary result codes we tell apart (extended codes carry them in the low byte).
 const SQLITE_BUSY: i32 = 5;
 const SQLITE_LOCKED: i32 = 6;
+/// PostgreSQL's SQLSTATEs of "try again": serialization failure, deadlock, lock not available,
+/// the server starting up or shutting down.
+const POSTGRES_RETRY: [&str; 5] = ["40001", "40P01", "55P03", "57P03", "57P01"];
 
 /// A failure of the store that callers may want to tell apart.
 #[derive(Debug, thiserror::Error)]
@@ -51,6 +61,10 @@ pub enum StoreError {
     NotFound { kind: &'static str, id: String },
     #[error("stored data for {0} is damaged: {1}")]
     Corrupt(String, String),
+    /// The worker's lease on a job or evaluation was taken over by another worker (it expired):
+    /// the write was refused and nothing of it is stored.
+    #[error("the lease on {0} was taken over by another worker")]
+    LeaseLost(String),
     #[error(transparent)]
     Database(#[from] sqlx::Error),
     #[error(transparent)]
@@ -66,21 +80,137 @@ impl StoreError {
 }
 
 /// SQLite's primary result code of a database error (the low byte of the extended code sqlx
-/// reports).
+/// reports); None for other databases' errors.
 fn sqlite_code(e: &sqlx::Error) -> Option<i32> {
     let sqlx::Error::Database(db) = e else { return None };
+    db.try_downcast_ref::<sqlx::sqlite::SqliteError>()?;
     db.code()?.parse::<i32>().ok().map(|code| code & 0xff)
 }
 
-/// SQLITE_BUSY / SQLITE_LOCKED (every extended variant) or no pooled connection in time.
+/// PostgreSQL's SQLSTATE of a database error; None for other databases' errors.
+fn postgres_code(e: &sqlx::Error) -> Option<String> {
+    let sqlx::Error::Database(db) = e else { return None };
+    let pg = db.try_downcast_ref::<sqlx::postgres::PgDatabaseError>()?;
+    Some(pg.code().to_owned())
+}
+
+/// SQLITE_BUSY / SQLITE_LOCKED (every extended variant), PostgreSQL's "try again" states, or no
+/// pooled connection in time.
 pub fn is_busy(e: &sqlx::Error) -> bool {
     matches!(e, sqlx::Error::PoolTimedOut)
         || matches!(sqlite_code(e), Some(SQLITE_BUSY | SQLITE_LOCKED))
+        || postgres_code(e).is_some_and(|code| POSTGRES_RETRY.contains(&code.as_str()))
+}
+
+/// Which database the store talks to, and the SQL that differs between them.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Backend {
+    Sqlite,
+    Postgres,
+}
+
+impl Backend {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Backend::Sqlite => "sqlite",
+            Backend::Postgres => "postgres",
+        }
+    }
+
+    /// How a transaction that writes begins. SQLite: `BEGIN IMMEDIATE` takes the write lock up
+    /// front (see [`Store::begin_write`]); PostgreSQL locks rows, so a plain `BEGIN` and the
+    /// row locks of [`Backend::lock_row`] where a transaction reads and then writes.
+    fn begin_write(self) -> &'static str {
+        match self {
+            Backend::Sqlite => "BEGIN IMMEDIATE",
+            Backend::Postgres => "BEGIN",
+        }
+    }
+
+    /// Appended to a `SELECT` whose rows the transaction then changes (or whose absence it
+    /// relies on): SQLite's write lock already serialises such transactions.
+    pub(crate) fn lock_row(self) -> &'static str {
+        match self {
+            Backend::Sqlite => "",
+            Backend::Postgres => " FOR UPDATE",
+        }
+    }
+
+    /// Appended to a `SELECT` whose rows must not change until the transaction ends.
+    pub(crate) fn share_row(self) -> &'static str {
+        match self {
+            Backend::Sqlite => "",
+            Backend::Postgres => " FOR SHARE",
+        }
+    }
+
+    /// Appended to the sub-select of a claim: concurrent claimers skip the rows another one is
+    /// taking instead of waiting for it (SQLite runs one claim at a time anyway).
+    pub(crate) fn skip_locked(self) -> &'static str {
+        match self {
+            Backend::Sqlite => "",
+            Backend::Postgres => " FOR UPDATE SKIP LOCKED",
+        }
+    }
+
+    /// The database's clock in milliseconds since the Unix epoch, as an SQL expression: leases
+    /// compare times from one clock, whichever machine a worker runs on.
+    pub(crate) fn now_ms(self) -> &'static str {
+        match self {
+            Backend::Sqlite => "CAST((julianday('now') - 2440587.5) * 86400000.0 AS INTEGER)",
+            Backend::Postgres => "CAST(EXTRACT(EPOCH FROM clock_timestamp()) * 1000 AS BIGINT)",
+        }
+    }
+}
+
+/// Current time as stored: RFC 3339, UTC, milliseconds (text that sorts in time order).
+pub fn now() -> String {
+    chrono::Utc::now().to_rfc3339_opts(chrono::SecondsFormat::Millis, true)
+}
+
+/// A stored time back in its typed form (RFC 3339; rows written before the store wrote
+/// milliseconds carry nanoseconds and `+00:00`, which parse alike).
+fn parse_time(owner: &str, text: &str) -> Result<chrono::DateTime<chrono::Utc>, StoreError> {
+    chrono::DateTime::parse_from_rfc3339(text)
+        .map(|t| t.with_timezone(&chrono::Utc))
+        .map_err(|e| StoreError::Corrupt(owner.to_owned(), format!("stored time {text:?}: {e}")))
+}
+
+fn parse_optional_time(
+    owner: &str,
+    text: Option<&str>,
+) -> Result<Option<chrono::DateTime<chrono::Utc>>, StoreError> {
+    text.map(|t| parse_time(owner, t)).transpose()
+}
+
+/// `$first, $first+1, …` for `count` parameters (bulk inserts build their statements with it).
+fn placeholders(first: usize, count: usize) -> String {
+    (first..first + count).map(|n| format!("${n}")).collect::<Vec<_>>().join(", ")
+}
+
+/// The database pool and the data directory; cheap to clone.
+#[derive(Clone)]
+pub struct Store {
+    pool: AnyPool,
+    backend: Backend,
+    data_dir: PathBuf,
+    /// PostgreSQL's URL (for the notification listener's own connection); None on SQLite.
+    database_url: Option<std::sync::Arc<str>>,
+}
+
+/// Never the URL: it may carry a password.
+impl std::fmt::Debug for Store {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Store")
+            .field("backend", &self.backend)
+            .field("data_dir", &self.data_dir)
+            .finish_non_exhaustive()
+    }
 }
 
 /// How the pool hands out and takes back connections.
-fn pool_options() -> SqlitePoolOptions {
-    SqlitePoolOptions::new().acquire_timeout(ACQUIRE_TIMEOUT).after_release(|conn, _| {
+fn pool_options() -> AnyPoolOptions {
+    AnyPoolOptions::new().acquire_timeout(ACQUIRE_TIMEOUT).after_release(|conn, _| {
         Box::pin(async move {
             // SQLite rolls a transaction back by itself on some errors (SQLITE_FULL, I/O errors,
             // out of memory). sqlx does not notice: the ROLLBACK of the dropped transaction then
@@ -94,17 +224,20 @@ fn pool_options() -> SqlitePoolOptions {
     })
 }
 
-/// Current time as stored: RFC 3339, UTC, milliseconds (text that sorts in time order).
-pub fn now() -> String {
-    chrono::Utc::now().to_rfc3339_opts(chrono::SecondsFormat::Millis, true)
-}
-
-/// The database pool and the data directory; cheap to clone.
-#[derive(Clone, Debug)]
-pub struct Store {
-    pool: SqlitePool,
-    data_dir: PathBuf,
-}
+/// The settings every SQLite connection gets. NORMAL synchronous is durable across application
+/// crashes in WAL mode; only an OS crash or power loss can drop the last commits.
+///
+/// The busy timeout (15 s) is how long a statement waits for another connection's write lock
+/// before SQLite gives up with SQLITE_BUSY. Writes hold the lock for milliseconds, but SQLite's
+/// busy handler polls with back-off (up to 100 ms between tries) and is not fair, so under a
+/// burst of writers one can wait far longer than the others; 15 s rides out such bursts and
+/// still answers (503 `database_busy`) well before the 30 s request timeout.
+const SQLITE_PRAGMAS: [&str; 4] = [
+    "PRAGMA journal_mode = WAL",
+    "PRAGMA synchronous = NORMAL",
+    "PRAGMA foreign_keys = ON",
+    "PRAGMA busy_timeout = 15000",
+];
 
 impl Store {
     /// Number of rows of `table` in each of `statuses`, every status listed (zero when there are
@@ -127,49 +260,119 @@ impl Store {
             .collect())
     }
 
-    /// Opens (creating on first start) the data directory and its database and runs the pending
-    /// migrations. Safe while a server runs on the same directory (tests and tools use it to
-    /// inspect the store); only the server calls [`Store::remove_leftovers`].
+    /// Opens the store: SQLite in `data_dir` when `database_url` is None, else the PostgreSQL
+    /// database it names (`data_dir` then only holds uploads in flight). Creates what is missing
+    /// and runs the pending migrations. Safe while a server runs on the same store (tests and
+    /// tools use it to inspect it); only the server calls [`Store::remove_leftovers`].
+    pub async fn connect(data_dir: &Path, database_url: Option<&str>) -> anyhow::Result<Store> {
+        match database_url {
+            None => Store::open(data_dir).await,
+            Some(url) => Store::open_postgres(data_dir, url).await,
+        }
+    }
+
+    /// Opens (creating on first start) the SQLite store in `data_dir`.
     pub async fn open(data_dir: &Path) -> anyhow::Result<Store> {
+        Store::open_sqlite(data_dir, 8).await
+    }
+
+    async fn open_sqlite(data_dir: &Path, max_connections: u32) -> anyhow::Result<Store> {
         for dir in [data_dir.to_path_buf(), data_dir.join(DATASETS_DIR), data_dir.join(TMP_DIR)] {
             std::fs::create_dir_all(&dir)
                 .with_context(|| format!("cannot create data directory {}", dir.display()))?;
         }
+        sqlx::any::install_default_drivers();
         let database = data_dir.join(DATABASE_FILE);
-        let options = SqliteConnectOptions::from_str("sqlite:")?
-            .filename(&database)
-            .create_if_missing(true)
-            .journal_mode(SqliteJournalMode::Wal)
-            // NORMAL is durable across application crashes in WAL mode; only an OS crash or
-            // power loss can drop the last commits.
-            .synchronous(SqliteSynchronous::Normal)
-            .foreign_keys(true)
-            .busy_timeout(BUSY_TIMEOUT);
+        let sqlite = SqliteConnectOptions::new().filename(&database).create_if_missing(true);
+        let options: AnyConnectOptions = sqlx::ConnectOptions::to_url_lossy(&sqlite).as_str().parse()?;
         let pool = pool_options()
-            .max_connections(8)
+            .max_connections(max_connections)
+            .after_connect(|conn, _| {
+                Box::pin(async move {
+                    for pragma in SQLITE_PRAGMAS {
+                        sqlx::query(pragma).execute(&mut *conn).await?;
+                    }
+                    Ok(())
+                })
+            })
             .connect_with(options)
             .await
             .with_context(|| format!("cannot open the database {}", database.display()))?;
-        sqlx::migrate!("./migrations")
+        sqlx::migrate!("./migrations/sqlite")
             .run(&pool)
             .await
             .with_context(|| format!("cannot migrate the database {}", database.display()))?;
-        Ok(Store { pool, data_dir: data_dir.to_path_buf() })
+        Ok(Store {
+            pool,
+            backend: Backend::Sqlite,
+            data_dir: data_dir.to_path_buf(),
+            database_url: None,
+        })
     }
 
-    pub fn pool(&self) -> &SqlitePool {
+    async fn open_postgres(data_dir: &Path, url: &str) -> anyhow::Result<Store> {
+        anyhow::ensure!(
+            url.starts_with("postgres://") || url.starts_with("postgresql://"),
+            "--database-url must be a postgres:// (or postgresql://) URL; leave it out to use \
+             SQLite in --data-dir"
+        );
+        for dir in [data_dir.to_path_buf(), data_dir.join(TMP_DIR)] {
+            std::fs::create_dir_all(&dir)
+                .with_context(|| format!("cannot create data directory {}", dir.display()))?;
+        }
+        sqlx::any::install_default_drivers();
+        let pool = pool_options()
+            .max_connections(16)
+            .connect(url)
+            .await
+            .with_context(|| format!("cannot connect to the database {}", redact_url(url)))?;
+        sqlx::migrate!("./migrations/postgres")
+            .run(&pool)
+            .await
+            .with_context(|| format!("cannot migrate the database {}", redact_url(url)))?;
+        Ok(Store {
+            pool,
+            backend: Backend::Postgres,
+            data_dir: data_dir.to_path_buf(),
+            database_url: Some(url.into()),
+        })
+    }
+
+    pub fn pool(&self) -> &AnyPool {
         &self.pool
     }
 
-    /// Begins a transaction that writes. `BEGIN IMMEDIATE` takes the write lock up front
-    /// (waiting up to the busy timeout for it). A plain (deferred) `BEGIN` only takes a read
-    /// snapshot, and its first write then has to upgrade it: if another connection committed in
-    /// between, SQLite cannot upgrade the stale snapshot and fails at once with SQLITE_BUSY
-    /// ("database is locked") without waiting, which clients saw as 500s under concurrent
-    /// writes. Every transaction that writes, and above all one that reads and then writes,
-    /// starts here.
-    pub async fn begin_write(&self) -> Result<Transaction<'static, Sqlite>, sqlx::Error> {
-        self.pool.begin_with("BEGIN IMMEDIATE").await
+    pub fn backend(&self) -> Backend {
+        self.backend
+    }
+
+    /// PostgreSQL's URL; None on SQLite.
+    pub fn database_url(&self) -> Option<&str> {
+        self.database_url.as_deref()
+    }
+
+    /// Sends `payload` to every connection listening on `channel` (PostgreSQL's NOTIFY; a no-op
+    /// on SQLite, whose processes poll).
+    pub async fn notify(&self, channel: &str, payload: &str) -> Result<(), sqlx::Error> {
+        if self.backend == Backend::Postgres {
+            sqlx::query("SELECT CAST(pg_notify($1, $2) AS TEXT)")
+                .bind(channel)
+                .bind(payload)
+                .execute(&self.pool)
+                .await?;
+        }
+        Ok(())
+    }
+
+    /// Begins a transaction that writes. On SQLite, `BEGIN IMMEDIATE` takes the write lock up
+    /// front (waiting up to the busy timeout for it). A plain (deferred) `BEGIN` only takes a
+    /// read snapshot, and its first write then has to upgrade it: if another connection
+    /// committed in between, SQLite cannot upgrade the stale snapshot and fails at once with
+    /// SQLITE_BUSY ("database is locked") without waiting, which clients saw as 500s under
+    /// concurrent writes. Every transaction that writes, and above all one that reads and then
+    /// writes, starts here (on PostgreSQL it locks the rows it reads, [`Backend::lock_row`]).
+    pub async fn begin_write(&self) -> Result<Transaction<'static, Any>, sqlx::Error> {
+        self.pool.begin_with(self.backend.begin_write()).await
     }
 
     pub fn data_dir(&self) -> &Path {
@@ -196,14 +399,17 @@ impl Store {
         self.pool.close().await;
     }
 
-    /// Removes temp uploads and dataset files without a database row: what a crash between
-    /// writing a file and committing its row (or between deleting a row and its file) leaves.
-    /// Call it at start-up, before serving: it would also remove uploads in flight.
+    /// Removes temp uploads and (SQLite) dataset files without a database row: what a crash
+    /// between writing a file and committing its row (or between deleting a row and its file)
+    /// leaves. Call it at start-up, before serving: it would also remove uploads in flight.
     pub async fn remove_leftovers(&self) -> anyhow::Result<()> {
         for entry in std::fs::read_dir(self.tmp_dir())? {
             let path = entry?.path();
             tracing::info!(path = %path.display(), "removing an interrupted upload");
             remove_path(&path)?;
+        }
+        if self.backend != Backend::Sqlite {
+            return Ok(());
         }
         let known: std::collections::HashSet<String> =
             self.dataset_ids().await?.into_iter().collect();
@@ -220,6 +426,18 @@ impl Store {
     }
 }
 
+/// A database URL without its password, for messages and logs.
+pub fn redact_url(url: &str) -> String {
+    match url.split_once("://").and_then(|(scheme, rest)| {
+        let (credentials, host) = rest.rsplit_once('@')?;
+        let user = credentials.split(':').next().unwrap_or("");
+        Some(format!("{scheme}://{user}:***@{host}"))
+    }) {
+        Some(redacted) => redacted,
+        None => url.to_owned(),
+    }
+}
+
 fn remove_path(path: &Path) -> std::io::Result<()> {
     if path.is_dir() {
         std::fs::remove_dir_all(path)
@@ -230,36 +448,31 @@ fn remove_path(path: &Path) -> std::io::Result<()> {
 
 #[cfg(test)]
 mod tests {
+    use std::str::FromStr;
+
+    use sqlx::sqlite::SqliteJournalMode;
     use sqlx::SqliteConnection;
 
     use super::*;
+
+    #[test]
+    fn database_urls_lose_their_password_in_messages() {
+        assert_eq!(redact_url("postgres://app:s3cret@db:5432/x"), "postgres://app:***@db:5432/x");
+        assert_eq!(redact_url("postgres://db/x"), "postgres://db/x");
+    }
 
     /// A write transaction that SQLite rolls back by itself (here: the database file reaches its
     /// page limit, as a full disk does) must not leave its pooled connection unusable.
     #[tokio::test]
     async fn a_transaction_sqlite_rolled_back_does_not_poison_the_pool() {
         let dir = tempfile::tempdir().unwrap();
-        let options = SqliteConnectOptions::from_str("sqlite:")
-            .unwrap()
-            .filename(dir.path().join("db.sqlite"))
-            .create_if_missing(true)
-            .journal_mode(SqliteJournalMode::Wal);
-        // One connection, whichever the pool opens, each with a database size limit.
-        let pool = pool_options()
-            .max_connections(1)
-            .after_connect(|conn, _| {
-                Box::pin(async move {
-                    sqlx::query("PRAGMA max_page_count = 16").execute(conn).await.map(|_| ())
-                })
-            })
-            .connect_with(options)
-            .await
-            .unwrap();
-        sqlx::query("CREATE TABLE t (data BLOB)").execute(&pool).await.unwrap();
-        let store = Store { pool, data_dir: dir.path().to_path_buf() };
+        // One connection, so the size limit below holds for every statement of the test.
+        let store = Store::open_sqlite(dir.path(), 1).await.unwrap();
+        sqlx::query("PRAGMA max_page_count = 64").execute(store.pool()).await.unwrap();
+        sqlx::query("CREATE TABLE t (data BLOB)").execute(store.pool()).await.unwrap();
         let mut tx = store.begin_write().await.unwrap();
         sqlx::query("INSERT INTO t VALUES (x'00')").execute(&mut *tx).await.unwrap();
-        let full = sqlx::query("INSERT INTO t VALUES (?)")
+        let full = sqlx::query("INSERT INTO t VALUES ($1)")
             .bind(vec![0u8; 4 << 20])
             .execute(&mut *tx)
             .await

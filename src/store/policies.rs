@@ -1,13 +1,11 @@
 //! Trained policies: the artefact (spec JSON + safetensors weights) and what the API lists.
 
-use sqlx::{Sqlite, Transaction};
+use sqlx::{Any, Transaction};
 
-use chrono::{DateTime, Utc};
-
-use super::{Store, StoreError};
+use super::{parse_time, Store, StoreError};
 use crate::domain::PolicyRecord;
 
-/// A policy row as SQLite returns it (everything but the weights); [`PolicyRecord`] is its typed
+/// A policy row as the database returns it (everything but the weights); [`PolicyRecord`] is its typed
 /// form.
 #[derive(sqlx::FromRow)]
 struct PolicyRow {
@@ -19,7 +17,7 @@ struct PolicyRow {
     spec: String,
     final_metrics: String,
     alpha_hat: Option<f64>,
-    created_at: DateTime<Utc>,
+    created_at: String,
 }
 
 impl TryFrom<PolicyRow> for PolicyRecord {
@@ -36,6 +34,7 @@ impl TryFrom<PolicyRow> for PolicyRecord {
         let spec = serde_json::from_str(&row.spec).map_err(|e| corrupt("spec", e))?;
         let final_metrics =
             serde_json::from_str(&row.final_metrics).map_err(|e| corrupt("final metrics", e))?;
+        let created_at = parse_time(&format!("policy {}", row.id), &row.created_at)?;
         Ok(PolicyRecord {
             id: row.id.into(),
             job_id: row.job_id.into(),
@@ -45,7 +44,7 @@ impl TryFrom<PolicyRow> for PolicyRecord {
             spec,
             final_metrics,
             alpha_hat: row.alpha_hat,
-            created_at: row.created_at,
+            created_at,
         })
     }
 }
@@ -69,12 +68,12 @@ const POLICY_COLUMNS: &str =
 
 /// Inserts a policy inside the caller's transaction (the job's completion).
 pub(super) async fn insert_policy(
-    tx: &mut Transaction<'_, Sqlite>,
+    tx: &mut Transaction<'_, Any>,
     policy: &NewPolicy<'_>,
 ) -> Result<(), sqlx::Error> {
     sqlx::query(
         "INSERT INTO policies (id, job_id, algorithm, obs_dim, action_space, spec, weights, \
-             final_metrics, alpha_hat, created_at) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+             final_metrics, alpha_hat, created_at) VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10)",
     )
     .bind(policy.id)
     .bind(policy.job_id)
@@ -94,7 +93,7 @@ pub(super) async fn insert_policy(
 impl Store {
     pub async fn policy(&self, id: &str) -> Result<PolicyRecord, StoreError> {
         let row: PolicyRow =
-            sqlx::query_as(&format!("SELECT {POLICY_COLUMNS} FROM policies WHERE id = ?"))
+            sqlx::query_as(&format!("SELECT {POLICY_COLUMNS} FROM policies WHERE id = $1"))
                 .bind(id)
                 .fetch_optional(self.pool())
                 .await?
@@ -110,8 +109,8 @@ impl Store {
         offset: u64,
     ) -> Result<(Vec<PolicyRecord>, u64), StoreError> {
         let rows: Vec<PolicyRow> = sqlx::query_as(&format!(
-            "SELECT {POLICY_COLUMNS} FROM policies WHERE (?1 IS NULL OR job_id = ?1) \
-             ORDER BY created_at DESC, id DESC LIMIT ?2 OFFSET ?3"
+            "SELECT {POLICY_COLUMNS} FROM policies WHERE ($1 IS NULL OR job_id = $1) \
+             ORDER BY created_at DESC, id DESC LIMIT $2 OFFSET $3"
         ))
         .bind(job_id)
         .bind(i64::from(limit))
@@ -119,7 +118,7 @@ impl Store {
         .fetch_all(self.pool())
         .await?;
         let total: i64 =
-            sqlx::query_scalar("SELECT COUNT(*) FROM policies WHERE ?1 IS NULL OR job_id = ?1")
+            sqlx::query_scalar("SELECT COUNT(*) FROM policies WHERE $1 IS NULL OR job_id = $1")
                 .bind(job_id)
                 .fetch_one(self.pool())
                 .await?;
@@ -129,7 +128,7 @@ impl Store {
 
     /// The artefact of a policy: (spec JSON, safetensors weights).
     pub async fn policy_artifact(&self, id: &str) -> Result<(String, Vec<u8>), StoreError> {
-        sqlx::query_as("SELECT spec, weights FROM policies WHERE id = ?")
+        sqlx::query_as("SELECT spec, weights FROM policies WHERE id = $1")
             .bind(id)
             .fetch_optional(self.pool())
             .await?

@@ -1,0 +1,296 @@
+//! Many processes, one queue: this process's worker identity and its row in the worker
+//! registry, the lease heartbeat of each running job or evaluation, the task that brings jobs
+//! run by other processes to this process's event streams, and the PostgreSQL notifications
+//! that make all of it prompt (polling stays the fallback, and the only way on SQLite).
+
+use std::collections::HashMap;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+use tokio::sync::Notify;
+use tokio::task::JoinHandle;
+
+use super::{JobEvent, JobRunner};
+use crate::domain::{JobRecord, JobStatus};
+use crate::store::leases::{host_name, LeaseTable};
+use crate::store::{Backend, Lease, Store, StoreError};
+
+/// How this process takes part in the shared queue.
+#[derive(Clone, Debug)]
+pub struct WorkerOptions {
+    /// Training jobs this process runs at once (0: none, and no evaluations: an API-only node).
+    pub workers: usize,
+    /// How long a lease lasts without a heartbeat: a worker that stops renewing (killed, its
+    /// machine lost, paused) loses its jobs to other workers this long after its last renewal.
+    pub lease: Duration,
+    /// Names this process in leases, logs and /metrics: `<host>-<pid>-<random>`.
+    pub worker_id: String,
+    /// Free space the data directory needs before paused training resumes (`--min-free-disk`).
+    pub min_free_disk: u64,
+}
+
+impl WorkerOptions {
+    pub fn new(workers: usize, lease: Duration, min_free_disk: u64) -> Self {
+        let suffix = uuid::Uuid::new_v4().simple().to_string();
+        let worker_id = format!("{}-{}-{}", host_name(), std::process::id(), &suffix[..6]);
+        WorkerOptions { workers, lease, worker_id, min_free_disk }
+    }
+
+    /// How often leases and the registry row are renewed: three renewals fit in one lease, so
+    /// one slow or failed renewal does not lose it.
+    pub fn heartbeat(&self) -> Duration {
+        self.lease / 3
+    }
+}
+
+/// Keeps a lease alive while its run goes on (stops when dropped). Once another worker has
+/// taken the lease over, it sets `on_lost` (the run's cancel flag: the run stops, and its
+/// writes are refused anyway).
+pub(super) struct LeaseKeeper {
+    task: JoinHandle<()>,
+}
+
+impl LeaseKeeper {
+    pub(super) fn start(
+        store: Store,
+        table: LeaseTable,
+        lease: Lease,
+        options: &WorkerOptions,
+        on_lost: Arc<AtomicBool>,
+    ) -> Self {
+        let (duration, every) = (options.lease, options.heartbeat());
+        let task = tokio::spawn(async move {
+            loop {
+                tokio::time::sleep(every).await;
+                match store.renew_lease(table, &lease, duration).await {
+                    Ok(()) => {}
+                    // Also once the run ended its job (the row is no longer `running`): the
+                    // flag then stops nothing.
+                    Err(StoreError::LeaseLost(_)) => {
+                        tracing::debug!(id = %lease.id, "the lease is no longer held");
+                        on_lost.store(true, Ordering::Relaxed);
+                        return;
+                    }
+                    Err(e) => tracing::warn!(id = %lease.id, error = %e, "cannot renew the lease"),
+                }
+            }
+        });
+        LeaseKeeper { task }
+    }
+}
+
+impl Drop for LeaseKeeper {
+    fn drop(&mut self) {
+        self.task.abort();
+    }
+}
+
+/// Adds this process to the worker registry (and forgets workers silent for ten leases).
+pub(super) async fn register(runner: &JobRunner) -> Result<(), StoreError> {
+    let options = &runner.inner.options;
+    runner.store().register_worker(&options.worker_id, options.workers, options.lease * 10).await
+}
+
+/// Renews this process's registry row until shutdown.
+pub(super) async fn registry_heartbeat(runner: JobRunner) {
+    let options = runner.inner.options.clone();
+    while !super::sleep_unless_shutdown(&runner.inner.shutdown, options.heartbeat()).await {
+        if let Err(e) = runner.store().worker_heartbeat(&options.worker_id).await {
+            tracing::warn!(error = %e, "cannot record the worker heartbeat");
+        }
+    }
+}
+
+/// The notification channel every process listens on (PostgreSQL).
+const CHANNEL: &str = "safedice";
+
+/// What one process tells the others.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum Announcement {
+    /// A job was queued: idle workers claim.
+    Queued,
+    /// An evaluation was queued.
+    EvaluationQueued,
+    /// A cancel was requested for this running job: its worker stops now.
+    Cancel(String),
+    /// This job changed (progress or status): API nodes update its event streams.
+    Changed(String),
+}
+
+impl Announcement {
+    fn payload(&self) -> String {
+        match self {
+            Announcement::Queued => "queued".to_owned(),
+            Announcement::EvaluationQueued => "evaluation".to_owned(),
+            Announcement::Cancel(id) => format!("cancel:{id}"),
+            Announcement::Changed(id) => format!("changed:{id}"),
+        }
+    }
+
+    fn parse(payload: &str) -> Option<Announcement> {
+        match payload.split_once(':') {
+            None if payload == "queued" => Some(Announcement::Queued),
+            None if payload == "evaluation" => Some(Announcement::EvaluationQueued),
+            Some(("cancel", id)) => Some(Announcement::Cancel(id.to_owned())),
+            Some(("changed", id)) => Some(Announcement::Changed(id.to_owned())),
+            _ => None,
+        }
+    }
+}
+
+/// Tells the other processes (PostgreSQL NOTIFY; nothing on SQLite, where they poll). In the
+/// background: an announcement only hastens what polling does anyway, so it never delays or
+/// fails the caller.
+pub fn announce(store: &Store, announcement: Announcement) {
+    if store.backend() != Backend::Postgres {
+        return;
+    }
+    let store = store.clone();
+    tokio::spawn(async move {
+        if let Err(e) = store.notify(CHANNEL, &announcement.payload()).await {
+            tracing::debug!(error = %e, "cannot notify the other processes");
+        }
+    });
+}
+
+/// Listens for the other processes' announcements (PostgreSQL) until shutdown, reconnecting
+/// after a lost connection.
+pub(super) async fn listen(runner: JobRunner, url: String) {
+    let shutdown = runner.inner.shutdown.clone();
+    while !shutdown.is_cancelled() {
+        match sqlx::postgres::PgListener::connect(&url).await {
+            Ok(mut listener) => match listener.listen(CHANNEL).await {
+                Ok(()) => loop {
+                    tokio::select! {
+                        () = shutdown.cancelled() => return,
+                        received = listener.recv() => match received {
+                            Ok(notification) => dispatch(&runner, notification.payload()),
+                            Err(e) => {
+                                tracing::warn!(error = %e, "lost the notification connection");
+                                break;
+                            }
+                        },
+                    }
+                },
+                Err(e) => tracing::warn!(error = %e, "cannot listen for notifications"),
+            },
+            Err(e) => tracing::warn!(error = %e, "cannot open the notification connection"),
+        }
+        super::sleep_unless_shutdown(&shutdown, Duration::from_secs(1)).await;
+    }
+}
+
+fn dispatch(runner: &JobRunner, payload: &str) {
+    match Announcement::parse(payload) {
+        Some(Announcement::Queued) => runner.inner.wake.notify_one(),
+        Some(Announcement::EvaluationQueued) => runner.inner.evaluator.wake_local(),
+        Some(Announcement::Cancel(id)) => {
+            runner.cancel_local(&id);
+        }
+        Some(Announcement::Changed(_)) => runner.inner.followed.changed.notify_one(),
+        None => tracing::debug!(payload, "unknown notification"),
+    }
+}
+
+/// How often an API node looks for changes of jobs that other processes run (a PostgreSQL
+/// notification makes it look at once).
+const FOLLOW_POLL: Duration = Duration::from_millis(500);
+/// How far back each look reaches before the newest change it has seen: rows committed late
+/// (a transaction that took its time stamp before another's) or stamped by a machine whose
+/// clock is behind are still seen; what was already published is not published again.
+const FOLLOW_OVERLAP: chrono::TimeDelta = chrono::TimeDelta::seconds(5);
+
+/// What the follower last published per job: (status, step, updated_at).
+#[derive(Default)]
+pub(super) struct Followed {
+    seen: Mutex<HashMap<String, (JobStatus, u64, String)>>,
+    changed: Notify,
+}
+
+/// Publishes progress and status changes of jobs run by other processes to this process's
+/// event streams, until shutdown.
+pub(super) async fn follow_jobs(runner: JobRunner) {
+    let shutdown = runner.inner.shutdown.clone();
+    let mut newest = crate::store::now();
+    loop {
+        tokio::select! {
+            () = shutdown.cancelled() => return,
+            () = runner.inner.followed.changed.notified() => {}
+            () = tokio::time::sleep(FOLLOW_POLL) => {}
+        }
+        // Nobody watching: nothing to publish, and a stream opened later starts from the job
+        // as stored.
+        if runner.inner.events.receiver_count() == 0 {
+            continue;
+        }
+        let since = overlap_before(&newest);
+        match runner.store().jobs_changed_since(&since).await {
+            Ok(jobs) => {
+                for job in jobs {
+                    newest = newest.max(crate::domain::rfc3339(&job.updated_at));
+                    publish_change(&runner, job);
+                }
+                forget_older_than(&runner.inner.followed, &since);
+            }
+            Err(e) => tracing::warn!(error = %e, "cannot read the jobs' changes"),
+        }
+    }
+}
+
+fn overlap_before(time: &str) -> String {
+    chrono::DateTime::parse_from_rfc3339(time)
+        .map(|t| crate::domain::rfc3339(&(t.with_timezone(&chrono::Utc) - FOLLOW_OVERLAP)))
+        .unwrap_or_else(|_| time.to_owned())
+}
+
+/// Publishes what changed of `job` since the follower last saw it (jobs this process runs
+/// publish their own events).
+fn publish_change(runner: &JobRunner, job: JobRecord) {
+    if runner.runs_locally(&job.id) {
+        return;
+    }
+    let updated_at = crate::domain::rfc3339(&job.updated_at);
+    let previous = runner.inner.followed.seen.lock().expect("follower lock").insert(
+        job.id.to_string(),
+        (job.status, job.step, updated_at),
+    );
+    let event = match previous {
+        Some((status, step, _)) if status == job.status => {
+            if job.status != JobStatus::Running || step == job.step {
+                return;
+            }
+            JobEvent::Progress { progress: job.progress(), job_id: job.id }
+        }
+        _ => JobEvent::Status { job_id: job.id, status: job.status },
+    };
+    runner.publish_followed(event);
+}
+
+/// Keeps the follower's memory bounded: jobs unchanged since before the window are forgotten.
+fn forget_older_than(followed: &Followed, since: &str) {
+    followed.seen.lock().expect("follower lock").retain(|_, (_, _, updated_at)| updated_at.as_str() >= since);
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn announcements_survive_their_payload() {
+        for announcement in [
+            Announcement::Queued,
+            Announcement::EvaluationQueued,
+            Announcement::Cancel("job-1".into()),
+            Announcement::Changed("abc:def".into()),
+        ] {
+            assert_eq!(Announcement::parse(&announcement.payload()), Some(announcement));
+        }
+        assert_eq!(Announcement::parse("reboot"), None);
+    }
+
+    #[test]
+    fn the_follower_looks_back_by_the_overlap() {
+        assert_eq!(overlap_before("2026-11-23T20:00:03.250Z"), "2026-11-23T19:59:58.250Z");
+    }
+}

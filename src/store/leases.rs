@@ -1,0 +1,213 @@
+//! Leases and the worker registry: what lets many worker processes, on one machine or many,
+//! share one queue safely.
+//!
+//! A claim gives the worker a [`Lease`] on the job (or evaluation): the row's `lease_token`,
+//! incremented by every claim, and an expiry on the database's clock that the worker's
+//! heartbeat keeps pushing forward. A job whose lease expired (its worker died, lost its
+//! machine, or stalled) is claimable again, and the next claim takes it over with a new token.
+//! Every write a worker makes for the job names its token and is refused with
+//! [`StoreError::LeaseLost`] once the token changed (fencing): a worker that was paused past its
+//! lease and then wakes up cannot write anything more for a job another worker now runs.
+
+use std::time::Duration;
+
+use sqlx::{Any, Transaction};
+
+use super::{now, Store, StoreError};
+
+/// A worker's claim on one running job or evaluation.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Lease {
+    /// The job's (or evaluation's) id.
+    pub id: String,
+    /// The row's `lease_token` at the claim; a later claim by anyone changes it.
+    pub token: i64,
+}
+
+impl Lease {
+    pub fn new(id: impl Into<String>, token: i64) -> Self {
+        Lease { id: id.into(), token }
+    }
+}
+
+/// A worker's row in the registry.
+#[derive(Clone, Debug, PartialEq, sqlx::FromRow)]
+pub struct WorkerRow {
+    pub id: String,
+    pub host: String,
+    pub pid: i64,
+    pub concurrency: i64,
+    pub started_at: String,
+    /// Milliseconds since its last heartbeat, on the database's clock.
+    pub heartbeat_age_ms: i64,
+}
+
+/// Lease counts for /metrics.
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct LeaseStats {
+    /// Running jobs whose lease has expired and that no worker has taken over yet.
+    pub expired_jobs: i64,
+    /// Claims, over all jobs, that took a job over after its worker's lease expired.
+    pub takeovers: i64,
+    /// Running jobs per lease owner.
+    pub running_by_worker: Vec<(String, i64)>,
+}
+
+/// Lease durations in milliseconds as bound to SQL.
+pub(super) fn millis(duration: Duration) -> i64 {
+    i64::try_from(duration.as_millis()).unwrap_or(i64::MAX)
+}
+
+/// Inside a write transaction: confirms that `lease` still holds the running job `table` row and
+/// (on PostgreSQL) locks that row until the transaction ends, so no claim can take the job over
+/// between this check and the commit. Every fenced write starts with it.
+pub(super) async fn hold(
+    tx: &mut Transaction<'_, Any>,
+    table: LeaseTable,
+    lease: &Lease,
+) -> Result<(), StoreError> {
+    let held = sqlx::query(&format!(
+        "UPDATE {} SET lease_token = lease_token WHERE id = $1 AND lease_token = $2 \
+         AND status = 'running'",
+        table.as_str()
+    ))
+    .bind(&lease.id)
+    .bind(lease.token)
+    .execute(&mut **tx)
+    .await?;
+    if held.rows_affected() == 0 {
+        return Err(StoreError::LeaseLost(lease.id.clone()));
+    }
+    Ok(())
+}
+
+impl Store {
+    /// Pushes the lease's expiry `duration` past now (the worker's heartbeat).
+    pub async fn renew_lease(
+        &self,
+        table: LeaseTable,
+        lease: &Lease,
+        duration: Duration,
+    ) -> Result<(), StoreError> {
+        let renewed = sqlx::query(&format!(
+            "UPDATE {} SET lease_expires_ms = {} + $1 \
+             WHERE id = $2 AND lease_token = $3 AND status = 'running'",
+            table.as_str(),
+            self.backend.now_ms()
+        ))
+        .bind(millis(duration))
+        .bind(&lease.id)
+        .bind(lease.token)
+        .execute(self.pool())
+        .await?;
+        if renewed.rows_affected() == 0 {
+            return Err(StoreError::LeaseLost(lease.id.clone()));
+        }
+        Ok(())
+    }
+
+    /// Adds (or refreshes) a worker's row; rows of workers silent for `forget_after` are
+    /// removed meanwhile (a worker that died without saying goodbye).
+    pub async fn register_worker(
+        &self,
+        id: &str,
+        concurrency: usize,
+        forget_after: Duration,
+    ) -> Result<(), StoreError> {
+        let now_ms = self.backend.now_ms();
+        sqlx::query(&format!("DELETE FROM workers WHERE heartbeat_ms < {now_ms} - $1"))
+            .bind(millis(forget_after))
+            .execute(self.pool())
+            .await?;
+        sqlx::query(&format!(
+            "INSERT INTO workers (id, host, pid, concurrency, started_at, heartbeat_ms) \
+             VALUES ($1, $2, $3, $4, $5, {now_ms}) \
+             ON CONFLICT (id) DO UPDATE SET heartbeat_ms = excluded.heartbeat_ms"
+        ))
+        .bind(id)
+        .bind(host_name())
+        .bind(i64::from(std::process::id()))
+        .bind(concurrency as i64)
+        .bind(now())
+        .execute(self.pool())
+        .await?;
+        Ok(())
+    }
+
+    /// Records a worker's heartbeat.
+    pub async fn worker_heartbeat(&self, id: &str) -> Result<(), StoreError> {
+        sqlx::query(&format!(
+            "UPDATE workers SET heartbeat_ms = {} WHERE id = $1",
+            self.backend.now_ms()
+        ))
+        .bind(id)
+        .execute(self.pool())
+        .await?;
+        Ok(())
+    }
+
+    /// Removes a worker's row (it stops cleanly).
+    pub async fn remove_worker(&self, id: &str) -> Result<(), StoreError> {
+        sqlx::query("DELETE FROM workers WHERE id = $1").bind(id).execute(self.pool()).await?;
+        Ok(())
+    }
+
+    /// The registered workers, by id.
+    pub async fn workers(&self) -> Result<Vec<WorkerRow>, StoreError> {
+        let rows = sqlx::query_as(&format!(
+            "SELECT id, host, pid, concurrency, started_at, \
+                 {} - heartbeat_ms AS heartbeat_age_ms \
+             FROM workers ORDER BY id",
+            self.backend.now_ms()
+        ))
+        .fetch_all(self.pool())
+        .await?;
+        Ok(rows)
+    }
+
+    pub async fn lease_stats(&self) -> Result<LeaseStats, StoreError> {
+        let expired_jobs: i64 = sqlx::query_scalar(&format!(
+            "SELECT COUNT(*) FROM jobs WHERE status = 'running' AND lease_expires_ms < {}",
+            self.backend.now_ms()
+        ))
+        .fetch_one(self.pool())
+        .await?;
+        let takeovers: Option<i64> =
+            sqlx::query_scalar("SELECT CAST(SUM(lease_takeovers) AS BIGINT) FROM jobs")
+                .fetch_one(self.pool())
+                .await?;
+        let running_by_worker = sqlx::query_as(
+            "SELECT COALESCE(lease_owner, ''), COUNT(*) FROM jobs WHERE status = 'running' \
+             GROUP BY lease_owner ORDER BY 1",
+        )
+        .fetch_all(self.pool())
+        .await?;
+        Ok(LeaseStats { expired_jobs, takeovers: takeovers.unwrap_or(0), running_by_worker })
+    }
+}
+
+/// The two queues that hand out leases.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum LeaseTable {
+    Jobs,
+    Evaluations,
+}
+
+impl LeaseTable {
+    fn as_str(self) -> &'static str {
+        match self {
+            LeaseTable::Jobs => "jobs",
+            LeaseTable::Evaluations => "evaluations",
+        }
+    }
+}
+
+/// This machine's name (for the worker registry and the default worker id).
+pub fn host_name() -> String {
+    std::fs::read_to_string("/proc/sys/kernel/hostname")
+        .ok()
+        .or_else(|| std::env::var("HOSTNAME").ok())
+        .map(|name| name.trim().to_owned())
+        .filter(|name| !name.is_empty())
+        .unwrap_or_else(|| "localhost".to_owned())
+}
