@@ -56,8 +56,7 @@ struct Inner {
 impl Evaluator {
     /// An evaluator (not started) that stops when `shutdown` is cancelled.
     pub fn new(store: Store, options: WorkerOptions, shutdown: CancellationToken) -> Self {
-        let inner =
-            Inner { store, options, wake: Notify::new(), shutdown, task: Mutex::new(None) };
+        let inner = Inner { store, options, wake: Notify::new(), shutdown, task: Mutex::new(None) };
         Evaluator { inner: Arc::new(inner) }
     }
 

@@ -251,10 +251,13 @@ fn publish_change(runner: &JobRunner, job: JobRecord) {
         return;
     }
     let updated_at = crate::domain::rfc3339(&job.updated_at);
-    let previous = runner.inner.followed.seen.lock().expect("follower lock").insert(
-        job.id.to_string(),
-        (job.status, job.step, updated_at),
-    );
+    let previous = runner
+        .inner
+        .followed
+        .seen
+        .lock()
+        .expect("follower lock")
+        .insert(job.id.to_string(), (job.status, job.step, updated_at));
     let event = match previous {
         Some((status, step, _)) if status == job.status => {
             if job.status != JobStatus::Running || step == job.step {
@@ -269,7 +272,11 @@ fn publish_change(runner: &JobRunner, job: JobRecord) {
 
 /// Keeps the follower's memory bounded: jobs unchanged since before the window are forgotten.
 fn forget_older_than(followed: &Followed, since: &str) {
-    followed.seen.lock().expect("follower lock").retain(|_, (_, _, updated_at)| updated_at.as_str() >= since);
+    followed
+        .seen
+        .lock()
+        .expect("follower lock")
+        .retain(|_, (_, _, updated_at)| updated_at.as_str() >= since);
 }
 
 #[cfg(test)]

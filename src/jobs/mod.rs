@@ -205,7 +205,10 @@ impl JobRunner {
     /// Publishes an event of a job this process runs, to its own event streams and (on
     /// PostgreSQL) to the API nodes that follow it.
     fn publish(&self, event: JobEvent) {
-        fleet::announce(&self.inner.store, fleet::Announcement::Changed(event.job_id().to_string()));
+        fleet::announce(
+            &self.inner.store,
+            fleet::Announcement::Changed(event.job_id().to_string()),
+        );
         self.publish_followed(event);
     }
 

@@ -11,9 +11,9 @@ use super::{EvalOptions, JobEvent, JobProgress, JobRunner, RunnerOptions};
 use crate::algo::{self, Policy, Trainer};
 use crate::domain::{JobRecord, JobStatus, PolicyId};
 use crate::store::jobs::{MetricRow, ProgressUpdate};
+use crate::store::leases::LeaseTable;
 use crate::store::now;
 use crate::store::policies::NewPolicy;
-use crate::store::leases::LeaseTable;
 use crate::store::storage::{is_io_storage_full, is_storage_full};
 use crate::store::{is_busy, Lease, StoreError};
 
@@ -355,8 +355,7 @@ impl TrainingRun {
             iterations_per_second: speed,
             alpha_hat: trainer.alpha_hat(),
         };
-        let cancel =
-            self.rt.block_on(self.runner.store().update_progress(&self.lease, &update))?;
+        let cancel = self.rt.block_on(self.runner.store().update_progress(&self.lease, &update))?;
         self.runner.publish(JobEvent::Progress {
             job_id: self.job.id.clone(),
             progress: JobProgress::new(p.step, p.total, Some(p.phase.to_owned()), speed),

@@ -344,12 +344,14 @@ impl Store {
             Ok(bytes) => Ok(bytes),
             // Deleted between reading its row and its file: as if it had never been found. A
             // file missing under a row that is still there is damage, not a race.
-            Err(e) if e.kind() == std::io::ErrorKind::NotFound => Err(match self.dataset(id).await? {
-                None => StoreError::NotFound { kind: "dataset", id: id.to_owned() },
-                Some(_) => {
-                    StoreError::Corrupt(id.to_owned(), format!("{} is missing", path.display()))
-                }
-            }),
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+                Err(match self.dataset(id).await? {
+                    None => StoreError::NotFound { kind: "dataset", id: id.to_owned() },
+                    Some(_) => {
+                        StoreError::Corrupt(id.to_owned(), format!("{} is missing", path.display()))
+                    }
+                })
+            }
             Err(e) => Err(e.into()),
         }
     }

@@ -7,7 +7,7 @@ use sqlx::{Any, Transaction};
 
 use super::leases::{self, Lease, LeaseTable};
 use super::policies::NewPolicy;
-use super::{now, parse_optional_time, parse_time, placeholders, Store, StoreError};
+use super::{now, optional_real, parse_optional_time, parse_time, placeholders, Store, StoreError};
 use crate::algo::ResolvedConfig;
 use crate::domain::{DatasetId, EvalOptions, JobId, JobRecord, JobStatus, RunnerOptions};
 
@@ -310,15 +310,16 @@ impl Store {
         progress: &ProgressUpdate<'_>,
     ) -> Result<bool, StoreError> {
         let cancel: Option<i64> = sqlx::query_scalar(
-            "UPDATE jobs SET step = $1, phase = $2, iterations_per_second = $3, \
-                 alpha_hat = COALESCE($4, alpha_hat), updated_at = $5 \
+            "UPDATE jobs SET step = $1, phase = $2, \
+                 iterations_per_second = CAST($3 AS DOUBLE PRECISION), \
+                 alpha_hat = COALESCE(CAST($4 AS DOUBLE PRECISION), alpha_hat), updated_at = $5 \
              WHERE id = $6 AND lease_token = $7 AND status = 'running' \
              RETURNING cancel_requested",
         )
         .bind(progress.step as i64)
         .bind(progress.phase)
-        .bind(progress.iterations_per_second)
-        .bind(progress.alpha_hat)
+        .bind(optional_real(progress.iterations_per_second))
+        .bind(optional_real(progress.alpha_hat))
         .bind(now())
         .bind(&lease.id)
         .bind(lease.token)
@@ -330,7 +331,11 @@ impl Store {
         }
     }
 
-    pub async fn insert_metrics(&self, lease: &Lease, rows: &[MetricRow]) -> Result<(), StoreError> {
+    pub async fn insert_metrics(
+        &self,
+        lease: &Lease,
+        rows: &[MetricRow],
+    ) -> Result<(), StoreError> {
         if rows.is_empty() {
             return Ok(());
         }
@@ -442,13 +447,14 @@ impl Store {
         super::policies::insert_policy(&mut tx, policy).await?;
         sqlx::query(
             "UPDATE jobs SET status = 'succeeded', policy_id = $1, step = $2, \
-                 alpha_hat = COALESCE($3, alpha_hat), iterations_per_second = NULL, \
+                 alpha_hat = COALESCE(CAST($3 AS DOUBLE PRECISION), alpha_hat), \
+                 iterations_per_second = NULL, \
                  updated_at = $4, finished_at = $4 \
              WHERE id = $5",
         )
         .bind(policy.id)
         .bind(step as i64)
-        .bind(policy.alpha_hat)
+        .bind(optional_real(policy.alpha_hat))
         .bind(now())
         .bind(&lease.id)
         .execute(&mut *tx)
@@ -539,7 +545,10 @@ fn parse_status(id: &str, status: &str) -> Result<JobStatus, StoreError> {
 
 /// A finished job keeps no checkpoint: it would only be read to resume.
 async fn delete_checkpoint(tx: &mut Transaction<'_, Any>, id: &str) -> Result<(), sqlx::Error> {
-    sqlx::query("DELETE FROM job_checkpoints WHERE job_id = $1").bind(id).execute(&mut **tx).await?;
+    sqlx::query("DELETE FROM job_checkpoints WHERE job_id = $1")
+        .bind(id)
+        .execute(&mut **tx)
+        .await?;
     Ok(())
 }
 
@@ -555,7 +564,8 @@ async fn insert_metric_rows(
             .map(|row| format!("({})", placeholders(row * 5 + 1, 5)))
             .collect::<Vec<_>>()
             .join(", ");
-        let sql = format!("INSERT INTO job_metrics (job_id, name, step, value, time) VALUES {values}");
+        let sql =
+            format!("INSERT INTO job_metrics (job_id, name, step, value, time) VALUES {values}");
         let mut insert = sqlx::query(&sql);
         for metric in chunk {
             insert = insert

@@ -183,6 +183,15 @@ fn parse_optional_time(
     text.map(|t| parse_time(owner, t)).transpose()
 }
 
+/// An optional float as bound to SQL, to be read back with `CAST($n AS DOUBLE PRECISION)`.
+/// sqlx's `Any` driver (0.8) binds a NULL `f64` as a single-precision NULL, which PostgreSQL
+/// refuses for a double column ("incorrect binary data format in bind parameter"); as text, NULL
+/// and every value (Rust writes the shortest form that reads back to the same bits) arrive
+/// exactly on both backends.
+fn optional_real(value: Option<f64>) -> Option<String> {
+    value.map(|v| v.to_string())
+}
+
 /// `$first, $first+1, …` for `count` parameters (bulk inserts build their statements with it).
 fn placeholders(first: usize, count: usize) -> String {
     (first..first + count).map(|n| format!("${n}")).collect::<Vec<_>>().join(", ")
@@ -284,7 +293,8 @@ impl Store {
         sqlx::any::install_default_drivers();
         let database = data_dir.join(DATABASE_FILE);
         let sqlite = SqliteConnectOptions::new().filename(&database).create_if_missing(true);
-        let options: AnyConnectOptions = sqlx::ConnectOptions::to_url_lossy(&sqlite).as_str().parse()?;
+        let options: AnyConnectOptions =
+            sqlx::ConnectOptions::to_url_lossy(&sqlite).as_str().parse()?;
         let pool = pool_options()
             .max_connections(max_connections)
             .after_connect(|conn, _| {

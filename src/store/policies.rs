@@ -73,7 +73,7 @@ pub(super) async fn insert_policy(
 ) -> Result<(), sqlx::Error> {
     sqlx::query(
         "INSERT INTO policies (id, job_id, algorithm, obs_dim, action_space, spec, weights, \
-             final_metrics, alpha_hat, created_at) VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10)",
+             final_metrics, alpha_hat, created_at) VALUES ($1, $2, $3, $4, $5, $6, $7, $8, CAST($9 AS DOUBLE PRECISION), $10)",
     )
     .bind(policy.id)
     .bind(policy.job_id)
@@ -83,7 +83,7 @@ pub(super) async fn insert_policy(
     .bind(policy.spec)
     .bind(policy.weights)
     .bind(policy.final_metrics)
-    .bind(policy.alpha_hat)
+    .bind(super::optional_real(policy.alpha_hat))
     .bind(super::now())
     .execute(&mut **tx)
     .await?;

@@ -4,10 +4,12 @@
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
-use super::{sqlite_code, Store, StoreError};
+use super::{postgres_code, sqlite_code, Backend, Store, StoreError};
 
 /// SQLite's primary result code for "database or disk is full".
 const SQLITE_FULL: i32 = 13;
+/// PostgreSQL's SQLSTATE disk_full.
+const POSTGRES_DISK_FULL: &str = "53100";
 
 impl StoreError {
     /// The disk (or the database's size limit) is full: the write failed, nothing of it was
@@ -22,11 +24,15 @@ impl StoreError {
 }
 
 /// SQLITE_FULL (the file system refused to grow the database or its WAL, SQLite's VFS turns
-/// ENOSPC into it, or the database reached `max_page_count`), or an I/O error of a full disk.
+/// ENOSPC into it, or the database reached `max_page_count`), PostgreSQL's disk_full, or an I/O
+/// error of a full disk.
 pub fn is_storage_full(e: &sqlx::Error) -> bool {
     match e {
         sqlx::Error::Io(io) => is_io_storage_full(io),
-        other => sqlite_code(other) == Some(SQLITE_FULL),
+        other => {
+            sqlite_code(other) == Some(SQLITE_FULL)
+                || postgres_code(other).is_some_and(|code| code == POSTGRES_DISK_FULL)
+        }
     }
 }
 
@@ -63,7 +69,12 @@ impl Store {
     /// readiness probes can call it every time.
     pub async fn check_storage(&self, min_free: u64) -> Result<(), StorageProblem> {
         let data_dir = self.data_dir.clone();
-        tokio::task::spawn_blocking(move || check_storage(&data_dir, min_free))
+        // On PostgreSQL the data directory only takes uploads in flight.
+        let dirs: &'static [&'static str] = match self.backend {
+            Backend::Sqlite => &[".", super::DATASETS_DIR, super::TMP_DIR],
+            Backend::Postgres => &[".", super::TMP_DIR],
+        };
+        tokio::task::spawn_blocking(move || check_storage(&data_dir, dirs, min_free))
             .await
             .unwrap_or_else(|e| {
                 Err(StorageProblem::Unwritable { dir: ".".into(), error: e.to_string() })
@@ -73,13 +84,13 @@ impl Store {
 
 /// Free space first: a full disk also fails the write probe, and "low disk space" says more
 /// than "No space left on device" about a directory.
-fn check_storage(data_dir: &Path, min_free: u64) -> Result<(), StorageProblem> {
+fn check_storage(data_dir: &Path, dirs: &[&str], min_free: u64) -> Result<(), StorageProblem> {
     let free = available_bytes(data_dir)
         .map_err(|e| StorageProblem::Unwritable { dir: ".".into(), error: without_path(&e) })?;
     if free < min_free {
         return Err(StorageProblem::LowSpace { free, required: min_free });
     }
-    for sub in [".", super::DATASETS_DIR, super::TMP_DIR] {
+    for &sub in dirs {
         let dir: PathBuf = data_dir.join(sub);
         probe_write(&dir).map_err(|e| {
             tracing::warn!(dir = %dir.display(), error = %e, "the data directory cannot be written");
@@ -157,7 +168,7 @@ mod tests {
         let mut db = SqliteConnection::connect_with(&options).await.unwrap();
         sqlx::query("CREATE TABLE checkpoints (data BLOB)").execute(&mut db).await.unwrap();
         sqlx::query("PRAGMA max_page_count = 8").execute(&mut db).await.unwrap();
-        let full = sqlx::query("INSERT INTO checkpoints VALUES (?)")
+        let full = sqlx::query("INSERT INTO checkpoints VALUES ($1)")
             .bind(vec![0u8; 1 << 20])
             .execute(&mut db)
             .await

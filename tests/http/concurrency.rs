@@ -158,7 +158,7 @@ async fn a_submit_racing_a_delete_of_its_dataset_is_either_queued_or_refused() {
         let dataset = app.get(&format!("/v1/datasets/{victim}")).send().await.unwrap().status();
         let mut db = app.db().await;
         let jobs_using: i64 = sqlx::query_scalar(
-            "SELECT COUNT(*) FROM jobs WHERE unlabeled_dataset_id = ?1 OR non_preferred_dataset_id = ?1",
+            "SELECT COUNT(*) FROM jobs WHERE unlabeled_dataset_id = $1 OR non_preferred_dataset_id = $1",
         )
         .bind(victim)
         .fetch_one(&mut db)
@@ -189,7 +189,7 @@ async fn a_submit_racing_a_delete_of_its_dataset_is_either_queued_or_refused() {
             }
             _ => panic!("an inconsistent outcome: {outcome}"),
         }
-        assert!(app.files_in("datasets").len() == app.count_rows("datasets").await as usize);
+        assert_eq!(app.stored_dataset_bytes().await, app.count_rows("datasets").await as usize);
     }
     // Never a job whose dataset is gone.
     let mut db = app.db().await;

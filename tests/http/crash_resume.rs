@@ -34,7 +34,10 @@ impl ServerProcess {
     async fn start(data_dir: &Path) -> ServerProcess {
         let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
         let child = Command::new(env!("CARGO_BIN_EXE_safedice"))
-            .args(["serve", "--bind", &format!("127.0.0.1:{port}"), "--data-dir"])
+            // A short lease: the restarted server takes the killed one's job over once it
+            // expires.
+            .args(["serve", "--lease-seconds", "3", "--bind", &format!("127.0.0.1:{port}")])
+            .arg("--data-dir")
             .arg(data_dir)
             .env("RUST_LOG", "warn")
             .stdout(Stdio::null())

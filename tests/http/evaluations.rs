@@ -246,7 +246,7 @@ async fn an_evaluation_left_running_by_a_dead_process_runs_again_at_start() {
     let mut db = app.db().await;
     sqlx::query(
         "INSERT INTO evaluations (id, policy_id, env, episodes, seed, deterministic, status, \
-         created_at, started_at) VALUES ('e1', ?, 'six-rooms', 50, 1, 1, 'running', \
+         created_at, started_at) VALUES ('e1', $1, 'six-rooms', 50, 1, 1, 'running', \
          '2026-01-01T00:00:00Z', '2026-01-01T00:00:01Z')",
     )
     .bind(policy_id)

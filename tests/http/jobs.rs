@@ -453,19 +453,19 @@ struct StoppedJob {
 async fn stopped_job(app: &TestApp, id: &str) -> StoppedJob {
     let mut db = app.db().await;
     let (status, shown_step): (String, i64) =
-        sqlx::query_as("SELECT status, step FROM jobs WHERE id = ?")
+        sqlx::query_as("SELECT status, step FROM jobs WHERE id = $1")
             .bind(id)
             .fetch_one(&mut db)
             .await
             .unwrap();
     let checkpoint_step: i64 =
-        sqlx::query_scalar("SELECT step FROM job_checkpoints WHERE job_id = ?")
+        sqlx::query_scalar("SELECT step FROM job_checkpoints WHERE job_id = $1")
             .bind(id)
             .fetch_one(&mut db)
             .await
             .expect("a stopped job keeps its shutdown checkpoint");
     let rows: Vec<(String, i64, f64, String)> =
-        sqlx::query_as("SELECT name, step, value, time FROM job_metrics WHERE job_id = ?")
+        sqlx::query_as("SELECT name, step, value, time FROM job_metrics WHERE job_id = $1")
             .bind(id)
             .fetch_all(&mut db)
             .await

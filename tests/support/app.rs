@@ -1,16 +1,19 @@
 //! Test harness shared by the HTTP tests: starts the real server (the same code path as
 //! `safedice serve`) on a free loopback port with a fresh temp data directory, and talks HTTP
 //! to it. Reusable by every resource's tests: `TestApp::spawn().await`, then `app.get(path)`.
+//!
+//! The store is SQLite in the data directory, or, with `SAFEDICE_TEST_DATABASE=postgres`, a
+//! fresh database of its own in the test process's PostgreSQL cluster (`super::postgres`): the
+//! same suite runs against both backends.
 
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
-use std::str::FromStr;
 
 use reqwest::{RequestBuilder, Response, StatusCode};
 use safedice::config::ServeConfig;
 use safedice::server::Server;
-use sqlx::sqlite::SqliteConnectOptions;
-use sqlx::{Connection, SqliteConnection};
+use safedice::store::Store;
+use sqlx::{AnyConnection, Connection};
 
 /// A running server on its own data directory.
 pub struct TestApp {
@@ -35,6 +38,7 @@ impl TestApp {
         let data_dir = tempfile::tempdir().expect("temp data dir");
         let mut config = ServeConfig::new(data_dir.path());
         config.bind = "127.0.0.1:0".parse().unwrap();
+        config.database_url = test_database_url().await;
         configure(&mut config);
         let server = Server::start(config.clone()).await.expect("server starts");
         let addr = server.local_addr();
@@ -107,6 +111,7 @@ impl TestApp {
     pub async fn assert_no_datasets_stored(&self) {
         assert_eq!(self.count_rows("datasets").await, 0, "a dataset row was stored");
         assert_eq!(self.files_in("datasets"), Vec::<PathBuf>::new(), "a dataset file was stored");
+        assert_eq!(self.stored_dataset_bytes().await, 0, "dataset bytes were stored");
         assert_eq!(self.files_in("tmp"), Vec::<PathBuf>::new(), "a temp upload was left behind");
     }
 
@@ -126,11 +131,50 @@ impl TestApp {
         self.server = Some(server);
     }
 
-    /// A direct connection to the server's SQLite file, to check what was (not) stored.
-    pub async fn db(&self) -> SqliteConnection {
-        let path = self.data_dir().join("safedice.sqlite");
-        let options = SqliteConnectOptions::from_str("sqlite:").unwrap().filename(path);
-        SqliteConnection::connect_with(&options).await.expect("open the test database")
+    /// Whether this server's store is PostgreSQL.
+    pub fn is_postgres(&self) -> bool {
+        self.config.database_url.is_some()
+    }
+
+    /// For the tests of what only the SQLite store has (files in the data directory): true, and
+    /// says so, on PostgreSQL.
+    pub fn skip_on_postgres(&self, why: &str) -> bool {
+        if self.is_postgres() {
+            eprintln!("skipped on PostgreSQL: {why}");
+        }
+        self.is_postgres()
+    }
+
+    /// A direct connection to the server's database, to check what was (not) stored. Queries
+    /// take `$1`-style parameters, which both backends read.
+    pub async fn db(&self) -> AnyConnection {
+        sqlx::any::install_default_drivers();
+        let url = match &self.config.database_url {
+            Some(url) => url.clone(),
+            None => format!("sqlite://{}", self.data_dir().join("safedice.sqlite").display()),
+        };
+        AnyConnection::connect(&url).await.expect("open the test database")
+    }
+
+    /// The server's store, opened beside it.
+    pub async fn store(&self) -> Store {
+        Store::connect(self.data_dir(), self.config.database_url.as_deref())
+            .await
+            .expect("open the store")
+    }
+
+    /// How many datasets have their bytes stored: files on SQLite, chunked rows on PostgreSQL.
+    pub async fn stored_dataset_bytes(&self) -> usize {
+        if !self.is_postgres() {
+            return self.files_in("datasets").len();
+        }
+        let mut db = self.db().await;
+        let count: i64 =
+            sqlx::query_scalar("SELECT COUNT(DISTINCT dataset_id) FROM dataset_chunks")
+                .fetch_one(&mut db)
+                .await
+                .expect("count dataset chunks");
+        count as usize
     }
 
     pub async fn count_rows(&self, table: &str) -> i64 {
@@ -164,7 +208,7 @@ impl TestApp {
         sqlx::query(
             "INSERT INTO jobs (id, algorithm, status, unlabeled_dataset_id, \
              non_preferred_dataset_id, created_at, updated_at) \
-             VALUES (?, 'safedice', ?, ?, ?, '2026-01-01T00:00:00Z', '2026-01-01T00:00:00Z')",
+             VALUES ($1, 'safedice', $2, $3, $4, '2026-01-01T00:00:00Z', '2026-01-01T00:00:00Z')",
         )
         .bind(id)
         .bind(status)
@@ -174,6 +218,20 @@ impl TestApp {
         .await
         .expect("insert a job row");
         db.close().await.unwrap();
+    }
+}
+
+/// The database a new test server uses: None (SQLite in its data directory) unless
+/// `SAFEDICE_TEST_DATABASE=postgres`.
+async fn test_database_url() -> Option<String> {
+    match std::env::var("SAFEDICE_TEST_DATABASE").as_deref() {
+        Ok("postgres") => {
+            let cluster = super::postgres::cluster()
+                .expect("SAFEDICE_TEST_DATABASE=postgres needs PostgreSQL's binaries");
+            Some(cluster.new_database().await)
+        }
+        Ok("sqlite") | Err(_) => None,
+        Ok(other) => panic!("SAFEDICE_TEST_DATABASE={other}: expected sqlite or postgres"),
     }
 }
 
