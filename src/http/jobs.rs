@@ -87,6 +87,9 @@ pub struct Job {
     pub error: Option<String>,
     /// A cancel was requested while the job ran.
     pub cancel_requested: bool,
+    /// The worker that runs (or last ran) the job, `<host>-<pid>-<suffix>`: a `safedice worker`
+    /// process or the worker pool of a `safedice serve` process.
+    pub worker: Option<String>,
     pub created_at: String,
     pub updated_at: String,
     pub started_at: Option<String>,
@@ -110,6 +113,7 @@ impl From<JobRecord> for Job {
             policy_id: job.policy_id.map(|id| id.into_string()),
             error: job.error,
             cancel_requested: job.cancel_requested,
+            worker: job.worker,
             created_at: rfc3339(&job.created_at),
             updated_at: rfc3339(&job.updated_at),
             started_at: job.started_at.as_ref().map(rfc3339),

@@ -1,0 +1,278 @@
+//! The service as a fleet on PostgreSQL: a `safedice serve --workers 0` API node and
+//! `safedice worker` processes, each with a data directory of its own (nothing shared but the
+//! database), on a throwaway cluster (`support::postgres`). Workers are killed (SIGKILL),
+//! paused past their lease (SIGSTOP) and cancelled through the API node; the tests read the
+//! outcome over HTTP and from the database.
+//!
+//! Without PostgreSQL's binaries every test here skips with a loud message (CI sets
+//! `SAFEDICE_REQUIRE_POSTGRES=1`, which makes that a failure).
+
+#[path = "../support"]
+mod support {
+    #[allow(dead_code)]
+    pub mod jobs;
+    pub mod postgres;
+    #[allow(dead_code)]
+    pub mod tasks;
+}
+
+mod process;
+
+use std::collections::BTreeMap;
+use std::time::{Duration, Instant};
+
+use futures::StreamExt;
+use reqwest::StatusCode;
+use serde_json::{json, Value};
+use sqlx::{Connection, PgConnection};
+
+use process::Fleet;
+use support::jobs::{
+    create_job, get_json, grid_datasets, upload, wait_for_status, ENDLESS_ITERATIONS,
+};
+
+/// A job body on the gridworld data: SafeDICE with small networks, `iterations` long.
+fn job(unlabeled: &str, non_preferred: &str, iterations: u64, seed: u64) -> Value {
+    json!({
+        "algorithm": "safedice",
+        "unlabeled_dataset": unlabeled,
+        "non_preferred_dataset": non_preferred,
+        "config": {"iterations": iterations, "seed": seed, "hidden_sizes": [32, 32],
+                   "batch_size": 64, "discriminator_iterations": 50},
+        "runner": {"log_every": 10, "checkpoint_every": 100},
+    })
+}
+
+async fn upload_grid(fleet: &Fleet) -> (String, String) {
+    let (unlabeled, non_preferred) = grid_datasets();
+    let u = upload(&fleet.client, &fleet.api_url, &unlabeled, "grid-unlabeled").await;
+    let n = upload(&fleet.client, &fleet.api_url, &non_preferred, "grid-non-preferred").await;
+    (u, n)
+}
+
+async fn db(fleet: &Fleet) -> PgConnection {
+    PgConnection::connect(&fleet.database_url).await.unwrap()
+}
+
+/// Waits until the job is running with a checkpoint stored: a kill then lands mid-run, and the
+/// job has something to resume from.
+async fn wait_for_checkpoint(fleet: &Fleet, id: &str) -> Value {
+    let started = Instant::now();
+    let mut conn = db(fleet).await;
+    loop {
+        let step: Option<i64> =
+            sqlx::query_scalar("SELECT step FROM job_checkpoints WHERE job_id = $1")
+                .bind(id)
+                .fetch_optional(&mut conn)
+                .await
+                .unwrap();
+        let job = get_json(&fleet.client, &format!("{}/v1/jobs/{id}", fleet.api_url)).await;
+        assert_ne!(job["status"], "succeeded", "the job ended before the test could stop it");
+        if step.is_some() && job["status"] == "running" {
+            return job;
+        }
+        assert!(started.elapsed() < Duration::from_secs(120), "no checkpoint: {job}");
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+}
+
+async fn weights(fleet: &Fleet, job: &Value) -> Vec<u8> {
+    let policy = job["policy_id"].as_str().expect("a succeeded job has a policy");
+    let url = format!("{}/v1/policies/{policy}/weights", fleet.api_url);
+    let response = fleet.client.get(url).send().await.unwrap();
+    assert_eq!(response.status(), StatusCode::OK);
+    response.bytes().await.unwrap().to_vec()
+}
+
+#[tokio::test]
+async fn three_workers_run_twelve_jobs_each_exactly_once() {
+    let Some(fleet) = Fleet::start(3).await else { return };
+    let (u, n) = upload_grid(&fleet).await;
+    let mut ids = Vec::new();
+    for seed in 0..12 {
+        let created = create_job(&fleet.client, &fleet.api_url, job(&u, &n, 200, seed)).await;
+        ids.push(created["id"].as_str().unwrap().to_owned());
+    }
+    let mut by_worker: BTreeMap<String, usize> = BTreeMap::new();
+    for id in &ids {
+        let done = wait_for_status(&fleet.client, &fleet.api_url, id, "succeeded").await;
+        *by_worker.entry(done["worker"].as_str().unwrap().to_owned()).or_default() += 1;
+    }
+    let mut conn = db(&fleet).await;
+    let policies: Vec<(String, i64)> =
+        sqlx::query_as("SELECT job_id, COUNT(*) FROM policies GROUP BY job_id ORDER BY job_id")
+            .fetch_all(&mut conn)
+            .await
+            .unwrap();
+    assert_eq!(policies.len(), 12, "one policy per job: {policies:?}");
+    assert!(policies.iter().all(|(_, count)| *count == 1), "{policies:?}");
+    // Every job logs the same steps: a duplicated or lost row would change one job's count.
+    let rows: Vec<i64> =
+        sqlx::query_scalar("SELECT COUNT(*) FROM job_metrics GROUP BY job_id ORDER BY job_id")
+            .fetch_all(&mut conn)
+            .await
+            .unwrap();
+    assert_eq!(rows.len(), 12);
+    assert!(rows.iter().all(|&count| count == rows[0] && count > 0), "metric rows: {rows:?}");
+    let takeovers: i64 = sqlx::query_scalar("SELECT SUM(lease_takeovers)::BIGINT FROM jobs")
+        .fetch_one(&mut conn)
+        .await
+        .unwrap();
+    assert_eq!(takeovers, 0, "no worker died, so no job changed hands");
+    eprintln!("jobs per worker: {by_worker:?}");
+    assert!(by_worker.len() >= 2, "the work spread over the workers: {by_worker:?}");
+}
+
+#[tokio::test]
+async fn a_killed_workers_job_is_finished_by_another_with_the_same_weights() {
+    let Some(mut fleet) = Fleet::start(2).await else { return };
+    let (u, n) = upload_grid(&fleet).await;
+    let body = job(&u, &n, 3000, 7);
+    let interrupted = create_job(&fleet.client, &fleet.api_url, body.clone()).await;
+    let id = interrupted["id"].as_str().unwrap();
+    let running = wait_for_checkpoint(&fleet, id).await;
+    let victim = running["worker"].as_str().unwrap().to_owned();
+    fleet.kill_worker(&victim);
+
+    let done = wait_for_status(&fleet.client, &fleet.api_url, id, "succeeded").await;
+    assert_ne!(done["worker"], victim.as_str(), "another worker finished it");
+    let mut conn = db(&fleet).await;
+    let takeovers: i64 = sqlx::query_scalar("SELECT lease_takeovers FROM jobs WHERE id = $1")
+        .bind(id)
+        .fetch_one(&mut conn)
+        .await
+        .unwrap();
+    assert_eq!(takeovers, 1);
+
+    // The same job again, uninterrupted, on the surviving worker.
+    let again = create_job(&fleet.client, &fleet.api_url, body).await;
+    let again =
+        wait_for_status(&fleet.client, &fleet.api_url, again["id"].as_str().unwrap(), "succeeded")
+            .await;
+    assert_eq!(weights(&fleet, &done).await, weights(&fleet, &again).await, "bit for bit");
+}
+
+/// A snapshot of everything stored for a job.
+async fn stored(conn: &mut PgConnection, id: &str) -> (String, i64, f64, i64, i64) {
+    let job: (String,) = sqlx::query_as(
+        "SELECT CONCAT_WS('|', status, step, updated_at, lease_token, lease_owner, policy_id) \
+         FROM jobs WHERE id = $1",
+    )
+    .bind(id)
+    .fetch_one(&mut *conn)
+    .await
+    .unwrap();
+    let (rows, sum): (i64, f64) = sqlx::query_as(
+        "SELECT COUNT(*), COALESCE(SUM(value), 0) FROM job_metrics WHERE job_id = $1",
+    )
+    .bind(id)
+    .fetch_one(&mut *conn)
+    .await
+    .unwrap();
+    let checkpoints: i64 =
+        sqlx::query_scalar("SELECT COUNT(*) FROM job_checkpoints WHERE job_id = $1")
+            .bind(id)
+            .fetch_one(&mut *conn)
+            .await
+            .unwrap();
+    let policies: i64 = sqlx::query_scalar("SELECT COUNT(*) FROM policies WHERE job_id = $1")
+        .bind(id)
+        .fetch_one(&mut *conn)
+        .await
+        .unwrap();
+    (job.0, rows, sum, checkpoints, policies)
+}
+
+#[tokio::test]
+async fn a_worker_paused_past_its_lease_writes_nothing_more_for_the_job() {
+    let Some(mut fleet) = Fleet::start(1).await else { return };
+    let (u, n) = upload_grid(&fleet).await;
+    let created = create_job(&fleet.client, &fleet.api_url, job(&u, &n, 3000, 11)).await;
+    let id = created["id"].as_str().unwrap();
+    let running = wait_for_checkpoint(&fleet, id).await;
+    let paused = running["worker"].as_str().unwrap().to_owned();
+    fleet.signal_worker(&paused, "STOP");
+    fleet.start_worker();
+    let done = wait_for_status(&fleet.client, &fleet.api_url, id, "succeeded").await;
+    assert_ne!(done["worker"], paused.as_str());
+
+    let mut conn = db(&fleet).await;
+    let before = stored(&mut conn, id).await;
+    fleet.signal_worker(&paused, "CONT");
+    // The paused worker wakes up mid-run, tries its next write, and is refused.
+    fleet.wait_for_log(&paused, "another worker took the job over", Duration::from_secs(60)).await;
+    let after = stored(&mut conn, id).await;
+    assert_eq!(before, after, "the paused worker wrote nothing after waking up");
+    assert_eq!(after.4, 1, "one policy");
+}
+
+#[tokio::test]
+async fn cancel_and_progress_cross_from_the_api_node_to_a_worker_process() {
+    let Some(fleet) = Fleet::start(1).await else { return };
+    let (u, n) = upload_grid(&fleet).await;
+    let created =
+        create_job(&fleet.client, &fleet.api_url, job(&u, &n, ENDLESS_ITERATIONS, 3)).await;
+    let id = created["id"].as_str().unwrap();
+    let events_url = format!("{}/v1/jobs/{id}/events", fleet.api_url);
+    let mut events = EventReader::open(&fleet.client, &events_url).await;
+    // The API node trains nothing: this progress comes from the worker process.
+    let progress = events.next_named("progress").await;
+    assert!(progress["step"].as_u64().unwrap() > 0, "{progress}");
+
+    let asked = Instant::now();
+    let response =
+        fleet.client.post(format!("{}/v1/jobs/{id}/cancel", fleet.api_url)).send().await.unwrap();
+    assert_eq!(response.status(), StatusCode::OK);
+    loop {
+        let status = events.next_named("status").await;
+        if status["status"] == "cancelled" {
+            break;
+        }
+        assert_eq!(status["status"], "running", "{status}");
+    }
+    eprintln!("cancel reached the worker and came back in {:?}", asked.elapsed());
+    let job = get_json(&fleet.client, &format!("{}/v1/jobs/{id}", fleet.api_url)).await;
+    assert_eq!(job["status"], "cancelled");
+    assert!(job["progress"]["step"].as_u64().unwrap() > 0);
+}
+
+/// Server-sent events of one stream, read as they come.
+struct EventReader {
+    body: futures::stream::BoxStream<'static, reqwest::Result<bytes::Bytes>>,
+    buffer: String,
+}
+
+impl EventReader {
+    async fn open(client: &reqwest::Client, url: &str) -> EventReader {
+        let response = client.get(url).send().await.unwrap();
+        assert_eq!(response.status(), StatusCode::OK);
+        EventReader { body: response.bytes_stream().boxed(), buffer: String::new() }
+    }
+
+    /// The data of the next event called `name` (others are skipped); panics after a minute.
+    async fn next_named(&mut self, name: &str) -> Value {
+        let deadline = Instant::now() + Duration::from_secs(60);
+        loop {
+            while let Some(end) = self.buffer.find("\n\n") {
+                let event: String = self.buffer.drain(..end + 2).collect();
+                let field = |key: &str| {
+                    event
+                        .lines()
+                        .find_map(|l| l.strip_prefix(key))
+                        .map(str::trim)
+                        .map(str::to_owned)
+                };
+                if field("event:").as_deref() == Some(name) {
+                    return serde_json::from_str(&field("data:").unwrap()).unwrap();
+                }
+            }
+            let left = deadline.saturating_duration_since(Instant::now());
+            let chunk = tokio::time::timeout(left, self.body.next())
+                .await
+                .unwrap_or_else(|_| panic!("no {name} event within a minute"))
+                .expect("the stream ended")
+                .unwrap();
+            self.buffer.push_str(&String::from_utf8_lossy(&chunk));
+        }
+    }
+}
