@@ -4,8 +4,10 @@
 //! (`support::jobs`), and nothing process-wide: each test runs its own server on its own port and
 //! data directory, and what measures memory or is killed runs in a child process.
 //!
-//! `SAFEDICE_TEST_DATABASE=postgres cargo test --test http` runs the same suite on PostgreSQL
-//! (one throwaway cluster for the process, a database per test; `support::postgres`).
+//! `tests/http_postgres` runs the same files on the PostgreSQL store.
+
+/// The store every test server of this binary uses (`SAFEDICE_TEST_DATABASE` overrides it).
+const TEST_DATABASE: &str = "sqlite";
 
 #[path = "../support"]
 mod support {

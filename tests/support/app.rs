@@ -2,9 +2,9 @@
 //! `safedice serve`) on a free loopback port with a fresh temp data directory, and talks HTTP
 //! to it. Reusable by every resource's tests: `TestApp::spawn().await`, then `app.get(path)`.
 //!
-//! The store is SQLite in the data directory, or, with `SAFEDICE_TEST_DATABASE=postgres`, a
-//! fresh database of its own in the test process's PostgreSQL cluster (`super::postgres`): the
-//! same suite runs against both backends.
+//! The store is SQLite in the data directory (`tests/http`), or a fresh database of its own in
+//! the test process's PostgreSQL cluster (`tests/http_postgres`, `super::postgres`): the binary's
+//! `TEST_DATABASE`, overridden by `SAFEDICE_TEST_DATABASE=sqlite|postgres`.
 
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
@@ -221,17 +221,18 @@ impl TestApp {
     }
 }
 
-/// The database a new test server uses: None (SQLite in its data directory) unless
-/// `SAFEDICE_TEST_DATABASE=postgres`.
+/// The database a new test server uses: None for SQLite in its data directory. PostgreSQL
+/// without its binaries falls back to SQLite (the cluster support has said so loudly, or failed
+/// the test where PostgreSQL is required).
 async fn test_database_url() -> Option<String> {
-    match std::env::var("SAFEDICE_TEST_DATABASE").as_deref() {
-        Ok("postgres") => {
-            let cluster = super::postgres::cluster()
-                .expect("SAFEDICE_TEST_DATABASE=postgres needs PostgreSQL's binaries");
-            Some(cluster.new_database().await)
-        }
-        Ok("sqlite") | Err(_) => None,
-        Ok(other) => panic!("SAFEDICE_TEST_DATABASE={other}: expected sqlite or postgres"),
+    let chosen = std::env::var("SAFEDICE_TEST_DATABASE");
+    match chosen.as_deref().unwrap_or(crate::TEST_DATABASE) {
+        "postgres" => match super::postgres::cluster() {
+            Some(cluster) => Some(cluster.new_database().await),
+            None => None,
+        },
+        "sqlite" => None,
+        other => panic!("SAFEDICE_TEST_DATABASE={other}: expected sqlite or postgres"),
     }
 }
 

@@ -1,0 +1,41 @@
+//! The HTTP suite of `tests/http` on the PostgreSQL store: the same test files, each server on a
+//! fresh database of this process's throwaway cluster (`support::postgres`) instead of a SQLite
+//! file. Left out: `crash_resume` (it kills `safedice serve` on a SQLite data directory; the
+//! PostgreSQL takeover is `tests/fleet`), `demo` (its own in-process SQLite service) and
+//! `openapi` (the same for both stores).
+//!
+//! Without PostgreSQL's binaries these tests say so loudly and run on SQLite; CI sets
+//! `SAFEDICE_REQUIRE_POSTGRES=1`, which makes that a failure.
+
+/// The store every test server of this binary uses (`SAFEDICE_TEST_DATABASE` overrides it).
+const TEST_DATABASE: &str = "postgres";
+
+#[path = "../support"]
+mod support {
+    pub mod app;
+    pub mod jobs;
+    pub mod postgres;
+    #[allow(dead_code)]
+    pub mod tasks;
+}
+
+#[path = "../http/algorithms.rs"]
+mod algorithms;
+#[path = "../http/concurrency.rs"]
+mod concurrency;
+#[path = "../http/datasets.rs"]
+mod datasets;
+#[path = "../http/envs.rs"]
+mod envs;
+#[path = "../http/evaluations.rs"]
+mod evaluations;
+#[path = "../http/hardening.rs"]
+mod hardening;
+#[path = "../http/jobs.rs"]
+mod jobs;
+#[path = "../http/ops.rs"]
+mod ops;
+#[path = "../http/resources.rs"]
+mod resources;
+#[path = "../http/ui.rs"]
+mod ui;
