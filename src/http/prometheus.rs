@@ -1,6 +1,7 @@
 //! `GET /metrics`: request counts and latency histograms by method, route template and status,
-//! plus the training queue and the evaluations by status, read from the database at scrape
-//! time. OpenMetrics text (the Prometheus exposition format Prometheus scrapes natively).
+//! plus the training queue, the evaluations by status, and the fleet (workers, their heartbeats
+//! and running jobs, leases expired and taken over), read from the database at scrape time: any
+//! API node reports the whole fleet. OpenMetrics text (the Prometheus exposition format Prometheus scrapes natively).
 
 use std::time::Instant;
 
@@ -35,6 +36,13 @@ struct StatusLabel {
     status: &'static str,
 }
 
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+struct WorkerLabel {
+    worker: String,
+}
+
+type SecondsGauge = Gauge<f64, std::sync::atomic::AtomicU64>;
+
 type HistogramFamily = Family<RequestLabels, Histogram, fn() -> Histogram>;
 
 /// The service's metrics registry.
@@ -45,6 +53,62 @@ pub struct Metrics {
     queue_depth: Gauge,
     jobs: Family<StatusLabel, Gauge>,
     evaluations: Family<StatusLabel, Gauge>,
+    fleet: FleetMetrics,
+}
+
+/// What /metrics says of the workers sharing the database.
+#[derive(Default)]
+struct FleetMetrics {
+    workers: Gauge,
+    heartbeat_age: Family<WorkerLabel, SecondsGauge>,
+    running: Family<WorkerLabel, Gauge>,
+    expired_leases: Gauge,
+    takeovers: Gauge,
+}
+
+impl FleetMetrics {
+    fn register(&self, registry: &mut Registry) {
+        registry.register("workers", "Worker processes in the registry", self.workers.clone());
+        registry.register(
+            "worker_heartbeat_age_seconds",
+            "Time since each registered worker's last heartbeat",
+            self.heartbeat_age.clone(),
+        );
+        registry.register(
+            "running_jobs",
+            "Running jobs by the worker holding their lease",
+            self.running.clone(),
+        );
+        registry.register(
+            "expired_leases",
+            "Running jobs whose worker's lease expired and that no worker has taken over yet",
+            self.expired_leases.clone(),
+        );
+        registry.register(
+            "lease_takeovers",
+            "Claims, over all stored jobs, that took a job over after its worker's lease expired",
+            self.takeovers.clone(),
+        );
+    }
+
+    /// Reads the fleet's state; series of workers that are gone disappear.
+    async fn refresh(&self, store: &crate::store::Store) -> Result<(), ApiError> {
+        let workers = store.workers().await?;
+        self.workers.set(workers.len() as i64);
+        self.heartbeat_age.clear();
+        for worker in &workers {
+            let label = WorkerLabel { worker: worker.id.clone() };
+            self.heartbeat_age.get_or_create(&label).set(worker.heartbeat_age_ms as f64 / 1000.0);
+        }
+        let leases = store.lease_stats().await?;
+        self.running.clear();
+        for (worker, count) in leases.running_by_worker {
+            self.running.get_or_create(&WorkerLabel { worker }).set(count);
+        }
+        self.expired_leases.set(leases.expired_jobs);
+        self.takeovers.set(leases.takeovers);
+        Ok(())
+    }
 }
 
 fn latency_histogram() -> Histogram {
@@ -73,7 +137,9 @@ impl Metrics {
         registry.register("jobs", "Training jobs by status", jobs.clone());
         let evaluations = Family::<StatusLabel, Gauge>::default();
         registry.register("evaluations", "Policy evaluations by status", evaluations.clone());
-        Metrics { registry, requests, latency, queue_depth, jobs, evaluations }
+        let fleet = FleetMetrics::default();
+        fleet.register(&mut registry);
+        Metrics { registry, requests, latency, queue_depth, jobs, evaluations, fleet }
     }
 
     fn observe(&self, labels: RequestLabels, seconds: f64) {
@@ -128,6 +194,7 @@ async fn metrics(State(state): State<AppState>) -> Result<Response, ApiError> {
     for (status, count) in state.store.evaluation_counts_by_status().await? {
         state.metrics.evaluations.get_or_create(&StatusLabel { status }).set(count);
     }
+    state.metrics.fleet.refresh(&state.store).await?;
     let mut body = String::new();
     prometheus_client::encoding::text::encode(&mut body, &state.metrics.registry)
         .map_err(|e| ApiError::Internal(e.into()))?;

@@ -143,6 +143,9 @@ async fn a_killed_workers_job_is_finished_by_another_with_the_same_weights() {
         .await
         .unwrap();
     assert_eq!(takeovers, 1);
+    let metrics = fleet.client.get(format!("{}/metrics", fleet.api_url)).send().await.unwrap();
+    let metrics = metrics.text().await.unwrap();
+    assert!(metrics.lines().any(|l| l == "safedice_lease_takeovers 1"), "{metrics}");
 
     // The same job again, uninterrupted, on the surviving worker.
     let again = create_job(&fleet.client, &fleet.api_url, body).await;

@@ -211,13 +211,21 @@ async fn cancel_stops_a_running_job_keeping_its_metrics_and_a_queued_one_at_once
     let running = create_job(&app.client, &app.base_url, body(ENDLESS_ITERATIONS)).await;
     let queued = create_job(&app.client, &app.base_url, body(100)).await;
     let running_id = running["id"].as_str().unwrap();
-    wait_for_job(&app.client, &app.base_url, running_id, Duration::from_secs(120), |j| {
+    let job = wait_for_job(&app.client, &app.base_url, running_id, Duration::from_secs(120), |j| {
         j["status"] == "running" && j["progress"]["step"].as_u64().unwrap() >= 20
     })
     .await;
     let metrics = app.get("/metrics").send().await.unwrap().text().await.unwrap();
     assert!(metrics.lines().any(|l| l == "safedice_job_queue_depth 1"), "{metrics}");
     assert!(metrics.lines().any(|l| l == r#"safedice_jobs{status="running"} 1"#), "{metrics}");
+    // The fleet: this server's worker pool is the one worker, running the job.
+    let worker = job["worker"].as_str().expect("a running job names its worker");
+    let has = |line: &str| metrics.lines().any(|l| l == line);
+    assert!(has("safedice_workers 1"), "{metrics}");
+    assert!(has(&format!(r#"safedice_running_jobs{{worker="{worker}"}} 1"#)), "{metrics}");
+    assert!(has("safedice_expired_leases 0") && has("safedice_lease_takeovers 0"), "{metrics}");
+    let heartbeat = format!(r#"safedice_worker_heartbeat_age_seconds{{worker="{worker}"}} "#);
+    assert!(metrics.lines().any(|l| l.starts_with(&heartbeat)), "{metrics}");
     // One worker: the second job is still queued and is cancelled without running.
     let cancelled = app
         .post(&format!("/v1/jobs/{}/cancel", queued["id"].as_str().unwrap()))
