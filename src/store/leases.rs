@@ -211,3 +211,92 @@ pub fn host_name() -> String {
         .filter(|name| !name.is_empty())
         .unwrap_or_else(|| "localhost".to_owned())
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::algo::{Algorithm, Preset, ResolvedConfig};
+    use crate::data::{self, ActionSpace, Actions, Dataset, DatasetParts, Format};
+    use crate::domain::{JobId, JobStatus, RunnerOptions};
+    use crate::store::jobs::{MetricRow, NewJob, ProgressUpdate};
+    use crate::store::NewDataset;
+
+    async fn store_with_a_queued_job() -> (tempfile::TempDir, Store, JobId) {
+        let dir = tempfile::tempdir().unwrap();
+        let store = Store::open(dir.path()).await.unwrap();
+        let dataset = Dataset::new(DatasetParts {
+            obs_dim: 1,
+            action_space: ActionSpace::Discrete { n: 2 },
+            observations: vec![0.0, 1.0],
+            actions: Actions::Discrete(vec![0, 1]),
+            next_observations: vec![1.0, 2.0],
+            terminals: vec![false, true],
+            episode_ids: vec![0, 0],
+            rewards: None,
+            costs: None,
+        })
+        .unwrap();
+        let new = NewDataset::describe(&dataset, Format::Jsonl, "d".into(), None, "0".into(), 1);
+        let record = store.create_dataset(new, data::encode_canonical(&dataset)).await.unwrap();
+        let id = JobId::generate();
+        let job = NewJob {
+            id: id.clone(),
+            unlabeled_dataset: record.id.into(),
+            non_preferred_dataset: None,
+            config: ResolvedConfig::preset(Algorithm::Bc, Preset::Service),
+            runner: RunnerOptions::default(),
+            eval: None,
+        };
+        store.insert_job(&job).await.unwrap();
+        (dir, store, id)
+    }
+
+    fn metric(step: i64) -> MetricRow {
+        MetricRow { name: "loss".into(), step, value: 1.0, time: now() }
+    }
+
+    /// The fencing rule on its own: once a second worker claimed the job after the first one's
+    /// lease expired, every write with the first lease is refused and changes nothing, while the
+    /// second worker's writes go through.
+    #[tokio::test]
+    async fn a_taken_over_lease_can_write_nothing() {
+        let (_dir, store, id) = store_with_a_queued_job().await;
+        // A lease that is already over when granted: the next claim takes the job over.
+        let (_, stale) = store.claim_next_job("worker-a", Duration::ZERO).await.unwrap().unwrap();
+        // Past the expiry's millisecond: a lease is claimable once strictly expired.
+        tokio::time::sleep(Duration::from_millis(5)).await;
+        let (job, fresh) =
+            store.claim_next_job("worker-b", Duration::from_secs(60)).await.unwrap().unwrap();
+        assert_eq!((job.status, job.worker.as_deref()), (JobStatus::Running, Some("worker-b")));
+        assert_eq!(fresh.token, stale.token + 1);
+        assert!(store.claim_next_job("worker-c", Duration::from_secs(60)).await.unwrap().is_none());
+
+        let progress = ProgressUpdate {
+            step: 5,
+            phase: "policy",
+            iterations_per_second: None,
+            alpha_hat: None,
+        };
+        let lost = |r: Result<(), StoreError>| matches!(r, Err(StoreError::LeaseLost(_)));
+        assert!(lost(store.update_progress(&stale, &progress).await.map(drop)));
+        assert!(lost(store.insert_metrics(&stale, &[metric(1)]).await));
+        assert!(lost(store.save_checkpoint(&stale, 1, b"ckpt", &[metric(1)]).await));
+        assert!(lost(store.discard_metrics_after(&stale, 0).await.map(drop)));
+        assert!(lost(store.renew_lease(LeaseTable::Jobs, &stale, Duration::from_secs(60)).await));
+        assert!(lost(store.release_job(&stale).await));
+        assert!(lost(store.finish_job(&stale, JobStatus::Failed, Some("late"), &[]).await));
+        let unchanged = store.job(&id).await.unwrap();
+        assert_eq!((unchanged.status, unchanged.step), (JobStatus::Running, 0));
+        assert!(store.job_metrics(&id, None).await.unwrap().is_empty());
+        assert!(store.checkpoint(&id).await.unwrap().is_none());
+
+        store.update_progress(&fresh, &progress).await.unwrap();
+        store.save_checkpoint(&fresh, 5, b"ckpt", &[metric(5)]).await.unwrap();
+        assert_eq!(store.job(&id).await.unwrap().step, 5);
+        assert_eq!(store.job_metrics(&id, None).await.unwrap().len(), 1);
+        let stats = store.lease_stats().await.unwrap();
+        assert_eq!(stats.takeovers, 1);
+        assert_eq!(stats.running_by_worker, vec![("worker-b".to_owned(), 1)]);
+        assert_eq!(stats.expired_jobs, 0);
+    }
+}
