@@ -24,7 +24,7 @@ use std::time::{Duration, Instant};
 use futures::StreamExt;
 use reqwest::StatusCode;
 use serde_json::{json, Value};
-use sqlx::{Connection, PgConnection};
+use sqlx::{AnyConnection, Connection, PgConnection};
 
 use process::Fleet;
 use support::jobs::{
@@ -52,6 +52,12 @@ async fn upload_grid(fleet: &Fleet) -> (String, String) {
 
 async fn db(fleet: &Fleet) -> PgConnection {
     PgConnection::connect(&fleet.database_url).await.unwrap()
+}
+
+/// Either database, for the checks both backends answer alike (`$1` parameters).
+async fn any_db(fleet: &Fleet) -> AnyConnection {
+    sqlx::any::install_default_drivers();
+    AnyConnection::connect(&fleet.database_url).await.unwrap()
 }
 
 /// Waits until the job is running with a checkpoint stored: a kill then lands mid-run, and the
@@ -87,7 +93,17 @@ async fn weights(fleet: &Fleet, job: &Value) -> Vec<u8> {
 #[tokio::test]
 async fn three_workers_run_twelve_jobs_each_exactly_once() {
     let Some(fleet) = Fleet::start(3).await else { return };
-    let (u, n) = upload_grid(&fleet).await;
+    twelve_jobs_each_exactly_once(&fleet).await;
+}
+
+/// Several processes of one machine may share one SQLite data directory with the same leases.
+#[tokio::test]
+async fn three_workers_sharing_one_sqlite_file_run_twelve_jobs_each_exactly_once() {
+    twelve_jobs_each_exactly_once(&Fleet::start_sqlite(3).await).await;
+}
+
+async fn twelve_jobs_each_exactly_once(fleet: &Fleet) {
+    let (u, n) = upload_grid(fleet).await;
     let mut ids = Vec::new();
     for seed in 0..12 {
         let created = create_job(&fleet.client, &fleet.api_url, job(&u, &n, 200, seed)).await;
@@ -98,7 +114,7 @@ async fn three_workers_run_twelve_jobs_each_exactly_once() {
         let done = wait_for_status(&fleet.client, &fleet.api_url, id, "succeeded").await;
         *by_worker.entry(done["worker"].as_str().unwrap().to_owned()).or_default() += 1;
     }
-    let mut conn = db(&fleet).await;
+    let mut conn = any_db(fleet).await;
     let policies: Vec<(String, i64)> =
         sqlx::query_as("SELECT job_id, COUNT(*) FROM policies GROUP BY job_id ORDER BY job_id")
             .fetch_all(&mut conn)
@@ -114,10 +130,11 @@ async fn three_workers_run_twelve_jobs_each_exactly_once() {
             .unwrap();
     assert_eq!(rows.len(), 12);
     assert!(rows.iter().all(|&count| count == rows[0] && count > 0), "metric rows: {rows:?}");
-    let takeovers: i64 = sqlx::query_scalar("SELECT SUM(lease_takeovers)::BIGINT FROM jobs")
-        .fetch_one(&mut conn)
-        .await
-        .unwrap();
+    let takeovers: i64 =
+        sqlx::query_scalar("SELECT CAST(SUM(lease_takeovers) AS BIGINT) FROM jobs")
+            .fetch_one(&mut conn)
+            .await
+            .unwrap();
     assert_eq!(takeovers, 0, "no worker died, so no job changed hands");
     eprintln!("jobs per worker: {by_worker:?}");
     assert!(by_worker.len() >= 2, "the work spread over the workers: {by_worker:?}");

@@ -17,7 +17,7 @@ struct Process {
 }
 
 impl Process {
-    fn spawn(args: &[&str], log: PathBuf) -> Process {
+    fn spawn(args: &[String], log: PathBuf) -> Process {
         let out = std::fs::File::create(&log).unwrap();
         let child = Command::new(env!("CARGO_BIN_EXE_safedice"))
             .args(args)
@@ -46,7 +46,11 @@ impl Drop for Process {
 
 /// An API node (`serve --workers 0`) and `safedice worker` processes on one fresh database.
 pub struct Fleet {
+    /// The PostgreSQL database, or the SQLite file's URL when the processes share one SQLite
+    /// data directory.
     pub database_url: String,
+    /// Some: every process uses this SQLite data directory (no --database-url).
+    shared_sqlite: Option<PathBuf>,
     pub api_url: String,
     pub client: reqwest::Client,
     dir: tempfile::TempDir,
@@ -59,26 +63,38 @@ impl Fleet {
     /// cluster support said so loudly).
     pub async fn start(workers: usize) -> Option<Fleet> {
         let database_url = postgres::cluster()?.new_database().await;
+        Some(Fleet::start_on(Some(database_url), workers).await)
+    }
+
+    /// The same on SQLite: every process on this machine shares one data directory.
+    pub async fn start_sqlite(workers: usize) -> Fleet {
+        Fleet::start_on(None, workers).await
+    }
+
+    async fn start_on(database_url: Option<String>, workers: usize) -> Fleet {
         let dir = tempfile::tempdir().unwrap();
+        let shared_sqlite = database_url.is_none().then(|| dir.path().join("shared"));
+        let store_args = |own: PathBuf| -> Vec<String> {
+            let data_dir = shared_sqlite.clone().unwrap_or(own);
+            let mut args = vec!["--data-dir".to_owned(), data_dir.display().to_string()];
+            args.extend(
+                database_url.iter().flat_map(|url| ["--database-url".to_owned(), url.clone()]),
+            );
+            args
+        };
         let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
         let bind = format!("127.0.0.1:{port}");
-        let api_dir = dir.path().join("api");
-        let api = Process::spawn(
-            &[
-                "serve",
-                "--workers",
-                "0",
-                "--bind",
-                &bind,
-                "--database-url",
-                &database_url,
-                "--data-dir",
-                api_dir.to_str().unwrap(),
-            ],
-            dir.path().join("api.log"),
-        );
+        let mut api_args: Vec<String> =
+            ["serve", "--workers", "0", "--bind", &bind].map(str::to_owned).to_vec();
+        api_args.extend(store_args(dir.path().join("api")));
+        let api = Process::spawn(&api_args, dir.path().join("api.log"));
+        let database_url = database_url.unwrap_or_else(|| {
+            let file = shared_sqlite.as_ref().unwrap().join("safedice.sqlite");
+            format!("sqlite://{}", file.display())
+        });
         let mut fleet = Fleet {
             database_url,
+            shared_sqlite,
             api_url: format!("http://{bind}"),
             client: reqwest::Client::new(),
             dir,
@@ -89,7 +105,7 @@ impl Fleet {
         for _ in 0..workers {
             fleet.start_worker();
         }
-        Some(fleet)
+        fleet
     }
 
     async fn wait_for_api(&self) {
@@ -104,19 +120,14 @@ impl Fleet {
     /// Starts one more worker process (its own data directory).
     pub fn start_worker(&mut self) {
         let index = self.workers.len();
-        let data_dir = self.dir.path().join(format!("worker-{index}"));
-        let worker = Process::spawn(
-            &[
-                "worker",
-                "--database-url",
-                &self.database_url,
-                "--data-dir",
-                data_dir.to_str().unwrap(),
-                "--lease-seconds",
-                LEASE_SECONDS,
-            ],
-            self.dir.path().join(format!("worker-{index}.log")),
-        );
+        let own = self.dir.path().join(format!("worker-{index}"));
+        let mut args = vec!["worker".to_owned(), "--lease-seconds".into(), LEASE_SECONDS.into()];
+        args.push("--data-dir".into());
+        args.push(self.shared_sqlite.clone().unwrap_or(own).display().to_string());
+        if self.shared_sqlite.is_none() {
+            args.extend(["--database-url".to_owned(), self.database_url.clone()]);
+        }
+        let worker = Process::spawn(&args, self.dir.path().join(format!("worker-{index}.log")));
         self.workers.push(worker);
     }
 
