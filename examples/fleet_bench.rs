@@ -236,21 +236,6 @@ async fn throughput(args: &Args, db_name: &'static str, workers: usize) -> anyho
     Ok(args.jobs as f64 / started.elapsed().as_secs_f64() * 3600.0)
 }
 
-fn tiny_dataset() -> Dataset {
-    Dataset::new(DatasetParts {
-        obs_dim: 1,
-        action_space: ActionSpace::Discrete { n: 2 },
-        observations: vec![0.0, 1.0],
-        actions: Actions::Discrete(vec![0, 1]),
-        next_observations: vec![1.0, 2.0],
-        terminals: vec![false, true],
-        episode_ids: vec![0, 0],
-        rewards: None,
-        costs: None,
-    })
-    .expect("a valid dataset")
-}
-
 /// Claim latencies (seconds, sorted) of `claimers` concurrent claimers over `jobs` jobs.
 async fn claim_latencies(
     db_name: &'static str,
@@ -260,8 +245,15 @@ async fn claim_latencies(
     let db = Database::fresh(db_name).await?;
     let dir = tempfile::tempdir()?;
     let store = Store::connect(dir.path(), db.url.as_deref()).await?;
-    let dataset = tiny_dataset();
-    let new = NewDataset::describe(&dataset, Format::Jsonl, "d".into(), None, "0".into(), 1);
+    let spec = safedice::envs::DatagenSpec {
+        env: "six-rooms".into(),
+        preferred: 1,
+        non_preferred: 1,
+        labeled: 0,
+        seed: 0,
+    };
+    let dataset = safedice::envs::generate(&spec)?.unlabeled;
+    let new = NewDataset::describe(&dataset, Format::Npz, "d".into(), None, "0".into(), 1);
     let record = store.create_dataset(new, data::encode_canonical(&dataset)).await?;
     for _ in 0..jobs {
         let job = NewJob {

@@ -29,8 +29,10 @@ enum Outcome {
     /// Shutdown: checkpointed and back in the queue.
     Released,
     /// A write of the run failed because the store could not take it (full disk, SQLITE_FULL,
-    /// or a lock held past the busy timeout): nothing is wrong with the job, so it goes back to
-    /// the queue and resumes from its last checkpoint once the store takes writes again.
+    /// a lock held past the busy timeout, the database connection lost): nothing is wrong with
+    /// the job, so it goes back to the queue and resumes from its last checkpoint once the store
+    /// takes writes again (or, if the database stays away longer than the lease, another worker
+    /// takes it over).
     StoreUnavailable(String),
     /// Another worker took the job over (this worker's lease expired): nothing more is written.
     LeaseLost,
@@ -41,8 +43,8 @@ fn lease_lost(e: &anyhow::Error) -> bool {
     e.chain().any(|cause| matches!(cause.downcast_ref(), Some(StoreError::LeaseLost(_))))
 }
 
-/// Whether a run's error is the store failing to take a write for want of room or a lock, not
-/// a fault of the job (anywhere in the error's chain of causes).
+/// Whether a run's error is the store failing to take a write for want of room, a lock or its
+/// connection, not a fault of the job (anywhere in the error's chain of causes).
 fn store_unavailable(e: &anyhow::Error) -> bool {
     e.chain().any(|cause| {
         if let Some(e) = cause.downcast_ref::<StoreError>() {
@@ -411,6 +413,9 @@ mod tests {
         assert!(store_unavailable(&full));
         let busy = anyhow::Error::from(StoreError::Database(sqlx::Error::PoolTimedOut));
         assert!(store_unavailable(&busy.context("recording progress")));
+        let reset = std::io::Error::from(std::io::ErrorKind::ConnectionReset);
+        let lost = anyhow::Error::from(StoreError::Database(sqlx::Error::Io(reset)));
+        assert!(store_unavailable(&lost.context("saving the checkpoint")));
         let corrupt = StoreError::Corrupt("d".into(), "changed on disk".into());
         assert!(!store_unavailable(&anyhow::Error::from(corrupt)));
         assert!(!store_unavailable(&anyhow::anyhow!("the evaluation at step 10 failed")));

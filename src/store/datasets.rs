@@ -424,27 +424,7 @@ async fn insert_dataset_row(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::data::{Actions, DatasetParts};
-
-    async fn store_with_a_dataset() -> (tempfile::TempDir, Store, String) {
-        let dir = tempfile::tempdir().unwrap();
-        let store = Store::open(dir.path()).await.unwrap();
-        let dataset = Dataset::new(DatasetParts {
-            obs_dim: 1,
-            action_space: ActionSpace::Discrete { n: 2 },
-            observations: vec![0.0, 1.0],
-            actions: Actions::Discrete(vec![0, 1]),
-            next_observations: vec![1.0, 2.0],
-            terminals: vec![false, true],
-            episode_ids: vec![0, 0],
-            rewards: None,
-            costs: None,
-        })
-        .unwrap();
-        let new = NewDataset::describe(&dataset, Format::Jsonl, "d".into(), None, "0".into(), 1);
-        let record = store.create_dataset(new, data::encode_canonical(&dataset)).await.unwrap();
-        (dir, store, record.id)
-    }
+    use crate::store::test_support::store_with_a_dataset;
 
     /// A missing file is only "not found" when the row went with it (a concurrent delete); a
     /// file missing under a row that is still there is damage, reported as such.

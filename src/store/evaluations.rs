@@ -143,23 +143,12 @@ impl Store {
         worker: &str,
         lease_duration: Duration,
     ) -> Result<Option<(EvaluationRecord, Lease)>, StoreError> {
-        let now_ms = self.backend.now_ms();
-        let claimable =
-            format!("(status = 'queued' OR (status = 'running' AND lease_expires_ms < {now_ms}))");
-        let claimed: Option<(String, i64)> = sqlx::query_as(&format!(
-            "UPDATE evaluations SET status = 'running', started_at = $1, lease_owner = $2, \
-                 lease_token = lease_token + 1, lease_expires_ms = {now_ms} + $3 \
-             WHERE id = (SELECT id FROM evaluations WHERE {claimable} \
-                         ORDER BY created_at, id LIMIT 1{}) \
-               AND {claimable} \
-             RETURNING id, lease_token",
-            self.backend.skip_locked()
-        ))
-        .bind(now())
-        .bind(worker)
-        .bind(leases::millis(lease_duration))
-        .fetch_optional(self.pool())
-        .await?;
+        let claim = leases::Claim {
+            table: LeaseTable::Evaluations,
+            set: "started_at = $1",
+            order: "created_at, id",
+        };
+        let claimed = claim.run(self, worker, lease_duration).await?;
         match claimed {
             Some((id, token)) => {
                 let record = self.evaluation(&id).await?;

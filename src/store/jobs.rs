@@ -251,27 +251,14 @@ impl Store {
         worker: &str,
         lease_duration: Duration,
     ) -> Result<Option<(JobRecord, Lease)>, StoreError> {
-        let now_ms = self.backend.now_ms();
-        let claimable =
-            format!("(status = 'queued' OR (status = 'running' AND lease_expires_ms < {now_ms}))");
-        let claimed: Option<(String, i64)> = sqlx::query_as(&format!(
-            "UPDATE jobs SET status = 'running', updated_at = $1, \
-                 started_at = COALESCE(started_at, $1), iterations_per_second = NULL, \
-                 lease_owner = $2, lease_token = lease_token + 1, \
-                 lease_expires_ms = {now_ms} + $3, \
-                 lease_takeovers = lease_takeovers + \
-                     CASE WHEN status = 'running' THEN 1 ELSE 0 END \
-             WHERE id = (SELECT id FROM jobs WHERE {claimable} \
-                         ORDER BY started_at IS NULL, created_at, id LIMIT 1{}) \
-               AND {claimable} \
-             RETURNING id, lease_token",
-            self.backend.skip_locked()
-        ))
-        .bind(now())
-        .bind(worker)
-        .bind(leases::millis(lease_duration))
-        .fetch_optional(self.pool())
-        .await?;
+        let claim = leases::Claim {
+            table: LeaseTable::Jobs,
+            set: "updated_at = $1, started_at = COALESCE(started_at, $1), \
+                  iterations_per_second = NULL, \
+                  lease_takeovers = lease_takeovers + CASE WHEN status = 'running' THEN 1 ELSE 0 END",
+            order: "started_at IS NULL, created_at, id",
+        };
+        let claimed = claim.run(self, worker, lease_duration).await?;
         let Some((id, token)) = claimed else { return Ok(None) };
         let lease = Lease::new(id, token);
         match self.job(&lease.id).await {

@@ -81,6 +81,48 @@ pub(super) async fn hold(
     Ok(())
 }
 
+/// The single statement that claims the next row of a queue: a queued row, or a running one
+/// whose lease expired, in `order`; it becomes `running` under a new lease token for `worker`.
+/// On PostgreSQL concurrent claimers skip the rows another is taking (`SKIP LOCKED`); SQLite
+/// runs one write at a time. The statement binds `$1` now (RFC 3339), `$2` the worker, `$3` the
+/// lease in milliseconds.
+pub(super) struct Claim {
+    pub table: LeaseTable,
+    /// The table's own `SET` assignments (they see the row's old values).
+    pub set: &'static str,
+    pub order: &'static str,
+}
+
+impl Claim {
+    /// Runs the claim: the claimed row's (id, lease token).
+    pub async fn run(
+        &self,
+        store: &Store,
+        worker: &str,
+        lease: Duration,
+    ) -> Result<Option<(String, i64)>, sqlx::Error> {
+        let (table, now_ms) = (self.table.as_str(), store.backend.now_ms());
+        let claimable =
+            format!("(status = 'queued' OR (status = 'running' AND lease_expires_ms < {now_ms}))");
+        sqlx::query_as(&format!(
+            "UPDATE {table} SET status = 'running', {}, lease_owner = $2, \
+                 lease_token = lease_token + 1, lease_expires_ms = {now_ms} + $3 \
+             WHERE id = (SELECT id FROM {table} WHERE {claimable} \
+                         ORDER BY {} LIMIT 1{}) \
+               AND {claimable} \
+             RETURNING id, lease_token",
+            self.set,
+            self.order,
+            store.backend.skip_locked()
+        ))
+        .bind(now())
+        .bind(worker)
+        .bind(millis(lease))
+        .fetch_optional(store.pool())
+        .await
+    }
+}
+
 impl Store {
     /// Pushes the lease's expiry `duration` past now (the worker's heartbeat).
     pub async fn renew_lease(
@@ -216,32 +258,16 @@ pub fn host_name() -> String {
 mod tests {
     use super::*;
     use crate::algo::{Algorithm, Preset, ResolvedConfig};
-    use crate::data::{self, ActionSpace, Actions, Dataset, DatasetParts, Format};
     use crate::domain::{JobId, JobStatus, RunnerOptions};
     use crate::store::jobs::{MetricRow, NewJob, ProgressUpdate};
-    use crate::store::NewDataset;
+    use crate::store::test_support::store_with_a_dataset;
 
     async fn store_with_a_queued_job() -> (tempfile::TempDir, Store, JobId) {
-        let dir = tempfile::tempdir().unwrap();
-        let store = Store::open(dir.path()).await.unwrap();
-        let dataset = Dataset::new(DatasetParts {
-            obs_dim: 1,
-            action_space: ActionSpace::Discrete { n: 2 },
-            observations: vec![0.0, 1.0],
-            actions: Actions::Discrete(vec![0, 1]),
-            next_observations: vec![1.0, 2.0],
-            terminals: vec![false, true],
-            episode_ids: vec![0, 0],
-            rewards: None,
-            costs: None,
-        })
-        .unwrap();
-        let new = NewDataset::describe(&dataset, Format::Jsonl, "d".into(), None, "0".into(), 1);
-        let record = store.create_dataset(new, data::encode_canonical(&dataset)).await.unwrap();
+        let (dir, store, dataset) = store_with_a_dataset().await;
         let id = JobId::generate();
         let job = NewJob {
             id: id.clone(),
-            unlabeled_dataset: record.id.into(),
+            unlabeled_dataset: dataset.into(),
             non_preferred_dataset: None,
             config: ResolvedConfig::preset(Algorithm::Bc, Preset::Service),
             runner: RunnerOptions::default(),

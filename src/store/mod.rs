@@ -27,6 +27,8 @@ pub mod jobs;
 pub mod leases;
 pub mod policies;
 pub mod storage;
+#[cfg(test)]
+mod test_support;
 
 use std::path::{Path, PathBuf};
 use std::time::Duration;
@@ -94,12 +96,15 @@ fn postgres_code(e: &sqlx::Error) -> Option<String> {
     Some(pg.code().to_owned())
 }
 
-/// SQLITE_BUSY / SQLITE_LOCKED (every extended variant), PostgreSQL's "try again" states, or no
-/// pooled connection in time.
+/// SQLITE_BUSY / SQLITE_LOCKED (every extended variant), PostgreSQL's "try again" states, no
+/// pooled connection in time, or the connection to the database lost (an I/O error on its socket,
+/// PostgreSQL's connection exceptions, class 08): the database may take the same call later,
+/// and nothing is wrong with what was asked.
 pub fn is_busy(e: &sqlx::Error) -> bool {
-    matches!(e, sqlx::Error::PoolTimedOut)
+    matches!(e, sqlx::Error::PoolTimedOut | sqlx::Error::Io(_))
         || matches!(sqlite_code(e), Some(SQLITE_BUSY | SQLITE_LOCKED))
-        || postgres_code(e).is_some_and(|code| POSTGRES_RETRY.contains(&code.as_str()))
+        || postgres_code(e)
+            .is_some_and(|code| POSTGRES_RETRY.contains(&code.as_str()) || code.starts_with("08"))
 }
 
 /// Which database the store talks to, and the SQL that differs between them.
