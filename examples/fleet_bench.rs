@@ -448,15 +448,16 @@ async fn dataset_round_trip(
     ))
 }
 
+/// The CPU's name, family and model (machines here differ: the same name covers Zen 4 and 5).
 fn cpu_model() -> String {
-    std::fs::read_to_string("/proc/cpuinfo")
-        .ok()
-        .and_then(|text| {
-            text.lines()
-                .find_map(|l| l.strip_prefix("model name"))
-                .map(|m| m.trim_start_matches([' ', '\t', ':']).to_owned())
-        })
-        .unwrap_or_else(|| "unknown".into())
+    let info = std::fs::read_to_string("/proc/cpuinfo").unwrap_or_default();
+    let field = |key: &str| {
+        info.lines()
+            .filter_map(|line| line.split_once(':'))
+            .find(|(k, _)| k.trim() == key)
+            .map_or_else(|| "?".to_owned(), |(_, v)| v.trim().to_owned())
+    };
+    format!("{}, family {} model {}", field("model name"), field("cpu family"), field("model"))
 }
 
 #[tokio::main]
