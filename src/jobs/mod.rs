@@ -274,16 +274,18 @@ impl JobRunner {
 
     /// Puts a job whose run stopped on a failed write back in the queue. That write may fail
     /// too while the disk is full: it is retried until it goes through, the lease is lost, or
-    /// shutdown begins (a job left `running` is claimed again once its lease expires).
-    async fn release_when_possible(&self, lease: &crate::store::Lease) {
+    /// shutdown begins (a job left `running` is claimed again once its lease expires). False
+    /// when another worker had taken the job over meanwhile.
+    async fn release_when_possible(&self, lease: &crate::store::Lease) -> bool {
         let mut delay = STORAGE_RETRY;
         loop {
             match self.store().release_job(lease).await {
-                Ok(()) | Err(crate::store::StoreError::LeaseLost(_)) => return,
+                Ok(()) => return true,
+                Err(crate::store::StoreError::LeaseLost(_)) => return false,
                 Err(e) => {
                     tracing::warn!(error = %e, "cannot hand the job back to the queue yet");
                     if sleep_unless_shutdown(&self.inner.shutdown, delay).await {
-                        return;
+                        return true;
                     }
                     delay = (delay * 2).min(STORAGE_RETRY_MAX);
                 }

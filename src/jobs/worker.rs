@@ -115,13 +115,7 @@ async fn run_job(runner: &JobRunner, job: JobRecord, lease: Lease) {
         runner.storage_recovered();
     }
     let status = match &outcome {
-        Outcome::LeaseLost => {
-            tracing::warn!(
-                "another worker took the job over after this worker's lease expired; this \
-                 run stops without writing anything more"
-            );
-            return;
-        }
+        Outcome::LeaseLost => return log_lease_lost(),
         Outcome::Succeeded => JobStatus::Succeeded,
         Outcome::Cancelled => JobStatus::Cancelled,
         Outcome::Released => JobStatus::Queued,
@@ -132,7 +126,9 @@ async fn run_job(runner: &JobRunner, job: JobRecord, lease: Lease) {
                  training pauses until the data directory takes writes again"
             );
             runner.pause_for_storage();
-            runner.release_when_possible(&lease).await;
+            if !runner.release_when_possible(&lease).await {
+                return log_lease_lost();
+            }
             JobStatus::Queued
         }
         Outcome::Failed(message) => {
@@ -140,10 +136,7 @@ async fn run_job(runner: &JobRunner, job: JobRecord, lease: Lease) {
             let store = runner.store();
             match store.finish_job(&lease, JobStatus::Failed, Some(message), &[]).await {
                 Ok(()) => {}
-                Err(StoreError::LeaseLost(_)) => {
-                    tracing::warn!("another worker took the job over; its failure is not recorded");
-                    return;
-                }
+                Err(StoreError::LeaseLost(_)) => return log_lease_lost(),
                 Err(e) => tracing::error!(error = %e, "cannot record the job's failure"),
             }
             JobStatus::Failed
@@ -151,6 +144,14 @@ async fn run_job(runner: &JobRunner, job: JobRecord, lease: Lease) {
     };
     tracing::info!(%status, "job stopped");
     runner.publish(JobEvent::Status { job_id: id, status });
+}
+
+/// The end of a run whose job another worker took over: nothing more is written for it.
+fn log_lease_lost() {
+    tracing::warn!(
+        "another worker took the job over after this worker's lease expired; this run stops \
+         without writing anything more"
+    );
 }
 
 /// When a run records, checkpoints and evaluates.

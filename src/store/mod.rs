@@ -52,9 +52,17 @@ const ACQUIRE_TIMEOUT: Duration = Duration::from_secs(10);
 /// SQLite's primary result codes we tell apart (extended codes carry them in the low byte).
 const SQLITE_BUSY: i32 = 5;
 const SQLITE_LOCKED: i32 = 6;
+/// Every PostgreSQL session ends a transaction left idle for 5 s. The store's transactions send
+/// their statements back to back (milliseconds), so only a stalled process leaves one open: a
+/// worker stopped (SIGSTOP, a VM paused) inside a transaction would otherwise keep its row locks
+/// for as long as its connection lives, and the claim's `SKIP LOCKED` would skip its job forever
+/// instead of taking it over when the lease expires.
+const POSTGRES_SESSION: &str = "SET idle_in_transaction_session_timeout = 5000";
+
 /// PostgreSQL's SQLSTATEs of "try again": serialization failure, deadlock, lock not available,
-/// the server starting up or shutting down.
-const POSTGRES_RETRY: [&str; 5] = ["40001", "40P01", "55P03", "57P03", "57P01"];
+/// the server starting up or shutting down, the session ended for a transaction left idle
+/// ([`POSTGRES_SESSION`]).
+const POSTGRES_RETRY: [&str; 6] = ["40001", "40P01", "55P03", "57P03", "57P01", "25P03"];
 
 /// A failure of the store that callers may want to tell apart.
 #[derive(Debug, thiserror::Error)]
@@ -338,6 +346,11 @@ impl Store {
         sqlx::any::install_default_drivers();
         let pool = pool_options()
             .max_connections(16)
+            .after_connect(|conn, _| {
+                Box::pin(async move {
+                    sqlx::query(POSTGRES_SESSION).execute(&mut *conn).await.map(drop)
+                })
+            })
             .connect(url)
             .await
             .with_context(|| format!("cannot connect to the database {}", redact_url(url)))?;
