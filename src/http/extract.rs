@@ -49,7 +49,9 @@ impl<T: DeserializeOwned, S: Send + Sync> FromRequest<S> for AnyContentTypeJson<
 }
 
 /// A parsed JSON body as `T`, integral floats taken as integers.
-fn deserialize_body<T: DeserializeOwned>(mut value: serde_json::Value) -> Result<T, ApiError> {
+pub(super) fn deserialize_body<T: DeserializeOwned>(
+    mut value: serde_json::Value,
+) -> Result<T, ApiError> {
     integral_floats_to_integers(&mut value);
     serde_path_to_error::deserialize(value).map_err(|e| ApiError::Rejected {
         status: StatusCode::UNPROCESSABLE_ENTITY,

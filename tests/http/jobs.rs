@@ -4,7 +4,7 @@
 
 use std::time::Duration;
 
-use crate::support::app::{assert_error, TestApp};
+use crate::support::app::{assert_error, assert_v2_error, TestApp};
 use crate::support::jobs::*;
 use futures::StreamExt;
 use rand::SeedableRng;
@@ -41,6 +41,37 @@ async fn read_events(app: &TestApp, job_id: &str) -> Vec<(String, Value)> {
             Some((field("event:")?, serde_json::from_str(&field("data:")?).unwrap()))
         })
         .collect()
+}
+
+/// `POST path` with the observations as binary tensor data, asking for binary output; the
+/// INT64 actions decoded from the response's binary part.
+async fn binary_infer(app: &TestApp, path: &str, flat: &[f32]) -> Vec<i64> {
+    let bytes: Vec<u8> = flat.iter().flat_map(|v| v.to_le_bytes()).collect();
+    let header = json!({"inputs": [{"name": "observations", "datatype": "FP32",
+        "shape": [flat.len() / GRID_OBS_DIM, GRID_OBS_DIM],
+        "parameters": {"binary_data_size": bytes.len()}}],
+        "outputs": [{"name": "actions", "parameters": {"binary_data": true}}]})
+    .to_string();
+    let mut body = header.clone().into_bytes();
+    body.extend_from_slice(&bytes);
+    let response = app
+        .post(path)
+        .header("inference-header-content-length", header.len())
+        .header("content-type", "application/octet-stream")
+        .body(body)
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(response.status(), StatusCode::OK);
+    let length: usize =
+        response.headers()["inference-header-content-length"].to_str().unwrap().parse().unwrap();
+    let body = response.bytes().await.unwrap();
+    let header: Value = serde_json::from_slice(&body[..length]).unwrap();
+    let output = &header["outputs"][0];
+    assert_eq!((output["datatype"].as_str(), output.get("data")), (Some("INT64"), None));
+    let data = &body[length..];
+    assert_eq!(output["parameters"]["binary_data_size"], data.len());
+    data.chunks_exact(8).map(|b| i64::from_le_bytes(b.try_into().unwrap())).collect()
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -171,10 +202,18 @@ async fn safedice_and_bc_train_and_serve_identical_actions_over_act_and_v2() {
             assert_eq!(answer["outputs"][0]["data"].as_array().unwrap(), &actions);
         }
         let broken = app.post(&format!("/v2/models/{policy_id}/infer")).body("{").send();
-        assert_error(broken.await.unwrap(), StatusCode::BAD_REQUEST, "bad_request").await;
+        assert_v2_error(broken.await.unwrap(), StatusCode::BAD_REQUEST).await;
 
         let meta = get_json(&app.client, &app.url(&format!("/v2/models/{policy_id}"))).await;
         assert_eq!(meta["inputs"][0]["shape"], json!([-1, GRID_OBS_DIM]));
+        assert_eq!(meta["platform"], "safedice");
+        let versioned = format!("/v2/models/{policy_id}/versions/1");
+        assert_eq!(get_json(&app.client, &app.url(&versioned)).await, meta);
+        let ready = get_json(&app.client, &app.url(&format!("{versioned}/ready"))).await;
+        assert_eq!(ready["ready"], true);
+        // The binary tensor data extension, both ways, on the versioned route.
+        let binary = binary_infer(&app, &format!("{versioned}/infer"), &flat).await;
+        assert_eq!(binary, actions.iter().map(|a| a.as_i64().unwrap()).collect::<Vec<_>>());
 
         // The downloaded artefact rebuilds the same policy.
         let weights = app.get(&format!("/v1/policies/{policy_id}/weights")).send().await.unwrap();
@@ -409,39 +448,25 @@ async fn bad_observations_get_the_exact_status_and_code() {
         app.post(&format!("/v2/models/{id}/infer")).json(&json!({"inputs": [input]})).send()
     };
     let wrong_type = json!({"name": "observations", "datatype": "FP64", "shape": [1, GRID_OBS_DIM], "data": row});
-    assert_error(
-        infer(wrong_type).await.unwrap(),
-        StatusCode::UNPROCESSABLE_ENTITY,
-        "invalid_input",
-    )
-    .await;
     let wrong_shape =
         json!({"name": "observations", "datatype": "FP32", "shape": [1, 3], "data": [0, 0, 0]});
-    assert_error(
-        infer(wrong_shape).await.unwrap(),
-        StatusCode::UNPROCESSABLE_ENTITY,
-        "invalid_input",
-    )
-    .await;
     let short = json!({"name": "observations", "datatype": "FP32", "shape": [2, GRID_OBS_DIM], "data": row});
-    assert_error(infer(short).await.unwrap(), StatusCode::UNPROCESSABLE_ENTITY, "invalid_input")
-        .await;
     // A declared shape far beyond the data is refused from the data, allocating nothing for it.
     let huge = json!({"name": "observations", "datatype": "FP32",
         "shape": [i64::MAX / 2, GRID_OBS_DIM], "data": row});
-    assert_error(infer(huge).await.unwrap(), StatusCode::UNPROCESSABLE_ENTITY, "invalid_input")
-        .await;
+    let no_data = json!({"name": "observations", "datatype": "FP32", "shape": [1, GRID_OBS_DIM]});
+    for input in [wrong_type, wrong_shape, short, huge, no_data] {
+        assert_v2_error(infer(input).await.unwrap(), StatusCode::UNPROCESSABLE_ENTITY).await;
+    }
     let wrong_name =
         json!({"name": "obs", "datatype": "FP32", "shape": [1, GRID_OBS_DIM], "data": row});
-    let message = assert_error(
-        infer(wrong_name).await.unwrap(),
-        StatusCode::UNPROCESSABLE_ENTITY,
-        "invalid_input",
-    )
-    .await;
+    let message =
+        assert_v2_error(infer(wrong_name).await.unwrap(), StatusCode::UNPROCESSABLE_ENTITY).await;
     assert!(message.contains("`observations`"), "{message}");
     let missing = app.get("/v2/models/nope").send().await.unwrap();
-    assert_error(missing, StatusCode::NOT_FOUND, "not_found").await;
+    assert!(assert_v2_error(missing, StatusCode::NOT_FOUND).await.contains("nope"));
+    let version_two = app.get(&format!("/v2/models/{id}/versions/2")).send().await.unwrap();
+    assert_v2_error(version_two, StatusCode::NOT_FOUND).await;
     assert_eq!(app.get("/v2/health/ready").send().await.unwrap().status(), StatusCode::OK);
 }
 

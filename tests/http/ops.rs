@@ -1,7 +1,7 @@
 //! The server's operational surface through real HTTP: health, readiness, metrics, request
 //! ids, the error shape of unknown routes and methods, bearer auth, CORS, start-up checks.
 
-use crate::support::app::{assert_error, TestApp};
+use crate::support::app::{assert_error, assert_v2_error, TestApp};
 use reqwest::StatusCode;
 use safedice::config::ServeConfig;
 use safedice::server::Server;
@@ -106,10 +106,18 @@ async fn the_inference_token_reaches_only_action_endpoints() {
     let infer = serde_json::json!({"inputs": []});
     let response =
         as_agent(reqwest::Method::POST, "/v2/models/p1/infer").json(&infer).send().await.unwrap();
-    assert_error(response, StatusCode::NOT_FOUND, "not_found").await;
-    // ... and stay closed to anonymous callers.
+    assert_v2_error(response, StatusCode::NOT_FOUND).await;
+    // ... and stay closed to anonymous callers (in each protocol's error shape).
     let response = app.client.post(app.url("/v1/policies/p1/act")).send().await.unwrap();
     assert_error(response, StatusCode::UNAUTHORIZED, "unauthorized").await;
+    let response = app.client.post(app.url("/v2/models/p1/infer")).send().await.unwrap();
+    assert_v2_error(response, StatusCode::UNAUTHORIZED).await;
+    let server: serde_json::Value =
+        as_agent(reqwest::Method::GET, "/v2").send().await.unwrap().json().await.unwrap();
+    assert_eq!(server["name"], "safedice");
+    assert_eq!(server["extensions"], serde_json::json!(["binary_tensor_data"]));
+    let response = as_agent(reqwest::Method::GET, "/v2/no/such/route").send().await.unwrap();
+    assert_v2_error(response, StatusCode::NOT_FOUND).await;
 }
 
 #[tokio::test]

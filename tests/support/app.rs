@@ -255,3 +255,14 @@ pub async fn assert_error(response: Response, status: StatusCode, code: &str) ->
     assert_eq!(body.as_object().unwrap().len(), 1, "extra top-level fields in {body}");
     message.to_owned()
 }
+
+/// Asserts an Open Inference Protocol error (`/v2`): its status and the protocol's body
+/// `{"error": "message"}`; returns the message.
+pub async fn assert_v2_error(response: Response, status: StatusCode) -> String {
+    assert_eq!(response.status(), status, "unexpected status for {}", response.url());
+    let body: serde_json::Value = response.json().await.expect("error body is JSON");
+    let message = body["error"].as_str().unwrap_or_else(|| panic!("not a v2 error: {body}"));
+    assert!(!message.is_empty(), "empty error message");
+    assert_eq!(body.as_object().unwrap().len(), 1, "extra top-level fields in {body}");
+    message.to_owned()
+}

@@ -1,0 +1,614 @@
+//! Actions from trained policies ([`crate::serving::PolicyCache`], shared with
+//! `POST /v1/policies/{id}/act`) over the Open Inference Protocol (KServe v2) routes served here:
+//! `GET /v2` (server metadata), `GET /v2/health/live`, `GET /v2/health/ready`, and per model
+//! `GET /v2/models/{id}`, `GET …/ready`, `POST …/infer`, each also under
+//! `/v2/models/{id}/versions/1/`. Errors under `/v2` have the protocol's shape
+//! `{"error": "message"}` ([`binary::v2_error_shape`]).
+//!
+//! A v2 model is a policy (its id is the model name, its one version `1`). `infer` takes one
+//! FP32 input `observations` of shape `[B, obs_dim]`, as JSON or as binary tensor data
+//! ([`binary`]), and answers one output `actions`: FP32 `[B, action_dim]` for continuous spaces,
+//! INT64 `[B]` for discrete ones, as JSON or binary as the request asks; deterministic unless
+//! the request's `parameters` say `"deterministic": false` (with an optional `"seed"`), exactly
+//! as `/act`.
+
+pub mod binary;
+
+use std::sync::Arc;
+
+use axum::extract::State;
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use serde::{Deserialize, Serialize};
+use utoipa::ToSchema;
+use utoipa_axum::router::OpenApiRouter;
+use utoipa_axum::routes;
+
+use axum::response::{IntoResponse, Response};
+use binary::{InferBody, V2Error};
+
+use super::extract::{Json, Path};
+use super::{ApiError, AppState};
+use crate::algo::Policy;
+use crate::data::{ActionSpace, Actions};
+
+/// The name of a model's one input tensor (KServe v2 metadata and `infer`).
+const INPUT_NAME: &str = "observations";
+/// The name of its one output tensor.
+const OUTPUT_NAME: &str = "actions";
+/// A policy never changes once trained: every model has this one version.
+const MODEL_VERSION: &str = "1";
+
+/// Largest batch one request may send.
+pub const MAX_BATCH_ROWS: usize = 16_384;
+/// Batches up to this many rows run on the request's task (a few microseconds of matrix
+/// products); larger ones move to a blocking thread so they cannot stall other requests.
+const INLINE_ROWS: usize = 64;
+
+/// Validated observations: `rows × obs_dim`, row-major, all finite.
+pub struct Observations {
+    pub values: Vec<f32>,
+    pub rows: usize,
+}
+
+impl Observations {
+    /// From `/act`'s list of rows.
+    pub fn from_rows(rows: &[Vec<f64>], obs_dim: usize) -> Result<Self, ApiError> {
+        check_batch_size(rows.len())?;
+        let mut values = Vec::with_capacity(rows.len() * obs_dim);
+        for (i, row) in rows.iter().enumerate() {
+            if row.len() != obs_dim {
+                return Err(invalid(format!(
+                    "observations[{i}] has {} values; this policy takes {obs_dim} per observation",
+                    row.len()
+                )));
+            }
+            for (j, &v) in row.iter().enumerate() {
+                values.push(finite(v, || format!("observations[{i}][{j}]"))?);
+            }
+        }
+        Ok(Observations { values, rows: rows.len() })
+    }
+
+    /// From a flat row-major buffer of `rows × obs_dim` values.
+    fn from_flat(flat: &[f64], rows: usize, obs_dim: usize) -> Result<Self, ApiError> {
+        check_batch_size(rows)?;
+        let values = flat
+            .iter()
+            .enumerate()
+            .map(|(k, &v)| finite(v, || format!("data[{}][{}]", k / obs_dim, k % obs_dim)))
+            .collect::<Result<_, _>>()?;
+        Ok(Observations { values, rows })
+    }
+}
+
+fn check_batch_size(rows: usize) -> Result<(), ApiError> {
+    if rows == 0 {
+        return Err(invalid("the batch is empty: send at least one observation".into()));
+    }
+    if rows > MAX_BATCH_ROWS {
+        return Err(ApiError::unprocessable(
+            "batch_too_large",
+            format!("{rows} observations in one request; at most {MAX_BATCH_ROWS}"),
+        ));
+    }
+    Ok(())
+}
+
+fn finite(v: f64, at: impl FnOnce() -> String) -> Result<f32, ApiError> {
+    let x = v as f32;
+    if x.is_finite() {
+        Ok(x)
+    } else {
+        Err(invalid(format!("{} is {v}, which is not a finite 32-bit float", at())))
+    }
+}
+
+fn invalid(message: String) -> ApiError {
+    ApiError::unprocessable("invalid_observations", message)
+}
+
+/// Runs the policy on validated observations: deterministic (tanh of the mean / argmax), or
+/// sampled with `seed` (reproducible) or fresh entropy.
+pub async fn act(
+    policy: Arc<Policy>,
+    observations: Observations,
+    deterministic: bool,
+    seed: Option<u64>,
+) -> Result<Actions, ApiError> {
+    let mut rng = match seed {
+        Some(seed) => ChaCha8Rng::seed_from_u64(seed),
+        None if deterministic => ChaCha8Rng::seed_from_u64(0),
+        None => ChaCha8Rng::from_os_rng(),
+    };
+    let mut run = move || {
+        policy
+            .act(&observations.values, deterministic, &mut rng)
+            .map_err(|e| ApiError::Internal(anyhow::anyhow!("policy inference failed: {e}")))
+    };
+    if observations.rows <= INLINE_ROWS {
+        run()
+    } else {
+        tokio::task::spawn_blocking(run).await?
+    }
+}
+
+pub fn router() -> OpenApiRouter<AppState> {
+    OpenApiRouter::new()
+        .routes(routes!(server_metadata))
+        .routes(routes!(live))
+        .routes(routes!(ready))
+        .routes(routes!(model_metadata))
+        .routes(routes!(model_ready))
+        .routes(routes!(infer))
+        .routes(routes!(version_metadata))
+        .routes(routes!(version_ready))
+        .routes(routes!(version_infer))
+}
+
+/// KServe v2 server metadata.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct ServerMetadata {
+    pub name: String,
+    pub version: String,
+    /// Protocol extensions served: `binary_tensor_data`.
+    pub extensions: Vec<String>,
+}
+
+/// KServe v2 server metadata.
+#[utoipa::path(get, path = "/v2", tag = "inference",
+    responses((status = 200, body = ServerMetadata)))]
+async fn server_metadata() -> Json<ServerMetadata> {
+    Json(ServerMetadata {
+        name: "safedice".into(),
+        version: env!("CARGO_PKG_VERSION").into(),
+        extensions: vec!["binary_tensor_data".into()],
+    })
+}
+
+/// `{id, version}` of the versioned routes: only version 1 exists.
+#[derive(Debug, Deserialize)]
+struct ModelVersion {
+    id: String,
+    version: String,
+}
+
+impl ModelVersion {
+    fn id(self) -> Result<String, ApiError> {
+        if self.version == MODEL_VERSION {
+            Ok(self.id)
+        } else {
+            Err(ApiError::not_found(
+                "model version",
+                &format!(
+                    "{} of model {} (its only version is {MODEL_VERSION})",
+                    self.version, self.id
+                ),
+            ))
+        }
+    }
+}
+
+/// KServe v2 liveness / readiness answer.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct V2Health {
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub live: Option<bool>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub ready: Option<bool>,
+}
+
+/// KServe v2 server liveness.
+#[utoipa::path(get, path = "/v2/health/live", tag = "inference",
+    responses((status = 200, body = V2Health)))]
+async fn live() -> Json<V2Health> {
+    Json(V2Health { live: Some(true), ready: None })
+}
+
+/// KServe v2 server readiness: the database answers.
+#[utoipa::path(get, path = "/v2/health/ready", tag = "inference",
+    responses((status = 200, body = V2Health), (status = 503, body = V2Error)))]
+async fn ready(State(state): State<AppState>) -> Result<Json<V2Health>, ApiError> {
+    state
+        .store
+        .ping()
+        .await
+        .map_err(|_| ApiError::unavailable("not_ready", "the database is not reachable"))?;
+    Ok(Json(V2Health { live: None, ready: Some(true) }))
+}
+
+/// A tensor's description in model metadata.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct TensorMetadata {
+    pub name: String,
+    /// `FP32` or `INT64`.
+    pub datatype: String,
+    /// -1 marks the batch dimension.
+    pub shape: Vec<i64>,
+}
+
+/// What else the metadata says of a model.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct ModelParameters {
+    /// The algorithm that trained the policy.
+    pub algorithm: String,
+}
+
+/// KServe v2 model metadata.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct ModelMetadata {
+    /// The policy id.
+    pub name: String,
+    pub versions: Vec<String>,
+    /// `safedice`.
+    pub platform: String,
+    pub parameters: ModelParameters,
+    pub inputs: Vec<TensorMetadata>,
+    pub outputs: Vec<TensorMetadata>,
+}
+
+fn output_layout(space: &ActionSpace) -> (&'static str, Vec<i64>) {
+    match space {
+        ActionSpace::Continuous { dim, .. } => ("FP32", vec![-1, *dim as i64]),
+        ActionSpace::Discrete { .. } => ("INT64", vec![-1]),
+    }
+}
+
+/// KServe v2 model metadata of a policy.
+#[utoipa::path(get, path = "/v2/models/{id}", tag = "inference", params(("id" = String, Path)),
+    responses((status = 200, body = ModelMetadata), (status = 404, body = V2Error)))]
+async fn model_metadata(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+) -> Result<Json<ModelMetadata>, ApiError> {
+    metadata_of(&state, id).await
+}
+
+/// KServe v2 model metadata of a policy's version (always `1`).
+#[utoipa::path(get, path = "/v2/models/{id}/versions/{version}", tag = "inference",
+    params(("id" = String, Path), ("version" = String, Path)),
+    responses((status = 200, body = ModelMetadata), (status = 404, body = V2Error)))]
+async fn version_metadata(
+    State(state): State<AppState>,
+    Path(model): Path<ModelVersion>,
+) -> Result<Json<ModelMetadata>, ApiError> {
+    metadata_of(&state, model.id()?).await
+}
+
+async fn metadata_of(state: &AppState, id: String) -> Result<Json<ModelMetadata>, ApiError> {
+    let policy = state.policies.get(&id).await?;
+    let spec = policy.spec();
+    let (datatype, shape) = output_layout(&spec.action_space);
+    Ok(Json(ModelMetadata {
+        name: id,
+        versions: vec![MODEL_VERSION.into()],
+        // The runtime, as other servers name theirs (`onnxruntime_onnx`, `pytorch_libtorch`);
+        // the algorithm is in `parameters`.
+        platform: "safedice".into(),
+        parameters: ModelParameters { algorithm: spec.algorithm.to_string() },
+        inputs: vec![TensorMetadata {
+            name: INPUT_NAME.into(),
+            datatype: "FP32".into(),
+            shape: vec![-1, spec.obs_dim as i64],
+        }],
+        outputs: vec![TensorMetadata {
+            name: OUTPUT_NAME.into(),
+            datatype: datatype.into(),
+            shape,
+        }],
+    }))
+}
+
+/// KServe v2 model readiness answer.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct ModelReady {
+    pub name: String,
+    pub ready: bool,
+}
+
+/// KServe v2 model readiness (loads the policy into the cache).
+#[utoipa::path(get, path = "/v2/models/{id}/ready", tag = "inference",
+    params(("id" = String, Path)),
+    responses((status = 200, body = ModelReady), (status = 404, body = V2Error)))]
+async fn model_ready(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+) -> Result<Json<ModelReady>, ApiError> {
+    ready_of(&state, id).await
+}
+
+/// KServe v2 readiness of a policy's version (always `1`).
+#[utoipa::path(get, path = "/v2/models/{id}/versions/{version}/ready", tag = "inference",
+    params(("id" = String, Path), ("version" = String, Path)),
+    responses((status = 200, body = ModelReady), (status = 404, body = V2Error)))]
+async fn version_ready(
+    State(state): State<AppState>,
+    Path(model): Path<ModelVersion>,
+) -> Result<Json<ModelReady>, ApiError> {
+    ready_of(&state, model.id()?).await
+}
+
+async fn ready_of(state: &AppState, id: String) -> Result<Json<ModelReady>, ApiError> {
+    state.policies.get(&id).await?;
+    Ok(Json(ModelReady { name: id, ready: true }))
+}
+
+/// One input tensor of an inference request.
+#[derive(Debug, Deserialize, ToSchema)]
+pub struct InferInput {
+    pub name: String,
+    /// `[B, obs_dim]`.
+    pub shape: Vec<i64>,
+    /// Must be `FP32`.
+    pub datatype: String,
+    /// Row-major values, flat or nested; absent when the values come as binary tensor data.
+    #[schema(value_type = Option<Vec<f32>>)]
+    #[serde(default)]
+    pub data: Option<serde_json::Value>,
+    #[serde(default)]
+    pub parameters: TensorParameters,
+}
+
+/// Binary tensor data extension: the tensor's bytes follow the JSON header.
+#[derive(Debug, Default, Serialize, Deserialize, ToSchema)]
+pub struct TensorParameters {
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub binary_data_size: Option<u64>,
+}
+
+/// An output the request asks for.
+#[derive(Debug, Deserialize, ToSchema)]
+pub struct RequestedOutput {
+    pub name: String,
+    #[serde(default)]
+    pub parameters: RequestedOutputParameters,
+}
+
+#[derive(Debug, Default, Deserialize, ToSchema)]
+pub struct RequestedOutputParameters {
+    /// true: the output's values as binary tensor data after the JSON header.
+    pub binary_data: Option<bool>,
+}
+
+/// Inference parameters: this service's `deterministic` and `seed`, and the binary tensor data
+/// extension's `binary_data_output`.
+#[derive(Debug, Default, Deserialize, ToSchema)]
+pub struct InferParameters {
+    /// Default true: tanh of the mean / argmax. false samples.
+    pub deterministic: Option<bool>,
+    /// Makes sampling reproducible.
+    pub seed: Option<u64>,
+    /// Every output as binary tensor data (when `outputs` names none).
+    pub binary_data_output: Option<bool>,
+}
+
+/// KServe v2 inference request.
+#[derive(Debug, Deserialize, ToSchema)]
+pub struct InferRequest {
+    pub id: Option<String>,
+    pub inputs: Vec<InferInput>,
+    /// The outputs wanted (absent: all of them, which is `actions`).
+    pub outputs: Option<Vec<RequestedOutput>>,
+    #[serde(default)]
+    pub parameters: InferParameters,
+}
+
+/// One output tensor.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct InferOutput {
+    pub name: String,
+    pub shape: Vec<i64>,
+    pub datatype: String,
+    /// Row-major values; absent when they follow as binary tensor data.
+    #[schema(value_type = Option<Vec<f32>>)]
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub data: Option<serde_json::Value>,
+    #[serde(skip_serializing_if = "is_default")]
+    pub parameters: TensorParameters,
+}
+
+fn is_default(parameters: &TensorParameters) -> bool {
+    parameters.binary_data_size.is_none()
+}
+
+/// KServe v2 inference response.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct InferResponse {
+    pub model_name: String,
+    pub model_version: String,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub id: Option<String>,
+    pub outputs: Vec<InferOutput>,
+}
+
+/// KServe v2 inference: actions for a batch of observations.
+#[utoipa::path(post, path = "/v2/models/{id}/infer", tag = "inference",
+    params(("id" = String, Path)), request_body = InferRequest,
+    responses(
+        (status = 200, body = InferResponse, description = "JSON, or with binary outputs the \
+            JSON header (`Inference-Header-Content-Length` bytes) and the outputs' bytes"),
+        (status = 400, description = "Unparsable body or header length", body = V2Error),
+        (status = 404, body = V2Error),
+        (status = 422, description = "Wrong input count, name, datatype or shape, an unknown \
+            output, binary data that does not fit, bad values", body = V2Error),
+    ))]
+async fn infer(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+    body: InferBody<InferRequest>,
+) -> Result<Response, ApiError> {
+    infer_with(&state, id, body).await
+}
+
+/// KServe v2 inference on a policy's version (always `1`).
+#[utoipa::path(post, path = "/v2/models/{id}/versions/{version}/infer", tag = "inference",
+    params(("id" = String, Path), ("version" = String, Path)), request_body = InferRequest,
+    responses(
+        (status = 200, body = InferResponse),
+        (status = 400, body = V2Error),
+        (status = 404, body = V2Error),
+        (status = 422, body = V2Error),
+    ))]
+async fn version_infer(
+    State(state): State<AppState>,
+    Path(model): Path<ModelVersion>,
+    body: InferBody<InferRequest>,
+) -> Result<Response, ApiError> {
+    infer_with(&state, model.id()?, body).await
+}
+
+async fn infer_with(
+    state: &AppState,
+    id: String,
+    InferBody { request, mut binary }: InferBody<InferRequest>,
+) -> Result<Response, ApiError> {
+    let policy = state.policies.get(&id).await?;
+    let obs_dim = policy.spec().obs_dim;
+    let [input] = &request.inputs[..] else {
+        return Err(bad_input(format!(
+            "expected exactly one input tensor, got {}",
+            request.inputs.len()
+        )));
+    };
+    let rows = check_input(input, obs_dim)?;
+    let observations = match (input.parameters.binary_data_size, &input.data) {
+        (Some(size), _) => {
+            let values =
+                binary::f32_values(&binary::take(&mut binary, size, &input.name)?, &input.name)?;
+            check_count(values.len(), rows, obs_dim, &input.shape)?;
+            let flat: Vec<f64> = values.into_iter().map(f64::from).collect();
+            Observations::from_flat(&flat, rows, obs_dim)?
+        }
+        (None, Some(data)) => {
+            // Sized by the data that came, never by the shape the client declared.
+            let mut flat = Vec::new();
+            flatten_numbers(data, &mut flat)?;
+            check_count(flat.len(), rows, obs_dim, &input.shape)?;
+            Observations::from_flat(&flat, rows, obs_dim)?
+        }
+        (None, None) => {
+            return Err(bad_input(format!(
+                "input `{}` has neither `data` nor `parameters.binary_data_size`",
+                input.name
+            )))
+        }
+    };
+    if !binary.is_empty() {
+        return Err(bad_input(format!(
+            "{} bytes of binary data after the inputs' declared sizes",
+            binary.len()
+        )));
+    }
+    let binary_output = wants_binary_output(&request)?;
+    let deterministic = request.parameters.deterministic.unwrap_or(true);
+    let actions = act(policy.clone(), observations, deterministic, request.parameters.seed).await?;
+    let (datatype, mut shape) = output_layout(&policy.spec().action_space);
+    shape[0] = rows as i64;
+    let mut output = InferOutput {
+        name: OUTPUT_NAME.into(),
+        shape,
+        datatype: datatype.into(),
+        data: None,
+        parameters: TensorParameters::default(),
+    };
+    let bytes = if binary_output {
+        let bytes = little_endian(&actions);
+        output.parameters.binary_data_size = Some(bytes.len() as u64);
+        bytes
+    } else {
+        output.data = Some(
+            match actions {
+                Actions::Continuous(values) => serde_json::to_value(values),
+                Actions::Discrete(indices) => serde_json::to_value(indices),
+            }
+            .map_err(anyhow::Error::from)?,
+        );
+        Vec::new()
+    };
+    let response = InferResponse {
+        model_name: id,
+        model_version: MODEL_VERSION.into(),
+        id: request.id,
+        outputs: vec![output],
+    };
+    if binary_output {
+        let header = serde_json::to_vec(&response).map_err(anyhow::Error::from)?;
+        Ok(binary::response(header, &bytes))
+    } else {
+        Ok(Json(response).into_response())
+    }
+}
+
+/// Checks the input's name, datatype and shape; the batch size.
+fn check_input(input: &InferInput, obs_dim: usize) -> Result<usize, ApiError> {
+    if input.name != INPUT_NAME {
+        return Err(bad_input(format!(
+            "unknown input `{}`; this model's only input is `{INPUT_NAME}` (see its metadata)",
+            input.name
+        )));
+    }
+    if input.datatype != "FP32" {
+        return Err(bad_input(format!("input datatype must be FP32, got {}", input.datatype)));
+    }
+    match input.shape[..] {
+        [rows, dim] if rows >= 0 && dim == obs_dim as i64 => Ok(rows as usize),
+        _ => Err(bad_input(format!("input shape must be [B, {obs_dim}], got {:?}", input.shape))),
+    }
+}
+
+fn check_count(values: usize, rows: usize, obs_dim: usize, shape: &[i64]) -> Result<(), ApiError> {
+    if rows.checked_mul(obs_dim) == Some(values) {
+        return Ok(());
+    }
+    Err(bad_input(format!(
+        "input data has {values} values; shape {shape:?} needs {}",
+        (rows as u128) * (obs_dim as u128)
+    )))
+}
+
+/// Whether the response carries `actions` as binary tensor data; refuses unknown outputs.
+fn wants_binary_output(request: &InferRequest) -> Result<bool, ApiError> {
+    let Some(outputs) = &request.outputs else {
+        return Ok(request.parameters.binary_data_output.unwrap_or(false));
+    };
+    let mut binary = false;
+    for output in outputs {
+        if output.name != OUTPUT_NAME {
+            return Err(bad_input(format!(
+                "unknown output `{}`; this model's only output is `{OUTPUT_NAME}`",
+                output.name
+            )));
+        }
+        binary = output.parameters.binary_data.unwrap_or(false);
+    }
+    Ok(binary)
+}
+
+/// Actions as binary tensor data: FP32 or INT64, little-endian, row-major.
+fn little_endian(actions: &Actions) -> Vec<u8> {
+    match actions {
+        Actions::Continuous(values) => values.iter().flat_map(|v| v.to_le_bytes()).collect(),
+        Actions::Discrete(indices) => {
+            indices.iter().flat_map(|&i| i64::from(i).to_le_bytes()).collect()
+        }
+    }
+}
+
+fn bad_input(message: String) -> ApiError {
+    ApiError::unprocessable("invalid_input", message)
+}
+
+/// Appends the numbers of a (possibly nested) JSON array in row-major order.
+fn flatten_numbers(value: &serde_json::Value, out: &mut Vec<f64>) -> Result<(), ApiError> {
+    match value {
+        serde_json::Value::Array(items) => items.iter().try_for_each(|v| flatten_numbers(v, out)),
+        serde_json::Value::Number(n) => {
+            out.push(n.as_f64().unwrap_or(f64::NAN));
+            Ok(())
+        }
+        other => Err(ApiError::unprocessable(
+            "invalid_observations",
+            format!("input data must hold numbers only, found {other}"),
+        )),
+    }
+}
