@@ -1,0 +1,141 @@
+"""tritonclient.http, unmodified, against a running safedice server (see run.sh).
+
+Usage: test_tritonclient.py HOST:PORT WORKDIR, where WORKDIR/<env>/{unlabeled,non_preferred}.npz
+come from `safedice datagen`. Trains one BC policy per environment through the API, then checks
+every Open Inference Protocol call tritonclient makes, in JSON and in binary tensor data, against
+/v1/policies/{id}/act. Exits non-zero on the first mismatch.
+"""
+
+import json
+import sys
+import time
+import urllib.request
+import uuid
+
+import numpy as np
+import tritonclient.http as httpclient
+from tritonclient.utils import InferenceServerException
+
+ADDRESS, WORKDIR = sys.argv[1], sys.argv[2]
+BASE = f"http://{ADDRESS}"
+
+
+def call(method, path, body=None, content_type="application/json"):
+    request = urllib.request.Request(BASE + path, data=body, method=method)
+    if body is not None:
+        request.add_header("Content-Type", content_type)
+    with urllib.request.urlopen(request, timeout=60) as response:
+        return json.loads(response.read())
+
+
+def upload(path):
+    boundary = uuid.uuid4().hex
+    with open(path, "rb") as f:
+        content = f.read()
+    body = (
+        f'--{boundary}\r\nContent-Disposition: form-data; name="file"; '
+        f'filename="{path.rsplit("/", 1)[-1]}"\r\nContent-Type: application/octet-stream\r\n\r\n'
+    ).encode() + content + f"\r\n--{boundary}--\r\n".encode()
+    return call("POST", "/v1/datasets", body, f"multipart/form-data; boundary={boundary}")["id"]
+
+
+def train(env):
+    unlabeled = upload(f"{WORKDIR}/{env}/unlabeled.npz")
+    non_preferred = upload(f"{WORKDIR}/{env}/non_preferred.npz")
+    job = {
+        "algorithm": "bc",
+        "unlabeled_dataset": unlabeled,
+        "non_preferred_dataset": non_preferred,
+        "config": {"iterations": 300, "hidden_sizes": [32, 32], "batch_size": 64},
+    }
+    job_id = call("POST", "/v1/jobs", json.dumps(job).encode())["id"]
+    deadline = time.time() + 300
+    while True:
+        job = call("GET", f"/v1/jobs/{job_id}")
+        if job["status"] == "succeeded":
+            return job["policy_id"]
+        assert job["status"] in ("queued", "running"), job
+        assert time.time() < deadline, f"job {job_id} did not finish: {job}"
+        time.sleep(0.2)
+
+
+def act(policy, observations):
+    body = json.dumps({"observations": observations.tolist()}).encode()
+    return np.array(call("POST", f"/v1/policies/{policy}/act", body)["actions"])
+
+
+def check_policy(client, policy, env):
+    metadata = client.get_model_metadata(policy)
+    assert metadata["name"] == policy and metadata["platform"] == "safedice", metadata
+    assert client.get_model_metadata(policy, model_version="1") == metadata
+    assert client.is_model_ready(policy) and client.is_model_ready(policy, model_version="1")
+    (tensor,) = metadata["inputs"]
+    obs_dim = tensor["shape"][1]
+    (output,) = metadata["outputs"]
+    rng = np.random.default_rng(0)
+    observations = rng.uniform(-1, 1, size=(64, obs_dim)).astype(np.float32)
+    expected = act(policy, observations)
+    for binary in (False, True):
+        for version in ("", "1"):
+            inputs = [httpclient.InferInput(tensor["name"], list(observations.shape), "FP32")]
+            inputs[0].set_data_from_numpy(observations, binary_data=binary)
+            outputs = [httpclient.InferRequestedOutput(output["name"], binary_data=binary)]
+            result = client.infer(policy, inputs, model_version=version, outputs=outputs)
+            got = result.as_numpy(output["name"])
+            assert got.dtype == (np.int64 if output["datatype"] == "INT64" else np.float32), got.dtype
+            assert got.shape == expected.shape, (got.shape, expected.shape)
+            assert np.allclose(got, expected, rtol=0, atol=1e-6), (env, binary, got, expected)
+        # tritonclient's default: binary inputs, no outputs named (binary_data_output).
+        inputs = [httpclient.InferInput(tensor["name"], list(observations.shape), "FP32")]
+        inputs[0].set_data_from_numpy(observations)
+        got = client.infer(policy, inputs).as_numpy(output["name"])
+        assert np.allclose(got, expected, rtol=0, atol=1e-6), (env, "default", got, expected)
+    print(f"{env}: {output['datatype']} actions of {policy} agree with /act "
+          "(JSON and binary, with and without a version)")
+
+
+def check_errors(client, policy):
+    for call_, needle in [
+        (lambda: client.get_model_metadata("no-such-policy"), "no-such-policy"),
+        (lambda: client.infer("no-such-policy", [httpclient.InferInput("observations", [1, 1], "FP32")]), "no-such-policy"),
+    ]:
+        try:
+            call_()
+        except InferenceServerException as e:
+            assert needle in str(e), str(e)
+        else:
+            raise AssertionError("an unknown model did not fail")
+    wrong = httpclient.InferInput("obs", [1, 4], "FP32")
+    wrong.set_data_from_numpy(np.zeros((1, 4), dtype=np.float32))
+    try:
+        client.infer(policy, [wrong])
+    except InferenceServerException as e:
+        assert "observations" in str(e), str(e)
+    else:
+        raise AssertionError("a wrong input name was accepted")
+    print("errors: tritonclient reads the protocol's error bodies")
+
+
+def main():
+    deadline = time.time() + 60
+    client = httpclient.InferenceServerClient(url=ADDRESS)
+    while True:
+        try:
+            if client.is_server_live():
+                break
+        except Exception:  # the server is still starting
+            pass
+        assert time.time() < deadline, "the server did not come up"
+        time.sleep(0.1)
+    assert client.is_server_ready()
+    server = client.get_server_metadata()
+    assert server["name"] == "safedice" and "binary_tensor_data" in server["extensions"], server
+    policies = {env: train(env) for env in ("six-rooms", "point-goal")}
+    for env, policy in policies.items():
+        check_policy(client, policy, env)
+    check_errors(client, policies["six-rooms"])
+    print("tritonclient: all checks passed")
+
+
+if __name__ == "__main__":
+    main()
