@@ -46,3 +46,24 @@ impl PolicyCache {
         Ok(loaded.entry(id.to_owned()).or_insert_with(|| Arc::new(policy)).clone())
     }
 }
+
+/// The policy's portable file: its weights with the spec and its training run (resolved
+/// configuration, dataset ids) in the safetensors metadata, so the file alone rebuilds it
+/// ([`Policy::from_file`]). Contains no id of the job or policy: two runs of the same training
+/// give the same file.
+pub async fn portable_weights(store: &Store, id: &str) -> Result<Vec<u8>, PolicyLoadError> {
+    let unreadable = |message: String| PolicyLoadError::Unreadable { id: id.to_owned(), message };
+    let (_, weights) = store.policy_artifact(id).await?;
+    let record = store.policy(id).await?;
+    let job = store.job(&record.job_id).await?;
+    let training = serde_json::json!({
+        "config": job.config,
+        "unlabeled_dataset": job.unlabeled_dataset,
+        "non_preferred_dataset": job.non_preferred_dataset,
+    });
+    let metadata = crate::algo::PortableMetadata { spec: record.spec, training };
+    tokio::task::spawn_blocking(move || crate::algo::portable_file(&weights, &metadata))
+        .await
+        .map_err(|e| unreadable(e.to_string()))?
+        .map_err(|e| unreadable(e.to_string()))
+}

@@ -39,7 +39,7 @@ use crate::data::{ActionSpace, Dataset};
 use memory::DataShape;
 
 pub use hyperparams::{resolve_config, HyperparamError, Preset, ResolvedConfig, TerminalHandling};
-pub use policy::{Policy, PolicyArtifact, PolicySpec};
+pub use policy::{portable_file, Policy, PolicyArtifact, PolicySpec, PortableMetadata};
 
 /// The algorithms the service trains.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize, utoipa::ToSchema)]

@@ -179,6 +179,35 @@ impl PolicyArtifact {
     }
 }
 
+/// The one key of a portable policy file's safetensors `__metadata__`: its value is the JSON of
+/// [`PortableMetadata`]. One key, because safetensors writes the metadata map in hash order and a
+/// file with several keys would differ byte for byte between two downloads of the same policy.
+pub const PORTABLE_METADATA_KEY: &str = "safedice.policy";
+
+/// What a policy file carries besides its tensors: everything needed to rebuild the policy
+/// (architecture, spaces, action scaling, observation normalisation, algorithm: the spec) and
+/// how it was trained.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct PortableMetadata {
+    pub spec: PolicySpec,
+    /// The training run: resolved configuration and dataset ids (free-form JSON, for people and
+    /// tools; [`Policy::from_file`] needs only the spec).
+    pub training: serde_json::Value,
+}
+
+/// The policy's weights as one self-contained safetensors file: the same tensors, and
+/// [`PortableMetadata`] under [`PORTABLE_METADATA_KEY`].
+pub fn portable_file(
+    weights: &[u8],
+    metadata: &PortableMetadata,
+) -> std::result::Result<Vec<u8>, TrainError> {
+    let error = |e: &dyn std::fmt::Display| TrainError::Other(format!("policy file: {e}"));
+    let tensors = safetensors::SafeTensors::deserialize(weights).map_err(|e| error(&e))?;
+    let json = serde_json::to_string(metadata).map_err(|e| error(&e))?;
+    let info = HashMap::from([(PORTABLE_METADATA_KEY.to_owned(), json)]);
+    safetensors::serialize(tensors.tensors(), Some(info)).map_err(|e| error(&e))
+}
+
 /// A loaded policy; Send + Sync so concurrent requests share one.
 pub struct Policy {
     spec: PolicySpec,
@@ -226,6 +255,34 @@ impl Policy {
             TrainError::Other(format!("the stored policy spec does not parse: {e}"))
         })?;
         Policy::load(&spec, weights)
+    }
+
+    /// A policy from a portable file's bytes (`GET /v1/policies/{id}/weights`), with what the
+    /// file says of its training.
+    pub fn from_portable(
+        bytes: &[u8],
+    ) -> std::result::Result<(Policy, PortableMetadata), TrainError> {
+        let error = |message: String| TrainError::Other(format!("policy file: {message}"));
+        let (_, header) =
+            safetensors::SafeTensors::read_metadata(bytes).map_err(|e| error(e.to_string()))?;
+        let json = header
+            .metadata()
+            .as_ref()
+            .and_then(|m| m.get(PORTABLE_METADATA_KEY))
+            .ok_or_else(|| error(format!("no `{PORTABLE_METADATA_KEY}` in its metadata")))?;
+        let metadata: PortableMetadata =
+            serde_json::from_str(json).map_err(|e| error(e.to_string()))?;
+        let policy = Policy::load(&metadata.spec, bytes)?;
+        Ok((policy, metadata))
+    }
+
+    /// A policy from a portable file on disk: the file alone rebuilds it.
+    pub fn from_file(
+        path: &std::path::Path,
+    ) -> std::result::Result<(Policy, PortableMetadata), TrainError> {
+        let bytes = std::fs::read(path)
+            .map_err(|e| TrainError::Other(format!("cannot read {}: {e}", path.display())))?;
+        Policy::from_portable(&bytes)
     }
 
     /// A policy over networks already in memory (e.g. a trainer's), on their device.
@@ -421,13 +478,25 @@ mod tests {
             let json = serde_json::to_string(&artifact.spec).unwrap();
             let loaded =
                 Policy::load(&serde_json::from_str(&json).unwrap(), &artifact.weights).unwrap();
+            // The portable file rebuilds it alone, and is the same bytes every time.
+            let metadata = PortableMetadata {
+                spec: spec.clone(),
+                training: serde_json::json!({"config": {"seed": 1}, "unlabeled_dataset": "d"}),
+            };
+            let file = portable_file(&artifact.weights, &metadata).unwrap();
+            assert_eq!(file, portable_file(&artifact.weights, &metadata).unwrap());
+            let (portable, read_back) = Policy::from_portable(&file).unwrap();
+            assert_eq!(read_back, metadata);
+            assert!(Policy::from_portable(&artifact.weights).is_err(), "no metadata, no policy");
             let original = Policy::from_nets(spec, nets);
             for deterministic in [true, false] {
                 let mut r1 = rand::SeedableRng::seed_from_u64(9);
                 let mut r2 = rand::SeedableRng::seed_from_u64(9);
+                let mut r3 = rand::SeedableRng::seed_from_u64(9);
                 let a = original.act(&obs, deterministic, &mut r1).unwrap();
                 let b = loaded.act(&obs, deterministic, &mut r2).unwrap();
                 assert_eq!(a, b);
+                assert_eq!(a, portable.act(&obs, deterministic, &mut r3).unwrap());
                 if let Actions::Continuous(values) = &a {
                     assert!(values
                         .chunks(2)

@@ -139,8 +139,10 @@ async fn get_policy(
     Ok(Json(state.store.policy(&id).await?.into()))
 }
 
-/// Download the policy's weights (safetensors). The `x-safedice-policy-spec` header (and the
-/// policy resource's `spec`) holds the JSON spec needed to rebuild it.
+/// Download the policy as one safetensors file that rebuilds it alone: the weights, and under the
+/// metadata key `safedice.policy` the spec (architecture, spaces, action scaling, observation
+/// normalisation, algorithm) and the training run (resolved configuration, dataset ids). The
+/// `x-safedice-policy-spec` header (and the policy resource's `spec`) repeat the spec.
 #[utoipa::path(get, path = "/v1/policies/{id}/weights", tag = "policies",
     params(("id" = String, Path)),
     responses(
@@ -153,7 +155,8 @@ async fn policy_weights(
     State(state): State<AppState>,
     Path(id): Path<String>,
 ) -> Result<Response, ApiError> {
-    let (spec, weights) = state.store.policy_artifact(&id).await?;
+    let (spec, _) = state.store.policy_artifact(&id).await?;
+    let weights = crate::serving::portable_weights(&state.store, &id).await?;
     let spec = HeaderValue::from_str(&spec)
         .map_err(|e| ApiError::Internal(anyhow::anyhow!("policy {id}: spec header: {e}")))?;
     let disposition = format!("attachment; filename=\"policy-{id}.safetensors\"");

@@ -222,7 +222,14 @@ async fn safedice_and_bc_train_and_serve_identical_actions_over_act_and_v2() {
             serde_json::from_str(weights.headers()["x-safedice-policy-spec"].to_str().unwrap())
                 .unwrap();
         assert_eq!(spec, serde_json::from_value::<PolicySpec>(policy["spec"].clone()).unwrap());
-        let local = Policy::load(&spec, &weights.bytes().await.unwrap()).unwrap();
+        let file = tempfile::NamedTempFile::new().unwrap();
+        std::fs::write(file.path(), weights.bytes().await.unwrap()).unwrap();
+        // The file alone: spec and training run in its safetensors metadata.
+        let (local, metadata) = Policy::from_file(file.path()).unwrap();
+        assert_eq!(metadata.spec, spec);
+        assert_eq!(metadata.training["config"], job["config"]);
+        assert_eq!(metadata.training["unlabeled_dataset"], job["unlabeled_dataset"]);
+        assert_eq!(metadata.training["non_preferred_dataset"], job["non_preferred_dataset"]);
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(0);
         let Actions::Discrete(local) = local.act(&flat, true, &mut rng).unwrap() else { panic!() };
         assert_eq!(serde_json::to_value(local).unwrap(), Value::Array(actions));
