@@ -36,6 +36,10 @@ enum Command {
     /// Train every algorithm on every built-in environment, evaluate with the paper's metrics
     /// and write results.md (mean ± standard error over seeds), results.json and SVG plots.
     Bench(safedice::bench::BenchArgs),
+    /// Convert a policy file (downloaded from GET /v1/policies/{id}/weights) into an ONNX model
+    /// (opset 13): observations in the dataset's units to the deterministic action, the same
+    /// actions as /act; also GET /v1/policies/{id}/export?format=onnx.
+    Export(ExportArgs),
     /// Start the service in-process on a temporary directory, generate a small dataset, train
     /// SafeDICE and BC through the HTTP API, and print their metrics side by side with the curl
     /// commands used.
@@ -63,6 +67,43 @@ struct DatagenArgs {
     out: PathBuf,
     #[arg(long, value_enum, default_value_t = DataFormat::Npz)]
     format: DataFormat,
+}
+
+#[derive(clap::Args)]
+struct ExportArgs {
+    /// The policy file (safetensors with the policy's spec in its metadata).
+    policy: PathBuf,
+    /// Where the model goes.
+    #[arg(long)]
+    out: PathBuf,
+    /// The model format.
+    #[arg(long, value_enum, default_value_t = ExportFormat::Onnx)]
+    format: ExportFormat,
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum ExportFormat {
+    Onnx,
+}
+
+fn export(args: ExportArgs) -> anyhow::Result<()> {
+    let ExportFormat::Onnx = args.format;
+    let bytes = std::fs::read(&args.policy)?;
+    let (policy, metadata) = safedice::algo::Policy::from_portable(&bytes)?;
+    let key = safedice::algo::policy::PORTABLE_METADATA_KEY;
+    let model = safedice::algo::onnx::export(
+        policy.spec(),
+        &bytes,
+        &[(key, serde_json::to_string(&metadata)?)],
+    )?;
+    std::fs::write(&args.out, &model)?;
+    println!(
+        "wrote {} ({} bytes, ONNX opset {})",
+        args.out.display(),
+        model.len(),
+        safedice::algo::onnx::OPSET
+    );
+    Ok(())
 }
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -169,6 +210,7 @@ fn main() -> anyhow::Result<()> {
             Ok(())
         }
         Command::Demo(args) => safedice::demo::run_cli(&args),
+        Command::Export(args) => export(args),
         Command::Bench(args) => {
             let _logging = safedice::logging::init(safedice::config::LogFormat::Pretty);
             let command: Vec<String> = std::env::args().collect();

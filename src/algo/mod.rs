@@ -24,6 +24,7 @@ pub mod hyperparams;
 pub mod losses;
 pub mod memory;
 pub mod mlp;
+pub mod onnx;
 pub mod optim;
 pub mod policy;
 pub mod ppl;

@@ -111,6 +111,7 @@ pub fn router() -> OpenApiRouter<AppState> {
         .routes(routes!(list_policies))
         .routes(routes!(get_policy))
         .routes(routes!(policy_weights))
+        .routes(routes!(export_policy))
         .routes(routes!(act))
 }
 
@@ -170,6 +171,56 @@ async fn policy_weights(
             (SPEC_HEADER, spec),
         ],
         weights,
+    )
+        .into_response())
+}
+
+/// `?format=`
+#[derive(Debug, Deserialize, IntoParams)]
+#[into_params(parameter_in = Query)]
+pub struct ExportFormat {
+    /// `onnx` (the default and, for now, the only format).
+    pub format: Option<String>,
+}
+
+/// Export the policy for another runtime. `format=onnx`: an ONNX model (opset 13) from
+/// observations `[B, obs_dim]` (FP32, the dataset's units) to the deterministic action in the
+/// dataset's units: output `actions`, FP32 `[B, dim]` (continuous) or INT64 `[B]` (discrete,
+/// with `probabilities` FP32 `[B, n]` as a second output). Same actions as `/act` with
+/// `deterministic: true`.
+#[utoipa::path(get, path = "/v1/policies/{id}/export", tag = "policies",
+    params(("id" = String, Path), ExportFormat),
+    responses(
+        (status = 200, description = "ONNX model", content_type = "application/octet-stream",
+         body = Vec<u8>),
+        (status = 400, description = "Unknown format (`unsupported_format`)", body = ErrorBody),
+        (status = 404, body = ErrorBody),
+    ))]
+async fn export_policy(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+    Query(query): Query<ExportFormat>,
+) -> Result<Response, ApiError> {
+    match query.format.as_deref().unwrap_or("onnx") {
+        "onnx" => {}
+        other => {
+            return Err(ApiError::bad_request(
+                "unsupported_format",
+                format!("unknown export format {other:?}; formats: onnx"),
+            ))
+        }
+    }
+    let model = crate::serving::onnx_model(&state.store, &id).await?;
+    let disposition = format!("attachment; filename=\"policy-{id}.onnx\"");
+    Ok((
+        [
+            (header::CONTENT_TYPE, HeaderValue::from_static("application/octet-stream")),
+            (
+                header::CONTENT_DISPOSITION,
+                HeaderValue::from_str(&disposition).map_err(anyhow::Error::from)?,
+            ),
+        ],
+        model,
     )
         .into_response())
 }

@@ -7,6 +7,7 @@ use std::time::Duration;
 use crate::support::app::{assert_error, assert_v2_error, TestApp};
 use crate::support::jobs::*;
 use futures::StreamExt;
+use onnx_protobuf::Message;
 use rand::SeedableRng;
 use reqwest::StatusCode;
 use safedice::algo::{Policy, PolicySpec};
@@ -233,6 +234,24 @@ async fn safedice_and_bc_train_and_serve_identical_actions_over_act_and_v2() {
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(0);
         let Actions::Discrete(local) = local.act(&flat, true, &mut rng).unwrap() else { panic!() };
         assert_eq!(serde_json::to_value(local).unwrap(), Value::Array(actions));
+
+        // The ONNX export (onnxruntime runs it in tests/clients): one input, the actions and
+        // probabilities out.
+        let export = format!("/v1/policies/{policy_id}/export");
+        let model = app.get(&format!("{export}?format=onnx")).send().await.unwrap();
+        assert_eq!(model.status(), StatusCode::OK);
+        let model = onnx_protobuf::ModelProto::parse_from_bytes(&model.bytes().await.unwrap())
+            .expect("an ONNX model");
+        assert_eq!(model.opset_import[0].version, safedice::algo::onnx::OPSET);
+        let names = |v: &[onnx_protobuf::ValueInfoProto]| -> Vec<String> {
+            v.iter().map(|i| i.name.clone()).collect()
+        };
+        assert_eq!(names(&model.graph.input), ["observations"]);
+        assert_eq!(names(&model.graph.output), ["actions", "probabilities"]);
+        let response = app.get(&format!("{export}?format=torchscript")).send().await.unwrap();
+        assert_error(response, StatusCode::BAD_REQUEST, "unsupported_format").await;
+        let response = app.get("/v1/policies/nope/export").send().await.unwrap();
+        assert_error(response, StatusCode::NOT_FOUND, "not_found").await;
 
         // Sampling with a seed is reproducible.
         let sample = |seed: u64| {

@@ -1,67 +1,21 @@
 """tritonclient.http, unmodified, against a running safedice server (see run.sh).
 
-Usage: test_tritonclient.py HOST:PORT WORKDIR, where WORKDIR/<env>/{unlabeled,non_preferred}.npz
-come from `safedice datagen`. Trains one BC policy per environment through the API, then checks
-every Open Inference Protocol call tritonclient makes, in JSON and in binary tensor data, against
-/v1/policies/{id}/act. Exits non-zero on the first mismatch.
+Usage: test_tritonclient.py HOST:PORT WORKDIR BINARY (see common.py). Trains one BC policy per
+environment through the API, then checks every Open Inference Protocol call tritonclient makes,
+in JSON and in binary tensor data, against /v1/policies/{id}/act. Exits non-zero on the first
+mismatch.
 """
 
-import json
 import sys
 import time
-import urllib.request
-import uuid
 
 import numpy as np
 import tritonclient.http as httpclient
 from tritonclient.utils import InferenceServerException
 
-ADDRESS, WORKDIR = sys.argv[1], sys.argv[2]
-BASE = f"http://{ADDRESS}"
+from common import act, train
 
-
-def call(method, path, body=None, content_type="application/json"):
-    request = urllib.request.Request(BASE + path, data=body, method=method)
-    if body is not None:
-        request.add_header("Content-Type", content_type)
-    with urllib.request.urlopen(request, timeout=60) as response:
-        return json.loads(response.read())
-
-
-def upload(path):
-    boundary = uuid.uuid4().hex
-    with open(path, "rb") as f:
-        content = f.read()
-    body = (
-        f'--{boundary}\r\nContent-Disposition: form-data; name="file"; '
-        f'filename="{path.rsplit("/", 1)[-1]}"\r\nContent-Type: application/octet-stream\r\n\r\n'
-    ).encode() + content + f"\r\n--{boundary}--\r\n".encode()
-    return call("POST", "/v1/datasets", body, f"multipart/form-data; boundary={boundary}")["id"]
-
-
-def train(env):
-    unlabeled = upload(f"{WORKDIR}/{env}/unlabeled.npz")
-    non_preferred = upload(f"{WORKDIR}/{env}/non_preferred.npz")
-    job = {
-        "algorithm": "bc",
-        "unlabeled_dataset": unlabeled,
-        "non_preferred_dataset": non_preferred,
-        "config": {"iterations": 300, "hidden_sizes": [32, 32], "batch_size": 64},
-    }
-    job_id = call("POST", "/v1/jobs", json.dumps(job).encode())["id"]
-    deadline = time.time() + 300
-    while True:
-        job = call("GET", f"/v1/jobs/{job_id}")
-        if job["status"] == "succeeded":
-            return job["policy_id"]
-        assert job["status"] in ("queued", "running"), job
-        assert time.time() < deadline, f"job {job_id} did not finish: {job}"
-        time.sleep(0.2)
-
-
-def act(policy, observations):
-    body = json.dumps({"observations": observations.tolist()}).encode()
-    return np.array(call("POST", f"/v1/policies/{policy}/act", body)["actions"])
+ADDRESS = sys.argv[1]
 
 
 def check_policy(client, policy, env):
@@ -130,7 +84,7 @@ def main():
     assert client.is_server_ready()
     server = client.get_server_metadata()
     assert server["name"] == "safedice" and "binary_tensor_data" in server["extensions"], server
-    policies = {env: train(env) for env in ("six-rooms", "point-goal")}
+    policies = {env: train(env, "bc") for env in ("six-rooms", "point-goal")}
     for env, policy in policies.items():
         check_policy(client, policy, env)
     check_errors(client, policies["six-rooms"])

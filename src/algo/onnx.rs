@@ -1,0 +1,252 @@
+//! A trained policy as an ONNX model (opset 13), for runtimes outside the service: observations
+//! in the dataset's units → the spec's observation standardisation → the MLP(s) → the
+//! deterministic action in the dataset's units, exactly as [`Policy::act`] with
+//! `deterministic = true`:
+//!
+//! - continuous: `low + (tanh(clip(mean, ±7)) + 1) / 2 · (high − low)`, output `actions`
+//!   (FP32 `[B, dim]`);
+//! - discrete: `argmax` of the action probabilities (softmax of the logits; DExperts' Eq. 44
+//!   scores `π^U − α π^N`), output `actions` (INT64 `[B]`), and the probabilities (scores) as
+//!   the second output `probabilities` (FP32 `[B, n]`).
+//!
+//! The protobuf messages are the `onnx-protobuf` crate's; the tensors are the policy file's
+//! weights, copied as raw little-endian FP32.
+//!
+//! [`Policy::act`]: super::Policy::act
+
+use onnx_protobuf::attribute_proto::AttributeType;
+use onnx_protobuf::tensor_proto::DataType;
+use onnx_protobuf::tensor_shape_proto::{dimension, Dimension};
+use onnx_protobuf::{
+    type_proto, AttributeProto, GraphProto, Message, ModelProto, NodeProto, OperatorSetIdProto,
+    StringStringEntryProto, TensorProto, TensorShapeProto, TypeProto, ValueInfoProto,
+};
+use protobuf::{EnumOrUnknown, MessageField};
+
+use super::policy::{Decoder, PolicySpec, MEAN_CLIP};
+use super::TrainError;
+use crate::data::ActionSpace;
+
+/// The operator set the graph is written against (every operator used has had its current
+/// form since 13).
+pub const OPSET: i64 = 13;
+const IR_VERSION: i64 = 8;
+
+/// The ONNX model of a policy: `spec` and its safetensors `weights`; `metadata` (e.g. the
+/// portable file's JSON) is kept in the model's metadata properties.
+pub fn export(
+    spec: &PolicySpec,
+    weights: &[u8],
+    metadata: &[(&str, String)],
+) -> Result<Vec<u8>, TrainError> {
+    let tensors = safetensors::SafeTensors::deserialize(weights).map_err(error)?;
+    let mut graph = Graph { proto: GraphProto::new(), tensors: &tensors, count: 0 };
+    graph.proto.name = format!("safedice-{}", spec.algorithm);
+    graph.proto.input.push(value_info(
+        "observations",
+        DataType::FLOAT,
+        &[None, Some(spec.obs_dim)],
+    ));
+    let mut observations = "observations".to_owned();
+    if let Some(norm) = &spec.observation_normalization {
+        let mean = graph.constant("obs_mean", &[spec.obs_dim], &norm.mean);
+        let std = graph.constant("obs_std", &[spec.obs_dim], &norm.std);
+        let centred = graph.node("Sub", &[&observations, &mean], vec![]);
+        observations = graph.node("Div", &[&centred, &std], vec![]);
+    }
+    match (&spec.action_space, &spec.decoder) {
+        (ActionSpace::Continuous { dim, low, high }, _) => {
+            let out = graph.mlp("policy", &observations, spec.hidden_sizes.len() + 1)?;
+            let (starts, ends, axes) = (
+                graph.int64s("mean_start", &[0]),
+                graph.int64s("mean_end", &[*dim as i64]),
+                graph.int64s("mean_axis", &[1]),
+            );
+            let mean = graph.node("Slice", &[&out, &starts, &ends, &axes], vec![]);
+            let (lo, hi) = (
+                graph.scalar("mean_min", -MEAN_CLIP as f32),
+                graph.scalar("mean_max", MEAN_CLIP as f32),
+            );
+            let clipped = graph.node("Clip", &[&mean, &lo, &hi], vec![]);
+            let unit = graph.node("Tanh", &[&clipped], vec![]);
+            let half_width: Vec<f32> = low.iter().zip(high).map(|(l, h)| (h - l) * 0.5).collect();
+            let centre: Vec<f32> = low.iter().zip(high).map(|(l, h)| l + (h - l) * 0.5).collect();
+            let scale = graph.constant("action_half_width", &[*dim], &half_width);
+            let offset = graph.constant("action_centre", &[*dim], &centre);
+            let scaled = graph.node("Mul", &[&unit, &scale], vec![]);
+            graph.output_node("Add", &[&scaled, &offset], "actions");
+            graph.proto.output.push(value_info("actions", DataType::FLOAT, &[None, Some(*dim)]));
+        }
+        (ActionSpace::Discrete { n }, decoder) => {
+            let layers = spec.hidden_sizes.len() + 1;
+            let logits = graph.mlp("policy", &observations, layers)?;
+            let p_u = graph.node("Softmax", &[&logits], vec![int_attribute("axis", 1)]);
+            let scores = match decoder {
+                Decoder::Single => p_u,
+                Decoder::Dexperts { alpha } => {
+                    let logits_n = graph.mlp("policy_n", &observations, layers)?;
+                    let p_n = graph.node("Softmax", &[&logits_n], vec![int_attribute("axis", 1)]);
+                    let alpha = graph.scalar("dexperts_alpha", *alpha as f32);
+                    let weighted = graph.node("Mul", &[&p_n, &alpha], vec![]);
+                    graph.node("Sub", &[&p_u, &weighted], vec![])
+                }
+            };
+            graph.output_node("Identity", &[&scores], "probabilities");
+            let argmax = vec![int_attribute("axis", 1), int_attribute("keepdims", 0)];
+            graph.output_node_with("ArgMax", &[&scores], "actions", argmax);
+            graph.proto.output.push(value_info("actions", DataType::INT64, &[None]));
+            graph.proto.output.push(value_info(
+                "probabilities",
+                DataType::FLOAT,
+                &[None, Some(*n)],
+            ));
+        }
+    }
+    let mut model = ModelProto::new();
+    model.ir_version = IR_VERSION;
+    model.producer_name = "safedice".into();
+    model.producer_version = env!("CARGO_PKG_VERSION").into();
+    model.opset_import.push(OperatorSetIdProto { version: OPSET, ..Default::default() });
+    model.metadata_props = metadata
+        .iter()
+        .map(|(key, value)| StringStringEntryProto {
+            key: (*key).to_owned(),
+            value: value.clone(),
+            ..Default::default()
+        })
+        .collect();
+    model.graph = MessageField::some(graph.proto);
+    model.write_to_bytes().map_err(error)
+}
+
+fn error(e: impl std::fmt::Display) -> TrainError {
+    TrainError::Other(format!("ONNX export: {e}"))
+}
+
+/// The graph being built, with the policy file's tensors to take weights from.
+struct Graph<'a> {
+    proto: GraphProto,
+    tensors: &'a safetensors::SafeTensors<'a>,
+    count: usize,
+}
+
+impl Graph<'_> {
+    /// A node with one fresh output; its name.
+    fn node(&mut self, op: &str, inputs: &[&str], attributes: Vec<AttributeProto>) -> String {
+        self.count += 1;
+        let output = format!("{}_{}", op.to_lowercase(), self.count);
+        self.output_node_with(op, inputs, &output, attributes);
+        output
+    }
+
+    fn output_node(&mut self, op: &str, inputs: &[&str], output: &str) {
+        self.output_node_with(op, inputs, output, vec![]);
+    }
+
+    fn output_node_with(
+        &mut self,
+        op: &str,
+        inputs: &[&str],
+        output: &str,
+        attribute: Vec<AttributeProto>,
+    ) {
+        self.proto.node.push(NodeProto {
+            op_type: op.into(),
+            name: format!("{output}_node"),
+            input: inputs.iter().map(|s| (*s).to_owned()).collect(),
+            output: vec![output.to_owned()],
+            attribute,
+            ..Default::default()
+        });
+    }
+
+    /// The MLP `{net}.{i}.weight|bias`, ReLU between layers; its output's name.
+    fn mlp(&mut self, net: &str, input: &str, layers: usize) -> Result<String, TrainError> {
+        let mut h = input.to_owned();
+        for i in 0..layers {
+            let weight = self.weight(&format!("{net}.{i}.weight"))?;
+            let bias = self.weight(&format!("{net}.{i}.bias"))?;
+            // The layers keep their weight as `[in, out]` (y = x W + b): no transpose.
+            h = self.node("Gemm", &[&h, &weight, &bias], vec![]);
+            if i + 1 < layers {
+                h = self.node("Relu", &[&h], vec![]);
+            }
+        }
+        Ok(h)
+    }
+
+    /// A weight of the policy file as an initializer (FP32, same shape).
+    fn weight(&mut self, name: &str) -> Result<String, TrainError> {
+        let view = self.tensors.tensor(name).map_err(error)?;
+        if view.dtype() != safetensors::Dtype::F32 {
+            return Err(error(format!("{name} is {:?}, expected F32", view.dtype())));
+        }
+        let mut tensor = TensorProto::new();
+        tensor.name = name.to_owned();
+        tensor.data_type = DataType::FLOAT as i32;
+        tensor.dims = view.shape().iter().map(|&d| d as i64).collect();
+        tensor.raw_data = view.data().to_vec();
+        self.proto.initializer.push(tensor);
+        Ok(name.to_owned())
+    }
+
+    fn constant(&mut self, name: &str, shape: &[usize], values: &[f32]) -> String {
+        let mut tensor = TensorProto::new();
+        tensor.name = name.to_owned();
+        tensor.data_type = DataType::FLOAT as i32;
+        tensor.dims = shape.iter().map(|&d| d as i64).collect();
+        tensor.float_data = values.to_vec();
+        self.proto.initializer.push(tensor);
+        name.to_owned()
+    }
+
+    fn scalar(&mut self, name: &str, value: f32) -> String {
+        self.constant(name, &[], &[value])
+    }
+
+    fn int64s(&mut self, name: &str, values: &[i64]) -> String {
+        let mut tensor = TensorProto::new();
+        tensor.name = name.to_owned();
+        tensor.data_type = DataType::INT64 as i32;
+        tensor.dims = vec![values.len() as i64];
+        tensor.int64_data = values.to_vec();
+        self.proto.initializer.push(tensor);
+        name.to_owned()
+    }
+}
+
+fn int_attribute(name: &str, value: i64) -> AttributeProto {
+    AttributeProto {
+        name: name.into(),
+        type_: EnumOrUnknown::new(AttributeType::INT),
+        i: value,
+        ..Default::default()
+    }
+}
+
+/// A graph input or output: its element type and shape (None: the batch dimension `B`).
+fn value_info(name: &str, elem_type: DataType, shape: &[Option<usize>]) -> ValueInfoProto {
+    let dim = shape
+        .iter()
+        .map(|d| Dimension {
+            value: Some(match d {
+                Some(size) => dimension::Value::DimValue(*size as i64),
+                None => dimension::Value::DimParam("B".into()),
+            }),
+            ..Default::default()
+        })
+        .collect();
+    let tensor = type_proto::Tensor {
+        elem_type: elem_type as i32,
+        shape: MessageField::some(TensorShapeProto { dim, ..Default::default() }),
+        ..Default::default()
+    };
+    ValueInfoProto {
+        name: name.into(),
+        type_: MessageField::some(TypeProto {
+            value: Some(type_proto::Value::TensorType(tensor)),
+            ..Default::default()
+        }),
+        ..Default::default()
+    }
+}

@@ -1,0 +1,41 @@
+#!/usr/bin/env bash
+# Third-party clients from PyPI, unmodified, against the real server, on policies trained
+# through the API (every algorithm, a discrete and a continuous environment):
+# - test_tritonclient.py: NVIDIA's tritonclient on the Open Inference Protocol routes, JSON and
+#   binary tensor data;
+# - test_onnxruntime.py: onnxruntime on the ONNX export (GET /v1/policies/{id}/export) and on
+#   `safedice export` of the downloaded policy file.
+# Every action is compared with /v1/policies/{id}/act; any mismatch or error fails the run.
+#
+#   tests/clients/run.sh [path/to/safedice]     (default: target/debug/safedice)
+#
+# Installs the clients into .venv-clients/ on first use.
+set -euo pipefail
+cd "$(dirname "$0")/../.."
+BIN="${1:-target/debug/safedice}"
+VENV=.venv-clients
+
+if [ ! -x "$VENV/bin/python" ] || ! "$VENV/bin/python" -c 'import tritonclient.http, onnxruntime' 2>/dev/null; then
+  python3 -m venv "$VENV"
+  "$VENV/bin/pip" install --quiet "tritonclient[http]==2.73.0" "onnxruntime==1.23.2" "numpy==2.4.6"
+fi
+
+WORK="$(mktemp -d)"
+SERVER_PID=
+cleanup() {
+  if [ -n "$SERVER_PID" ]; then kill "$SERVER_PID" 2>/dev/null || true; wait "$SERVER_PID" 2>/dev/null || true; fi
+  rm -rf "$WORK"
+}
+trap cleanup EXIT
+
+PORT="$("$VENV/bin/python" -c 'import socket; s=socket.socket(); s.bind(("127.0.0.1",0)); print(s.getsockname()[1])')"
+RUST_LOG=warn "$BIN" serve --bind "127.0.0.1:$PORT" --data-dir "$WORK/data" >"$WORK/server.log" 2>&1 &
+SERVER_PID=$!
+for env in six-rooms point-goal; do
+  "$BIN" datagen --env "$env" --preferred 30 --non-preferred 30 --labeled 10 --out "$WORK/$env" >/dev/null
+done
+for test in test_tritonclient.py test_onnxruntime.py; do
+  if ! "$VENV/bin/python" "tests/clients/$test" "127.0.0.1:$PORT" "$WORK" "$BIN"; then
+    echo "--- server log ---"; tail -50 "$WORK/server.log"; exit 1
+  fi
+done
