@@ -4,7 +4,8 @@
 # - test_tritonclient.py: NVIDIA's tritonclient on the Open Inference Protocol routes, JSON and
 #   binary tensor data;
 # - test_onnxruntime.py: onnxruntime on the ONNX export (GET /v1/policies/{id}/export) and on
-#   `safedice export` of the downloaded policy file.
+#   `safedice export` of the downloaded policy file;
+# - clients/python: the Python client's own tests (pytest) and its walk-through.
 # Every action is compared with /v1/policies/{id}/act; any mismatch or error fails the run.
 #
 #   tests/clients/run.sh [path/to/safedice]     (default: target/debug/safedice)
@@ -17,8 +18,11 @@ VENV=.venv-clients
 
 if [ ! -x "$VENV/bin/python" ] || ! "$VENV/bin/python" -c 'import tritonclient.http, onnxruntime' 2>/dev/null; then
   python3 -m venv "$VENV"
-  "$VENV/bin/pip" install --quiet "tritonclient[http]==2.73.0" "onnxruntime==1.23.2" "numpy==2.4.6"
+  "$VENV/bin/pip" install --quiet "tritonclient[http]==2.73.0" "onnxruntime==1.23.2" "numpy==2.4.6" \
+    "pytest==8.4.2"
 fi
+# The client as a user installs it, from this checkout, every run.
+"$VENV/bin/pip" install --quiet --no-deps --force-reinstall ./clients/python
 
 WORK="$(mktemp -d)"
 SERVER_PID=
@@ -34,8 +38,13 @@ SERVER_PID=$!
 for env in six-rooms point-goal; do
   "$BIN" datagen --env "$env" --preferred 30 --non-preferred 30 --labeled 10 --out "$WORK/$env" >/dev/null
 done
+fail() { echo "--- server log ---"; tail -50 "$WORK/server.log"; exit 1; }
 for test in test_tritonclient.py test_onnxruntime.py; do
-  if ! "$VENV/bin/python" "tests/clients/$test" "127.0.0.1:$PORT" "$WORK" "$BIN"; then
-    echo "--- server log ---"; tail -50 "$WORK/server.log"; exit 1
-  fi
+  "$VENV/bin/python" "tests/clients/$test" "127.0.0.1:$PORT" "$WORK" "$BIN" || fail
 done
+SAFEDICE_URL="http://127.0.0.1:$PORT" SAFEDICE_DATA="$WORK" \
+  "$VENV/bin/python" -m pytest -q -p no:cacheprovider clients/python/tests || fail
+"$BIN" datagen --env point-goal --preferred 200 --non-preferred 200 --labeled 20 \
+  --out "$WORK/walkthrough/demo-data" >/dev/null
+(cd "$WORK/walkthrough" && "$OLDPWD/$VENV/bin/python" "$OLDPWD/clients/python/walkthrough.py" \
+  "http://127.0.0.1:$PORT" demo-data) || fail

@@ -1,0 +1,282 @@
+"""The HTTP client: one method per thing a user does, typed, raising on every error."""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import sys
+import time
+import urllib.error
+import urllib.parse
+import urllib.request
+import uuid
+from pathlib import Path
+from typing import Any, Dict, Iterator, Mapping, Optional, Sequence, Tuple, Union
+
+import numpy as np
+
+Json = Dict[str, Any]
+DatasetSource = Union[str, os.PathLike, Mapping[str, np.ndarray]]
+
+#: Rows per /act request when `act` splits a large batch (the service takes at most 16,384).
+ACT_BATCH = 4096
+FINAL_STATUSES = ("succeeded", "failed", "cancelled")
+
+
+class ApiError(Exception):
+    """An error answer of the service: its HTTP status, error code and message."""
+
+    def __init__(self, status: int, code: str, message: str):
+        super().__init__(f"{status} {code}: {message}")
+        self.status, self.code, self.message = status, code, message
+
+
+class JobFailed(Exception):
+    """A job `wait` followed ended `failed` or `cancelled`."""
+
+    def __init__(self, job: Json):
+        super().__init__(f"job {job['id']} ended {job['status']}: {job.get('error')}")
+        self.job = job
+
+
+class Client:
+    """A safedice server at `base_url` (e.g. ``http://127.0.0.1:8080``).
+
+    `token` is the API token (``--api-token``); it defaults to the ``SAFEDICE_API_TOKEN``
+    environment variable, so it need not appear in scripts or process lists.
+    """
+
+    def __init__(self, base_url: str, token: Optional[str] = None, timeout: float = 60.0):
+        self.base_url = base_url.rstrip("/")
+        self.token = token if token is not None else os.environ.get("SAFEDICE_API_TOKEN")
+        self.timeout = timeout
+
+    # -- environments and datasets -------------------------------------------------------
+
+    def envs(self) -> list:
+        """The built-in environments (name, spaces, reference statistics)."""
+        return self._get("/v1/envs")["items"]
+
+    def upload_dataset(
+        self, data: DatasetSource, name: Optional[str] = None, description: Optional[str] = None
+    ) -> Json:
+        """Uploads a dataset; the stored dataset's description.
+
+        `data` is a file path (JSONL, CSV, NPZ or HDF5, by extension) or a mapping of numpy
+        arrays in the D4RL/DSRL layout (``observations``, ``actions``, ``next_observations``,
+        ``terminals``, optional ``timeouts``, ``rewards``, ``costs``, ``episode_ids``), sent
+        as NPZ.
+        """
+        if isinstance(data, Mapping):
+            buffer = io.BytesIO()
+            np.savez(buffer, **{key: np.asarray(value) for key, value in data.items()})
+            filename, content = f"{name or 'dataset'}.npz", buffer.getvalue()
+        else:
+            path = Path(data)
+            filename, content = path.name, path.read_bytes()
+        fields = {"name": name, "description": description}
+        body, content_type = _multipart(fields, filename, content)
+        return self._request("POST", "/v1/datasets", body, content_type)
+
+    def datasets(self, limit: int = 50, offset: int = 0) -> Json:
+        """A page of datasets, newest first (``items``, ``total``, ``next_offset``)."""
+        return self._get(f"/v1/datasets?limit={limit}&offset={offset}")
+
+    def delete_dataset(self, dataset_id: str) -> None:
+        self._request("DELETE", f"/v1/datasets/{dataset_id}")
+
+    # -- jobs -----------------------------------------------------------------------------
+
+    def submit_job(
+        self,
+        unlabeled_dataset: str,
+        non_preferred_dataset: Optional[str] = None,
+        algorithm: str = "safedice",
+        config: Optional[Json] = None,
+        runner: Optional[Json] = None,
+        eval: Optional[Json] = None,
+    ) -> Json:
+        """Queues a training job; the job (status ``queued``). See GET /v1/algorithms for each
+        algorithm's configuration keys and defaults."""
+        job: Json = {"algorithm": algorithm, "unlabeled_dataset": unlabeled_dataset}
+        optional = {
+            "non_preferred_dataset": non_preferred_dataset,
+            "config": config,
+            "runner": runner,
+            "eval": eval,
+        }
+        job.update({key: value for key, value in optional.items() if value is not None})
+        return self._request("POST", "/v1/jobs", json.dumps(job).encode(), "application/json")
+
+    def job(self, job_id: str) -> Json:
+        return self._get(f"/v1/jobs/{job_id}")
+
+    def cancel(self, job_id: str) -> Json:
+        return self._request("POST", f"/v1/jobs/{job_id}/cancel")
+
+    def wait(
+        self, job_id: str, timeout: Optional[float] = None, progress: bool = True, poll: float = 0.5
+    ) -> Json:
+        """Waits until the job ends; the succeeded job. Raises `JobFailed` when it fails or is
+        cancelled, `TimeoutError` after `timeout` seconds. With `progress`, a bar on stderr."""
+        started = time.monotonic()
+        while True:
+            job = self.job(job_id)
+            if progress:
+                _progress_line(job)
+            if job["status"] in FINAL_STATUSES:
+                if progress:
+                    sys.stderr.write("\n")
+                if job["status"] != "succeeded":
+                    raise JobFailed(job)
+                return job
+            if timeout is not None and time.monotonic() - started > timeout:
+                raise TimeoutError(f"job {job_id} still {job['status']} after {timeout} s")
+            time.sleep(poll)
+
+    def events(self, job_id: str) -> Iterator[Tuple[str, Json]]:
+        """The job's server-sent events as they come: ``("status", job)`` and
+        ``("progress", progress)``, until the job ends."""
+        request = self._build("GET", f"/v1/jobs/{job_id}/events")
+        with self._open(request, timeout=None) as response:
+            name, data = None, []
+            for raw in response:
+                line = raw.decode().rstrip("\n")
+                if line.startswith("event:"):
+                    name = line[6:].strip()
+                elif line.startswith("data:"):
+                    data.append(line[5:].strip())
+                elif not line and name is not None:
+                    yield name, json.loads("\n".join(data))
+                    name, data = None, []
+
+    def metrics(self, job_id: str, names: Optional[Sequence[str]] = None) -> Dict[str, np.ndarray]:
+        """The job's recorded metrics: name -> array of (step, value) rows."""
+        query = f"?names={','.join(names)}" if names else ""
+        rows = self._get(f"/v1/jobs/{job_id}/metrics{query}")["rows"]
+        series: Dict[str, list] = {}
+        for row in rows:
+            series.setdefault(row["name"], []).append((row["step"], row["value"]))
+        return {name: np.array(points, dtype=np.float64) for name, points in series.items()}
+
+    # -- policies -------------------------------------------------------------------------
+
+    def policy(self, policy_id: str) -> Json:
+        return self._get(f"/v1/policies/{policy_id}")
+
+    def download_policy(self, policy_id: str, path: Union[str, os.PathLike]) -> Path:
+        """The policy file (safetensors whose metadata holds the spec and training run)."""
+        return self._download(f"/v1/policies/{policy_id}/weights", path)
+
+    def download_onnx(self, policy_id: str, path: Union[str, os.PathLike]) -> Path:
+        """The policy as an ONNX model: observations in, deterministic actions out."""
+        return self._download(f"/v1/policies/{policy_id}/export?format=onnx", path)
+
+    def act(
+        self,
+        policy_id: str,
+        observations: np.ndarray,
+        deterministic: bool = True,
+        seed: Optional[int] = None,
+        batch_size: int = ACT_BATCH,
+    ) -> np.ndarray:
+        """Actions for observations (``[B, obs_dim]`` or one ``[obs_dim]``), in batches of
+        `batch_size` requests: float ``[B, dim]`` (continuous) or int ``[B]`` (discrete)."""
+        observations = np.asarray(observations, dtype=np.float32)
+        single = observations.ndim == 1
+        batch = observations[None, :] if single else observations
+        parts = []
+        for start in range(0, len(batch), batch_size):
+            body: Json = {
+                "observations": batch[start : start + batch_size].tolist(),
+                "deterministic": deterministic,
+            }
+            if seed is not None:
+                body["seed"] = seed + start
+            answer = self._request(
+                "POST", f"/v1/policies/{policy_id}/act", json.dumps(body).encode(), "application/json"
+            )
+            parts.append(np.asarray(answer["actions"]))
+        actions = np.concatenate(parts)
+        return actions[0] if single else actions
+
+    # -- plumbing -------------------------------------------------------------------------
+
+    def _get(self, path: str) -> Json:
+        return self._request("GET", path)
+
+    def _build(
+        self, method: str, path: str, body: Optional[bytes] = None, content_type: Optional[str] = None
+    ) -> urllib.request.Request:
+        request = urllib.request.Request(self.base_url + path, data=body, method=method)
+        if content_type:
+            request.add_header("Content-Type", content_type)
+        if self.token:
+            request.add_header("Authorization", f"Bearer {self.token}")
+        return request
+
+    def _open(self, request: urllib.request.Request, timeout: Optional[float]):
+        try:
+            return urllib.request.urlopen(request, timeout=timeout)
+        except urllib.error.HTTPError as e:
+            raise _api_error(e) from None
+
+    def _request(
+        self, method: str, path: str, body: Optional[bytes] = None, content_type: Optional[str] = None
+    ) -> Any:
+        request = self._build(method, path, body, content_type)
+        with self._open(request, self.timeout) as response:
+            content = response.read()
+        return json.loads(content) if content else None
+
+    def _download(self, path: str, target: Union[str, os.PathLike]) -> Path:
+        target = Path(target)
+        with self._open(self._build("GET", path), self.timeout) as response:
+            with open(target, "wb") as out:
+                while chunk := response.read(1 << 20):
+                    out.write(chunk)
+        return target
+
+
+def _api_error(e: urllib.error.HTTPError) -> ApiError:
+    body = e.read()
+    try:
+        error = json.loads(body)["error"]
+        if isinstance(error, str):  # the Open Inference Protocol's shape
+            return ApiError(e.code, "error", error)
+        return ApiError(e.code, error["code"], error["message"])
+    except (ValueError, KeyError, TypeError):
+        return ApiError(e.code, "http_error", body.decode(errors="replace")[:500])
+
+
+def _multipart(fields: Mapping[str, Optional[str]], filename: str, content: bytes) -> Tuple[bytes, str]:
+    boundary = uuid.uuid4().hex
+    parts = []
+    for key, value in fields.items():
+        if value is not None:
+            parts.append(
+                f'--{boundary}\r\nContent-Disposition: form-data; name="{key}"\r\n\r\n{value}\r\n'.encode()
+            )
+    parts.append(
+        f'--{boundary}\r\nContent-Disposition: form-data; name="file"; filename="{filename}"\r\n'
+        "Content-Type: application/octet-stream\r\n\r\n".encode()
+        + content
+        + b"\r\n"
+    )
+    parts.append(f"--{boundary}--\r\n".encode())
+    return b"".join(parts), f"multipart/form-data; boundary={boundary}"
+
+
+def _progress_line(job: Json) -> None:
+    progress = job.get("progress") or {}
+    fraction = progress.get("fraction") or 0.0
+    width = 30
+    bar = "#" * int(fraction * width) + "-" * (width - int(fraction * width))
+    speed = progress.get("iterations_per_second")
+    eta = progress.get("eta_seconds")
+    extra = (f" {speed:,.0f} it/s" if speed else "") + (f" eta {eta:,.0f} s" if eta else "")
+    sys.stderr.write(
+        f"\r{job['id'][:8]} [{bar}] {fraction:6.1%} {job['status']}{extra}".ljust(79)
+    )
+    sys.stderr.flush()

@@ -1,0 +1,98 @@
+"""The client against a real safedice server (started by tests/clients/run.sh, which passes its
+address in SAFEDICE_URL and a `safedice datagen` directory in SAFEDICE_DATA)."""
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from safedice_client import ApiError, Client, JobFailed
+
+URL = os.environ["SAFEDICE_URL"]
+DATA = Path(os.environ["SAFEDICE_DATA"])
+
+
+@pytest.fixture(scope="module")
+def client() -> Client:
+    return Client(URL)
+
+
+def point_goal_arrays() -> dict:
+    """The point-goal unlabeled set as numpy arrays in the D4RL layout."""
+    with np.load(DATA / "point-goal" / "unlabeled.npz") as npz:
+        return {key: npz[key] for key in npz.files}
+
+
+@pytest.fixture(scope="module")
+def trained(client: Client) -> dict:
+    unlabeled = client.upload_dataset(point_goal_arrays(), name="from numpy")
+    non_preferred = client.upload_dataset(DATA / "point-goal" / "non_preferred.npz")
+    job = client.submit_job(
+        unlabeled["id"],
+        non_preferred["id"],
+        config={"iterations": 300, "hidden_sizes": [32, 32], "batch_size": 64, "seed": 3},
+        runner={"log_every": 10},
+    )
+    return client.wait(job["id"], timeout=300)
+
+
+def test_a_numpy_dict_uploads_as_the_same_dataset_as_its_file(client: Client) -> None:
+    from_arrays = client.upload_dataset(point_goal_arrays(), name="arrays")
+    from_file = client.upload_dataset(DATA / "point-goal" / "unlabeled.npz", name="file")
+    for key in ("transitions", "episodes", "obs_dim", "action_space", "stats"):
+        assert from_arrays[key] == from_file[key], key
+    assert from_arrays["name"] == "arrays"
+
+
+def test_a_trained_policy_acts_in_batches_like_one_request(client: Client, trained: dict) -> None:
+    assert trained["status"] == "succeeded"
+    policy = client.policy(trained["policy_id"])
+    observations = np.random.default_rng(0).uniform(-1, 1, (100, policy["obs_dim"]))
+    whole = client.act(policy["id"], observations)
+    batched = client.act(policy["id"], observations, batch_size=7)
+    assert whole.shape == (100, policy["action_space"]["dim"])
+    assert np.array_equal(whole, batched)
+    assert np.array_equal(client.act(policy["id"], observations[0]), whole[0])
+
+
+def test_metrics_come_back_as_arrays_per_name(client: Client, trained: dict) -> None:
+    metrics = client.metrics(trained["id"])
+    assert metrics and all(series.shape[1] == 2 for series in metrics.values())
+    some = next(iter(metrics))
+    only = client.metrics(trained["id"], names=[some])
+    assert list(only) == [some] and np.array_equal(only[some], metrics[some])
+
+
+def test_policy_files_download(client: Client, trained: dict, tmp_path: Path) -> None:
+    weights = client.download_policy(trained["policy_id"], tmp_path / "policy.safetensors")
+    model = client.download_onnx(trained["policy_id"], tmp_path / "policy.onnx")
+    assert weights.read_bytes()[8:9] == b"{"  # a safetensors header follows its length
+    assert model.stat().st_size > 1000
+
+
+def test_events_stream_until_the_job_ends(client: Client, trained: dict) -> None:
+    events = list(client.events(trained["id"]))
+    assert events[0][0] == "status" and events[-1][1]["status"] == "succeeded"
+
+
+def test_errors_carry_the_services_code_and_message(client: Client) -> None:
+    with pytest.raises(ApiError) as missing:
+        client.job("no-such-job")
+    assert (missing.value.status, missing.value.code) == (404, "not_found")
+    with pytest.raises(ApiError) as refused:
+        client.upload_dataset({"observations": np.zeros((3, 2))}, name="broken")
+    assert (refused.value.status, refused.value.code) == (422, "invalid_dataset")
+    assert "missing required key" in refused.value.message
+
+
+def test_wait_raises_when_the_job_is_cancelled(client: Client, trained: dict) -> None:
+    job = client.submit_job(
+        trained["unlabeled_dataset"],
+        trained["non_preferred_dataset"],
+        config={"iterations": 100_000_000, "hidden_sizes": [32, 32]},
+    )
+    client.cancel(job["id"])
+    with pytest.raises(JobFailed) as failed:
+        client.wait(job["id"], timeout=60, progress=False)
+    assert failed.value.job["status"] == "cancelled"
