@@ -178,9 +178,16 @@ async fn policy_weights(
 /// `?format=`
 #[derive(Debug, Deserialize, IntoParams)]
 #[into_params(parameter_in = Query)]
-pub struct ExportFormat {
-    /// `onnx` (the default and, for now, the only format).
-    pub format: Option<String>,
+pub struct ExportQuery {
+    /// The model format (default `onnx`, for now the only one).
+    pub format: Option<ExportFormat>,
+}
+
+/// The formats a policy exports to.
+#[derive(Debug, Clone, Copy, Deserialize, ToSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum ExportFormat {
+    Onnx,
 }
 
 /// Export the policy for another runtime. `format=onnx`: an ONNX model (opset 13) from
@@ -189,27 +196,19 @@ pub struct ExportFormat {
 /// with `probabilities` FP32 `[B, n]` as a second output). Same actions as `/act` with
 /// `deterministic: true`.
 #[utoipa::path(get, path = "/v1/policies/{id}/export", tag = "policies",
-    params(("id" = String, Path), ExportFormat),
+    params(("id" = String, Path), ExportQuery),
     responses(
         (status = 200, description = "ONNX model", content_type = "application/octet-stream",
          body = Vec<u8>),
-        (status = 400, description = "Unknown format (`unsupported_format`)", body = ErrorBody),
+        (status = 400, description = "Unknown format", body = ErrorBody),
         (status = 404, body = ErrorBody),
     ))]
 async fn export_policy(
     State(state): State<AppState>,
     Path(id): Path<String>,
-    Query(query): Query<ExportFormat>,
+    Query(query): Query<ExportQuery>,
 ) -> Result<Response, ApiError> {
-    match query.format.as_deref().unwrap_or("onnx") {
-        "onnx" => {}
-        other => {
-            return Err(ApiError::bad_request(
-                "unsupported_format",
-                format!("unknown export format {other:?}; formats: onnx"),
-            ))
-        }
-    }
+    let ExportFormat::Onnx = query.format.unwrap_or(ExportFormat::Onnx);
     let model = crate::serving::onnx_model(&state.store, &id).await?;
     let disposition = format!("attachment; filename=\"policy-{id}.onnx\"");
     Ok((
