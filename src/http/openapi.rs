@@ -75,7 +75,12 @@ fn operations(item: &mut PathItem) -> impl Iterator<Item = &mut Operation> {
 }
 
 fn is_api_path(path: &str) -> bool {
-    ["/v1/", "/v2/"].iter().any(|prefix| path.starts_with(prefix))
+    path == "/v2" || ["/v1/", "/v2/"].iter().any(|prefix| path.starts_with(prefix))
+}
+
+/// The Open Inference Protocol's routes answer errors in its own shape (`V2Error`).
+fn is_v2_path(path: &str) -> bool {
+    path == "/v2" || path.starts_with("/v2/")
 }
 
 /// Marks every operation under `/v1` and `/v2` as needing the bearer token, mirroring
@@ -85,16 +90,19 @@ pub fn secure_api_routes(doc: &mut OpenApiDoc) {
         if !is_api_path(path) {
             continue;
         }
+        let v2 = is_v2_path(path);
         for operation in operations(item) {
             operation.security =
                 Some(vec![SecurityRequirement::new(SECURITY_SCHEME, Vec::<String>::new())]);
             add_error(
                 operation,
+                v2,
                 401,
                 "No bearer token, or not one of this server's (`unauthorized`)",
             );
             add_error(
                 operation,
+                v2,
                 403,
                 "The inference token on a route other than the action endpoints (`forbidden`)",
             );
@@ -116,21 +124,26 @@ pub fn open_api_routes(doc: &mut OpenApiDoc) {
 /// (400); a write refused because the disk is full (507); and the request deadline (503).
 pub fn document_shared_errors(doc: &mut OpenApiDoc) {
     for (path, item) in doc.paths.paths.iter_mut() {
-        let api = is_api_path(path);
+        let (api, v2) = (is_api_path(path), is_v2_path(path));
         for operation in operations(item) {
             let takes_json = operation.request_body.as_ref().is_some_and(|body| {
                 body.content.keys().any(|content_type| content_type == "application/json")
             });
             if takes_json {
-                add_error(operation, 400, "The body is not valid JSON (`bad_request`)");
-                add_error(operation, 413, "The body exceeds 2 MiB (`payload_too_large`)");
+                add_error(operation, v2, 400, "The body is not valid JSON (`bad_request`)");
+                add_error(operation, v2, 413, "The body exceeds 2 MiB (`payload_too_large`)");
+                // The inference protocol reads its body whatever content type is declared.
+                if !v2 {
+                    add_error(
+                        operation,
+                        v2,
+                        415,
+                        "The body is not sent as `application/json` (`unsupported_media_type`)",
+                    );
+                }
                 add_error(
                     operation,
-                    415,
-                    "The body is not sent as `application/json` (`unsupported_media_type`)",
-                );
-                add_error(
-                    operation,
+                    v2,
                     422,
                     "The body does not fit the schema: a missing or unknown field, a value of \
                      the wrong type or out of range (`invalid_body`)",
@@ -140,6 +153,7 @@ pub fn document_shared_errors(doc: &mut OpenApiDoc) {
             if has_params {
                 add_error(
                     operation,
+                    v2,
                     400,
                     "A path or query parameter does not parse or is out of range \
                      (`bad_request`, `invalid_pagination`, ...)",
@@ -148,6 +162,7 @@ pub fn document_shared_errors(doc: &mut OpenApiDoc) {
             if api {
                 add_error(
                     operation,
+                    v2,
                     503,
                     "The service cannot answer now: the database stayed locked by other \
                      writes (`database_busy`; nothing was changed), the request took longer \
@@ -160,6 +175,7 @@ pub fn document_shared_errors(doc: &mut OpenApiDoc) {
             for write in [&mut item.post, &mut item.delete].into_iter().flatten() {
                 add_error(
                     write,
+                    v2,
                     507,
                     "The server's disk is full (`insufficient_storage`); nothing was stored",
                 );
@@ -168,16 +184,17 @@ pub fn document_shared_errors(doc: &mut OpenApiDoc) {
     }
 }
 
-/// Adds an error answer with the shared error body, unless the operation documents that status
-/// already (its own description is more specific).
-fn add_error(operation: &mut Operation, status: u16, description: &str) {
+/// Adds an error answer with the shared error body (the inference protocol's on `/v2`), unless
+/// the operation documents that status already (its own description is more specific).
+fn add_error(operation: &mut Operation, v2: bool, status: u16, description: &str) {
+    let schema = if v2 { "V2Error" } else { "ErrorBody" };
     let responses = &mut operation.responses.responses;
     responses.entry(status.to_string()).or_insert_with(|| {
         ResponseBuilder::new()
             .description(description)
             .content(
                 "application/json",
-                ContentBuilder::new().schema(Some(Ref::from_schema_name("ErrorBody"))).build(),
+                ContentBuilder::new().schema(Some(Ref::from_schema_name(schema))).build(),
             )
             .build()
             .into()
