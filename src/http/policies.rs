@@ -160,7 +160,14 @@ async fn policy_weights(
     let weights = crate::serving::portable_weights(&state.store, &id).await?;
     let spec = HeaderValue::from_str(&spec)
         .map_err(|e| ApiError::Internal(anyhow::anyhow!("policy {id}: spec header: {e}")))?;
-    let disposition = format!("attachment; filename=\"policy-{id}.safetensors\"");
+    let mut response = attachment(&format!("policy-{id}.safetensors"), weights)?;
+    response.headers_mut().insert(SPEC_HEADER, spec);
+    Ok(response)
+}
+
+/// A file download: `bytes` as `application/octet-stream` saved as `file_name`.
+fn attachment(file_name: &str, bytes: Vec<u8>) -> Result<Response, ApiError> {
+    let disposition = format!("attachment; filename=\"{file_name}\"");
     Ok((
         [
             (header::CONTENT_TYPE, HeaderValue::from_static("application/octet-stream")),
@@ -168,9 +175,8 @@ async fn policy_weights(
                 header::CONTENT_DISPOSITION,
                 HeaderValue::from_str(&disposition).map_err(anyhow::Error::from)?,
             ),
-            (SPEC_HEADER, spec),
         ],
-        weights,
+        bytes,
     )
         .into_response())
 }
@@ -210,18 +216,7 @@ async fn export_policy(
 ) -> Result<Response, ApiError> {
     let ExportFormat::Onnx = query.format.unwrap_or(ExportFormat::Onnx);
     let model = crate::serving::onnx_model(&state.store, &id).await?;
-    let disposition = format!("attachment; filename=\"policy-{id}.onnx\"");
-    Ok((
-        [
-            (header::CONTENT_TYPE, HeaderValue::from_static("application/octet-stream")),
-            (
-                header::CONTENT_DISPOSITION,
-                HeaderValue::from_str(&disposition).map_err(anyhow::Error::from)?,
-            ),
-        ],
-        model,
-    )
-        .into_response())
+    attachment(&format!("policy-{id}.onnx"), model)
 }
 
 /// Actions for a batch of observations. Callable with the inference token.
