@@ -3,13 +3,14 @@
 
 use std::collections::HashMap;
 
-use candle_core::{DType, Device, Result, Tensor, D};
+use candle_core::{Device, Result, Tensor, D};
 use rand::Rng;
 use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
 use serde::{Deserialize, Serialize};
 
 use super::columns::{from_unit_box, ActionColumn, ObsNormalizer};
+use super::fused_mlp::{FusedMlp, Workspace};
 use super::mlp::Mlp;
 use super::{Algorithm, TrainError};
 use crate::data::{ActionSpace, Actions};
@@ -69,29 +70,6 @@ impl PolicyNet {
     /// Action probabilities `B × n` (discrete policies).
     pub fn probabilities(&self, obs: &Tensor) -> Result<Tensor> {
         candle_nn::ops::softmax(&self.mlp.forward(obs)?, D::Minus1)
-    }
-
-    /// Unit-box actions (`B × dim`, host) of a continuous policy: `tanh(mean)` or a sample.
-    fn continuous_actions(
-        &self,
-        obs: &Tensor,
-        deterministic: bool,
-        rng: &mut ChaCha8Rng,
-    ) -> Result<Vec<f32>> {
-        let (mean, log_std) = self.gaussian(obs)?;
-        let mean = mean.flatten_all()?.to_vec1::<f32>()?;
-        if deterministic {
-            return Ok(mean.iter().map(|m| m.tanh()).collect());
-        }
-        let std = log_std.exp()?.flatten_all()?.to_vec1::<f32>()?;
-        Ok(mean
-            .iter()
-            .zip(&std)
-            .map(|(m, s)| {
-                let z: f32 = rng.sample(StandardNormal);
-                (m + s * z).tanh()
-            })
-            .collect())
     }
 }
 
@@ -209,10 +187,15 @@ pub fn portable_file(
 }
 
 /// A loaded policy; Send + Sync so concurrent requests share one.
+///
+/// Inference runs on the fused CPU engine's forward pass ([`FusedMlp`]: one GEMM per layer into
+/// buffers sized for the request) rather than candle's: a deployed agent sends one observation
+/// at a time, and for one row candle's per-op dispatch and allocations cost more than the
+/// arithmetic (bench/act_latency.sh).
 pub struct Policy {
     spec: PolicySpec,
-    nets: Vec<PolicyNet>,
-    device: Device,
+    /// π (`policy.*`), then π^N (`policy_n.*`) for [`Decoder::Dexperts`].
+    nets: Vec<FusedMlp>,
 }
 
 impl Policy {
@@ -243,10 +226,10 @@ impl Policy {
                     &mut rng,
                 )?;
                 net.mlp.load(&tensors)?;
-                Ok(net)
+                net.mlp.to_fused()
             })
             .collect::<Result<Vec<_>>>()?;
-        Ok(Policy { spec: spec.clone(), nets, device })
+        Ok(Policy { spec: spec.clone(), nets })
     }
 
     /// A policy as the store keeps it: the spec as JSON beside the safetensors weights.
@@ -285,10 +268,10 @@ impl Policy {
         Policy::from_portable(&bytes)
     }
 
-    /// A policy over networks already in memory (e.g. a trainer's), on their device.
-    pub fn from_nets(spec: PolicySpec, nets: Vec<PolicyNet>) -> Policy {
-        let device = nets[0].mlp.named_vars()[0].1.device().clone();
-        Policy { spec, nets, device }
+    /// A policy from networks in memory (e.g. a trainer's): a copy of their current weights.
+    pub fn from_nets(spec: PolicySpec, nets: &[PolicyNet]) -> Result<Policy> {
+        let nets = nets.iter().map(|n| n.mlp.to_fused()).collect::<Result<_>>()?;
+        Ok(Policy { spec, nets })
     }
 
     pub fn spec(&self) -> &PolicySpec {
@@ -316,35 +299,77 @@ impl Policy {
         if let Some(norm) = &self.spec.observation_normalization {
             norm.apply(&mut obs);
         }
-        let obs = Tensor::from_vec(obs, (rows, dim), &self.device)?;
         match &self.spec.action_space {
             ActionSpace::Continuous { low, high, .. } => {
-                let unit = self.nets[0].continuous_actions(&obs, deterministic, rng)?;
-                let width = low.len();
-                Ok(Actions::Continuous(
-                    unit.iter()
-                        .enumerate()
-                        .map(|(i, &a)| from_unit_box(a, low[i % width], high[i % width]))
-                        .collect(),
-                ))
+                let out = self.forward(&self.nets[0], &obs, rows);
+                Ok(Actions::Continuous(squashed_actions(&out, low, high, deterministic, rng)))
             }
             ActionSpace::Discrete { n } => {
-                let probs = self.discrete_probabilities(&obs)?;
-                let picks = probs.chunks_exact(*n).map(|p| pick(p, deterministic, rng)).collect();
+                let scores = self.discrete_scores(&obs, rows);
+                let picks = scores.chunks_exact(*n).map(|p| pick(p, deterministic, rng)).collect();
                 Ok(Actions::Discrete(picks))
             }
         }
     }
 
-    /// Row-major `B × n` action scores: probabilities (Single) or Eq. 44's `π^U − α π^N`.
-    fn discrete_probabilities(&self, obs: &Tensor) -> Result<Vec<f32>> {
-        let p_u = self.nets[0].probabilities(obs)?;
-        let scores = match self.spec.decoder {
-            Decoder::Single => p_u,
-            Decoder::Dexperts { alpha } => (p_u - (self.nets[1].probabilities(obs)? * alpha)?)?,
-        };
-        scores.to_dtype(DType::F32)?.flatten_all()?.to_vec1::<f32>()
+    /// `net`'s outputs (`rows × out`, row-major) on normalised observations.
+    fn forward(&self, net: &FusedMlp, obs: &[f32], rows: usize) -> Vec<f32> {
+        let mut ws = Workspace::for_inference(net.shape(), rows);
+        ws.input_mut()[..obs.len()].copy_from_slice(obs);
+        net.forward(&mut ws, rows);
+        ws.output()[..rows * net.shape().output()].to_vec()
     }
+
+    /// Row-major `B × n` action scores: probabilities (Single) or Eq. 44's `π^U − α π^N`.
+    fn discrete_scores(&self, obs: &[f32], rows: usize) -> Vec<f32> {
+        let mut p_u = softmax_rows(self.forward(&self.nets[0], obs, rows), rows);
+        if let Decoder::Dexperts { alpha } = self.spec.decoder {
+            let p_n = softmax_rows(self.forward(&self.nets[1], obs, rows), rows);
+            let alpha = alpha as f32;
+            p_u.iter_mut().zip(&p_n).for_each(|(u, n)| *u -= alpha * n);
+        }
+        p_u
+    }
+}
+
+/// Actions in the box `[low, high]` from `[mean | log_std]` rows: `tanh` of the clipped mean
+/// (deterministic) or of a sample `mean + std·z`, drawn row-major from `rng`, rescaled.
+fn squashed_actions(
+    out: &[f32],
+    low: &[f32],
+    high: &[f32],
+    deterministic: bool,
+    rng: &mut ChaCha8Rng,
+) -> Vec<f32> {
+    let width = low.len();
+    let mut actions = Vec::with_capacity(out.len() / 2);
+    for row in out.chunks_exact(2 * width) {
+        let (mean, log_std) = row.split_at(width);
+        for j in 0..width {
+            let m = mean[j].clamp(-MEAN_CLIP as f32, MEAN_CLIP as f32);
+            let u = if deterministic {
+                m
+            } else {
+                let std = log_std[j].clamp(LOG_STD_MIN as f32, LOG_STD_MAX as f32).exp();
+                let z: f32 = rng.sample(StandardNormal);
+                m + std * z
+            };
+            actions.push(from_unit_box(u.tanh(), low[j], high[j]));
+        }
+    }
+    actions
+}
+
+/// Softmax of each of the `rows` rows of `logits`, in place (max subtracted first).
+fn softmax_rows(mut logits: Vec<f32>, rows: usize) -> Vec<f32> {
+    let n = logits.len() / rows.max(1);
+    for row in logits.chunks_exact_mut(n.max(1)) {
+        let max = row.iter().copied().fold(f32::NEG_INFINITY, f32::max);
+        row.iter_mut().for_each(|v| *v = (*v - max).exp());
+        let sum: f32 = row.iter().sum();
+        row.iter_mut().for_each(|v| *v /= sum);
+    }
+    logits
 }
 
 /// argmax, or a sample from the positive part of `scores` renormalised (argmax if none is
@@ -488,7 +513,7 @@ mod tests {
             let (portable, read_back) = Policy::from_portable(&file).unwrap();
             assert_eq!(read_back, metadata);
             assert!(Policy::from_portable(&artifact.weights).is_err(), "no metadata, no policy");
-            let original = Policy::from_nets(spec, nets);
+            let original = Policy::from_nets(spec, &nets).unwrap();
             for deterministic in [true, false] {
                 let mut r1 = rand::SeedableRng::seed_from_u64(9);
                 let mut r2 = rand::SeedableRng::seed_from_u64(9);
@@ -502,6 +527,55 @@ mod tests {
                         .chunks(2)
                         .all(|r| (-2.0..=2.0).contains(&r[0]) && (0.0..=10.0).contains(&r[1])));
                 }
+            }
+        }
+    }
+
+    /// Inference (the fused engine) computes what the training networks (candle) define: the
+    /// deterministic action `tanh(clip(mean))` and the action probabilities, on random inputs.
+    #[test]
+    fn inference_matches_the_candle_networks() {
+        let mut rng: ChaCha8Rng = rand::SeedableRng::seed_from_u64(4);
+        let rows = 5;
+        let obs: Vec<f32> = (0..rows * 6).map(|_| rng.random_range(-3.0..3.0)).collect();
+        let input = Tensor::from_vec(obs.clone(), (rows, 6), &Device::Cpu).unwrap();
+        let spaces = [
+            ActionSpace::Continuous { dim: 2, low: vec![-1.0, -1.0], high: vec![1.0, 1.0] },
+            ActionSpace::Discrete { n: 4 },
+        ];
+        for space in spaces {
+            let net =
+                PolicyNet::new("policy", 6, &[16, 16], &space, &Device::Cpu, &mut rng).unwrap();
+            let spec = PolicySpec {
+                format_version: POLICY_FORMAT_VERSION,
+                algorithm: Algorithm::Bc,
+                obs_dim: 6,
+                action_space: space.clone(),
+                hidden_sizes: vec![16, 16],
+                observation_normalization: None,
+                decoder: Decoder::Single,
+            };
+            let policy = Policy::from_nets(spec, std::slice::from_ref(&net)).unwrap();
+            let (want, got): (Vec<f32>, Vec<f32>) = match space {
+                ActionSpace::Continuous { .. } => {
+                    let (mean, _) = net.gaussian(&input).unwrap();
+                    let want = mean.tanh().unwrap().flatten_all().unwrap().to_vec1().unwrap();
+                    let Actions::Continuous(got) = policy.act(&obs, true, &mut rng).unwrap() else {
+                        panic!("continuous actions expected")
+                    };
+                    (want, got)
+                }
+                ActionSpace::Discrete { .. } => {
+                    let p = net.probabilities(&input).unwrap();
+                    (
+                        p.flatten_all().unwrap().to_vec1().unwrap(),
+                        policy.discrete_scores(&obs, rows),
+                    )
+                }
+            };
+            assert_eq!(want.len(), got.len());
+            for (w, g) in want.iter().zip(&got) {
+                assert!((w - g).abs() < 1e-5, "{w} vs {g}");
             }
         }
     }
