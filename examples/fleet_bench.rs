@@ -263,6 +263,7 @@ async fn claim_latencies(
             config: ResolvedConfig::preset(Algorithm::Bc, Preset::Service),
             runner: RunnerOptions::default(),
             eval: None,
+            labels: Default::default(),
         };
         store.insert_job(&job).await?;
     }

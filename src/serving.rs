@@ -45,6 +45,12 @@ impl PolicyCache {
         // Two first requests may both load it; every later one shares the first stored.
         Ok(loaded.entry(id.to_owned()).or_insert_with(|| Arc::new(policy)).clone())
     }
+
+    /// Drops a deleted policy, so this process stops serving it. (Other API processes of a
+    /// fleet keep their loaded copy until they restart: see docs/fleet.md.)
+    pub fn forget(&self, id: &str) {
+        self.loaded.write().expect("policy cache lock").remove(id);
+    }
 }
 
 /// The policy's portable file: its weights with the spec and its training run (resolved

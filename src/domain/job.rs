@@ -4,7 +4,7 @@ use chrono::{DateTime, Utc};
 use serde::{Deserialize, Serialize};
 use utoipa::ToSchema;
 
-use super::{DatasetId, EvalOptions, JobId, JobProgress, PolicyId, RunnerOptions};
+use super::{DatasetId, EvalOptions, JobId, JobLabels, JobProgress, PolicyId, RunnerOptions};
 use crate::algo::{Algorithm, ResolvedConfig};
 
 /// A job's lifecycle: `queued` → `running` → `succeeded` | `failed` | `cancelled` (a running job
@@ -75,6 +75,8 @@ pub struct JobRecord {
     pub config: ResolvedConfig,
     pub runner: RunnerOptions,
     pub eval: Option<EvalOptions>,
+    /// Name, tags and notes.
+    pub labels: JobLabels,
     /// Steps done, every phase counted.
     pub step: u64,
     pub total_steps: u64,

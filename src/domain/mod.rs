@@ -6,6 +6,7 @@
 pub mod evaluation;
 pub mod ids;
 pub mod job;
+pub mod labels;
 pub mod options;
 pub mod policy;
 pub mod progress;
@@ -13,6 +14,7 @@ pub mod progress;
 pub use evaluation::{EvaluationRecord, EvaluationStatus};
 pub use ids::{DatasetId, EvaluationId, JobId, PolicyId};
 pub use job::{JobRecord, JobStatus};
+pub use labels::JobLabels;
 pub use options::{EvalOptions, EvalSpec, RunnerOptions};
 pub use policy::PolicyRecord;
 pub use progress::JobProgress;

@@ -227,6 +227,9 @@ impl From<crate::jobs::SubmitError> for ApiError {
                 ApiError::unprocessable("invalid_config", message)
             }
             SubmitError::TooLarge(message) => ApiError::unprocessable("job_too_large", message),
+            SubmitError::InvalidLabels(message) => {
+                ApiError::unprocessable("invalid_labels", message)
+            }
             SubmitError::Store(e) => e.into(),
         }
     }

@@ -17,6 +17,7 @@ use super::{ApiError, AppState};
 use crate::domain::{rfc3339, EvalSpec, EvaluationId, EvaluationRecord, EvaluationStatus};
 use crate::envs::{self, Metrics, ReferenceStats};
 use crate::store::evaluations::NewEvaluation;
+use crate::store::DeleteOutcome;
 
 /// A policy's evaluation on a built-in environment.
 #[derive(Debug, Serialize, ToSchema)]
@@ -81,7 +82,7 @@ pub fn router() -> OpenApiRouter<AppState> {
     OpenApiRouter::new()
         .routes(routes!(evaluate_policy))
         .routes(routes!(list_evaluations))
-        .routes(routes!(get_evaluation))
+        .routes(routes!(get_evaluation, delete_evaluation))
 }
 
 /// Evaluate a policy on a built-in environment with the paper's metrics, in the background.
@@ -141,4 +142,27 @@ async fn get_evaluation(
     Path(id): Path<String>,
 ) -> Result<Json<Evaluation>, ApiError> {
     Ok(Json(state.store.evaluation(&id).await?.into()))
+}
+
+/// Delete a finished evaluation.
+#[utoipa::path(delete, path = "/v1/evaluations/{id}", tag = "evaluations",
+    params(("id" = String, Path)),
+    responses(
+        (status = 204, description = "Deleted"),
+        (status = 404, body = ErrorBody),
+        (status = 409, description = "Still queued or running (`evaluation_active`)",
+            body = ErrorBody),
+    ))]
+async fn delete_evaluation(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+) -> Result<StatusCode, ApiError> {
+    match state.store.delete_evaluation(&id).await? {
+        DeleteOutcome::Deleted => Ok(StatusCode::NO_CONTENT),
+        DeleteOutcome::NotFound => Err(ApiError::not_found("evaluation", &id)),
+        DeleteOutcome::InUse(_) => Err(ApiError::conflict(
+            "evaluation_active",
+            format!("evaluation {id} is queued or running; delete it once it has finished"),
+        )),
+    }
 }

@@ -20,9 +20,12 @@ use super::extract::{Json, Path, Query};
 use super::pagination::{Page, PageParams};
 use super::{ApiError, AppState};
 use crate::algo::Algorithm;
-use crate::domain::{rfc3339, EvalOptions, JobProgress, JobRecord, JobStatus, RunnerOptions};
+use crate::domain::{
+    rfc3339, EvalOptions, JobLabels, JobProgress, JobRecord, JobStatus, RunnerOptions,
+};
 use crate::jobs::{JobEvent, JobRequest};
-use crate::store::jobs::{CancelOutcome, MetricRow};
+use crate::store::jobs::{CancelOutcome, DeleteJobOutcome, JobQuery, MetricRow};
+use crate::store::logs::LogRow;
 use crate::store::{Store, StoreError};
 
 /// `POST /v1/jobs` body.
@@ -62,12 +65,49 @@ pub struct CreateJob {
     /// evaluation). The environment's spaces must match the datasets'.
     #[schema(value_type = Option<EvalOptions>)]
     pub eval: Option<serde_json::Value>,
+    /// A name for people, at most 200 characters (the dashboard shows it instead of the id).
+    pub name: Option<String>,
+    /// Up to 32 tags of 1-64 characters from letters, digits and `- _ . : / =`, e.g.
+    /// `env=point-goal`; `GET /v1/jobs?tag=` filters by one.
+    #[serde(default)]
+    pub tags: Vec<String>,
+    /// Free text, at most 10,000 characters.
+    pub notes: Option<String>,
+}
+
+/// `PATCH /v1/jobs/{id}` body (JSON merge patch): a key present replaces the field (`null`
+/// clears it), a key absent keeps it. Any status: the labels never change what a job computes.
+#[derive(Debug, Deserialize, ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct UpdateJob {
+    #[serde(default, deserialize_with = "present")]
+    #[schema(value_type = Option<String>)]
+    pub name: Option<Option<String>>,
+    #[serde(default, deserialize_with = "present")]
+    #[schema(value_type = Option<Vec<String>>)]
+    pub tags: Option<Option<Vec<String>>>,
+    #[serde(default, deserialize_with = "present")]
+    #[schema(value_type = Option<String>)]
+    pub notes: Option<Option<String>>,
+}
+
+/// A key that is present: `Some(value)`, `Some(None)` for `null` (absent keys stay `None`).
+fn present<'de, D, T>(deserializer: D) -> Result<Option<Option<T>>, D::Error>
+where
+    D: serde::Deserializer<'de>,
+    T: Deserialize<'de>,
+{
+    Option::<T>::deserialize(deserializer).map(Some)
 }
 
 /// A training job.
 #[derive(Debug, Serialize, ToSchema)]
 pub struct Job {
     pub id: String,
+    /// The name given at creation or by `PATCH` (absent: none).
+    pub name: Option<String>,
+    pub tags: Vec<String>,
+    pub notes: Option<String>,
     pub algorithm: Algorithm,
     pub status: JobStatus,
     pub unlabeled_dataset: String,
@@ -101,6 +141,9 @@ impl From<JobRecord> for Job {
         let progress = job.progress();
         Job {
             id: job.id.into_string(),
+            name: job.labels.name,
+            tags: job.labels.tags,
+            notes: job.labels.notes,
             algorithm: job.algorithm,
             status: job.status,
             unlabeled_dataset: job.unlabeled_dataset.into_string(),
@@ -122,12 +165,32 @@ impl From<JobRecord> for Job {
     }
 }
 
-/// `?status=&limit=&offset=`
+/// `?status=&tag=&q=`
 #[derive(Debug, Deserialize, IntoParams)]
 #[into_params(parameter_in = Query)]
 pub struct JobFilter {
     /// Only jobs in this status.
     pub status: Option<JobStatus>,
+    /// Only jobs with this tag.
+    #[param(pattern = r"^[A-Za-z0-9_.:/=-]{1,64}$", min_length = 1, max_length = 64)]
+    pub tag: Option<String>,
+    /// Only jobs whose name contains this text (any case) or whose id starts with it.
+    #[param(max_length = 200)]
+    pub q: Option<String>,
+}
+
+impl JobFilter {
+    fn query(self) -> Result<JobQuery, ApiError> {
+        if let Some(tag) = &self.tag {
+            crate::domain::labels::check_tag(tag)
+                .map_err(|e| ApiError::bad_request("invalid_filter", e))?;
+        }
+        let search = self.q.map(|q| q.trim().to_owned()).filter(|q| !q.is_empty());
+        if search.as_ref().is_some_and(|q| q.chars().count() > 200) {
+            return Err(ApiError::bad_request("invalid_filter", "q: at most 200 characters"));
+        }
+        Ok(JobQuery { status: self.status, tag: self.tag, search })
+    }
 }
 
 /// `?names=&max_points=`
@@ -172,14 +235,16 @@ const CANCEL_WAIT: Duration = Duration::from_secs(3);
 pub fn router() -> OpenApiRouter<AppState> {
     OpenApiRouter::new()
         .routes(routes!(create_job, list_jobs))
-        .routes(routes!(get_job))
+        .routes(routes!(get_job, update_job, delete_job))
         .routes(routes!(cancel_job))
         .routes(routes!(job_metrics))
+        .routes(routes!(job_metrics_csv))
+        .routes(routes!(job_metric_names))
 }
 
 /// Routes that stay open for long (exempt from the request timeout).
 pub fn streams() -> OpenApiRouter<AppState> {
-    OpenApiRouter::new().routes(routes!(job_events))
+    OpenApiRouter::new().routes(routes!(job_events)).routes(routes!(job_log))
 }
 
 /// Queue a training job.
@@ -203,6 +268,7 @@ async fn create_job(
         config: request.config,
         runner: request.runner,
         eval: request.eval,
+        labels: JobLabels { name: request.name, tags: request.tags, notes: request.notes },
     };
     let job = crate::jobs::submit(&state.store, request, state.config.max_job_memory).await?;
     state.jobs.wake();
@@ -210,11 +276,11 @@ async fn create_job(
     Ok((StatusCode::CREATED, [(header::LOCATION, location)], Json(Job::from(job))))
 }
 
-/// List jobs, newest first.
+/// List jobs, newest first; filtered by status, tag, or a text in the name or the id's start.
 #[utoipa::path(get, path = "/v1/jobs", tag = "jobs", params(JobFilter, PageParams),
     responses(
         (status = 200, body = Page<Job>),
-        (status = 400, description = "Bad status or pagination", body = ErrorBody),
+        (status = 400, description = "Bad status, tag, q or pagination", body = ErrorBody),
     ))]
 async fn list_jobs(
     State(state): State<AppState>,
@@ -222,7 +288,8 @@ async fn list_jobs(
     Query(page): Query<PageParams>,
 ) -> Result<Json<Page<Job>>, ApiError> {
     let page = page.validate()?;
-    let (records, total) = state.store.list_jobs(filter.status, page.limit, page.offset).await?;
+    let query = filter.query()?;
+    let (records, total) = state.store.list_jobs(&query, page.limit, page.offset).await?;
     let jobs = records.into_iter().map(Job::from).collect();
     Ok(Json(Page::new(jobs, total, page)))
 }
@@ -235,6 +302,69 @@ async fn get_job(
     Path(id): Path<String>,
 ) -> Result<Json<Job>, ApiError> {
     Ok(Json(state.store.job(&id).await?.into()))
+}
+
+/// Rename, retag or annotate a job (JSON merge patch of `name`, `tags`, `notes`).
+#[utoipa::path(patch, path = "/v1/jobs/{id}", tag = "jobs", params(("id" = String, Path)),
+    request_body = UpdateJob,
+    responses(
+        (status = 200, body = Job),
+        (status = 404, body = ErrorBody),
+        (status = 422, description = "A name, tag or notes that break their rules \
+            (`invalid_labels`), or a malformed body (`invalid_body`)", body = ErrorBody),
+    ))]
+async fn update_job(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+    Json(patch): Json<UpdateJob>,
+) -> Result<Json<Job>, ApiError> {
+    let job = state.store.job(&id).await?;
+    let labels = JobLabels {
+        name: patch.name.unwrap_or(job.labels.name),
+        tags: patch.tags.map(Option::unwrap_or_default).unwrap_or(job.labels.tags),
+        notes: patch.notes.unwrap_or(job.labels.notes),
+    }
+    .validated()
+    .map_err(|e| ApiError::unprocessable("invalid_labels", e))?;
+    Ok(Json(state.store.update_job_labels(&id, &labels).await?.into()))
+}
+
+/// Delete a finished job: its metrics, checkpoint and log, and its policy with that policy's
+/// evaluations (download the policy first to keep it). Refused while the job is queued or
+/// running (cancel it first) or while an evaluation of its policy is.
+#[utoipa::path(delete, path = "/v1/jobs/{id}", tag = "jobs", params(("id" = String, Path)),
+    responses(
+        (status = 204, description = "Deleted"),
+        (status = 404, body = ErrorBody),
+        (status = 409, description = "The job is queued or running (`job_active`), or an \
+            evaluation of its policy is (`policy_in_use`)", body = ErrorBody),
+    ))]
+async fn delete_job(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+) -> Result<StatusCode, ApiError> {
+    match state.store.delete_job(&id).await? {
+        DeleteJobOutcome::Deleted { policy } => {
+            if let Some(policy) = policy {
+                state.policies.forget(&policy);
+            }
+            tracing::info!(job_id = %id, "job deleted");
+            Ok(StatusCode::NO_CONTENT)
+        }
+        DeleteJobOutcome::NotFound => Err(ApiError::not_found("job", &id)),
+        DeleteJobOutcome::Active(status) => Err(ApiError::conflict(
+            "job_active",
+            format!("job {id} is {status}; cancel it (POST /v1/jobs/{id}/cancel), then delete it"),
+        )),
+        DeleteJobOutcome::PolicyInUse(evaluations) => Err(ApiError::conflict(
+            "policy_in_use",
+            format!(
+                "the policy of job {id} has queued or running evaluation(s) {}; wait for them, \
+                 then delete the job",
+                evaluations.join(", ")
+            ),
+        )),
+    }
 }
 
 /// Cancel a job. A queued job is cancelled at once; a running one stops at its next step
@@ -299,13 +429,193 @@ async fn job_metrics(
             format!("max_points must be between 2 and {MAX_POINTS_LIMIT}, got {max_points}"),
         ));
     }
-    let names: Option<Vec<String>> = params.names.as_deref().map(|names| {
-        names.split(',').map(str::trim).filter(|n| !n.is_empty()).map(str::to_owned).collect()
-    });
+    let names = metric_names_param(params.names.as_deref());
     state.store.job(&id).await?;
     let rows = state.store.job_metrics(&id, names.as_deref()).await?;
     let (rows, downsampled) = downsample(rows, max_points);
     Ok(Json(JobMetrics { job_id: id, downsampled, rows }))
+}
+
+fn metric_names_param(names: Option<&str>) -> Option<Vec<String>> {
+    names.map(|names| {
+        names.split(',').map(str::trim).filter(|n| !n.is_empty()).map(str::to_owned).collect()
+    })
+}
+
+/// `?names=`
+#[derive(Debug, Deserialize, IntoParams)]
+#[into_params(parameter_in = Query)]
+pub struct CsvParams {
+    /// Comma-separated metric names (default: every metric of the job).
+    pub names: Option<String>,
+}
+
+/// A job's whole metrics history as CSV (`name,step,value,time`, every recorded point, ordered
+/// by name then step), as a file download.
+#[utoipa::path(get, path = "/v1/jobs/{id}/metrics.csv", tag = "jobs",
+    params(("id" = String, Path), CsvParams),
+    responses(
+        (status = 200, description = "CSV with a header line", content_type = "text/csv",
+            body = String),
+        (status = 404, body = ErrorBody),
+    ))]
+async fn job_metrics_csv(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+    Query(params): Query<CsvParams>,
+) -> Result<impl IntoResponse, ApiError> {
+    let names = metric_names_param(params.names.as_deref());
+    state.store.job(&id).await?;
+    let rows = state.store.job_metrics(&id, names.as_deref()).await?;
+    let mut csv = String::from("name,step,value,time\n");
+    for row in &rows {
+        // Metric names are identifiers (letters, digits, `_`, `/`): no quoting needed.
+        csv.push_str(&format!("{},{},{},{}\n", row.name, row.step, row.value, row.time));
+    }
+    let disposition = format!("attachment; filename=\"job-{id}-metrics.csv\"");
+    Ok((
+        [
+            (header::CONTENT_TYPE, "text/csv; charset=utf-8".to_owned()),
+            (header::CONTENT_DISPOSITION, disposition),
+        ],
+        csv,
+    ))
+}
+
+/// One metric a job recorded.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct MetricName {
+    pub name: String,
+    /// Recorded points (before any downsampling).
+    pub points: u64,
+    pub first_step: u64,
+    pub last_step: u64,
+}
+
+/// The names of the metrics a job recorded, with their point counts and step ranges.
+#[utoipa::path(get, path = "/v1/jobs/{id}/metrics/names", tag = "jobs",
+    params(("id" = String, Path)),
+    responses((status = 200, body = Vec<MetricName>), (status = 404, body = ErrorBody)))]
+async fn job_metric_names(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+) -> Result<Json<Vec<MetricName>>, ApiError> {
+    state.store.job(&id).await?;
+    let names = state.store.metric_names(&id).await?;
+    Ok(Json(
+        names
+            .into_iter()
+            .map(|m| MetricName {
+                name: m.name,
+                points: m.points as u64,
+                first_step: m.first_step as u64,
+                last_step: m.last_step as u64,
+            })
+            .collect(),
+    ))
+}
+
+/// `?after=&limit=&follow=`
+#[derive(Debug, Deserialize, IntoParams)]
+#[into_params(parameter_in = Query)]
+pub struct LogParams {
+    /// Only lines after this line number (default 0: from the first line).
+    #[param(minimum = 0)]
+    pub after: Option<u64>,
+    /// Most lines returned, 1 to 1000 (default 1000; without `follow`).
+    #[param(minimum = 1, maximum = 1000, default = 1000)]
+    pub limit: Option<u32>,
+    /// Stream the lines as Server-Sent Events (`event: log`), new ones as they are written,
+    /// until the job has finished and its last line was sent.
+    #[serde(default)]
+    pub follow: bool,
+}
+
+/// A line of a job's log.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct LogLine {
+    /// The line's number in the job's log, from 1.
+    pub seq: u64,
+    /// When it was written (RFC 3339).
+    pub time: String,
+    /// `info`, `warn` or `error`.
+    pub level: String,
+    /// The worker that wrote it.
+    pub worker: String,
+    pub message: String,
+}
+
+impl From<LogRow> for LogLine {
+    fn from(row: LogRow) -> Self {
+        LogLine {
+            seq: row.seq as u64,
+            time: row.time,
+            level: row.level,
+            worker: row.worker,
+            message: row.message,
+        }
+    }
+}
+
+const LOG_LIMIT: u32 = 1000;
+const LOG_POLL: Duration = Duration::from_millis(500);
+
+/// A job's log: what its workers wrote about it (claimed, resumed from a checkpoint, phases,
+/// alpha-hat, evaluations, checkpoints, how it ended, why it failed). JSON lines in order, or
+/// with `follow=true` an event stream that ends when the job has finished.
+#[utoipa::path(get, path = "/v1/jobs/{id}/logs", tag = "jobs",
+    params(("id" = String, Path), LogParams),
+    responses(
+        (status = 200, description = "The lines (JSON), or with `follow=true` `event: log` \
+            events (data: LogLine)", body = Vec<LogLine>),
+        (status = 400, description = "Bad `after` or `limit`", body = ErrorBody),
+        (status = 404, body = ErrorBody),
+    ))]
+async fn job_log(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+    Query(params): Query<LogParams>,
+) -> Result<axum::response::Response, ApiError> {
+    let limit = params.limit.unwrap_or(LOG_LIMIT);
+    if !(1..=LOG_LIMIT).contains(&limit) {
+        return Err(ApiError::bad_request(
+            "invalid_limit",
+            format!("limit must be between 1 and {LOG_LIMIT}, got {limit}"),
+        ));
+    }
+    let after = i64::try_from(params.after.unwrap_or(0))
+        .map_err(|_| ApiError::bad_request("invalid_after", "after must be at most 2^63 - 1"))?;
+    state.store.job(&id).await?;
+    if !params.follow {
+        let rows = state.store.job_log(&id, after, limit).await?;
+        return Ok(Json(rows.into_iter().map(LogLine::from).collect::<Vec<_>>()).into_response());
+    }
+    let lines = futures::stream::unfold(
+        (state.store.clone(), id, after, Vec::<LogRow>::new(), false),
+        |(store, id, mut after, mut pending, mut done)| async move {
+            loop {
+                if let Some(row) = (!pending.is_empty()).then(|| pending.remove(0)) {
+                    after = row.seq;
+                    let event = json_event("log", &LogLine::from(row));
+                    return Some((event, (store, id, after, pending, done)));
+                }
+                if done {
+                    return None;
+                }
+                // Read the status first: lines written before a final status are then all
+                // in the read that follows.
+                let finished = store.job_status(&id).await.map_or(true, JobStatus::is_final);
+                pending = store.job_log(&id, after, LOG_LIMIT).await.ok()?;
+                done = finished && pending.is_empty();
+                if pending.is_empty() && !done {
+                    tokio::time::sleep(LOG_POLL).await;
+                }
+            }
+        },
+    );
+    let stream =
+        lines.take_until(state.shutdown.clone().cancelled_owned()).map(Ok::<_, Infallible>);
+    Ok(Sse::new(stream).keep_alive(KeepAlive::default()).into_response())
 }
 
 /// Per metric (rows come ordered by name, then step): at most `max_points` points. A longer

@@ -1,7 +1,7 @@
 //! `/v1/policies`: the policies trained jobs produced, their artefacts, and actions from them.
 
 use axum::extract::State;
-use axum::http::{header, HeaderName, HeaderValue};
+use axum::http::{header, HeaderName, HeaderValue, StatusCode};
 use axum::response::{IntoResponse, Response};
 use serde::{Deserialize, Serialize};
 use utoipa::{IntoParams, ToSchema};
@@ -16,6 +16,7 @@ use super::{ApiError, AppState};
 use crate::algo::Algorithm;
 use crate::data::Actions;
 use crate::domain::{rfc3339, PolicyRecord};
+use crate::store::DeleteOutcome;
 
 /// Header of `GET /v1/policies/{id}/weights` carrying the policy's spec (JSON), which
 /// `algo::Policy::load` needs beside the weights.
@@ -109,7 +110,7 @@ pub struct ActResponse {
 pub fn router() -> OpenApiRouter<AppState> {
     OpenApiRouter::new()
         .routes(routes!(list_policies))
-        .routes(routes!(get_policy))
+        .routes(routes!(get_policy, delete_policy))
         .routes(routes!(policy_weights))
         .routes(routes!(export_policy))
         .routes(routes!(act))
@@ -128,6 +129,36 @@ async fn list_policies(
         state.store.list_policies(filter.job_id.as_deref(), page.limit, page.offset).await?;
     let items = records.into_iter().map(PolicyResource::from).collect();
     Ok(Json(Page::new(items, total, page)))
+}
+
+/// Delete a policy and its finished evaluations (download it first to keep it); its job stays,
+/// without a policy. Refused while an evaluation of it is queued or running.
+#[utoipa::path(delete, path = "/v1/policies/{id}", tag = "policies", params(("id" = String, Path)),
+    responses(
+        (status = 204, description = "Deleted"),
+        (status = 404, body = ErrorBody),
+        (status = 409, description = "An evaluation of it is queued or running \
+            (`policy_in_use`)", body = ErrorBody),
+    ))]
+async fn delete_policy(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+) -> Result<StatusCode, ApiError> {
+    match state.store.delete_policy(&id).await? {
+        DeleteOutcome::Deleted => {
+            state.policies.forget(&id);
+            Ok(StatusCode::NO_CONTENT)
+        }
+        DeleteOutcome::NotFound => Err(ApiError::not_found("policy", &id)),
+        DeleteOutcome::InUse(evaluations) => Err(ApiError::conflict(
+            "policy_in_use",
+            format!(
+                "policy {id} has queued or running evaluation(s) {}; wait for them, then \
+                 delete it",
+                evaluations.join(", ")
+            ),
+        )),
+    }
 }
 
 /// A trained policy.

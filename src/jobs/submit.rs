@@ -4,7 +4,7 @@
 
 use crate::algo::memory::{estimate_job_memory, DataShape};
 use crate::algo::{self, Algorithm};
-use crate::domain::{DatasetId, EvalOptions, JobId, JobRecord, RunnerOptions};
+use crate::domain::{DatasetId, EvalOptions, JobId, JobLabels, JobRecord, RunnerOptions};
 use crate::store::jobs::NewJob;
 use crate::store::{DatasetRecord, Store, StoreError};
 
@@ -18,6 +18,8 @@ pub struct JobRequest {
     pub config: Option<serde_json::Value>,
     pub runner: Option<serde_json::Value>,
     pub eval: Option<serde_json::Value>,
+    /// Name, tags and notes (checked here).
+    pub labels: JobLabels,
 }
 
 /// Why a job was not queued.
@@ -26,6 +28,9 @@ pub enum SubmitError {
     /// The configuration, the options, or datasets that do not fit them.
     #[error("{0}")]
     InvalidConfig(String),
+    /// A name, tag or notes that break their rules.
+    #[error("{0}")]
+    InvalidLabels(String),
     /// The job's estimated peak memory is above the limit; the message says what to change.
     #[error("{0}")]
     TooLarge(String),
@@ -42,6 +47,7 @@ pub async fn submit(
     request: JobRequest,
     max_job_memory: u64,
 ) -> Result<JobRecord, SubmitError> {
+    let labels = request.labels.validated().map_err(SubmitError::InvalidLabels)?;
     let invalid = SubmitError::InvalidConfig;
     let algorithm = request.algorithm;
     let raw_config = request.config.as_ref().unwrap_or(&serde_json::Value::Null);
@@ -72,6 +78,7 @@ pub async fn submit(
         config,
         runner,
         eval,
+        labels,
     };
     let record = store.insert_job(&job).await?;
     tracing::info!(

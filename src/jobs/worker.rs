@@ -12,10 +12,11 @@ use crate::algo::{self, Policy, Trainer};
 use crate::domain::{JobRecord, JobStatus, PolicyId};
 use crate::store::jobs::{MetricRow, ProgressUpdate};
 use crate::store::leases::LeaseTable;
+use crate::store::logs::LogLevel;
 use crate::store::now;
 use crate::store::policies::NewPolicy;
 use crate::store::storage::{is_io_storage_full, is_storage_full};
-use crate::store::{is_busy, Lease, StoreError};
+use crate::store::{is_busy, Lease, Store, StoreError};
 
 /// How often a running job's progress is written and published (and pending metrics flushed).
 const PROGRESS_INTERVAL: Duration = Duration::from_millis(500);
@@ -101,6 +102,9 @@ async fn run_job(runner: &JobRunner, job: JobRecord, lease: Lease) {
     );
     runner.publish(JobEvent::Status { job_id: id.clone(), status: JobStatus::Running });
     tracing::info!("job started");
+    let log = JobLog::new(runner, &lease);
+    let attempt = if lease.token > 1 { format!(" (claim {})", lease.token) } else { String::new() };
+    log.write(LogLevel::Info, &format!("claimed by worker {}{attempt}", log.worker)).await;
     let run = TrainingRun::new(runner.clone(), Handle::current(), job, lease.clone(), cancel);
     let outcome = match tokio::task::spawn_blocking(move || run.drive()).await {
         Ok(Ok(outcome)) => outcome,
@@ -133,6 +137,8 @@ async fn run_job(runner: &JobRunner, job: JobRecord, lease: Lease) {
         }
         Outcome::Failed(message) => {
             tracing::warn!(error = %message, "job failed");
+            // Refused (and quiet) when the run already finished the job and logged it.
+            log.write(LogLevel::Error, &format!("failed: {message}")).await;
             let store = runner.store();
             match store.finish_job(&lease, JobStatus::Failed, Some(message), &[]).await {
                 Ok(()) => {}
@@ -152,6 +158,30 @@ fn log_lease_lost() {
         "another worker took the job over after this worker's lease expired; this run stops \
          without writing anything more"
     );
+}
+
+/// Writes a job's log lines ([`Store::append_job_log`]) as the worker holding its lease.
+#[derive(Clone)]
+struct JobLog {
+    store: Store,
+    lease: Lease,
+    worker: String,
+}
+
+impl JobLog {
+    fn new(runner: &JobRunner, lease: &Lease) -> Self {
+        let worker = runner.inner.options.worker_id.clone();
+        JobLog { store: runner.store().clone(), lease: lease.clone(), worker }
+    }
+
+    /// Appends a line; a line that cannot be stored never stops the job (a lost lease is seen
+    /// by the next fenced write anyway).
+    async fn write(&self, level: LogLevel, message: &str) {
+        match self.store.append_job_log(&self.lease, &self.worker, level, message).await {
+            Ok(()) | Err(StoreError::LeaseLost(_)) => {}
+            Err(e) => tracing::warn!(error = %e, "cannot write the job's log"),
+        }
+    }
 }
 
 /// When a run records, checkpoints and evaluates.
@@ -187,6 +217,10 @@ struct TrainingRun {
     cancel: Arc<AtomicBool>,
     /// Metrics recorded since the last write.
     pending: Vec<MetricRow>,
+    log: JobLog,
+    /// The phase last written to the log.
+    logged_phase: Option<&'static str>,
+    alpha_logged: bool,
 }
 
 impl TrainingRun {
@@ -197,7 +231,18 @@ impl TrainingRun {
         lease: Lease,
         cancel: Arc<AtomicBool>,
     ) -> Self {
-        TrainingRun { runner, rt, job, lease, cancel, pending: Vec::new() }
+        let log = JobLog::new(&runner, &lease);
+        TrainingRun {
+            runner,
+            rt,
+            job,
+            lease,
+            cancel,
+            pending: Vec::new(),
+            log,
+            logged_phase: None,
+            alpha_logged: false,
+        }
     }
 
     fn drive(mut self) -> anyhow::Result<Outcome> {
@@ -224,6 +269,15 @@ impl TrainingRun {
             };
         if resumed_at > 0 {
             tracing::info!(step = resumed_at, "resuming from checkpoint");
+            self.log(LogLevel::Info, format!("resuming from the checkpoint at step {resumed_at}"));
+        } else {
+            let (u, n) = (&self.job.unlabeled_dataset, self.job.non_preferred_dataset.as_ref());
+            let n = n.map_or(String::new(), |n| format!(", non-preferred dataset {n}"));
+            let total = self.job.total_steps;
+            self.log(
+                LogLevel::Info,
+                format!("training from scratch: {total} steps, unlabeled dataset {u}{n}"),
+            );
         }
         self.report_progress(trainer.as_ref(), None)?;
         self.train(trainer.as_mut(), &schedule)
@@ -235,10 +289,17 @@ impl TrainingRun {
         let mut window = (Instant::now(), trainer.progress().step);
         while !trainer.is_finished() {
             if self.cancel.load(Ordering::Relaxed) {
+                let step = trainer.progress().step;
+                self.log(LogLevel::Info, format!("cancelled at step {step}"));
                 self.finish(JobStatus::Cancelled, None)?;
                 return Ok(Outcome::Cancelled);
             }
             if shutdown.is_cancelled() {
+                let step = trainer.progress().step;
+                self.log(
+                    LogLevel::Info,
+                    format!("the worker shuts down: checkpoint at step {step}, back to the queue"),
+                );
                 self.save_checkpoint(trainer)?;
                 self.rt.block_on(self.runner.store().release_job(&self.lease))?;
                 return Ok(Outcome::Released);
@@ -249,6 +310,7 @@ impl TrainingRun {
                 Ok(scalars) => scalars,
                 Err(e) => {
                     let message = e.to_string();
+                    self.log(LogLevel::Error, format!("failed: {message}"));
                     self.finish(JobStatus::Failed, Some(&message))?;
                     return Ok(Outcome::Failed(message));
                 }
@@ -267,6 +329,7 @@ impl TrainingRun {
                         return Ok(Outcome::Released);
                     }
                     EvalOutcome::Failed(message) => {
+                        self.log(LogLevel::Error, format!("failed: {message}"));
                         self.finish(JobStatus::Failed, Some(&message))?;
                         return Ok(Outcome::Failed(message));
                     }
@@ -310,6 +373,17 @@ impl TrainingRun {
                     seconds = started.elapsed().as_secs_f64(),
                     "evaluated"
                 );
+                self.log(
+                    LogLevel::Info,
+                    format!(
+                        "evaluation at step {step} on {}: normalized return {:.2}, average cost \
+                         {:.3} ({:.1} s)",
+                        eval.env,
+                        m.normalized_return,
+                        m.average_cost,
+                        started.elapsed().as_secs_f64()
+                    ),
+                );
                 self.record(step, &m.named_values());
                 Ok(EvalOutcome::Recorded)
             }
@@ -346,11 +420,35 @@ impl TrainingRun {
         let step = trainer.progress().step;
         self.rt.block_on(self.runner.store().save_checkpoint(&self.lease, step, &bytes, &rows))?;
         tracing::debug!(step, bytes = bytes.len(), "checkpoint saved");
+        self.log(LogLevel::Info, format!("checkpoint at step {step} ({} bytes)", bytes.len()));
         Ok(())
     }
 
+    /// Writes a line to the job's log (from the training thread).
+    fn log(&self, level: LogLevel, message: String) {
+        self.rt.block_on(self.log.write(level, &message));
+    }
+
+    /// Logs the start of each phase and alpha-hat (Eq. 15) once known.
+    fn log_milestones(&mut self, trainer: &dyn Trainer) {
+        let p = trainer.progress();
+        if self.logged_phase != Some(p.phase) {
+            self.logged_phase = Some(p.phase);
+            self.log(LogLevel::Info, format!("phase {} from step {}", p.phase, p.step));
+        }
+        if let Some(alpha) = trainer.alpha_hat().filter(|_| !self.alpha_logged) {
+            self.alpha_logged = true;
+            self.log(LogLevel::Info, format!("alpha-hat (Eq. 15) = {alpha:.4}"));
+        }
+    }
+
     /// Writes and publishes progress; returns whether a cancel was requested in the database.
-    fn report_progress(&self, trainer: &dyn Trainer, speed: Option<f64>) -> anyhow::Result<bool> {
+    fn report_progress(
+        &mut self,
+        trainer: &dyn Trainer,
+        speed: Option<f64>,
+    ) -> anyhow::Result<bool> {
+        self.log_milestones(trainer);
         let p = trainer.progress();
         let update = ProgressUpdate {
             step: p.step,
@@ -374,6 +472,7 @@ impl TrainingRun {
 
     /// Stores the policy and marks the job succeeded.
     fn complete(&mut self, trainer: &dyn Trainer) -> anyhow::Result<()> {
+        self.log_milestones(trainer);
         let artifact = trainer.export_policy()?;
         self.flush_metrics()?;
         let store = self.runner.store().clone();
@@ -396,6 +495,7 @@ impl TrainingRun {
             alpha_hat: trainer.alpha_hat(),
         };
         let step = trainer.progress().step;
+        self.log(LogLevel::Info, format!("succeeded at step {step}: policy {policy_id}"));
         self.rt.block_on(store.finish_job_succeeded(&self.lease, &[], &policy, step))?;
         Ok(())
     }

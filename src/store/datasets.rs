@@ -134,7 +134,8 @@ impl TryFrom<DatasetRow> for DatasetRecord {
 pub enum DeleteOutcome {
     Deleted,
     NotFound,
-    /// Queued or running jobs (their ids) still need the dataset.
+    /// Queued or running work (ids) still needs it: jobs of a dataset, evaluations of a
+    /// policy, the evaluation itself.
     InUse(Vec<String>),
 }
 

@@ -3,6 +3,7 @@
 
 use std::time::Duration;
 
+use super::datasets::DeleteOutcome;
 use super::leases::{self, Lease, LeaseTable};
 use super::{now, parse_optional_time, parse_time, Store, StoreError};
 use crate::domain::{EvalSpec, EvaluationId, EvaluationRecord, EvaluationStatus, PolicyId};
@@ -107,6 +108,26 @@ impl Store {
                 .await?
                 .ok_or_else(|| StoreError::NotFound { kind: "evaluation", id: id.to_owned() })?;
         row.try_into()
+    }
+
+    /// Deletes a finished evaluation (`InUse` names it while it is queued or running).
+    pub async fn delete_evaluation(&self, id: &str) -> Result<DeleteOutcome, StoreError> {
+        let mut tx = self.begin_write().await?;
+        let status: Option<String> = sqlx::query_scalar(&format!(
+            "SELECT status FROM evaluations WHERE id = $1{}",
+            self.backend.lock_row()
+        ))
+        .bind(id)
+        .fetch_optional(&mut *tx)
+        .await?;
+        match status.as_deref() {
+            None => return Ok(DeleteOutcome::NotFound),
+            Some("queued" | "running") => return Ok(DeleteOutcome::InUse(vec![id.to_owned()])),
+            Some(_) => {}
+        }
+        sqlx::query("DELETE FROM evaluations WHERE id = $1").bind(id).execute(&mut *tx).await?;
+        tx.commit().await?;
+        Ok(DeleteOutcome::Deleted)
     }
 
     /// A page of evaluations, newest first (only those of `policy_id` when given); and the total.

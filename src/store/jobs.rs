@@ -9,7 +9,9 @@ use super::leases::{self, Lease, LeaseTable};
 use super::policies::NewPolicy;
 use super::{now, optional_real, parse_optional_time, parse_time, placeholders, Store, StoreError};
 use crate::algo::ResolvedConfig;
-use crate::domain::{DatasetId, EvalOptions, JobId, JobRecord, JobStatus, RunnerOptions};
+use crate::domain::{
+    DatasetId, EvalOptions, JobId, JobLabels, JobRecord, JobStatus, RunnerOptions,
+};
 
 /// A job row as the database returns it; [`JobRecord`] is its typed form.
 #[derive(sqlx::FromRow)]
@@ -22,6 +24,9 @@ struct JobRow {
     config: String,
     runner: String,
     eval: Option<String>,
+    name: Option<String>,
+    tags: String,
+    notes: Option<String>,
     step: i64,
     total_steps: i64,
     phase: Option<String>,
@@ -60,6 +65,9 @@ impl TryFrom<JobRow> for JobRecord {
             }
             None => None,
         };
+        let tags: Vec<String> =
+            serde_json::from_value(json("tags", &row.tags)?).map_err(|e| corrupt("tags", &e))?;
+        let labels = JobLabels { name: row.name, tags, notes: row.notes };
         let owner = format!("job {}", row.id);
         Ok(JobRecord {
             created_at: parse_time(&owner, &row.created_at)?,
@@ -74,6 +82,7 @@ impl TryFrom<JobRow> for JobRecord {
             config,
             runner,
             eval,
+            labels,
             step: row.step as u64,
             total_steps: row.total_steps as u64,
             phase: row.phase,
@@ -96,6 +105,40 @@ pub struct NewJob {
     pub config: ResolvedConfig,
     pub runner: RunnerOptions,
     pub eval: Option<EvalOptions>,
+    pub labels: JobLabels,
+}
+
+/// Which jobs a list shows: all of them, or those with a status, a tag, or a name or id that
+/// contains a text.
+#[derive(Clone, Debug, Default)]
+pub struct JobQuery {
+    pub status: Option<JobStatus>,
+    pub tag: Option<String>,
+    /// Case-insensitive substring of the name, or a prefix of the id.
+    pub search: Option<String>,
+}
+
+/// A metric a job recorded: how many points, over which steps, and its latest value.
+#[derive(Clone, Debug, PartialEq, sqlx::FromRow)]
+pub struct MetricSummary {
+    pub name: String,
+    pub points: i64,
+    pub first_step: i64,
+    pub last_step: i64,
+}
+
+/// What a job delete did.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum DeleteJobOutcome {
+    /// Deleted, with its policy if it had one (and that policy's evaluations).
+    Deleted {
+        policy: Option<String>,
+    },
+    NotFound,
+    /// Queued or running: cancel it first.
+    Active(JobStatus),
+    /// Its policy has evaluations queued or running (their ids).
+    PolicyInUse(Vec<String>),
 }
 
 /// One recorded scalar of a training step.
@@ -129,7 +172,8 @@ pub enum CancelOutcome {
 
 const JOB_COLUMNS: &str = "id, algorithm, status, unlabeled_dataset_id, non_preferred_dataset_id, \
      config, runner, eval, step, total_steps, phase, iterations_per_second, alpha_hat, policy_id, \
-     error, cancel_requested, lease_owner, created_at, updated_at, started_at, finished_at";
+     error, cancel_requested, lease_owner, created_at, updated_at, started_at, finished_at, name, \
+     tags, notes";
 
 impl Store {
     /// Number of jobs in each status, every status listed (zero when there are none).
@@ -161,8 +205,8 @@ impl Store {
         }
         sqlx::query(
             "INSERT INTO jobs (id, algorithm, status, unlabeled_dataset_id, \
-             non_preferred_dataset_id, config, runner, eval, total_steps, created_at, updated_at) \
-             VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10, $10)",
+             non_preferred_dataset_id, config, runner, eval, total_steps, created_at, updated_at, \
+             name, tags, notes) VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10, $10, $11, $12, $13)",
         )
         .bind(job.id.as_str())
         .bind(job.config.algorithm().as_str())
@@ -174,6 +218,9 @@ impl Store {
         .bind(eval)
         .bind(job.config.total_steps() as i64)
         .bind(&now)
+        .bind(job.labels.name.as_deref())
+        .bind(to_json(&job.labels.tags))
+        .bind(job.labels.notes.as_deref())
         .execute(&mut *tx)
         .await?;
         let row: JobRow = sqlx::query_as(&format!("SELECT {JOB_COLUMNS} FROM jobs WHERE id = $1"))
@@ -203,30 +250,122 @@ impl Store {
         parse_status(id, &status)
     }
 
-    /// A page of jobs, newest first, optionally only those in `status`; and the total count.
+    /// A page of the jobs `query` selects, newest first; and how many it selects in all.
     pub async fn list_jobs(
         &self,
-        status: Option<JobStatus>,
+        query: &JobQuery,
         limit: u32,
         offset: u64,
     ) -> Result<(Vec<JobRecord>, u64), StoreError> {
-        let status = status.map(JobStatus::as_str);
+        const WHERE: &str = "WHERE ($1 IS NULL OR status = $1) \
+             AND ($2 IS NULL OR tags LIKE $2 ESCAPE '\\') \
+             AND ($3 IS NULL OR LOWER(COALESCE(name, '')) LIKE $3 ESCAPE '\\' OR id LIKE $4 ESCAPE '\\')";
+        let status = query.status.map(JobStatus::as_str);
+        let tag = query.tag.as_deref().map(|t| format!("%\"{}\"%", escape_like(t)));
+        let search = query.search.as_deref().map(|q| escape_like(&q.to_lowercase()));
+        let contains = search.as_deref().map(|q| format!("%{q}%"));
+        let prefix = search.as_deref().map(|q| format!("{q}%"));
         let rows: Vec<JobRow> = sqlx::query_as(&format!(
-            "SELECT {JOB_COLUMNS} FROM jobs WHERE ($1 IS NULL OR status = $1) \
-             ORDER BY created_at DESC, id DESC LIMIT $2 OFFSET $3"
+            "SELECT {JOB_COLUMNS} FROM jobs {WHERE} ORDER BY created_at DESC, id DESC \
+             LIMIT $5 OFFSET $6"
         ))
         .bind(status)
+        .bind(tag.as_deref())
+        .bind(contains.as_deref())
+        .bind(prefix.as_deref())
         .bind(i64::from(limit))
         .bind(offset as i64)
         .fetch_all(self.pool())
         .await?;
-        let total: i64 =
-            sqlx::query_scalar("SELECT COUNT(*) FROM jobs WHERE $1 IS NULL OR status = $1")
-                .bind(status)
-                .fetch_one(self.pool())
-                .await?;
+        let total: i64 = sqlx::query_scalar(&format!("SELECT COUNT(*) FROM jobs {WHERE}"))
+            .bind(status)
+            .bind(tag.as_deref())
+            .bind(contains.as_deref())
+            .bind(prefix.as_deref())
+            .fetch_one(self.pool())
+            .await?;
         let jobs = rows.into_iter().map(JobRecord::try_from).collect::<Result<_, _>>()?;
         Ok((jobs, total as u64))
+    }
+
+    /// Replaces a job's name, tags and notes (any status: the runner never reads them).
+    pub async fn update_job_labels(
+        &self,
+        id: &str,
+        labels: &JobLabels,
+    ) -> Result<JobRecord, StoreError> {
+        let updated = sqlx::query(
+            "UPDATE jobs SET name = $2, tags = $3, notes = $4, updated_at = $5 WHERE id = $1",
+        )
+        .bind(id)
+        .bind(labels.name.as_deref())
+        .bind(to_json(&labels.tags))
+        .bind(labels.notes.as_deref())
+        .bind(now())
+        .execute(self.pool())
+        .await?;
+        if updated.rows_affected() == 0 {
+            return Err(StoreError::NotFound { kind: "job", id: id.to_owned() });
+        }
+        self.job(id).await
+    }
+
+    /// Deletes a finished job with its metrics, checkpoint and log, and its policy with that
+    /// policy's evaluations — unless the job is queued or running, or an evaluation of its
+    /// policy is. One write transaction with the job's row locked, so a worker cannot claim it
+    /// in between.
+    pub async fn delete_job(&self, id: &str) -> Result<DeleteJobOutcome, StoreError> {
+        let mut tx = self.begin_write().await?;
+        let status: Option<String> = sqlx::query_scalar(&format!(
+            "SELECT status FROM jobs WHERE id = $1{}",
+            self.backend.lock_row()
+        ))
+        .bind(id)
+        .fetch_optional(&mut *tx)
+        .await?;
+        let Some(status) = status else { return Ok(DeleteJobOutcome::NotFound) };
+        let status = parse_status(id, &status)?;
+        if !status.is_final() {
+            return Ok(DeleteJobOutcome::Active(status));
+        }
+        let busy: Vec<String> = sqlx::query_scalar(
+            "SELECT e.id FROM evaluations e JOIN policies p ON p.id = e.policy_id \
+             WHERE p.job_id = $1 AND e.status IN ('queued', 'running') ORDER BY e.id",
+        )
+        .bind(id)
+        .fetch_all(&mut *tx)
+        .await?;
+        if !busy.is_empty() {
+            return Ok(DeleteJobOutcome::PolicyInUse(busy));
+        }
+        let policy: Option<String> =
+            sqlx::query_scalar("SELECT id FROM policies WHERE job_id = $1")
+                .bind(id)
+                .fetch_optional(&mut *tx)
+                .await?;
+        for statement in [
+            "DELETE FROM evaluations WHERE policy_id IN (SELECT id FROM policies WHERE job_id = $1)",
+            "DELETE FROM policies WHERE job_id = $1",
+            "DELETE FROM job_metrics WHERE job_id = $1",
+            "DELETE FROM job_checkpoints WHERE job_id = $1",
+            "DELETE FROM job_logs WHERE job_id = $1",
+            "DELETE FROM jobs WHERE id = $1",
+        ] {
+            sqlx::query(statement).bind(id).execute(&mut *tx).await?;
+        }
+        tx.commit().await?;
+        Ok(DeleteJobOutcome::Deleted { policy })
+    }
+
+    /// The metrics a job recorded, by name, with their point counts and step range.
+    pub async fn metric_names(&self, id: &str) -> Result<Vec<MetricSummary>, StoreError> {
+        Ok(sqlx::query_as(
+            "SELECT name, COUNT(*) AS points, MIN(step) AS first_step, MAX(step) AS last_step \
+             FROM job_metrics WHERE job_id = $1 GROUP BY name ORDER BY name",
+        )
+        .bind(id)
+        .fetch_all(self.pool())
+        .await?)
     }
 
     /// Jobs changed since `since` (their `updated_at`, RFC 3339 as stored), oldest change first:
@@ -565,4 +704,16 @@ async fn insert_metric_rows(
         insert.execute(&mut **tx).await?;
     }
     Ok(())
+}
+
+/// `text` with LIKE's wildcards and escape character escaped (the escape character is a backslash).
+fn escape_like(text: &str) -> String {
+    let mut out = String::with_capacity(text.len());
+    for c in text.chars() {
+        if matches!(c, '%' | '_' | '\\') {
+            out.push('\\');
+        }
+        out.push(c);
+    }
+    out
 }

@@ -272,6 +272,7 @@ mod tests {
             config: ResolvedConfig::preset(Algorithm::Bc, Preset::Service),
             runner: RunnerOptions::default(),
             eval: None,
+            labels: Default::default(),
         };
         store.insert_job(&job).await.unwrap();
         (dir, store, id)

@@ -25,6 +25,7 @@ pub mod datasets;
 pub mod evaluations;
 pub mod jobs;
 pub mod leases;
+pub mod logs;
 pub mod policies;
 pub mod storage;
 #[cfg(test)]

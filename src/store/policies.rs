@@ -2,6 +2,7 @@
 
 use sqlx::{Any, Transaction};
 
+use super::datasets::DeleteOutcome;
 use super::{parse_time, Store, StoreError};
 use crate::domain::PolicyRecord;
 
@@ -133,5 +134,40 @@ impl Store {
             .fetch_optional(self.pool())
             .await?
             .ok_or_else(|| StoreError::NotFound { kind: "policy", id: id.to_owned() })
+    }
+
+    /// Deletes a policy and its finished evaluations, unless an evaluation of it is queued or
+    /// running; its job stays, without a policy.
+    pub async fn delete_policy(&self, id: &str) -> Result<DeleteOutcome, StoreError> {
+        let mut tx = self.begin_write().await?;
+        let found: Option<String> = sqlx::query_scalar(&format!(
+            "SELECT id FROM policies WHERE id = $1{}",
+            self.backend.lock_row()
+        ))
+        .bind(id)
+        .fetch_optional(&mut *tx)
+        .await?;
+        if found.is_none() {
+            return Ok(DeleteOutcome::NotFound);
+        }
+        let busy: Vec<String> = sqlx::query_scalar(
+            "SELECT id FROM evaluations WHERE policy_id = $1 AND status IN ('queued', 'running') \
+             ORDER BY id",
+        )
+        .bind(id)
+        .fetch_all(&mut *tx)
+        .await?;
+        if !busy.is_empty() {
+            return Ok(DeleteOutcome::InUse(busy));
+        }
+        for statement in [
+            "DELETE FROM evaluations WHERE policy_id = $1",
+            "UPDATE jobs SET policy_id = NULL WHERE policy_id = $1",
+            "DELETE FROM policies WHERE id = $1",
+        ] {
+            sqlx::query(statement).bind(id).execute(&mut *tx).await?;
+        }
+        tx.commit().await?;
+        Ok(DeleteOutcome::Deleted)
     }
 }

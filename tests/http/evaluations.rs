@@ -10,29 +10,8 @@ use crate::support::jobs::*;
 use rand_chacha::ChaCha8Rng;
 use reqwest::StatusCode;
 use safedice::algo::{Policy, PolicySpec};
-use safedice::envs::{self, DatagenSpec};
+use safedice::envs;
 use serde_json::{json, Value};
-
-/// Six-rooms demonstrations (the env's own demonstrators) uploaded through the API.
-async fn upload_six_rooms(app: &TestApp) -> (String, String) {
-    let spec = DatagenSpec {
-        env: "six-rooms".into(),
-        preferred: 20,
-        non_preferred: 30,
-        labeled: 10,
-        seed: 0,
-    };
-    let generated = envs::generate(&spec).unwrap();
-    let u = upload(&app.client, &app.base_url, &generated.unlabeled, "rooms-unlabeled").await;
-    let n = upload(
-        &app.client,
-        &app.base_url,
-        generated.labeled_non_preferred.as_ref().unwrap(),
-        "rooms-labeled",
-    )
-    .await;
-    (u, n)
-}
 
 /// A finished BC job on six-rooms that evaluated itself every 40 policy steps.
 async fn trained_bc(app: &TestApp, unlabeled: &str) -> Value {
@@ -98,7 +77,7 @@ async fn download_policy(app: &TestApp, policy_id: &str) -> Policy {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn jobs_record_eval_metrics_and_evaluations_match_a_local_run() {
     let app = TestApp::spawn().await;
-    let (u, _) = upload_six_rooms(&app).await;
+    let (u, _) = upload_six_rooms(&app.client, &app.base_url).await;
     let job = trained_bc(&app, &u).await;
     let job_id = job["id"].as_str().unwrap();
 
@@ -180,7 +159,7 @@ async fn jobs_record_eval_metrics_and_evaluations_match_a_local_run() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn bad_evaluations_and_eval_blocks_are_refused_and_store_nothing() {
     let app = TestApp::spawn().await;
-    let (u, n) = upload_six_rooms(&app).await;
+    let (u, n) = upload_six_rooms(&app.client, &app.base_url).await;
 
     // Jobs: the eval block is checked before anything is queued.
     let bad_blocks = [
@@ -239,7 +218,7 @@ async fn bad_evaluations_and_eval_blocks_are_refused_and_store_nothing() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn an_evaluation_left_running_by_a_dead_process_runs_again_at_start() {
     let mut app = TestApp::spawn().await;
-    let (u, _) = upload_six_rooms(&app).await;
+    let (u, _) = upload_six_rooms(&app.client, &app.base_url).await;
     let job = trained_bc(&app, &u).await;
     let policy_id = job["policy_id"].as_str().unwrap();
     app.stop().await;

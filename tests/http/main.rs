@@ -29,6 +29,7 @@ mod envs;
 mod evaluations;
 mod hardening;
 mod jobs;
+mod lifecycle;
 mod openapi;
 mod ops;
 mod resources;

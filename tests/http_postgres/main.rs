@@ -33,6 +33,8 @@ mod evaluations;
 mod hardening;
 #[path = "../http/jobs.rs"]
 mod jobs;
+#[path = "../http/lifecycle.rs"]
+mod lifecycle;
 #[path = "../http/ops.rs"]
 mod ops;
 #[path = "../http/resources.rs"]

@@ -95,3 +95,24 @@ pub fn grid_observations() -> Vec<Vec<f32>> {
         .map(|cell| (0..GRID_OBS_DIM).map(|i| (i == cell) as u8 as f32).collect())
         .collect()
 }
+
+/// Six-rooms demonstrations (the env's own demonstrators) uploaded through the API.
+pub async fn upload_six_rooms(client: &Client, base_url: &str) -> (String, String) {
+    let spec = safedice::envs::DatagenSpec {
+        env: "six-rooms".into(),
+        preferred: 20,
+        non_preferred: 30,
+        labeled: 10,
+        seed: 0,
+    };
+    let generated = safedice::envs::generate(&spec).unwrap();
+    let u = upload(client, base_url, &generated.unlabeled, "rooms-unlabeled").await;
+    let n = upload(
+        client,
+        base_url,
+        generated.labeled_non_preferred.as_ref().unwrap(),
+        "rooms-labeled",
+    )
+    .await;
+    (u, n)
+}
