@@ -3,8 +3,11 @@
 //! uploads it, trains SafeDICE and BC through the real HTTP API, evaluates both policies with the
 //! paper's metrics through `POST /v1/policies/{id}/evaluate`, and prints the metrics side by
 //! side together with the curl commands that do the same against a running `safedice serve`.
+//! With `--serve` the service stays up afterwards, with its data, for the dashboard.
 
-use std::path::Path;
+use std::io::Write;
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 use anyhow::{bail, Context};
@@ -28,9 +31,41 @@ pub struct DemoArgs {
     /// Evaluation episodes per policy.
     #[arg(long, default_value_t = 200)]
     pub episodes: usize,
+    /// Seed of the data, the training runs and the evaluations.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
+    /// Keep the service running after the demo, until Ctrl-C, to look at the jobs, policies and
+    /// evaluations in the dashboard; the data stays in --data-dir.
+    #[arg(long)]
+    pub serve: bool,
+    /// Where the service keeps its data. Default: a temporary directory deleted when the demo
+    /// ends; with --serve, ./safedice-demo (kept, and reused by the next `demo --serve`).
+    #[arg(long, value_name = "DIR")]
+    pub data_dir: Option<PathBuf>,
+    /// Address to serve on. Default: a free port on 127.0.0.1; with --serve, 127.0.0.1:8080.
+    #[arg(long, value_name = "ADDR")]
+    pub bind: Option<SocketAddr>,
 }
+
+impl DemoArgs {
+    /// The demo's defaults (what `safedice demo` runs), for tests and callers.
+    pub fn new(env: &str, iterations: u64, episodes: usize) -> Self {
+        DemoArgs {
+            env: env.into(),
+            iterations,
+            episodes,
+            seed: 0,
+            serve: false,
+            data_dir: None,
+            bind: None,
+        }
+    }
+}
+
+/// Default data directory of `demo --serve`.
+const SERVE_DATA_DIR: &str = "safedice-demo";
+/// Default address of `demo --serve`.
+const SERVE_BIND: &str = "127.0.0.1:8080";
 
 /// The curl commands the demo's requests correspond to, printed at the end.
 struct Transcript {
@@ -68,14 +103,42 @@ pub struct DemoRow {
 
 /// The demo on the current Tokio runtime: serve, upload, train over HTTP, evaluate, print.
 pub async fn run(args: &DemoArgs) -> anyhow::Result<Vec<DemoRow>> {
-    let dir = tempfile::tempdir()?;
-    let mut config = ServeConfig::new(dir.path().join("data"));
-    config.bind = "127.0.0.1:0".parse()?;
+    let temporary = tempfile::tempdir()?;
+    let dir = match (&args.data_dir, args.serve) {
+        (Some(dir), _) => dir.clone(),
+        (None, true) => PathBuf::from(SERVE_DATA_DIR),
+        (None, false) => temporary.path().to_owned(),
+    };
+    std::fs::create_dir_all(&dir).with_context(|| format!("cannot create {}", dir.display()))?;
+    let mut config = ServeConfig::new(dir.join("data"));
+    config.bind = match args.bind {
+        Some(bind) => bind,
+        None if args.serve => SERVE_BIND.parse()?,
+        None => "127.0.0.1:0".parse()?,
+    };
     config.workers = 2;
-    let server = Server::start(config).await?;
+    let bind = config.bind;
+    let server = Server::start(config)
+        .await
+        .with_context(|| format!("cannot serve on {bind} (choose another with --bind)"))?;
     let base = format!("http://{}", server.local_addr());
-    println!("safedice service running at {base} (data in a temporary directory)\n");
-    let result = drive(args, &base, dir.path()).await;
+    let kept = if args.data_dir.is_some() || args.serve {
+        format!("data in {}", dir.display())
+    } else {
+        "data in a temporary directory, deleted at the end; --serve keeps it".to_owned()
+    };
+    println!("safedice service running at {base} ({kept})\n");
+    let result = drive(args, &base, &dir).await;
+    if args.serve && result.is_ok() {
+        println!("\nThe service keeps running: open {base}/ in a browser for the dashboard (jobs,");
+        println!(
+            "metrics, policies, evaluations). Ctrl-C stops it; the data stays in {}.",
+            dir.display()
+        );
+        let signal = crate::server::shutdown_signal().await;
+        // stdout may be gone by now (a closed pipe): println! would panic.
+        let _ = writeln!(std::io::stdout(), "{signal}: stopping");
+    }
     server.stop().await?;
     result
 }
@@ -119,7 +182,9 @@ async fn drive(args: &DemoArgs, base: &str, dir: &Path) -> anyhow::Result<Vec<De
     let mut jobs = Vec::new();
     for algorithm in [Algorithm::Safedice, Algorithm::Bc] {
         let mut body = json!({"algorithm": algorithm, "unlabeled_dataset": unlabeled,
-                              "config": config});
+                              "config": config,
+                              "name": format!("demo {} on {}", algorithm.display_name(), args.env),
+                              "tags": ["demo", format!("env={}", args.env)]});
         if algorithm.needs_non_preferred() {
             body["non_preferred_dataset"] = json!(non_preferred);
         }
@@ -171,7 +236,15 @@ async fn drive(args: &DemoArgs, base: &str, dir: &Path) -> anyhow::Result<Vec<De
     println!("   /act on the first observation ({obs_dim} values) answered {}", act["actions"]);
 
     print_table(&rows);
-    println!("\nThe same against a running `safedice serve` ({}):", transcript.base);
+    if args.serve {
+        println!("\nThe same with curl, against this service:");
+    } else {
+        println!(
+            "\nThe same with curl against your own `safedice serve` (this demo's service stops \
+             now; `safedice demo --serve` keeps it), with its address in place of {}:",
+            transcript.base
+        );
+    }
     for line in &transcript.lines {
         println!("  {line}");
     }

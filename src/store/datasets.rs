@@ -272,17 +272,9 @@ impl Store {
     /// [`Store::insert_job`]); and the answer describes the state the delete saw, not one read
     /// after it.
     pub async fn delete_dataset(&self, id: &str) -> Result<DeleteOutcome, StoreError> {
-        let mut tx = self.begin_write().await?;
-        let found: Option<String> = sqlx::query_scalar(&format!(
-            "SELECT id FROM datasets WHERE id = $1{}",
-            self.backend.lock_row()
-        ))
-        .bind(id)
-        .fetch_optional(&mut *tx)
-        .await?;
-        if found.is_none() {
+        let Some((mut tx, _)) = self.begin_delete("datasets", "id", id).await? else {
             return Ok(DeleteOutcome::NotFound);
-        }
+        };
         let jobs: Vec<String> = sqlx::query_scalar(
             "SELECT id FROM jobs WHERE status IN ('queued', 'running') \
              AND (unlabeled_dataset_id = $1 OR non_preferred_dataset_id = $1) ORDER BY id",

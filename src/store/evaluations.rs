@@ -112,18 +112,11 @@ impl Store {
 
     /// Deletes a finished evaluation (`InUse` names it while it is queued or running).
     pub async fn delete_evaluation(&self, id: &str) -> Result<DeleteOutcome, StoreError> {
-        let mut tx = self.begin_write().await?;
-        let status: Option<String> = sqlx::query_scalar(&format!(
-            "SELECT status FROM evaluations WHERE id = $1{}",
-            self.backend.lock_row()
-        ))
-        .bind(id)
-        .fetch_optional(&mut *tx)
-        .await?;
-        match status.as_deref() {
-            None => return Ok(DeleteOutcome::NotFound),
-            Some("queued" | "running") => return Ok(DeleteOutcome::InUse(vec![id.to_owned()])),
-            Some(_) => {}
+        let Some((mut tx, status)) = self.begin_delete("evaluations", "status", id).await? else {
+            return Ok(DeleteOutcome::NotFound);
+        };
+        if matches!(status.as_str(), "queued" | "running") {
+            return Ok(DeleteOutcome::InUse(vec![id.to_owned()]));
         }
         sqlx::query("DELETE FROM evaluations WHERE id = $1").bind(id).execute(&mut *tx).await?;
         tx.commit().await?;

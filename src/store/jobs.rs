@@ -315,15 +315,9 @@ impl Store {
     /// policy is. One write transaction with the job's row locked, so a worker cannot claim it
     /// in between.
     pub async fn delete_job(&self, id: &str) -> Result<DeleteJobOutcome, StoreError> {
-        let mut tx = self.begin_write().await?;
-        let status: Option<String> = sqlx::query_scalar(&format!(
-            "SELECT status FROM jobs WHERE id = $1{}",
-            self.backend.lock_row()
-        ))
-        .bind(id)
-        .fetch_optional(&mut *tx)
-        .await?;
-        let Some(status) = status else { return Ok(DeleteJobOutcome::NotFound) };
+        let Some((mut tx, status)) = self.begin_delete("jobs", "status", id).await? else {
+            return Ok(DeleteJobOutcome::NotFound);
+        };
         let status = parse_status(id, &status)?;
         if !status.is_final() {
             return Ok(DeleteJobOutcome::Active(status));

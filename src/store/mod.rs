@@ -404,6 +404,25 @@ impl Store {
         self.pool.begin_with(self.backend.begin_write()).await
     }
 
+    /// Begins a write transaction for deleting row `id` of `table` and locks the row: the
+    /// transaction and the row's `column` (e.g. its status), or None if there is no such row.
+    pub(crate) async fn begin_delete(
+        &self,
+        table: &str,
+        column: &str,
+        id: &str,
+    ) -> Result<Option<(Transaction<'static, Any>, String)>, sqlx::Error> {
+        let mut tx = self.begin_write().await?;
+        let value: Option<String> = sqlx::query_scalar(&format!(
+            "SELECT {column} FROM {table} WHERE id = $1{}",
+            self.backend.lock_row()
+        ))
+        .bind(id)
+        .fetch_optional(&mut *tx)
+        .await?;
+        Ok(value.map(|v| (tx, v)))
+    }
+
     pub fn data_dir(&self) -> &Path {
         &self.data_dir
     }

@@ -139,17 +139,9 @@ impl Store {
     /// Deletes a policy and its finished evaluations, unless an evaluation of it is queued or
     /// running; its job stays, without a policy.
     pub async fn delete_policy(&self, id: &str) -> Result<DeleteOutcome, StoreError> {
-        let mut tx = self.begin_write().await?;
-        let found: Option<String> = sqlx::query_scalar(&format!(
-            "SELECT id FROM policies WHERE id = $1{}",
-            self.backend.lock_row()
-        ))
-        .bind(id)
-        .fetch_optional(&mut *tx)
-        .await?;
-        if found.is_none() {
+        let Some((mut tx, _)) = self.begin_delete("policies", "id", id).await? else {
             return Ok(DeleteOutcome::NotFound);
-        }
+        };
         let busy: Vec<String> = sqlx::query_scalar(
             "SELECT id FROM evaluations WHERE policy_id = $1 AND status IN ('queued', 'running') \
              ORDER BY id",
