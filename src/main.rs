@@ -48,8 +48,8 @@ enum Command {
 
 #[derive(clap::Args)]
 struct DatagenArgs {
-    /// Environment: six-rooms, point-goal or cartpole-slider.
-    #[arg(long)]
+    /// Built-in environment.
+    #[arg(long, value_parser = clap::builder::PossibleValuesParser::new(safedice::envs::names()))]
     env: String,
     /// Preferred episodes in the unlabeled set.
     #[arg(long, default_value_t = 1000)]
@@ -60,11 +60,13 @@ struct DatagenArgs {
     /// Episodes in the labeled non-preferred set (0: none written).
     #[arg(long, default_value_t = 50)]
     labeled: usize,
+    /// Seed of the demonstrators' episodes (the same seed gives the same files).
     #[arg(long, default_value_t = 0)]
     seed: u64,
     /// Output directory (created if missing).
     #[arg(long)]
     out: PathBuf,
+    /// File format of the written sets (all upload formats but HDF5).
     #[arg(long, value_enum, default_value_t = DataFormat::Npz)]
     format: DataFormat,
 }
@@ -148,6 +150,7 @@ fn datagen(args: DatagenArgs) -> anyhow::Result<()> {
 
 #[derive(Args)]
 struct SpeedArgs {
+    /// Observation width of the synthetic data.
     #[arg(long, default_value_t = 17)]
     obs_dim: usize,
     /// Continuous action dimension (ignored with --discrete).
@@ -156,13 +159,19 @@ struct SpeedArgs {
     /// Use N discrete actions instead of continuous ones.
     #[arg(long, value_name = "N")]
     discrete: Option<usize>,
-    #[arg(long, default_value_t = 512)]
+    /// Minibatch size (the job config's `batch_size`).
+    #[arg(long = "batch-size", alias = "batch", default_value_t = 512)]
     batch: usize,
-    /// Hidden layer widths.
-    #[arg(long, value_delimiter = ',', default_value = "256,256")]
+    /// Hidden layer widths, comma-separated (the job config's `hidden_sizes`).
+    #[arg(
+        long = "hidden-sizes",
+        alias = "hidden",
+        value_delimiter = ',',
+        default_value = "256,256"
+    )]
     hidden: Vec<usize>,
     /// Timed iterations per repeat (after a warm-up of a tenth of them, at least 5).
-    #[arg(long, default_value_t = 200)]
+    #[arg(long = "iterations", alias = "iters", default_value_t = 200)]
     iters: usize,
     /// Timed repeats; the median is reported.
     #[arg(long, default_value_t = 3)]
@@ -171,6 +180,7 @@ struct SpeedArgs {
     /// fastest on a shared machine.
     #[arg(long, default_value_t = 1)]
     threads: usize,
+    /// Seed of the synthetic data and the networks' initialisation.
     #[arg(long, default_value_t = 0)]
     seed: u64,
     /// Which path of the SafeDICE trainer runs the hot loops: `fused` (the fused CPU engine,

@@ -21,7 +21,7 @@ use super::extract::{Json, Path as UrlPath, Query};
 use super::pagination::{Page, PageParams};
 use super::{ApiError, AppState};
 use crate::data::{self, ActionSpace, DatasetStats, Format};
-use crate::store::{DatasetRecord, DeleteOutcome, NewDataset};
+use crate::store::{DatasetRecord, DeleteOutcome, Listing, NewDataset};
 
 /// Room for the multipart framing and the `name`/`description` fields on top of the file.
 const FORM_OVERHEAD_BYTES: u64 = 64 * 1024;
@@ -353,10 +353,10 @@ async fn list_datasets(
     State(state): State<AppState>,
     Query(params): Query<PageParams>,
 ) -> Result<Json<Page<DatasetResource>>, ApiError> {
-    let page = params.validate()?;
-    let (records, total) = state.store.datasets(page.limit, page.offset).await?;
+    let page = params.resolve(&state.store, Listing::Datasets).await?;
+    let (records, total) = state.store.datasets(&page).await?;
     let items = records.into_iter().map(DatasetResource::from).collect();
-    Ok(Json(Page::new(items, total, page)))
+    Ok(Json(Page::new(items, total, page, |d: &DatasetResource| &d.id)))
 }
 
 /// One dataset.

@@ -17,7 +17,7 @@ use super::{ApiError, AppState};
 use crate::domain::{rfc3339, EvalSpec, EvaluationId, EvaluationRecord, EvaluationStatus};
 use crate::envs::{self, Metrics, ReferenceStats};
 use crate::store::evaluations::NewEvaluation;
-use crate::store::DeleteOutcome;
+use crate::store::{DeleteOutcome, Listing};
 
 /// A policy's evaluation on a built-in environment.
 #[derive(Debug, Serialize, ToSchema)]
@@ -126,11 +126,10 @@ async fn list_evaluations(
     Query(filter): Query<EvaluationFilter>,
     Query(page): Query<PageParams>,
 ) -> Result<Json<Page<Evaluation>>, ApiError> {
-    let page = page.validate()?;
-    let (records, total) =
-        state.store.list_evaluations(filter.policy_id.as_deref(), page.limit, page.offset).await?;
+    let page = page.resolve(&state.store, Listing::Evaluations).await?;
+    let (records, total) = state.store.list_evaluations(filter.policy_id.as_deref(), &page).await?;
     let items = records.into_iter().map(Evaluation::from).collect();
-    Ok(Json(Page::new(items, total, page)))
+    Ok(Json(Page::new(items, total, page, |e: &Evaluation| &e.id)))
 }
 
 /// An evaluation: status, and the paper's metrics once it succeeded.

@@ -26,7 +26,7 @@ use crate::domain::{
 use crate::jobs::{JobEvent, JobRequest};
 use crate::store::jobs::{CancelOutcome, DeleteJobOutcome, JobQuery, MetricRow};
 use crate::store::logs::LogRow;
-use crate::store::{Store, StoreError};
+use crate::store::{Listing, Store, StoreError};
 
 /// `POST /v1/jobs` body.
 #[derive(Debug, Deserialize, ToSchema)]
@@ -287,11 +287,11 @@ async fn list_jobs(
     Query(filter): Query<JobFilter>,
     Query(page): Query<PageParams>,
 ) -> Result<Json<Page<Job>>, ApiError> {
-    let page = page.validate()?;
     let query = filter.query()?;
-    let (records, total) = state.store.list_jobs(&query, page.limit, page.offset).await?;
+    let page = page.resolve(&state.store, Listing::Jobs).await?;
+    let (records, total) = state.store.list_jobs(&query, &page).await?;
     let jobs = records.into_iter().map(Job::from).collect();
-    Ok(Json(Page::new(jobs, total, page)))
+    Ok(Json(Page::new(jobs, total, page, |j: &Job| &j.id)))
 }
 
 /// A job: status, resolved configuration, progress, result.

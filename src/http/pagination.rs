@@ -1,10 +1,12 @@
-//! Offset pagination shared by every list endpoint: `?limit=&offset=`, newest first, and a
-//! page object that says where the next page starts.
+//! Pagination shared by every list endpoint, newest first: `?limit=&page_token=` (keyset: a
+//! page does not shift when items are added meanwhile) or `?limit=&offset=`, and a page object
+//! that says where the next page starts.
 
 use serde::{Deserialize, Serialize};
 use utoipa::{IntoParams, ToSchema};
 
 use super::error::ApiError;
+use crate::store::{Listing, PageQuery, Store};
 
 pub const DEFAULT_LIMIT: u32 = 50;
 pub const MAX_LIMIT: u32 = 500;
@@ -12,23 +14,23 @@ pub const MAX_LIMIT: u32 = 500;
 pub const MAX_OFFSET: u64 = i64::MAX as u64;
 
 /// `?limit=50&offset=0`: at most `limit` items (1..=500, default 50), skipping `offset`.
-#[derive(Debug, Clone, Copy, Deserialize, IntoParams)]
+#[derive(Debug, Clone, Deserialize, IntoParams)]
 #[into_params(parameter_in = Query)]
 pub struct PageParams {
     /// Items per page, 1 to 500 (default 50).
     #[param(minimum = 1, maximum = 500, default = 50)]
     pub limit: Option<u32>,
-    /// Items to skip (default 0), at most 2^63 - 1.
+    /// Items to skip (default 0), at most 2^63 - 1. Not with `page_token`.
     #[param(minimum = 0, maximum = 9223372036854775807_i64, default = 0)]
     pub offset: Option<u64>,
+    /// The previous page's `next_page_token`: the page after it, unaffected by items added
+    /// since (an `offset` shifts when new items arrive).
+    #[param(min_length = 1, max_length = 64)]
+    pub page_token: Option<String>,
 }
 
 /// A validated page request.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct PageRequest {
-    pub limit: u32,
-    pub offset: u64,
-}
+pub type PageRequest = PageQuery;
 
 impl PageParams {
     pub fn validate(self) -> Result<PageRequest, ApiError> {
@@ -47,7 +49,37 @@ impl PageParams {
                 format!("offset must be between 0 and {MAX_OFFSET}, got {offset}"),
             ));
         }
-        Ok(PageRequest { limit, offset })
+        let after = self.page_token;
+        if after.is_some() && offset != 0 {
+            return Err(ApiError::bad_request(
+                "invalid_pagination",
+                "page_token and offset cannot be combined: a page token says where its page starts",
+            ));
+        }
+        if after.as_ref().is_some_and(|t| t.is_empty() || t.len() > 64) {
+            return Err(ApiError::bad_request(
+                "invalid_pagination",
+                "page_token must be a next_page_token this list returned",
+            ));
+        }
+        Ok(PageRequest { limit, offset, after })
+    }
+
+    /// Validates the request and checks that a page token's item still exists in `list`.
+    pub async fn resolve(self, store: &Store, list: Listing) -> Result<PageRequest, ApiError> {
+        let page = self.validate()?;
+        if let Some(token) = &page.after {
+            if !store.page_anchor_exists(list, token).await? {
+                return Err(ApiError::bad_request(
+                    "invalid_pagination",
+                    format!(
+                        "page_token {token:?} is not an item of this list (deleted since, or not \
+                         a next_page_token): start again from the first page"
+                    ),
+                ));
+            }
+        }
+        Ok(page)
     }
 }
 
@@ -59,14 +91,26 @@ pub struct Page<T> {
     pub total: u64,
     pub limit: u32,
     pub offset: u64,
-    /// The `offset` of the next page, absent on the last page.
+    /// The `offset` of the next page, absent on the last page and with `page_token`.
     pub next_offset: Option<u64>,
+    /// Pass as `page_token` for the next page; absent when this page is not full (the last).
+    pub next_page_token: Option<String>,
 }
 
 impl<T> Page<T> {
-    pub fn new(items: Vec<T>, total: u64, request: PageRequest) -> Self {
+    /// A page of `items`; `id` gives an item's id (the next page's token).
+    pub fn new(items: Vec<T>, total: u64, request: PageRequest, id: impl Fn(&T) -> &str) -> Self {
         let end = request.offset.saturating_add(items.len() as u64);
-        let next_offset = (end < total).then_some(end);
-        Page { items, total, limit: request.limit, offset: request.offset, next_offset }
+        let next_offset = (end < total && request.after.is_none()).then_some(end);
+        let full = items.len() == request.limit as usize;
+        let next_page_token = items.last().filter(|_| full).map(|last| id(last).to_owned());
+        Page {
+            items,
+            total,
+            limit: request.limit,
+            offset: request.offset,
+            next_offset,
+            next_page_token,
+        }
     }
 }

@@ -16,7 +16,7 @@ use super::{ApiError, AppState};
 use crate::algo::Algorithm;
 use crate::data::Actions;
 use crate::domain::{rfc3339, PolicyRecord};
-use crate::store::DeleteOutcome;
+use crate::store::{DeleteOutcome, Listing};
 
 /// Header of `GET /v1/policies/{id}/weights` carrying the policy's spec (JSON), which
 /// `algo::Policy::load` needs beside the weights.
@@ -124,11 +124,10 @@ async fn list_policies(
     Query(filter): Query<PolicyFilter>,
     Query(page): Query<PageParams>,
 ) -> Result<Json<Page<PolicyResource>>, ApiError> {
-    let page = page.validate()?;
-    let (records, total) =
-        state.store.list_policies(filter.job_id.as_deref(), page.limit, page.offset).await?;
+    let page = page.resolve(&state.store, Listing::Policies).await?;
+    let (records, total) = state.store.list_policies(filter.job_id.as_deref(), &page).await?;
     let items = records.into_iter().map(PolicyResource::from).collect();
-    Ok(Json(Page::new(items, total, page)))
+    Ok(Json(Page::new(items, total, page, |p: &PolicyResource| &p.id)))
 }
 
 /// Delete a policy and its finished evaluations (download it first to keep it); its job stays,

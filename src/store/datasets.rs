@@ -9,7 +9,7 @@ use futures::TryStreamExt;
 use sha2::{Digest, Sha256};
 use sqlx::{Any, Transaction};
 
-use super::{now, parse_time, Backend, Store, StoreError};
+use super::{now, parse_time, Backend, Listing, PageQuery, Store, StoreError};
 use crate::data::{self, ActionSpace, Dataset, DatasetStats, Format};
 
 const CANONICAL_EXTENSION: &str = "canonical";
@@ -246,14 +246,16 @@ impl Store {
     /// A page of datasets, newest first, and the total count.
     pub async fn datasets(
         &self,
-        limit: u32,
-        offset: u64,
+        page: &PageQuery,
     ) -> Result<(Vec<DatasetRecord>, u64), StoreError> {
         let rows: Vec<DatasetRow> = sqlx::query_as(&format!(
-            "SELECT {COLUMNS} FROM datasets ORDER BY created_at DESC, id DESC LIMIT $1 OFFSET $2"
+            "SELECT {COLUMNS} FROM datasets WHERE {} ORDER BY created_at DESC, id DESC \
+             LIMIT $1 OFFSET $2",
+            Listing::Datasets.after(3)
         ))
-        .bind(limit as i64)
-        .bind(offset as i64)
+        .bind(i64::from(page.limit))
+        .bind(page.offset as i64)
+        .bind(page.after.as_deref())
         .fetch_all(self.pool())
         .await?;
         let (total,): (i64,) =

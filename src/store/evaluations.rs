@@ -5,7 +5,7 @@ use std::time::Duration;
 
 use super::datasets::DeleteOutcome;
 use super::leases::{self, Lease, LeaseTable};
-use super::{now, parse_optional_time, parse_time, Store, StoreError};
+use super::{now, parse_optional_time, parse_time, Listing, PageQuery, Store, StoreError};
 use crate::domain::{EvalSpec, EvaluationId, EvaluationRecord, EvaluationStatus, PolicyId};
 use crate::envs::EvalReport;
 
@@ -127,16 +127,17 @@ impl Store {
     pub async fn list_evaluations(
         &self,
         policy_id: Option<&str>,
-        limit: u32,
-        offset: u64,
+        page: &PageQuery,
     ) -> Result<(Vec<EvaluationRecord>, u64), StoreError> {
         let rows: Vec<EvaluationRow> = sqlx::query_as(&format!(
             "SELECT {EVALUATION_COLUMNS} FROM evaluations WHERE ($1 IS NULL OR policy_id = $1) \
-             ORDER BY created_at DESC, id DESC LIMIT $2 OFFSET $3"
+             AND {} ORDER BY created_at DESC, id DESC LIMIT $2 OFFSET $3",
+            Listing::Evaluations.after(4)
         ))
         .bind(policy_id)
-        .bind(i64::from(limit))
-        .bind(offset as i64)
+        .bind(i64::from(page.limit))
+        .bind(page.offset as i64)
+        .bind(page.after.as_deref())
         .fetch_all(self.pool())
         .await?;
         let total: i64 = sqlx::query_scalar(

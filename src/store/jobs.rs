@@ -7,7 +7,10 @@ use sqlx::{Any, Transaction};
 
 use super::leases::{self, Lease, LeaseTable};
 use super::policies::NewPolicy;
-use super::{now, optional_real, parse_optional_time, parse_time, placeholders, Store, StoreError};
+use super::{
+    now, optional_real, parse_optional_time, parse_time, placeholders, Listing, PageQuery, Store,
+    StoreError,
+};
 use crate::algo::ResolvedConfig;
 use crate::domain::{
     DatasetId, EvalOptions, JobId, JobLabels, JobRecord, JobStatus, RunnerOptions,
@@ -254,8 +257,7 @@ impl Store {
     pub async fn list_jobs(
         &self,
         query: &JobQuery,
-        limit: u32,
-        offset: u64,
+        page: &PageQuery,
     ) -> Result<(Vec<JobRecord>, u64), StoreError> {
         const WHERE: &str = "WHERE ($1 IS NULL OR status = $1) \
              AND ($2 IS NULL OR tags LIKE $2 ESCAPE '\\') \
@@ -266,15 +268,17 @@ impl Store {
         let contains = search.as_deref().map(|q| format!("%{q}%"));
         let prefix = search.as_deref().map(|q| format!("{q}%"));
         let rows: Vec<JobRow> = sqlx::query_as(&format!(
-            "SELECT {JOB_COLUMNS} FROM jobs {WHERE} ORDER BY created_at DESC, id DESC \
-             LIMIT $5 OFFSET $6"
+            "SELECT {JOB_COLUMNS} FROM jobs {WHERE} AND {} ORDER BY created_at DESC, id DESC \
+             LIMIT $5 OFFSET $6",
+            Listing::Jobs.after(7)
         ))
         .bind(status)
         .bind(tag.as_deref())
         .bind(contains.as_deref())
         .bind(prefix.as_deref())
-        .bind(i64::from(limit))
-        .bind(offset as i64)
+        .bind(i64::from(page.limit))
+        .bind(page.offset as i64)
+        .bind(page.after.as_deref())
         .fetch_all(self.pool())
         .await?;
         let total: i64 = sqlx::query_scalar(&format!("SELECT COUNT(*) FROM jobs {WHERE}"))

@@ -41,11 +41,50 @@ use sqlx::{Any, AnyPool, Connection, Transaction};
 
 pub use datasets::{DatasetRecord, DeleteOutcome, NewDataset};
 pub use leases::Lease;
+
 pub use storage::StorageProblem;
 
 const DATABASE_FILE: &str = "safedice.sqlite";
 const DATASETS_DIR: &str = "datasets";
 const TMP_DIR: &str = "tmp";
+
+/// Which page of a list (newest first: `created_at DESC, id DESC`): `limit` rows after
+/// skipping `offset`, or after the row `after` (keyset paging: pages do not shift when rows are
+/// added meanwhile).
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct PageQuery {
+    pub limit: u32,
+    pub offset: u64,
+    pub after: Option<String>,
+}
+
+/// The tables the API lists.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Listing {
+    Datasets,
+    Jobs,
+    Policies,
+    Evaluations,
+}
+
+impl Listing {
+    fn table(self) -> &'static str {
+        match self {
+            Listing::Datasets => "datasets",
+            Listing::Jobs => "jobs",
+            Listing::Policies => "policies",
+            Listing::Evaluations => "evaluations",
+        }
+    }
+
+    /// The keyset condition with the anchor id bound at `$n`: rows listed after the anchor.
+    fn after(self, n: usize) -> String {
+        format!(
+            "(${n} IS NULL OR (created_at, id) < (SELECT created_at, id FROM {} WHERE id = ${n}))",
+            self.table()
+        )
+    }
+}
 
 /// How long a request waits for a free pooled connection before it is answered 503.
 const ACQUIRE_TIMEOUT: Duration = Duration::from_secs(10);
@@ -421,6 +460,16 @@ impl Store {
         .fetch_optional(&mut *tx)
         .await?;
         Ok(value.map(|v| (tx, v)))
+    }
+
+    /// Whether row `id` of a list's table exists (the anchor of a keyset page).
+    pub async fn page_anchor_exists(&self, list: Listing, id: &str) -> Result<bool, StoreError> {
+        let found: Option<String> =
+            sqlx::query_scalar(&format!("SELECT id FROM {} WHERE id = $1", list.table()))
+                .bind(id)
+                .fetch_optional(self.pool())
+                .await?;
+        Ok(found.is_some())
     }
 
     pub fn data_dir(&self) -> &Path {

@@ -3,7 +3,7 @@
 use sqlx::{Any, Transaction};
 
 use super::datasets::DeleteOutcome;
-use super::{parse_time, Store, StoreError};
+use super::{parse_time, Listing, PageQuery, Store, StoreError};
 use crate::domain::PolicyRecord;
 
 /// A policy row as the database returns it (everything but the weights); [`PolicyRecord`] is its typed
@@ -106,16 +106,17 @@ impl Store {
     pub async fn list_policies(
         &self,
         job_id: Option<&str>,
-        limit: u32,
-        offset: u64,
+        page: &PageQuery,
     ) -> Result<(Vec<PolicyRecord>, u64), StoreError> {
         let rows: Vec<PolicyRow> = sqlx::query_as(&format!(
-            "SELECT {POLICY_COLUMNS} FROM policies WHERE ($1 IS NULL OR job_id = $1) \
-             ORDER BY created_at DESC, id DESC LIMIT $2 OFFSET $3"
+            "SELECT {POLICY_COLUMNS} FROM policies WHERE ($1 IS NULL OR job_id = $1) AND {} \
+             ORDER BY created_at DESC, id DESC LIMIT $2 OFFSET $3",
+            Listing::Policies.after(4)
         ))
         .bind(job_id)
-        .bind(i64::from(limit))
-        .bind(offset as i64)
+        .bind(i64::from(page.limit))
+        .bind(page.offset as i64)
+        .bind(page.after.as_deref())
         .fetch_all(self.pool())
         .await?;
         let total: i64 =

@@ -326,3 +326,54 @@ async fn wait_for_evaluation(app: &TestApp, id: &str) -> Value {
     }
     panic!("evaluation {id} did not finish");
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn page_tokens_do_not_shift_when_jobs_are_added() {
+    let app = TestApp::spawn_with(|c| c.workers = 0).await;
+    let (unlabeled, _) = grid_datasets();
+    let u = upload(&app.client, &app.base_url, &unlabeled, "grid").await;
+    let mut first = Vec::new();
+    for _ in 0..5 {
+        first.push(bc_job(&app, &u, json!({})).await["id"].as_str().unwrap().to_owned());
+    }
+    let page = |query: String| {
+        let url = app.url(&format!("/v1/jobs?limit=2{query}"));
+        let client = app.client.clone();
+        async move { get_json(&client, &url).await }
+    };
+    let mut seen = Vec::new();
+    let mut token: Option<String> = None;
+    loop {
+        let query = token.as_ref().map_or(String::new(), |t| format!("&page_token={t}"));
+        let body = page(query).await;
+        seen.extend(ids_in_order(&body));
+        // New jobs arrive between pages: with offsets every page would shift by two.
+        bc_job(&app, &u, json!({})).await;
+        bc_job(&app, &u, json!({})).await;
+        match body["next_page_token"].as_str() {
+            Some(next) => token = Some(next.to_owned()),
+            None => break,
+        }
+        assert!(body["next_offset"].is_null() || token.is_some());
+    }
+    let mut want = first.clone();
+    want.sort_by(|a, b| b.cmp(a));
+    let mut got = seen.clone();
+    got.sort_by(|a, b| b.cmp(a));
+    assert_eq!(got, want, "every first job once, none added later: {seen:?}");
+
+    let both = app.get(&format!("/v1/jobs?offset=1&page_token={}", first[0])).send().await.unwrap();
+    assert_error(both, StatusCode::BAD_REQUEST, "invalid_pagination").await;
+    let unknown = app.get("/v1/jobs?page_token=nope").send().await.unwrap();
+    assert_error(unknown, StatusCode::BAD_REQUEST, "invalid_pagination").await;
+    for list in ["datasets", "policies", "evaluations"] {
+        let unknown = app.get(&format!("/v1/{list}?page_token=nope")).send().await.unwrap();
+        assert_error(unknown, StatusCode::BAD_REQUEST, "invalid_pagination").await;
+    }
+    let datasets = get_json(&app.client, &app.url("/v1/datasets?limit=2")).await;
+    assert_eq!(datasets["next_page_token"], Value::Null, "one dataset: a page that is not full");
+}
+
+fn ids_in_order(page: &Value) -> Vec<String> {
+    page["items"].as_array().unwrap().iter().map(|j| j["id"].as_str().unwrap().into()).collect()
+}
