@@ -39,13 +39,13 @@ fn hdf5_flat_layout_parses_like_npz() {
     dsrl_like(&path, &[0., 0., 1., 1., 2., 2., 3., 3.]);
     let (format, d) = parse_file(&path, "dsrl.hdf5").unwrap();
     assert_eq!(format, Format::Hdf5);
-    assert_eq!(d.observations, vec![0., 0., 1., 1., 2., 2., 3., 3.]);
-    assert_eq!(d.next_observations[..2], [1., 1.]);
-    assert_eq!(d.actions, Actions::Continuous(vec![0.0, 0.1, 0.2, 0.3]));
-    assert_eq!(d.action_space, ActionSpace::Continuous { dim: 1, low: vec![-1.], high: vec![1.] });
-    assert_eq!(d.terminals, vec![false, true, false, false]);
-    assert_eq!(d.episode_ids, vec![0, 0, 1, 1]);
-    assert_eq!(d.costs, Some(vec![0., 1., 0., 1.]));
+    assert_eq!(d.observations(), [0., 0., 1., 1., 2., 2., 3., 3.]);
+    assert_eq!(d.next_observations()[..2], [1., 1.]);
+    assert_eq!(d.actions(), &Actions::Continuous(vec![0.0, 0.1, 0.2, 0.3]));
+    assert_eq!(d.action_space(), &ActionSpace::Continuous { dim: 1, low: vec![-1.], high: vec![1.] });
+    assert_eq!(d.terminals(), [false, true, false, false]);
+    assert_eq!(d.episode_ids(), [0, 0, 1, 1]);
+    assert_eq!(d.costs(), Some(&[0., 1., 0., 1.][..]));
 }
 
 #[test]
@@ -74,11 +74,11 @@ fn hdf5_written_by_h5py() {
     let (format, d) = parse_file(&path, "dsrl_like.hdf5").unwrap();
     assert_eq!(format, Format::Hdf5);
     let obs: Vec<f32> = (0..12).map(|x| x as f32 / 2.0).collect();
-    assert_eq!(d.observations, obs);
-    assert_eq!(d.next_observations, obs.iter().map(|x| x + 0.5).collect::<Vec<_>>());
-    assert_eq!(d.actions, Actions::Continuous(vec![0.5, -0.5, 0.25, 1.0]));
-    assert_eq!(d.terminals, vec![false, true, false, false]);
-    assert_eq!(d.episode_ids, vec![0, 0, 1, 1]);
-    assert_eq!(d.rewards, Some(vec![1., 2., 3., 4.]));
-    assert_eq!(d.costs, Some(vec![0., 1., 1., 0.]));
+    assert_eq!(d.observations(), obs);
+    assert_eq!(d.next_observations(), obs.iter().map(|x| x + 0.5).collect::<Vec<_>>());
+    assert_eq!(d.actions(), &Actions::Continuous(vec![0.5, -0.5, 0.25, 1.0]));
+    assert_eq!(d.terminals(), [false, true, false, false]);
+    assert_eq!(d.episode_ids(), [0, 0, 1, 1]);
+    assert_eq!(d.rewards(), Some(&[1., 2., 3., 4.][..]));
+    assert_eq!(d.costs(), Some(&[0., 1., 1., 0.][..]));
 }
