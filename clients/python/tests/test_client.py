@@ -96,3 +96,21 @@ def test_wait_raises_when_the_job_is_cancelled(client: Client, trained: dict) ->
     with pytest.raises(JobFailed) as failed:
         client.wait(job["id"], timeout=60, progress=False)
     assert failed.value.job["status"] == "cancelled"
+
+
+def test_jobs_are_named_found_by_tag_and_deleted(client: Client, trained: dict) -> None:
+    job = client.update_job(trained["id"], name="client test", tags=["py", "env=rooms"])
+    assert (job["name"], job["tags"]) == ("client test", ["py", "env=rooms"])
+    assert [j["id"] for j in client.jobs(tag="py", limit=1)] == [job["id"]]
+    assert [j["id"] for j in client.jobs(search="CLIENT")] == [job["id"]]
+    messages = [line["message"] for line in client.logs(job["id"])]
+    assert messages[0].startswith("claimed by worker") and "succeeded" in messages[-1]
+    with pytest.raises(TypeError):
+        client.update_job(job["id"], status="failed")
+    with pytest.raises(ApiError) as bad:
+        client.update_job(job["id"], tags=["no spaces"])
+    assert (bad.value.status, bad.value.code) == (422, "invalid_labels")
+    client.delete_job(job["id"])
+    with pytest.raises(ApiError) as gone:
+        client.job(job["id"])
+    assert gone.value.status == 404

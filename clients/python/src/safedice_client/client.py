@@ -96,21 +96,62 @@ class Client:
         config: Optional[Json] = None,
         runner: Optional[Json] = None,
         eval: Optional[Json] = None,
+        name: Optional[str] = None,
+        tags: Optional[Sequence[str]] = None,
+        notes: Optional[str] = None,
     ) -> Json:
         """Queues a training job; the job (status ``queued``). See GET /v1/algorithms for each
-        algorithm's configuration keys and defaults."""
+        algorithm's configuration keys and defaults. ``name``, ``tags`` and ``notes`` are for
+        people (``jobs(tag=...)`` finds them) and never change what is trained."""
         job: Json = {"algorithm": algorithm, "unlabeled_dataset": unlabeled_dataset}
         optional = {
             "non_preferred_dataset": non_preferred_dataset,
             "config": config,
             "runner": runner,
             "eval": eval,
+            "name": name,
+            "tags": list(tags) if tags is not None else None,
+            "notes": notes,
         }
         job.update({key: value for key, value in optional.items() if value is not None})
         return self._request("POST", "/v1/jobs", json.dumps(job).encode(), "application/json")
 
     def job(self, job_id: str) -> Json:
         return self._get(f"/v1/jobs/{job_id}")
+
+    def jobs(
+        self,
+        status: Optional[str] = None,
+        tag: Optional[str] = None,
+        search: Optional[str] = None,
+        limit: int = 50,
+    ) -> Iterator[Json]:
+        """Every job the filters select, newest first, fetched a page at a time (page tokens:
+        jobs queued meanwhile do not shift the pages)."""
+        query: Dict[str, Any] = {"limit": limit}
+        query.update({k: v for k, v in {"status": status, "tag": tag, "q": search}.items() if v})
+        while True:
+            page = self._get("/v1/jobs?" + urllib.parse.urlencode(query))
+            yield from page["items"]
+            if not page.get("next_page_token"):
+                return
+            query["page_token"] = page["next_page_token"]
+
+    def update_job(self, job_id: str, **labels: Any) -> Json:
+        """Sets ``name``, ``tags`` and/or ``notes`` (``None`` clears one); the job."""
+        unknown = set(labels) - {"name", "tags", "notes"}
+        if unknown:
+            raise TypeError(f"update_job takes name, tags and notes, not {sorted(unknown)}")
+        body = json.dumps(labels).encode()
+        return self._request("PATCH", f"/v1/jobs/{job_id}", body, "application/json")
+
+    def delete_job(self, job_id: str) -> None:
+        """Deletes a finished job with its metrics, log and policy (409 while it runs)."""
+        self._request("DELETE", f"/v1/jobs/{job_id}")
+
+    def logs(self, job_id: str) -> list:
+        """The job's log lines: ``seq``, ``time``, ``level``, ``worker``, ``message``."""
+        return self._get(f"/v1/jobs/{job_id}/logs")
 
     def cancel(self, job_id: str) -> Json:
         return self._request("POST", f"/v1/jobs/{job_id}/cancel")
