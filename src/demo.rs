@@ -261,9 +261,10 @@ async fn upload(
     let bytes = std::fs::read(dir.join(&file))?;
     let form = reqwest::multipart::Form::new()
         .part("file", reqwest::multipart::Part::bytes(bytes).file_name(file.clone()))
-        .text("name", stem.to_string());
+        .text("name", stem.to_string())
+        .text("role", stem.to_string());
     let url = format!("{}/v1/datasets", transcript.base);
-    transcript.record(format!("curl -s -F file=@demo-data/{file} -F name={stem} {url}"));
+    transcript.record(format!("curl -s -F file=@demo-data/{file} -F name={stem} -F role={stem} {url}"));
     let response = client.post(&url).multipart(form).send().await?;
     let body = checked_json(response).await?;
     let id = body["id"].as_str().context("dataset without id")?.to_string();

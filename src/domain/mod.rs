@@ -19,6 +19,31 @@ pub use options::{EvalOptions, EvalSpec, RunnerOptions};
 pub use policy::PolicyRecord;
 pub use progress::JobProgress;
 
+/// What a dataset is for, as its uploader said.
+#[derive(
+    Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize, utoipa::ToSchema,
+)]
+#[serde(rename_all = "snake_case")]
+pub enum DatasetRole {
+    /// D^U: demonstrations of mixed quality.
+    Unlabeled,
+    /// D^N: demonstrations known to be non-preferred (unsafe).
+    NonPreferred,
+}
+
+impl DatasetRole {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            DatasetRole::Unlabeled => "unlabeled",
+            DatasetRole::NonPreferred => "non_preferred",
+        }
+    }
+
+    pub fn parse(text: &str) -> Option<DatasetRole> {
+        [DatasetRole::Unlabeled, DatasetRole::NonPreferred].into_iter().find(|r| r.as_str() == text)
+    }
+}
+
 /// A time as the API shows it: RFC 3339, UTC, milliseconds (`2026-01-31T12:00:00.000Z`).
 pub fn rfc3339(time: &chrono::DateTime<chrono::Utc>) -> String {
     time.to_rfc3339_opts(chrono::SecondsFormat::Millis, true)

@@ -21,6 +21,7 @@ use super::extract::{Json, Path as UrlPath, Query};
 use super::pagination::{Page, PageParams};
 use super::{ApiError, AppState};
 use crate::data::{self, ActionSpace, DatasetStats, Format};
+use crate::domain::DatasetRole;
 use crate::store::{DatasetRecord, DeleteOutcome, Listing, NewDataset};
 
 /// Room for the multipart framing and the `name`/`description` fields on top of the file.
@@ -41,6 +42,8 @@ pub struct DatasetResource {
     #[schema(example = "walker-unlabeled")]
     pub name: String,
     pub description: Option<String>,
+    /// What the uploader said the dataset is for (the `role` form field), if anything.
+    pub role: Option<DatasetRole>,
     /// The format the file was uploaded in.
     pub format: Format,
     /// Number of transitions.
@@ -63,6 +66,7 @@ impl From<DatasetRecord> for DatasetResource {
             id: r.id,
             name: r.name,
             description: r.description,
+            role: r.role,
             format: r.format,
             transitions: r.transitions,
             episodes: r.episodes,
@@ -97,6 +101,9 @@ struct UploadForm {
     /// Free text, up to 4000 characters.
     #[schema(max_length = 4000)]
     description: Option<String>,
+    /// What the dataset is for: `unlabeled` (D^U) or `non_preferred` (D^N). Jobs refuse a
+    /// dataset in the other role's place.
+    role: Option<DatasetRole>,
 }
 
 /// A dataset name: 1-200 characters, no control characters, surrounding space trimmed.
@@ -195,6 +202,7 @@ struct Upload {
     bytes: u64,
     name: Option<DatasetName>,
     description: Option<String>,
+    role: Option<DatasetRole>,
 }
 
 fn content_length(headers: &HeaderMap) -> Option<u64> {
@@ -222,6 +230,7 @@ async fn receive_form(
     let mut file = None;
     let mut name = None;
     let mut description = None;
+    let mut role = None;
     while let Some(field) = multipart.next_field().await? {
         let field_name = field.name().unwrap_or_default().to_owned();
         let repeated = match field_name.as_str() {
@@ -234,12 +243,22 @@ async fn receive_form(
                 let text = read_text(field, "description", MAX_DESCRIPTION_CHARS).await?;
                 description.replace(text).is_some()
             }
+            "role" => {
+                let text = read_text(field, "role", 32).await?;
+                let parsed = DatasetRole::parse(text.trim()).ok_or_else(|| {
+                    ApiError::unprocessable(
+                        "invalid_role",
+                        format!("role must be `unlabeled` or `non_preferred`, got {text:?}"),
+                    )
+                })?;
+                role.replace(parsed).is_some()
+            }
             other => {
                 return Err(ApiError::bad_request(
                     "unknown_field",
                     format!(
                         "unexpected form field `{other}`; the form takes `file`, and optionally \
-                         `name` and `description`"
+                         `name`, `description` and `role`"
                     ),
                 ))
             }
@@ -257,7 +276,7 @@ async fn receive_form(
             "the form has no `file` field: send the dataset as e.g. `-F file=@demos.jsonl`",
         )
     })?;
-    Ok(Upload { file, file_name, sha256, bytes, name, description })
+    Ok(Upload { file, file_name, sha256, bytes, name, description, role })
 }
 
 /// Streams the `file` field to a temp file in `tmp_dir`, hashing it on the way; over `limit`
@@ -315,7 +334,7 @@ async fn read_text(
 
 /// Parses, validates and stores an upload; its temp file is deleted however this ends.
 async fn store_upload(state: &AppState, upload: Upload) -> Result<DatasetRecord, ApiError> {
-    let Upload { file, file_name, sha256, bytes, name, description } = upload;
+    let Upload { file, file_name, sha256, bytes, name, description, role } = upload;
     let name = match name {
         Some(name) => name,
         None => default_name(&file_name),
@@ -323,7 +342,10 @@ async fn store_upload(state: &AppState, upload: Upload) -> Result<DatasetRecord,
     let parsed = tokio::task::spawn_blocking(move || {
         let (format, dataset) = data::parse_file(file.path(), &file_name)?;
         drop(file);
-        let new = NewDataset::describe(&dataset, format, name.0, description, sha256, bytes);
+        let new = NewDataset {
+            role,
+            ..NewDataset::describe(&dataset, format, name.0, description, sha256, bytes)
+        };
         Ok::<_, ApiError>((new, data::encode_canonical(&dataset)))
     })
     .await??;

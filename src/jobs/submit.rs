@@ -4,7 +4,9 @@
 
 use crate::algo::memory::{estimate_job_memory, DataShape};
 use crate::algo::{self, Algorithm};
-use crate::domain::{DatasetId, EvalOptions, JobId, JobLabels, JobRecord, RunnerOptions};
+use crate::domain::{
+    DatasetId, DatasetRole, EvalOptions, JobId, JobLabels, JobRecord, RunnerOptions,
+};
 use crate::store::jobs::NewJob;
 use crate::store::{DatasetRecord, Store, StoreError};
 
@@ -59,9 +61,15 @@ pub async fn submit(
             "algorithm {algorithm} needs non_preferred_dataset (a labeled non-preferred dataset id)"
         )));
     }
-    let unlabeled = shape(&stored_dataset(store, &request.unlabeled_dataset).await?);
+    let unlabeled = stored_dataset(store, &request.unlabeled_dataset).await?;
+    check_role(&unlabeled, DatasetRole::Unlabeled, "unlabeled_dataset")?;
+    let unlabeled = shape(&unlabeled);
     let non_preferred = match &request.non_preferred_dataset {
-        Some(id) => Some(shape(&stored_dataset(store, id).await?)),
+        Some(id) => {
+            let record = stored_dataset(store, id).await?;
+            check_role(&record, DatasetRole::NonPreferred, "non_preferred_dataset")?;
+            Some(shape(&record))
+        }
         None => None,
     };
     check_memory(&config, &unlabeled, non_preferred.as_ref(), max_job_memory)?;
@@ -88,6 +96,20 @@ pub async fn submit(
         "job queued"
     );
     Ok(record)
+}
+
+/// A dataset uploaded with the other role is refused in this place (a swapped pair of ids is
+/// an easy mistake that trains the opposite of what was meant).
+fn check_role(record: &DatasetRecord, wanted: DatasetRole, field: &str) -> Result<(), SubmitError> {
+    match record.role {
+        Some(role) if role != wanted => Err(SubmitError::InvalidConfig(format!(
+            "{field}: dataset {} was uploaded with role `{}`, not `{}`; are the two ids swapped?",
+            record.id,
+            role.as_str(),
+            wanted.as_str()
+        ))),
+        _ => Ok(()),
+    }
 }
 
 async fn stored_dataset(store: &Store, id: &DatasetId) -> Result<DatasetRecord, StoreError> {

@@ -11,16 +11,19 @@ use sqlx::{Any, Transaction};
 
 use super::{now, parse_time, Backend, Listing, PageQuery, Store, StoreError};
 use crate::data::{self, ActionSpace, Dataset, DatasetStats, Format};
+use crate::domain::DatasetRole;
 
 const CANONICAL_EXTENSION: &str = "canonical";
 const COLUMNS: &str = "id, name, description, format, transitions, episodes, obs_dim, \
-     action_space, stats, sha256, bytes, canonical_sha256, canonical_bytes, created_at";
+     action_space, stats, sha256, bytes, canonical_sha256, canonical_bytes, created_at, role";
 
 /// What is known about an accepted upload before it is stored.
 #[derive(Debug, Clone)]
 pub struct NewDataset {
     pub name: String,
     pub description: Option<String>,
+    /// What the uploader said the dataset is for.
+    pub role: Option<DatasetRole>,
     pub format: Format,
     pub transitions: usize,
     pub episodes: usize,
@@ -46,6 +49,7 @@ impl NewDataset {
         NewDataset {
             name,
             description,
+            role: None,
             format,
             transitions: dataset.len(),
             episodes: dataset.episodes(),
@@ -64,6 +68,7 @@ pub struct DatasetRecord {
     pub id: String,
     pub name: String,
     pub description: Option<String>,
+    pub role: Option<DatasetRole>,
     pub format: Format,
     pub transitions: u64,
     pub episodes: u64,
@@ -93,6 +98,7 @@ struct DatasetRow {
     canonical_sha256: String,
     canonical_bytes: i64,
     created_at: String,
+    role: Option<String>,
 }
 
 impl TryFrom<DatasetRow> for DatasetRecord {
@@ -110,10 +116,17 @@ impl TryFrom<DatasetRow> for DatasetRecord {
             serde_json::from_str(&row.action_space).map_err(|e| json("action space", e))?;
         let stats = serde_json::from_str(&row.stats).map_err(|e| json("stats", e))?;
         let created_at = parse_time(&row.id, &row.created_at)?;
+        let role = match row.role.as_deref() {
+            Some(text) => Some(DatasetRole::parse(text).ok_or_else(|| {
+                StoreError::Corrupt(row.id.clone(), format!("stored role {text:?}"))
+            })?),
+            None => None,
+        };
         Ok(DatasetRecord {
             id: row.id,
             name: row.name,
             description: row.description,
+            role,
             format,
             transitions: row.transitions as u64,
             episodes: row.episodes as u64,
@@ -394,8 +407,8 @@ async fn insert_dataset_row(
 ) -> Result<(), StoreError> {
     sqlx::query(
         "INSERT INTO datasets (id, name, description, format, transitions, episodes, obs_dim, \
-         action_space, stats, sha256, bytes, canonical_sha256, canonical_bytes, created_at) \
-         VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10, $11, $12, $13, $14)",
+         action_space, stats, sha256, bytes, canonical_sha256, canonical_bytes, created_at, role) \
+         VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10, $11, $12, $13, $14, $15)",
     )
     .bind(id)
     .bind(&new.name)
@@ -411,6 +424,7 @@ async fn insert_dataset_row(
     .bind(&hashed.sha256)
     .bind(hashed.bytes.len() as i64)
     .bind(now())
+    .bind(new.role.map(DatasetRole::as_str))
     .execute(&mut **tx)
     .await?;
     Ok(())

@@ -185,9 +185,39 @@ async fn malformed_forms_get_400_or_422_and_store_nothing() {
         .text("description", "x".repeat(5000));
     let response = send(long_description).await.unwrap();
     assert_error(response, StatusCode::UNPROCESSABLE_ENTITY, "invalid_description").await;
+    let bad_role =
+        reqwest::multipart::Form::new().part("file", part(valid.clone())).text("role", "labeled");
+    let response = send(bad_role).await.unwrap();
+    let message = assert_error(response, StatusCode::UNPROCESSABLE_ENTITY, "invalid_role").await;
+    assert!(message.contains("`unlabeled` or `non_preferred`"), "{message}");
     let json = app.post("/v1/datasets").json(&serde_json::json!({"file": "demos.jsonl"})).send();
     assert_error(json.await.unwrap(), StatusCode::BAD_REQUEST, "not_multipart").await;
     app.assert_no_datasets_stored().await;
+}
+
+#[tokio::test]
+async fn a_dataset_keeps_its_role_and_jobs_refuse_it_in_the_other_place() {
+    let app = TestApp::spawn_with(|c| c.workers = 0).await;
+    let valid = file_bytes(&discrete_dataset(), "jsonl", write_jsonl);
+    let upload = |role: &'static str| {
+        let part = reqwest::multipart::Part::bytes(valid.clone()).file_name("demos.jsonl");
+        let form = reqwest::multipart::Form::new().part("file", part).text("role", role);
+        app.post("/v1/datasets").multipart(form).send()
+    };
+    let u: serde_json::Value = upload("unlabeled").await.unwrap().json().await.unwrap();
+    let n: serde_json::Value = upload("non_preferred").await.unwrap().json().await.unwrap();
+    assert_eq!(
+        (u["role"].as_str(), n["role"].as_str()),
+        (Some("unlabeled"), Some("non_preferred"))
+    );
+    let listed = app.get("/v1/datasets").send().await.unwrap().text().await.unwrap();
+    assert!(listed.contains(r#""role":"non_preferred""#), "{listed}");
+    let swapped = serde_json::json!({"algorithm": "safedice", "unlabeled_dataset": n["id"],
+                                     "non_preferred_dataset": u["id"]});
+    let response = app.post("/v1/jobs").json(&swapped).send().await.unwrap();
+    let message = assert_error(response, StatusCode::UNPROCESSABLE_ENTITY, "invalid_config").await;
+    assert!(message.contains("uploaded with role `non_preferred`") && message.contains("swapped"));
+    assert_eq!(app.count_rows("jobs").await, 0);
 }
 
 #[tokio::test]

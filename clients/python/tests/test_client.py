@@ -27,7 +27,10 @@ def point_goal_arrays() -> dict:
 @pytest.fixture(scope="module")
 def trained(client: Client) -> dict:
     unlabeled = client.upload_dataset(point_goal_arrays(), name="from numpy")
-    non_preferred = client.upload_dataset(DATA / "point-goal" / "non_preferred.npz")
+    non_preferred = client.upload_dataset(
+        DATA / "point-goal" / "non_preferred.npz", role="non_preferred"
+    )
+    assert non_preferred["role"] == "non_preferred"
     job = client.submit_job(
         unlabeled["id"],
         non_preferred["id"],

@@ -59,14 +59,19 @@ class Client:
         return self._get("/v1/envs")["items"]
 
     def upload_dataset(
-        self, data: DatasetSource, name: Optional[str] = None, description: Optional[str] = None
+        self,
+        data: DatasetSource,
+        name: Optional[str] = None,
+        description: Optional[str] = None,
+        role: Optional[str] = None,
     ) -> Json:
         """Uploads a dataset; the stored dataset's description.
 
         `data` is a file path (JSONL, CSV, NPZ or HDF5, by extension) or a mapping of numpy
         arrays in the D4RL/DSRL layout (``observations``, ``actions``, ``next_observations``,
         ``terminals``, optional ``timeouts``, ``rewards``, ``costs``, ``episode_ids``), sent
-        as NPZ.
+        as NPZ. ``role`` (``unlabeled`` or ``non_preferred``) says what it is for; jobs refuse
+        it in the other's place.
         """
         if isinstance(data, Mapping):
             buffer = io.BytesIO()
@@ -75,7 +80,7 @@ class Client:
         else:
             path = Path(data)
             filename, content = path.name, path.read_bytes()
-        fields = {"name": name, "description": description}
+        fields = {"name": name, "description": description, "role": role}
         body, content_type = _multipart(fields, filename, content)
         return self._request("POST", "/v1/datasets", body, content_type)
 
