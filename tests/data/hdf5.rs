@@ -42,7 +42,10 @@ fn hdf5_flat_layout_parses_like_npz() {
     assert_eq!(d.observations(), [0., 0., 1., 1., 2., 2., 3., 3.]);
     assert_eq!(d.next_observations()[..2], [1., 1.]);
     assert_eq!(d.actions(), &Actions::Continuous(vec![0.0, 0.1, 0.2, 0.3]));
-    assert_eq!(d.action_space(), &ActionSpace::Continuous { dim: 1, low: vec![-1.], high: vec![1.] });
+    assert_eq!(
+        d.action_space(),
+        &ActionSpace::Continuous { dim: 1, low: vec![-1.], high: vec![1.] }
+    );
     assert_eq!(d.terminals(), [false, true, false, false]);
     assert_eq!(d.episode_ids(), [0, 0, 1, 1]);
     assert_eq!(d.costs(), Some(&[0., 1., 0., 1.][..]));
