@@ -264,7 +264,8 @@ async fn upload(
         .text("name", stem.to_string())
         .text("role", stem.to_string());
     let url = format!("{}/v1/datasets", transcript.base);
-    transcript.record(format!("curl -s -F file=@demo-data/{file} -F name={stem} -F role={stem} {url}"));
+    transcript
+        .record(format!("curl -s -F file=@demo-data/{file} -F name={stem} -F role={stem} {url}"));
     let response = client.post(&url).multipart(form).send().await?;
     let body = checked_json(response).await?;
     let id = body["id"].as_str().context("dataset without id")?.to_string();

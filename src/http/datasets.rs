@@ -129,7 +129,11 @@ impl DatasetName {
 
 /// Routes with ordinary request bodies (timeouts apply).
 pub fn router() -> OpenApiRouter<AppState> {
-    OpenApiRouter::new().routes(routes!(list_datasets)).routes(routes!(get_dataset, delete_dataset))
+    OpenApiRouter::new()
+        .routes(routes!(list_datasets))
+        .routes(routes!(get_dataset, delete_dataset))
+        .routes(routes!(preview_dataset))
+        .routes(routes!(download_dataset))
 }
 
 /// The upload route: no timeout and no default body limit (`--max-upload-bytes` applies).
@@ -399,6 +403,78 @@ async fn get_dataset(
     let record =
         state.store.dataset(&id).await?.ok_or_else(|| ApiError::not_found("dataset", &id))?;
     Ok(Json(record.into()))
+}
+
+/// `?rows=&episodes=`
+#[derive(Debug, serde::Deserialize, utoipa::IntoParams)]
+#[into_params(parameter_in = Query)]
+pub struct PreviewParams {
+    /// Transitions shown from the start, 0 to 100 (default 10).
+    #[param(minimum = 0, maximum = 100, default = 10)]
+    pub rows: Option<usize>,
+    /// Episodes summarised from the start, 0 to 1000 (default 20).
+    #[param(minimum = 0, maximum = 1000, default = 20)]
+    pub episodes: Option<usize>,
+}
+
+/// The first transitions of a dataset and a summary (length, return, cost, ending) of its first
+/// episodes, as stored.
+#[utoipa::path(get, path = "/v1/datasets/{id}/preview", tag = "datasets",
+    params(("id" = String, Path, description = "Dataset id"), PreviewParams),
+    responses(
+        (status = 200, body = data::DatasetPreview),
+        (status = 400, description = "`rows` or `episodes` out of range (`invalid_preview`)",
+            body = ErrorBody),
+        (status = 404, description = "No such dataset (`not_found`)", body = ErrorBody),
+    ))]
+async fn preview_dataset(
+    State(state): State<AppState>,
+    UrlPath(id): UrlPath<String>,
+    Query(params): Query<PreviewParams>,
+) -> Result<Json<data::DatasetPreview>, ApiError> {
+    let (rows, episodes) = (params.rows.unwrap_or(10), params.episodes.unwrap_or(20));
+    if rows > 100 || episodes > 1000 {
+        return Err(ApiError::bad_request(
+            "invalid_preview",
+            format!("rows must be 0 to 100 and episodes 0 to 1000, got {rows} and {episodes}"),
+        ));
+    }
+    let dataset = state.store.load_dataset(&id).await?;
+    let preview = tokio::task::spawn_blocking(move || data::preview(&dataset, rows, episodes));
+    Ok(Json(preview.await?))
+}
+
+/// The dataset as stored, as an NPZ file in the D4RL/DSRL flat layout (what
+/// `numpy.load` reads, and what uploads again to the same dataset).
+#[utoipa::path(get, path = "/v1/datasets/{id}/download", tag = "datasets",
+    params(("id" = String, Path, description = "Dataset id")),
+    responses(
+        (status = 200, description = "NPZ file", content_type = "application/octet-stream",
+            body = Vec<u8>),
+        (status = 404, description = "No such dataset (`not_found`)", body = ErrorBody),
+    ))]
+async fn download_dataset(
+    State(state): State<AppState>,
+    UrlPath(id): UrlPath<String>,
+) -> Result<Response, ApiError> {
+    let dataset = state.store.load_dataset(&id).await?;
+    let tmp_dir = state.store.tmp_dir();
+    let bytes = tokio::task::spawn_blocking(move || {
+        let file = tempfile::Builder::new().suffix(".npz").tempfile_in(&tmp_dir)?;
+        data::write_npz(&dataset, file.path())?;
+        std::fs::read(file.path())
+    })
+    .await?
+    .map_err(|e| ApiError::Internal(anyhow::anyhow!("writing the NPZ file: {e}")))?;
+    let disposition = format!("attachment; filename=\"dataset-{id}.npz\"");
+    Ok((
+        [
+            (header::CONTENT_TYPE, "application/octet-stream".to_owned()),
+            (header::CONTENT_DISPOSITION, disposition),
+        ],
+        bytes,
+    )
+        .into_response())
 }
 
 /// Delete a dataset and its stored data.

@@ -366,3 +366,57 @@ async fn orphaned_files_from_a_crash_are_removed_at_start_up() {
     let kept = app.data_dir().join("datasets").join(format!("{id}.canonical"));
     assert!(kept.exists(), "the stored dataset's file was removed");
 }
+
+#[tokio::test]
+async fn a_dataset_previews_its_first_rows_and_episodes_and_downloads_as_npz() {
+    let app = TestApp::spawn().await;
+    let dataset = continuous_dataset();
+    let id = app.create_dataset("demos.jsonl", file_bytes(&dataset, "jsonl", write_jsonl)).await;
+    let preview: serde_json::Value = app
+        .get(&format!("/v1/datasets/{id}/preview?rows=4&episodes=5"))
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    let rows = preview["transitions"].as_array().unwrap();
+    assert_eq!(rows.len(), 4);
+    assert_eq!(rows[3]["episode"], 1, "the fourth row starts the second episode");
+    assert_eq!(rows[1]["action"], serde_json::json!([1.0, 0.0]));
+    assert_eq!((rows[1]["reward"].as_f64(), rows[1]["cost"].as_f64()), (Some(0.5), Some(1.0)));
+    let episodes = preview["episodes"].as_array().unwrap();
+    let summary: Vec<(u64, f64, f64, bool)> = episodes
+        .iter()
+        .map(|e| {
+            let f = |k: &str| e[k].as_f64().unwrap();
+            (
+                e["length"].as_u64().unwrap(),
+                f("return"),
+                f("cost"),
+                e["terminal"].as_bool().unwrap(),
+            )
+        })
+        .collect();
+    assert_eq!(summary, [(3, 1.75, 1.0, false), (2, 1.0, 1.0, true)]);
+
+    let download = app.get(&format!("/v1/datasets/{id}/download")).send().await.unwrap();
+    assert_eq!(download.status(), StatusCode::OK);
+    let disposition = download.headers()["content-disposition"].to_str().unwrap().to_owned();
+    assert_eq!(disposition, format!("attachment; filename=\"dataset-{id}.npz\""));
+    let bytes = download.bytes().await.unwrap().to_vec();
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("back.npz");
+    std::fs::write(&path, &bytes).unwrap();
+    let (_, back) = safedice::data::parse_file(&path, "back.npz").unwrap();
+    assert_eq!(back.observations(), dataset.observations());
+    assert_eq!(back.actions(), dataset.actions());
+    assert_eq!(back.costs(), dataset.costs());
+    assert_eq!(back.episode_ranges(), dataset.episode_ranges());
+
+    let too_many = app.get(&format!("/v1/datasets/{id}/preview?rows=101")).send().await.unwrap();
+    assert_error(too_many, StatusCode::BAD_REQUEST, "invalid_preview").await;
+    for path in ["/v1/datasets/nope/preview", "/v1/datasets/nope/download"] {
+        assert_error(app.get(path).send().await.unwrap(), StatusCode::NOT_FOUND, "not_found").await;
+    }
+}
