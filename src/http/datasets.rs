@@ -466,15 +466,7 @@ async fn download_dataset(
     })
     .await?
     .map_err(|e| ApiError::Internal(anyhow::anyhow!("writing the NPZ file: {e}")))?;
-    let disposition = format!("attachment; filename=\"dataset-{id}.npz\"");
-    Ok((
-        [
-            (header::CONTENT_TYPE, "application/octet-stream".to_owned()),
-            (header::CONTENT_DISPOSITION, disposition),
-        ],
-        bytes,
-    )
-        .into_response())
+    super::attachment(&format!("dataset-{id}.npz"), super::OCTET_STREAM, bytes)
 }
 
 /// Delete a dataset and its stored data.

@@ -472,14 +472,7 @@ async fn job_metrics_csv(
         // Metric names are identifiers (letters, digits, `_`, `/`): no quoting needed.
         csv.push_str(&format!("{},{},{},{}\n", row.name, row.step, row.value, row.time));
     }
-    let disposition = format!("attachment; filename=\"job-{id}-metrics.csv\"");
-    Ok((
-        [
-            (header::CONTENT_TYPE, "text/csv; charset=utf-8".to_owned()),
-            (header::CONTENT_DISPOSITION, disposition),
-        ],
-        csv,
-    ))
+    super::attachment(&format!("job-{id}-metrics.csv"), "text/csv; charset=utf-8", csv)
 }
 
 /// One metric a job recorded.

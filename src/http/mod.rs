@@ -239,3 +239,27 @@ fn panic_response(panic: Box<dyn std::any::Any + Send + 'static>) -> Response {
         .unwrap_or("non-string panic payload");
     ApiError::Internal(anyhow::anyhow!("handler panicked: {detail}")).into_response()
 }
+
+pub(crate) const OCTET_STREAM: &str = "application/octet-stream";
+
+/// A file download: `bytes` of `content_type`, saved by browsers and `curl -OJ` as `file_name`.
+pub(crate) fn attachment(
+    file_name: &str,
+    content_type: &'static str,
+    bytes: impl Into<axum::body::Body>,
+) -> Result<axum::response::Response, ApiError> {
+    use axum::http::{header, HeaderValue};
+    use axum::response::IntoResponse;
+    let disposition = format!("attachment; filename=\"{file_name}\"");
+    Ok((
+        [
+            (header::CONTENT_TYPE, HeaderValue::from_static(content_type)),
+            (
+                header::CONTENT_DISPOSITION,
+                HeaderValue::from_str(&disposition).map_err(anyhow::Error::from)?,
+            ),
+        ],
+        bytes.into(),
+    )
+        .into_response())
+}

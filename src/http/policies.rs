@@ -1,8 +1,8 @@
 //! `/v1/policies`: the policies trained jobs produced, their artefacts, and actions from them.
 
 use axum::extract::State;
-use axum::http::{header, HeaderName, HeaderValue, StatusCode};
-use axum::response::{IntoResponse, Response};
+use axum::http::{HeaderName, HeaderValue, StatusCode};
+use axum::response::Response;
 use serde::{Deserialize, Serialize};
 use utoipa::{IntoParams, ToSchema};
 use utoipa_axum::router::OpenApiRouter;
@@ -12,7 +12,7 @@ use super::error::ErrorBody;
 use super::extract::{Json, Path, Query};
 use super::inference::{self, Observations};
 use super::pagination::{Page, PageParams};
-use super::{ApiError, AppState};
+use super::{attachment, ApiError, AppState, OCTET_STREAM};
 use crate::algo::Algorithm;
 use crate::data::Actions;
 use crate::domain::{rfc3339, PolicyRecord};
@@ -190,25 +190,9 @@ async fn policy_weights(
     let weights = crate::serving::portable_weights(&state.store, &id).await?;
     let spec = HeaderValue::from_str(&spec)
         .map_err(|e| ApiError::Internal(anyhow::anyhow!("policy {id}: spec header: {e}")))?;
-    let mut response = attachment(&format!("policy-{id}.safetensors"), weights)?;
+    let mut response = attachment(&format!("policy-{id}.safetensors"), OCTET_STREAM, weights)?;
     response.headers_mut().insert(SPEC_HEADER, spec);
     Ok(response)
-}
-
-/// A file download: `bytes` as `application/octet-stream` saved as `file_name`.
-fn attachment(file_name: &str, bytes: Vec<u8>) -> Result<Response, ApiError> {
-    let disposition = format!("attachment; filename=\"{file_name}\"");
-    Ok((
-        [
-            (header::CONTENT_TYPE, HeaderValue::from_static("application/octet-stream")),
-            (
-                header::CONTENT_DISPOSITION,
-                HeaderValue::from_str(&disposition).map_err(anyhow::Error::from)?,
-            ),
-        ],
-        bytes,
-    )
-        .into_response())
 }
 
 /// `?format=`
@@ -246,7 +230,7 @@ async fn export_policy(
 ) -> Result<Response, ApiError> {
     let ExportFormat::Onnx = query.format.unwrap_or(ExportFormat::Onnx);
     let model = crate::serving::onnx_model(&state.store, &id).await?;
-    attachment(&format!("policy-{id}.onnx"), model)
+    attachment(&format!("policy-{id}.onnx"), OCTET_STREAM, model)
 }
 
 /// Actions for a batch of observations. Callable with the inference token.
