@@ -11,7 +11,14 @@ set -euo pipefail
 ROOT="$(cd "$(dirname "$0")/../.." && pwd)"
 BIN="$(cd "$(dirname "${1:-target/debug/safedice}")" && pwd)/$(basename "${1:-target/debug/safedice}")"
 WORK="$(mktemp -d)"
-trap 'pkill -P $$ 2>/dev/null || true; kill $(jobs -p) 2>/dev/null || true; rm -rf "$WORK"' EXIT
+WALK=
+# The walk-through runs in its own process group (timeout makes one), so the server it starts in
+# the background goes with it, whatever way it ends.
+cleanup() {
+  if [ -n "$WALK" ]; then kill -- "-$WALK" 2>/dev/null || true; wait "$WALK" 2>/dev/null || true; fi
+  rm -rf "$WORK"
+}
+trap cleanup EXIT
 PORT="$(python3 -c 'import socket; s=socket.socket(); s.bind(("127.0.0.1",0)); print(s.getsockname()[1])')"
 
 python3 - "$ROOT/README.md" "$BIN" "$PORT" > "$WORK/walkthrough.sh" <<'PY'
@@ -27,12 +34,14 @@ print(f"export SAFEDICE_BIND=127.0.0.1:{port}")
 print(script)
 # What the walk-through must have achieved (the job is deleted at its end).
 print('test "$(curl -s -o /dev/null -w "%{http_code}" -H "$AUTH" $API/v1/jobs/$JOB)" = 404')
-print('echo "README walk-through: job $JOB and evaluation $EVAL succeeded"')
+print('echo; echo "README walk-through: job $JOB and evaluation $EVAL succeeded"')
 PY
 
 cd "$WORK"
 started=$(date +%s)
-if ! timeout 900 bash walkthrough.sh > walkthrough.log 2>&1; then
+timeout 900 bash walkthrough.sh > walkthrough.log 2>&1 &
+WALK=$!
+if ! wait "$WALK"; then
   echo "README walk-through failed; its output:"; tail -60 walkthrough.log; exit 1
 fi
 # The evaluation went with the job at the end; its listing is in the output.
