@@ -75,7 +75,9 @@ fn unknown_env_and_empty_unlabeled_set_fail_with_a_message() {
     };
     let out = run(&["--env", "walker"]);
     assert!(!out.status.success());
-    assert!(String::from_utf8_lossy(&out.stderr).contains("unknown environment `walker`"));
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(stderr.contains("invalid value 'walker' for '--env <ENV>'"), "{stderr}");
+    assert!(stderr.contains("[possible values: six-rooms, point-goal, cartpole-slider]"), "{stderr}");
     let out = run(&["--env", "six-rooms", "--preferred", "0", "--non-preferred", "0"]);
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("at least one episode"));
