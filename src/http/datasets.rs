@@ -373,6 +373,8 @@ fn default_name(file_name: &str) -> DatasetName {
     responses(
         (status = 200, description = "One page of datasets, newest first", body = Page<DatasetResource>),
         (status = 400, description = "Bad `limit`/`offset` (`invalid_pagination`, `bad_request`)", body = ErrorBody),
+        (status = 404, description = "A `page_token` that is not an item of this list \
+            (`page_token_not_found`)", body = ErrorBody),
     )
 )]
 async fn list_datasets(

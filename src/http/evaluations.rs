@@ -120,7 +120,9 @@ async fn evaluate_policy(
 /// List evaluations, newest first.
 #[utoipa::path(get, path = "/v1/evaluations", tag = "evaluations",
     params(EvaluationFilter, PageParams),
-    responses((status = 200, body = Page<Evaluation>), (status = 400, body = ErrorBody)))]
+    responses((status = 200, body = Page<Evaluation>), (status = 400, body = ErrorBody),
+        (status = 404, description = "A `page_token` that is not an item of this list \
+            (`page_token_not_found`)", body = ErrorBody),))]
 async fn list_evaluations(
     State(state): State<AppState>,
     Query(filter): Query<EvaluationFilter>,

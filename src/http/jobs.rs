@@ -281,6 +281,8 @@ async fn create_job(
     responses(
         (status = 200, body = Page<Job>),
         (status = 400, description = "Bad status, tag, q or pagination", body = ErrorBody),
+        (status = 404, description = "A `page_token` that is not an item of this list \
+            (`page_token_not_found`)", body = ErrorBody),
     ))]
 async fn list_jobs(
     State(state): State<AppState>,

@@ -20,7 +20,7 @@ pub struct PageParams {
     /// Items per page, 1 to 500 (default 50).
     #[param(minimum = 1, maximum = 500, default = 50)]
     pub limit: Option<u32>,
-    /// Items to skip (default 0), at most 2^63 - 1. Not with `page_token`.
+    /// Items to skip (default 0), at most 2^63 - 1; with `page_token`, counted after its item.
     #[param(minimum = 0, maximum = 9223372036854775807_i64, default = 0)]
     pub offset: Option<u64>,
     /// The previous page's `next_page_token`: the page after it, unaffected by items added
@@ -50,18 +50,6 @@ impl PageParams {
             ));
         }
         let after = self.page_token;
-        if after.is_some() && offset != 0 {
-            return Err(ApiError::bad_request(
-                "invalid_pagination",
-                "page_token and offset cannot be combined: a page token says where its page starts",
-            ));
-        }
-        if after.as_ref().is_some_and(|t| t.is_empty() || t.len() > 64) {
-            return Err(ApiError::bad_request(
-                "invalid_pagination",
-                "page_token must be a next_page_token this list returned",
-            ));
-        }
         Ok(PageRequest { limit, offset, after })
     }
 
@@ -70,13 +58,14 @@ impl PageParams {
         let page = self.validate()?;
         if let Some(token) = &page.after {
             if !store.page_anchor_exists(list, token).await? {
-                return Err(ApiError::bad_request(
-                    "invalid_pagination",
-                    format!(
+                return Err(ApiError::Rejected {
+                    status: axum::http::StatusCode::NOT_FOUND,
+                    code: "page_token_not_found",
+                    message: format!(
                         "page_token {token:?} is not an item of this list (deleted since, or not \
                          a next_page_token): start again from the first page"
                     ),
-                ));
+                });
             }
         }
         Ok(page)

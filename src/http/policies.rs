@@ -118,7 +118,9 @@ pub fn router() -> OpenApiRouter<AppState> {
 
 /// List trained policies, newest first.
 #[utoipa::path(get, path = "/v1/policies", tag = "policies", params(PolicyFilter, PageParams),
-    responses((status = 200, body = Page<PolicyResource>), (status = 400, body = ErrorBody)))]
+    responses((status = 200, body = Page<PolicyResource>), (status = 400, body = ErrorBody),
+        (status = 404, description = "A `page_token` that is not an item of this list \
+            (`page_token_not_found`)", body = ErrorBody),))]
 async fn list_policies(
     State(state): State<AppState>,
     Query(filter): Query<PolicyFilter>,

@@ -77,7 +77,10 @@ fn unknown_env_and_empty_unlabeled_set_fail_with_a_message() {
     assert!(!out.status.success());
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(stderr.contains("invalid value 'walker' for '--env <ENV>'"), "{stderr}");
-    assert!(stderr.contains("[possible values: six-rooms, point-goal, cartpole-slider]"), "{stderr}");
+    assert!(
+        stderr.contains("[possible values: six-rooms, point-goal, cartpole-slider]"),
+        "{stderr}"
+    );
     let out = run(&["--env", "six-rooms", "--preferred", "0", "--non-preferred", "0"]);
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("at least one episode"));
