@@ -1,7 +1,8 @@
-//! Server-side SVG charts for the dashboard: line charts of metric histories and scatter plots of
-//! per-job results, with axes, tick labels, axis titles (units included) and a legend. Rendering
-//! on the server keeps the browser side free of any charting dependency; the output is
-//! self-contained SVG (no scripts, no external references) with every text escaped.
+//! Server-side SVG scatter plots for the benchmark report (`safedice bench` writes one per
+//! environment beside results.md): axes, tick labels, axis titles (units included), error bars
+//! and a legend, as self-contained SVG (no scripts, no external references) with every text
+//! escaped. The dashboard draws its charts in the browser (web/charts.js), where they can show
+//! values on hover, zoom and switch to a log scale.
 
 use serde::Deserialize;
 use std::fmt::Write;
@@ -15,27 +16,6 @@ const MARGIN_BOTTOM: f64 = 46.0;
 /// Colours of further series when the caller names none (distinct, readable on white).
 const PALETTE: [&str; 8] =
     ["#2563eb", "#d97706", "#059669", "#7c3aed", "#dc2626", "#0891b2", "#65a30d", "#db2777"];
-/// Point markers are drawn on a line chart only when the series are this short or shorter;
-/// longer ones would be a smear of dots.
-const MARKER_LIMIT: usize = 60;
-
-/// One named series of (x, y) points of a line chart.
-#[derive(Debug, Clone, Deserialize)]
-pub struct Series {
-    pub name: String,
-    pub points: Vec<[f64; 2]>,
-    /// CSS colour; a palette colour when absent.
-    pub color: Option<String>,
-}
-
-/// A line chart: several series over a shared x axis.
-#[derive(Debug, Clone, Deserialize)]
-pub struct LineChart {
-    pub title: String,
-    pub x_label: String,
-    pub y_label: String,
-    pub series: Vec<Series>,
-}
 
 /// One labelled point of a scatter plot.
 #[derive(Debug, Clone, Deserialize)]
@@ -323,57 +303,6 @@ fn legend(out: &mut String, entries: &[(String, String)]) {
     out.push_str("</g>");
 }
 
-/// Renders a line chart. Non-finite points are skipped; each series is a `<polyline>` with a
-/// `data-series` name and a `data-points` count (markers too when the series are short).
-pub fn line_svg(chart: &LineChart) -> String {
-    let finite = |p: &&[f64; 2]| p[0].is_finite() && p[1].is_finite();
-    let all = || chart.series.iter().flat_map(|s| s.points.iter().filter(finite));
-    let entries: Vec<(String, String)> = chart
-        .series
-        .iter()
-        .enumerate()
-        .map(|(i, s)| (s.name.clone(), safe_color(s.color.as_deref(), i)))
-        .collect();
-    let rows = if entries.len() > 1 { legend_rows(&entries) } else { 0 };
-    let frame = Frame {
-        x: Axis::covering(all().map(|p| p[0])),
-        y: Axis::covering(all().map(|p| p[1])),
-        top: plot_top(rows),
-    };
-    let mut out = String::new();
-    frame_svg(&mut out, "line", &chart.title, &chart.x_label, &chart.y_label, &frame);
-    if all().next().is_none() {
-        empty_note(&mut out);
-    }
-    let markers = chart.series.iter().all(|s| s.points.len() <= MARKER_LIMIT);
-    for (series, (_, color)) in chart.series.iter().zip(&entries) {
-        let points: Vec<(f64, f64)> =
-            series.points.iter().filter(finite).map(|p| (frame.px(p[0]), frame.py(p[1]))).collect();
-        let coordinates: Vec<String> =
-            points.iter().map(|(x, y)| format!("{x:.1},{y:.1}")).collect();
-        let _ = write!(
-            out,
-            r#"<polyline class="series" data-series="{}" data-points="{}" fill="none" stroke="{color}" stroke-width="1.8" stroke-linejoin="round" points="{}"/>"#,
-            escape(&series.name),
-            points.len(),
-            coordinates.join(" ")
-        );
-        if markers || points.len() == 1 {
-            for (x, y) in &points {
-                let _ = write!(
-                    out,
-                    r#"<circle class="point" cx="{x:.1}" cy="{y:.1}" r="2.5" fill="{color}"/>"#
-                );
-            }
-        }
-    }
-    if rows > 0 {
-        legend(&mut out, &entries);
-    }
-    out.push_str("</svg>");
-    out
-}
-
 /// Renders a scatter plot: a labelled `<circle class="point">` per finite point (with its error
 /// bars when given), a legend of the groups.
 pub fn scatter_svg(chart: &ScatterChart) -> String {
@@ -445,15 +374,6 @@ fn error_bars(out: &mut String, frame: &Frame, p: &ScatterPoint, color: &str) {
 mod tests {
     use super::*;
 
-    fn chart(series: Vec<Series>) -> LineChart {
-        LineChart {
-            title: "Losses".into(),
-            x_label: "step".into(),
-            y_label: "loss (nats)".into(),
-            series,
-        }
-    }
-
     #[test]
     fn nice_steps_are_one_two_or_five_times_a_power_of_ten() {
         assert_eq!(nice_step(0.8), 1.0);
@@ -485,40 +405,31 @@ mod tests {
     }
 
     #[test]
-    fn a_line_chart_maps_points_inside_the_plot_area() {
-        let svg = line_svg(&chart(vec![Series {
-            name: "policy_loss".into(),
-            points: vec![[0.0, 0.0], [10.0, 10.0], [5.0, f64::NAN]],
-            color: Some("#123456".into()),
-        }]));
-        // The NaN point is dropped; (0,0) is the bottom-left corner, (10,10) the top-right.
-        assert!(svg.contains(r#"data-series="policy_loss" data-points="2""#), "{svg}");
-        let (left, bottom) = (MARGIN_LEFT, HEIGHT - MARGIN_BOTTOM);
-        let (right, top) = (WIDTH - MARGIN_RIGHT, MARGIN_TOP);
-        assert!(svg.contains(&format!(r#"points="{left:.1},{bottom:.1} {right:.1},{top:.1}""#)));
-        assert_eq!(svg.matches(r#"class="point""#).count(), 2);
-        assert!(svg.contains("stroke=\"#123456\""));
-        assert!(svg.contains(">loss (nats)</text>") && svg.contains(">step</text>"));
-        assert!(!svg.contains("No data points yet"));
-    }
-
-    #[test]
-    fn an_empty_chart_says_so() {
-        let svg = line_svg(&chart(vec![]));
+    fn an_empty_scatter_plot_says_so() {
+        let svg = scatter_svg(&ScatterChart {
+            title: "t".into(),
+            x_label: "x".into(),
+            y_label: "y".into(),
+            points: vec![],
+        });
         assert!(svg.contains("No data points yet"));
         assert!(svg.starts_with("<svg") && svg.ends_with("</svg>"));
     }
 
     #[test]
     fn text_and_colours_cannot_inject_markup() {
-        let svg = line_svg(&LineChart {
+        let svg = scatter_svg(&ScatterChart {
             title: "<script>alert(1)</script>".into(),
             x_label: "a\"b".into(),
             y_label: "y".into(),
-            series: vec![Series {
-                name: "x' onload='evil".into(),
-                points: vec![[1.0, 2.0]],
+            points: vec![ScatterPoint {
+                label: "x' onload='evil".into(),
+                x: 1.0,
+                y: 2.0,
+                group: None,
                 color: Some("red\" onload=\"evil".into()),
+                x_error: None,
+                y_error: None,
             }],
         });
         assert!(!svg.contains("<script>") && !svg.contains("onload=\""));

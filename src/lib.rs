@@ -27,6 +27,7 @@ pub mod envs;
 pub mod http;
 pub mod jobs;
 pub mod logging;
+pub mod lttb;
 pub mod server;
 pub mod serving;
 pub mod store;

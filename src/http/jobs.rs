@@ -24,6 +24,7 @@ use crate::domain::{
     rfc3339, EvalOptions, JobLabels, JobProgress, JobRecord, JobStatus, RunnerOptions,
 };
 use crate::jobs::{JobEvent, JobRequest};
+use crate::lttb::lttb_indices;
 use crate::store::jobs::{CancelOutcome, DeleteJobOutcome, JobQuery, MetricRow};
 use crate::store::logs::LogRow;
 use crate::store::{Listing, Store, StoreError};
@@ -200,8 +201,8 @@ pub struct MetricsParams {
     /// Comma-separated metric names (default: every metric of the job).
     pub names: Option<String>,
     /// Most points returned per metric, 2 to 10000 (default 500). Longer histories are
-    /// downsampled: consecutive points are averaged into buckets (each reported at its last
-    /// step), and the last recorded point is always returned as is.
+    /// downsampled by LTTB (largest triangle three buckets): recorded points only, the first
+    /// and the last always, and the ones that keep the curve's shape (a one-step spike stays).
     #[param(minimum = 2, maximum = 10000, default = 500)]
     pub max_points: Option<usize>,
 }
@@ -213,7 +214,7 @@ pub struct MetricPoint {
     /// Steps done when the value was recorded (every phase counted).
     pub step: u64,
     pub value: f64,
-    /// When it was recorded (RFC 3339); for a bucket, its last point's time.
+    /// When it was recorded (RFC 3339).
     pub time: String,
 }
 
@@ -613,9 +614,9 @@ async fn job_log(
     Ok(Sse::new(stream).keep_alive(KeepAlive::default()).into_response())
 }
 
-/// Per metric (rows come ordered by name, then step): at most `max_points` points. A longer
-/// series keeps its last point exactly and averages the others into `max_points - 1` buckets of
-/// consecutive points, each reported at its last step and time.
+/// Per metric (rows come ordered by name, then step): at most `max_points` points, chosen by
+/// LTTB ([`crate::lttb`]): real rows with their own step and time, the first and the last
+/// exactly, and the points that shape the curve (spikes included).
 fn downsample(rows: Vec<MetricRow>, max_points: usize) -> (Vec<MetricPoint>, bool) {
     let mut out = Vec::with_capacity(rows.len().min(max_points * 16));
     let mut downsampled = false;
@@ -625,15 +626,11 @@ fn downsample(rows: Vec<MetricRow>, max_points: usize) -> (Vec<MetricPoint>, boo
             continue;
         }
         downsampled = true;
-        let (last, head) = series.split_last().expect("a series has a point");
-        let buckets = max_points - 1;
-        for i in 0..buckets {
-            let bucket = &head[i * head.len() / buckets..(i + 1) * head.len() / buckets];
-            let Some(end) = bucket.last() else { continue };
-            let mean = bucket.iter().map(|r| r.value).sum::<f64>() / bucket.len() as f64;
-            out.push(MetricPoint { value: mean, ..point(end) });
-        }
-        out.push(point(last));
+        let steps: Vec<f64> = series.iter().map(|r| r.step as f64).collect();
+        let values: Vec<f64> = series.iter().map(|r| r.value).collect();
+        out.extend(
+            lttb_indices(&steps, &values, max_points).into_iter().map(|i| point(&series[i])),
+        );
     }
     (out, downsampled)
 }
@@ -751,17 +748,23 @@ mod tests {
     }
 
     #[test]
-    fn long_series_average_buckets_and_keep_the_last_point() {
-        // 10 points into 4: buckets of the first 9 points (3 each), then the 10th as is.
-        let values: Vec<f64> = (1..=10).map(f64::from).collect();
+    fn long_series_keep_recorded_points_with_their_spikes_and_both_ends() {
+        // 1,000 points of a slowly falling loss with one spike, into 20: the spike and both
+        // ends are kept as recorded (step, value and time of the same row).
+        let mut values: Vec<f64> = (0..1000).map(|i| 2.0 - f64::from(i) / 1000.0).collect();
+        values[617] = 40.0;
         let mut rows = series("a", &values);
         rows.extend(series("b", &[5.0, 6.0]));
-        let (out, downsampled) = downsample(rows, 4);
+        let (out, downsampled) = downsample(rows.clone(), 20);
         assert!(downsampled);
-        let a: Vec<(u64, f64)> =
-            out.iter().filter(|p| p.name == "a").map(|p| (p.step, p.value)).collect();
-        assert_eq!(a, [(30, 2.0), (60, 5.0), (90, 8.0), (100, 10.0)]);
+        let a: Vec<&MetricPoint> = out.iter().filter(|p| p.name == "a").collect();
+        assert_eq!(a.len(), 20);
+        for p in &a {
+            let row = rows.iter().find(|r| r.name == "a" && r.step as u64 == p.step).unwrap();
+            assert_eq!((p.value, &p.time), (row.value, &row.time));
+        }
+        assert_eq!((a[0].step, a[19].step), (10, 10_000));
+        assert!(a.iter().any(|p| p.value == 40.0 && p.time == "t617"));
         assert_eq!(out.iter().filter(|p| p.name == "b").count(), 2);
-        assert_eq!(out.iter().find(|p| p.step == 100).unwrap().time, "t9");
     }
 }

@@ -9,7 +9,7 @@
 import { test, before, after } from 'node:test';
 import assert from 'node:assert/strict';
 import { spawn, execFileSync } from 'node:child_process';
-import { mkdtempSync, readFileSync, rmSync, mkdirSync } from 'node:fs';
+import { mkdtempSync, readFileSync, rmSync, mkdirSync, writeFileSync } from 'node:fs';
 import { tmpdir } from 'node:os';
 import { join, resolve, dirname } from 'node:path';
 import { fileURLToPath } from 'node:url';
@@ -68,6 +68,47 @@ async function api(path, options = {}) {
   return { status: response.status, body };
 }
 
+const post = (path, body) => api(path, {
+  method: 'POST', headers: { 'content-type': 'application/json' }, body: JSON.stringify(body),
+});
+
+/** Waits for a job to finish through the API; returns it. */
+async function finished(id) {
+  for (let i = 0; i < 900; i += 1) {
+    const job = (await api(`/v1/jobs/${id}`)).body;
+    if (['succeeded', 'failed', 'cancelled'].includes(job.status)) return job;
+    await new Promise((r) => setTimeout(r, 200));
+  }
+  throw new Error(`job ${id} did not finish`);
+}
+
+/** Clicks what `trigger` clicks and returns the downloaded file's bytes and name. */
+async function downloaded(trigger) {
+  const [file] = await Promise.all([page.waitForEvent('download'), trigger()]);
+  const path = await file.path();
+  return { name: file.suggestedFilename(), bytes: readFileSync(path) };
+}
+
+/** Problems of the current page's layout: anything wider than the window, and inputs whose
+ *  placeholder does not fit (measured in the input's own font). */
+async function layoutProblems() {
+  return page.evaluate(() => {
+    const problems = [];
+    const root = document.documentElement;
+    if (root.scrollWidth > window.innerWidth + 1) problems.push(`page ${root.scrollWidth}px wide in a ${window.innerWidth}px window`);
+    const ctx = document.createElement('canvas').getContext('2d');
+    for (const input of document.querySelectorAll('input[placeholder], textarea[placeholder]')) {
+      if (!input.offsetParent || input.tagName === 'TEXTAREA') continue;
+      const style = getComputedStyle(input);
+      ctx.font = `${style.fontWeight} ${style.fontSize} ${style.fontFamily}`;
+      const room = input.clientWidth - parseFloat(style.paddingLeft) - parseFloat(style.paddingRight);
+      const need = ctx.measureText(input.placeholder).width;
+      if (need > room + 0.5) problems.push(`#${input.id} placeholder “${input.placeholder}” needs ${need.toFixed(0)}px, has ${room.toFixed(0)}px`);
+    }
+    return problems;
+  });
+}
+
 async function screenshot(name) {
   if (!SCREENSHOT_DIR) return;
   mkdirSync(SCREENSHOT_DIR, { recursive: true });
@@ -102,6 +143,13 @@ after(async () => {
   if (work) rmSync(work, { recursive: true, force: true });
 });
 
+test('the vendored chart library is the npm package, byte for byte', () => {
+  for (const file of ['uPlot.iife.min.js', 'uPlot.min.css']) {
+    const vendored = readFileSync(join(here, '../../web/vendor', file));
+    assert.ok(vendored.equals(readFileSync(join(here, 'node_modules/uplot/dist', file))), file);
+  }
+});
+
 test('a bad upload dropped on the datasets page shows the server’s validation error verbatim', async () => {
   // Line 2 has a 3-wide observation after a 2-wide one: a ragged dataset.
   const bad = '{"episode": 0, "obs": [0, 0], "action": [0.1]}\n{"episode": 0, "obs": [0, 0, 1], "action": [0.2]}\n';
@@ -127,10 +175,11 @@ test('a bad upload dropped on the datasets page shows the server’s validation 
   assert.match(await page.textContent('#datasets-list'), /No datasets yet/);
 });
 
-test('datasets chosen in the upload box are stored and listed with their statistics', async () => {
+test('datasets are uploaded with their role and listed with it and their statistics', async () => {
   await page.goto(`${base}/#/datasets`);
-  for (const [file, name] of [['unlabeled.jsonl', 'six-rooms unlabeled'], ['non_preferred.jsonl', 'six-rooms non-preferred']]) {
+  for (const [file, name, role] of [['unlabeled.jsonl', 'six-rooms unlabeled', 'unlabeled'], ['non_preferred.jsonl', 'six-rooms non-preferred', 'non_preferred']]) {
     await page.fill('#upload-name', name);
+    await page.selectOption('#upload-role', role);
     await page.setInputFiles('#upload-file', join(work, 'demo', file));
     await page.waitForSelector(`#upload-ok:has-text("${name}")`);
   }
@@ -141,22 +190,71 @@ test('datasets chosen in the upload box are stored and listed with their statist
     const row = page.locator(`#datasets-table tr[data-id="${dataset.id}"]`);
     const cells = await row.locator('td').allTextContents();
     assert.match(cells[0], new RegExp(dataset.name));
-    assert.equal(cells[2], dataset.transitions.toLocaleString('en-US'));
-    assert.equal(cells[3], dataset.episodes.toLocaleString('en-US'));
-    if (dataset.stats.episode_return) assert.match(cells[6], /±/);
+    assert.match(cells[1], dataset.role === 'unlabeled' ? /^unlabeled/ : /^non-preferred/);
+    assert.equal(cells[3], dataset.transitions.toLocaleString('en-US'));
+    assert.equal(cells[4], dataset.episodes.toLocaleString('en-US'));
+    if (dataset.stats.episode_return) assert.match(cells[7], /±/);
   }
   state.unlabeled = body.items.find((d) => d.name === 'six-rooms unlabeled');
   state.nonPreferred = body.items.find((d) => d.name === 'six-rooms non-preferred');
+  assert.equal(state.unlabeled.role, 'unlabeled');
+  assert.equal(state.nonPreferred.role, 'non_preferred');
   await screenshot('datasets');
 });
 
-test('the submit form creates a job with the chosen algorithm, datasets and knobs', async () => {
+test('a dataset can be previewed, downloaded and deleted from its row', async () => {
+  await page.goto(`${base}/#/datasets`);
+  const row = `#datasets-table tr[data-id="${state.unlabeled.id}"]`;
+  await page.click(`${row} button.preview`);
+  await page.waitForSelector('#preview-episodes');
+  const preview = (await api(`/v1/datasets/${state.unlabeled.id}/preview?rows=20&episodes=20`)).body;
+  const episodeRows = await page.$$eval('#preview-episodes tbody tr', (trs) => trs.map((tr) => [...tr.cells].map((c) => c.textContent)));
+  assert.equal(episodeRows.length, preview.episodes.length);
+  assert.equal(episodeRows[0][1], String(preview.episodes[0].length));
+  assert.equal(await page.$$eval('#preview-transitions tbody tr', (trs) => trs.length), preview.transitions.length);
+
+  const npz = await downloaded(() => page.click(`${row} button.download`));
+  const direct = Buffer.from(await (await fetch(`${base}/v1/datasets/${state.unlabeled.id}/download`)).arrayBuffer());
+  assert.ok(npz.bytes.equals(direct), 'the page saves what the API serves');
+  assert.match(npz.name, /\.npz$/);
+
+  // A third upload, deleted with the two-step button; nothing of it is left.
+  await page.selectOption('#upload-role', '');
+  await page.fill('#upload-name', 'scratch');
+  const scratchFile = join(work, 'scratch.jsonl');
+  writeFileSync(scratchFile, '{"episode": 0, "obs": [0, 0], "action": [0.1]}\n{"episode": 0, "obs": [0, 1], "action": [0.2], "terminal": true}\n');
+  await page.setInputFiles('#upload-file', scratchFile);
+  await page.waitForSelector('#upload-ok:has-text("scratch")');
+  const scratch = (await api('/v1/datasets')).body.items.find((d) => d.name === 'scratch');
+  assert.equal(scratch.role ?? null, null);
+  const scratchRow = `#datasets-table tr[data-id="${scratch.id}"]`;
+  await page.waitForSelector(scratchRow);
+  assert.equal(await page.textContent(`${scratchRow} td.role`), 'not given');
+  await page.click(`${scratchRow} button.delete`);
+  assert.match(await page.textContent(`${scratchRow} button.delete`), /Really/);
+  await page.click(`${scratchRow} button.delete`);
+  await page.waitForSelector('#dataset-deleted');
+  await page.waitForSelector(scratchRow, { state: 'detached' });
+  assert.equal((await api(`/v1/datasets/${scratch.id}`)).status, 404);
+});
+
+test('the job form defaults the datasets by role, estimates the run and creates the job with its labels', async () => {
   await page.goto(`${base}/#/jobs`);
   await page.waitForSelector('#job-form');
+  // The newest upload is the non-preferred set; the unlabeled select still defaults to Dᵁ and
+  // does not offer the non-preferred set at all.
+  assert.equal(await page.inputValue('#job-unlabeled'), state.unlabeled.id);
+  assert.equal(await page.inputValue('#job-non-preferred'), state.nonPreferred.id);
+  const unlabeledChoices = await page.$$eval('#job-unlabeled option', (os) => os.map((o) => o.value));
+  assert.ok(!unlabeledChoices.includes(state.nonPreferred.id));
+  // Empty iterations: the preset's run, said in steps before anything is queued.
   await page.selectOption('#job-algorithm', 'safedice');
-  await page.selectOption('#job-unlabeled', state.unlabeled.id);
-  await page.selectOption('#job-non-preferred', state.nonPreferred.id);
+  assert.match(await page.textContent('#job-estimate'), /^110,000 steps = 10,000 discriminator pretraining \+ 100,000 policy iterations: no finished job/);
+  await page.fill('#job-name', 'six-rooms safedice small');
+  await page.fill('#job-tags', 'browser, six-rooms');
+  await page.fill('#job-notes', 'queued from the dashboard test');
   await page.fill('#job-iterations', String(ITERATIONS));
+  assert.match(await page.textContent('#job-estimate'), new RegExp(`^${(ITERATIONS * 1.1).toLocaleString('en-US')} steps = ${(ITERATIONS / 10).toLocaleString('en-US')} discriminator pretraining`));
   await page.fill('#job-seed', '7');
   await page.fill('#job-hidden_sizes', '32, 32');
   await page.fill('#job-batch_size', '64');
@@ -171,6 +269,9 @@ test('the submit form creates a job with the chosen algorithm, datasets and knob
   const { body } = await api('/v1/jobs');
   assert.equal(body.total, 1);
   const job = body.items[0];
+  assert.equal(job.name, 'six-rooms safedice small');
+  assert.deepEqual(job.tags, ['browser', 'six-rooms']);
+  assert.equal(job.notes, 'queued from the dashboard test');
   assert.equal(job.algorithm, 'safedice');
   assert.equal(job.unlabeled_dataset, state.unlabeled.id);
   assert.equal(job.non_preferred_dataset, state.nonPreferred.id);
@@ -180,7 +281,9 @@ test('the submit form creates a job with the chosen algorithm, datasets and knob
   assert.equal(job.config.batch_size, 64);
   assert.equal(job.runner.log_every, 25);
   assert.deepEqual(job.eval, { env: 'six-rooms', every: ITERATIONS / 4, episodes: 100, seed: 0, deterministic: false });
-  assert.ok(await page.isVisible(`#job-created a[href="#/jobs/${job.id}"]`));
+  // The notice names the job and explains its step count with the server's total.
+  assert.ok(await page.isVisible(`#job-created a[href="#/jobs/${job.id}"]:has-text("six-rooms safedice small")`));
+  assert.match(await page.textContent('#job-created'), new RegExp(`${job.progress.total.toLocaleString('en-US')} steps = ${(job.progress.total - ITERATIONS).toLocaleString('en-US')} discriminator pretraining \\+ ${ITERATIONS.toLocaleString('en-US')} policy iterations`));
   state.job = job;
 });
 
@@ -194,15 +297,23 @@ test('the job list follows jobs while they train, without reloading the page', a
   const total = state.job.progress.total;
   assert.equal(await page.textContent(`${row} .step`), `${total.toLocaleString('en-US')} / ${total.toLocaleString('en-US')}`);
   assert.equal(await page.getAttribute(`${row} .progress`, 'aria-valuenow'), '100');
+  assert.equal(await page.textContent(`${row} .job-name`), 'six-rooms safedice small');
+  assert.deepEqual(await page.$$eval(`${row} .tag`, (ts) => ts.map((t) => t.textContent)), ['browser', 'six-rooms']);
+
+  // A finished job of this shape now times the form's estimate.
+  await page.reload();
+  await page.waitForSelector('#job-form');
+  await page.evaluate(() => { window.__sameDocument = true; });
+  await page.selectOption('#job-algorithm', 'safedice');
+  await page.fill('#job-hidden_sizes', '32, 32');
+  await page.fill('#job-batch_size', '64');
+  assert.match(await page.textContent('#job-estimate'), /: about .+ at the pace of “six-rooms safedice small”/);
 
   // Whether that job was ever seen running depends on the machine's speed (a fast build trains
   // it between two refreshes), so the running rows are watched on a job of the API's maximum
   // length, which no machine finishes while the test watches; its Cancel button then stops it.
-  const created = await api('/v1/jobs', {
-    method: 'POST', headers: { 'content-type': 'application/json' },
-    body: JSON.stringify({ algorithm: 'bc', unlabeled_dataset: state.unlabeled.id,
-      config: { iterations: 100_000_000, hidden_sizes: [32, 32], batch_size: 64, seed: 2 } }),
-  });
+  const created = await post('/v1/jobs', { algorithm: 'bc', unlabeled_dataset: state.unlabeled.id,
+    config: { iterations: 100_000_000, hidden_sizes: [32, 32], batch_size: 64, seed: 2 } });
   assert.equal(created.status, 201);
   const endless = `#jobs-table tr[data-id="${created.body.id}"]`;
   const seenRunningSteps = new Set();
@@ -215,48 +326,189 @@ test('the job list follows jobs while they train, without reloading the page', a
   }
   assert.ok(seenRunningSteps.size >= 2, `saw the running job at steps ${[...seenRunningSteps]}`);
   await screenshot('jobs');
+
+  // While it runs, its dataset cannot be deleted: the datasets page shows the server's 409.
+  await page.goto(`${base}/#/datasets`);
+  const datasetRow = `#datasets-table tr[data-id="${state.unlabeled.id}"]`;
+  await page.click(`${datasetRow} button.delete`);
+  await page.click(`${datasetRow} button.delete`);
+  assert.equal(await (await page.waitForSelector('.dataset-delete-error .error-code')).textContent(), 'dataset_in_use');
+  assert.equal((await api(`/v1/datasets/${state.unlabeled.id}`)).status, 200);
+
+  await page.goto(`${base}/#/jobs`);
   await page.click(`${endless} button.cancel`);
   await page.waitForSelector(`${endless}[data-status="cancelled"]`);
   assert.equal((await api(`/v1/jobs/${created.body.id}`)).body.status, 'cancelled');
-  assert.equal(await page.evaluate(() => window.__sameDocument), true);
+  state.endless = created.body;
 });
 
-test('the job page charts the training metrics with their data points', async () => {
-  await page.goto(`${base}/#/jobs/${state.job.id}`);
-  await page.waitForSelector('#charts .chart-box[data-chart="losses"] svg polyline.series');
-  const metrics = (await api(`/v1/jobs/${state.job.id}/metrics?max_points=300`)).body.rows;
-  const pointsOf = (name) => metrics.filter((r) => r.name === name).length;
-  const lines = await page.$$eval('#charts polyline.series', (els) => els.map((e) => ({
-    name: e.dataset.series, points: Number(e.dataset.points), coordinates: e.getAttribute('points').trim().split(/\s+/).length,
-  })));
-  assert.ok(lines.length >= 3, `charted series: ${JSON.stringify(lines)}`);
-  for (const line of lines) {
-    assert.equal(line.points, pointsOf(line.name), line.name);
-    assert.equal(line.coordinates, line.points, line.name);
+test('the job list pages through jobs with stable pages and filters by name, tag and status', async () => {
+  // 26 more jobs, cancelled while queued (they never train): 28 jobs in all, two pages.
+  for (let i = 0; i < 26; i += 1) {
+    const created = await post('/v1/jobs', { algorithm: 'bc', unlabeled_dataset: state.unlabeled.id, name: `filler ${i}`,
+      tags: i % 2 ? ['odd'] : ['even'], config: { iterations: 100_000_000, hidden_sizes: [8], seed: i } });
+    assert.equal(created.status, 201);
+    assert.equal((await post(`/v1/jobs/${created.body.id}/cancel`, {})).status < 300, true);
   }
-  const losses = lines.filter((l) => l.name.endsWith('_loss'));
-  assert.ok(losses.length >= 2 && losses.every((l) => l.points > 10), JSON.stringify(losses));
-  // Axis titles and the alpha-hat chart of SafeDICE are there; the resolved config is shown.
-  const lossesChart = page.locator('.chart-box[data-chart="losses"] svg');
-  assert.equal(await lossesChart.locator('.x-label').textContent(), 'training step (all phases)');
-  const alphaPoints = await page.$eval('.chart-box[data-chart="alpha"] svg polyline.series', (e) => Number(e.dataset.points));
-  assert.ok(alphaPoints >= 1);
+  for (;;) {
+    const { body } = await api('/v1/jobs?status=running');
+    if (!body.total) break;
+    await new Promise((r) => setTimeout(r, 200));
+  }
+  await page.goto(`${base}/#/jobs`);
+  await page.waitForSelector('#jobs-pager .pager-range:has-text("1–25 of 28")');
+  const firstPage = await page.$$eval('#jobs-table tbody tr', (trs) => trs.map((tr) => tr.dataset.id));
+  assert.equal(firstPage.length, 25);
+  await page.click('#jobs-pager .pager-older');
+  await page.waitForSelector('#jobs-pager .pager-range:has-text("26–28 of 28")');
+  const secondPage = await page.$$eval('#jobs-table tbody tr', (trs) => trs.map((tr) => tr.dataset.id));
+  assert.equal(secondPage.length, 3);
+  assert.ok(secondPage.includes(state.job.id) && !firstPage.includes(state.job.id));
+  // A job that arrives now goes to page one; page two, refreshed every second, stays the same.
+  const newest = await post('/v1/jobs', { algorithm: 'bc', unlabeled_dataset: state.unlabeled.id, config: { iterations: 100_000_000, hidden_sizes: [8] } });
+  await post(`/v1/jobs/${newest.body.id}/cancel`, {});
+  await page.waitForSelector('#jobs-pager .pager-range:has-text("26–28 of 29")');
+  assert.deepEqual(await page.$$eval('#jobs-table tbody tr', (trs) => trs.map((tr) => tr.dataset.id)), secondPage);
+  await page.click('#jobs-pager .pager-newer');
+  await page.waitForSelector('#jobs-pager .pager-range:has-text("1–25 of 29")');
+
+  // Filters: a tag, a name search, a status; each list is what the API lists for it.
+  await page.fill('#jobs-tag', 'odd');
+  await page.click('#jobs-filters button');
+  await page.waitForSelector('#jobs-pager .pager-range:has-text("1–13 of 13")').catch(() => {});
+  await page.waitForFunction(() => document.querySelectorAll('#jobs-table tbody tr').length === 13);
+  await page.fill('#jobs-tag', '');
+  await page.fill('#jobs-search', 'SMALL');
+  await page.click('#jobs-filters button');
+  await page.waitForFunction(() => document.querySelectorAll('#jobs-table tbody tr').length === 1);
+  assert.equal(await page.getAttribute('#jobs-table tbody tr', 'data-id'), state.job.id);
+  await page.fill('#jobs-search', '');
+  await page.selectOption('#jobs-status', 'succeeded');
+  await page.waitForFunction(() => document.querySelectorAll('#jobs-table tbody tr').length === 1);
+  await page.fill('#jobs-search', 'no such job');
+  await page.click('#jobs-filters button');
+  await page.waitForSelector('#jobs-list .empty');
+});
+
+test('the job page charts the training metrics in the browser, with values on hover and a log scale', async () => {
+  await page.goto(`${base}/#/jobs/${state.job.id}`);
+  await page.waitForSelector('#charts .chart-box[data-chart="losses"] .u-over');
+  const metrics = (await api(`/v1/jobs/${state.job.id}/metrics?max_points=1000`)).body.rows;
+  const pointsOf = (name) => metrics.filter((r) => r.name === name);
+  const charted = await page.$$eval('#charts .chart-box', (boxes) => boxes.map((b) => ({
+    key: b.dataset.chart, series: JSON.parse(b.dataset.series),
+    // What uPlot draws: per series, the non-empty values.
+    drawn: b.uplot.data.slice(1).map((column) => column.filter((v) => v !== null)),
+  })));
+  assert.ok(charted.length >= 3, JSON.stringify(charted.map((c) => c.key)));
+  for (const chart of charted) {
+    chart.series.forEach(([name, count], i) => {
+      assert.equal(count, pointsOf(name).length, name);
+      assert.deepEqual(chart.drawn[i], pointsOf(name).map((r) => r.value), name);
+    });
+  }
+  const losses = charted.find((c) => c.key === 'losses');
+  assert.ok(losses.series.length >= 2 && losses.series.every(([, n]) => n > 10), JSON.stringify(losses.series));
+  assert.equal(await page.$eval('.chart-box[data-chart="losses"]', (b) => b.uplot.axes[0].label), 'training step (all phases)');
+
+  // Hovering the plot shows the values at the cursor in the legend.
+  const over = await page.$('.chart-box[data-chart="losses"] .u-over');
+  await over.scrollIntoViewIfNeeded();
+  const bounds = await over.boundingBox();
+  await page.mouse.move(bounds.x + bounds.width * 0.6, bounds.y + bounds.height / 2, { steps: 5 });
+  await page.waitForFunction(() => document.querySelector('.chart-box[data-chart="losses"] .u-legend .u-series .u-value').textContent !== '—');
+  const legend = await page.$$eval('.chart-box[data-chart="losses"] .u-legend .u-series .u-value', (vs) => vs.map((v) => v.textContent));
+  assert.ok(Number(legend[0].replace(/,/g, '')) > 0, `step under the cursor: ${legend}`);
+  assert.ok(legend.slice(1).some((v) => Number.isFinite(Number(v))), `values under the cursor: ${legend}`);
+
+  // A log scale where every value is positive; switched off where one is not.
+  const positive = await page.$$eval('#charts .chart-box', (boxes) => boxes.filter((b) => !b.querySelector('.log-scale').disabled).map((b) => b.dataset.chart));
+  assert.ok(positive.length >= 1, 'some chart can be drawn on a log scale');
+  await page.check(`.chart-box[data-chart="${positive[0]}"] .log-scale`);
+  assert.equal(await page.$eval(`.chart-box[data-chart="${positive[0]}"]`, (b) => b.uplot.scales.y.distr), 3);
+  for (const chart of charted) {
+    const hasNonPositive = chart.drawn.some((values) => values.some((v) => v <= 0));
+    if (hasNonPositive) assert.equal(await page.$eval(`.chart-box[data-chart="${chart.key}"] .log-scale`, (c) => c.disabled), true, chart.key);
+  }
+  const alpha = charted.find((c) => c.key === 'alpha');
+  assert.ok(alpha.series[0][1] >= 1);
   assert.match(await page.textContent('#job-config'), new RegExp(`iterations\\s*${ITERATIONS}`));
+  assert.match(await page.textContent('#step-plan'), /discriminator pretraining \+ [\d,]+ policy iterations/);
 
   // The evaluation section: the paper's metrics at policy steps ITERATIONS/4, /2, 3/4 and the end.
-  await page.waitForSelector('#eval-charts .chart-box[data-chart="eval-cost"] svg polyline.series');
-  const evalLines = await page.$$eval('#eval-charts polyline.series', (els) => els.map((e) => ({
-    name: e.dataset.series, points: Number(e.dataset.points) })));
-  const evalRows = metrics.filter((r) => r.name.startsWith('eval/'));
-  assert.equal(evalRows.filter((r) => r.name === 'eval/average_cost').length, 4);
-  const charted = evalLines.map((l) => l.name).sort();
-  assert.deepEqual(charted, ['CVaR 10%', 'CVaR 20%', 'CVaR 50%', 'CVaR 5%', 'eval/average_cost',
+  await page.waitForSelector('#eval-charts .chart-box[data-chart="eval-cost"] .u-over');
+  const evalSeries = await page.$$eval('#eval-charts .chart-box', (boxes) => boxes.flatMap((b) => JSON.parse(b.dataset.series)));
+  assert.equal(pointsOf('eval/average_cost').length, 4);
+  assert.deepEqual(evalSeries.map(([n]) => n).sort(), ['CVaR 10%', 'CVaR 20%', 'CVaR 50%', 'CVaR 5%', 'eval/average_cost',
     'eval/cost_violation_ratio', 'eval/normalized_return'].sort());
-  assert.ok(evalLines.every((l) => l.points === 4), JSON.stringify(evalLines));
-  const lastCost = evalRows.filter((r) => r.name === 'eval/average_cost').at(-1).value;
+  assert.ok(evalSeries.every(([, n]) => n === 4), JSON.stringify(evalSeries));
+  const lastCost = pointsOf('eval/average_cost').at(-1).value;
   const latestCost = page.locator('#eval-latest tr', { hasText: 'eval/average_cost' }).locator('td.num');
   assert.equal(Number(await latestCost.textContent()), Number(lastCost.toPrecision(4)));
+
+  // The worker's log, and every metric as CSV (the API's file).
+  await page.waitForSelector('#job-log .log-line');
+  const log = (await api(`/v1/jobs/${state.job.id}/logs`)).body;
+  assert.deepEqual(await page.$$eval('#job-log .log-line', (ls) => ls.map((l) => Number(l.dataset.seq))), log.map((l) => l.seq));
+  assert.match(await page.textContent('#job-log'), /claimed by worker/);
+  const csv = await downloaded(() => page.click('#metrics-csv'));
+  const direct = await (await fetch(`${base}/v1/jobs/${state.job.id}/metrics.csv`)).text();
+  assert.equal(csv.bytes.toString(), direct);
+  assert.match(await page.textContent('#job-worker'), /-/);
   await screenshot('job');
+});
+
+test('a job is renamed, retagged and deleted from its page', async () => {
+  await page.goto(`${base}/#/jobs/${state.job.id}`);
+  await page.waitForSelector('#edit-form');
+  await page.fill('#edit-name', 'renamed in the browser');
+  await page.fill('#edit-tags', 'browser, kept');
+  await page.click('#edit-save');
+  await page.waitForSelector('#edit-ok');
+  const job = (await api(`/v1/jobs/${state.job.id}`)).body;
+  assert.equal(job.name, 'renamed in the browser');
+  assert.deepEqual(job.tags, ['browser', 'kept']);
+  assert.equal(await page.textContent('h1 span'), 'renamed in the browser');
+  // A bad label is refused with the server's message, and nothing changes.
+  await page.fill('#edit-tags', 'has space');
+  await page.click('#edit-save');
+  assert.equal(await (await page.waitForSelector('.edit-error .error-code')).textContent(), 'invalid_labels');
+  assert.deepEqual((await api(`/v1/jobs/${state.job.id}`)).body.tags, ['browser', 'kept']);
+  state.job = job;
+
+  // The cancelled endless job is deleted with the two-step button; the page goes to the list.
+  await page.goto(`${base}/#/jobs/${state.endless.id}`);
+  await page.waitForSelector('#job-delete');
+  // A job without an eval block shows no stray "null" anywhere.
+  await page.waitForSelector('#job-config');
+  assert.doesNotMatch(await page.innerText('main'), /\bnull\b/);
+  await page.click('#job-delete');
+  await page.click('#job-delete');
+  await page.waitForFunction(() => location.hash === '#/jobs');
+  assert.equal((await api(`/v1/jobs/${state.endless.id}`)).status, 404);
+});
+
+test('a job page for an unknown or deleted job says so instead of loading forever', async () => {
+  await page.goto(`${base}/#/jobs/${state.endless.id}`);
+  const message = await page.waitForSelector('.not-found .error-message');
+  assert.match(await message.textContent(), new RegExp(`no job with id ${state.endless.id}`));
+  assert.equal(await page.isVisible('text=Loading metrics'), false);
+  await page.goto(`${base}/#/policies/00000000-0000-0000-0000-000000000000`);
+  assert.match(await (await page.waitForSelector('.not-found .error-message')).textContent(), /no policy with id/);
+});
+
+test('a job page opened while the job runs shows when it finished, once it has', async () => {
+  const created = await post('/v1/jobs', { algorithm: 'bc', unlabeled_dataset: state.unlabeled.id, name: 'watched to the end',
+    config: { iterations: 4000, hidden_sizes: [32, 32], batch_size: 64, seed: 3 }, runner: { log_every: 50 } });
+  assert.equal(created.status, 201);
+  await page.goto(`${base}/#/jobs/${created.body.id}`);
+  await page.waitForSelector('#job-finished');
+  const finishedJob = await finished(created.body.id);
+  assert.equal(finishedJob.status, 'succeeded');
+  await page.waitForFunction(() => document.querySelector('#job-finished').textContent !== '—');
+  assert.equal(await page.textContent('#job-finished'), await page.evaluate((iso) => new Date(iso).toLocaleString(), finishedJob.finished_at));
+  assert.equal(await page.textContent('#job-summary .status'), 'succeeded');
+  state.bcJob = finishedJob;
 });
 
 test('the policy page turns pasted observations into the same actions as the API', async () => {
@@ -270,9 +522,7 @@ test('the policy page turns pasted observations into the same actions as the API
   await page.fill('#act-input', observations.map((o) => o.join(', ')).join('\n'));
   await page.click('#act-submit');
   const shown = JSON.parse((await page.textContent('#act-result')).replace(/\n/g, ''));
-  const direct = await api(`/v1/policies/${job.policy_id}/act`, {
-    method: 'POST', headers: { 'content-type': 'application/json' }, body: JSON.stringify({ observations, deterministic: true }),
-  });
+  const direct = await post(`/v1/policies/${job.policy_id}/act`, { observations, deterministic: true });
   assert.equal(direct.status, 200);
   assert.deepEqual(shown, direct.body.actions);
   assert.match(await page.textContent('#snippet-curl'), new RegExp(`/v1/policies/${job.policy_id}/act`));
@@ -284,6 +534,10 @@ test('the policy page turns pasted observations into the same actions as the API
   await page.fill('#act-input', observations.map((o) => o.join(', ')).join('\n'));
   await page.click('#act-submit');
   await page.waitForSelector('#act-result');
+  // The ONNX model downloads as the export endpoint serves it.
+  const onnx = await downloaded(() => page.click('#onnx-download'));
+  const exported = Buffer.from(await (await fetch(`${base}/v1/policies/${job.policy_id}/export?format=onnx`)).arrayBuffer());
+  assert.ok(onnx.bytes.equals(exported));
 
   // Evaluate it in the background: the table fills in with the API's metrics.
   await page.fill('#eval-episodes', '200');
@@ -300,44 +554,90 @@ test('the policy page turns pasted observations into the same actions as the API
   await screenshot('policy');
 });
 
-test('compare shows finished jobs side by side and as a scatter', async () => {
+test('compare shows the paper’s metrics side by side, exports them, and plots them from zero', async () => {
   // A quick BC job beside the SafeDICE one.
-  const created = await api('/v1/jobs', {
-    method: 'POST', headers: { 'content-type': 'application/json' },
-    body: JSON.stringify({ algorithm: 'bc', unlabeled_dataset: state.unlabeled.id,
-      config: { iterations: 300, hidden_sizes: [32, 32], batch_size: 64, seed: 1 }, runner: { log_every: 25 },
-      eval: { env: 'six-rooms', every: 100, episodes: 100 } }),
-  });
+  const created = await post('/v1/jobs', { algorithm: 'bc', unlabeled_dataset: state.unlabeled.id, name: 'bc baseline',
+    config: { iterations: 300, hidden_sizes: [32, 32], batch_size: 64, seed: 1 }, runner: { log_every: 25 },
+    eval: { env: 'six-rooms', every: 100, episodes: 100 } });
   assert.equal(created.status, 201);
-  for (let i = 0; i < 600; i += 1) {
-    const job = (await api(`/v1/jobs/${created.body.id}`)).body;
-    if (job.status === 'succeeded') break;
-    assert.ok(job.status === 'queued' || job.status === 'running', `bc job ${job.status}: ${job.error}`);
-    await new Promise((r) => setTimeout(r, 200));
-  }
+  assert.equal((await finished(created.body.id)).status, 'succeeded');
   await page.goto(`${base}/#/compare`);
-  await page.waitForSelector('#compare-table');
-  await page.waitForSelector('.chart-box[data-chart="scatter"] svg');
+  await page.waitForSelector('#compare-jobs input');
+  // Tick exactly the SafeDICE job and the BC baseline.
+  for (const box of await page.$$('#compare-jobs input')) {
+    const id = await box.getAttribute('value');
+    if ([state.job.id, created.body.id].includes(id)) await box.check(); else await box.uncheck();
+  }
+  await page.waitForFunction(() => document.querySelectorAll('#compare-table thead th').length === 3);
   const headers = await page.$$eval('#compare-table thead th', (ths) => ths.map((t) => t.textContent));
-  assert.equal(headers.length, 3);
-  assert.ok(headers.some((t) => t.includes('SafeDICE')) && headers.some((t) => t.includes('BC')));
-  const points = await page.$$eval('.chart-box[data-chart="scatter"] svg g.point', (gs) => gs.map((g) => g.dataset.label));
-  assert.equal(points.length, 2);
-  // Both jobs evaluated themselves: the scatter is the paper's cost vs return by default.
+  assert.ok(headers.some((t) => t.includes('renamed in the browser')) && headers.some((t) => t.includes('bc baseline')), JSON.stringify(headers));
+  // The table's metric rows are the paper's; the diagnostics are folded away below it.
+  const rows = await page.$$eval('#compare-table tr[data-metric]', (trs) => trs.map((tr) => tr.dataset.metric));
+  assert.deepEqual(rows, ['eval/normalized_return', 'eval/average_cost', 'eval/cost_violation_ratio',
+    'eval/cvar_cost_50', 'eval/cvar_cost_20', 'eval/cvar_cost_10', 'eval/cvar_cost_5']);
+  assert.equal(await page.isVisible('#compare-diagnostics tr[data-metric="alpha_hat"]'), false);
+  assert.ok(await page.$('#compare-diagnostics tr[data-metric="alpha_hat"]'));
+  // The axes offer the paper's metrics only, until diagnostics are asked for.
+  assert.deepEqual(await page.$$eval('#scatter-x option', (os) => os.map((o) => o.value)), rows);
   assert.equal(await page.inputValue('#scatter-x'), 'eval/average_cost');
   assert.equal(await page.inputValue('#scatter-y'), 'eval/normalized_return');
+  await page.check('#scatter-diagnostics');
+  assert.ok((await page.$$eval('#scatter-x option', (os) => os.map((o) => o.value))).includes('alpha_hat'));
+  assert.equal(await page.inputValue('#scatter-x'), 'eval/average_cost');
+
+  // Points at the jobs' last evaluation, named; both axes from zero by default.
+  const points = await page.$$eval('.chart-box[data-chart="scatter"] g.point', (gs) => gs.map((g) => ({ label: g.dataset.label, x: Number(g.dataset.x), y: Number(g.dataset.y) })));
+  const last = async (id, name) => (await api(`/v1/jobs/${id}/metrics?names=${name}&max_points=2`)).body.rows.at(-1).value;
+  assert.deepEqual(points.map((p) => p.label).sort(), ['bc baseline', 'renamed in the browser']);
+  const bcPoint = points.find((p) => p.label === 'bc baseline');
+  assert.equal(bcPoint.x, await last(created.body.id, 'eval/average_cost'));
+  assert.equal(bcPoint.y, await last(created.body.id, 'eval/normalized_return'));
+  const ticks = await page.$$eval('.chart-box[data-chart="scatter"] text.tick', (ts) => ts.map((t) => t.textContent));
+  assert.ok(ticks.filter((t) => t === '0').length >= 2, `both axes start at 0: ${ticks}`);
   assert.match(await page.textContent('.chart-box[data-chart="scatter"] svg'), /Cost vs return/);
   await screenshot('compare');
+
+  // The side-by-side table as CSV, every metric included.
+  const file = await downloaded(() => page.click('#compare-csv'));
+  const lines = file.bytes.toString().trim().split('\n');
+  assert.equal(file.name, 'compare.csv');
+  const columns = lines[0].split(',');
+  assert.equal(columns[0], 'metric');
+  const bcColumn = columns.findIndex((c) => c === `bc baseline (${created.body.id})`);
+  assert.ok(bcColumn > 0 && columns.includes(`renamed in the browser (${state.job.id})`), lines[0]);
+  const costLine = lines.find((l) => l.startsWith('eval/average_cost,'));
+  assert.equal(Number(costLine.split(',')[bcColumn]), await last(created.body.id, 'eval/average_cost'));
+  assert.ok(lines.some((l) => l.startsWith('alpha_hat,')));
 });
 
-test('with an API token the pages say so, then work once the token is saved', async () => {
+test('in a narrow window no page is wider than the window and no placeholder is cut off', async () => {
+  for (const width of [1360, 420]) {
+    await page.setViewportSize({ width, height: 900 });
+    for (const [hash, ready] of [['#/datasets', '#datasets-table'], ['#/jobs', '#jobs-table'],
+      [`#/jobs/${state.job.id}`, '#charts .u-over'], ['#/compare', '#compare-table'], [`#/policies/${state.policy}`, '#act-form']]) {
+      await page.goto(`${base}/${hash}`);
+      await page.waitForSelector(ready);
+      await page.waitForTimeout(200); // charts take their width on the next frame
+      assert.deepEqual(await layoutProblems(), [], `${hash} at ${width}px`);
+    }
+  }
+  await screenshot('narrow-job');
+  await page.setViewportSize({ width: 1360, height: 900 });
+});
+
+test('with an API token the pages say so once, then work once the token is saved', async () => {
   const secured = await startServer('token', ['--api-token', TOKEN]);
-  await page.goto(`${secured}/#/datasets`);
-  const message = await page.waitForSelector('#datasets-list .error-box .error-message');
-  assert.match(await message.textContent(), /requires an API token/);
+  await page.goto(`${secured}/#/jobs`);
+  await page.waitForSelector('#token-banner', { state: 'visible' });
+  await page.waitForTimeout(1500); // every request of the page has been refused by now
+  const saying = await page.$$eval('body *', (els) => els.filter((e) => e.children.length === 0
+    && e.offsetParent !== null && /requires an API token/.test(e.textContent)).length);
+  assert.equal(saying, 1);
+  assert.equal(await page.$$eval('.error-box', (boxes) => boxes.length), 0);
   await page.fill('#token', TOKEN);
   await page.click('#token-form button');
-  await page.waitForSelector('#datasets-list .empty');
+  await page.waitForSelector('#token-banner', { state: 'hidden' });
+  await page.waitForSelector('#job-form .empty, #jobs-list .empty');
   assert.equal(await page.evaluate(() => sessionStorage.getItem('safedice.token')), TOKEN);
   await page.evaluate(() => sessionStorage.clear());
 });

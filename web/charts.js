@@ -1,0 +1,159 @@
+// SafeDICE dashboard, charts drawn in the browser: line charts of metric histories on uPlot
+// (web/vendor, MIT; values under the cursor, drag to zoom, double-click to reset, a log scale
+// when every value is positive) and the Compare page's scatter as plain SVG. The points come
+// from the metrics endpoint, which downsamples long runs with LTTB on the server, so spikes
+// survive.
+'use strict';
+
+const CHART_HEIGHT = 240;
+/** Point markers only on short series; longer ones would be a smear of dots. */
+const MARKER_LIMIT = 60;
+
+/** uPlot wants one x array for all series: the union of their steps, with gaps (null) where a
+ *  series has no value at a step. */
+function alignSeries(series) {
+  const xs = [...new Set(series.flatMap((s) => s.points.map((p) => p[0])))].sort((a, b) => a - b);
+  const at = new Map(xs.map((x, i) => [x, i]));
+  const columns = series.map((s) => {
+    const column = new Array(xs.length).fill(null);
+    for (const [x, y] of s.points) column[at.get(x)] = Number.isFinite(y) ? y : null;
+    return column;
+  });
+  return [xs, ...columns];
+}
+
+const allPositive = (series) => series.every((s) => s.points.every((p) => !Number.isFinite(p[1]) || p[1] > 0));
+
+function uplotOptions(spec, width, log) {
+  const markers = spec.series.every((s) => s.points.length <= MARKER_LIMIT);
+  return {
+    width,
+    height: CHART_HEIGHT,
+    scales: { x: { time: false }, y: log ? { distr: 3 } : {} },
+    axes: [
+      { label: spec.xLabel, values: (u, ticks) => ticks.map((t) => fmt(t)) },
+      { label: spec.yLabel, size: 64, values: (u, ticks) => ticks.map((t) => fmt(t, 3)) },
+    ],
+    series: [
+      { label: 'step', value: (u, v) => (v === null || v === undefined ? '—' : fmt(v)) },
+      ...spec.series.map((s) => ({
+        label: s.name, stroke: s.color, width: 1.6, spanGaps: true,
+        points: { show: markers || s.points.length === 1, size: 5 },
+        value: (u, v) => (v === null || v === undefined ? '—' : fmt(v)),
+      })),
+    ],
+    cursor: { drag: { x: true, y: false } },
+  };
+}
+
+/** A line chart of `spec` = {key, title, xLabel, yLabel, series: [{name, points: [[x, y]],
+ *  color}]}: a .chart-box with the title, a log-scale switch, the plot and its legend (which
+ *  shows the values under the cursor). `box.update(spec)` draws new points of the same series
+ *  in place (keeping a zoom the user made). */
+function lineChart(spec) {
+  const plot = h('div', { class: 'plot' });
+  const logBox = h('input', { type: 'checkbox', class: 'log-scale' });
+  const logLabel = h('label', { class: 'muted chart-option', title: 'Logarithmic y axis (only when every value is positive)' }, logBox, ' log y');
+  const box = h('div', { class: 'chart-box', 'data-chart': spec.key },
+    h('div', { class: 'chart-head' }, h('span', { class: 'chart-title' }, spec.title), logLabel), plot,
+    h('div', { class: 'hint chart-hint' }, 'Drag to zoom, double-click to reset.'));
+  let current = spec;
+  let chart = null;
+  let zoomed = false;
+  const width = () => Math.max(240, (plot.clientWidth || box.clientWidth || 560) - 4);
+  const record = () => {
+    box.dataset.series = JSON.stringify(current.series.map((s) => [s.name, s.points.length]));
+  };
+  const build = () => {
+    if (chart) chart.destroy();
+    const options = uplotOptions(current, width(), logBox.checked);
+    options.hooks = { setSelect: [(u) => { if (u.select.width > 0) zoomed = true; }] };
+    chart = new uPlot(options, alignSeries(current.series), plot);
+    plot.addEventListener('dblclick', () => { zoomed = false; }, { once: true });
+    box.uplot = chart;
+    record();
+  };
+  const syncLog = () => {
+    const positive = allPositive(current.series);
+    logBox.disabled = !positive;
+    if (!positive) logBox.checked = false;
+    logLabel.title = positive ? 'Logarithmic y axis' : 'A log scale needs every value positive';
+  };
+  logBox.addEventListener('change', build);
+  box.update = (next) => {
+    const same = next.series.length === current.series.length
+      && next.series.every((s, i) => s.name === current.series[i].name);
+    current = next;
+    const wasLog = logBox.checked;
+    syncLog();
+    if (!same || !chart || wasLog !== logBox.checked) { build(); return; }
+    chart.setData(alignSeries(current.series), !zoomed);
+    record();
+  };
+  syncLog();
+  // uPlot draws at a fixed width: build once the box is in the page, redraw when it resizes.
+  requestAnimationFrame(build);
+  new ResizeObserver(() => { if (chart && Math.abs(chart.width - width()) > 2) chart.setSize({ width: width(), height: CHART_HEIGHT }); })
+    .observe(plot);
+  return box;
+}
+
+/** Round ticks covering [lo, hi]: 1, 2 or 5 times a power of ten apart. */
+function niceTicks(lo, hi, count = 5) {
+  if (!(hi > lo)) { const pad = Math.abs(lo) * 0.1 || 1; lo -= pad; hi += pad; }
+  const raw = (hi - lo) / count;
+  const power = 10 ** Math.floor(Math.log10(raw));
+  const step = [1, 2, 5, 10].map((m) => m * power).find((s) => s >= raw);
+  const first = Math.floor(lo / step) * step;
+  const ticks = [];
+  for (let t = first; t <= hi + step * 0.5; t += step) ticks.push(Number(t.toPrecision(12)));
+  if (ticks.at(-1) < hi) ticks.push(Number((ticks.at(-1) + step).toPrecision(12)));
+  return ticks;
+}
+
+const SVG_NS = 'http://www.w3.org/2000/svg';
+function s(tag, attrs, ...children) {
+  const el = document.createElementNS(SVG_NS, tag);
+  for (const [k, v] of Object.entries(attrs || {})) el.setAttribute(k, v);
+  for (const c of children.flat(Infinity)) if (c !== null && c !== undefined) el.append(c instanceof Node ? c : document.createTextNode(String(c)));
+  return el;
+}
+
+/** A scatter plot of labelled points ({label, x, y, color, group}) as SVG. With `fromZero` both
+ *  axes include 0, so a small difference is drawn small (cost and return are on ratio scales);
+ *  without it the axes fit the points. Each point is a <g class="point"> with its label, and its
+ *  exact values on hover. */
+function scatterChart({ key, title, xLabel, yLabel, points, fromZero }) {
+  const W = 640; const H = 360; const L = 70; const R = 20; const T = 34; const B = 48;
+  const shown = points.filter((p) => Number.isFinite(p.x) && Number.isFinite(p.y));
+  const extent = (values) => {
+    let lo = Math.min(...values); let hi = Math.max(...values);
+    if (!values.length) { lo = 0; hi = 1; }
+    if (fromZero) { lo = Math.min(lo, 0); hi = Math.max(hi, 0); }
+    return niceTicks(lo, hi);
+  };
+  const xt = extent(shown.map((p) => p.x));
+  const yt = extent(shown.map((p) => p.y));
+  const px = (x) => L + ((x - xt[0]) / (xt.at(-1) - xt[0])) * (W - L - R);
+  const py = (y) => H - B - ((y - yt[0]) / (yt.at(-1) - yt[0])) * (H - T - B);
+  const svg = s('svg', { viewBox: `0 0 ${W} ${H}`, role: 'img', 'aria-label': title, class: 'scatter' },
+    s('text', { x: L, y: 20, class: 'title' }, title),
+    xt.map((t) => [s('line', { x1: px(t), x2: px(t), y1: T, y2: H - B, class: 'grid' }),
+      s('text', { x: px(t), y: H - B + 16, 'text-anchor': 'middle', class: 'tick' }, fmt(t, 3))]),
+    yt.map((t) => [s('line', { x1: L, x2: W - R, y1: py(t), y2: py(t), class: 'grid' }),
+      s('text', { x: L - 6, y: py(t) + 4, 'text-anchor': 'end', class: 'tick' }, fmt(t, 3))]),
+    s('text', { x: (L + W - R) / 2, y: H - 8, 'text-anchor': 'middle', class: 'x-label' }, xLabel),
+    s('text', { x: 14, y: (T + H - B) / 2, 'text-anchor': 'middle', transform: `rotate(-90 14 ${(T + H - B) / 2})`, class: 'y-label' }, yLabel),
+    shown.map((p) => {
+      const x = px(p.x); const y = py(p.y);
+      const right = x > W - R - 120;
+      return s('g', { class: 'point', 'data-label': p.label, 'data-x': p.x, 'data-y': p.y },
+        s('circle', { cx: x, cy: y, r: 5.5, fill: p.color, stroke: '#111827', 'stroke-width': 0.6 },
+          s('title', {}, `${p.label} (${p.group}): ${xLabel} ${fmt(p.x)}, ${yLabel} ${fmt(p.y)}`)),
+        s('text', { x: right ? x - 8 : x + 8, y: y - 7, 'text-anchor': right ? 'end' : 'start', class: 'point-label' }, p.label));
+    }),
+    shown.length ? null : s('text', { x: W / 2, y: H / 2, 'text-anchor': 'middle', class: 'tick' }, 'No job has both metrics.'));
+  const groups = [...new Map(shown.map((p) => [p.group, p.color])).entries()];
+  return h('div', { class: 'chart-box', 'data-chart': key },
+    svg, h('div', { class: 'legend' }, groups.map(([g, c]) => h('span', { class: 'legend-item' }, h('span', { class: 'swatch', style: `background:${c}` }), g))));
+}
