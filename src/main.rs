@@ -3,7 +3,7 @@
 use std::path::PathBuf;
 
 use clap::{Args, Parser, Subcommand, ValueEnum};
-use safedice::bench::speed::{self, Engine, SpeedConfig};
+use safedice::bench::speed::{self, Engine, SpeedAlgorithm, SpeedConfig};
 use safedice::config::{ServeConfig, WorkerConfig};
 use safedice::server::{self, Server};
 
@@ -28,10 +28,10 @@ enum Command {
     /// fresh non-preferred episodes, and manifest.json (counts, seed, data profile, reference
     /// statistics), in an upload format.
     Datagen(DatagenArgs),
-    /// Training-speed benchmark of the SafeDICE trainer on synthetic data: main-loop
-    /// iterations/s (nu step on s, s', s0 + policy step, discriminator frozen), discriminator
-    /// steps/s (with its gradient penalty), the achieved GFLOP/s of each and their fraction of
-    /// the GEMM peak measured after them.
+    /// Training-speed benchmark on synthetic data: SafeDICE's main-loop iterations/s (nu step
+    /// on s, s', s0 + policy step, discriminator frozen) and discriminator steps/s (with its
+    /// gradient penalty), or with --algorithm a baseline's policy-learning steps/s; the
+    /// achieved GFLOP/s of each and their fraction of the GEMM peak measured after them.
     Speed(SpeedArgs),
     /// Train every algorithm on every built-in environment, evaluate with the paper's metrics
     /// and write results.md (mean ± standard error over seeds), results.json and SVG plots.
@@ -183,10 +183,13 @@ struct SpeedArgs {
     /// Seed of the synthetic data and the networks' initialisation.
     #[arg(long, default_value_t = 0)]
     seed: u64,
-    /// Which path of the SafeDICE trainer runs the hot loops: `fused` (the fused CPU engine,
-    /// what training uses on a CPU) or `candle` (candle autograd, the reference path).
+    /// Which path of the trainer runs the hot loops: `fused` (the fused CPU engine, what
+    /// training uses on a CPU) or `candle` (candle autograd, the reference path).
     #[arg(long, value_enum, default_value_t = Engine::Fused)]
     engine: Engine,
+    /// Whose steps to time: SafeDICE's two hot loops, or a baseline's policy-learning step.
+    #[arg(long, value_enum, default_value_t = SpeedAlgorithm::Safedice)]
+    algorithm: SpeedAlgorithm,
 }
 
 fn main() -> anyhow::Result<()> {
@@ -214,6 +217,7 @@ fn main() -> anyhow::Result<()> {
                 threads: a.threads,
                 seed: a.seed,
                 engine: a.engine,
+                algorithm: a.algorithm.into(),
             };
             let results = speed::run(&cfg)?;
             print!("{}", speed::report(&cfg, &results));

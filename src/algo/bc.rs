@@ -3,6 +3,7 @@
 use candle_core::Tensor;
 
 use super::columns::ActionColumn;
+use super::fused_policy::{fused_policy_step, fused_policy_update, FusedPolicyStep, LossName};
 use super::optim::Adam;
 use super::policy::{Decoder, PolicyArtifact, PolicyNet};
 use super::run::RunData;
@@ -17,10 +18,15 @@ pub fn bc_loss(
     policy.log_prob(obs, actions)?.mean_all()?.neg()
 }
 
+/// What a failing BC loss is called in the run's error, and what to try.
+const BC_LOSS: LossName = ("the BC loss", "Try a lower lr_actor.");
+
 pub struct BcTrainer {
     run: RunData,
     policy: PolicyNet,
     opt: Adam,
+    /// The fused CPU engine's policy step (None on other devices: candle autograd runs).
+    fused: Option<FusedPolicyStep>,
 }
 
 impl BcTrainer {
@@ -28,7 +34,8 @@ impl BcTrainer {
         let mut run = RunData::new(config, data)?;
         let policy = run.new_policy("policy")?;
         let opt = Adam::new(policy.mlp().named_vars(), config.common.lr_actor)?;
-        Ok(BcTrainer { run, policy, opt })
+        let fused = fused_policy_step(&run, policy.mlp())?;
+        Ok(BcTrainer { run, policy, opt, fused })
     }
 
     pub fn resume(
@@ -51,9 +58,29 @@ impl Trainer for BcTrainer {
         self.run.ensure_running()?;
         let idx = self.run.sample_u()?;
         let obs = self.run.u.obs.index_select(&idx, 0)?;
-        let loss = bc_loss(&self.policy, &obs, &self.run.u.actions.select(&idx)?)?;
-        let value = self.run.checked(&loss, "the BC loss", "Try a lower lr_actor.")?;
-        self.opt.minimize(&loss)?;
+        let actions = self.run.u.actions.select(&idx)?;
+        let value = match &mut self.fused {
+            Some(fused) => {
+                let policy = self.policy.mlp();
+                let run = &self.run;
+                fused_policy_update(
+                    fused,
+                    run,
+                    policy,
+                    &mut self.opt,
+                    &obs,
+                    &actions,
+                    None,
+                    BC_LOSS,
+                )?
+            }
+            None => {
+                let loss = bc_loss(&self.policy, &obs, &actions)?;
+                let value = self.run.checked(&loss, BC_LOSS.0, BC_LOSS.1)?;
+                self.opt.minimize(&loss)?;
+                value
+            }
+        };
         self.run.step += 1;
         Ok(if record { vec![("policy_loss", value)] } else { Vec::new() })
     }
@@ -68,5 +95,9 @@ impl Trainer for BcTrainer {
 
     fn export_policy(&self) -> Result<PolicyArtifact, TrainError> {
         PolicyArtifact::new(self.run.policy_spec(Decoder::Single), &[&self.policy])
+    }
+
+    fn use_candle_autograd(&mut self) {
+        self.fused = None;
     }
 }

@@ -85,6 +85,23 @@ impl ActionColumn {
             }
         })
     }
+
+    /// The rows of `a`, then those of `b` (columns of the same action space).
+    pub fn cat(a: &ActionColumn, b: &ActionColumn) -> Result<ActionColumn> {
+        Ok(match (a, b) {
+            (
+                ActionColumn::Continuous { pretanh: p, log_jacobian: j },
+                ActionColumn::Continuous { pretanh: q, log_jacobian: k },
+            ) => ActionColumn::Continuous {
+                pretanh: Tensor::cat(&[p, q], 0)?,
+                log_jacobian: Tensor::cat(&[j, k], 0)?,
+            },
+            (ActionColumn::Discrete { index: i }, ActionColumn::Discrete { index: k }) => {
+                ActionColumn::Discrete { index: Tensor::cat(&[i, k], 0)? }
+            }
+            _ => candle_core::bail!("cannot stack continuous and discrete actions"),
+        })
+    }
 }
 
 /// One dataset as training tensors.

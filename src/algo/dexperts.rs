@@ -3,7 +3,11 @@
 //! [`super::policy::Decoder::Dexperts`]). Continuous actions: one policy trained with
 //! `−E_U[log π] + α E_N[log π]` (Eq. 45).
 
+use candle_core::Tensor;
+
 use super::bc::bc_loss;
+use super::columns::ActionColumn;
+use super::fused_policy::{fused_policy_step, fused_policy_update, FusedPolicyStep, LossName};
 use super::hyperparams::{AlgorithmConfig, DexpertsConfig};
 use super::optim::Adam;
 use super::policy::{Decoder, PolicyArtifact, PolicyNet};
@@ -28,7 +32,16 @@ pub struct DexpertsTrainer {
     policy_opt: Adam,
     /// π^N, discrete actions only.
     expert_n: Option<(PolicyNet, Adam)>,
+    /// The fused CPU engine's policy step, shared by both experts (None on other devices).
+    fused: Option<FusedPolicyStep>,
 }
+
+const LOSS_U: LossName = ("the pi^U BC loss (Eq. 42)", "Try a lower lr_actor.");
+const LOSS_N: LossName = ("the pi^N BC loss (Eq. 43)", "Try a lower lr_actor.");
+const LOSS_CONTRASTIVE: LossName = (
+    "the DExperts loss (Eq. 45)",
+    "Its α term rewards making D^N actions unlikely without bound: try a smaller alpha.",
+);
 
 impl DexpertsTrainer {
     pub fn new(
@@ -49,7 +62,13 @@ impl DexpertsTrainer {
             }
             ActionSpace::Continuous { .. } => None,
         };
+        // Eq. 45 trains on a D^U batch and a D^N batch together: room for both.
+        let mut fused = fused_policy_step(&run, policy.mlp())?;
+        if expert_n.is_none() && fused.is_some() {
+            fused = Some(FusedPolicyStep::new(policy.mlp(), 2 * run.batch())?);
+        }
         Ok(DexpertsTrainer {
+            fused,
             policy_opt: Adam::new(policy.mlp().named_vars(), lr)?,
             cfg: cfg.clone(),
             run,
@@ -73,6 +92,92 @@ impl DexpertsTrainer {
     }
 }
 
+impl DexpertsTrainer {
+    /// Eq. 42 and 43: two behaviour-cloned experts.
+    fn two_experts_step(
+        &mut self,
+        obs_u: &Tensor,
+        act_u: &ActionColumn,
+        obs_n: &Tensor,
+        act_n: &ActionColumn,
+    ) -> Result<Vec<(&'static str, f64)>, TrainError> {
+        let (expert_n, opt_n) = self.expert_n.as_mut().expect("discrete actions");
+        let run = &self.run;
+        let (value_u, value_n) = match &mut self.fused {
+            Some(fused) => {
+                let pi_u = self.policy.mlp();
+                let value_u = fused_policy_update(
+                    fused,
+                    run,
+                    pi_u,
+                    &mut self.policy_opt,
+                    obs_u,
+                    act_u,
+                    None,
+                    LOSS_U,
+                )?;
+                let pi_n = expert_n.mlp();
+                (value_u, fused_policy_update(fused, run, pi_n, opt_n, obs_n, act_n, None, LOSS_N)?)
+            }
+            None => {
+                let loss_u = bc_loss(&self.policy, obs_u, act_u)?;
+                let loss_n = bc_loss(expert_n, obs_n, act_n)?;
+                let value_u = run.checked(&loss_u, LOSS_U.0, LOSS_U.1)?;
+                let value_n = run.checked(&loss_n, LOSS_N.0, LOSS_N.1)?;
+                self.policy_opt.minimize(&loss_u)?;
+                opt_n.minimize(&loss_n)?;
+                (value_u, value_n)
+            }
+        };
+        Ok(vec![("policy_loss", value_u), ("policy_n_loss", value_n)])
+    }
+
+    /// Eq. 45 on one policy. On the fused engine it is one weighted NLL over the D^U batch and
+    /// the D^N batch stacked (2B rows): weights 2 on D^U rows and −2α on D^N rows make
+    /// `−(1/2B) Σ w log π` equal `−E_U[log π] + α E_N[log π]`.
+    fn contrastive_step(
+        &mut self,
+        obs_u: &Tensor,
+        act_u: &ActionColumn,
+        obs_n: &Tensor,
+        act_n: &ActionColumn,
+    ) -> Result<Vec<(&'static str, f64)>, TrainError> {
+        let value = match &mut self.fused {
+            Some(fused) => {
+                let b = obs_u.dim(0)?;
+                let obs = Tensor::cat(&[obs_u, obs_n], 0)?;
+                let actions = ActionColumn::cat(act_u, act_n)?;
+                let mut w = vec![2.0f32; b];
+                w.extend(std::iter::repeat_n(-2.0 * self.cfg.alpha as f32, obs_n.dim(0)?));
+                let w = Tensor::from_vec(w, obs.dim(0)?, obs.device())?;
+                let (run, policy) = (&self.run, self.policy.mlp());
+                let opt = &mut self.policy_opt;
+                fused_policy_update(
+                    fused,
+                    run,
+                    policy,
+                    opt,
+                    &obs,
+                    &actions,
+                    Some(&w),
+                    LOSS_CONTRASTIVE,
+                )?
+            }
+            None => {
+                let loss = contrastive_bc_loss(
+                    &self.policy.log_prob(obs_u, act_u)?,
+                    &self.policy.log_prob(obs_n, act_n)?,
+                    self.cfg.alpha,
+                )?;
+                let value = self.run.checked(&loss, LOSS_CONTRASTIVE.0, LOSS_CONTRASTIVE.1)?;
+                self.policy_opt.minimize(&loss)?;
+                value
+            }
+        };
+        Ok(vec![("policy_loss", value)])
+    }
+}
+
 impl Trainer for DexpertsTrainer {
     fn progress(&self) -> Progress {
         Progress { step: self.run.step, total: self.run.total(), phase: "policy" }
@@ -85,41 +190,10 @@ impl Trainer for DexpertsTrainer {
         let (u, n) = (&self.run.u, self.run.non_preferred());
         let (obs_u, act_u) = (u.obs.index_select(&idx_u, 0)?, u.actions.select(&idx_u)?);
         let (obs_n, act_n) = (n.obs.index_select(&idx_n, 0)?, n.actions.select(&idx_n)?);
-        let mut metrics = Vec::new();
-        match &mut self.expert_n {
-            Some((expert_n, opt_n)) => {
-                // Eq. 42 and 43: two behaviour-cloned experts.
-                let loss_u = bc_loss(&self.policy, &obs_u, &act_u)?;
-                let loss_n = bc_loss(expert_n, &obs_n, &act_n)?;
-                let value_u = self.run.checked(
-                    &loss_u,
-                    "the pi^U BC loss (Eq. 42)",
-                    "Try a lower lr_actor.",
-                )?;
-                let value_n = self.run.checked(
-                    &loss_n,
-                    "the pi^N BC loss (Eq. 43)",
-                    "Try a lower lr_actor.",
-                )?;
-                self.policy_opt.minimize(&loss_u)?;
-                opt_n.minimize(&loss_n)?;
-                metrics.extend([("policy_loss", value_u), ("policy_n_loss", value_n)]);
-            }
-            None => {
-                let loss = contrastive_bc_loss(
-                    &self.policy.log_prob(&obs_u, &act_u)?,
-                    &self.policy.log_prob(&obs_n, &act_n)?,
-                    self.cfg.alpha,
-                )?;
-                let value = self.run.checked(
-                    &loss,
-                    "the DExperts loss (Eq. 45)",
-                    "Its α term rewards making D^N actions unlikely without bound: try a smaller alpha.",
-                )?;
-                self.policy_opt.minimize(&loss)?;
-                metrics.push(("policy_loss", value));
-            }
-        }
+        let metrics = match self.expert_n.is_some() {
+            true => self.two_experts_step(&obs_u, &act_u, &obs_n, &act_n)?,
+            false => self.contrastive_step(&obs_u, &act_u, &obs_n, &act_n)?,
+        };
         self.run.step += 1;
         Ok(if record { metrics } else { Vec::new() })
     }
@@ -144,5 +218,9 @@ impl Trainer for DexpertsTrainer {
             ),
             None => PolicyArtifact::new(self.run.policy_spec(Decoder::Single), &[&self.policy]),
         }
+    }
+
+    fn use_candle_autograd(&mut self) {
+        self.fused = None;
     }
 }

@@ -6,6 +6,8 @@
 use candle_core::Tensor;
 
 use super::columns::uniform_column;
+use super::dwbc_fused::{DwbcDiscBatch, FusedDwbcDisc};
+use super::fused_policy::{fused_policy_update, host, host_scalar, FusedPolicyStep, LossName};
 use super::hyperparams::{AlgorithmConfig, DwbcConfig};
 use super::losses::{
     interpolate, neg_log_one_minus_sigmoid, neg_log_sigmoid, unit_gradient_penalty, weighted_nll,
@@ -18,7 +20,7 @@ use super::{Progress, ResolvedConfig, TrainError, Trainer, TrainingData};
 
 /// `d` is kept in [0.1, 0.9] (its logit in ±ln 9): Eq. 38's third term, `−η E_N[−log(1 − d)]`,
 /// is unbounded below otherwise (together with the first it is linear in the logit).
-const LOGIT_CLIP: f64 = 2.197_224_577_336_219_6; // ln 9
+pub const LOGIT_CLIP: f64 = 2.197_224_577_336_219_6; // ln 9
 
 /// Eq. 38: `η E_N[−log d] + E_U[−log(1 − d)] − η E_N[−log(1 − d)]` on clipped logits.
 pub fn negative_unlabeled_loss(
@@ -47,7 +49,13 @@ pub struct DwbcTrainer {
     disc_opt: Adam,
     policy: PolicyNet,
     policy_opt: Adam,
+    /// The fused CPU engine's discriminator and policy steps (None on other devices).
+    fused: Option<(FusedDwbcDisc, FusedPolicyStep)>,
 }
+
+const DISC_LOSS: LossName =
+    ("the DWBC discriminator loss (Eq. 38)", "Try a lower lr_discriminator.");
+const POLICY_LOSS: LossName = ("the DWBC policy loss (Eq. 39)", "Try a lower lr_actor.");
 
 impl DwbcTrainer {
     pub fn new(config: &ResolvedConfig, data: &TrainingData) -> Result<DwbcTrainer, TrainError> {
@@ -57,7 +65,15 @@ impl DwbcTrainer {
         let mut run = RunData::new(config, data)?;
         let disc = run.new_critic("discriminator", run.state_action_dim() + 1)?;
         let policy = run.new_policy("policy")?;
+        let fused = match run.device {
+            candle_core::Device::Cpu => Some((
+                FusedDwbcDisc::new(&disc, run.batch())?,
+                FusedPolicyStep::new(policy.mlp(), run.batch())?,
+            )),
+            _ => None,
+        };
         Ok(DwbcTrainer {
+            fused,
             disc_opt: Adam::new(disc.named_vars(), cfg.lr_discriminator)?,
             policy_opt: Adam::new(policy.mlp().named_vars(), config.common.lr_actor)?,
             cfg: cfg.clone(),
@@ -80,6 +96,78 @@ impl DwbcTrainer {
     }
 }
 
+impl DwbcTrainer {
+    /// Eq. 38 (+ penalty) and Eq. 39 on candle autograd; the losses and the weights' mean.
+    fn candle_updates(
+        &mut self,
+        x_n: &Tensor,
+        x_u: &Tensor,
+        mix: Option<&Tensor>,
+        log_prob_u: &Tensor,
+    ) -> Result<(f64, f64, f64), TrainError> {
+        let b = x_n.dim(0)?;
+        let logits = self.disc.forward(&Tensor::cat(&[x_n, x_u], 0)?)?.squeeze(1)?;
+        let (c_n, c_u) = (logits.narrow(0, 0, b)?, logits.narrow(0, b, b)?);
+        let mut loss_d = negative_unlabeled_loss(&c_n, &c_u, self.cfg.eta)?;
+        if let Some(mix) = mix {
+            let penalty = unit_gradient_penalty(&self.disc, &interpolate(x_n, x_u, mix)?)?;
+            loss_d = (loss_d + (penalty * self.cfg.discriminator_gp)?)?;
+        }
+        let weights = preference_weights(&c_u)?;
+        let loss_pi = weighted_nll(log_prob_u, &weights)?;
+        let d_value = self.run.checked(&loss_d, DISC_LOSS.0, DISC_LOSS.1)?;
+        let pi_value = self.run.checked(&loss_pi, POLICY_LOSS.0, POLICY_LOSS.1)?;
+        self.disc_opt.minimize(&loss_d)?;
+        self.policy_opt.minimize(&loss_pi)?;
+        Ok((d_value, pi_value, super::losses::scalar(&weights.mean_all()?)?))
+    }
+
+    /// The same updates on the fused engine: the discriminator's gradient and Eq. 39's weights
+    /// from one fused pass, then the shared policy step.
+    fn fused_updates(
+        &mut self,
+        x_n: &Tensor,
+        x_u: &Tensor,
+        mix: Option<&Tensor>,
+        obs_u: &Tensor,
+        act_u: &super::columns::ActionColumn,
+    ) -> Result<(f64, f64, f64), TrainError> {
+        let (disc, policy_step) = self.fused.as_mut().expect("fused path");
+        let (x_n, x_u, mix) = (host(x_n)?, host(x_u)?, mix.map(host).transpose()?);
+        let loss = disc.grads(
+            &self.disc,
+            &DwbcDiscBatch {
+                x_n: &x_n,
+                x_u: &x_u,
+                penalty: mix.as_deref(),
+                penalty_coef: self.cfg.discriminator_gp as f32,
+                eta: self.cfg.eta as f32,
+            },
+        )?;
+        let d_value = self.run.checked(&host_scalar(loss)?, DISC_LOSS.0, DISC_LOSS.1)?;
+        let weights = disc.preference_weights();
+        let weight_mean = weights.iter().map(|&w| f64::from(w)).sum::<f64>() / weights.len() as f64;
+        let weights = Tensor::from_vec(
+            weights,
+            x_u.len() / self.disc.fused_shape().input(),
+            &candle_core::Device::Cpu,
+        )?;
+        let (run, policy, opt) = (&self.run, self.policy.mlp(), &mut self.policy_opt);
+        let pi_value = fused_policy_update(
+            policy_step,
+            run,
+            policy,
+            opt,
+            obs_u,
+            act_u,
+            Some(&weights),
+            POLICY_LOSS,
+        )?;
+        self.disc_opt.step_with_grads(&self.disc.grads_from_fused(&disc.grads)?)?;
+        Ok((d_value, pi_value, weight_mean))
+    }
+}
+
 impl Trainer for DwbcTrainer {
     fn progress(&self) -> Progress {
         Progress { step: self.run.step, total: self.run.total(), phase: "policy" }
@@ -91,32 +179,21 @@ impl Trainer for DwbcTrainer {
         let idx_n = self.run.sample_n()?;
         let idx_u = self.run.sample_u()?;
         let (n, u) = (self.run.non_preferred(), &self.run.u);
-        let log_prob_u =
-            self.policy.log_prob(&u.obs.index_select(&idx_u, 0)?, &u.actions.select(&idx_u)?)?;
+        let (obs_u, act_u) = (u.obs.index_select(&idx_u, 0)?, u.actions.select(&idx_u)?);
+        let log_prob_u = self.policy.log_prob(&obs_u, &act_u)?;
         let log_prob_n =
             self.policy.log_prob(&n.obs.index_select(&idx_n, 0)?, &n.actions.select(&idx_n)?)?;
         // d(s, a, log π): the policy's log-likelihood is an input, not a path for gradients.
         let x_n = Tensor::cat(&[n.state_action(&idx_n)?, log_prob_n.detach().unsqueeze(1)?], 1)?;
         let x_u = Tensor::cat(&[u.state_action(&idx_u)?, log_prob_u.detach().unsqueeze(1)?], 1)?;
-        let logits = self.disc.forward(&Tensor::cat(&[&x_n, &x_u], 0)?)?.squeeze(1)?;
-        let (c_n, c_u) = (logits.narrow(0, 0, b)?, logits.narrow(0, b, b)?);
-        let mut loss_d = negative_unlabeled_loss(&c_n, &c_u, self.cfg.eta)?;
-        if self.cfg.discriminator_gp > 0.0 {
-            let mix = uniform_column(&mut self.run.rng, b, &self.run.device)?;
-            let penalty = unit_gradient_penalty(&self.disc, &interpolate(&x_n, &x_u, &mix)?)?;
-            loss_d = (loss_d + (penalty * self.cfg.discriminator_gp)?)?;
-        }
-        let weights = preference_weights(&c_u)?;
-        let loss_pi = weighted_nll(&log_prob_u, &weights)?;
-        let d_value = self.run.checked(
-            &loss_d,
-            "the DWBC discriminator loss (Eq. 38)",
-            "Try a lower lr_discriminator.",
-        )?;
-        let pi_value =
-            self.run.checked(&loss_pi, "the DWBC policy loss (Eq. 39)", "Try a lower lr_actor.")?;
-        self.disc_opt.minimize(&loss_d)?;
-        self.policy_opt.minimize(&loss_pi)?;
+        let mix = match self.cfg.discriminator_gp > 0.0 {
+            true => Some(uniform_column(&mut self.run.rng, b, &self.run.device)?),
+            false => None,
+        };
+        let (d_value, pi_value, weight_mean) = match self.fused.is_some() {
+            true => self.fused_updates(&x_n, &x_u, mix.as_ref(), &obs_u, &act_u)?,
+            false => self.candle_updates(&x_n, &x_u, mix.as_ref(), &log_prob_u)?,
+        };
         self.run.step += 1;
         if !record {
             return Ok(Vec::new());
@@ -124,7 +201,7 @@ impl Trainer for DwbcTrainer {
         Ok(vec![
             ("discriminator_loss", d_value),
             ("policy_loss", pi_value),
-            ("weight_mean", super::losses::scalar(&weights.mean_all()?)?),
+            ("weight_mean", weight_mean),
         ])
     }
 
@@ -138,5 +215,9 @@ impl Trainer for DwbcTrainer {
 
     fn export_policy(&self) -> Result<PolicyArtifact, TrainError> {
         PolicyArtifact::new(self.run.policy_spec(Decoder::Single), &[&self.policy])
+    }
+
+    fn use_candle_autograd(&mut self) {
+        self.fused = None;
     }
 }

@@ -19,7 +19,9 @@ pub mod checkpoint;
 pub mod columns;
 pub mod dexperts;
 pub mod dwbc;
+pub mod dwbc_fused;
 pub mod fused_mlp;
+pub mod fused_policy;
 pub mod hyperparams;
 pub mod losses;
 pub mod memory;
@@ -139,6 +141,9 @@ pub trait Trainer: Send {
     fn alpha_hat(&self) -> Option<f64>;
     /// The current policy as an artefact.
     fn export_policy(&self) -> Result<PolicyArtifact, TrainError>;
+    /// Run every step on candle autograd even on the CPU, instead of the fused engine (the
+    /// reference path; `safedice speed --engine candle` and the tests that compare both).
+    fn use_candle_autograd(&mut self);
 }
 
 /// Check the datasets fit the config ([`check_fit`]); a [`Dataset`](crate::data::Dataset) is

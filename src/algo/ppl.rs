@@ -7,6 +7,7 @@ use rand::Rng;
 use rand_chacha::ChaCha8Rng;
 
 use super::columns::Columns;
+use super::fused_policy::{fused_policy_step, fused_policy_update, FusedPolicyStep, LossName};
 use super::hyperparams::{AlgorithmConfig, PplConfig, PplWeight};
 use super::losses::{softplus, weighted_nll};
 use super::mlp::Mlp;
@@ -58,7 +59,15 @@ pub struct PplTrainer {
     reward_opt: Adam,
     policy: PolicyNet,
     policy_opt: Adam,
+    /// The fused CPU engine's policy step (None on other devices); the reward model (Eq. 40)
+    /// stays on candle autograd.
+    fused: Option<FusedPolicyStep>,
 }
+
+const POLICY_LOSS: LossName = (
+    "the PPL policy loss (Eq. 41)",
+    "With ppl_weight \"raw\" negative rewards push log-probabilities down without bound: try \"sigmoid\".",
+);
 
 impl PplTrainer {
     pub fn new(config: &ResolvedConfig, data: &TrainingData) -> Result<PplTrainer, TrainError> {
@@ -69,6 +78,7 @@ impl PplTrainer {
         let reward = run.new_critic("reward_model", run.state_action_dim())?;
         let policy = run.new_policy("policy")?;
         Ok(PplTrainer {
+            fused: fused_policy_step(&run, policy.mlp())?,
             reward_opt: Adam::new(reward.named_vars(), cfg.lr_reward_model)?,
             policy_opt: Adam::new(policy.mlp().named_vars(), config.common.lr_actor)?,
             cfg: cfg.clone(),
@@ -127,15 +137,20 @@ impl PplTrainer {
             PplWeight::Raw => r,
             PplWeight::Sigmoid => candle_nn::ops::sigmoid(&r)?,
         };
-        let log_prob =
-            self.policy.log_prob(&u.obs.index_select(&idx, 0)?, &u.actions.select(&idx)?)?;
-        let loss = weighted_nll(&log_prob, &weights)?;
-        let value = self.run.checked(
-            &loss,
-            "the PPL policy loss (Eq. 41)",
-            "With ppl_weight \"raw\" negative rewards push log-probabilities down without bound: try \"sigmoid\".",
-        )?;
-        self.policy_opt.minimize(&loss)?;
+        let (obs, actions) = (u.obs.index_select(&idx, 0)?, u.actions.select(&idx)?);
+        let value = match &mut self.fused {
+            Some(fused) => {
+                let (run, policy, opt) = (&self.run, self.policy.mlp(), &mut self.policy_opt);
+                let w = Some(&weights);
+                fused_policy_update(fused, run, policy, opt, &obs, &actions, w, POLICY_LOSS)?
+            }
+            None => {
+                let loss = weighted_nll(&self.policy.log_prob(&obs, &actions)?, &weights)?;
+                let value = self.run.checked(&loss, POLICY_LOSS.0, POLICY_LOSS.1)?;
+                self.policy_opt.minimize(&loss)?;
+                value
+            }
+        };
         self.run.step += 1;
         if !record {
             return Ok(Vec::new());
@@ -176,5 +191,9 @@ impl Trainer for PplTrainer {
 
     fn export_policy(&self) -> Result<PolicyArtifact, TrainError> {
         PolicyArtifact::new(self.run.policy_spec(Decoder::Single), &[&self.policy])
+    }
+
+    fn use_candle_autograd(&mut self) {
+        self.fused = None;
     }
 }

@@ -339,12 +339,6 @@ impl SafediceTrainer {
         Ok(t)
     }
 
-    /// Run the hot loops on candle autograd even on the CPU (the reference path; used by the
-    /// `safedice speed` benchmark and the tests that compare both paths).
-    pub fn use_candle_autograd(&mut self) {
-        self.fused = None;
-    }
-
     /// alpha-hat with where it came from, once the discriminator phase is over.
     pub fn alpha_details(&self) -> Option<&AlphaHat> {
         self.alpha.as_ref()
@@ -643,6 +637,10 @@ impl Trainer for SafediceTrainer {
 
     fn export_policy(&self) -> Result<PolicyArtifact, TrainError> {
         PolicyArtifact::new(self.run.policy_spec(Decoder::Single), &[&self.policy])
+    }
+
+    fn use_candle_autograd(&mut self) {
+        self.fused = None;
     }
 }
 

@@ -10,24 +10,24 @@
 //! trainer's minibatches come from `safedice.rs` ([`DiscDraws`], [`MainDraws`]), so both engines
 //! consume the run's random numbers identically.
 
-use candle_core::{Result, Tensor};
+use candle_core::Result;
 
-use super::columns::ActionColumn;
 use super::fused_mlp::{FusedMlp, Workspace};
+pub use super::fused_policy::HostActions;
+use super::fused_policy::{host, host_scalar, FusedPolicyStep, OwnedActions};
 use super::losses::GRAD_NORM_EPS;
 use super::mlp::Mlp;
-use super::policy::{LOG_STD_MAX, LOG_STD_MIN, MEAN_CLIP};
 use super::safedice::{
     DiscDraws, MainDraws, SafediceTrainer, DISC_LOSS, MASK_RENORM_EPS, NU_LOSS, POLICY_LOSS,
 };
 use super::TrainError;
 
 /// `log(1 + eˣ)` without overflow (one value; the tensor form is `losses::softplus`).
-fn softplus_f32(x: f32) -> f32 {
+pub(super) fn softplus_f32(x: f32) -> f32 {
     x.max(0.0) + (-x.abs()).exp().ln_1p()
 }
 
-fn sigmoid_f32(x: f32) -> f32 {
+pub(super) fn sigmoid_f32(x: f32) -> f32 {
     1.0 / (1.0 + (-x).exp())
 }
 
@@ -41,52 +41,20 @@ pub fn interpolate_rows(dst: &mut [f32], a: &[f32], b: &[f32], u: &[f32], dim: u
     }
 }
 
-/// Dataset actions of a policy batch, on the host.
-pub enum HostActions<'a> {
-    /// `pretanh` (`B × dim`) and `log_jacobian` (`B`), as in `columns::ActionColumn`.
-    Continuous {
-        pretanh: &'a [f32],
-        log_jacobian: &'a [f32],
-    },
-    Discrete {
-        index: &'a [u32],
-    },
-}
-
-/// Tanh-Gaussian `log π(a|s)` (see `policy::tanh_gaussian_log_prob`) from the raw head
-/// `[mean | log_std]`, and its gradient with respect to the raw head (zero outside the clips).
-fn tanh_gaussian_log_prob_and_grad(
-    out: &[f32],
-    pretanh: &[f32],
-    log_jacobian: f32,
-    grad: &mut [f32],
-) -> f32 {
-    let d = pretanh.len();
-    let (mean_clip, ls_min, ls_max) = (MEAN_CLIP as f32, LOG_STD_MIN as f32, LOG_STD_MAX as f32);
-    let half_log_2pi = 0.5 * (2.0 * std::f32::consts::PI).ln();
-    let mut logp = -log_jacobian;
-    for j in 0..d {
-        let (m_raw, s_raw) = (out[j], out[d + j]);
-        let mean = m_raw.clamp(-mean_clip, mean_clip);
-        let log_std = s_raw.clamp(ls_min, ls_max);
-        let inv_std = (-log_std).exp();
-        let z = (pretanh[j] - mean) * inv_std;
-        logp += -0.5 * z * z - log_std - half_log_2pi;
-        grad[j] = if m_raw.abs() <= mean_clip { z * inv_std } else { 0.0 };
-        grad[d + j] = if (ls_min..=ls_max).contains(&s_raw) { z * z - 1.0 } else { 0.0 };
+/// `mean((‖g_r‖ − 1)²)` over the rows `g_r` (width `d`) of the penalty points' input-gradients
+/// (losses::unit_gradient_penalty), and `λ ·` its derivative with respect to `g` into `dp`.
+pub(super) fn unit_penalty_and_grad(g: &[f32], dp: &mut [f32], d: usize, lambda: f32) -> f32 {
+    let inv_rows = 1.0 / (g.len() / d) as f32;
+    let mut total = 0.0;
+    for (gr, dr) in g.chunks_exact(d).zip(dp.chunks_exact_mut(d)) {
+        let norm = (gr.iter().map(|v| v * v).sum::<f32>() + GRAD_NORM_EPS as f32).sqrt();
+        total += (norm - 1.0) * (norm - 1.0);
+        let k = lambda * inv_rows * 2.0 * (norm - 1.0) / norm;
+        for (o, &gv) in dr.iter_mut().zip(gr) {
+            *o = k * gv;
+        }
     }
-    logp
-}
-
-/// `log softmax(logits)[a]` and its gradient with respect to the logits.
-fn categorical_log_prob_and_grad(logits: &[f32], a: usize, grad: &mut [f32]) -> f32 {
-    let max = logits.iter().copied().fold(f32::NEG_INFINITY, f32::max);
-    let lse = max + logits.iter().map(|&l| (l - max).exp()).sum::<f32>().ln();
-    for (g, &l) in grad.iter_mut().zip(logits) {
-        *g = -(l - lse).exp();
-    }
-    grad[a] += 1.0;
-    logits[a] - lse
+    total * inv_rows
 }
 
 /// One discriminator step's inputs: `B` rows of D^N and of D^U (`cat(s, a)`), and the penalty's
@@ -140,41 +108,36 @@ pub struct MainOutcome {
     pub nu_initial_mean: f32,
 }
 
-/// Fused copies of the three networks with their buffers, gradients and per-batch scratch.
+/// Fused copies of the three networks with their buffers, gradients and per-batch scratch (the
+/// policy's in the step all algorithms share, [`FusedPolicyStep`]).
 pub struct FusedSafedice {
     disc: FusedMlp,
     nu: FusedMlp,
-    policy: FusedMlp,
     ws_disc: Workspace,
     ws_nu: Workspace,
-    ws_policy: Workspace,
     pub disc_grads: Vec<f32>,
     pub nu_grads: Vec<f32>,
-    pub policy_grads: Vec<f32>,
+    pub policy: FusedPolicyStep,
     /// `A` of the last main step and the policy weights `w̃ / mean(w̃)` (length B).
     pub advantages: Vec<f32>,
     pub weights: Vec<f32>,
-    head_grad: Vec<f32>,
 }
 
 impl FusedSafedice {
     /// Buffers for batch size `batch`; one compute thread (one per training job: see
     /// bench/README.md).
     pub fn new(disc: &Mlp, nu: &Mlp, policy: &Mlp, batch: usize) -> Result<Self> {
-        let (disc, nu, policy) = (disc.to_fused()?, nu.to_fused()?, policy.to_fused()?);
+        let (disc, nu) = (disc.to_fused()?, nu.to_fused()?);
         Ok(Self {
             ws_disc: Workspace::new(disc.shape(), 4 * batch, 1),
             ws_nu: Workspace::new(nu.shape(), 5 * batch, 1),
-            ws_policy: Workspace::new(policy.shape(), batch, 1),
             disc_grads: vec![0.0; disc.num_params()],
             nu_grads: vec![0.0; nu.num_params()],
-            policy_grads: vec![0.0; policy.num_params()],
+            policy: FusedPolicyStep::new(policy, batch)?,
             advantages: vec![0.0; batch],
             weights: vec![0.0; batch],
-            head_grad: vec![0.0; policy.shape().output()],
             disc,
             nu,
-            policy,
         })
     }
 
@@ -223,27 +186,14 @@ impl FusedSafedice {
                     dout[b + i] = sigmoid_f32(c_u) * inv_b;
                 }
             },
-            |g, dp| {
-                let inv_rows = 1.0 / penalty_rows as f32;
-                let mut total = 0.0;
-                for (gr, dr) in g.chunks_exact(d).zip(dp.chunks_exact_mut(d)) {
-                    let norm =
-                        (gr.iter().map(|v| v * v).sum::<f32>() + GRAD_NORM_EPS as f32).sqrt();
-                    total += (norm - 1.0) * (norm - 1.0);
-                    let k = lambda * inv_rows * 2.0 * (norm - 1.0) / norm;
-                    for (o, &gv) in dr.iter_mut().zip(gr) {
-                        *o = k * gv;
-                    }
-                }
-                total * inv_rows
-            },
+            |g, dp| unit_penalty_and_grad(g, dp, d, lambda),
         );
         outcome.penalty = penalty;
         outcome.loss = outcome.classification + lambda * penalty;
         Ok(outcome)
     }
 
-    /// Eq. 36 (+ ν's zero-centred penalty) into `nu_grads` and Eq. 37 into `policy_grads`, with
+    /// Eq. 36 (+ ν's zero-centred penalty) into `nu_grads` and Eq. 37 into `policy.grads`, with
     /// the pre-update ν; `advantages` and `weights` hold the batch's A and policy weights after.
     pub fn main_grads(
         &mut self,
@@ -252,7 +202,6 @@ impl FusedSafedice {
         batch: &HostMainBatch,
     ) -> Result<MainOutcome> {
         nu.copy_into_fused(&mut self.nu)?;
-        policy.copy_into_fused(&mut self.policy)?;
         let d = self.nu.shape().input();
         let b = batch.reward.len();
         let input = self.ws_nu.input_mut();
@@ -324,39 +273,12 @@ impl FusedSafedice {
             let mean = weights.iter().sum::<f32>() / b as f32;
             weights.iter_mut().for_each(|w| *w /= mean + MASK_RENORM_EPS as f32);
         }
-        let weights = &self.weights;
-        let head_grad = &mut self.head_grad;
-        let k = head_grad.len();
-        let mut policy_loss = 0.0;
-        self.ws_policy.input_mut()[..batch.policy_obs.len()].copy_from_slice(batch.policy_obs);
-        self.policy_grads.fill(0.0);
-        self.policy.train_pass(
-            &mut self.ws_policy,
-            b,
-            0,
-            &mut self.policy_grads,
-            |out, dout| {
-                // −mean(w · log π): d/d head = −w/B · d log π / d head.
-                for (i, (o, dg)) in out.chunks_exact(k).zip(dout.chunks_exact_mut(k)).enumerate() {
-                    let logp = match &batch.actions {
-                        HostActions::Continuous { pretanh, log_jacobian } => {
-                            let a = &pretanh[i * k / 2..(i + 1) * k / 2];
-                            tanh_gaussian_log_prob_and_grad(o, a, log_jacobian[i], head_grad)
-                        }
-                        HostActions::Discrete { index } => {
-                            categorical_log_prob_and_grad(o, index[i] as usize, head_grad)
-                        }
-                    };
-                    let scale = weights[i] / b as f32;
-                    policy_loss -= scale * logp;
-                    for (x, &h) in dg.iter_mut().zip(head_grad.iter()) {
-                        *x = -scale * h;
-                    }
-                }
-            },
-            |_, _| 0.0,
-        );
-        outcome.policy_loss = policy_loss;
+        outcome.policy_loss = self.policy.weighted_nll_grads(
+            policy,
+            batch.policy_obs,
+            &batch.actions,
+            Some(&self.weights),
+        )?;
         Ok(outcome)
     }
 }
@@ -407,17 +329,7 @@ impl SafediceTrainer {
         let (reward, discount) = (host(&batch.reward)?, host(&batch.discount)?);
         let u = batch.penalty_u.as_ref().map(host).transpose()?;
         let policy_obs = host(&batch.policy_obs)?;
-        let (pretanh, log_jacobian, index);
-        let actions = match &batch.actions {
-            ActionColumn::Continuous { pretanh: p, log_jacobian: j } => {
-                (pretanh, log_jacobian) = (host(p)?, host(j)?);
-                HostActions::Continuous { pretanh: &pretanh, log_jacobian: &log_jacobian }
-            }
-            ActionColumn::Discrete { index: i } => {
-                index = i.to_vec1::<u32>()?;
-                HostActions::Discrete { index: &index }
-            }
-        };
+        let actions = OwnedActions::from_column(&batch.actions)?;
         let fused = self.fused.as_mut().expect("fused path");
         let out = fused.main_grads(
             &self.nu,
@@ -431,7 +343,7 @@ impl SafediceTrainer {
                 gamma: self.cfg.gamma as f32,
                 penalty: u.as_deref().map(|u| (u, self.cfg.nu_gp as f32)),
                 policy_obs: &policy_obs,
-                actions,
+                actions: actions.view(),
                 has_action: batch.has_action.as_deref(),
             },
         )?;
@@ -439,7 +351,7 @@ impl SafediceTrainer {
         let pi_value =
             self.run.checked(&host_scalar(out.policy_loss)?, POLICY_LOSS.0, POLICY_LOSS.1)?;
         self.nu_opt.step_with_grads(&self.nu.grads_from_fused(&fused.nu_grads)?)?;
-        let policy_grads = self.policy.mlp().grads_from_fused(&fused.policy_grads)?;
+        let policy_grads = self.policy.mlp().grads_from_fused(&fused.policy.grads)?;
         self.policy_opt.step_with_grads(&policy_grads)?;
         self.run.step += 1;
         if !record {
@@ -449,16 +361,6 @@ impl SafediceTrainer {
         let values = [nu_value, out.nu_penalty as f64, pi_value, out.nu_initial_mean as f64];
         Ok(self.main_metrics(values, &w, &adv))
     }
-}
-
-/// A tensor's values on the host, flattened (row-major).
-fn host(t: &Tensor) -> Result<Vec<f32>> {
-    t.flatten_all()?.to_vec1::<f32>()
-}
-
-/// A host loss as a scalar tensor for `RunData::checked`.
-fn host_scalar(value: f32) -> Result<Tensor> {
-    Tensor::new(value, &candle_core::Device::Cpu)
 }
 
 #[cfg(test)]

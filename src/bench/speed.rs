@@ -1,6 +1,7 @@
-//! `safedice speed`: how fast the product's [`SafediceTrainer`] trains, on synthetic data.
+//! `safedice speed`: how fast the product's trainers train, on synthetic data.
 //!
-//! It times the trainer's two hot loops, step by step through [`Trainer::step`]:
+//! For SafeDICE (the default) it times the trainer's two hot loops, step by step through
+//! [`Trainer::step`]:
 //! - discriminator step: Eq. 9 on `B` non-preferred and `B` unlabeled pairs, the interpolated
 //!   gradient penalty on `2B` points, one Adam step;
 //! - main loop: one ν step (Eq. 36 on `cat(s, s', s0)` plus ν's zero-centred penalty on `2B`
@@ -12,6 +13,10 @@
 //! only) and the fraction of this machine's GEMM peak, measured after the workloads.
 //! docs/performance.md explains the engine and the numbers; `bench/pytorch_reference.py` times
 //! the same workloads in PyTorch.
+//!
+//! With `--algorithm bc|dwbc|ppl|dexperts` it times that trainer's policy-learning step (service
+//! preset) the same way, on either engine: their policy step runs on the fused engine on a CPU
+//! (`algo::fused_policy`); DWBC's discriminator and PPL's reward model stay on candle.
 
 use std::sync::Arc;
 use std::time::Instant;
@@ -22,7 +27,7 @@ use rand_distr::{Distribution, StandardNormal};
 
 use crate::algo::fused_mlp::{peak_gemm_gflops, MlpShape};
 use crate::algo::safedice::SafediceTrainer;
-use crate::algo::{resolve_config, Algorithm, Trainer, TrainingData};
+use crate::algo::{build_trainer, resolve_config, Algorithm, Trainer, TrainingData};
 use crate::data::{ActionSpace, Actions, Dataset, DatasetParts};
 
 /// Which path of [`SafediceTrainer`] runs the hot loops.
@@ -34,6 +39,28 @@ pub enum Engine {
     /// The trainer forced onto its candle autograd path (the reference implementation).
     #[value(alias = "trainer-candle")]
     Candle,
+}
+
+/// Algorithms `safedice speed` can time, as `--algorithm` names them.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum SpeedAlgorithm {
+    Safedice,
+    Bc,
+    Dwbc,
+    Ppl,
+    Dexperts,
+}
+
+impl From<SpeedAlgorithm> for Algorithm {
+    fn from(a: SpeedAlgorithm) -> Algorithm {
+        match a {
+            SpeedAlgorithm::Safedice => Algorithm::Safedice,
+            SpeedAlgorithm::Bc => Algorithm::Bc,
+            SpeedAlgorithm::Dwbc => Algorithm::Dwbc,
+            SpeedAlgorithm::Ppl => Algorithm::Ppl,
+            SpeedAlgorithm::Dexperts => Algorithm::Dexperts,
+        }
+    }
 }
 
 #[derive(Clone, Debug)]
@@ -49,6 +76,7 @@ pub struct SpeedConfig {
     pub threads: usize,
     pub seed: u64,
     pub engine: Engine,
+    pub algorithm: Algorithm,
 }
 
 impl SpeedConfig {
@@ -110,6 +138,29 @@ pub fn disc_step_flops(cfg: &SpeedConfig) -> u64 {
     train_flops(&cfg.disc_shape(), 2 * b) + penalty_flops(&cfg.disc_shape(), 2 * b)
 }
 
+/// FLOPs of one policy-learning step of a baseline (service preset: DWBC's discriminator
+/// penalty on, PPL's reward model frozen). BC: the policy trained on B rows. DWBC: log π on the
+/// D^U and D^N batches (two forwards), the discriminator (input `s, a, log π`) trained on 2B rows
+/// with its penalty on B interpolated rows, the policy trained on B. PPL: the reward model's
+/// forward on B rows and the policy trained on B. DExperts: two experts on B rows each
+/// (discrete) or one policy on 2B rows (continuous): the same count.
+pub fn baseline_step_flops(cfg: &SpeedConfig) -> u64 {
+    let (b, policy) = (cfg.batch, cfg.policy_shape());
+    let critic =
+        |extra: usize| MlpShape::new(cfg.obs_dim + cfg.act_input() + extra, &cfg.hidden, 1, false);
+    match cfg.algorithm {
+        Algorithm::Safedice | Algorithm::Bc => train_flops(&policy, b),
+        Algorithm::Dwbc => {
+            2 * policy.forward_flops_per_row() * b as u64
+                + train_flops(&critic(1), 2 * b)
+                + penalty_flops(&critic(1), b)
+                + train_flops(&policy, b)
+        }
+        Algorithm::Ppl => critic(0).forward_flops_per_row() * b as u64 + train_flops(&policy, b),
+        Algorithm::Dexperts => train_flops(&policy, 2 * b),
+    }
+}
+
 // ---------------------------------------------------------------------------------------------
 // Synthetic data
 
@@ -160,18 +211,11 @@ fn synthetic_dataset(
     .unwrap()
 }
 
-/// A SafeDICE trainer (`authors-code` preset: both gradient penalties on) on synthetic data with
-/// `unlabeled` and `non_preferred` transitions, on its fused path (call
-/// [`SafediceTrainer::use_candle_autograd`] for the other).
-pub fn synthetic_trainer(
-    cfg: &SpeedConfig,
-    (unlabeled, non_preferred): (usize, usize),
-    disc_steps: usize,
-    iterations: usize,
-) -> anyhow::Result<SafediceTrainer> {
+/// Synthetic D^U and D^N of `unlabeled` and `non_preferred` transitions.
+fn synthetic_data(cfg: &SpeedConfig, (unlabeled, non_preferred): (usize, usize)) -> TrainingData {
     let mut rng = ChaCha8Rng::seed_from_u64(cfg.seed);
     let episode = 1000.min(unlabeled).min(non_preferred);
-    let data = TrainingData {
+    TrainingData {
         unlabeled: Arc::new(synthetic_dataset(cfg, unlabeled / episode, episode, &mut rng)),
         non_preferred: Some(Arc::new(synthetic_dataset(
             cfg,
@@ -179,7 +223,18 @@ pub fn synthetic_trainer(
             episode,
             &mut rng,
         ))),
-    };
+    }
+}
+
+/// A SafeDICE trainer (`authors-code` preset: both gradient penalties on) on synthetic data with
+/// `unlabeled` and `non_preferred` transitions, on its fused path (call
+/// [`Trainer::use_candle_autograd`] for the other).
+pub fn synthetic_trainer(
+    cfg: &SpeedConfig,
+    sizes: (usize, usize),
+    disc_steps: usize,
+    iterations: usize,
+) -> anyhow::Result<SafediceTrainer> {
     let config = resolve_config(
         Algorithm::Safedice,
         &serde_json::json!({
@@ -191,7 +246,27 @@ pub fn synthetic_trainer(
             "discriminator_iterations": disc_steps,
         }),
     )?;
-    Ok(SafediceTrainer::new(&config, &data)?)
+    Ok(SafediceTrainer::new(&config, &synthetic_data(cfg, sizes))?)
+}
+
+/// A baseline's trainer (service preset) on synthetic data, `iterations` policy steps long; PPL's
+/// reward-model phase is one step (done by [`run_baseline`] before timing).
+pub fn synthetic_baseline(
+    cfg: &SpeedConfig,
+    sizes: (usize, usize),
+    iterations: usize,
+) -> anyhow::Result<Box<dyn Trainer>> {
+    let mut knobs = serde_json::json!({
+        "seed": cfg.seed,
+        "batch_size": cfg.batch,
+        "hidden_sizes": cfg.hidden,
+        "iterations": iterations,
+    });
+    if cfg.algorithm == Algorithm::Ppl {
+        knobs["reward_model_iterations"] = 1.into();
+    }
+    let config = resolve_config(cfg.algorithm, &knobs)?;
+    Ok(build_trainer(&config, &synthetic_data(cfg, sizes), None)?)
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -267,9 +342,42 @@ fn process_cpu_seconds() -> Option<f64> {
     Some(ticks / 100.0)
 }
 
-/// Time the trainer's discriminator steps, then its main-loop iterations, on the configured
-/// path; a step whose loss goes non-finite stops the run with the trainer's own error.
+/// Time the configured algorithm's steps on the configured engine (see the module docs); a step
+/// whose loss goes non-finite stops the run with the trainer's own error.
 pub fn run(cfg: &SpeedConfig) -> anyhow::Result<SpeedResults> {
+    if cfg.algorithm != Algorithm::Safedice {
+        return run_baseline(cfg);
+    }
+    run_safedice(cfg)
+}
+
+/// A baseline's policy-learning steps.
+fn run_baseline(cfg: &SpeedConfig) -> anyhow::Result<SpeedResults> {
+    let steps = (cfg.iters / 10).max(5) + cfg.iters * cfg.repeats.max(1) + 1;
+    let mut trainer = synthetic_baseline(cfg, (UNLABELED, NON_PREFERRED), steps)?;
+    if cfg.engine == Engine::Candle {
+        trainer.use_candle_autograd();
+    }
+    if cfg.algorithm == Algorithm::Ppl {
+        trainer.step(false)?; // the reward model's one step
+    }
+    let step = || -> anyhow::Result<()> {
+        trainer.step(false)?;
+        Ok(())
+    };
+    let name = match cfg.algorithm {
+        Algorithm::Dwbc => "DWBC step (discriminator with GP + policy)",
+        Algorithm::Ppl => "PPL policy step (reward model frozen)",
+        Algorithm::Dexperts => "DExperts step (both experts / Eq. 45)",
+        _ => "BC step",
+    };
+    let main = measure(name, "steps/s", baseline_step_flops(cfg), cfg, step)?;
+    let peak_gflops = peak_gemm_gflops(cfg.threads);
+    Ok(SpeedResults { workloads: vec![main], peak_gflops })
+}
+
+/// SafeDICE's discriminator steps, then its main-loop iterations.
+fn run_safedice(cfg: &SpeedConfig) -> anyhow::Result<SpeedResults> {
     let warmup = (cfg.iters / 10).max(5);
     let timed = cfg.iters * cfg.repeats.max(1);
     // One untimed step after the timed discriminator steps ends the phase (alpha-hat and the
@@ -307,14 +415,14 @@ pub fn report(cfg: &SpeedConfig, results: &SpeedResults) -> String {
         None => format!("act {}", cfg.act_dim),
     };
     let engine = match cfg.engine {
-        Engine::Fused => "fused (SafediceTrainer, fused CPU engine)",
-        Engine::Candle => "candle (SafediceTrainer, candle autograd)",
+        Engine::Fused => "fused CPU engine",
+        Engine::Candle => "candle autograd",
     };
     let peak = results.peak_gflops;
     let mut out = format!(
-        "safedice speed: engine {engine}, threads {}, batch {}, hidden {:?}, obs {}, {}, {} iters x {} repeats\n\
+        "safedice speed: {} trainer on the {engine}, threads {}, batch {}, hidden {:?}, obs {}, {}, {} iters x {} repeats\n\
          measured peak: {peak:.1} GFLOP/s (square f32 GEMM on {} thread(s), this machine)\n",
-        cfg.threads, cfg.batch, cfg.hidden, cfg.obs_dim, actions, cfg.iters, cfg.repeats, cfg.threads
+        cfg.algorithm, cfg.threads, cfg.batch, cfg.hidden, cfg.obs_dim, actions, cfg.iters, cfg.repeats, cfg.threads
     );
     for m in &results.workloads {
         let runs: Vec<String> = m.rates.iter().map(|r| format!("{r:.1}")).collect();
@@ -350,6 +458,7 @@ mod tests {
             threads: 1,
             seed: 7,
             engine: Engine::Fused,
+            algorithm: Algorithm::Safedice,
         };
         // nu: 1536 rows train + 1024 rows penalty; policy 512 rows; see docs/performance.md.
         let fwd = |d: u64, o: u64| 2 * (d * 256 + 256 * 256 + 256 * o);

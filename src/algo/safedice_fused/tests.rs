@@ -186,7 +186,7 @@ fn check_main_step(space: ActionSpace, masked_rows: bool) {
     }
     let grads = (&loss_nu + &loss_pi).unwrap().backward().unwrap();
     assert_grads_match("nu", &nu, &fused.nu_grads, &grads);
-    assert_grads_match("policy", policy.mlp(), &fused.policy_grads, &grads);
+    assert_grads_match("policy", policy.mlp(), &fused.policy.grads, &grads);
 }
 
 #[test]
@@ -282,6 +282,7 @@ fn trainer_fused_and_candle_paths_agree() {
             threads: 1,
             seed: 7,
             engine: Engine::Fused,
+            algorithm: crate::algo::Algorithm::Safedice,
         };
         let make = || synthetic_trainer(&cfg, (400, 200), 4, 3).unwrap();
         let (mut fused, mut candle) = (make(), make());
