@@ -296,7 +296,9 @@ async fn listing_pages_newest_first_and_survives_a_restart() {
 
 #[tokio::test]
 async fn delete_removes_row_and_file_unless_an_active_job_needs_the_data() {
-    let app = TestApp::spawn().await;
+    // No workers: the job rows below are written by hand, and a worker would claim the queued
+    // one (and fail it, freeing its dataset) while the test still expects it queued.
+    let app = TestApp::spawn_with(|c| c.workers = 0).await;
     let jsonl = file_bytes(&continuous_dataset(), "jsonl", write_jsonl);
     let unlabeled = app.create_dataset("u.jsonl", jsonl.clone()).await;
     let non_preferred = app.create_dataset("n.jsonl", jsonl.clone()).await;
