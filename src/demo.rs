@@ -130,12 +130,14 @@ pub async fn run(args: &DemoArgs) -> anyhow::Result<Vec<DemoRow>> {
     println!("safedice service running at {base} ({kept})\n");
     let result = drive(args, &base, &dir).await;
     if args.serve && result.is_ok() {
+        // Listen before saying so: a SIGTERM right after the line must stop us cleanly.
+        let stop = crate::server::shutdown_listener();
         println!("\nThe service keeps running: open {base}/ in a browser for the dashboard (jobs,");
         println!(
             "metrics, policies, evaluations). Ctrl-C stops it; the data stays in {}.",
             dir.display()
         );
-        let signal = crate::server::shutdown_signal().await;
+        let signal = stop.await;
         // stdout may be gone by now (a closed pipe): println! would panic.
         let _ = writeln!(std::io::stdout(), "{signal}: stopping");
     }

@@ -245,8 +245,9 @@ fn worker(config: WorkerConfig) -> anyhow::Result<()> {
     runtime.block_on(async {
         let shutdown = tokio_util::sync::CancellationToken::new();
         let stop = shutdown.clone();
+        let signal = server::shutdown_listener();
         tokio::spawn(async move {
-            let signal = server::shutdown_signal().await;
+            let signal = signal.await;
             stop.cancel();
             tracing::info!("{signal} received, stopping the workers");
         });
@@ -258,10 +259,12 @@ fn serve(config: ServeConfig) -> anyhow::Result<()> {
     let _logging = safedice::logging::init(config.log_format);
     let runtime = tokio::runtime::Builder::new_multi_thread().enable_all().build()?;
     runtime.block_on(async {
+        // Listening before the server says it is ready: a SIGTERM right after stops it cleanly.
+        let signal = server::shutdown_listener();
         let server = Server::start(config).await?;
         let stop = server.shutdown_token();
         tokio::spawn(async move {
-            let signal = server::shutdown_signal().await;
+            let signal = signal.await;
             stop.cancel();
             tracing::info!("{signal} received, shutting down");
         });

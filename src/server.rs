@@ -106,6 +106,28 @@ impl Server {
 
 /// Resolves on SIGINT (Ctrl-C) or SIGTERM with the signal's name. Callers start the shutdown
 /// before they log it, so that stopping never depends on a log line.
+/// Like [`shutdown_signal`], but listening from the moment it is called rather than from the
+/// returned future's first poll: a signal sent right after a "ready" line printed after this
+/// call is not lost (the process would otherwise die of its default action).
+pub fn shutdown_listener() -> impl std::future::Future<Output = &'static str> {
+    #[cfg(unix)]
+    {
+        use tokio::signal::unix::{signal, SignalKind};
+        let listeners = (signal(SignalKind::interrupt()), signal(SignalKind::terminate()));
+        async move {
+            match listeners {
+                (Ok(mut interrupt), Ok(mut terminate)) => tokio::select! {
+                    _ = interrupt.recv() => "SIGINT",
+                    _ = terminate.recv() => "SIGTERM",
+                },
+                _ => shutdown_signal().await,
+            }
+        }
+    }
+    #[cfg(not(unix))]
+    shutdown_signal()
+}
+
 pub async fn shutdown_signal() -> &'static str {
     let interrupt = async {
         if let Err(e) = tokio::signal::ctrl_c().await {
