@@ -38,6 +38,7 @@ use super::policy::{Decoder, PolicyArtifact, PolicyNet};
 use super::run::RunData;
 use super::safedice_fused::FusedSafedice;
 use super::{Progress, ResolvedConfig, TerminalHandling, TrainError, Trainer, TrainingData};
+use crate::data::Dataset;
 
 /// Alpha-hat's margin below the minimum and its cap, as in the authors' code.
 const ALPHA_MARGIN: f64 = 1e-5;
@@ -130,6 +131,55 @@ pub fn alpha_hat_from_logits(logits: &[f32], episode_ids: &[u32], quantile: f64)
         argmin_episode: episode_ids[argmin_row],
         quantile_01: at(0.01),
     }
+}
+
+/// Probability floor of the oracle discriminator ([`oracle_logits`]) on preferred rows:
+/// `σ(c) = 1e-6` instead of 0, so their logit stays finite (`ln(1e-6 / (1 − 1e-6))` ≈ −13.8).
+pub const ORACLE_PROB_FLOOR: f64 = 1e-6;
+
+/// The optimal discriminator of Eq. 9, `c* = d^N / (d^U + d^N)`, as logits
+/// `log(d^N / d^U)`, for a D^U whose rows are known to come from the non-preferred (`true`) or
+/// the preferred (`false`) policy, with the two policies taken to share no state-action pair.
+/// With α the non-preferred share of the rows, `d^U = α d^N` on non-preferred rows, so
+/// `c* = 1/(1 + α)` and the logit is `−ln α`; `d^N = 0` on preferred rows, so `c* = 0`,
+/// floored at [`ORACLE_PROB_FLOOR`].
+///
+/// Why not the labels themselves (`σ(c)` = 1 on non-preferred rows): Eq. 10 divides by
+/// `1 − c*`, and Eq. 15's `min (1/c* − 1)` would be 0, so alpha-hat would be 0 and the reward 0
+/// everywhere, i.e. no filtering at all. With these logits Eq. 15 returns α itself (minus its
+/// 1e-5 margin), and Eq. 10 gives `−ln(1 − α̂)` on preferred rows and
+/// `ln(1 − α̂/α) − ln(1 − α̂)` (≈ ln(1e-5/α), finite thanks to the margin) on non-preferred
+/// ones. Without non-preferred rows every logit is the floor and the reward is constant.
+/// A diagnostic of how well SafeDICE does with a perfect discriminator: a learner never has
+/// these labels.
+pub fn oracle_logits(non_preferred: &[bool]) -> Vec<f32> {
+    let share =
+        non_preferred.iter().filter(|&&np| np).count() as f64 / non_preferred.len().max(1) as f64;
+    let floor = (ORACLE_PROB_FLOOR / (1.0 - ORACLE_PROB_FLOOR)).ln() as f32;
+    let on_non_preferred = -(share.ln()) as f32;
+    non_preferred.iter().map(|&np| if np { on_non_preferred } else { floor }).collect()
+}
+
+/// Replacements for what Algorithm 1 estimates, for ablations that measure what each estimate
+/// costs (the benchmark's `--ablations`). Not part of a [`ResolvedConfig`], so a user's config
+/// cannot set them, and not saved in checkpoints: [`SafediceTrainer::resume`] runs without.
+/// Both act where the discriminator phase ends (alpha-hat and the Eq. 10 reward are computed
+/// once there), before either engine's main loop reads the reward, so the candle and the fused
+/// paths see the same values. The discriminator is still trained, drawing the same random
+/// numbers, so a run with overrides and one without share their minibatches.
+#[derive(Clone, Debug, Default)]
+pub struct SafediceOverrides {
+    /// α of Eq. 10 in place of alpha-hat (Eq. 15), kept in `[0, 1 − 1e-5]`. Eq. 15 estimates
+    /// the α* of `d^U = (1 − α*) d^P + α* d^N` (Appendix A, Eq. 18), where `d^U` is the
+    /// distribution of D^U's transitions (the trainer samples its rows uniformly); the true
+    /// value is therefore the share of D^U's **transitions** (not episodes) that are
+    /// non-preferred. Rows where `1 − α e^c` falls below the floor are floored and counted
+    /// (`reward_clipped_rows`), as with the quantile diagnostic. The recorded `alpha_hat` is
+    /// this value; `alpha_hat_eq15` records what Eq. 15 gave.
+    pub alpha: Option<f64>,
+    /// Discriminator logits for every row of D^U in place of the trained discriminator's
+    /// (e.g. [`oracle_logits`]); Eq. 15 (unless `alpha` is set) and Eq. 10 read these.
+    pub unlabeled_logits: Option<Vec<f32>>,
 }
 
 /// The table the ν step samples from: D^U's rows with the reward and the per-row discount that
@@ -283,6 +333,8 @@ pub struct SafediceTrainer {
     phase_metrics: Vec<(&'static str, f64)>,
     /// The fused CPU engine for both hot loops (None on other devices: the candle path runs).
     pub(super) fused: Option<FusedSafedice>,
+    /// Ablation replacements of alpha-hat and the discriminator's outputs (none by default).
+    overrides: SafediceOverrides,
 }
 
 impl SafediceTrainer {
@@ -290,6 +342,30 @@ impl SafediceTrainer {
         config: &ResolvedConfig,
         data: &TrainingData,
     ) -> Result<SafediceTrainer, TrainError> {
+        Self::with_overrides(config, data, SafediceOverrides::default())
+    }
+
+    /// A run whose alpha-hat and/or discriminator outputs are replaced ([`SafediceOverrides`]);
+    /// for ablations, not reachable from the service's API.
+    pub fn with_overrides(
+        config: &ResolvedConfig,
+        data: &TrainingData,
+        overrides: SafediceOverrides,
+    ) -> Result<SafediceTrainer, TrainError> {
+        if let Some(a) = overrides.alpha {
+            if !(0.0..1.0).contains(&a) {
+                return Err(TrainError::Other(format!("alpha override {a} is not in [0, 1)")));
+            }
+        }
+        if let Some(logits) = &overrides.unlabeled_logits {
+            if logits.len() != data.unlabeled.len() || logits.iter().any(|c| c.is_nan()) {
+                return Err(TrainError::Other(format!(
+                    "{} logits for {} rows of D^U (or a NaN among them)",
+                    logits.len(),
+                    data.unlabeled.len()
+                )));
+            }
+        }
         let AlgorithmConfig::Safedice(cfg) = &config.specific else {
             return Err(TrainError::Other("not a SafeDICE config".into()));
         };
@@ -318,6 +394,7 @@ impl SafediceTrainer {
             alpha: None,
             flow: None,
             phase_metrics: Vec::new(),
+            overrides,
         })
     }
 
@@ -342,6 +419,62 @@ impl SafediceTrainer {
     /// alpha-hat with where it came from, once the discriminator phase is over.
     pub fn alpha_details(&self) -> Option<&AlphaHat> {
         self.alpha.as_ref()
+    }
+
+    /// The discriminator's logits `c(s, a)` on every row of `columns`, in chunks.
+    fn score(&self, columns: &Columns) -> Result<Vec<f32>, TrainError> {
+        let mut logits = Vec::with_capacity(columns.len);
+        for start in (0..columns.len).step_by(SCORING_CHUNK) {
+            let rows = SCORING_CHUNK.min(columns.len - start);
+            let idx = Tensor::arange(start as u32, (start + rows) as u32, &self.run.device)?;
+            let x = columns.state_action(&idx)?;
+            logits.extend(self.disc.forward(&x)?.flatten_all()?.to_vec1::<f32>()?);
+        }
+        Ok(logits)
+    }
+
+    /// The trained discriminator's logits (σ(c) = probability of "non-preferred") on every row
+    /// of D^U, whatever [`SafediceOverrides`] the run uses.
+    pub fn discriminator_logits_unlabeled(&self) -> Result<Vec<f32>, TrainError> {
+        self.score(&self.run.u)
+    }
+
+    /// The trained discriminator's logits on every row of another dataset of the same spaces
+    /// (normalised and encoded as the run's own data).
+    pub fn discriminator_logits(&self, data: &Dataset) -> Result<Vec<f32>, TrainError> {
+        if data.obs_dim() != self.run.obs_dim
+            || !data.action_space().compatible_with(&self.run.space)
+        {
+            return Err(TrainError::Other("the dataset's spaces differ from the run's".into()));
+        }
+        let device = &self.run.device;
+        self.score(&Columns::new(data, &self.run.space, self.run.normalizer.as_ref(), device)?)
+    }
+
+    /// Eq. 12's weights `w = exp(A − 1)` on every row of D^U with the current ν
+    /// (`A = r + γ' ν(s') − ν(s)` on the flow table), self-normalised to mean 1 over D^U: the
+    /// whole-dataset version of Eq. 37's per-batch weights (absorbing-state rows, which carry no
+    /// action, are left out as there). None before the main phase.
+    pub fn unlabeled_weights(&self) -> Result<Option<Vec<f64>>, TrainError> {
+        let Some(flow) = &self.flow else { return Ok(None) };
+        let n = flow.real_rows;
+        let mut advantages = Vec::with_capacity(n);
+        for start in (0..n).step_by(SCORING_CHUNK) {
+            let rows = SCORING_CHUNK.min(n - start);
+            let s = flow.obs.narrow(0, start, rows)?;
+            let s_next = flow.next_obs.narrow(0, start, rows)?;
+            let values = self.nu.forward(&Tensor::cat(&[&s, &s_next], 0)?)?.squeeze(1)?;
+            let (nu_s, nu_next) = (values.narrow(0, 0, rows)?, values.narrow(0, rows, rows)?);
+            let reward = flow.reward.narrow(0, start, rows)?;
+            let discount = flow.discount.narrow(0, start, rows)?;
+            let a = ((reward + (discount * nu_next)?)? - nu_s)?;
+            advantages.extend(a.to_vec1::<f32>()?.into_iter().map(f64::from));
+        }
+        // n · softmax(A): the constant e^{−1} cancels, as in `losses::self_normalized_weights`.
+        let max = advantages.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+        let exp: Vec<f64> = advantages.iter().map(|a| (a - max).exp()).collect();
+        let total: f64 = exp.iter().sum();
+        Ok(Some(exp.iter().map(|e| e * n as f64 / total).collect()))
     }
 
     /// Algorithm 1 step 1, one step: Eq. 9 plus the interpolated gradient penalty
@@ -428,16 +561,16 @@ impl SafediceTrainer {
 
     /// Algorithm 1 step 2 and the reward of Eq. 10 over all of D^U, with the frozen discriminator.
     fn finish_discriminator_phase(&mut self) -> Result<(), TrainError> {
+        let logits = match &self.overrides.unlabeled_logits {
+            Some(given) => given.clone(),
+            None => self.score(&self.run.u)?,
+        };
         let u = &self.run.u;
-        let mut logits = Vec::with_capacity(u.len);
-        for start in (0..u.len).step_by(SCORING_CHUNK) {
-            let rows = SCORING_CHUNK.min(u.len - start);
-            let idx = Tensor::arange(start as u32, (start + rows) as u32, &self.run.device)?;
-            logits.extend(
-                self.disc.forward(&u.state_action(&idx)?)?.flatten_all()?.to_vec1::<f32>()?,
-            );
+        let mut alpha = alpha_hat_from_logits(&logits, &u.episode_ids, self.cfg.alpha_hat_quantile);
+        let eq15 = alpha.value;
+        if let Some(a) = self.overrides.alpha {
+            alpha.value = a.clamp(0.0, 1.0 - ALPHA_MARGIN);
         }
-        let alpha = alpha_hat_from_logits(&logits, &u.episode_ids, self.cfg.alpha_hat_quantile);
         let mut clipped = 0usize;
         let mut rewards: Vec<f64> = logits
             .iter()
@@ -477,6 +610,12 @@ impl SafediceTrainer {
             ("reward_std", std),
             ("reward_clipped_rows", clipped as f64),
         ];
+        if self.overrides.alpha.is_some() {
+            self.phase_metrics.push(("alpha_hat_eq15", eq15));
+        }
+        if self.overrides.unlabeled_logits.is_some() {
+            self.phase_metrics.push(("discriminator_outputs_given", 1.0));
+        }
         let rewards: Vec<f32> = rewards.iter().map(|&r| r as f32).collect();
         self.flow = Some(FlowColumns::build(u, rewards, &self.cfg)?);
         self.alpha = Some(alpha);
@@ -688,6 +827,128 @@ mod tests {
             assert!((ours - paper).abs() < 1e-10, "c={c}: {ours} vs {paper}");
         }
         assert!(reward_from_logit(3.0, 0.5).1, "1 − α e^c < 0 is floored and reported");
+    }
+
+    /// A two-action task on one state: preferred episodes take action 0, non-preferred ones
+    /// action 1. D^U: 6 preferred + 4 non-preferred episodes of 4 steps (α = 0.4 of the
+    /// transitions); D^N: 3 non-preferred episodes. Returns the data and D^U's true flags.
+    fn one_state_task() -> (TrainingData, Vec<bool>) {
+        use crate::data::{ActionSpace, Actions, DatasetParts};
+        let episodes = |kinds: &[bool]| {
+            let len = 4;
+            let n = kinds.len() * len;
+            let actions = kinds.iter().flat_map(|&np| vec![np as u32; len]).collect();
+            Dataset::new(DatasetParts {
+                obs_dim: 1,
+                action_space: ActionSpace::Discrete { n: 2 },
+                observations: vec![0.5; n],
+                actions: Actions::Discrete(actions),
+                next_observations: vec![0.5; n],
+                terminals: vec![false; n],
+                episode_ids: (0..n).map(|i| (i / len) as u32).collect(),
+                rewards: None,
+                costs: None,
+            })
+            .unwrap()
+        };
+        let kinds = [false, true, false, false, true, false, true, false, false, true];
+        let flags = kinds.iter().flat_map(|&np| [np; 4]).collect();
+        let data = TrainingData {
+            unlabeled: std::sync::Arc::new(episodes(&kinds)),
+            non_preferred: Some(std::sync::Arc::new(episodes(&[true; 3]))),
+        };
+        (data, flags)
+    }
+
+    fn tiny_config() -> ResolvedConfig {
+        super::super::resolve_config(
+            super::super::Algorithm::Safedice,
+            &serde_json::json!({
+                "seed": 3, "batch_size": 8, "hidden_sizes": [8, 8], "iterations": 3,
+                "discriminator_iterations": 2, "standardize_reward": false,
+            }),
+        )
+        .unwrap()
+    }
+
+    /// Steps through the discriminator phase; returns the scalars of the step that ended it.
+    fn finish_phase(t: &mut SafediceTrainer) -> Vec<(&'static str, f64)> {
+        let mut last = Vec::new();
+        while t.progress().phase == "discriminator" {
+            last = t.step(true).unwrap();
+        }
+        last
+    }
+
+    fn metric(scalars: &[(&'static str, f64)], name: &str) -> f64 {
+        scalars.iter().find(|(n, _)| *n == name).map(|&(_, v)| v).unwrap_or(f64::NAN)
+    }
+
+    /// Oracle logits make Eq. 15 return the true share (minus its margin), and the weights of
+    /// Eq. 12 on non-preferred rows are the closed form: every row has the same state, so ν
+    /// cancels and `w_np / w_p = exp(r_np − r_p)` ≈ 1e-5/α, i.e. practically 0.
+    #[test]
+    fn oracle_logits_give_the_true_alpha_and_near_zero_weight_on_non_preferred_rows() {
+        let (data, flags) = one_state_task();
+        let overrides =
+            SafediceOverrides { unlabeled_logits: Some(oracle_logits(&flags)), alpha: None };
+        let mut t = SafediceTrainer::with_overrides(&tiny_config(), &data, overrides).unwrap();
+        assert!(t.unlabeled_weights().unwrap().is_none(), "no weights before the main phase");
+        let scalars = finish_phase(&mut t);
+        let alpha = 0.4 - ALPHA_MARGIN;
+        assert!((metric(&scalars, "alpha_hat") - alpha).abs() < 1e-6, "{scalars:?}");
+        assert_eq!(metric(&scalars, "reward_clipped_rows"), 0.0);
+        assert_eq!(metric(&scalars, "discriminator_outputs_given"), 1.0);
+        for _ in 0..3 {
+            t.step(false).unwrap();
+        }
+        let w = t.unlabeled_weights().unwrap().unwrap();
+        assert!((w.iter().sum::<f64>() / w.len() as f64 - 1.0).abs() < 1e-9, "mean 1");
+        // The α the trainer used (Eq. 15 on f32 logits): `1 − α̂ e^c` ≈ 2.5e-5 on non-preferred
+        // rows is sensitive to its last digits.
+        let used = t.alpha_hat().unwrap();
+        let logits = oracle_logits(&flags);
+        let reward = |row: usize| reward_from_logit(logits[row] as f64, used).0;
+        let (np, p) =
+            (flags.iter().position(|&f| f).unwrap(), flags.iter().position(|&f| !f).unwrap());
+        let expected = (reward(np) - reward(p)).exp();
+        assert!(expected < 1e-4, "{expected}");
+        assert!(((w[np] / w[p]) / expected - 1.0).abs() < 1e-3, "{} vs {expected}", w[np] / w[p]);
+        let share: f64 = w.iter().zip(&flags).filter(|(_, &f)| f).map(|(w, _)| w).sum::<f64>()
+            / w.iter().sum::<f64>();
+        assert!(share < 1e-4, "weight share on non-preferred rows {share}");
+    }
+
+    /// An α override is the α the trainer uses: the recorded `alpha_hat` (at the end of the
+    /// discriminator phase and in every main step) and [`Trainer::alpha_hat`], with Eq. 15's own
+    /// value kept as `alpha_hat_eq15`.
+    #[test]
+    fn alpha_override_is_the_alpha_the_trainer_uses() {
+        let (data, _) = one_state_task();
+        let overrides = SafediceOverrides { alpha: Some(0.4), unlabeled_logits: None };
+        let mut t = SafediceTrainer::with_overrides(&tiny_config(), &data, overrides).unwrap();
+        let scalars = finish_phase(&mut t);
+        assert_eq!(metric(&scalars, "alpha_hat"), 0.4);
+        assert!(metric(&scalars, "alpha_hat_eq15").is_finite(), "{scalars:?}");
+        assert_eq!(t.alpha_hat(), Some(0.4));
+        let main = t.step(true).unwrap();
+        assert_eq!(metric(&main, "alpha_hat"), 0.4);
+        // The trained discriminator is untouched: the same seed without overrides trains the
+        // same one (the overrides act after it).
+        let mut plain = SafediceTrainer::new(&tiny_config(), &data).unwrap();
+        finish_phase(&mut plain);
+        assert_eq!(
+            plain.discriminator_logits_unlabeled().unwrap(),
+            t.discriminator_logits_unlabeled().unwrap()
+        );
+        assert_eq!(
+            t.discriminator_logits(&data.unlabeled).unwrap(),
+            t.discriminator_logits_unlabeled().unwrap()
+        );
+        let bad = SafediceOverrides { alpha: Some(1.0), unlabeled_logits: None };
+        assert!(SafediceTrainer::with_overrides(&tiny_config(), &data, bad).is_err());
+        let bad = SafediceOverrides { alpha: None, unlabeled_logits: Some(vec![0.0; 3]) };
+        assert!(SafediceTrainer::with_overrides(&tiny_config(), &data, bad).is_err());
     }
 
     #[test]

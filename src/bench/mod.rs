@@ -8,10 +8,15 @@
 //! exact command, date, commit, iterations and wall time), `results.json` (every run) and one
 //! SVG plot per environment (average cost against normalized return, with error bars).
 //!
+//! With `--ablations` ([`ablation`]) every environment gets three more rows (BC on the
+//! preferred episodes only, SafeDICE with the true α, SafeDICE with oracle labels) and every
+//! SafeDICE run its discriminator's ROC AUC and the weight it puts on non-preferred data.
+//!
 //! Files: [`runner`] (data, training, evaluation, the worker threads), [`summary`]
 //! (aggregation over seeds), [`report`] (the markdown, JSON and console outputs), [`plot`] (the
-//! SVG). Beside it: [`speed`] (`safedice speed`, the training speed of the SafeDICE trainer).
+//! SVG), [`ablation`] (the ablation rows' pieces). Beside it: [`speed`] (`safedice speed`, the training speed of the SafeDICE trainer).
 
+pub mod ablation;
 pub mod plot;
 pub mod report;
 pub mod runner;
@@ -24,6 +29,7 @@ use serde::Serialize;
 
 use crate::algo::Algorithm;
 
+pub use ablation::Variant;
 pub use report::write_outputs;
 pub use runner::{run, BenchError, BenchResults, RunResult};
 pub use summary::{summarize, Summary};
@@ -70,6 +76,10 @@ pub struct BenchConfig {
     pub overrides: serde_json::Map<String, serde_json::Value>,
     /// Record the trainers' scalars (alpha-hat, ESS, losses) every this many steps.
     pub record_every: u64,
+    /// Add the ablation rows ([`ablation`]): BC (preferred only), SafeDICE (true α), SafeDICE
+    /// (oracle labels), whatever `algorithms` holds, and the discriminator AUCs of every
+    /// SafeDICE run.
+    pub ablations: bool,
 }
 
 /// DWBC's η and DExperts' α: the service defaults, kept fixed. The paper picked them per task
@@ -92,6 +102,7 @@ impl BenchConfig {
             threads: 2,
             overrides: serde_json::Map::new(),
             record_every: 1000,
+            ablations: false,
         }
     }
 
@@ -110,6 +121,14 @@ impl BenchConfig {
             record_every: 100,
             ..BenchConfig::full()
         }
+    }
+
+    /// The table's rows in order: every configured algorithm, then with `ablations` the
+    /// ablation rows ([`Variant::ABLATIONS`]).
+    pub fn rows(&self) -> Vec<(Algorithm, Variant)> {
+        let standard = self.algorithms.iter().map(|&a| (a, Variant::Standard));
+        let ablations = Variant::ABLATIONS.iter().copied().filter(|_| self.ablations);
+        standard.chain(ablations).collect()
     }
 
     /// The JSON `config` handed to [`crate::algo::resolve_config`] for one training.
@@ -174,6 +193,13 @@ pub struct BenchArgs {
     /// '{"discriminator_iterations": 500}' with --algorithms safedice); for diagnostics.
     #[arg(long)]
     pub config: Option<String>,
+    /// Also train, per environment and seed, the ablation rows that use the generator's ground
+    /// truth: BC on the preferred episodes of D^U only, SafeDICE with α set to the true
+    /// non-preferred share of D^U's transitions, and SafeDICE with the optimal discriminator of
+    /// the true labels; and report every SafeDICE run's discriminator ROC AUC (held-out labeled
+    /// set and D^U) and the share of its weights on non-preferred transitions.
+    #[arg(long)]
+    pub ablations: bool,
 }
 
 impl BenchArgs {
@@ -221,6 +247,7 @@ impl BenchArgs {
             eval_episodes: self.episodes.unwrap_or(base.eval_episodes),
             deterministic_eval: self.deterministic,
             threads: self.threads,
+            ablations: self.ablations,
             ..base
         };
         config.validate()?;
@@ -240,6 +267,9 @@ impl BenchConfig {
         }
         if self.data.labeled == 0 && self.algorithms.iter().any(|a| a.needs_non_preferred()) {
             return bad("--labeled must be at least 1: every algorithm but BC needs D^N");
+        }
+        if self.ablations && (self.data.preferred == 0 || self.data.labeled == 0) {
+            return bad("--ablations needs preferred episodes (BC on them) and --labeled >= 1");
         }
         if self.data.preferred + self.data.non_preferred == 0 {
             return bad("the unlabeled set needs at least one episode");

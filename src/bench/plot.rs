@@ -1,7 +1,8 @@
 //! The benchmark's cost-vs-return plot of one environment: a point per algorithm at (average
 //! cost, normalized return) with standard-error bars on both axes, drawn by the dashboard's SVG
 //! renderer ([`crate::charts`]) in the dashboard's colours, so a plot in `bench/` and the
-//! compare page look alike.
+//! compare page look alike. Ablation rows (`--ablations`) are left out: they share their
+//! algorithm's colour and would read as that algorithm.
 
 use super::summary::EnvSummary;
 use crate::charts::{algorithm_color, scatter_svg, ScatterChart, ScatterPoint};
@@ -11,7 +12,7 @@ pub fn cost_vs_return(env: &EnvSummary) -> String {
     let points = env
         .rows
         .iter()
-        .filter(|row| row.seeds > 0)
+        .filter(|row| row.seeds > 0 && row.variant.is_standard())
         .map(|row| ScatterPoint {
             label: row.algorithm.display_name().into(),
             x: row.average_cost.mean,

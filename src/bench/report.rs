@@ -16,15 +16,19 @@ pub fn console_table(summary: &Summary) -> String {
         let _ = writeln!(out, "\n{}", env.env);
         let _ = writeln!(
             out,
-            "  {:<9} {:>16} {:>16} {:>14} {:>16}",
+            "  {:<24} {:>16} {:>16} {:>14} {:>16}",
             "algorithm", "norm. return", "avg cost", "violation", "alpha-hat"
         );
         for r in &env.rows {
             let alpha = r.alpha_hat.map_or("-".to_string(), |a| a.show(4));
             let _ = writeln!(
                 out,
-                "  {:<9} {:>16} {:>16} {:>14} {:>16}",
-                r.algorithm.as_str(),
+                "  {:<24} {:>16} {:>16} {:>14} {:>16}",
+                if r.variant.is_standard() {
+                    r.algorithm.as_str().to_string()
+                } else {
+                    r.label.clone()
+                },
                 r.normalized_return.show(1),
                 r.average_cost.show(2),
                 r.cost_violation_ratio.show(2),
@@ -120,6 +124,7 @@ pub fn markdown(results: &BenchResults, summary: &Summary, command: &str) -> Str
         write_env(&mut md, env, data);
     }
     write_diagnostics(&mut md, results);
+    write_ablations(&mut md, results, summary);
     write_speeds(&mut md, summary);
     md
 }
@@ -153,7 +158,7 @@ fn write_env(md: &mut String, env: &EnvSummary, data: &super::runner::EnvData) {
         let _ = writeln!(
             md,
             "| {} | {} | {} | {} | {} | {} | {} | {} | {} | {} |",
-            row.algorithm.display_name(),
+            row.label,
             row.normalized_return.show(1),
             row.average_cost.show(2),
             row.cost_violation_ratio.show(3),
@@ -183,7 +188,8 @@ fn write_env(md: &mut String, env: &EnvSummary, data: &super::runner::EnvData) {
 }
 
 fn write_diagnostics(md: &mut String, results: &BenchResults) {
-    let runs: Vec<&RunResult> = results.runs.iter().filter(|r| r.alpha.is_some()).collect();
+    let runs: Vec<&RunResult> =
+        results.runs.iter().filter(|r| r.alpha.is_some() && r.variant.is_standard()).collect();
     if runs.is_empty() {
         return;
     }
@@ -229,6 +235,75 @@ fn write_diagnostics(md: &mut String, results: &BenchResults) {
     let _ = writeln!(md);
 }
 
+/// The ablation rows' ground truth and the SafeDICE rows' discriminator and weight diagnostics
+/// (`--ablations` only).
+fn write_ablations(md: &mut String, results: &BenchResults, summary: &Summary) {
+    if !results.config.ablations {
+        return;
+    }
+    let _ = writeln!(md, "## Ablations (ground truth of the data generator)\n");
+    let _ = writeln!(
+        md,
+        "Rows that use what only the data generator knows, to tell which stage limits an \
+         environment. **BC (preferred only)**: BC on the preferred episodes of D^U alone, the \
+         ceiling of any filter of D^U. **SafeDICE (true α)**: alpha-hat (Eq. 15) replaced by the \
+         true non-preferred share of D^U's transitions (the α* Eq. 15 estimates). **SafeDICE \
+         (oracle labels)**: the discriminator's outputs on D^U replaced by the optimal \
+         discriminator of the true labels (σ(c) = 1/(1 + α*) on non-preferred rows, 1e-6 on \
+         preferred ones), so Eq. 15 returns α* and Eq. 10 is as large a penalty as the margin \
+         allows. AUC: ROC AUC of the trained discriminator's logit as a score of \
+         \"non-preferred\", on a held-out labeled set (fresh preferred and non-preferred \
+         episodes, another data seed) and on D^U's true flags; all SafeDICE rows of a seed \
+         train the same discriminator. Weight share: the share of Eq. 12's weights \
+         (exp(A − 1), current ν, all of D^U) on non-preferred transitions at the end of training \
+         (α* = no filtering, 0 = a perfect filter). Reading: oracle labels far better than \
+         SafeDICE point at the discriminator or alpha-hat (true α tells which); oracle labels \
+         no better than SafeDICE point at the weighting stage (ν, Eq. 36-37) or the policy \
+         fit; BC (preferred only) bounds them all.\n"
+    );
+    let _ = writeln!(
+        md,
+        "| Env | true α (transitions) | non-preferred episodes | held-out set (preferred / non-preferred transitions, seed) |"
+    );
+    let _ = writeln!(md, "|---|---|---|---|");
+    for d in &results.data {
+        if let Some(a) = &d.ablation {
+            let _ = writeln!(
+                md,
+                "| {} | {:.4} | {:.3} | {} / {}, {} |",
+                d.env,
+                a.true_alpha,
+                a.non_preferred_episode_share,
+                a.heldout_preferred_transitions,
+                a.heldout_non_preferred_transitions,
+                a.heldout_seed
+            );
+        }
+    }
+    let _ = writeln!(
+        md,
+        "\n| Env | Row | α used | AUC held-out | AUC D^U | weight share on non-preferred |"
+    );
+    let _ = writeln!(md, "|---|---|---|---|---|---|");
+    let show =
+        |s: Option<super::summary::Stat>, d: usize| s.map_or("–".to_string(), |s| s.show(d));
+    for env in &summary.envs {
+        for row in env.rows.iter().filter(|r| r.discriminator_auc_heldout.is_some()) {
+            let _ = writeln!(
+                md,
+                "| {} | {} | {} | {} | {} | {} |",
+                env.env,
+                row.label,
+                show(row.alpha_hat, 4),
+                show(row.discriminator_auc_heldout, 3),
+                show(row.discriminator_auc_unlabeled, 3),
+                show(row.non_preferred_weight_share, 3)
+            );
+        }
+    }
+    let _ = writeln!(md);
+}
+
 fn write_speeds(md: &mut String, summary: &Summary) {
     let _ = writeln!(md, "## Speed (this run; the machine was shared, so timings are noisy)\n");
     let _ = writeln!(md, "| Env | Algorithm | steps/s | train s / run | eval s / run |");
@@ -238,11 +313,7 @@ fn write_speeds(md: &mut String, summary: &Summary) {
             let _ = writeln!(
                 md,
                 "| {} | {} | {:.1} | {:.1} | {:.1} |",
-                env.env,
-                r.algorithm.display_name(),
-                r.steps_per_second,
-                r.train_seconds,
-                r.eval_seconds
+                env.env, r.label, r.steps_per_second, r.train_seconds, r.eval_seconds
             );
         }
     }

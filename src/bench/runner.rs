@@ -9,8 +9,11 @@ use std::time::Instant;
 use rand_chacha::ChaCha8Rng;
 use serde::Serialize;
 
+use super::ablation::{self, SafediceAblation, Variant};
 use super::BenchConfig;
-use crate::algo::{self, Algorithm, Policy, TrainError, TrainingData};
+use crate::algo::safedice::{oracle_logits, SafediceOverrides, SafediceTrainer};
+use crate::algo::{self, Algorithm, Policy, TrainError, Trainer, TrainingData};
+use crate::data::Dataset;
 use crate::envs::{self, DatagenSpec, GroupProfile, Metrics, ReferenceStats};
 
 /// Why the benchmark stopped.
@@ -20,8 +23,8 @@ pub enum BenchError {
     Config(String),
     #[error("{env}: data generation failed: {message}")]
     Datagen { env: String, message: String },
-    #[error("{env}/{algorithm}/seed {seed}: {message}")]
-    Run { env: String, algorithm: Algorithm, seed: u64, message: String },
+    #[error("{env}/{label}/seed {seed}: {message}")]
+    Run { env: String, label: String, seed: u64, message: String },
 }
 
 /// The generated data of one environment, as the report describes it.
@@ -33,6 +36,24 @@ pub struct EnvData {
     pub labeled_non_preferred: GroupProfile,
     pub reference: ReferenceStats,
     pub datagen_seconds: f64,
+    /// With `--ablations`: the ground truth the ablation rows use.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub ablation: Option<AblationData>,
+}
+
+/// The ground truth of one environment's ablations (`--ablations`).
+#[derive(Clone, Debug, Serialize)]
+pub struct AblationData {
+    /// Non-preferred share of D^U's transitions: the α* that Eq. 15 estimates, used by the
+    /// "SafeDICE (true α)" row.
+    pub true_alpha: f64,
+    /// The same share counted in episodes (for comparison only; not what Eq. 15 estimates).
+    pub non_preferred_episode_share: f64,
+    /// The held-out labeled set of the discriminator's AUC: its data seed and its
+    /// preferred / non-preferred transitions.
+    pub heldout_seed: u64,
+    pub heldout_preferred_transitions: usize,
+    pub heldout_non_preferred_transitions: usize,
 }
 
 /// Where SafeDICE's alpha-hat came from (Eq. 15), from the trainer's recorded scalars.
@@ -60,6 +81,8 @@ pub struct AlphaDiagnostics {
 pub struct RunResult {
     pub env: String,
     pub algorithm: Algorithm,
+    /// `standard`, or the ablation this run is (`--ablations`).
+    pub variant: Variant,
     pub seed: u64,
     /// Training steps, every phase included.
     pub steps: u64,
@@ -69,6 +92,9 @@ pub struct RunResult {
     pub mean_episode_length: f64,
     /// SafeDICE only.
     pub alpha: Option<AlphaDiagnostics>,
+    /// SafeDICE runs with `--ablations`: discriminator AUCs and the weights' non-preferred share.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub ablation: Option<SafediceAblation>,
     /// The trainer's last recorded scalars (losses and the like).
     pub last_recorded: BTreeMap<String, f64>,
 }
@@ -76,6 +102,11 @@ pub struct RunResult {
 impl RunResult {
     pub fn steps_per_second(&self) -> f64 {
         self.steps as f64 / self.train_seconds.max(1e-9)
+    }
+
+    /// The row's name ("SafeDICE", "SafeDICE (true α)", ...).
+    pub fn label(&self) -> String {
+        self.variant.label(self.algorithm)
     }
 }
 
@@ -96,6 +127,20 @@ pub struct BenchResults {
 struct Prepared {
     data: TrainingData,
     non_preferred_ids: Vec<u32>,
+    /// With `--ablations`.
+    truth: Option<Truth>,
+}
+
+/// What the ablation rows know and a learner never does.
+struct Truth {
+    /// Per row of D^U: whether the non-preferred demonstrator made it.
+    unlabeled_non_preferred: Vec<bool>,
+    true_alpha: f64,
+    /// D^U's preferred episodes alone (and D^N, unused by BC).
+    preferred_only: TrainingData,
+    /// Fresh preferred and non-preferred episodes with their per-row flags.
+    heldout: Dataset,
+    heldout_non_preferred: Vec<bool>,
 }
 
 /// One training to do.
@@ -103,6 +148,7 @@ struct Prepared {
 struct Job {
     env: usize,
     algorithm: Algorithm,
+    variant: Variant,
     seed: u64,
 }
 
@@ -162,10 +208,15 @@ fn prepare(config: &BenchConfig, env: &str) -> Result<(Prepared, EnvData), Bench
         "bench: data generated"
     );
     let non_preferred = generated.labeled_non_preferred.map(Arc::new);
-    let prepared = Prepared {
-        data: TrainingData { unlabeled: Arc::new(generated.unlabeled), non_preferred },
-        non_preferred_ids: m.unlabeled_non_preferred_episode_ids,
+    let data = TrainingData { unlabeled: Arc::new(generated.unlabeled), non_preferred };
+    let ids = m.unlabeled_non_preferred_episode_ids;
+    let (truth, ablation) = if config.ablations {
+        let (truth, summary) = ground_truth(config, env, &data, &ids)?;
+        (Some(truth), Some(summary))
+    } else {
+        (None, None)
     };
+    let prepared = Prepared { data, non_preferred_ids: ids, truth };
     let summary = EnvData {
         env: env.to_string(),
         unlabeled_preferred: m.unlabeled_preferred,
@@ -173,8 +224,58 @@ fn prepare(config: &BenchConfig, env: &str) -> Result<(Prepared, EnvData), Bench
         labeled_non_preferred: m.labeled_non_preferred,
         reference: m.reference,
         datagen_seconds: clock.elapsed().as_secs_f64(),
+        ablation,
     };
     Ok((prepared, summary))
+}
+
+/// The ablations' ground truth: D^U's per-row flags and true α, its preferred episodes as a
+/// dataset, and the held-out labeled set (see [`ablation::HELDOUT_STREAM`]).
+fn ground_truth(
+    config: &BenchConfig,
+    env: &str,
+    data: &TrainingData,
+    non_preferred_ids: &[u32],
+) -> Result<(Truth, AblationData), BenchError> {
+    let datagen = |message: String| BenchError::Datagen { env: env.to_string(), message };
+    let u = &data.unlabeled;
+    let flags = ablation::row_flags(u, non_preferred_ids);
+    let true_alpha = flags.iter().filter(|&&f| f).count() as f64 / flags.len() as f64;
+    let keep: Vec<bool> = flags.iter().map(|f| !f).collect();
+    let preferred = ablation::select_rows(u, &keep)
+        .ok_or_else(|| datagen("no preferred episode in D^U".into()))?;
+    let episodes = config.data.labeled.max(ablation::HELDOUT_MIN_EPISODES);
+    let heldout_seed = envs::derive_seed(config.data_seed, ablation::HELDOUT_STREAM, 0);
+    let spec = DatagenSpec {
+        env: env.to_string(),
+        preferred: episodes,
+        non_preferred: episodes,
+        labeled: 0,
+        seed: heldout_seed,
+    };
+    let heldout = envs::generate(&spec).map_err(|e| datagen(e.to_string()))?;
+    let heldout_flags = ablation::row_flags(
+        &heldout.unlabeled,
+        &heldout.manifest.unlabeled_non_preferred_episode_ids,
+    );
+    let summary = AblationData {
+        true_alpha,
+        non_preferred_episode_share: non_preferred_ids.len() as f64 / u.episodes() as f64,
+        heldout_seed,
+        heldout_preferred_transitions: heldout.manifest.unlabeled_preferred.transitions,
+        heldout_non_preferred_transitions: heldout.manifest.unlabeled_non_preferred.transitions,
+    };
+    let truth = Truth {
+        unlabeled_non_preferred: flags,
+        true_alpha,
+        preferred_only: TrainingData {
+            unlabeled: Arc::new(preferred),
+            non_preferred: data.non_preferred.clone(),
+        },
+        heldout: heldout.unlabeled,
+        heldout_non_preferred: heldout_flags,
+    };
+    Ok((truth, summary))
 }
 
 /// Every job, the slowest algorithms first so the last ones to finish are short (SafeDICE and
@@ -187,10 +288,11 @@ fn schedule(config: &BenchConfig) -> Vec<Job> {
         Algorithm::Dexperts => 3,
         Algorithm::Bc => 4,
     };
+    let rows = config.rows();
     let mut jobs: Vec<Job> = (0..config.envs.len())
         .flat_map(|env| {
-            config.algorithms.iter().flat_map(move |&algorithm| {
-                (0..config.seeds).map(move |seed| Job { env, algorithm, seed })
+            rows.iter().flat_map(move |&(algorithm, variant)| {
+                (0..config.seeds).map(move |seed| Job { env, algorithm, variant, seed })
             })
         })
         .collect();
@@ -224,7 +326,7 @@ fn run_jobs(
                         done.fetch_add(1, Ordering::SeqCst) + 1,
                         jobs.len(),
                         r.env,
-                        r.algorithm,
+                        r.label(),
                         r.seed,
                         r.metrics.normalized_return,
                         r.metrics.average_cost,
@@ -244,8 +346,9 @@ fn run_jobs(
         .into_iter()
         .collect::<Result<Vec<_>, _>>()?;
     let env_index = |name: &str| config.envs.iter().position(|e| e == name);
-    let algorithm_index = |a: Algorithm| config.algorithms.iter().position(|&b| b == a);
-    runs.sort_by_key(|r| (env_index(&r.env), algorithm_index(r.algorithm), r.seed));
+    let rows = config.rows();
+    let row_index = |r: &RunResult| rows.iter().position(|&row| row == (r.algorithm, r.variant));
+    runs.sort_by_key(|r| (env_index(&r.env), row_index(r), r.seed));
     Ok(runs)
 }
 
@@ -258,15 +361,43 @@ fn train_and_evaluate(
 ) -> Result<RunResult, BenchError> {
     let fail = |message: String| BenchError::Run {
         env: env.to_string(),
-        algorithm: job.algorithm,
+        label: job.variant.label(job.algorithm),
         seed: job.seed,
         message,
     };
     let train_error = |e: TrainError| fail(e.to_string());
     let resolved = algo::resolve_config(job.algorithm, &config.training_config(job.seed))
         .map_err(|e| fail(e.message))?;
+    let truth = || prepared.truth.as_ref().ok_or_else(|| fail("ablation without truth".into()));
+    let data = match job.variant {
+        Variant::PreferredOnly => &truth()?.preferred_only,
+        _ => &prepared.data,
+    };
     let clock = Instant::now();
-    let mut trainer = algo::build_trainer(&resolved, &prepared.data, None).map_err(train_error)?;
+    // SafeDICE is built as itself, for the overrides of its ablations and the diagnostics read
+    // from it after training; every other algorithm through the service's constructor.
+    let (mut safedice, mut other) = if job.algorithm == Algorithm::Safedice {
+        let overrides = match job.variant {
+            Variant::TrueAlpha => {
+                SafediceOverrides { alpha: Some(truth()?.true_alpha), ..Default::default() }
+            }
+            Variant::OracleLabels => SafediceOverrides {
+                unlabeled_logits: Some(oracle_logits(&truth()?.unlabeled_non_preferred)),
+                ..Default::default()
+            },
+            _ => SafediceOverrides::default(),
+        };
+        algo::check_data(&resolved, data).map_err(|e| fail(e.message))?;
+        let t = SafediceTrainer::with_overrides(&resolved, data, overrides).map_err(train_error)?;
+        (Some(t), None)
+    } else {
+        (None, Some(algo::build_trainer(&resolved, data, None).map_err(train_error)?))
+    };
+    let trainer: &mut dyn Trainer = match (safedice.as_mut(), other.as_mut()) {
+        (Some(t), _) => t,
+        (None, Some(t)) => t.as_mut(),
+        (None, None) => unreachable!("one of the two is built"),
+    };
     let pretraining = resolved.pretraining_steps();
     let total = resolved.total_steps();
     let mut recorder = Recorder::default();
@@ -288,9 +419,14 @@ fn train_and_evaluate(
         envs::evaluate(env, act, config.eval_episodes, job.seed, config.deterministic_eval)
             .map_err(|e| fail(e.to_string()))?;
     let alpha = trainer.alpha_hat().map(|value| recorder.alpha(value, &prepared.non_preferred_ids));
+    let ablation = match (&safedice, &prepared.truth) {
+        (Some(t), Some(truth)) => Some(safedice_ablation(t, truth).map_err(train_error)?),
+        _ => None,
+    };
     Ok(RunResult {
         env: env.to_string(),
         algorithm: job.algorithm,
+        variant: job.variant,
         seed: job.seed,
         steps: total,
         train_seconds,
@@ -298,7 +434,22 @@ fn train_and_evaluate(
         metrics: report.metrics,
         mean_episode_length: report.mean_episode_length,
         alpha,
+        ablation,
         last_recorded: recorder.last,
+    })
+}
+
+/// A trained SafeDICE run's discriminator AUCs (held-out set, D^U) and the non-preferred share
+/// of its weights on D^U.
+fn safedice_ablation(t: &SafediceTrainer, truth: &Truth) -> Result<SafediceAblation, TrainError> {
+    let heldout = t.discriminator_logits(&truth.heldout)?;
+    let unlabeled = t.discriminator_logits_unlabeled()?;
+    let flags = &truth.unlabeled_non_preferred;
+    let share = t.unlabeled_weights()?.map_or(f64::NAN, |w| ablation::weight_share(&w, flags));
+    Ok(SafediceAblation {
+        auc_heldout: ablation::roc_auc(&heldout, &truth.heldout_non_preferred).unwrap_or(f64::NAN),
+        auc_unlabeled: ablation::roc_auc(&unlabeled, flags).unwrap_or(f64::NAN),
+        non_preferred_weight_share: share,
     })
 }
 

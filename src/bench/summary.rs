@@ -4,6 +4,7 @@
 use serde::Serialize;
 
 use super::runner::{BenchResults, RunResult};
+use super::Variant;
 use crate::algo::Algorithm;
 
 /// Mean and standard error of the mean over seeds (0 with a single seed).
@@ -37,6 +38,10 @@ impl Stat {
 #[derive(Clone, Debug, Serialize)]
 pub struct AlgorithmSummary {
     pub algorithm: Algorithm,
+    /// `standard`, or the ablation of the row (`--ablations`).
+    pub variant: Variant,
+    /// The row's name: "SafeDICE", "BC (preferred only)", "SafeDICE (true α)", ...
+    pub label: String,
     pub seeds: usize,
     pub normalized_return: Stat,
     pub average_cost: Stat,
@@ -48,6 +53,14 @@ pub struct AlgorithmSummary {
     pub normalized_cost: Stat,
     /// SafeDICE only.
     pub alpha_hat: Option<Stat>,
+    /// SafeDICE rows with `--ablations`: the trained discriminator's ROC AUC on the held-out
+    /// labeled set and on D^U's true flags, and the non-preferred share of the weights on D^U.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub discriminator_auc_heldout: Option<Stat>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub discriminator_auc_unlabeled: Option<Stat>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub non_preferred_weight_share: Option<Stat>,
     /// Training steps per second (all phases), mean over seeds.
     pub steps_per_second: f64,
     pub train_seconds: f64,
@@ -80,24 +93,26 @@ pub struct Summary {
     pub full_mode_hours: f64,
 }
 
-/// Mean ± standard error of every metric per (environment, algorithm).
+/// Mean ± standard error of every metric per (environment, row), the rows of
+/// [`super::BenchConfig::rows`].
 pub fn summarize(results: &BenchResults) -> Summary {
+    let table = results.config.rows();
     let envs = results
         .config
         .envs
         .iter()
         .map(|env| {
-            let rows: Vec<AlgorithmSummary> = results
-                .config
-                .algorithms
+            let rows: Vec<AlgorithmSummary> = table
                 .iter()
-                .map(|&algorithm| {
+                .map(|&(algorithm, variant)| {
                     let runs: Vec<&RunResult> = results
                         .runs
                         .iter()
-                        .filter(|r| &r.env == env && r.algorithm == algorithm)
+                        .filter(|r| {
+                            &r.env == env && (r.algorithm, r.variant) == (algorithm, variant)
+                        })
                         .collect();
-                    summarize_runs(algorithm, &runs)
+                    summarize_runs(algorithm, variant, &runs)
                 })
                 .collect();
             let safedice_vs_bc = compare(&rows);
@@ -107,13 +122,19 @@ pub fn summarize(results: &BenchResults) -> Summary {
     Summary { envs, full_mode_hours: full_mode_hours(results) }
 }
 
-fn summarize_runs(algorithm: Algorithm, runs: &[&RunResult]) -> AlgorithmSummary {
+fn summarize_runs(algorithm: Algorithm, variant: Variant, runs: &[&RunResult]) -> AlgorithmSummary {
     let stat = |f: fn(&RunResult) -> f64| Stat::of(&runs.iter().map(|r| f(r)).collect::<Vec<_>>());
     let mean = |f: fn(&RunResult) -> f64| stat(f).mean;
     let alphas: Vec<f64> =
         runs.iter().filter_map(|r| r.alpha.as_ref().map(|a| a.alpha_hat)).collect();
+    let ablation = |f: fn(&super::ablation::SafediceAblation) -> f64| {
+        let values: Vec<f64> = runs.iter().filter_map(|r| r.ablation.as_ref().map(f)).collect();
+        (!values.is_empty()).then(|| Stat::of(&values))
+    };
     AlgorithmSummary {
         algorithm,
+        variant,
+        label: variant.label(algorithm),
         seeds: runs.len(),
         normalized_return: stat(|r| r.metrics.normalized_return),
         average_cost: stat(|r| r.metrics.average_cost),
@@ -124,6 +145,9 @@ fn summarize_runs(algorithm: Algorithm, runs: &[&RunResult]) -> AlgorithmSummary
         cvar_5: stat(|r| r.metrics.cvar_cost.k5),
         normalized_cost: stat(|r| r.metrics.normalized_cost),
         alpha_hat: (!alphas.is_empty()).then(|| Stat::of(&alphas)),
+        discriminator_auc_heldout: ablation(|a| a.auc_heldout),
+        discriminator_auc_unlabeled: ablation(|a| a.auc_unlabeled),
+        non_preferred_weight_share: ablation(|a| a.non_preferred_weight_share),
         steps_per_second: mean(RunResult::steps_per_second),
         train_seconds: mean(|r| r.train_seconds),
         eval_seconds: mean(|r| r.eval_seconds),
@@ -131,7 +155,9 @@ fn summarize_runs(algorithm: Algorithm, runs: &[&RunResult]) -> AlgorithmSummary
 }
 
 fn compare(rows: &[AlgorithmSummary]) -> Option<Comparison> {
-    let find = |a: Algorithm| rows.iter().find(|r| r.algorithm == a && r.seeds > 0);
+    let find = |a: Algorithm| {
+        rows.iter().find(|r| r.algorithm == a && r.variant.is_standard() && r.seeds > 0)
+    };
     let (safedice, bc) = (find(Algorithm::Safedice)?, find(Algorithm::Bc)?);
     let cost_ratio = safedice.average_cost.mean / bc.average_cost.mean;
     let return_difference = safedice.normalized_return.mean - bc.normalized_return.mean;

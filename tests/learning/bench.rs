@@ -113,4 +113,8 @@ fn arguments_select_envs_algorithms_and_modes() {
     assert!(parse(&["--seeds", "0"]).unwrap_err().contains("--seeds"));
     assert!(parse(&["--labeled", "0"]).unwrap_err().contains("--labeled"));
     assert!(parse(&["--algorithms", "bc", "--labeled", "0"]).is_ok(), "BC needs no D^N");
+    assert!(!full.ablations && !quick.ablations, "ablation rows only on request");
+    assert!(parse(&["--quick", "--ablations"]).unwrap().ablations);
+    let err = parse(&["--algorithms", "bc", "--labeled", "0", "--ablations"]).unwrap_err();
+    assert!(err.contains("--ablations"), "SafeDICE's ablations need D^N: {err}");
 }
