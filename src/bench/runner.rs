@@ -404,8 +404,9 @@ fn train_and_evaluate(
     while !trainer.is_finished() {
         let step = trainer.progress().step;
         // Always record the last pretraining step: it carries the alpha-hat computation.
-        let record =
-            step % config.record_every == 0 || step + 1 == pretraining || step + 1 == total;
+        let record = step.is_multiple_of(config.record_every)
+            || step + 1 == pretraining
+            || step + 1 == total;
         let scalars = trainer.step(record).map_err(train_error)?;
         recorder.add(&scalars);
     }
