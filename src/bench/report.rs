@@ -79,6 +79,7 @@ pub fn markdown(results: &BenchResults, summary: &Summary, command: &str) -> Str
     let _ = writeln!(md, "- Command: `{command}`");
     let _ = writeln!(md, "- Date: {} (UTC start)", results.started.format("%Y-%m-%d %H:%M"));
     let _ = writeln!(md, "- Git commit: {}", results.git_commit);
+    let _ = writeln!(md, "- Machine: {}", results.machine);
     let _ = writeln!(
         md,
         "- Training: service preset, {} policy iterations per run (+10% pretraining for SafeDICE's \

@@ -120,6 +120,8 @@ pub struct BenchResults {
     pub started: chrono::DateTime<chrono::Utc>,
     /// `git rev-parse --short=12 HEAD` when the run started ("unknown" outside a checkout).
     pub git_commit: String,
+    /// The CPU the run trained on ([`machine`]); speed ratios change with it.
+    pub machine: String,
     pub wall_seconds: f64,
 }
 
@@ -174,8 +176,31 @@ pub fn run(config: &BenchConfig) -> Result<BenchResults, BenchError> {
         runs,
         started,
         git_commit,
+        machine: machine(),
         wall_seconds: clock.elapsed().as_secs_f64(),
     })
+}
+
+/// This machine's CPU as `lscpu` names it (model name, family, model) and its core count, from
+/// /proc/cpuinfo; "unknown" where that file does not exist.
+pub fn machine() -> String {
+    let Ok(info) = std::fs::read_to_string("/proc/cpuinfo") else {
+        return "unknown".to_string();
+    };
+    let field = |key: &str| {
+        info.lines()
+            .find(|l| l.split(':').next().is_some_and(|k| k.trim() == key))
+            .and_then(|l| l.split_once(':'))
+            .map(|(_, v)| v.trim().to_string())
+            .unwrap_or_else(|| "?".to_string())
+    };
+    let cores = std::thread::available_parallelism().map_or(0, |n| n.get());
+    format!(
+        "{}, CPU family {} model {}, {cores} cores",
+        field("model name"),
+        field("cpu family"),
+        field("model")
+    )
 }
 
 fn git_commit() -> String {

@@ -59,6 +59,9 @@ fn tiny_bench_reports_every_algorithm_with_finite_numbers() {
     bench::write_outputs(&results, &summary, dir.path(), "safedice bench (test)").unwrap();
     let md = std::fs::read_to_string(dir.path().join("results.md")).unwrap();
     assert!(md.contains("Command: `safedice bench (test)`"));
+    // The CPU is named (speed ratios change between machines).
+    let machine = md.lines().find_map(|l| l.strip_prefix("- Machine: ")).expect("a machine line");
+    assert!(machine.contains("cores") && !machine.starts_with('?'), "{machine}");
     for name in ["SafeDICE", "BC", "DWBC", "PPL", "DExperts"] {
         let rows = md.lines().filter(|l| l.starts_with(&format!("| {name} |"))).count();
         assert_eq!(rows, 1, "one table row for {name}\n{md}");
