@@ -290,36 +290,13 @@ mod tests {
     #[test]
     fn baseline_trainers_agree_on_both_engines() {
         use crate::algo::Algorithm;
-        use crate::bench::speed::{synthetic_baseline, Engine, SpeedConfig};
+        use crate::bench::speed::engines::{assert_engines_agree, tiny};
+        use crate::bench::speed::synthetic_baseline;
         for algorithm in [Algorithm::Bc, Algorithm::Dwbc, Algorithm::Ppl, Algorithm::Dexperts] {
             for discrete in [None, Some(4)] {
-                let cfg = SpeedConfig {
-                    obs_dim: 5,
-                    act_dim: 3,
-                    discrete,
-                    batch: 16,
-                    hidden: vec![12, 10],
-                    iters: 1,
-                    repeats: 1,
-                    threads: 1,
-                    seed: 7,
-                    engine: Engine::Fused,
-                    algorithm,
-                };
+                let cfg = tiny(algorithm, discrete);
                 let make = || synthetic_baseline(&cfg, (400, 200), 8).unwrap();
-                let (mut fused, mut candle) = (make(), make());
-                candle.use_candle_autograd();
-                for step in 0..7 {
-                    let (a, b) = (fused.step(true).unwrap(), candle.step(true).unwrap());
-                    assert_eq!(a.len(), b.len());
-                    for ((name, x), (other, y)) in a.iter().zip(&b) {
-                        assert_eq!(name, other);
-                        assert!(
-                            (x - y).abs() <= 1e-3 * y.abs().max(1.0),
-                            "{algorithm} {discrete:?} step {step} {name}: fused {x}, candle {y}"
-                        );
-                    }
-                }
+                assert_engines_agree(&format!("{algorithm} {discrete:?}"), make, 7);
             }
         }
     }

@@ -441,6 +441,50 @@ pub fn report(cfg: &SpeedConfig, results: &SpeedResults) -> String {
     out
 }
 
+/// Test support: a tiny configuration, and a check that a trainer on the fused engine and the
+/// same trainer on candle autograd record the same values step by step (to 1e-3 relative: they
+/// drift apart only by float rounding).
+#[cfg(test)]
+pub(crate) mod engines {
+    use super::*;
+
+    pub fn tiny(algorithm: Algorithm, discrete: Option<usize>) -> SpeedConfig {
+        SpeedConfig {
+            obs_dim: 5,
+            act_dim: 3,
+            discrete,
+            batch: 16,
+            hidden: vec![12, 10],
+            iters: 1,
+            repeats: 1,
+            threads: 1,
+            seed: 7,
+            engine: Engine::Fused,
+            algorithm,
+        }
+    }
+
+    pub fn assert_engines_agree(
+        what: &str,
+        mut make: impl FnMut() -> Box<dyn Trainer>,
+        steps: usize,
+    ) {
+        let (mut fused, mut candle) = (make(), make());
+        candle.use_candle_autograd();
+        for step in 0..steps {
+            let (a, b) = (fused.step(true).unwrap(), candle.step(true).unwrap());
+            assert_eq!(a.len(), b.len());
+            for ((name, x), (other, y)) in a.iter().zip(&b) {
+                assert_eq!(name, other);
+                assert!(
+                    (x - y).abs() <= 1e-3 * y.abs().max(1.0) || (x.is_nan() && y.is_nan()),
+                    "{what} step {step} {name}: fused {x}, candle {y}"
+                );
+            }
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -268,36 +268,13 @@ fn discriminator_penalty_gradient_matches_finite_differences() {
 /// loop (they drift apart only by float rounding).
 #[test]
 fn trainer_fused_and_candle_paths_agree() {
-    use crate::algo::Trainer;
-    use crate::bench::speed::{synthetic_trainer, Engine, SpeedConfig};
+    use crate::bench::speed::engines::{assert_engines_agree, tiny};
+    use crate::bench::speed::synthetic_trainer;
     for discrete in [None, Some(4)] {
-        let cfg = SpeedConfig {
-            obs_dim: 5,
-            act_dim: 3,
-            discrete,
-            batch: 16,
-            hidden: vec![12, 10],
-            iters: 1,
-            repeats: 1,
-            threads: 1,
-            seed: 7,
-            engine: Engine::Fused,
-            algorithm: crate::algo::Algorithm::Safedice,
+        let cfg = tiny(crate::algo::Algorithm::Safedice, discrete);
+        let make = || -> Box<dyn crate::algo::Trainer> {
+            Box::new(synthetic_trainer(&cfg, (400, 200), 4, 3).unwrap())
         };
-        let make = || synthetic_trainer(&cfg, (400, 200), 4, 3).unwrap();
-        let (mut fused, mut candle) = (make(), make());
-        candle.use_candle_autograd();
-        for step in 0..7 {
-            let (a, b) = (fused.step(true).unwrap(), candle.step(true).unwrap());
-            assert_eq!(a.len(), b.len());
-            for ((name, x), (other, y)) in a.iter().zip(&b) {
-                assert_eq!(name, other);
-                let tol = 1e-3 * y.abs().max(1.0);
-                assert!(
-                    (x - y).abs() <= tol || (x.is_nan() && y.is_nan()),
-                    "step {step} {name}: fused {x}, candle {y}"
-                );
-            }
-        }
+        assert_engines_agree(&format!("SafeDICE {discrete:?}"), make, 7);
     }
 }
