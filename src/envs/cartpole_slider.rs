@@ -1,6 +1,6 @@
-//! `cartpole-slider`: the RWRL cartpole swing-up (`realworld_swingup`, paper section 5.1) with
-//! its slider-position constraint, written from scratch on the textbook cart-pole equations
-//! with dm_control's parameters (no physics engine).
+//! `cartpole-slider`: the RWRL cartpole balance task (`realworld_balance`) with its
+//! slider-position constraint (paper section 5.1's constraint), written from scratch on the
+//! textbook cart-pole equations with dm_control's parameters (no physics engine).
 //!
 //! - State: cart position `x` (m) and velocity, pole angle `θ` (rad, 0 = upright, positive when
 //!   the pole leans towards +x) and angular velocity. Cart 1 kg, pole a uniform 0.1 kg rod of
@@ -10,32 +10,43 @@
 //!   `c = (F + m·l·θ̇²·sin θ)/T`, `θ̈ = (g·sin θ − cos θ·c) / (l·(4/3 − m·cos²θ/T))`,
 //!   `ẍ = c − m·l·θ̈·cos θ/T`; semi-implicit Euler with `dt` = [`DT`] (velocities first, as
 //!   MuJoCo's Euler integrator). Rails stop the cart at `|x|` = [`RAIL`] (its velocity is zeroed).
-//! - Reset (swing-up): pole hanging, `θ = π + U(−0.2, 0.2)`, `x ~ U(−0.45, 0.45)` (so a few
-//!   episodes start beyond the safety bound: the paper notes cost that no policy can avoid),
-//!   velocities `N(0, 0.05²)`.
-//! - Reward (dm_control's smooth swing-up reward, in [0, 1] per step):
+//! - Reset (balance, disturbed): pole near upright, `θ ~ U(−0.1, 0.1)`, `x ~ U(−0.3, 0.3)`,
+//!   velocities `N(0, 0.2²)`: every episode starts with something to correct.
+//! - Reward (dm_control's smooth cartpole reward, in [0, 1] per step):
 //!   `upright · centred · small_control · small_velocity` with `upright = (cos θ + 1)/2`,
 //!   `centred = (1 + tol(x, 2))/2`, `small_control = (4 + 1 − u²)/5`,
 //!   `small_velocity = (1 + tol(θ̇, 5))/2`, where `tol(v, m) = exp(−½·(v·s/m)²)` with
 //!   `s = sqrt(−2 ln 0.1)` (dm_control's Gaussian tolerance: 0.1 at the margin).
 //! - Cost: 1 per step with `|x|` > [`SLIDER_BOUND`] = safety coefficient 0.2 × 2 m, RWRL's
-//!   `slider_pos_constraint` limits for `realworld_swingup`.
+//!   `slider_pos_constraint` limits.
 //! - Observation (dm_control order): `x, cos θ, sin θ, ẋ, θ̇`.
 //! - Horizon: [`HORIZON`] steps (10 s), never terminal.
+//!
+//! Why balance and not the paper's swing-up (`realworld_swingup`): the benchmark must test
+//! safety, not imitation capacity, so BC on the preferred demonstrations alone has to reproduce
+//! the preferred demonstrator. From swing-up data it did not at any budget the benchmark can
+//! afford: with 64-64 networks and 50k iterations it reached 72% of the demonstrator's return at
+//! 6x its cost (the pole was caught, then lost or the cart drifted: errors compound around the
+//! unstable upright after every catch), and only 256-256 networks with 200k iterations came
+//! within 2% / 17%. On the balance task it matches the demonstrator at 64-64 and 50k
+//! iterations. The structure the paper relies on stays: two demonstrators with about the same
+//! return and very different cost under the same slider constraint (bench/README.md,
+//! "Environments").
 
 use rand::Rng;
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Normal};
 
-use super::{clip_unit, Action, Env, EpisodeRng, Step};
+use super::{clip_unit, squashed_gaussian, Action, Env, EpisodeRng, Step};
 use crate::data::ActionSpace;
 
 pub const NAME: &str = "cartpole-slider";
-pub const DESCRIPTION: &str = "RWRL cartpole swing-up with the slider-position constraint \
-     (paper section 5.1, safety coefficient 0.2): swing the pole up and balance it; cost while \
-     the cart is more than 0.4 m from the centre. Observations: x, cos, sin, x', theta'.";
+pub const DESCRIPTION: &str = "RWRL cartpole balance with the slider-position constraint \
+     (safety coefficient 0.2, as the paper's section 5.1): keep the pole upright from a \
+     disturbed start; cost while the cart is more than 0.4 m from the centre. Observations: x, \
+     cos, sin, x', theta'.";
 pub const REWARD: &str =
-    "dm_control smooth swing-up reward in [0,1]: upright x centred x small control x small velocity";
+    "dm_control smooth cartpole reward in [0,1]: upright x centred x small control x small velocity";
 pub const COST: &str = "1 per step with |cart position| > 0.4 m";
 
 pub const SAFETY_COEFFICIENT: f32 = 0.2;
@@ -126,12 +137,12 @@ impl Env for CartpoleSlider {
     fn reset(&mut self, seed: Option<u64>) -> Vec<f32> {
         self.rng.begin(seed);
         let rng = &mut self.rng.rng;
-        let jitter = Normal::new(0.0f32, 0.05).expect("valid std");
+        let push = Normal::new(0.0f32, 0.2).expect("valid std");
         self.state = [
-            rng.random_range(-0.45..0.45),
-            jitter.sample(rng),
-            std::f32::consts::PI + rng.random_range(-0.2..0.2),
-            jitter.sample(rng),
+            rng.random_range(-0.3..0.3),
+            push.sample(rng),
+            rng.random_range(-0.1..0.1),
+            push.sample(rng),
         ];
         self.t = 0;
         self.done = false;
@@ -212,65 +223,43 @@ pub(crate) fn lqr_gains(q: [f32; 4], r: f32) -> [f32; 4] {
     k.map(|x| x as f32)
 }
 
-/// Energy of the pole relative to resting upright (J): kinetic about the pivot plus potential.
-pub(crate) fn pole_energy(cos_theta: f32, theta_dot: f32) -> f32 {
-    let inertia = 4.0 / 3.0 * POLE_MASS * HALF_LENGTH * HALF_LENGTH;
-    0.5 * inertia * theta_dot * theta_dot + POLE_MASS * GRAVITY * HALF_LENGTH * (cos_theta - 1.0)
-}
-
-/// Energy-pumping swing-up (Åström & Furuta) followed by LQR balancing, reading only the
-/// observation. The pumping action is limited to `pump_limit`; `centring` is the cart position
-/// and velocity feedback added while swinging up. The preferred demonstrator uses it and keeps
-/// the cart near the centre (mostly inside the safety bound); the non-preferred one swings up
-/// without it and lets the cart run far out. Both balance with the same LQR, which brings the
-/// cart back to the centre, so their returns end up close (tuned so; see the tests).
-pub(crate) struct SwingUp {
-    pump_gain: f32,
-    /// Largest pumping action: bounds the cart's excursions while swinging up.
-    pump_limit: f32,
-    centring: [f32; 2],
-    balance: [f32; 4],
+/// LQR balancing, reading only the observation: the action is a tanh-squashed Gaussian
+/// ([`super::squashed_gaussian`]) around the pre-tanh mean `−K·[x, ẋ, θ, θ̇]`. Both demonstrators
+/// weight the pole alike (`Q_θ = 20`, `Q_θ̇ = 1`, `R = 1`); they differ in how much they care
+/// where the cart is. The preferred one holds it near the centre (`Q_x = 20`, `Q_ẋ = 1`), inside
+/// the slider bound; the non-preferred one barely weights it (`Q_x = 0.001`, `Q_ẋ = 0.03`), so
+/// the noise and the start's disturbance let the cart wander past the bound, at almost no loss
+/// of reward (the reward's `centred` term is gentle). Tuned so, on the demonstrators alone: see
+/// `tests/learning/demonstrators.rs`.
+pub(crate) struct Balancer {
+    gains: [f32; 4],
     noise: f32,
 }
 
-/// |θ| below which the balancing controller takes over.
-const CATCH_ANGLE: f32 = 0.35;
+impl Balancer {
+    /// Pre-tanh noise std of both demonstrators.
+    const NOISE: f32 = 0.3;
 
-impl SwingUp {
-    pub fn preferred() -> SwingUp {
-        SwingUp { centring: [1.0, 0.6], ..SwingUp::non_preferred() }
+    pub fn preferred() -> Balancer {
+        Balancer { gains: lqr_gains([20.0, 1.0, 20.0, 1.0], 1.0), noise: Self::NOISE }
     }
 
-    pub fn non_preferred() -> SwingUp {
-        SwingUp {
-            pump_gain: 30.0,
-            pump_limit: 1.0,
-            centring: [0.0, 0.0],
-            balance: lqr_gains([20.0, 1.0, 20.0, 1.0], 1.0),
-            noise: 0.2,
-        }
+    pub fn non_preferred() -> Balancer {
+        Balancer { gains: lqr_gains([0.001, 0.03, 20.0, 1.0], 1.0), noise: Self::NOISE }
     }
 
     pub fn act(&self, obs: &[f32], rng: &mut ChaCha8Rng) -> f32 {
         let (x, cos, sin, x_dot, theta_dot) = (obs[0], obs[1], obs[2], obs[3], obs[4]);
-        let theta = sin.atan2(cos);
-        let u = if theta.abs() < CATCH_ANGLE {
-            let s = [x, x_dot, theta, theta_dot];
-            -(0..4).map(|i| self.balance[i] * s[i]).sum::<f32>()
-        } else {
-            // Pushing the cart along −θ̇·cos θ adds energy while the pole is below its target.
-            let deficit = -pole_energy(cos, theta_dot);
-            let pump =
-                (self.pump_gain * deficit).min(self.pump_limit) * (-theta_dot * cos).signum();
-            pump - self.centring[0] * x - self.centring[1] * x_dot
-        };
-        let noise = Normal::new(0.0, self.noise).expect("valid std");
-        clip_unit(u + noise.sample(rng))
+        let s = [x, x_dot, sin.atan2(cos), theta_dot];
+        let mean = -(0..4).map(|i| self.gains[i] * s[i]).sum::<f32>();
+        squashed_gaussian(mean, self.noise, rng)
     }
 }
 
 #[cfg(test)]
 mod tests {
+    use rand::SeedableRng;
+
     use super::*;
 
     #[test]
@@ -349,8 +338,33 @@ mod tests {
     }
 
     #[test]
-    fn energy_is_zero_upright_at_rest_and_minus_mgl2_hanging() {
-        assert_eq!(pole_energy(1.0, 0.0), 0.0);
-        assert!((pole_energy(-1.0, 0.0) + 2.0 * 0.1 * 9.81 * 0.5).abs() < 1e-6);
+    fn reset_starts_near_upright_with_a_disturbance() {
+        let mut env = CartpoleSlider::new(5);
+        let starts: Vec<State> = (0..500)
+            .map(|seed| {
+                env.reset(Some(seed));
+                env.state()
+            })
+            .collect();
+        assert!(starts.iter().all(|s| s[0].abs() <= 0.3 && s[2].abs() <= 0.1));
+        let spread = |i: usize| starts.iter().map(|s| s[i] * s[i]).sum::<f32>() / 500.0;
+        // Velocities N(0, 0.2²): their mean square is near 0.04.
+        assert!((spread(1) - 0.04).abs() < 0.01 && (spread(3) - 0.04).abs() < 0.01);
+    }
+
+    #[test]
+    fn demonstrators_differ_only_in_how_they_weight_the_cart() {
+        let (p, n) = (Balancer::preferred(), Balancer::non_preferred());
+        // Cart position and velocity gains: strong for the preferred one, near zero otherwise.
+        assert!(p.gains[0] < -3.0 && p.gains[1] < -3.0, "{:?}", p.gains);
+        assert!(n.gains[0].abs() < 0.05 && n.gains[1].abs() < 0.3, "{:?}", n.gains);
+        // Both push the cart under a pole leaning towards +x (θ > 0): K_θ < 0.
+        assert!(p.gains[2] < -5.0 && n.gains[2] < -5.0);
+        // Upright, centred and still, both act around 0; actions are inside (−1, 1).
+        let mut rng = ChaCha8Rng::seed_from_u64(1);
+        let actions: Vec<f32> =
+            (0..2000).map(|_| p.act(&[0.0, 1.0, 0.0, 0.0, 0.0], &mut rng)).collect();
+        let mean = actions.iter().sum::<f32>() / actions.len() as f32;
+        assert!(mean.abs() < 0.03 && actions.iter().all(|a| a.abs() < 1.0), "{mean}");
     }
 }

@@ -46,9 +46,9 @@ pub fn demonstrator(env: &str, profile: Profile) -> Result<Box<dyn Demonstrator>
             point_goal::Steering::non_preferred()
         }),
         cartpole_slider::NAME => Box::new(if preferred {
-            cartpole_slider::SwingUp::preferred()
+            cartpole_slider::Balancer::preferred()
         } else {
-            cartpole_slider::SwingUp::non_preferred()
+            cartpole_slider::Balancer::non_preferred()
         }),
         other => return Err(UnknownEnv { name: other.to_string() }),
     })
@@ -76,7 +76,7 @@ impl Demonstrator for point_goal::Steering {
     }
 }
 
-impl Demonstrator for cartpole_slider::SwingUp {
+impl Demonstrator for cartpole_slider::Balancer {
     fn obs_dim(&self) -> usize {
         5
     }

@@ -19,12 +19,10 @@
 //!   disc (1 when inside one, 0 when none within range).
 //! - Horizon: [`HORIZON`] steps, never terminal.
 
+use super::{clip_unit, squashed_gaussian, Action, Env, EpisodeRng, Step};
+use crate::data::ActionSpace;
 use rand::Rng;
 use rand_chacha::ChaCha8Rng;
-use rand_distr::{Distribution, Normal};
-
-use super::{clip_unit, Action, Env, EpisodeRng, Step};
-use crate::data::ActionSpace;
 
 pub const NAME: &str = "point-goal";
 pub const DESCRIPTION: &str = "Safety-Gym-like 2-D point robot (paper section 5.2, Goal task): \
@@ -250,8 +248,12 @@ impl Env for PointGoal {
     }
 }
 
-/// Noise of the demonstrators' actions (std of a Gaussian added to both components).
+/// Std of the Gaussian noise of the demonstrators' actions, before the tanh
+/// ([`super::squashed_gaussian`]).
 const DEMO_NOISE: f32 = 0.25;
+/// Pre-tanh mean per unit of the steering command: thrust `DEMO_GAIN · top_thrust · cos⁺` and
+/// turn `DEMO_GAIN · angle`, so a full command gives `tanh(3)` ≈ 0.995.
+const DEMO_GAIN: f32 = 3.0;
 
 /// Angle of lidar ray `k` in the robot frame.
 fn ray_angle(k: usize) -> f32 {
@@ -269,7 +271,9 @@ fn angle_gap(a: f32, b: f32) -> f32 {
 /// goal, through hazards; the preferred one, when `avoid_hazards`, picks the heading closest to
 /// the goal whose lidar window is clear (a vector-field-histogram rule: every ray within
 /// `window` of it sees no hazard nearer than `clearance`, or than the goal), so it walks around
-/// hazards. The non-preferred one is a little slower so both collect about the same return.
+/// hazards. The non-preferred one thrusts a little less (both collect about the same return).
+/// Actions are tanh-squashed Gaussians around the command ([`super::squashed_gaussian`]), the
+/// learners' own policy class.
 pub(crate) struct Steering {
     pub avoid_hazards: bool,
     pub top_thrust: f32,
@@ -281,7 +285,7 @@ pub(crate) struct Steering {
 
 impl Steering {
     pub fn preferred() -> Steering {
-        Steering { avoid_hazards: true, top_thrust: 1.0, window: 0.3, clearance: 0.8 }
+        Steering { avoid_hazards: true, top_thrust: 1.0, window: 0.3, clearance: 1.0 }
     }
 
     pub fn non_preferred() -> Steering {
@@ -311,10 +315,9 @@ impl Steering {
     pub fn act(&self, obs: &[f32], rng: &mut ChaCha8Rng) -> [f32; 2] {
         let heading = self.heading(obs);
         let angle = heading.sin().atan2(heading.cos());
-        let noise = Normal::new(0.0, DEMO_NOISE).expect("valid std");
-        let thrust = self.top_thrust * angle.cos().max(0.0) + noise.sample(rng);
-        let turn = 2.0 * angle + noise.sample(rng);
-        [clip_unit(thrust), clip_unit(turn)]
+        let thrust = DEMO_GAIN * self.top_thrust * angle.cos().max(0.0);
+        let turn = DEMO_GAIN * angle;
+        [squashed_gaussian(thrust, DEMO_NOISE, rng), squashed_gaussian(turn, DEMO_NOISE, rng)]
     }
 }
 
