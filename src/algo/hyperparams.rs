@@ -399,6 +399,15 @@ fn learning_rate(key: &str, value: f64) -> Result<(), HyperparamError> {
 /// Keys whose default follows `iterations` unless the user sets them.
 const PHASE_KEYS: [&str; 2] = ["discriminator_iterations", "reward_model_iterations"];
 
+/// The keys a `config` object of `algorithm` may hold besides "preset" (the same in every preset).
+pub fn config_keys(algorithm: Algorithm) -> Vec<String> {
+    let defaults = ResolvedConfig::preset(algorithm, Preset::Service);
+    let Value::Object(map) = serde_json::to_value(&defaults).expect("config serializes") else {
+        unreachable!("a struct serializes to an object")
+    };
+    map.into_iter().map(|(k, _)| k).filter(|k| k != "algorithm" && k != "preset").collect()
+}
+
 /// Parse a user's `config` object for `algorithm` ("preset" plus overrides). Unknown keys and
 /// out-of-range values are errors.
 pub fn resolve_config(

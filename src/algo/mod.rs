@@ -41,7 +41,9 @@ use serde::{Deserialize, Serialize};
 use crate::data::{ActionSpace, Dataset};
 use memory::DataShape;
 
-pub use hyperparams::{resolve_config, HyperparamError, Preset, ResolvedConfig, TerminalHandling};
+pub use hyperparams::{
+    config_keys, resolve_config, HyperparamError, Preset, ResolvedConfig, TerminalHandling,
+};
 pub use policy::{portable_file, Policy, PolicyArtifact, PolicySpec, PortableMetadata};
 
 /// The algorithms the service trains.

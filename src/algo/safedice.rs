@@ -416,6 +416,11 @@ impl SafediceTrainer {
         Ok(t)
     }
 
+    /// Rows per minibatch of every step.
+    pub fn batch_size(&self) -> usize {
+        self.run.batch()
+    }
+
     /// alpha-hat with where it came from, once the discriminator phase is over.
     pub fn alpha_details(&self) -> Option<&AlphaHat> {
         self.alpha.as_ref()
@@ -456,6 +461,19 @@ impl SafediceTrainer {
     /// whole-dataset version of Eq. 37's per-batch weights (absorbing-state rows, which carry no
     /// action, are left out as there). None before the main phase.
     pub fn unlabeled_weights(&self) -> Result<Option<Vec<f64>>, TrainError> {
+        let Some(advantages) = self.unlabeled_advantages()? else { return Ok(None) };
+        // n · softmax(A): the constant e^{−1} cancels, as in `losses::self_normalized_weights`.
+        let n = advantages.len();
+        let max = advantages.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+        let exp: Vec<f64> = advantages.iter().map(|a| (a - max).exp()).collect();
+        let total: f64 = exp.iter().sum();
+        Ok(Some(exp.iter().map(|e| e * n as f64 / total).collect()))
+    }
+
+    /// `A = r + γ' ν(s') − ν(s)` (Eq. 12's log-weight plus 1) on every row of D^U with the
+    /// current ν; None before the main phase. Whole-dataset weights from these can be ruled by
+    /// a handful of rows far outside the minibatches' usual range; Eq. 37 normalises per batch.
+    pub fn unlabeled_advantages(&self) -> Result<Option<Vec<f64>>, TrainError> {
         let Some(flow) = &self.flow else { return Ok(None) };
         let n = flow.real_rows;
         let mut advantages = Vec::with_capacity(n);
@@ -470,11 +488,7 @@ impl SafediceTrainer {
             let a = ((reward + (discount * nu_next)?)? - nu_s)?;
             advantages.extend(a.to_vec1::<f32>()?.into_iter().map(f64::from));
         }
-        // n · softmax(A): the constant e^{−1} cancels, as in `losses::self_normalized_weights`.
-        let max = advantages.iter().copied().fold(f64::NEG_INFINITY, f64::max);
-        let exp: Vec<f64> = advantages.iter().map(|a| (a - max).exp()).collect();
-        let total: f64 = exp.iter().sum();
-        Ok(Some(exp.iter().map(|e| e * n as f64 / total).collect()))
+        Ok(Some(advantages))
     }
 
     /// Algorithm 1 step 1, one step: Eq. 9 plus the interpolated gradient penalty

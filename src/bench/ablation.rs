@@ -13,8 +13,8 @@
 //!   discriminator for the true labels ([`crate::algo::safedice::oracle_logits`]), which also
 //!   makes Eq. 15 return the true share;
 //! - for every SafeDICE run (the plain one included): the trained discriminator's ROC AUC
-//!   ([`roc_auc`]) on a held-out labeled set and on D^U's true flags, and the share of Eq. 12's
-//!   weight that lands on non-preferred transitions of D^U at the end of training.
+//!   ([`roc_auc`]) on a held-out labeled set and on D^U's true flags, and the share of Eq. 37's
+//!   batch-normalised weights on non-preferred transitions of D^U at the end of training.
 //!
 //! All SafeDICE variants of one seed train the same discriminator (same seed, same draws), so
 //! their AUCs agree; the rows differ only in what Eq. 10 and Eq. 15 read.
@@ -67,6 +67,8 @@ impl Variant {
 /// episodes are fresh (neither D^U's nor D^N's).
 pub const HELDOUT_STREAM: u64 = 201;
 pub const HELDOUT_MIN_EPISODES: usize = 10;
+/// Seed of the row order [`batch_weight_share`] cuts into batches.
+pub const WEIGHT_SHARE_SEED: u64 = 0;
 
 /// The discriminator's ranking quality and where the SafeDICE weights went, for one run.
 #[derive(Clone, Debug, Serialize)]
@@ -77,8 +79,9 @@ pub struct SafediceAblation {
     /// The same on D^U's transitions against their true flags (in-sample: the discriminator
     /// was trained on D^U as its negative class).
     pub auc_unlabeled: f64,
-    /// Share of Eq. 12's weight (current ν, all of D^U) on the non-preferred transitions at the
-    /// end of training: the true share α means no filtering, 0 a perfect filter.
+    /// Share of Eq. 37's batch-normalised weights (current ν, all of D^U in batches of the
+    /// run's size, [`batch_weight_share`]) on the non-preferred transitions at the end of
+    /// training: the true share α means no filtering, 0 a perfect filter.
     pub non_preferred_weight_share: f64,
 }
 
@@ -156,6 +159,28 @@ pub fn weight_share(weights: &[f64], flagged: &[bool]) -> f64 {
     let total: f64 = weights.iter().sum();
     let on: f64 = weights.iter().zip(flagged).filter(|(_, &f)| f).map(|(w, _)| w).sum();
     on / total
+}
+
+/// The share of Eq. 37's weights on the flagged rows as the policy step sees them: the rows in
+/// a fixed random order (`seed`), cut into batches of `batch`, each batch's weights
+/// `exp(A)` self-normalised within the batch (stably, from the log-weights `log_weights`), the
+/// batches' shares averaged by size. A share over the whole dataset at once can be ruled by a
+/// few rows whose `A` lies hundreds of nats above the rest (ν far outside the states the
+/// minibatches usually hold) while no minibatch gives them that role.
+pub fn batch_weight_share(log_weights: &[f64], flagged: &[bool], batch: usize, seed: u64) -> f64 {
+    use rand::seq::SliceRandom;
+    use rand::SeedableRng;
+    assert_eq!(log_weights.len(), flagged.len(), "one flag per row");
+    let mut order: Vec<usize> = (0..log_weights.len()).collect();
+    order.shuffle(&mut rand_chacha::ChaCha8Rng::seed_from_u64(seed));
+    let mut total = 0.0;
+    for rows in order.chunks(batch.max(1)) {
+        let max = rows.iter().map(|&i| log_weights[i]).fold(f64::NEG_INFINITY, f64::max);
+        let weights: Vec<f64> = rows.iter().map(|&i| (log_weights[i] - max).exp()).collect();
+        let flags: Vec<bool> = rows.iter().map(|&i| flagged[i]).collect();
+        total += weight_share(&weights, &flags) * rows.len() as f64;
+    }
+    total / log_weights.len().max(1) as f64
 }
 
 #[cfg(test)]
@@ -328,5 +353,23 @@ mod tests {
         assert!((cost - expected).abs() < 1e-6, "{cost} vs {expected}");
         assert!(select_rows(&g.unlabeled, &vec![false; g.unlabeled.len()]).is_none());
         assert_eq!(weight_share(&[1.0, 3.0], &[false, true]), 0.75);
+    }
+
+    /// One batch is the plain share; a row 1000 nats above the rest rules only its own batch
+    /// (a whole-dataset share would be 1 or 0 with it), and f64 stays finite.
+    #[test]
+    fn batch_weight_share_normalises_each_batch() {
+        let flags = [false, true, false, true];
+        let logs = [0.0, 3f64.ln(), 0.0, 3f64.ln()];
+        assert!((batch_weight_share(&logs, &flags, 4, 0) - 0.75).abs() < 1e-12);
+        assert!((batch_weight_share(&logs, &flags, 1, 0) - 0.5).abs() < 1e-12);
+        let mut logs = vec![0.0; 8];
+        let mut flags = vec![false; 8];
+        logs[0] = 1000.0;
+        flags[1..].iter_mut().for_each(|f| *f = true);
+        // Batches of one: the share is the flagged fraction of rows, 7/8.
+        assert!((batch_weight_share(&logs, &flags, 1, 3) - 7.0 / 8.0).abs() < 1e-12);
+        // Batches of four: the batch holding row 0 gives 0, the other 1: mean 1/2.
+        assert!((batch_weight_share(&logs, &flags, 4, 3) - 0.5).abs() < 1e-12);
     }
 }

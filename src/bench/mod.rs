@@ -124,16 +124,25 @@ impl BenchConfig {
     }
 
     /// The table's rows in order: every configured algorithm, then with `ablations` the
-    /// ablation rows ([`Variant::ABLATIONS`]).
+    /// ablation rows ([`Variant::ABLATIONS`]): BC (preferred only) always, the SafeDICE ones
+    /// when SafeDICE is among the algorithms (`--algorithms bc --ablations` is the quick
+    /// check of whether an environment can be imitated at the budget).
     pub fn rows(&self) -> Vec<(Algorithm, Variant)> {
         let standard = self.algorithms.iter().map(|&a| (a, Variant::Standard));
-        let ablations = Variant::ABLATIONS.iter().copied().filter(|_| self.ablations);
+        let ablations = Variant::ABLATIONS.iter().copied().filter(|&(algorithm, variant)| {
+            self.ablations
+                && (variant == Variant::PreferredOnly || self.algorithms.contains(&algorithm))
+        });
         standard.chain(ablations).collect()
     }
 
-    /// The JSON `config` handed to [`crate::algo::resolve_config`] for one training.
-    pub fn training_config(&self, seed: u64) -> serde_json::Value {
+    /// The JSON `config` handed to [`crate::algo::resolve_config`] for one training of
+    /// `algorithm`: the overrides this algorithm has (a `--config` key of SafeDICE's leaves the
+    /// BC rows alone), the seed and the iterations.
+    pub fn training_config(&self, algorithm: Algorithm, seed: u64) -> serde_json::Value {
+        let known = crate::algo::config_keys(algorithm);
         let mut config = self.overrides.clone();
+        config.retain(|key, _| known.contains(key));
         config.insert("seed".into(), seed.into());
         config.insert("iterations".into(), self.iterations.into());
         serde_json::Value::Object(config)
@@ -189,8 +198,9 @@ pub struct BenchArgs {
     /// Override the service default hidden layer widths (256,256) of every network.
     #[arg(long, value_delimiter = ',')]
     pub hidden_sizes: Option<Vec<usize>>,
-    /// Further config keys for every selected algorithm, as a JSON object (e.g.
-    /// '{"discriminator_iterations": 500}' with --algorithms safedice); for diagnostics.
+    /// Further config keys, as a JSON object (e.g. '{"discriminator_iterations": 500}'); each
+    /// training takes the keys its algorithm has (every row of an ablation run too); for
+    /// diagnostics.
     #[arg(long)]
     pub config: Option<String>,
     /// Also train, per environment and seed, the ablation rows that use the generator's ground
@@ -235,6 +245,15 @@ impl BenchArgs {
                     )))
                 }
             }
+        }
+        let unknown_to_all = |key: &String| {
+            let rows = [Algorithm::Bc].into_iter().chain(algorithms.iter().copied());
+            !rows.map(crate::algo::config_keys).any(|keys| keys.contains(key))
+        };
+        if let Some(key) = overrides.keys().find(|&k| unknown_to_all(k)) {
+            return Err(BenchError::Config(format!(
+                "--config key `{key}` belongs to none of the selected algorithms"
+            )));
         }
         let config = BenchConfig {
             envs,

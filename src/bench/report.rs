@@ -38,9 +38,15 @@ pub fn console_table(summary: &Summary) -> String {
         if let Some(c) = &env.safedice_vs_bc {
             let _ = writeln!(
                 out,
-                "  SafeDICE/BC cost ratio {:.2}, return difference {:+.1} points",
-                c.cost_ratio, c.return_difference
+                "  SafeDICE/BC cost ratio {:.2}, return difference {:+.1} points, goal {}",
+                c.cost_ratio,
+                c.return_difference,
+                if c.meets_goal { "met" } else { "missed" }
             );
+        }
+        if let Some(f) = &env.fairness {
+            let verdict = if f.passes { "passes" } else { "FAILS" };
+            let _ = writeln!(out, "  fairness check (BC on preferred episodes) {verdict}");
         }
     }
     out
@@ -175,13 +181,34 @@ fn write_env(md: &mut String, env: &EnvSummary, data: &super::runner::EnvData) {
         let _ = writeln!(
             md,
             "\nSafeDICE vs BC: cost ratio {:.2} (paper: 0.5-0.9), normalized return {:+.1} points. \
-             {}",
+             {} Goal (cost ≤ {}x BC's at ≥ {}x its normalized return, return ratio {:.3}): {}.",
             cmp.cost_ratio,
             cmp.return_difference,
             if cmp.as_expected {
                 "As expected: clearly lower cost at similar return."
             } else {
                 "NOT as expected (see the SafeDICE diagnostics below)."
+            },
+            super::summary::GOAL_COST_RATIO,
+            super::summary::GOAL_RETURN_RATIO,
+            cmp.return_ratio,
+            if cmp.meets_goal { "met" } else { "missed" }
+        );
+    }
+    if let Some(f) = &env.fairness {
+        let _ = writeln!(
+            md,
+            "\nFairness check (BC on D^U's preferred episodes alone against the preferred \
+             demonstrator, within 10%): normalized return {:.1} (100 ± 10), average cost {:.2} \
+             ({:.2} ± {:.2}): {}.",
+            f.normalized_return,
+            f.average_cost,
+            f.demonstrator_cost,
+            f.cost_tolerance,
+            if f.passes {
+                "passes, the environment tests safety at this budget"
+            } else {
+                "FAILS, at this budget the environment tests imitation capacity"
             }
         );
     }
@@ -255,9 +282,10 @@ fn write_ablations(md: &mut String, results: &BenchResults, summary: &Summary) {
          allows. AUC: ROC AUC of the trained discriminator's logit as a score of \
          \"non-preferred\", on a held-out labeled set (fresh preferred and non-preferred \
          episodes, another data seed) and on D^U's true flags; all SafeDICE rows of a seed \
-         train the same discriminator. Weight share: the share of Eq. 12's weights \
-         (exp(A − 1), current ν, all of D^U) on non-preferred transitions at the end of training \
-         (α* = no filtering, 0 = a perfect filter). Reading: oracle labels far better than \
+         train the same discriminator. Weight share: the share of Eq. 37's weights \
+         (exp(A − 1) with the final ν, self-normalised within each batch as the policy step does, \
+         all of D^U in batches of the run's size) on non-preferred transitions (α* = no \
+         filtering, 0 = a perfect filter). Reading: oracle labels far better than \
          SafeDICE point at the discriminator or alpha-hat (true α tells which); oracle labels \
          no better than SafeDICE point at the weighting stage (ν, Eq. 36-37) or the policy \
          fit; BC (preferred only) bounds them all.\n"

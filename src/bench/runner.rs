@@ -391,8 +391,9 @@ fn train_and_evaluate(
         message,
     };
     let train_error = |e: TrainError| fail(e.to_string());
-    let resolved = algo::resolve_config(job.algorithm, &config.training_config(job.seed))
-        .map_err(|e| fail(e.message))?;
+    let resolved =
+        algo::resolve_config(job.algorithm, &config.training_config(job.algorithm, job.seed))
+            .map_err(|e| fail(e.message))?;
     let truth = || prepared.truth.as_ref().ok_or_else(|| fail("ablation without truth".into()));
     let data = match job.variant {
         Variant::PreferredOnly => &truth()?.preferred_only,
@@ -471,7 +472,9 @@ fn safedice_ablation(t: &SafediceTrainer, truth: &Truth) -> Result<SafediceAblat
     let heldout = t.discriminator_logits(&truth.heldout)?;
     let unlabeled = t.discriminator_logits_unlabeled()?;
     let flags = &truth.unlabeled_non_preferred;
-    let share = t.unlabeled_weights()?.map_or(f64::NAN, |w| ablation::weight_share(&w, flags));
+    let share = t.unlabeled_advantages()?.map_or(f64::NAN, |a| {
+        ablation::batch_weight_share(&a, flags, t.batch_size(), ablation::WEIGHT_SHARE_SEED)
+    });
     Ok(SafediceAblation {
         auc_heldout: ablation::roc_auc(&heldout, &truth.heldout_non_preferred).unwrap_or(f64::NAN),
         auc_unlabeled: ablation::roc_auc(&unlabeled, flags).unwrap_or(f64::NAN),

@@ -74,8 +74,53 @@ pub struct Comparison {
     pub cost_ratio: f64,
     /// SafeDICE's mean normalized return minus BC's (points).
     pub return_difference: f64,
+    /// SafeDICE's mean normalized return / BC's.
+    pub return_ratio: f64,
     /// Cost ratio at most 0.9 with the normalized return no more than 10 points below BC's.
     pub as_expected: bool,
+    /// The project's goal: cost ratio at most [`GOAL_COST_RATIO`] at a return ratio of at least
+    /// [`GOAL_RETURN_RATIO`].
+    pub meets_goal: bool,
+}
+
+/// The goal the benchmark measures SafeDICE against: at most 0.7x BC's average cost at no less
+/// than 0.95x BC's normalized return.
+pub const GOAL_COST_RATIO: f64 = 0.7;
+pub const GOAL_RETURN_RATIO: f64 = 0.95;
+
+/// Whether an environment tests safety rather than imitation capacity at the run's budget: BC
+/// on D^U's preferred episodes alone (the ceiling of any filter of D^U) against the preferred
+/// demonstrator. It passes within [`FAIR_TOLERANCE`] of the demonstrator's normalized return
+/// (100) and of its average cost; for the cost the tolerance is the larger of 10% of the
+/// demonstrator's cost and 1% of κ (a demonstrator cost of 0 leaves no relative room).
+#[derive(Clone, Debug, Serialize)]
+pub struct Fairness {
+    pub normalized_return: f64,
+    pub average_cost: f64,
+    pub demonstrator_cost: f64,
+    /// The cost tolerance applied.
+    pub cost_tolerance: f64,
+    pub passes: bool,
+}
+
+/// 10%: the bound of the fairness check.
+pub const FAIR_TOLERANCE: f64 = 0.10;
+
+impl Fairness {
+    fn of(row: &AlgorithmSummary, reference: &crate::envs::ReferenceStats) -> Fairness {
+        let (ret, cost) = (row.normalized_return.mean, row.average_cost.mean);
+        let demonstrator_cost = reference.preferred_cost;
+        let cost_tolerance =
+            (FAIR_TOLERANCE * demonstrator_cost).max(0.01 * reference.cost_threshold);
+        Fairness {
+            normalized_return: ret,
+            average_cost: cost,
+            demonstrator_cost,
+            cost_tolerance,
+            passes: (ret - 100.0).abs() <= 100.0 * FAIR_TOLERANCE
+                && (cost - demonstrator_cost).abs() <= cost_tolerance,
+        }
+    }
 }
 
 #[derive(Clone, Debug, Serialize)]
@@ -83,6 +128,8 @@ pub struct EnvSummary {
     pub env: String,
     pub rows: Vec<AlgorithmSummary>,
     pub safedice_vs_bc: Option<Comparison>,
+    /// With `--ablations`: the BC (preferred only) row against the preferred demonstrator.
+    pub fairness: Option<Fairness>,
 }
 
 #[derive(Clone, Debug, Serialize)]
@@ -116,7 +163,11 @@ pub fn summarize(results: &BenchResults) -> Summary {
                 })
                 .collect();
             let safedice_vs_bc = compare(&rows);
-            EnvSummary { env: env.clone(), rows, safedice_vs_bc }
+            let reference = results.data.iter().find(|d| &d.env == env).map(|d| &d.reference);
+            let preferred_only =
+                rows.iter().find(|r| r.variant == Variant::PreferredOnly && r.seeds > 0);
+            let fairness = preferred_only.zip(reference).map(|(r, s)| Fairness::of(r, s));
+            EnvSummary { env: env.clone(), rows, safedice_vs_bc, fairness }
         })
         .collect();
     Summary { envs, full_mode_hours: full_mode_hours(results) }
@@ -161,10 +212,13 @@ fn compare(rows: &[AlgorithmSummary]) -> Option<Comparison> {
     let (safedice, bc) = (find(Algorithm::Safedice)?, find(Algorithm::Bc)?);
     let cost_ratio = safedice.average_cost.mean / bc.average_cost.mean;
     let return_difference = safedice.normalized_return.mean - bc.normalized_return.mean;
+    let return_ratio = safedice.normalized_return.mean / bc.normalized_return.mean;
     Some(Comparison {
         cost_ratio,
         return_difference,
+        return_ratio,
         as_expected: cost_ratio <= 0.9 && return_difference >= -10.0,
+        meets_goal: cost_ratio <= GOAL_COST_RATIO && return_ratio >= GOAL_RETURN_RATIO,
     })
 }
 

@@ -102,12 +102,19 @@ fn arguments_select_envs_algorithms_and_modes() {
     assert_eq!(quick.envs, ["point-goal"]);
     assert_eq!(quick.algorithms, [Algorithm::Safedice, Algorithm::Bc]);
     assert_eq!(quick.data, DataSize::QUICK);
-    assert_eq!(quick.training_config(0)["batch_size"], 256, "quick runs small networks");
-    assert!(full.training_config(0).get("batch_size").is_none(), "full runs the service's");
+    assert_eq!(
+        quick.training_config(Algorithm::Bc, 0)["batch_size"],
+        256,
+        "quick runs small networks"
+    );
+    assert!(
+        full.training_config(Algorithm::Bc, 0).get("batch_size").is_none(),
+        "full runs the service's"
+    );
     let custom = parse(&["--quick", "--iterations", "7", "--hidden-sizes", "8,8"]).unwrap();
     assert_eq!(custom.iterations, 7);
-    assert_eq!(custom.training_config(3)["hidden_sizes"], serde_json::json!([8, 8]));
-    assert_eq!(custom.training_config(3)["seed"], 3);
+    assert_eq!(custom.training_config(Algorithm::Bc, 3)["hidden_sizes"], serde_json::json!([8, 8]));
+    assert_eq!(custom.training_config(Algorithm::Bc, 3)["seed"], 3);
 
     let err = parse(&["--envs", "walker"]).unwrap_err();
     assert!(err.contains("unknown environment `walker`"), "{err}");
@@ -120,4 +127,16 @@ fn arguments_select_envs_algorithms_and_modes() {
     assert!(parse(&["--quick", "--ablations"]).unwrap().ablations);
     let err = parse(&["--algorithms", "bc", "--labeled", "0", "--ablations"]).unwrap_err();
     assert!(err.contains("--ablations"), "SafeDICE's ablations need D^N: {err}");
+
+    // SafeDICE's ablation rows come with SafeDICE; BC (preferred only) with any algorithm.
+    let bc_only = parse(&["--quick", "--algorithms", "bc", "--ablations"]).unwrap();
+    let rows: Vec<_> = bc_only.rows().into_iter().map(|(a, v)| v.label(a)).collect();
+    assert_eq!(rows, ["BC", "BC (preferred only)"]);
+    // A --config key reaches the algorithms that have it, and only those.
+    let gp = parse(&["--algorithms", "safedice", "--ablations", "--config", r#"{"nu_gp": 0.5}"#])
+        .unwrap();
+    assert_eq!(gp.training_config(Algorithm::Safedice, 0)["nu_gp"], 0.5);
+    assert!(gp.training_config(Algorithm::Bc, 0).get("nu_gp").is_none());
+    let err = parse(&["--algorithms", "safedice", "--config", r#"{"eta": 0.3}"#]).unwrap_err();
+    assert!(err.contains("`eta` belongs to none of the selected algorithms"), "{err}");
 }
