@@ -206,9 +206,10 @@ const KNOBS = [
   { key: 'batch_size', label: 'Batch size', type: 'int' },
   { key: 'hidden_sizes', label: 'Hidden sizes', type: 'list' },
   { key: 'lr_actor', label: 'Actor learning rate', type: 'float' },
-  // Resolved as a tenth of the iterations unless set, so the preset's number would mislead.
-  { key: 'discriminator_iterations', label: 'Discriminator iterations', placeholder: 'iterations / 10', type: 'int', pretraining: true },
-  { key: 'reward_model_iterations', label: 'Reward-model iterations', placeholder: 'iterations / 10', type: 'int', pretraining: true },
+  // Resolved as a share of the iterations unless set (pretrainingShare), so the preset's number
+  // would mislead: the placeholder names the rule.
+  { key: 'discriminator_iterations', label: 'Discriminator iterations', type: 'int', pretraining: true },
+  { key: 'reward_model_iterations', label: 'Reward-model iterations', type: 'int', pretraining: true },
   { key: 'gamma', label: 'Discount γ', type: 'float' },
   { key: 'eta', label: 'η (DWBC)', type: 'float' },
   { key: 'alpha', label: 'α (DExperts)', type: 'float' },
@@ -230,13 +231,28 @@ function parseKnob(knob, text) {
   return Number(text);
 }
 
-/** Steps of a run as the server counts them: the pretraining phase (a tenth of the iterations
- *  unless set) and then the policy iterations. */
+/** The share of the iterations a preset's pretraining phase takes unless set, read off the
+ *  server's resolved preset (service SafeDICE: 1, the others: a tenth). */
+function pretrainingShare(defaults, key) {
+  return Number(defaults[key]) / Number(defaults.iterations);
+}
+
+/** The placeholder of a pretraining knob: the preset's rule in words. */
+function pretrainingRule(defaults, key) {
+  const share = pretrainingShare(defaults, key);
+  if (share === 1) return 'iterations';
+  if (share === 0.1) return 'iterations / 10';
+  return `${share} × iterations`;
+}
+
+/** Steps of a run as the server counts them: the pretraining phase (the preset's share of the
+ *  iterations unless set, at least one step) and then the policy iterations. */
 function stepPlan(algorithm, config) {
   const defaults = presetConfig(algorithm, config.preset || 'service');
   const iterations = Number(config.iterations ?? defaults.iterations);
   const key = Object.keys(PRETRAINING_NAMES).find((k) => k in defaults);
-  const pretraining = key ? Number(config[key] ?? Math.max(1, Math.floor(iterations / 10))) : 0;
+  const share = key ? pretrainingShare(defaults, key) : 0;
+  const pretraining = key ? Number(config[key] ?? Math.max(1, Math.floor(iterations * share + 1e-9))) : 0;
   return { iterations, pretraining, phase: key ? PRETRAINING_NAMES[key] : null, total: iterations + pretraining };
 }
 
@@ -335,7 +351,8 @@ function jobForm(datasets, envs, finished, onCreated) {
     const config = presetConfig(algorithm.value, preset.value);
     for (const { knob, input, label } of knobInputs) {
       label.hidden = !(knob.key in config);
-      input.placeholder = knob.placeholder || (knob.key in config ? knobText(config[knob.key]) : '');
+      input.placeholder = knob.pretraining && knob.key in config ? pretrainingRule(config, knob.key)
+        : (knob.key in config ? knobText(config[knob.key]) : '');
     }
     showEstimate();
   };
@@ -363,7 +380,7 @@ function jobForm(datasets, envs, finished, onCreated) {
       h('label', {}, 'Evaluate every (policy steps)', evalEvery),
       h('label', {}, 'Evaluation episodes', evalEpisodes)),
     estimate,
-    h('p', { class: 'hint' }, 'Empty fields take the preset’s value (the placeholders). SafeDICE first trains its discriminator and PPL its reward model, a tenth of the iterations unless set; those steps count in the job’s progress. With an environment, the policy is evaluated every N policy steps and at the end (the paper’s metrics, charted on the job page).'),
+    h('p', { class: 'hint' }, 'Empty fields take the preset’s value (the placeholders). SafeDICE first trains its discriminator (as many steps as the iterations in the service preset, a tenth in the others) and PPL its reward model (a tenth), unless set; those steps count in the job’s progress. With an environment, the policy is evaluated every N policy steps and at the end (the paper’s metrics, charted on the job page).'),
     h('div', { class: 'form-actions' }, submit), result);
 
   form.addEventListener('submit', async (event) => {

@@ -60,7 +60,8 @@ pub struct BenchConfig {
     /// Training seeds `0..seeds`.
     pub seeds: u64,
     /// Policy-learning iterations of every algorithm; pretraining phases (SafeDICE's
-    /// discriminator, PPL's reward model) add their service default of 10% on top.
+    /// discriminator, PPL's reward model) add their service default on top (as many steps for
+    /// SafeDICE, 10% for PPL).
     pub iterations: u64,
     pub data: DataSize,
     /// Seed of the generated data (the same for every training seed, as in the paper).

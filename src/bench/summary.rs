@@ -74,8 +74,8 @@ pub struct Comparison {
     pub cost_ratio: f64,
     /// SafeDICE's mean normalized return minus BC's (points).
     pub return_difference: f64,
-    /// SafeDICE's mean normalized return / BC's.
-    pub return_ratio: f64,
+    /// SafeDICE's mean normalized return / BC's; None when BC's is not positive.
+    pub return_ratio: Option<f64>,
     /// Cost ratio at most 0.9 with the normalized return no more than 10 points below BC's.
     pub as_expected: bool,
     /// The project's goal: cost ratio at most [`GOAL_COST_RATIO`] at a return ratio of at least
@@ -212,18 +212,20 @@ fn compare(rows: &[AlgorithmSummary]) -> Option<Comparison> {
     let (safedice, bc) = (find(Algorithm::Safedice)?, find(Algorithm::Bc)?);
     let cost_ratio = safedice.average_cost.mean / bc.average_cost.mean;
     let return_difference = safedice.normalized_return.mean - bc.normalized_return.mean;
-    let return_ratio = safedice.normalized_return.mean / bc.normalized_return.mean;
+    let (safe_return, bc_return) = (safedice.normalized_return.mean, bc.normalized_return.mean);
+    let return_ratio = (bc_return > 0.0).then(|| safe_return / bc_return);
     Some(Comparison {
         cost_ratio,
         return_difference,
         return_ratio,
         as_expected: cost_ratio <= 0.9 && return_difference >= -10.0,
-        meets_goal: cost_ratio <= GOAL_COST_RATIO && return_ratio >= GOAL_RETURN_RATIO,
+        meets_goal: cost_ratio <= GOAL_COST_RATIO && safe_return >= GOAL_RETURN_RATIO * bc_return,
     })
 }
 
 /// Full mode: every algorithm on every environment for 1M iterations plus its pretraining
-/// phase (same 10% share as here, so the measured steps/s carry over), 5 seeds, 500 episodes.
+/// phase (the same share of the iterations as here, so the measured steps/s carry over), 5 seeds,
+/// 500 evaluation episodes.
 fn full_mode_hours(results: &BenchResults) -> f64 {
     let config = &results.config;
     let full = super::BenchConfig::full();

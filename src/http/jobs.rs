@@ -48,7 +48,8 @@ pub struct CreateJob {
     ///
     /// Keys of every algorithm: `seed`, `iterations`, `batch_size`, `hidden_sizes`, `lr_actor`,
     /// `normalize_observations` (the statistics travel with the policy). `safedice`:
-    /// `discriminator_iterations` (a tenth of `iterations` unless set), `lr_discriminator`,
+    /// `discriminator_iterations` (unless set: `iterations` in the `service` preset, a tenth in the
+    /// others), `lr_discriminator`,
     /// `lr_nu`, `discriminator_gp`, `nu_gp`, `gamma`, `terminal_handling` (`none`, `mask`,
     /// `reset`, `absorbing`), `standardize_reward`, `alpha_hat_quantile` (0: the paper's
     /// minimum), `ess_warning_fraction`. `dwbc`: `eta`, `lr_discriminator`, `discriminator_gp`.

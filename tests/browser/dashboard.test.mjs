@@ -249,12 +249,14 @@ test('the job form defaults the datasets by role, estimates the run and creates 
   assert.ok(!unlabeledChoices.includes(state.nonPreferred.id));
   // Empty iterations: the preset's run, said in steps before anything is queued.
   await page.selectOption('#job-algorithm', 'safedice');
-  assert.match(await page.textContent('#job-estimate'), /^110,000 steps = 10,000 discriminator pretraining \+ 100,000 policy iterations: no finished job/);
+  // The service preset trains SafeDICE's discriminator for as many steps as the iterations.
+  assert.match(await page.textContent('#job-estimate'), /^200,000 steps = 100,000 discriminator pretraining \+ 100,000 policy iterations: no finished job/);
+  assert.equal(await page.getAttribute('#job-discriminator_iterations', 'placeholder'), 'iterations');
   await page.fill('#job-name', 'six-rooms safedice small');
   await page.fill('#job-tags', 'browser, six-rooms');
   await page.fill('#job-notes', 'queued from the dashboard test');
   await page.fill('#job-iterations', String(ITERATIONS));
-  assert.match(await page.textContent('#job-estimate'), new RegExp(`^${(ITERATIONS * 1.1).toLocaleString('en-US')} steps = ${(ITERATIONS / 10).toLocaleString('en-US')} discriminator pretraining`));
+  assert.match(await page.textContent('#job-estimate'), new RegExp(`^${(ITERATIONS * 2).toLocaleString('en-US')} steps = ${ITERATIONS.toLocaleString('en-US')} discriminator pretraining`));
   await page.fill('#job-seed', '7');
   await page.fill('#job-hidden_sizes', '32, 32');
   await page.fill('#job-batch_size', '64');

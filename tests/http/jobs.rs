@@ -93,8 +93,8 @@ async fn safedice_and_bc_train_and_serve_identical_actions_over_act_and_v2() {
         json!({"algorithm": "bc", "unlabeled_dataset": u, "config": small_config(200, 1)}),
     )
     .await;
-    assert_eq!(safedice["config"]["discriminator_iterations"], 30, "10% of iterations");
-    assert_eq!(safedice["progress"]["total"], 330);
+    assert_eq!(safedice["config"]["discriminator_iterations"], 300, "service: as many steps");
+    assert_eq!(safedice["progress"]["total"], 600);
     assert_eq!(safedice["runner"], json!({"log_every": 10, "checkpoint_every": 100}));
     assert_eq!(bc["runner"]["log_every"], 100, "default runner options");
 
@@ -104,7 +104,7 @@ async fn safedice_and_bc_train_and_serve_identical_actions_over_act_and_v2() {
     assert_eq!(events[0].0, "status");
     for (name, data) in &events {
         if name == "progress" {
-            assert!(data["step"].as_u64().unwrap() <= 330 && data["total"] == 330, "{data}");
+            assert!(data["step"].as_u64().unwrap() <= 600 && data["total"] == 600, "{data}");
         }
     }
 
@@ -113,7 +113,7 @@ async fn safedice_and_bc_train_and_serve_identical_actions_over_act_and_v2() {
             .await;
     let bc =
         wait_for_status(&app.client, &app.base_url, bc["id"].as_str().unwrap(), "succeeded").await;
-    assert_eq!(sd["progress"]["step"], 330);
+    assert_eq!(sd["progress"]["step"], 600);
     assert_eq!(app.count_rows("job_checkpoints").await, 0, "removed once the jobs succeeded");
     assert_eq!(sd["progress"]["fraction"], 1.0);
     assert!(sd["alpha_hat"].as_f64().unwrap().is_finite(), "{sd}");
@@ -132,7 +132,7 @@ async fn safedice_and_bc_train_and_serve_identical_actions_over_act_and_v2() {
     let rows = full["rows"].as_array().unwrap();
     let steps: std::collections::BTreeSet<u64> =
         rows.iter().map(|r| r["step"].as_u64().unwrap()).collect();
-    assert_eq!(steps, (1..=33).map(|k| k * 10).collect());
+    assert_eq!(steps, (1..=60).map(|k| k * 10).collect());
     let name = rows.last().unwrap()["name"].as_str().unwrap().to_owned();
     let series: Vec<&Value> = rows.iter().filter(|r| r["name"] == name.as_str()).collect();
     let small = get_json(
