@@ -340,12 +340,13 @@ impl SafediceConfig {
     ///
     /// | discriminator steps | six-rooms | point-goal | cartpole-slider |
     /// |---|---|---|---|
-    /// | 5k (10%, the authors' ratio) | 0.58x (0.976) | 0.90x (0.66) | 1.16x (0.94; alpha-hat 0) |
+    /// | 5k (10%, the authors' ratio) | 0.57x (0.976) | 0.90x (0.66) | 1.16x (0.93; alpha-hat 0) |
     /// | 25k (50%) | | 0.81x | 0.83x |
     /// | 50k (100%) | 0.66x | 0.78x (0.69) | 0.33x (0.98) |
     /// | 100k (200%) | | 0.78x | |
     ///
-    /// On cartpole-slider 4 seeds at 100% gave 0.35x ± 0.02. What else was measured there and
+    /// On cartpole-slider 4 seeds at 100% gave 0.35x ± 0.02; the committed 5-seed run with 500
+    /// evaluation episodes (bench/results.md) gives 0.68x, 0.81x and 0.49x. What else was measured there and
     /// left as it was (bench/README.md, "Choosing the service defaults"): actor lr 3e-4 (0.66x on
     /// point-goal, but 0.68x with seeds from 0.31x to 1.10x on cartpole-slider), discriminator
     /// GP 0.1 or 1, the 1% quantile in place of alpha-hat's minimum, and the raw Eq. 10 reward.
