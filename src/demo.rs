@@ -133,13 +133,17 @@ pub async fn run(args: &DemoArgs) -> anyhow::Result<Vec<DemoRow>> {
     if args.serve && result.is_ok() {
         // Listen before saying so: a SIGTERM right after the line must stop us cleanly.
         let stop = crate::server::shutdown_listener();
-        println!("\nThe service keeps running: open {base}/ in a browser for the dashboard (jobs,");
-        println!(
-            "metrics, policies, evaluations). Ctrl-C stops it; the data stays in {}.",
+        // From here on stdout may be a pipe its reader has closed (`| head`, a supervisor that
+        // stopped reading): println! would panic and take the service down, so errors are
+        // ignored and the message goes out in one write.
+        let _ = write!(
+            std::io::stdout(),
+            "\nThe service keeps running: open {base}/ in a browser for the dashboard (jobs,\n\
+             metrics, policies, evaluations). Ctrl-C stops it; the data stays in {}.\n",
             dir.display()
         );
+        let _ = std::io::stdout().flush();
         let signal = stop.await;
-        // stdout may be gone by now (a closed pipe): println! would panic.
         let _ = writeln!(std::io::stdout(), "{signal}: stopping");
     }
     server.stop().await?;

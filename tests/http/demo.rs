@@ -52,6 +52,8 @@ async fn demo_serve_keeps_the_service_and_its_data() {
         }
         panic!("the demo ended without serving: {seen:#?}");
     });
+    // The reader is dropped here, so the pipe is closed while the demo serves: like `| head`,
+    // that must not stop the service (the stopping line below goes to a closed pipe).
     let output = tokio::time::timeout(std::time::Duration::from_secs(240), waiting)
         .await
         .expect("the demo finishes")
