@@ -53,6 +53,18 @@ struct Header {
     rng: RngState,
     data_fingerprint: String,
     optimizer_steps: BTreeMap<String, u64>,
+    /// A trainer's own scalars beyond its optimisers (e.g. the discriminator's early-stopping
+    /// state); empty for most.
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    extra: BTreeMap<String, f64>,
+}
+
+/// What a trainer saves beyond its optimisers: named scalars and named tensors (stored under
+/// `extra/`).
+#[derive(Default)]
+pub struct Extra {
+    pub scalars: BTreeMap<String, f64>,
+    pub tensors: Vec<(String, Tensor)>,
 }
 
 /// Serialises a run's state. `optimizers` are named (e.g. "policy", "nu"); their tensors are
@@ -63,8 +75,10 @@ pub fn encode(
     rng: &ChaCha8Rng,
     data_fingerprint: &str,
     optimizers: &[(&str, &Adam)],
+    extra: &Extra,
 ) -> Result<Vec<u8>, TrainError> {
     let header = Header {
+        extra: extra.scalars.clone(),
         format: FORMAT.into(),
         config: config.clone(),
         step,
@@ -77,6 +91,9 @@ pub fn encode(
         for (key, t) in opt.state() {
             tensors.push((format!("{name}/{key}"), t.to_device(&Device::Cpu)?));
         }
+    }
+    for (name, t) in &extra.tensors {
+        tensors.push((format!("extra/{name}"), t.to_device(&Device::Cpu)?));
     }
     let metadata = HashMap::from([(
         METADATA_KEY.to_string(),
@@ -92,6 +109,7 @@ pub struct Restored {
     pub rng: ChaCha8Rng,
     tensors: HashMap<String, Tensor>,
     optimizer_steps: BTreeMap<String, u64>,
+    pub extra_scalars: BTreeMap<String, f64>,
 }
 
 pub fn decode(
@@ -129,10 +147,19 @@ pub fn decode(
         rng: header.rng.rebuild()?,
         tensors,
         optimizer_steps: header.optimizer_steps,
+        extra_scalars: header.extra,
     })
 }
 
 impl Restored {
+    /// The extra tensors saved with [`Extra`], by their names.
+    pub fn extra_tensors(&self) -> HashMap<String, Tensor> {
+        self.tensors
+            .iter()
+            .filter_map(|(k, t)| k.strip_prefix("extra/").map(|n| (n.to_string(), t.clone())))
+            .collect()
+    }
+
     /// Restores the optimiser saved under `name` (parameters, moments, step count).
     pub fn restore(&self, name: &str, opt: &mut Adam) -> Result<(), TrainError> {
         let t = *self

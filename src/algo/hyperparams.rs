@@ -120,6 +120,11 @@ pub struct SafediceConfig {
     /// Warn (metric `weight_degenerate` = 1) when the effective sample size of a batch's weights
     /// falls below this fraction of the batch.
     pub ess_warning_fraction: f64,
+    /// Hold out a fifth of D^N and D^U and stop the discriminator when its held-out Eq. 9 loss
+    /// stops improving, keeping the best weights (`algo::discriminator_stop`);
+    /// `discriminator_iterations` is then the most it trains. Off: the paper's fixed step count.
+    #[serde(default)]
+    pub discriminator_early_stopping: bool,
 }
 
 /// DWBC's knobs (Eq. 38, 39).
@@ -318,6 +323,7 @@ impl SafediceConfig {
             standardize_reward: false,
             alpha_hat_quantile: 0.0,
             ess_warning_fraction: 0.01,
+            discriminator_early_stopping: false,
         }
     }
 

@@ -18,6 +18,7 @@ pub mod bc;
 pub mod checkpoint;
 pub mod columns;
 pub mod dexperts;
+pub mod discriminator_stop;
 pub mod dwbc;
 pub mod dwbc_fused;
 pub mod fused_mlp;

@@ -312,6 +312,31 @@ impl Policy {
         }
     }
 
+    /// For a discrete policy, the distribution [`Self::act`] samples from for each row of
+    /// `observations` (`B × n`, row-major): the softmax, or for DExperts Eq. 44's scores
+    /// clipped at 0 and renormalised (all mass on the argmax where none is positive). None for
+    /// a continuous policy.
+    pub fn action_probabilities(&self, observations: &[f32]) -> Option<Vec<f32>> {
+        let ActionSpace::Discrete { n } = self.spec.action_space else { return None };
+        let dim = self.spec.obs_dim;
+        let rows = observations.len() / dim.max(1);
+        let mut obs = observations[..rows * dim].to_vec();
+        if let Some(norm) = &self.spec.observation_normalization {
+            norm.apply(&mut obs);
+        }
+        let mut scores = self.discrete_scores(&obs, rows);
+        for row in scores.chunks_exact_mut(n) {
+            let total: f32 = row.iter().map(|s| s.max(0.0)).sum();
+            if total > 0.0 {
+                row.iter_mut().for_each(|s| *s = s.max(0.0) / total);
+            } else {
+                let best = pick(row, true, &mut rand::SeedableRng::seed_from_u64(0)) as usize;
+                row.iter_mut().enumerate().for_each(|(i, s)| *s = f32::from(u8::from(i == best)));
+            }
+        }
+        Some(scores)
+    }
+
     /// `net`'s outputs (`rows × out`, row-major) on normalised observations.
     fn forward(&self, net: &FusedMlp, obs: &[f32], rows: usize) -> Vec<f32> {
         let mut ws = Workspace::for_inference(net.shape(), rows);

@@ -126,7 +126,16 @@ impl RunData {
     }
 
     pub fn checkpoint(&self, optimizers: &[(&str, &Adam)]) -> Result<Vec<u8>, TrainError> {
-        checkpoint::encode(&self.config, self.step, &self.rng, &self.fingerprint, optimizers)
+        self.checkpoint_with(optimizers, &checkpoint::Extra::default())
+    }
+
+    /// [`Self::checkpoint`] with a trainer's own scalars and tensors.
+    pub fn checkpoint_with(
+        &self,
+        optimizers: &[(&str, &Adam)],
+        extra: &checkpoint::Extra,
+    ) -> Result<Vec<u8>, TrainError> {
+        checkpoint::encode(&self.config, self.step, &self.rng, &self.fingerprint, optimizers, extra)
     }
 
     /// Decodes `bytes`, checks they belong to this run, and takes over their step and RNG.

@@ -26,7 +26,9 @@ use candle_core::{DType, Tensor};
 use rand::seq::SliceRandom;
 use rand::Rng;
 
+use super::checkpoint::Extra;
 use super::columns::{uniform_column, ActionColumn, Columns};
+use super::discriminator_stop::{classification_loss, Decision, EarlyStop, Holdout};
 use super::hyperparams::{AlgorithmConfig, SafediceConfig};
 use super::losses::{
     ess_fraction, interpolate, neg_log_one_minus_sigmoid, neg_log_sigmoid, self_normalized_weights,
@@ -335,6 +337,45 @@ pub struct SafediceTrainer {
     pub(super) fused: Option<FusedSafedice>,
     /// Ablation replacements of alpha-hat and the discriminator's outputs (none by default).
     overrides: SafediceOverrides,
+    /// With `discriminator_early_stopping`: the held-out rows and the stopping rule.
+    disc_stop: Option<DiscValidation>,
+}
+
+/// Early stopping of the discriminator on held-out rows ([`super::discriminator_stop`]).
+struct DiscValidation {
+    n: Holdout,
+    u: Holdout,
+    rule: EarlyStop,
+    /// The discriminator's weights at the best held-out loss so far, by variable name.
+    best: std::collections::HashMap<String, Tensor>,
+    last_loss: f64,
+}
+
+impl DiscValidation {
+    /// Held-out rows of D^N and D^U chosen from the run's seed (a stream of its own, so the
+    /// training draws are those of a run without early stopping); None when a set is a single row.
+    fn new(run: &RunData, budget: u64) -> Option<DiscValidation> {
+        let seed = run.config.seed();
+        let n = Holdout::split(&run.non_preferred().episode_ids, seed ^ 0x5afe_d1ce_0000_0001)?;
+        let u = Holdout::split(&run.u.episode_ids, seed ^ 0x5afe_d1ce_0000_0002)?;
+        let best = std::collections::HashMap::new();
+        Some(DiscValidation { n, u, rule: EarlyStop::new(budget), best, last_loss: f64::NAN })
+    }
+
+    fn stopped(&self) -> bool {
+        self.rule.stopped_at.is_some()
+    }
+}
+
+/// `batch` of `rows`, uniform with replacement.
+fn pick_rows(
+    rng: &mut impl Rng,
+    rows: &[u32],
+    batch: usize,
+    device: &candle_core::Device,
+) -> candle_core::Result<Tensor> {
+    let picks: Vec<u32> = (0..batch).map(|_| rows[rng.random_range(0..rows.len())]).collect();
+    Tensor::from_vec(picks, batch, device)
 }
 
 impl SafediceTrainer {
@@ -375,6 +416,15 @@ impl SafediceTrainer {
         let disc = run.new_critic("discriminator", run.state_action_dim())?;
         let nu = run.new_critic("nu", nu_input)?;
         let policy = run.new_policy("policy")?;
+        let disc_stop = if cfg.discriminator_early_stopping {
+            let validation = DiscValidation::new(&run, cfg.discriminator_iterations);
+            if validation.is_none() {
+                tracing::warn!("discriminator early stopping needs two rows in D^N and in D^U; training the full budget");
+            }
+            validation
+        } else {
+            None
+        };
         let fused = match run.device {
             candle_core::Device::Cpu => {
                 Some(FusedSafedice::new(&disc, &nu, policy.mlp(), run.batch())?)
@@ -395,6 +445,7 @@ impl SafediceTrainer {
             flow: None,
             phase_metrics: Vec::new(),
             overrides,
+            disc_stop,
         })
     }
 
@@ -408,6 +459,10 @@ impl SafediceTrainer {
         restored.restore("discriminator", &mut t.disc_opt)?;
         restored.restore("nu", &mut t.nu_opt)?;
         restored.restore("policy", &mut t.policy_opt)?;
+        if let Some(v) = t.disc_stop.as_mut() {
+            v.rule.restore(&restored.extra_scalars);
+            v.best = restored.extra_tensors();
+        }
         if t.run.step >= t.cfg.discriminator_iterations {
             // Deterministic from the frozen discriminator: the same alpha-hat and rewards.
             t.finish_discriminator_phase()?;
@@ -427,6 +482,17 @@ impl SafediceTrainer {
     }
 
     /// The discriminator's logits `c(s, a)` on every row of `columns`, in chunks.
+    /// The discriminator's logits on `rows` of `columns`.
+    fn score_rows(&self, columns: &Columns, rows: &[u32]) -> Result<Vec<f32>, TrainError> {
+        let mut logits = Vec::with_capacity(rows.len());
+        for chunk in rows.chunks(SCORING_CHUNK) {
+            let idx = Tensor::from_slice(chunk, chunk.len(), &self.run.device)?;
+            let x = columns.state_action(&idx)?;
+            logits.extend(self.disc.forward(&x)?.flatten_all()?.to_vec1::<f32>()?);
+        }
+        Ok(logits)
+    }
+
     fn score(&self, columns: &Columns) -> Result<Vec<f32>, TrainError> {
         let mut logits = Vec::with_capacity(columns.len);
         for start in (0..columns.len).step_by(SCORING_CHUNK) {
@@ -533,8 +599,14 @@ impl SafediceTrainer {
     /// A discriminator minibatch: `B` rows of D^N and of D^U, and the penalty's draws.
     fn discriminator_draws(&mut self) -> Result<DiscDraws, TrainError> {
         let b = self.run.batch();
-        let idx_n = self.run.sample_n()?;
-        let idx_u = self.run.sample_u()?;
+        let (idx_n, idx_u) = match &self.disc_stop {
+            Some(v) => {
+                let device = self.run.device.clone();
+                let idx_n = pick_rows(&mut self.run.rng, &v.n.train, b, &device)?;
+                (idx_n, pick_rows(&mut self.run.rng, &v.u.train, b, &device)?)
+            }
+            None => (self.run.sample_n()?, self.run.sample_u()?),
+        };
         let x_n = self.run.non_preferred().state_action(&idx_n)?;
         let x_u = self.run.u.state_action(&idx_u)?;
         let penalty = if self.cfg.discriminator_gp > 0.0 {
@@ -552,10 +624,49 @@ impl SafediceTrainer {
 
     pub(super) fn end_discriminator_step(&mut self) -> Result<(), TrainError> {
         self.run.step += 1;
+        self.measure_held_out()?;
         if self.run.step == self.cfg.discriminator_iterations {
+            if let Some(v) = self.disc_stop.as_ref().filter(|v| !v.best.is_empty()) {
+                self.disc.load(&v.best)?;
+                tracing::info!(
+                    best_step = v.rule.best_step,
+                    stopped_at = v.rule.stopped_at,
+                    heldout_loss = v.rule.best_loss,
+                    "SafeDICE discriminator: kept the weights of its best held-out loss"
+                );
+            }
             self.finish_discriminator_phase()?;
         }
         Ok(())
+    }
+
+    /// With early stopping, the held-out Eq. 9 loss after this step when the rule measures it;
+    /// keeps the weights of a new best.
+    fn measure_held_out(&mut self) -> Result<(), TrainError> {
+        let step = self.run.step;
+        let Some(v) = self.disc_stop.as_ref().filter(|v| v.rule.measures_at(step)) else {
+            return Ok(());
+        };
+        let logits_n = self.score_rows(self.run.non_preferred(), &v.n.validation)?;
+        let logits_u = self.score_rows(&self.run.u, &v.u.validation)?;
+        let loss = classification_loss(&logits_n, &logits_u);
+        let best = match self.disc_stop.as_ref().map(|v| v.rule.best_loss) {
+            Some(best) if loss < best => Some(snapshot(&self.disc)?),
+            _ => None,
+        };
+        let v = self.disc_stop.as_mut().expect("checked above");
+        v.last_loss = loss;
+        if v.rule.observe(step, loss) == Decision::Improved {
+            v.best = best.expect("a lower loss is an improvement");
+        }
+        Ok(())
+    }
+
+    /// A step after the discriminator stopped early: nothing trains; the phase still ends at
+    /// its step budget, so step counts and checkpoints are those of any other run.
+    fn idle_discriminator_step(&mut self) -> Result<Vec<(&'static str, f64)>, TrainError> {
+        self.end_discriminator_step()?;
+        Ok(std::mem::take(&mut self.phase_metrics))
     }
 
     /// `[loss, classification loss, penalty, mean σ(c) on D^N, mean σ(c) on D^U]` as named
@@ -569,6 +680,12 @@ impl SafediceTrainer {
             "discriminator_prob_non_preferred_on_du",
         ];
         let mut metrics: Vec<(&'static str, f64)> = names.into_iter().zip(values).collect();
+        if let Some(v) = &self.disc_stop {
+            metrics.push(("discriminator_heldout_loss", v.last_loss));
+            metrics.push(("discriminator_best_step", v.rule.best_step as f64));
+            metrics
+                .push(("discriminator_stopped_at", v.rule.stopped_at.map_or(-1.0, |s| s as f64)));
+        }
         metrics.append(&mut self.phase_metrics);
         metrics
     }
@@ -750,6 +867,11 @@ impl SafediceTrainer {
     }
 }
 
+/// An independent copy of a network's weights, by variable name.
+fn snapshot(net: &Mlp) -> candle_core::Result<std::collections::HashMap<String, Tensor>> {
+    net.named_vars().into_iter().map(|(name, var)| Ok((name, var.as_tensor().copy()?))).collect()
+}
+
 fn mean_std(values: &[f64]) -> (f64, f64) {
     let n = values.len().max(1) as f64;
     let mean = values.iter().sum::<f64>() / n;
@@ -770,6 +892,9 @@ impl Trainer for SafediceTrainer {
     fn step(&mut self, record: bool) -> Result<Vec<(&'static str, f64)>, TrainError> {
         self.run.ensure_running()?;
         if self.run.step < self.cfg.discriminator_iterations {
+            if self.disc_stop.as_ref().is_some_and(DiscValidation::stopped) {
+                return self.idle_discriminator_step();
+            }
             self.discriminator_step(record)
         } else {
             self.main_step(record)
@@ -777,11 +902,20 @@ impl Trainer for SafediceTrainer {
     }
 
     fn checkpoint(&self) -> Result<Vec<u8>, TrainError> {
-        self.run.checkpoint(&[
-            ("discriminator", &self.disc_opt),
-            ("nu", &self.nu_opt),
-            ("policy", &self.policy_opt),
-        ])
+        let mut extra = Extra::default();
+        if let Some(v) = &self.disc_stop {
+            extra.scalars = v.rule.to_scalars().iter().map(|(k, x)| (k.to_string(), *x)).collect();
+            extra.tensors = v.best.iter().map(|(k, t)| (k.clone(), t.clone())).collect();
+            extra.tensors.sort_by(|a, b| a.0.cmp(&b.0));
+        }
+        self.run.checkpoint_with(
+            &[
+                ("discriminator", &self.disc_opt),
+                ("nu", &self.nu_opt),
+                ("policy", &self.policy_opt),
+            ],
+            &extra,
+        )
     }
 
     fn alpha_hat(&self) -> Option<f64> {

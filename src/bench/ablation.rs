@@ -37,6 +37,9 @@ pub enum Variant {
     TrueAlpha,
     /// SafeDICE with the optimal discriminator of the true labels.
     OracleLabels,
+    /// The algorithm under the `paper` preset instead of the service defaults (the robustness
+    /// suite reports both).
+    PaperPreset,
 }
 
 impl Variant {
@@ -54,6 +57,7 @@ impl Variant {
             Variant::PreferredOnly => format!("{} (preferred only)", algorithm.display_name()),
             Variant::TrueAlpha => format!("{} (true α)", algorithm.display_name()),
             Variant::OracleLabels => format!("{} (oracle labels)", algorithm.display_name()),
+            Variant::PaperPreset => format!("{} (paper preset)", algorithm.display_name()),
         }
     }
 

@@ -19,9 +19,11 @@
 pub mod ablation;
 pub mod plot;
 pub mod report;
+pub mod robustness;
 pub mod runner;
 pub mod speed;
 pub mod summary;
+pub mod tabular;
 
 use std::path::PathBuf;
 
@@ -81,6 +83,16 @@ pub struct BenchConfig {
     /// (oracle labels), whatever `algorithms` holds, and the discriminator AUCs of every
     /// SafeDICE run.
     pub ablations: bool,
+    /// Add a "SafeDICE (paper preset)" row (the robustness suite reports it beside the service
+    /// defaults).
+    pub paper_preset_row: bool,
+    /// Add the "BC (preferred only)" row (and the ground truth it needs) without the other
+    /// ablation rows; the robustness suite's ceiling.
+    pub preferred_only_row: bool,
+    /// SafeDICE's discriminator steps as a share of each training's policy iterations, in
+    /// place of the preset's (for comparing candidate defaults across tasks of different
+    /// lengths); None keeps the preset's.
+    pub discriminator_share: Option<f64>,
 }
 
 /// DWBC's η and DExperts' α: the service defaults, kept fixed. The paper picked them per task
@@ -104,6 +116,9 @@ impl BenchConfig {
             overrides: serde_json::Map::new(),
             record_every: 1000,
             ablations: false,
+            paper_preset_row: false,
+            preferred_only_row: false,
+            discriminator_share: None,
         }
     }
 
@@ -131,19 +146,32 @@ impl BenchConfig {
     pub fn rows(&self) -> Vec<(Algorithm, Variant)> {
         let standard = self.algorithms.iter().map(|&a| (a, Variant::Standard));
         let ablations = Variant::ABLATIONS.iter().copied().filter(|&(algorithm, variant)| {
-            self.ablations
-                && (variant == Variant::PreferredOnly || self.algorithms.contains(&algorithm))
+            let preferred_only = variant == Variant::PreferredOnly;
+            (self.ablations && (preferred_only || self.algorithms.contains(&algorithm)))
+                || (self.preferred_only_row && preferred_only)
         });
-        standard.chain(ablations).collect()
+        let paper = (self.paper_preset_row && self.algorithms.contains(&Algorithm::Safedice))
+            .then_some((Algorithm::Safedice, Variant::PaperPreset));
+        standard.chain(paper).chain(ablations).collect()
     }
 
     /// The JSON `config` handed to [`crate::algo::resolve_config`] for one training of
     /// `algorithm`: the overrides this algorithm has (a `--config` key of SafeDICE's leaves the
-    /// BC rows alone), the seed and the iterations.
-    pub fn training_config(&self, algorithm: Algorithm, seed: u64) -> serde_json::Value {
+    /// BC rows alone), the seed and the iterations; the `paper` preset for
+    /// [`Variant::PaperPreset`] rows (which take only the network and batch overrides).
+    pub fn training_config(
+        &self,
+        algorithm: Algorithm,
+        variant: Variant,
+        seed: u64,
+    ) -> serde_json::Value {
         let known = crate::algo::config_keys(algorithm);
         let mut config = self.overrides.clone();
         config.retain(|key, _| known.contains(key));
+        if variant == Variant::PaperPreset {
+            config.retain(|key, _| key == "batch_size" || key == "hidden_sizes");
+            config.insert("preset".into(), "paper".into());
+        }
         config.insert("seed".into(), seed.into());
         config.insert("iterations".into(), self.iterations.into());
         serde_json::Value::Object(config)
@@ -166,9 +194,10 @@ pub struct BenchArgs {
     /// episodes, 64-64 networks with batch 256): a few minutes on 2 cores.
     #[arg(long)]
     pub quick: bool,
-    /// Output directory for results.md, results.json and the plots.
-    #[arg(long, default_value = "bench")]
-    pub out: PathBuf,
+    /// Output directory for results.md, results.json and the plots. Default: `bench`
+    /// (`bench/robustness` with --suite).
+    #[arg(long)]
+    pub out: Option<PathBuf>,
     /// Policy-learning iterations per training. Default: 1000000 (300 with --quick).
     #[arg(long)]
     pub iterations: Option<u64>,
@@ -211,26 +240,98 @@ pub struct BenchArgs {
     /// set and D^U) and the share of its weights on non-preferred transitions.
     #[arg(long)]
     pub ablations: bool,
+    /// Run a generated task suite instead of the built-in environments: `robustness` (the
+    /// suite defaults are chosen on; see docs/algorithm.md). Its own defaults: 5000
+    /// iterations, 2 seeds, 100 evaluation episodes, 64-64 networks, batch 256, and the rows
+    /// SafeDICE, SafeDICE (paper preset), BC, BC (preferred only), DWBC and PPL.
+    #[arg(long, value_enum)]
+    pub suite: Option<SuiteName>,
+    /// With --suite: which split(s) to run. Choose defaults on `dev`; report `test` once.
+    #[arg(long, value_enum, default_value = "dev")]
+    pub split: SplitArg,
+    /// With --suite: tasks per split (at most 24).
+    #[arg(long, default_value_t = crate::envs::suite::TASKS_PER_SPLIT)]
+    pub tasks: usize,
+    /// With --suite: leave out the "SafeDICE (paper preset)" row (e.g. when comparing
+    /// candidate defaults on the development split).
+    #[arg(long)]
+    pub no_paper_row: bool,
+    /// SafeDICE's discriminator steps as a share of each training's policy iterations (e.g.
+    /// 0.1), in place of the preset's: a candidate default on the suite's tasks of different
+    /// lengths.
+    #[arg(long)]
+    pub discriminator_share: Option<f64>,
+}
+
+/// The generated suites of `--suite`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum SuiteName {
+    /// The generated task suite defaults are chosen on (bench/robustness/).
+    Robustness,
+    /// The paper's tabular check on six-rooms (Appendix G), solved exactly.
+    Tabular,
+}
+
+/// `--split`: one half of the suite, or both.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum SplitArg {
+    Dev,
+    Test,
+    Both,
+}
+
+impl SplitArg {
+    pub fn splits(self) -> Vec<crate::envs::suite::Split> {
+        use crate::envs::suite::Split;
+        match self {
+            SplitArg::Dev => vec![Split::Dev],
+            SplitArg::Test => vec![Split::Test],
+            SplitArg::Both => vec![Split::Dev, Split::Test],
+        }
+    }
 }
 
 impl BenchArgs {
-    /// The configuration these arguments describe.
-    pub fn to_config(&self) -> Result<BenchConfig, BenchError> {
-        let base = if self.quick { BenchConfig::quick() } else { BenchConfig::full() };
-        let envs = parse_list(&self.envs, &base.envs, |name| {
-            crate::envs::make(name, 0).map(|_| name.to_string()).map_err(|e| e.to_string())
-        })?;
-        let algorithms = parse_list(&self.algorithms, &base.algorithms, |name| {
-            serde_json::from_value(serde_json::Value::String(name.to_string())).map_err(|_| {
-                format!("unknown algorithm `{name}` (known: safedice, bc, dwbc, ppl, dexperts)")
-            })
-        })?;
-        let data = DataSize {
-            preferred: self.preferred.unwrap_or(base.data.preferred),
-            non_preferred: self.non_preferred.unwrap_or(base.data.non_preferred),
-            labeled: self.labeled.unwrap_or(base.data.labeled),
+    /// The robustness suite's configuration: its defaults, overlaid with the arguments given.
+    pub fn to_suite_config(&self) -> Result<BenchConfig, BenchError> {
+        let base = robustness::default_config();
+        if self.tasks == 0 || self.tasks > crate::envs::suite::TASKS_PER_SPLIT {
+            return Err(BenchError::Config(format!(
+                "--tasks must be between 1 and {}",
+                crate::envs::suite::TASKS_PER_SPLIT
+            )));
+        }
+        let algorithms = if self.algorithms.trim() == "all" {
+            base.algorithms.clone()
+        } else {
+            parse_list(&self.algorithms, &base.algorithms, parse_algorithm)?
         };
         let mut overrides = base.overrides.clone();
+        self.extend_overrides(&mut overrides, &algorithms)?;
+        let config = BenchConfig {
+            algorithms,
+            overrides,
+            seeds: self.seeds.unwrap_or(base.seeds),
+            iterations: self.iterations.unwrap_or(base.iterations),
+            eval_episodes: self.episodes.unwrap_or(base.eval_episodes),
+            deterministic_eval: self.deterministic,
+            threads: self.threads,
+            ablations: self.ablations,
+            paper_preset_row: !self.no_paper_row,
+            discriminator_share: self.discriminator_share,
+            ..base
+        };
+        config.validate()?;
+        Ok(config)
+    }
+
+    /// `--batch-size`, `--hidden-sizes` and `--config` into `overrides`; a `--config` key no
+    /// selected algorithm (nor BC) has is refused.
+    fn extend_overrides(
+        &self,
+        overrides: &mut serde_json::Map<String, serde_json::Value>,
+        algorithms: &[Algorithm],
+    ) -> Result<(), BenchError> {
         if let Some(b) = self.batch_size {
             overrides.insert("batch_size".into(), b.into());
         }
@@ -256,6 +357,23 @@ impl BenchArgs {
                 "--config key `{key}` belongs to none of the selected algorithms"
             )));
         }
+        Ok(())
+    }
+
+    /// The configuration these arguments describe.
+    pub fn to_config(&self) -> Result<BenchConfig, BenchError> {
+        let base = if self.quick { BenchConfig::quick() } else { BenchConfig::full() };
+        let envs = parse_list(&self.envs, &base.envs, |name| {
+            crate::envs::make(name, 0).map(|_| name.to_string()).map_err(|e| e.to_string())
+        })?;
+        let algorithms = parse_list(&self.algorithms, &base.algorithms, parse_algorithm)?;
+        let data = DataSize {
+            preferred: self.preferred.unwrap_or(base.data.preferred),
+            non_preferred: self.non_preferred.unwrap_or(base.data.non_preferred),
+            labeled: self.labeled.unwrap_or(base.data.labeled),
+        };
+        let mut overrides = base.overrides.clone();
+        self.extend_overrides(&mut overrides, &algorithms)?;
         let config = BenchConfig {
             envs,
             overrides,
@@ -282,13 +400,18 @@ impl BenchConfig {
         if self.seeds == 0 {
             return bad("--seeds must be at least 1");
         }
+        if self.discriminator_share.is_some_and(|s| !(s > 0.0 && s <= 100.0)) {
+            return bad("--discriminator-share must be in (0, 100]");
+        }
         if self.threads == 0 {
             return bad("--threads must be at least 1");
         }
         if self.data.labeled == 0 && self.algorithms.iter().any(|a| a.needs_non_preferred()) {
             return bad("--labeled must be at least 1: every algorithm but BC needs D^N");
         }
-        if self.ablations && (self.data.preferred == 0 || self.data.labeled == 0) {
+        if (self.ablations || self.preferred_only_row)
+            && (self.data.preferred == 0 || self.data.labeled == 0)
+        {
             return bad("--ablations needs preferred episodes (BC on them) and --labeled >= 1");
         }
         if self.data.preferred + self.data.non_preferred == 0 {
@@ -299,6 +422,12 @@ impl BenchConfig {
         }
         Ok(())
     }
+}
+
+fn parse_algorithm(name: &str) -> Result<Algorithm, String> {
+    serde_json::from_value(serde_json::Value::String(name.to_string())).map_err(|_| {
+        format!("unknown algorithm `{name}` (known: safedice, bc, dwbc, ppl, dexperts)")
+    })
 }
 
 /// `all` or a comma-separated list, each item checked by `parse`.
@@ -325,15 +454,34 @@ fn parse_list<T: Clone>(
 /// `safedice bench`: runs the configured benchmark and writes its outputs; `command` is the
 /// command line recorded in results.md.
 pub fn run_cli(args: &BenchArgs, command: &str) -> anyhow::Result<()> {
-    let config = args.to_config()?;
     // One thread per training: candle's own pools collapse under load (docs/performance.md,
     // "Threads"), and the benchmark already runs `threads` trainings side by side.
     if std::env::var_os("RAYON_NUM_THREADS").is_none() {
         std::env::set_var("RAYON_NUM_THREADS", "1");
     }
+    if let Some(SuiteName::Tabular) = args.suite {
+        let out = args.out.clone().unwrap_or_else(|| PathBuf::from("bench/robustness"));
+        let iterations = args.iterations.unwrap_or(5000);
+        for path in tabular::run_cli(iterations, args.data_seed, &out, command)? {
+            println!("wrote {}", path.display());
+        }
+        return Ok(());
+    }
+    if let Some(SuiteName::Robustness) = args.suite {
+        let config = args.to_suite_config()?;
+        let splits = args.split.splits();
+        let out = args.out.clone().unwrap_or_else(|| PathBuf::from("bench/robustness"));
+        let written = robustness::run_cli(config, &splits, args.tasks, &out, command)?;
+        for path in written {
+            println!("wrote {}", path.display());
+        }
+        return Ok(());
+    }
+    let config = args.to_config()?;
     let results = run(&config)?;
     let summary = summarize(&results);
-    let written = write_outputs(&results, &summary, &args.out, command)?;
+    let out = args.out.clone().unwrap_or_else(|| PathBuf::from("bench"));
+    let written = write_outputs(&results, &summary, &out, command)?;
     print!("{}", report::console_table(&summary));
     for path in written {
         println!("wrote {}", path.display());

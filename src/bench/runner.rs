@@ -11,10 +11,11 @@ use serde::Serialize;
 
 use super::ablation::{self, SafediceAblation, Variant};
 use super::BenchConfig;
+use super::DataSize;
 use crate::algo::safedice::{oracle_logits, SafediceOverrides, SafediceTrainer};
 use crate::algo::{self, Algorithm, Policy, TrainError, Trainer, TrainingData};
 use crate::data::Dataset;
-use crate::envs::{self, DatagenSpec, GroupProfile, Metrics, ReferenceStats};
+use crate::envs::{self, DatagenSpec, GroupProfile, Metrics, ReferenceStats, Task};
 
 /// Why the benchmark stopped.
 #[derive(Debug, thiserror::Error)]
@@ -154,22 +155,55 @@ struct Job {
     seed: u64,
 }
 
+/// One environment of a run: where its episodes come from, the statistics its metrics are
+/// normalised with, and how much data to generate.
+pub struct BenchTask {
+    pub task: Box<dyn Task>,
+    pub reference: ReferenceStats,
+    pub data: DataSize,
+    /// Policy iterations of this task's trainings, in place of the configuration's.
+    pub iterations: Option<u64>,
+}
+
+impl BenchTask {
+    /// A built-in environment with the configuration's data size.
+    pub fn registered(name: &str, data: DataSize) -> Result<BenchTask, BenchError> {
+        let datagen = |e: envs::UnknownEnv| BenchError::Datagen {
+            env: name.to_string(),
+            message: e.to_string(),
+        };
+        let task = envs::Registered::get(name).map_err(datagen)?;
+        let reference = envs::reference_stats(name).map_err(datagen)?;
+        Ok(BenchTask { task: Box::new(task), reference, data, iterations: None })
+    }
+}
+
 /// Generates the data, then trains and evaluates every (environment, algorithm, seed) on
 /// `config.threads` threads. The first failing run stops the benchmark.
 pub fn run(config: &BenchConfig) -> Result<BenchResults, BenchError> {
+    let tasks = config
+        .envs
+        .iter()
+        .map(|env| BenchTask::registered(env, config.data))
+        .collect::<Result<Vec<_>, _>>()?;
+    run_tasks(config, &tasks)
+}
+
+/// [`run`] over any tasks (`config.envs` is not read: the tasks name themselves).
+pub fn run_tasks(config: &BenchConfig, tasks: &[BenchTask]) -> Result<BenchResults, BenchError> {
     config.validate()?;
     let started = chrono::Utc::now();
     let git_commit = git_commit();
     let clock = Instant::now();
     let mut prepared = Vec::new();
     let mut data = Vec::new();
-    for env in &config.envs {
-        let (p, d) = prepare(config, env)?;
+    for task in tasks {
+        let (p, d) = prepare(config, task)?;
         prepared.push(p);
         data.push(d);
     }
-    let jobs = schedule(config);
-    let runs = run_jobs(config, &prepared, &jobs)?;
+    let jobs = schedule(config, tasks.len());
+    let runs = run_jobs(config, tasks, &prepared, &jobs)?;
     Ok(BenchResults {
         config: config.clone(),
         data,
@@ -213,17 +247,19 @@ fn git_commit() -> String {
         .unwrap_or_else(|| "unknown".to_string())
 }
 
-fn prepare(config: &BenchConfig, env: &str) -> Result<(Prepared, EnvData), BenchError> {
+fn prepare(config: &BenchConfig, task: &BenchTask) -> Result<(Prepared, EnvData), BenchError> {
     let clock = Instant::now();
+    let name = task.task.name();
+    let env = name.as_str();
     let spec = DatagenSpec {
-        env: env.to_string(),
-        preferred: config.data.preferred,
-        non_preferred: config.data.non_preferred,
-        labeled: config.data.labeled,
+        env: name.clone(),
+        preferred: task.data.preferred,
+        non_preferred: task.data.non_preferred,
+        labeled: task.data.labeled,
         seed: config.data_seed,
     };
-    let generated = envs::generate(&spec)
-        .map_err(|e| BenchError::Datagen { env: env.to_string(), message: e.to_string() })?;
+    let generated = envs::generate_task(task.task.as_ref(), &spec, task.reference.clone())
+        .map_err(|e| BenchError::Datagen { env: name.clone(), message: e.to_string() })?;
     let m = generated.manifest;
     tracing::info!(
         env,
@@ -235,8 +271,8 @@ fn prepare(config: &BenchConfig, env: &str) -> Result<(Prepared, EnvData), Bench
     let non_preferred = generated.labeled_non_preferred.map(Arc::new);
     let data = TrainingData { unlabeled: Arc::new(generated.unlabeled), non_preferred };
     let ids = m.unlabeled_non_preferred_episode_ids;
-    let (truth, ablation) = if config.ablations {
-        let (truth, summary) = ground_truth(config, env, &data, &ids)?;
+    let (truth, ablation) = if config.ablations || config.preferred_only_row {
+        let (truth, summary) = ground_truth(config, task, &data, &ids)?;
         (Some(truth), Some(summary))
     } else {
         (None, None)
@@ -258,27 +294,29 @@ fn prepare(config: &BenchConfig, env: &str) -> Result<(Prepared, EnvData), Bench
 /// dataset, and the held-out labeled set (see [`ablation::HELDOUT_STREAM`]).
 fn ground_truth(
     config: &BenchConfig,
-    env: &str,
+    task: &BenchTask,
     data: &TrainingData,
     non_preferred_ids: &[u32],
 ) -> Result<(Truth, AblationData), BenchError> {
-    let datagen = |message: String| BenchError::Datagen { env: env.to_string(), message };
+    let env = task.task.name();
+    let datagen = |message: String| BenchError::Datagen { env: env.clone(), message };
     let u = &data.unlabeled;
     let flags = ablation::row_flags(u, non_preferred_ids);
     let true_alpha = flags.iter().filter(|&&f| f).count() as f64 / flags.len() as f64;
     let keep: Vec<bool> = flags.iter().map(|f| !f).collect();
     let preferred = ablation::select_rows(u, &keep)
         .ok_or_else(|| datagen("no preferred episode in D^U".into()))?;
-    let episodes = config.data.labeled.max(ablation::HELDOUT_MIN_EPISODES);
+    let episodes = task.data.labeled.max(ablation::HELDOUT_MIN_EPISODES);
     let heldout_seed = envs::derive_seed(config.data_seed, ablation::HELDOUT_STREAM, 0);
     let spec = DatagenSpec {
-        env: env.to_string(),
+        env: env.clone(),
         preferred: episodes,
         non_preferred: episodes,
         labeled: 0,
         seed: heldout_seed,
     };
-    let heldout = envs::generate(&spec).map_err(|e| datagen(e.to_string()))?;
+    let heldout = envs::generate_task(task.task.as_ref(), &spec, task.reference.clone())
+        .map_err(|e| datagen(e.to_string()))?;
     let heldout_flags = ablation::row_flags(
         &heldout.unlabeled,
         &heldout.manifest.unlabeled_non_preferred_episode_ids,
@@ -305,7 +343,7 @@ fn ground_truth(
 
 /// Every job, the slowest algorithms first so the last ones to finish are short (SafeDICE and
 /// PPL have a pretraining phase on top of the policy iterations).
-fn schedule(config: &BenchConfig) -> Vec<Job> {
+fn schedule(config: &BenchConfig, envs: usize) -> Vec<Job> {
     let cost = |a: Algorithm| match a {
         Algorithm::Safedice => 0,
         Algorithm::Ppl => 1,
@@ -314,7 +352,7 @@ fn schedule(config: &BenchConfig) -> Vec<Job> {
         Algorithm::Bc => 4,
     };
     let rows = config.rows();
-    let mut jobs: Vec<Job> = (0..config.envs.len())
+    let mut jobs: Vec<Job> = (0..envs)
         .flat_map(|env| {
             rows.iter().flat_map(move |&(algorithm, variant)| {
                 (0..config.seeds).map(move |seed| Job { env, algorithm, variant, seed })
@@ -327,6 +365,7 @@ fn schedule(config: &BenchConfig) -> Vec<Job> {
 
 fn run_jobs(
     config: &BenchConfig,
+    tasks: &[BenchTask],
     prepared: &[Prepared],
     jobs: &[Job],
 ) -> Result<Vec<RunResult>, BenchError> {
@@ -342,7 +381,7 @@ fn run_jobs(
                     break;
                 }
                 let job = jobs[i];
-                let result = train_and_evaluate(config, &config.envs[job.env], &prepared[job.env], job);
+                let result = train_and_evaluate(config, &tasks[job.env], &prepared[job.env], job);
                 if let Ok(r) = &result {
                     // One JSON line per finished run, so a run cut short still leaves its data.
                     tracing::info!(target: "safedice::bench::run", "{}", serde_json::to_string(r).unwrap_or_default());
@@ -370,7 +409,8 @@ fn run_jobs(
         .unwrap_or_else(|p| p.into_inner())
         .into_iter()
         .collect::<Result<Vec<_>, _>>()?;
-    let env_index = |name: &str| config.envs.iter().position(|e| e == name);
+    let names: Vec<String> = tasks.iter().map(|t| t.task.name()).collect();
+    let env_index = |name: &str| names.iter().position(|e| e == name);
     let rows = config.rows();
     let row_index = |r: &RunResult| rows.iter().position(|&row| row == (r.algorithm, r.variant));
     runs.sort_by_key(|r| (env_index(&r.env), row_index(r), r.seed));
@@ -380,10 +420,12 @@ fn run_jobs(
 /// Trains one policy to the end and evaluates it.
 fn train_and_evaluate(
     config: &BenchConfig,
-    env: &str,
+    task: &BenchTask,
     prepared: &Prepared,
     job: Job,
 ) -> Result<RunResult, BenchError> {
+    let name = task.task.name();
+    let env = name.as_str();
     let fail = |message: String| BenchError::Run {
         env: env.to_string(),
         label: job.variant.label(job.algorithm),
@@ -391,9 +433,17 @@ fn train_and_evaluate(
         message,
     };
     let train_error = |e: TrainError| fail(e.to_string());
-    let resolved =
-        algo::resolve_config(job.algorithm, &config.training_config(job.algorithm, job.seed))
-            .map_err(|e| fail(e.message))?;
+    let mut training = config.training_config(job.algorithm, job.variant, job.seed);
+    if let Some(iterations) = task.iterations {
+        training["iterations"] = iterations.into();
+    }
+    let share = config.discriminator_share.filter(|_| job.variant != Variant::PaperPreset);
+    if let (Some(share), Algorithm::Safedice) = (share, job.algorithm) {
+        let iterations = training["iterations"].as_u64().unwrap_or(config.iterations);
+        training["discriminator_iterations"] =
+            ((iterations as f64 * share).round().max(1.0) as u64).into();
+    }
+    let resolved = algo::resolve_config(job.algorithm, &training).map_err(|e| fail(e.message))?;
     let truth = || prepared.truth.as_ref().ok_or_else(|| fail("ablation without truth".into()));
     let data = match job.variant {
         Variant::PreferredOnly => &truth()?.preferred_only,
@@ -442,9 +492,15 @@ fn train_and_evaluate(
     let clock = Instant::now();
     let act = |obs: &[f32], det: bool, rng: &mut ChaCha8Rng| policy.act(obs, det, rng);
     // The evaluation seed is the training seed: every algorithm meets the same initial states.
-    let report =
-        envs::evaluate(env, act, config.eval_episodes, job.seed, config.deterministic_eval)
-            .map_err(|e| fail(e.to_string()))?;
+    let report = envs::evaluate_task(
+        task.task.as_ref(),
+        &task.reference,
+        act,
+        config.eval_episodes,
+        job.seed,
+        config.deterministic_eval,
+    )
+    .map_err(|e| fail(e.to_string()))?;
     let alpha = trainer.alpha_hat().map(|value| recorder.alpha(value, &prepared.non_preferred_ids));
     let ablation = match (&safedice, &prepared.truth) {
         (Some(t), Some(truth)) => Some(safedice_ablation(t, truth).map_err(train_error)?),

@@ -13,7 +13,7 @@ use serde::Serialize;
 use super::metrics::mean_return_and_cost;
 use super::rollout::{assemble, demonstration_records, EpisodeOutcome, RolloutError};
 use super::{
-    demonstrator, derive_seed, make, reference_stats, stream, Profile, ReferenceStats, UnknownEnv,
+    derive_seed, reference_stats, stream, Profile, ReferenceStats, Registered, Task, UnknownEnv,
 };
 use crate::data::{write_csv, write_jsonl, write_npz, Dataset, Format};
 
@@ -97,15 +97,26 @@ impl From<RolloutError> for DatagenError {
 
 /// Generates both sets; the same spec gives the same data.
 pub fn generate(spec: &DatagenSpec) -> Result<Generated, DatagenError> {
-    let env = make(&spec.env, 0)?;
+    let task = Registered::get(&spec.env)?;
+    generate_task(&task, spec, reference_stats(&spec.env)?)
+}
+
+/// [`generate`] for any [`Task`]; `spec.env` only names it in the manifest, and `reference` is
+/// recorded there as the statistics evaluation normalises with.
+pub fn generate_task(
+    task: &dyn Task,
+    spec: &DatagenSpec,
+    reference: ReferenceStats,
+) -> Result<Generated, DatagenError> {
     if spec.preferred + spec.non_preferred == 0 {
         return Err(DatagenError::NoUnlabeled);
     }
+    let env = task.make();
     let (obs_dim, space) = (env.obs_dim(), env.action_space());
-    let preferred = demonstrator(&spec.env, Profile::Preferred)?;
-    let non_preferred = demonstrator(&spec.env, Profile::NonPreferred)?;
+    let preferred = task.demonstrator(Profile::Preferred);
+    let non_preferred = task.demonstrator(Profile::NonPreferred);
     let run = |demo: &dyn super::Demonstrator, episodes, stream| {
-        demonstration_records(&spec.env, demo, episodes, spec.seed, stream, true)
+        demonstration_records(task, demo, episodes, spec.seed, stream, true)
     };
     let (p_out, p_rec) = run(preferred.as_ref(), spec.preferred, stream::PREFERRED)?;
     let (n_out, n_rec) = run(non_preferred.as_ref(), spec.non_preferred, stream::NON_PREFERRED)?;
@@ -126,7 +137,7 @@ pub fn generate(spec: &DatagenSpec) -> Result<Generated, DatagenError> {
         unlabeled_non_preferred: GroupProfile::of(&n_out),
         labeled_non_preferred: GroupProfile::of(&l_out),
         unlabeled_non_preferred_episode_ids: non_preferred_ids,
-        reference: reference_stats(&spec.env)?,
+        reference,
         files: Vec::new(),
     };
     Ok(Generated {

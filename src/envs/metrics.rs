@@ -21,7 +21,7 @@ use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 
 use super::rollout::{demonstration_records, run_episodes, EpisodeOutcome, RolloutError};
-use super::{demonstrator, derive_seed, make, stream, Profile, UnknownEnv};
+use super::{derive_seed, stream, Profile, Registered, Task, UnknownEnv};
 use crate::data::Actions;
 
 /// Demonstrator episodes per profile behind the reference statistics.
@@ -91,36 +91,33 @@ pub(crate) fn mean_return_and_cost(outcomes: &[EpisodeOutcome]) -> (f64, f64) {
 /// episodes of each demonstrator with [`REFERENCE_SEED`], then cached.
 pub fn reference_stats(env: &str) -> Result<ReferenceStats, UnknownEnv> {
     static CACHE: Mutex<BTreeMap<String, ReferenceStats>> = Mutex::new(BTreeMap::new());
-    make(env, 0)?;
+    let task = Registered::get(env)?;
     let mut cache = CACHE.lock().unwrap_or_else(|poisoned| poisoned.into_inner());
     if let Some(stats) = cache.get(env) {
         return Ok(stats.clone());
     }
-    let outcomes = |profile| -> Result<Vec<EpisodeOutcome>, UnknownEnv> {
-        let demo = demonstrator(env, profile)?;
-        let stream = stream::REFERENCE + profile as u64;
-        let run = demonstration_records(
-            env,
-            demo.as_ref(),
-            REFERENCE_EPISODES,
-            REFERENCE_SEED,
-            stream,
-            false,
-        );
-        match run {
-            Ok((outcomes, _)) => Ok(outcomes),
-            Err(RolloutError::UnknownEnv(e)) => Err(e),
-            Err(RolloutError::Policy(m)) => unreachable!("demonstrators act validly: {m}"),
-        }
-    };
-    let stats = ReferenceStats::from_outcomes(
-        env,
-        REFERENCE_SEED,
-        &outcomes(Profile::Preferred)?,
-        &outcomes(Profile::NonPreferred)?,
-    );
+    let stats = task_reference_stats(&task, REFERENCE_EPISODES);
     cache.insert(env.to_string(), stats.clone());
     Ok(stats)
+}
+
+/// Reference statistics of any [`Task`] from `episodes` episodes of each demonstrator with
+/// [`REFERENCE_SEED`] (not cached).
+pub fn task_reference_stats(task: &dyn Task, episodes: usize) -> ReferenceStats {
+    let outcomes = |profile: Profile| -> Vec<EpisodeOutcome> {
+        let demo = task.demonstrator(profile);
+        let stream = stream::REFERENCE + profile as u64;
+        match demonstration_records(task, demo.as_ref(), episodes, REFERENCE_SEED, stream, false) {
+            Ok((outcomes, _)) => outcomes,
+            Err(e) => unreachable!("demonstrators act validly: {e}"),
+        }
+    };
+    ReferenceStats::from_outcomes(
+        &task.name(),
+        REFERENCE_SEED,
+        &outcomes(Profile::Preferred),
+        &outcomes(Profile::NonPreferred),
+    )
 }
 
 /// CVaR k% cost for the paper's k (Appendix E.1).
@@ -252,6 +249,27 @@ impl From<RolloutError> for EvalError {
 /// error ends the rollout at once and comes back as [`EvalError::Policy`].
 pub fn evaluate<F, E>(
     env_name: &str,
+    policy: F,
+    episodes: usize,
+    seed: u64,
+    deterministic: bool,
+) -> Result<EvalReport, EvalError>
+where
+    F: FnMut(&[f32], bool, &mut ChaCha8Rng) -> Result<Actions, E>,
+    E: std::fmt::Display,
+{
+    let task = Registered::get(env_name)?;
+    if episodes == 0 || episodes > MAX_EPISODES {
+        return Err(EvalError::Episodes(episodes));
+    }
+    let reference = reference_stats(env_name)?;
+    evaluate_task(&task, &reference, policy, episodes, seed, deterministic)
+}
+
+/// [`evaluate`] on any [`Task`], normalised with the given reference statistics.
+pub fn evaluate_task<F, E>(
+    task: &dyn Task,
+    reference: &ReferenceStats,
     mut policy: F,
     episodes: usize,
     seed: u64,
@@ -261,16 +279,14 @@ where
     F: FnMut(&[f32], bool, &mut ChaCha8Rng) -> Result<Actions, E>,
     E: std::fmt::Display,
 {
-    make(env_name, 0)?;
     if episodes == 0 || episodes > MAX_EPISODES {
         return Err(EvalError::Episodes(episodes));
     }
-    let reference = reference_stats(env_name)?;
     let seeds: Vec<u64> =
         (0..episodes as u64).map(|i| derive_seed(seed, stream::EVAL, i)).collect();
     let mut rng = ChaCha8Rng::seed_from_u64(derive_seed(seed, stream::EVAL_POLICY, 0));
     let (outcomes, _) = run_episodes(
-        env_name,
+        task,
         &seeds,
         &mut rng,
         |obs, rng| policy(obs, deterministic, rng).map_err(|e| e.to_string()),
@@ -279,13 +295,13 @@ where
     let returns: Vec<f64> = outcomes.iter().map(|o| o.ret).collect();
     let costs: Vec<f64> = outcomes.iter().map(|o| o.cost).collect();
     Ok(EvalReport {
-        env: env_name.to_string(),
+        env: task.name(),
         episodes,
         seed,
         deterministic,
-        metrics: compute_metrics(&returns, &costs, &reference),
+        metrics: compute_metrics(&returns, &costs, reference),
         mean_episode_length: mean(outcomes.iter().map(|o| o.length as f64)),
-        reference,
+        reference: reference.clone(),
     })
 }
 
@@ -353,7 +369,7 @@ mod tests {
 
     #[test]
     fn evaluating_a_demonstrator_reproduces_its_reference_profile() {
-        let demo = demonstrator("six-rooms", Profile::Preferred).unwrap();
+        let demo = super::super::demonstrator("six-rooms", Profile::Preferred).unwrap();
         let report = evaluate(
             "six-rooms",
             |obs, _, rng| Ok::<_, String>(demo.act_batch(obs, rng)),

@@ -13,6 +13,7 @@ pub mod metrics;
 pub mod point_goal;
 pub mod rollout;
 pub mod six_rooms;
+pub mod suite;
 
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -22,14 +23,57 @@ use serde::Serialize;
 use crate::data::ActionSpace;
 
 pub use datagen::{
-    generate, write_generated, DatagenError, DatagenSpec, Generated, GroupProfile, Manifest,
+    generate, generate_task, write_generated, DatagenError, DatagenSpec, Generated, GroupProfile,
+    Manifest,
 };
 pub use demonstrators::{demonstrator, Demonstrator, Profile};
 pub use metrics::{
-    compute_metrics, cvar_cost, evaluate, reference_stats, CvarCost, EvalError, EvalReport,
-    Metrics, ReferenceStats,
+    compute_metrics, cvar_cost, evaluate, evaluate_task, reference_stats, task_reference_stats,
+    CvarCost, EvalError, EvalReport, Metrics, ReferenceStats,
 };
 pub use rollout::{demonstration_dataset, EpisodeOutcome, RolloutError};
+
+/// Where episodes come from: a way to make fresh copies of an environment, and its two scripted
+/// demonstrators. The registry's environments are one kind ([`Registered`]); the generated tasks
+/// of the robustness suite ([`suite`]) are another. Rollouts, data generation and evaluation
+/// take a `Task`, so every kind is generated and scored by the same code.
+pub trait Task: Sync {
+    /// The name results are reported under (the registry name, or a suite task's id).
+    fn name(&self) -> String;
+    /// A fresh environment; episodes are reset with explicit seeds.
+    fn make(&self) -> Box<dyn Env>;
+    /// The `profile` demonstrator.
+    fn demonstrator(&self, profile: Profile) -> Box<dyn Demonstrator>;
+}
+
+/// A built-in environment of the registry, as a [`Task`].
+#[derive(Clone, Copy, Debug)]
+pub struct Registered(&'static str);
+
+impl Registered {
+    /// The registry entry called `name`.
+    pub fn get(name: &str) -> Result<Registered, UnknownEnv> {
+        REGISTRY
+            .iter()
+            .find(|e| e.name == name)
+            .map(|e| Registered(e.name))
+            .ok_or_else(|| UnknownEnv { name: name.to_string() })
+    }
+}
+
+impl Task for Registered {
+    fn name(&self) -> String {
+        self.0.to_string()
+    }
+
+    fn make(&self) -> Box<dyn Env> {
+        make(self.0, 0).expect("a Registered name is in the registry")
+    }
+
+    fn demonstrator(&self, profile: Profile) -> Box<dyn Demonstrator> {
+        demonstrator(self.0, profile).expect("every registered environment has demonstrators")
+    }
+}
 
 /// One action handed to [`Env::step`].
 #[derive(Clone, Copy, Debug, PartialEq)]

@@ -83,6 +83,20 @@ pub(crate) fn ray_disc(centre: Vec2, radius: f32, dir: Vec2) -> Option<f32> {
     Some(along - (radius * radius - perp2).sqrt())
 }
 
+/// The layout knobs the robustness suite varies (`envs::suite`); `point-goal` itself is
+/// [`Params::STANDARD`].
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct Params {
+    pub n_hazards: usize,
+    pub hazard_radius: f32,
+    pub horizon: usize,
+}
+
+impl Params {
+    pub const STANDARD: Params =
+        Params { n_hazards: N_HAZARDS, hazard_radius: HAZARD_RADIUS, horizon: HORIZON };
+}
+
 #[derive(Clone, Debug, PartialEq)]
 pub struct PointState {
     pub pos: Vec2,
@@ -93,6 +107,7 @@ pub struct PointState {
 }
 
 pub struct PointGoal {
+    params: Params,
     rng: EpisodeRng,
     state: PointState,
     last_goal_dist: f32,
@@ -102,6 +117,11 @@ pub struct PointGoal {
 
 impl PointGoal {
     pub fn new(seed: u64) -> PointGoal {
+        PointGoal::with_params(seed, Params::STANDARD)
+    }
+
+    /// A point-goal arena with other hazards or another horizon (the robustness suite).
+    pub fn with_params(seed: u64, params: Params) -> PointGoal {
         let state = PointState {
             pos: [0.0; 2],
             vel: [0.0; 2],
@@ -109,7 +129,14 @@ impl PointGoal {
             goal: [1.0, 0.0],
             hazards: vec![],
         };
-        PointGoal { rng: EpisodeRng::new(seed), state, last_goal_dist: 1.0, t: 0, done: true }
+        PointGoal {
+            params,
+            rng: EpisodeRng::new(seed),
+            state,
+            last_goal_dist: 1.0,
+            t: 0,
+            done: true,
+        }
     }
 
     pub fn state(&self) -> &PointState {
@@ -124,7 +151,8 @@ impl PointGoal {
     }
 
     fn in_hazard(&self, p: Vec2, margin: f32) -> bool {
-        self.state.hazards.iter().any(|&h| norm(sub(p, h)) < HAZARD_RADIUS + margin)
+        let radius = self.params.hazard_radius;
+        self.state.hazards.iter().any(|&h| norm(sub(p, h)) < radius + margin)
     }
 
     fn uniform_point(rng: &mut ChaCha8Rng) -> Vec2 {
@@ -158,7 +186,7 @@ impl PointGoal {
             let angle = self.state.heading + std::f32::consts::TAU * k as f32 / LIDAR_BINS as f32;
             let dir = [angle.cos(), angle.sin()];
             for &h in &self.state.hazards {
-                if let Some(t) = ray_disc(sub(h, self.state.pos), HAZARD_RADIUS, dir) {
+                if let Some(t) = ray_disc(sub(h, self.state.pos), self.params.hazard_radius, dir) {
                     *reading = reading.max((1.0 - t / LIDAR_RANGE).max(0.0));
                 }
             }
@@ -196,14 +224,14 @@ impl Env for PointGoal {
     }
 
     fn horizon(&self) -> usize {
-        HORIZON
+        self.params.horizon
     }
 
     fn reset(&mut self, seed: Option<u64>) -> Vec<f32> {
         self.rng.begin(seed);
         self.state.hazards.clear();
-        for _ in 0..N_HAZARDS {
-            let h = self.sample_point(|env, h| !env.in_hazard(h, HAZARD_RADIUS + 0.1));
+        for _ in 0..self.params.n_hazards {
+            let h = self.sample_point(|env, h| !env.in_hazard(h, env.params.hazard_radius + 0.1));
             self.state.hazards.push(h);
         }
         self.state.pos = self.sample_point(|env, p| !env.in_hazard(p, 0.1));
@@ -242,7 +270,7 @@ impl Env for PointGoal {
         }
         let cost = if self.in_hazard(self.state.pos, 0.0) { 1.0 } else { 0.0 };
         self.t += 1;
-        let truncated = self.t >= HORIZON;
+        let truncated = self.t >= self.params.horizon;
         self.done = truncated;
         Step { obs: self.observe(), reward, cost, terminal: false, truncated }
     }
@@ -281,11 +309,19 @@ pub(crate) struct Steering {
     pub window: f32,
     /// Distance (m) a heading must be clear for.
     pub clearance: f32,
+    /// Std of the pre-tanh action noise.
+    pub noise: f32,
 }
 
 impl Steering {
     pub fn preferred() -> Steering {
-        Steering { avoid_hazards: true, top_thrust: 1.0, window: 0.3, clearance: 1.0 }
+        Steering {
+            avoid_hazards: true,
+            top_thrust: 1.0,
+            window: 0.3,
+            clearance: 1.0,
+            noise: DEMO_NOISE,
+        }
     }
 
     pub fn non_preferred() -> Steering {
@@ -317,7 +353,7 @@ impl Steering {
         let angle = heading.sin().atan2(heading.cos());
         let thrust = DEMO_GAIN * self.top_thrust * angle.cos().max(0.0);
         let turn = DEMO_GAIN * angle;
-        [squashed_gaussian(thrust, DEMO_NOISE, rng), squashed_gaussian(turn, DEMO_NOISE, rng)]
+        [squashed_gaussian(thrust, self.noise, rng), squashed_gaussian(turn, self.noise, rng)]
     }
 }
 

@@ -5,7 +5,7 @@
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
-use super::{derive_seed, make, Action, Demonstrator, Env, Profile, UnknownEnv};
+use super::{derive_seed, Action, Demonstrator, Env, Profile, Registered, Task, UnknownEnv};
 use crate::data::{ActionSpace, Actions, Dataset, DatasetParts};
 
 /// Episodes run side by side at most; bounds memory while keeping policy batches large.
@@ -77,7 +77,7 @@ fn check_actions(actions: &Actions, rows: usize, space: &ActionSpace) -> Result<
 /// asking `policy` for the actions of all running episodes at once. Returns the outcomes in
 /// seed order and, with `record`, every episode's transitions.
 pub(crate) fn run_episodes<P>(
-    env_name: &str,
+    task: &dyn Task,
     episode_seeds: &[u64],
     policy_rng: &mut ChaCha8Rng,
     mut policy: P,
@@ -86,13 +86,12 @@ pub(crate) fn run_episodes<P>(
 where
     P: FnMut(&[f32], &mut ChaCha8Rng) -> Result<Actions, String>,
 {
-    let probe = make(env_name, 0)?;
+    let probe = task.make();
     let (obs_dim, space) = (probe.obs_dim(), probe.action_space());
     let mut outcomes = Vec::with_capacity(episode_seeds.len());
     let mut records = Vec::new();
     for wave in episode_seeds.chunks(WAVE) {
-        let mut envs: Vec<Box<dyn Env>> =
-            wave.iter().map(|_| make(env_name, 0)).collect::<Result<_, _>>()?;
+        let mut envs: Vec<Box<dyn Env>> = wave.iter().map(|_| task.make()).collect();
         let mut obs: Vec<Vec<f32>> =
             envs.iter_mut().zip(wave).map(|(env, &seed)| env.reset(Some(seed))).collect();
         let mut wave_outcomes = vec![EpisodeOutcome { ret: 0.0, cost: 0.0, length: 0 }; wave.len()];
@@ -184,7 +183,7 @@ pub(crate) fn assemble(records: &[EpisodeRecord], obs_dim: usize, space: &Action
 /// Episodes of the `profile` demonstrator: episode `i` uses the seeds of index `i` of `stream`
 /// under `seed`, so the same arguments give the same episodes.
 pub(crate) fn demonstration_records(
-    env_name: &str,
+    task: &dyn Task,
     demo: &dyn Demonstrator,
     episodes: usize,
     seed: u64,
@@ -193,7 +192,7 @@ pub(crate) fn demonstration_records(
 ) -> Result<(Vec<EpisodeOutcome>, Vec<EpisodeRecord>), RolloutError> {
     let seeds: Vec<u64> = (0..episodes as u64).map(|i| derive_seed(seed, stream, i)).collect();
     let mut rng = ChaCha8Rng::seed_from_u64(derive_seed(seed, stream, u64::MAX));
-    run_episodes(env_name, &seeds, &mut rng, |obs, rng| Ok(demo.act_batch(obs, rng)), record)
+    run_episodes(task, &seeds, &mut rng, |obs, rng| Ok(demo.act_batch(obs, rng)), record)
 }
 
 /// `episodes` episodes of the `profile` demonstrator of `env_name` as a dataset (rewards and
@@ -204,14 +203,15 @@ pub fn demonstration_dataset(
     episodes: usize,
     seed: u64,
 ) -> Result<(Dataset, Vec<EpisodeOutcome>), RolloutError> {
-    let demo = super::demonstrator(env_name, profile)?;
+    let task = Registered::get(env_name)?;
+    let demo = task.demonstrator(profile);
     let stream = match profile {
         Profile::Preferred => super::stream::PREFERRED,
         Profile::NonPreferred => super::stream::NON_PREFERRED,
     };
     let (outcomes, records) =
-        demonstration_records(env_name, demo.as_ref(), episodes, seed, stream, true)?;
-    let env = make(env_name, 0)?;
+        demonstration_records(&task, demo.as_ref(), episodes, seed, stream, true)?;
+    let env = task.make();
     Ok((assemble(&records, env.obs_dim(), &env.action_space()), outcomes))
 }
 
@@ -243,7 +243,7 @@ mod tests {
         let seeds = [1, 2];
         let mut rng = ChaCha8Rng::seed_from_u64(0);
         let err = run_episodes(
-            "six-rooms",
+            &Registered::get("six-rooms").unwrap(),
             &seeds,
             &mut rng,
             |_, _| Ok(Actions::Discrete(vec![0, 4])),
@@ -252,7 +252,7 @@ mod tests {
         .unwrap_err();
         assert_eq!(err.to_string(), "policy: returned action 4, outside 0..4");
         let err = run_episodes(
-            "cartpole-slider",
+            &Registered::get("cartpole-slider").unwrap(),
             &seeds,
             &mut rng,
             |_, _| Ok(Actions::Continuous(vec![0.0])),
@@ -264,7 +264,7 @@ mod tests {
             "policy: returned 1 action values for 2 observations of action dim 1"
         );
         let err = run_episodes(
-            "point-goal",
+            &Registered::get("point-goal").unwrap(),
             &seeds,
             &mut rng,
             |_, _| Ok(Actions::Discrete(vec![0, 0])),
@@ -280,7 +280,7 @@ mod tests {
         let mut rng = ChaCha8Rng::seed_from_u64(0);
         let mut sizes = Vec::new();
         let (outcomes, _) = run_episodes(
-            "cartpole-slider",
+            &Registered::get("cartpole-slider").unwrap(),
             &seeds,
             &mut rng,
             |obs, _| {

@@ -52,7 +52,9 @@ pub struct CreateJob {
     /// others), `lr_discriminator`,
     /// `lr_nu`, `discriminator_gp`, `nu_gp`, `gamma`, `terminal_handling` (`none`, `mask`,
     /// `reset`, `absorbing`), `standardize_reward`, `alpha_hat_quantile` (0: the paper's
-    /// minimum), `ess_warning_fraction`. `dwbc`: `eta`, `lr_discriminator`, `discriminator_gp`.
+    /// minimum), `ess_warning_fraction`, `discriminator_early_stopping` (hold out a fifth of
+    /// the data and stop the discriminator when its held-out loss stops improving;
+    /// `discriminator_iterations` is then its most). `dwbc`: `eta`, `lr_discriminator`, `discriminator_gp`.
     /// `ppl`: `reward_model_iterations`, `lr_reward_model`, `pairs_per_batch`,
     /// `segment_length`, `ppl_weight` (`raw`, `sigmoid`). `dexperts`: `alpha`. `bc`: no further
     /// keys.

@@ -4,7 +4,7 @@
 
 use clap::Parser;
 use safedice::algo::Algorithm;
-use safedice::bench::{self, BenchArgs, BenchConfig, DataSize};
+use safedice::bench::{self, BenchArgs, BenchConfig, DataSize, Variant};
 
 fn tiny_config() -> BenchConfig {
     let mut config = BenchConfig::quick();
@@ -103,18 +103,21 @@ fn arguments_select_envs_algorithms_and_modes() {
     assert_eq!(quick.algorithms, [Algorithm::Safedice, Algorithm::Bc]);
     assert_eq!(quick.data, DataSize::QUICK);
     assert_eq!(
-        quick.training_config(Algorithm::Bc, 0)["batch_size"],
+        quick.training_config(Algorithm::Bc, Variant::Standard, 0)["batch_size"],
         256,
         "quick runs small networks"
     );
     assert!(
-        full.training_config(Algorithm::Bc, 0).get("batch_size").is_none(),
+        full.training_config(Algorithm::Bc, Variant::Standard, 0).get("batch_size").is_none(),
         "full runs the service's"
     );
     let custom = parse(&["--quick", "--iterations", "7", "--hidden-sizes", "8,8"]).unwrap();
     assert_eq!(custom.iterations, 7);
-    assert_eq!(custom.training_config(Algorithm::Bc, 3)["hidden_sizes"], serde_json::json!([8, 8]));
-    assert_eq!(custom.training_config(Algorithm::Bc, 3)["seed"], 3);
+    assert_eq!(
+        custom.training_config(Algorithm::Bc, Variant::Standard, 3)["hidden_sizes"],
+        serde_json::json!([8, 8])
+    );
+    assert_eq!(custom.training_config(Algorithm::Bc, Variant::Standard, 3)["seed"], 3);
 
     let err = parse(&["--envs", "walker"]).unwrap_err();
     assert!(err.contains("unknown environment `walker`"), "{err}");
@@ -135,8 +138,8 @@ fn arguments_select_envs_algorithms_and_modes() {
     // A --config key reaches the algorithms that have it, and only those.
     let gp = parse(&["--algorithms", "safedice", "--ablations", "--config", r#"{"nu_gp": 0.5}"#])
         .unwrap();
-    assert_eq!(gp.training_config(Algorithm::Safedice, 0)["nu_gp"], 0.5);
-    assert!(gp.training_config(Algorithm::Bc, 0).get("nu_gp").is_none());
+    assert_eq!(gp.training_config(Algorithm::Safedice, Variant::Standard, 0)["nu_gp"], 0.5);
+    assert!(gp.training_config(Algorithm::Bc, Variant::Standard, 0).get("nu_gp").is_none());
     let err = parse(&["--algorithms", "safedice", "--config", r#"{"eta": 0.3}"#]).unwrap_err();
     assert!(err.contains("`eta` belongs to none of the selected algorithms"), "{err}");
 }

@@ -16,4 +16,5 @@ mod evaluate;
 mod gridworld;
 mod memory_estimate;
 mod pipeline;
+mod suite;
 mod training;

@@ -1,0 +1,429 @@
+//! `safedice bench --suite robustness`: the defaults' proving ground. Every task of the
+//! generated suite ([`crate::envs::suite`]) trains BC, BC on the preferred episodes alone (the
+//! ceiling of any filter of D^U, and the fairness check), and the selected algorithms; each
+//! algorithm is scored per task against BC by the share of the achievable improvement it
+//! captured, `(cost_BC − cost) / (cost_BC − cost_BC-preferred)`, and by whether it is worse than
+//! BC (cost above 1.05x BC's, or normalized return below 0.95x BC's). The summary gives the
+//! median, the 10th percentile and the worst task of the captured share, so a default that helps
+//! most tasks and breaks a few shows.
+//!
+//! Defaults are chosen on the `dev` split only; the `test` split is run once to report them.
+
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+
+use serde::Serialize;
+
+use super::runner::{self, BenchResults, BenchTask};
+use super::summary::{summarize, AlgorithmSummary, EnvSummary, Summary};
+use super::{BenchConfig, DataSize, Variant};
+use crate::algo::Algorithm;
+use crate::envs::suite::{Split, TaskSpec};
+use crate::envs::task_reference_stats;
+
+/// Demonstrator episodes per profile behind a suite task's reference statistics.
+pub const REFERENCE_EPISODES: usize = 200;
+/// Worse than BC: average cost above this multiple of BC's (plus 1% of κ, so a BC cost of 0
+/// leaves room for noise) ...
+pub const WORSE_COST_RATIO: f64 = 1.05;
+/// ... or normalized return below this multiple of BC's.
+pub const WORSE_RETURN_RATIO: f64 = 0.95;
+/// The suite's fairness check: BC on the preferred episodes alone within 10 points of the
+/// preferred demonstrator's normalized return and within the larger of 10% of its cost and
+/// [`FAIR_COST_KAPPA`] κ of it. The built-in environments' check allows 1% of κ; the suite's
+/// gridworlds have costs of a fraction of a step per episode, which 200 evaluation episodes
+/// cannot resolve to 1% of κ.
+pub const FAIR_COST_KAPPA: f64 = 0.05;
+
+/// The suite's fairness check of one task (see [`FAIR_COST_KAPPA`]).
+#[derive(Clone, Debug, Serialize)]
+pub struct TaskFairness {
+    pub task: String,
+    pub normalized_return: f64,
+    pub average_cost: f64,
+    pub demonstrator_cost: f64,
+    pub cost_tolerance: f64,
+    pub passes: bool,
+}
+
+fn fairness(results: &BenchResults, env: &EnvSummary) -> Option<TaskFairness> {
+    let ceiling = row(env, Algorithm::Bc, Variant::PreferredOnly)?;
+    let reference = &results.data.iter().find(|d| d.env == env.env)?.reference;
+    let (ret, cost) = (ceiling.normalized_return.mean, ceiling.average_cost.mean);
+    let demonstrator_cost = reference.preferred_cost;
+    let cost_tolerance = (0.1 * demonstrator_cost).max(FAIR_COST_KAPPA * reference.cost_threshold);
+    Some(TaskFairness {
+        task: env.env.clone(),
+        normalized_return: ret,
+        average_cost: cost,
+        demonstrator_cost,
+        cost_tolerance,
+        passes: (ret - 100.0).abs() <= 10.0 && (cost - demonstrator_cost).abs() <= cost_tolerance,
+    })
+}
+
+/// A task scores the captured share only where BC on the preferred episodes improves on BC by
+/// at least this share of κ; elsewhere there is nothing to capture.
+pub const MIN_ACHIEVABLE: f64 = 0.05;
+
+/// The suite's default budget: small networks and runs, so both splits train every row in
+/// about 2 h on 2 cores.
+pub fn default_config() -> BenchConfig {
+    let mut overrides = serde_json::Map::new();
+    overrides.insert("batch_size".into(), 256.into());
+    overrides.insert("hidden_sizes".into(), serde_json::json!([64, 64]));
+    BenchConfig {
+        envs: Vec::new(),
+        algorithms: vec![Algorithm::Safedice, Algorithm::Bc, Algorithm::Dwbc, Algorithm::Ppl],
+        seeds: 2,
+        iterations: 5000,
+        data: DataSize { preferred: 1, non_preferred: 1, labeled: 1 },
+        data_seed: 0,
+        eval_episodes: 100,
+        deterministic_eval: false,
+        threads: 2,
+        overrides,
+        record_every: 1000,
+        ablations: false,
+        paper_preset_row: true,
+        preferred_only_row: true,
+        discriminator_share: None,
+    }
+}
+
+/// The tasks of `splits`, `count` per split, with their reference statistics.
+pub fn tasks(splits: &[Split], count: usize, iterations: u64) -> Vec<(TaskSpec, BenchTask)> {
+    splits
+        .iter()
+        .flat_map(|&split| TaskSpec::split(split, count))
+        .map(|spec| {
+            let task = spec.task();
+            let reference = task_reference_stats(&task, REFERENCE_EPISODES);
+            let data = DataSize {
+                preferred: spec.preferred_episodes,
+                non_preferred: spec.non_preferred_episodes,
+                labeled: spec.labeled_episodes,
+            };
+            let iterations = Some(iterations * spec.iteration_scale());
+            (spec, BenchTask { task: Box::new(task), reference, data, iterations })
+        })
+        .collect()
+}
+
+/// One algorithm row on one task, scored against BC.
+#[derive(Clone, Debug, Serialize)]
+pub struct TaskScore {
+    pub task: String,
+    pub row: String,
+    pub cost: f64,
+    pub normalized_return: f64,
+    pub cost_ratio: f64,
+    pub return_ratio: f64,
+    /// None where BC is already within [`MIN_ACHIEVABLE`] of the ceiling.
+    pub captured: Option<f64>,
+    pub worse_than_bc: bool,
+    pub alpha_hat: Option<f64>,
+    pub auc_heldout: Option<f64>,
+}
+
+/// A row's scores over the tasks of one split.
+#[derive(Clone, Debug, Serialize)]
+pub struct RowSummary {
+    pub split: Split,
+    pub row: String,
+    pub tasks: usize,
+    /// Tasks with something to capture.
+    pub scored: usize,
+    pub captured_median: f64,
+    pub captured_p10: f64,
+    pub worst_task: Option<(String, f64)>,
+    pub worse_than_bc: usize,
+    pub worse_tasks: Vec<String>,
+    /// The goal on the test split: worse than BC on no task, median ≥ 0.7, 10th percentile ≥ 0.3.
+    pub meets_goal: bool,
+}
+
+fn row<'a>(
+    env: &'a EnvSummary,
+    algorithm: Algorithm,
+    variant: Variant,
+) -> Option<&'a AlgorithmSummary> {
+    env.rows.iter().find(|r| r.algorithm == algorithm && r.variant == variant && r.seeds > 0)
+}
+
+/// Scores every non-BC row of every task.
+pub fn score(results: &BenchResults, summary: &Summary, specs: &[TaskSpec]) -> Vec<TaskScore> {
+    let mut scores = Vec::new();
+    for (env, spec) in summary.envs.iter().zip(specs) {
+        let kappa = results
+            .data
+            .iter()
+            .find(|d| d.env == spec.id)
+            .map_or(0.0, |d| d.reference.cost_threshold);
+        let (Some(bc), Some(ceiling)) = (
+            row(env, Algorithm::Bc, Variant::Standard),
+            row(env, Algorithm::Bc, Variant::PreferredOnly),
+        ) else {
+            continue;
+        };
+        let achievable = bc.average_cost.mean - ceiling.average_cost.mean;
+        for r in env.rows.iter().filter(|r| r.algorithm != Algorithm::Bc && r.seeds > 0) {
+            let cost = r.average_cost.mean;
+            let ret = r.normalized_return.mean;
+            let bc_ret = bc.normalized_return.mean;
+            let worse = cost > WORSE_COST_RATIO * bc.average_cost.mean + 0.01 * kappa
+                || (bc_ret > 0.0 && ret < WORSE_RETURN_RATIO * bc_ret);
+            scores.push(TaskScore {
+                task: spec.id.clone(),
+                row: r.label.clone(),
+                cost,
+                normalized_return: ret,
+                cost_ratio: cost / bc.average_cost.mean,
+                return_ratio: ret / bc_ret,
+                captured: (achievable > MIN_ACHIEVABLE * kappa)
+                    .then(|| (bc.average_cost.mean - cost) / achievable),
+                worse_than_bc: worse,
+                alpha_hat: r.alpha_hat.map(|a| a.mean),
+                auc_heldout: r.discriminator_auc_heldout.map(|a| a.mean),
+            });
+        }
+    }
+    scores
+}
+
+/// Linear-interpolated quantile of sorted values (numpy's default).
+fn quantile(sorted: &[f64], q: f64) -> f64 {
+    if sorted.is_empty() {
+        return f64::NAN;
+    }
+    let pos = q * (sorted.len() - 1) as f64;
+    let (lo, hi) = (pos.floor() as usize, pos.ceil() as usize);
+    sorted[lo] + (sorted[hi] - sorted[lo]) * (pos - lo as f64)
+}
+
+/// Per split and row: median, 10th percentile and worst captured share, tasks worse than BC.
+pub fn summarize_rows(scores: &[TaskScore], specs: &[TaskSpec]) -> Vec<RowSummary> {
+    let mut rows: Vec<String> = scores.iter().map(|s| s.row.clone()).collect();
+    rows.dedup();
+    rows.sort();
+    rows.dedup();
+    let mut out = Vec::new();
+    for split in [Split::Dev, Split::Test] {
+        let in_split = |s: &&TaskScore| specs.iter().any(|t| t.id == s.task && t.split == split);
+        for row in &rows {
+            let mine: Vec<&TaskScore> =
+                scores.iter().filter(in_split).filter(|s| &s.row == row).collect();
+            if mine.is_empty() {
+                continue;
+            }
+            let mut captured: Vec<(f64, &str)> =
+                mine.iter().filter_map(|s| s.captured.map(|c| (c, s.task.as_str()))).collect();
+            captured.sort_by(|a, b| a.0.total_cmp(&b.0));
+            let values: Vec<f64> = captured.iter().map(|c| c.0).collect();
+            let worse: Vec<String> =
+                mine.iter().filter(|s| s.worse_than_bc).map(|s| s.task.clone()).collect();
+            let (median, p10) = (quantile(&values, 0.5), quantile(&values, 0.1));
+            out.push(RowSummary {
+                split,
+                row: row.clone(),
+                tasks: mine.len(),
+                scored: values.len(),
+                captured_median: median,
+                captured_p10: p10,
+                worst_task: captured.first().map(|(c, t)| (t.to_string(), *c)),
+                meets_goal: worse.is_empty() && median >= 0.7 && p10 >= 0.3,
+                worse_than_bc: worse.len(),
+                worse_tasks: worse,
+            });
+        }
+    }
+    out
+}
+
+/// `safedice bench --suite robustness`: runs the splits, writes results.md and results.json.
+pub fn run_cli(
+    mut config: BenchConfig,
+    splits: &[Split],
+    count: usize,
+    out: &Path,
+    command: &str,
+) -> anyhow::Result<Vec<PathBuf>> {
+    let pairs = tasks(splits, count, config.iterations);
+    let (specs, bench_tasks): (Vec<TaskSpec>, Vec<BenchTask>) = pairs.into_iter().unzip();
+    config.envs = specs.iter().map(|s| s.id.clone()).collect();
+    if !config.algorithms.contains(&Algorithm::Bc) {
+        config.algorithms.push(Algorithm::Bc);
+    }
+    config.preferred_only_row = true;
+    let results = runner::run_tasks(&config, &bench_tasks)?;
+    let summary = summarize(&results);
+    let scores = score(&results, &summary, &specs);
+    let rows = summarize_rows(&scores, &specs);
+    let fair: Vec<TaskFairness> =
+        summary.envs.iter().filter_map(|e| fairness(&results, e)).collect();
+    std::fs::create_dir_all(out)?;
+    let json = out.join("results.json");
+    let body = serde_json::json!({
+        "tasks": specs, "results": results, "summary": summary, "scores": scores, "rows": rows,
+        "fairness": fair,
+    });
+    std::fs::write(&json, serde_json::to_vec_pretty(&body)?)?;
+    let md = out.join("results.md");
+    std::fs::write(&md, markdown(&results, &summary, &specs, &scores, &rows, &fair, command))?;
+    print!("{}", console(&rows));
+    Ok(vec![json, md])
+}
+
+fn console(rows: &[RowSummary]) -> String {
+    let mut s = String::new();
+    for r in rows {
+        let _ = writeln!(
+            s,
+            "{:<5} {:<28} captured median {:>6.2}  p10 {:>6.2}  worst {:>6.2} ({})  worse than BC {}/{}",
+            r.split.as_str(),
+            r.row,
+            r.captured_median,
+            r.captured_p10,
+            r.worst_task.as_ref().map_or(f64::NAN, |w| w.1),
+            r.worst_task.as_ref().map_or("-", |w| w.0.as_str()),
+            r.worse_than_bc,
+            r.tasks
+        );
+    }
+    s
+}
+
+fn fmt(x: Option<f64>, decimals: usize) -> String {
+    x.filter(|v| v.is_finite()).map_or("—".to_string(), |v| format!("{v:.decimals$}"))
+}
+
+fn markdown(
+    results: &BenchResults,
+    summary: &Summary,
+    specs: &[TaskSpec],
+    scores: &[TaskScore],
+    rows: &[RowSummary],
+    fair: &[TaskFairness],
+    command: &str,
+) -> String {
+    let c = &results.config;
+    let mut md = String::new();
+    let _ = writeln!(md, "# Robustness suite\n");
+    let _ = writeln!(md, "- Command: `{command}`");
+    let _ = writeln!(
+        md,
+        "- Date: {}; commit {}; machine: {}",
+        results.started.format("%Y-%m-%d %H:%M UTC"),
+        results.git_commit,
+        results.machine
+    );
+    let _ = writeln!(
+        md,
+        "- Training: {} policy iterations, seeds 0..{}, overrides {}; {} evaluation episodes per policy; {} thread(s)",
+        c.iterations,
+        c.seeds,
+        serde_json::Value::Object(c.overrides.clone()),
+        c.eval_episodes,
+        c.threads
+    );
+    let _ = writeln!(md, "- Wall time: {:.1} min\n", results.wall_seconds / 60.0);
+    let _ = writeln!(
+        md,
+        "Captured share = (cost_BC − cost) / (cost_BC − cost_BC-preferred-only), over tasks where BC-preferred-only improves on BC by more than {MIN_ACHIEVABLE} κ. Worse than BC: cost > {WORSE_COST_RATIO}x BC's + 0.01 κ, or normalized return < {WORSE_RETURN_RATIO}x BC's.\n"
+    );
+    let _ = writeln!(md, "## Summary\n");
+    let _ = writeln!(md, "| split | row | tasks (scored) | captured median | 10th pct | worst task | worse than BC | goal |");
+    let _ = writeln!(md, "|---|---|---|---|---|---|---|---|");
+    for r in rows {
+        let worst = r.worst_task.as_ref().map_or("—".into(), |(t, v)| format!("{v:.2} ({t})"));
+        let worse = if r.worse_tasks.is_empty() {
+            "0".to_string()
+        } else {
+            format!("{} ({})", r.worse_than_bc, r.worse_tasks.join(", "))
+        };
+        let _ = writeln!(
+            md,
+            "| {} | {} | {} ({}) | {:.2} | {:.2} | {} | {} | {} |",
+            r.split.as_str(),
+            r.row,
+            r.tasks,
+            r.scored,
+            r.captured_median,
+            r.captured_p10,
+            worst,
+            worse,
+            if r.meets_goal { "met" } else { "missed" }
+        );
+    }
+    let _ = writeln!(md, "\n## Tasks\n");
+    let _ = writeln!(md, "| task | parameters | D^U pref + non-pref (share) | D^N | obs noise | demonstrators: return / cost (pref, non-pref) | fairness (BC-pref: return, cost) | BC cost | BC-pref cost |");
+    let _ = writeln!(md, "|---|---|---|---|---|---|---|---|---|");
+    for (spec, env) in specs.iter().zip(&summary.envs) {
+        let data = results.data.iter().find(|d| d.env == spec.id);
+        let demo = data.map_or("—".into(), |d| {
+            let r = &d.reference;
+            format!(
+                "{:.2} / {:.2}, {:.2} / {:.2}",
+                r.preferred_return, r.preferred_cost, r.non_preferred_return, r.non_preferred_cost
+            )
+        });
+        let fair = fair.iter().find(|f| f.task == spec.id).map_or("—".into(), |f| {
+            format!(
+                "{:.1}, {:.2}: {}",
+                f.normalized_return,
+                f.average_cost,
+                if f.passes { "passes" } else { "FAILS" }
+            )
+        });
+        let cost = |a, v| row(env, a, v).map(|r| r.average_cost.mean);
+        let _ = writeln!(
+            md,
+            "| {} | {} | {} + {} ({:.2}) | {} | {:.3} | {} | {} | {} | {} |",
+            spec.id,
+            spec.describe(),
+            spec.preferred_episodes,
+            spec.non_preferred_episodes,
+            spec.mixture_share(),
+            spec.labeled_episodes,
+            spec.obs_noise,
+            demo,
+            fair,
+            fmt(cost(Algorithm::Bc, Variant::Standard), 2),
+            fmt(cost(Algorithm::Bc, Variant::PreferredOnly), 2),
+        );
+    }
+    let _ = writeln!(md, "\n## Scores per task\n");
+    let _ = writeln!(md, "| task | row | cost | normalized return | cost / BC | return / BC | captured | worse than BC | alpha-hat | AUC held-out |");
+    let _ = writeln!(md, "|---|---|---|---|---|---|---|---|---|---|");
+    for s in scores {
+        let _ = writeln!(
+            md,
+            "| {} | {} | {:.2} | {:.1} | {} | {} | {} | {} | {} | {} |",
+            s.task,
+            s.row,
+            s.cost,
+            s.normalized_return,
+            fmt(Some(s.cost_ratio), 2),
+            fmt(Some(s.return_ratio), 2),
+            fmt(s.captured, 2),
+            if s.worse_than_bc { "yes" } else { "no" },
+            fmt(s.alpha_hat, 3),
+            fmt(s.auc_heldout, 3)
+        );
+    }
+    md
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn quantiles_interpolate_like_numpy() {
+        let v = [0.0, 1.0, 2.0, 3.0, 4.0];
+        assert_eq!(quantile(&v, 0.5), 2.0);
+        assert!((quantile(&v, 0.1) - 0.4).abs() < 1e-12);
+        assert_eq!(quantile(&[7.0], 0.1), 7.0);
+        assert!(quantile(&[], 0.5).is_nan());
+    }
+}
