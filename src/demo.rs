@@ -15,6 +15,7 @@ use serde_json::{json, Value};
 
 use crate::algo::Algorithm;
 use crate::config::ServeConfig;
+use crate::domain::{EvaluationStatus, JobStatus};
 use crate::envs::{self, DatagenSpec, Metrics};
 use crate::server::Server;
 
@@ -305,12 +306,12 @@ async fn wait_for_job(client: &reqwest::Client, base: &str, id: &str) -> anyhow:
     let mut last_print = std::time::Instant::now();
     loop {
         let job = checked_json(client.get(format!("{base}/v1/jobs/{id}")).send().await?).await?;
-        match job["status"].as_str() {
-            Some("succeeded") => {
+        match job["status"].as_str().and_then(|s| s.parse::<JobStatus>().ok()) {
+            Some(JobStatus::Succeeded) => {
                 println!("   job {id} ({}) succeeded", job["algorithm"]);
                 return Ok(job);
             }
-            Some("failed") | Some("cancelled") => bail!("job {id} ended: {job}"),
+            Some(JobStatus::Failed | JobStatus::Cancelled) => bail!("job {id} ended: {job}"),
             _ => {}
         }
         if last_print.elapsed() > Duration::from_secs(5) {
@@ -333,9 +334,11 @@ async fn wait_for_evaluation(
     loop {
         let url = format!("{base}/v1/evaluations/{id}");
         let evaluation = checked_json(client.get(url).send().await?).await?;
-        match evaluation["status"].as_str() {
-            Some("succeeded") => return Ok(evaluation),
-            Some("failed") => bail!("evaluation {id} failed: {}", evaluation["error"]),
+        match evaluation["status"].as_str().and_then(|s| s.parse::<EvaluationStatus>().ok()) {
+            Some(EvaluationStatus::Succeeded) => return Ok(evaluation),
+            Some(EvaluationStatus::Failed) => {
+                bail!("evaluation {id} failed: {}", evaluation["error"])
+            }
             _ => tokio::time::sleep(Duration::from_millis(100)).await,
         }
     }

@@ -1,3 +1,4 @@
+// ceiling: the dashboard's six pages in one script, embedded as is by src/http/ui.rs, no build
 // SafeDICE dashboard: a small vanilla-JS single-page app over the JSON API (/v1), on the
 // helpers of lib.js and the charts of charts.js. Pages are hash routes; lists refresh by polling
 // (EventSource cannot send the Authorization header, and polling a page of jobs once a second is

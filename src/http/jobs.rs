@@ -1,3 +1,4 @@
+// ceiling: all eleven /v1/jobs routes and their API types, one module per resource as in http/
 //! `/v1/jobs`: queue a training run, follow it (resource, metrics history, event stream), cancel
 //! it. The work itself happens in [`crate::jobs`].
 

@@ -115,7 +115,7 @@ impl Store {
         let Some((mut tx, status)) = self.begin_delete("evaluations", "status", id).await? else {
             return Ok(DeleteOutcome::NotFound);
         };
-        if matches!(status.as_str(), "queued" | "running") {
+        if matches!(status.parse(), Ok(EvaluationStatus::Queued | EvaluationStatus::Running)) {
             return Ok(DeleteOutcome::InUse(vec![id.to_owned()]));
         }
         sqlx::query("DELETE FROM evaluations WHERE id = $1").bind(id).execute(&mut *tx).await?;

@@ -1,3 +1,4 @@
+// ceiling: the jobs table whole: queue, claim, progress, metrics, checkpoints, finish, cancel
 //! The training queue's table: creating, claiming, progressing and finishing jobs, their
 //! metrics and checkpoints.
 

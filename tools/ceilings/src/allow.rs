@@ -1,0 +1,67 @@
+//! The explicit exceptions to the rules, each with its reason. Every entry must still be needed:
+//! an entry that no longer matches the tree (the file got short, the literals or the cycle went
+//! away) fails the check until it is removed or lowered, so this list only shrinks.
+
+/// Files over the ceiling that cannot carry a `// ceiling:` line themselves.
+pub const CEILING: &[(&str, &str)] = &[(
+    "src/algo/safedice.rs",
+    "being split by the algo registry work, which owns src/algo until it lands",
+)];
+
+/// Files outside `src/domain/` that write job-status words by hand: (file, how many, why).
+/// The count is exact: one more fails the check, and so does one fewer until it is lowered.
+pub const STATUS_LITERALS: &[(&str, usize, &str)] = &[
+    (
+        "src/store/jobs.rs",
+        7,
+        "SQL text of the jobs table's status filters and transitions (in-use evaluations, \
+         lease takeover count, requeue, progress, succeed, cancel); the store is where rows \
+         become domain records, and the schema's CHECK constraint pins the same words",
+    ),
+    (
+        "src/store/leases.rs",
+        7,
+        "SQL text of the lease queries shared by jobs and evaluations (fencing check, claim, \
+         heartbeat, expired-lease counts); the schema's CHECK constraints pin the same words",
+    ),
+    (
+        "src/store/datasets.rs",
+        2,
+        "SQL text: a dataset is in use while a job that reads it is queued or running",
+    ),
+    (
+        "src/store/policies.rs",
+        2,
+        "SQL text: a policy is in use while one of its evaluations is queued or running \
+         (EvaluationStatus words, which are JobStatus's without `cancelled`)",
+    ),
+    (
+        "src/store/evaluations.rs",
+        1,
+        "SQL text: evaluations that were running when the server stopped go back to queued \
+         (an EvaluationStatus word)",
+    ),
+    (
+        "src/jobs/fleet.rs",
+        2,
+        "the PostgreSQL notification payload that announces a queued job: a word of the \
+         notification protocol that happens to match a status, not a stored status",
+    ),
+];
+
+/// Import cycles between files that are known and being removed: (the files of the cycle, why).
+pub const CYCLES: &[(&[&str], &str)] = &[
+    (
+        &["src/algo/safedice.rs", "src/algo/safedice_fused.rs"],
+        "SafeDICE's candle trainer and its fused engine share loss helpers both ways; the algo \
+         registry work, which owns src/algo, removes it",
+    ),
+    (
+        &["src/algo/dwbc.rs", "src/algo/dwbc_fused.rs"],
+        "DWBC's candle trainer and its fused discriminator share LOGIT_CLIP and the engine both \
+         ways; the algo registry work, which owns src/algo, removes it",
+    ),
+];
+
+/// Imports that go up the layers: (file, the higher top-level module it imports, why).
+pub const LAYERS: &[(&str, &str, &str)] = &[];
