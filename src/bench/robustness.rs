@@ -319,7 +319,7 @@ fn markdown(
     );
     let _ = writeln!(
         md,
-        "- Training: {} policy iterations, seeds 0..{}, overrides {}; {} evaluation episodes per policy; {} thread(s)",
+        "- Training: {} base policy iterations (× 1 grids, × 2 pace, × 4 nav), seeds 0..{}, overrides {}; {} evaluation episodes per policy; {} thread(s)",
         c.iterations,
         c.seeds,
         serde_json::Value::Object(c.overrides.clone()),
@@ -355,6 +355,14 @@ fn markdown(
             if r.meets_goal { "met" } else { "missed" }
         );
     }
+    let failing: Vec<&str> = fair.iter().filter(|f| !f.passes).map(|f| f.task.as_str()).collect();
+    let _ = writeln!(
+        md,
+        "\nFairness check (BC on the preferred episodes alone against the preferred demonstrator: return within 10 points, cost within the larger of 10% and {FAIR_COST_KAPPA} κ): passes on {} of {} tasks{}.",
+        fair.len() - failing.len(),
+        fair.len(),
+        if failing.is_empty() { String::new() } else { format!("; fails on {}", failing.join(", ")) }
+    );
     let _ = writeln!(md, "\n## Tasks\n");
     let _ = writeln!(md, "| task | parameters | D^U pref + non-pref (share) | D^N | obs noise | demonstrators: return / cost (pref, non-pref) | fairness (BC-pref: return, cost) | BC cost | BC-pref cost |");
     let _ = writeln!(md, "|---|---|---|---|---|---|---|---|---|");

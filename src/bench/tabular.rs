@@ -28,12 +28,17 @@ pub struct TabularRow {
     pub visits: Vec<f64>,
 }
 
-/// The rows: BC, SafeDICE (service defaults), PPL, DWBC at η ∈ {0.2, 0.5, 0.8}, DExperts at
+/// The rows: BC, SafeDICE (service defaults and the paper preset), PPL, DWBC at η ∈ {0.2, 0.5, 0.8}, DExperts at
 /// α ∈ {0.2, 0.5, 0.8}.
 pub fn rows() -> Vec<(String, Algorithm, serde_json::Value)> {
     let mut rows = vec![
         ("BC".to_string(), Algorithm::Bc, serde_json::json!({})),
         ("SafeDICE".to_string(), Algorithm::Safedice, serde_json::json!({})),
+        (
+            "SafeDICE (paper preset)".to_string(),
+            Algorithm::Safedice,
+            serde_json::json!({ "preset": "paper" }),
+        ),
         ("PPL".to_string(), Algorithm::Ppl, serde_json::json!({})),
     ];
     for x in [0.2, 0.5, 0.8] {
