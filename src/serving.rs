@@ -2,7 +2,7 @@
 //! read from the store and decoded once, then shared by every request.
 
 use std::collections::HashMap;
-use std::sync::{Arc, RwLock};
+use std::sync::{Arc, RwLock, RwLockWriteGuard};
 
 use crate::algo::Policy;
 use crate::store::{Store, StoreError};
@@ -21,19 +21,71 @@ pub enum PolicyLoadError {
 /// Policies loaded once from the store and shared by every request.
 pub struct PolicyCache {
     store: Store,
-    loaded: RwLock<HashMap<String, Arc<Policy>>>,
+    slots: RwLock<Slots>,
+}
+
+/// What the cache holds, behind one lock so that a load's insert and a forget are ordered.
+#[derive(Default)]
+struct Slots {
+    loaded: HashMap<String, Arc<Policy>>,
+    /// The loads under way, per policy. A load reads the store and decodes outside the lock, so
+    /// a delete (store, then [`PolicyCache::forget`]) can land in between; the forget marks the
+    /// loads it overtook, and those insert nothing and answer as if the policy were already
+    /// gone. Only in-flight loads are tracked, so the map stays as small as the traffic.
+    loading: HashMap<String, Loading>,
+}
+
+#[derive(Default)]
+struct Loading {
+    /// Requests loading this policy now.
+    loads: usize,
+    /// A forget ran while they were loading.
+    forgotten: bool,
+}
+
+/// One request's load of a policy, registered in [`Slots::loading`]; dropping it (the load
+/// finished, failed, or the request went away mid-load) deregisters it.
+struct LoadTicket<'a> {
+    cache: &'a PolicyCache,
+    id: &'a str,
+}
+
+impl Drop for LoadTicket<'_> {
+    fn drop(&mut self) {
+        let mut slots = self.cache.write();
+        if let Some(loading) = slots.loading.get_mut(self.id) {
+            loading.loads -= 1;
+            if loading.loads == 0 {
+                slots.loading.remove(self.id);
+            }
+        }
+    }
 }
 
 impl PolicyCache {
     pub fn new(store: Store) -> Self {
-        PolicyCache { store, loaded: RwLock::new(HashMap::new()) }
+        PolicyCache { store, slots: RwLock::new(Slots::default()) }
     }
 
-    /// The policy `id`, loading it on first use.
+    fn write(&self) -> RwLockWriteGuard<'_, Slots> {
+        self.slots.write().expect("policy cache lock")
+    }
+
+    /// The policy `id`, loading it on first use. A load that a [`PolicyCache::forget`] of the
+    /// same policy overtook answers `NotFound`, like every request after the delete.
     pub async fn get(&self, id: &str) -> Result<Arc<Policy>, PolicyLoadError> {
-        if let Some(policy) = self.loaded.read().expect("policy cache lock").get(id) {
+        // The common case, a loaded policy, takes the shared lock only.
+        if let Some(policy) = self.slots.read().expect("policy cache lock").loaded.get(id) {
             return Ok(policy.clone());
         }
+        let ticket = {
+            let mut slots = self.write();
+            if let Some(policy) = slots.loaded.get(id) {
+                return Ok(policy.clone());
+            }
+            slots.loading.entry(id.to_owned()).or_default().loads += 1;
+            LoadTicket { cache: self, id }
+        };
         let (spec, weights) = self.store.policy_artifact(id).await?;
         let unreadable =
             |message: String| PolicyLoadError::Unreadable { id: id.to_owned(), message };
@@ -41,15 +93,30 @@ impl PolicyCache {
             .await
             .map_err(|e| unreadable(format!("decoding panicked: {e}")))?;
         let policy = decoded.map_err(|e| unreadable(e.to_string()))?;
-        let mut loaded = self.loaded.write().expect("policy cache lock");
+        let mut slots = self.write();
+        if slots.loading.get(id).is_some_and(|loading| loading.forgotten) {
+            // Deleted while this request loaded it: inserting would serve it until restart.
+            return Err(StoreError::NotFound { kind: "policy", id: id.to_owned() }.into());
+        }
         // Two first requests may both load it; every later one shares the first stored.
-        Ok(loaded.entry(id.to_owned()).or_insert_with(|| Arc::new(policy)).clone())
+        let policy = slots.loaded.entry(id.to_owned()).or_insert_with(|| Arc::new(policy)).clone();
+        // The lock first: dropping the ticket takes it again. A forget from here on finds the
+        // policy inserted and removes it.
+        drop(slots);
+        drop(ticket);
+        Ok(policy)
     }
 
-    /// Drops a deleted policy, so this process stops serving it. (Other API processes of a
-    /// fleet keep their loaded copy until they restart: see docs/fleet.md.)
+    /// Drops a deleted policy, so this process stops serving it, and marks the loads of it
+    /// under way so none inserts it back. Call it after the delete is committed: a load that
+    /// starts later finds no policy in the store. (Other API processes of a fleet keep their
+    /// loaded copy until they restart: see docs/fleet.md.)
     pub fn forget(&self, id: &str) {
-        self.loaded.write().expect("policy cache lock").remove(id);
+        let mut slots = self.write();
+        slots.loaded.remove(id);
+        if let Some(loading) = slots.loading.get_mut(id) {
+            loading.forgotten = true;
+        }
     }
 }
 

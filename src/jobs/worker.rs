@@ -21,13 +21,18 @@ use crate::store::{is_busy, Lease, Store, StoreError};
 /// How often a running job's progress is written and published (and pending metrics flushed).
 const PROGRESS_INTERVAL: Duration = Duration::from_millis(500);
 
-/// How a run ended.
+/// How a run ended, as the training thread hands it to [`run_job`]. The thread writes no end of
+/// the job itself: `run_job` writes each (the policy, `cancelled`, `failed`, back to the queue)
+/// and publishes it. A write after the end would be refused as if the lease were lost, and the
+/// end would then be neither logged truly nor published.
 #[derive(Debug)]
 enum Outcome {
-    Succeeded,
+    /// Trained to the end: the policy to store.
+    Succeeded(Box<TrainedPolicy>),
     Cancelled,
     Failed(String),
-    /// Shutdown: checkpointed and back in the queue.
+    /// Shutdown: checkpointed (or, mid-evaluation, left at its last checkpoint), to go back to
+    /// the queue.
     Released,
     /// A write of the run failed because the store could not take it (full disk, SQLITE_FULL,
     /// a lock held past the busy timeout, the database connection lost): nothing is wrong with
@@ -36,6 +41,37 @@ enum Outcome {
     /// takes it over).
     StoreUnavailable(String),
     /// Another worker took the job over (this worker's lease expired): nothing more is written.
+    LeaseLost,
+}
+
+impl Outcome {
+    /// The outcome of a run (or of writing its end) that stopped on `e`.
+    fn of_error(e: &anyhow::Error) -> Outcome {
+        if lease_lost(e) {
+            Outcome::LeaseLost
+        } else if store_unavailable(e) {
+            Outcome::StoreUnavailable(format!("{e:#}"))
+        } else {
+            Outcome::Failed(format!("{e:#}"))
+        }
+    }
+}
+
+/// The policy a run trained, exported on the training thread, stored by [`run_job`].
+#[derive(Debug)]
+struct TrainedPolicy {
+    artifact: algo::PolicyArtifact,
+    alpha_hat: Option<f64>,
+    /// The step training ended at.
+    step: u64,
+}
+
+/// What writing a run's end came to.
+enum Ended {
+    /// The job's end (or, after a shutdown, its return to the queue) is stored.
+    Written(JobStatus),
+    /// The store could not take the end's write: the job goes back to the queue.
+    StoreUnavailable(String),
     LeaseLost,
 }
 
@@ -106,24 +142,22 @@ async fn run_job(runner: &JobRunner, job: JobRecord, lease: Lease) {
     let attempt = if lease.token > 1 { format!(" (claim {})", lease.token) } else { String::new() };
     log.write(LogLevel::Info, &format!("claimed by worker {}{attempt}", log.worker)).await;
     let run = TrainingRun::new(runner.clone(), Handle::current(), job, lease.clone(), cancel);
-    let outcome = match tokio::task::spawn_blocking(move || run.drive()).await {
-        Ok(Ok(outcome)) => outcome,
-        Ok(Err(e)) if lease_lost(&e) => Outcome::LeaseLost,
-        Ok(Err(e)) if store_unavailable(&e) => Outcome::StoreUnavailable(format!("{e:#}")),
-        Ok(Err(e)) => Outcome::Failed(format!("{e:#}")),
-        Err(e) => Outcome::Failed(format!("the training thread panicked: {e}")),
+    let (outcome, metrics) = match tokio::task::spawn_blocking(move || run.drive()).await {
+        Ok((Ok(outcome), metrics)) => (outcome, metrics),
+        Ok((Err(e), metrics)) => (Outcome::of_error(&e), metrics),
+        Err(e) => (Outcome::Failed(format!("the training thread panicked: {e}")), Vec::new()),
     };
+    // While the lease is still kept alive: a slow write of the end does not lose the job.
+    let ended = write_end(runner, &log, &lease, outcome, metrics).await;
     drop(keeper);
     runner.forget_cancel_flag(&id);
-    if !matches!(outcome, Outcome::StoreUnavailable(_) | Outcome::Released) {
+    if !matches!(ended, Ended::StoreUnavailable(_) | Ended::Written(JobStatus::Queued)) {
         runner.storage_recovered();
     }
-    let status = match &outcome {
-        Outcome::LeaseLost => return log_lease_lost(),
-        Outcome::Succeeded => JobStatus::Succeeded,
-        Outcome::Cancelled => JobStatus::Cancelled,
-        Outcome::Released => JobStatus::Queued,
-        Outcome::StoreUnavailable(message) => {
+    let status = match ended {
+        Ended::LeaseLost => return log_lease_lost(),
+        Ended::Written(status) => status,
+        Ended::StoreUnavailable(message) => {
             tracing::error!(
                 error = %message,
                 "the store cannot take the job's writes; the job goes back to the queue and \
@@ -135,21 +169,89 @@ async fn run_job(runner: &JobRunner, job: JobRecord, lease: Lease) {
             }
             JobStatus::Queued
         }
-        Outcome::Failed(message) => {
-            tracing::warn!(error = %message, "job failed");
-            // Refused (and quiet) when the run already finished the job and logged it.
-            log.write(LogLevel::Error, &format!("failed: {message}")).await;
-            let store = runner.store();
-            match store.finish_job(&lease, JobStatus::Failed, Some(message), &[]).await {
-                Ok(()) => {}
-                Err(StoreError::LeaseLost(_)) => return log_lease_lost(),
-                Err(e) => tracing::error!(error = %e, "cannot record the job's failure"),
-            }
-            JobStatus::Failed
-        }
     };
     tracing::info!(%status, "job stopped");
     runner.publish(JobEvent::Status { job_id: id, status });
+}
+
+/// Writes how the run ended: the one place a job's end is written. A write that fails turns
+/// into the outcome its error means (a lost lease, the store unavailable, or the job failed)
+/// and that is written instead.
+async fn write_end(
+    runner: &JobRunner,
+    log: &JobLog,
+    lease: &Lease,
+    mut outcome: Outcome,
+    mut metrics: Vec<MetricRow>,
+) -> Ended {
+    let store = runner.store();
+    loop {
+        let (status, written) = match outcome {
+            Outcome::Succeeded(trained) => {
+                let metrics = std::mem::take(&mut metrics);
+                (JobStatus::Succeeded, store_policy(store, log, lease, *trained, metrics).await)
+            }
+            Outcome::Cancelled => {
+                let metrics = std::mem::take(&mut metrics);
+                let written = store.finish_job(lease, JobStatus::Cancelled, None, &metrics).await;
+                (JobStatus::Cancelled, written.map_err(Into::into))
+            }
+            Outcome::Released => {
+                (JobStatus::Queued, store.release_job(lease).await.map_err(Into::into))
+            }
+            Outcome::Failed(message) => {
+                tracing::warn!(error = %message, "job failed");
+                log.write(LogLevel::Error, &format!("failed: {message}")).await;
+                let status = JobStatus::Failed;
+                match store.finish_job(lease, status, Some(&message), &metrics).await {
+                    Ok(()) => {}
+                    Err(StoreError::LeaseLost(_)) => return Ended::LeaseLost,
+                    Err(e) => tracing::error!(error = %e, "cannot record the job's failure"),
+                }
+                return Ended::Written(status);
+            }
+            Outcome::StoreUnavailable(message) => return Ended::StoreUnavailable(message),
+            Outcome::LeaseLost => return Ended::LeaseLost,
+        };
+        match written {
+            Ok(()) => return Ended::Written(status),
+            Err(e) => outcome = Outcome::of_error(&e),
+        }
+    }
+}
+
+/// Stores the trained policy with the last metrics and marks the job succeeded.
+async fn store_policy(
+    store: &Store,
+    log: &JobLog,
+    lease: &Lease,
+    trained: TrainedPolicy,
+    metrics: Vec<MetricRow>,
+) -> anyhow::Result<()> {
+    // In first: the policy's final metrics are the last values stored.
+    store.insert_metrics(lease, &metrics).await?;
+    let last: serde_json::Map<String, serde_json::Value> = store
+        .last_metric_values(&lease.id)
+        .await?
+        .into_iter()
+        .map(|(name, value)| (name, value.into()))
+        .collect();
+    let TrainedPolicy { artifact, alpha_hat, step } = trained;
+    let policy_id = PolicyId::generate();
+    let policy = NewPolicy {
+        id: &policy_id,
+        job_id: &lease.id,
+        algorithm: artifact.spec.algorithm.as_str(),
+        obs_dim: artifact.spec.obs_dim,
+        action_space: &serde_json::to_string(&artifact.spec.action_space)?,
+        spec: &serde_json::to_string(&artifact.spec)?,
+        weights: &artifact.weights,
+        final_metrics: &serde_json::Value::Object(last).to_string(),
+        alpha_hat,
+    };
+    log.write(LogLevel::Info, &format!("succeeded at step {step}: policy {policy_id}")).await;
+    store.finish_job_succeeded(lease, &[], &policy, step).await?;
+    Ok(())
 }
 
 /// The end of a run whose job another worker took over: nothing more is written for it.
@@ -245,7 +347,14 @@ impl TrainingRun {
         }
     }
 
-    fn drive(mut self) -> anyhow::Result<Outcome> {
+    /// Trains until the run ends; hands back how, with the metrics recorded since the last
+    /// write (stored with the job's end).
+    fn drive(mut self) -> (anyhow::Result<Outcome>, Vec<MetricRow>) {
+        let outcome = self.run();
+        (outcome, std::mem::take(&mut self.pending))
+    }
+
+    fn run(&mut self) -> anyhow::Result<Outcome> {
         let config = &self.job.config;
         let schedule = Schedule {
             options: self.job.runner.clone(),
@@ -291,7 +400,6 @@ impl TrainingRun {
             if self.cancel.load(Ordering::Relaxed) {
                 let step = trainer.progress().step;
                 self.log(LogLevel::Info, format!("cancelled at step {step}"));
-                self.finish(JobStatus::Cancelled, None)?;
                 return Ok(Outcome::Cancelled);
             }
             if shutdown.is_cancelled() {
@@ -301,19 +409,13 @@ impl TrainingRun {
                     format!("the worker shuts down: checkpoint at step {step}, back to the queue"),
                 );
                 self.save_checkpoint(trainer)?;
-                self.rt.block_on(self.runner.store().release_job(&self.lease))?;
                 return Ok(Outcome::Released);
             }
             let progress = trainer.progress();
             let record = options.records(progress.step + 1, progress.total);
             let scalars = match trainer.step(record) {
                 Ok(scalars) => scalars,
-                Err(e) => {
-                    let message = e.to_string();
-                    self.log(LogLevel::Error, format!("failed: {message}"));
-                    self.finish(JobStatus::Failed, Some(&message))?;
-                    return Ok(Outcome::Failed(message));
-                }
+                Err(e) => return Ok(Outcome::Failed(e.to_string())),
             };
             let step = trainer.progress().step;
             self.record(step, &scalars);
@@ -322,17 +424,10 @@ impl TrainingRun {
                     EvalOutcome::Recorded => {}
                     // The loop's next turn sees the cancel flag.
                     EvalOutcome::Interrupted if !shutdown.is_cancelled() => continue,
-                    EvalOutcome::Interrupted => {
-                        // Back to the last checkpoint: the resumed run recomputes this step
-                        // and its evaluation bitwise the same.
-                        self.rt.block_on(self.runner.store().release_job(&self.lease))?;
-                        return Ok(Outcome::Released);
-                    }
-                    EvalOutcome::Failed(message) => {
-                        self.log(LogLevel::Error, format!("failed: {message}"));
-                        self.finish(JobStatus::Failed, Some(&message))?;
-                        return Ok(Outcome::Failed(message));
-                    }
+                    // Back to the last checkpoint: the resumed run recomputes this step and its
+                    // evaluation bitwise the same.
+                    EvalOutcome::Interrupted => return Ok(Outcome::Released),
+                    EvalOutcome::Failed(message) => return Ok(Outcome::Failed(message)),
                 }
             }
             if options.checkpoints(step, progress.total) {
@@ -347,8 +442,13 @@ impl TrainingRun {
                 window = (Instant::now(), step);
             }
         }
-        self.complete(trainer)?;
-        Ok(Outcome::Succeeded)
+        self.log_milestones(trainer);
+        let trained = TrainedPolicy {
+            artifact: trainer.export_policy()?,
+            alpha_hat: trainer.alpha_hat(),
+            step: trainer.progress().step,
+        };
+        Ok(Outcome::Succeeded(Box::new(trained)))
     }
 
     /// Evaluates the current policy and records the paper's metrics at `step` (`eval/...`).
@@ -462,42 +562,6 @@ impl TrainingRun {
             progress: JobProgress::new(p.step, p.total, Some(p.phase.to_owned()), speed),
         });
         Ok(cancel)
-    }
-
-    fn finish(&mut self, status: JobStatus, error: Option<&str>) -> anyhow::Result<()> {
-        let rows = std::mem::take(&mut self.pending);
-        self.rt.block_on(self.runner.store().finish_job(&self.lease, status, error, &rows))?;
-        Ok(())
-    }
-
-    /// Stores the policy and marks the job succeeded.
-    fn complete(&mut self, trainer: &dyn Trainer) -> anyhow::Result<()> {
-        self.log_milestones(trainer);
-        let artifact = trainer.export_policy()?;
-        self.flush_metrics()?;
-        let store = self.runner.store().clone();
-        let last: serde_json::Map<String, serde_json::Value> = self
-            .rt
-            .block_on(store.last_metric_values(&self.job.id))?
-            .into_iter()
-            .map(|(name, value)| (name, value.into()))
-            .collect();
-        let policy_id = PolicyId::generate();
-        let policy = NewPolicy {
-            id: &policy_id,
-            job_id: &self.job.id,
-            algorithm: artifact.spec.algorithm.as_str(),
-            obs_dim: artifact.spec.obs_dim,
-            action_space: &serde_json::to_string(&artifact.spec.action_space)?,
-            spec: &serde_json::to_string(&artifact.spec)?,
-            weights: &artifact.weights,
-            final_metrics: &serde_json::Value::Object(last).to_string(),
-            alpha_hat: trainer.alpha_hat(),
-        };
-        let step = trainer.progress().step;
-        self.log(LogLevel::Info, format!("succeeded at step {step}: policy {policy_id}"));
-        self.rt.block_on(store.finish_job_succeeded(&self.lease, &[], &policy, step))?;
-        Ok(())
     }
 }
 

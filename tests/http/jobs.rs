@@ -23,9 +23,19 @@ async fn upload_grid(app: &TestApp) -> (String, String) {
 
 /// Reads server-sent events until the stream ends: (event name, data JSON) pairs.
 async fn read_events(app: &TestApp, job_id: &str) -> Vec<(String, Value)> {
+    events_until_the_end(open_events(app, job_id).await).await
+}
+
+/// Opens a job's event stream: once this returns, the server watches the job's events.
+async fn open_events(app: &TestApp, job_id: &str) -> reqwest::Response {
     let response = app.get(&format!("/v1/jobs/{job_id}/events")).send().await.unwrap();
     assert_eq!(response.status(), StatusCode::OK);
     assert!(response.headers()["content-type"].to_str().unwrap().starts_with("text/event-stream"));
+    response
+}
+
+/// The events of an open stream, read until it ends: (event name, data JSON) pairs.
+async fn events_until_the_end(response: reqwest::Response) -> Vec<(String, Value)> {
     let mut text = String::new();
     let mut body = response.bytes_stream();
     while let Some(chunk) = tokio::time::timeout(Duration::from_secs(300), body.next())
@@ -321,6 +331,106 @@ async fn cancel_stops_a_running_job_keeping_its_metrics_and_a_queued_one_at_once
     assert_error(again, StatusCode::CONFLICT, "job_finished").await;
     let missing = app.post("/v1/jobs/nope/cancel").send().await.unwrap();
     assert_error(missing, StatusCode::NOT_FOUND, "not_found").await;
+}
+
+/// A run that fails is ended once, by its worker, which publishes the failure: the job's event
+/// stream gets it from the worker, not from the API node's poll of the jobs table (which would
+/// repair a missing event within half a second, and so hides it from the stream alone). What
+/// tells them apart is the worker's own log: a worker that ends the job and publishes logs
+/// `job stopped` with the status; one whose end write was refused logs that another worker took
+/// the job over, and publishes nothing.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_failed_run_is_ended_once_by_its_worker_which_publishes_the_failure() {
+    let worker_log = crate::support::server_log::capture();
+    let app = TestApp::spawn().await;
+    let (unlabeled, non_preferred) = grid_datasets();
+    let u = upload(&app.client, &app.base_url, &unlabeled, "grid-unlabeled").await;
+    let n = upload(&app.client, &app.base_url, &non_preferred, "grid-non-preferred").await;
+    // Observations near f32::MAX, not normalised: the first discriminator loss overflows and
+    // training stops at step 0 with `Diverged` (tests/learning's non-finite guard test).
+    let mut parts = unlabeled.into_parts();
+    parts.observations.iter_mut().for_each(|x| *x *= 3e38);
+    let overflowing = safedice::data::Dataset::new(parts).unwrap();
+    let o = upload(&app.client, &app.base_url, &overflowing, "grid-overflowing").await;
+    // The one worker is busy until the failing job's stream is open, so the stream sees the job
+    // run and fail rather than read it already failed.
+    let blocker = create_job(
+        &app.client,
+        &app.base_url,
+        json!({"algorithm": "bc", "unlabeled_dataset": u,
+               "config": small_config(ENDLESS_ITERATIONS, 0)}),
+    )
+    .await;
+    let blocker = blocker["id"].as_str().unwrap();
+    wait_for_status(&app.client, &app.base_url, blocker, "running").await;
+    let mut config = small_config(100, 0);
+    config["normalize_observations"] = json!(false);
+    let failing = create_job(
+        &app.client,
+        &app.base_url,
+        json!({"algorithm": "safedice", "unlabeled_dataset": o, "non_preferred_dataset": n,
+               "config": config}),
+    )
+    .await;
+    let id = failing["id"].as_str().unwrap();
+    let stream = open_events(&app, id).await;
+    let cancel = app.post(&format!("/v1/jobs/{blocker}/cancel")).send().await.unwrap();
+    assert_eq!(cancel.status(), StatusCode::OK);
+    let events = events_until_the_end(stream).await;
+
+    // The message is the trainer's own error, as the same training gives it here.
+    let config: safedice::algo::ResolvedConfig =
+        serde_json::from_value(failing["config"].clone()).unwrap();
+    let data = safedice::algo::TrainingData {
+        unlabeled: std::sync::Arc::new(overflowing),
+        non_preferred: Some(std::sync::Arc::new(non_preferred)),
+    };
+    let mut trainer = safedice::algo::build_trainer(&config, &data, None).unwrap();
+    let message = trainer.step(true).map(|_| ()).unwrap_err().to_string();
+    assert!(message.starts_with("training diverged at step 0: "), "{message}");
+
+    // (a) The job ended failed, with the trainer's message, and nothing of a policy.
+    let job = get_json(&app.client, &app.url(&format!("/v1/jobs/{id}"))).await;
+    assert_eq!(
+        (job["status"].as_str(), job["error"].as_str(), &job["policy_id"]),
+        (Some("failed"), Some(message.as_str()), &Value::Null),
+        "{job}"
+    );
+    assert_eq!(app.count_rows("job_checkpoints").await, 0);
+    // (b) The stream: the job queued, then running, then failed with the message; the failure
+    // is its last event (the stream ends there). Each status event carries the job as stored
+    // when it is sent, so a status may come twice (the API node's follower also announces the
+    // job it saw queued, at once on PostgreSQL, which notifies it), and a stream that fell
+    // behind the run by the few milliseconds it lasted shows it failed where it was running.
+    let mut statuses: Vec<&str> = events
+        .iter()
+        .filter(|(name, _)| name == "status")
+        .map(|(_, job)| job["status"].as_str().unwrap())
+        .collect();
+    statuses.dedup();
+    assert!(
+        matches!(statuses[..], ["queued", "running", "failed"] | ["queued", "failed"]),
+        "{statuses:?}: {events:?}"
+    );
+    let (name, last) = events.last().unwrap();
+    assert_eq!((name.as_str(), last), ("status", &job));
+    // (c) The worker ended the job and published it; it never thought the job taken over.
+    let lines = worker_log.lines_of_job(id);
+    let stopped: Vec<&String> = lines.iter().filter(|l| l.contains("job stopped")).collect();
+    assert_eq!(stopped.len(), 1, "{lines:#?}");
+    assert!(stopped[0].ends_with("job stopped status=failed"), "{lines:#?}");
+    assert!(!lines.iter().any(|l| l.contains("took the job over")), "{lines:#?}");
+    // The job's log has the failure once, as its last line.
+    let logged = get_json(&app.client, &app.url(&format!("/v1/jobs/{id}/logs"))).await;
+    let logged: Vec<(&str, &str)> = logged
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|l| (l["level"].as_str().unwrap(), l["message"].as_str().unwrap()))
+        .collect();
+    let failed = format!("failed: {message}");
+    assert_eq!(logged.iter().filter(|(_, m)| m.starts_with("failed: ")).count(), 1, "{logged:?}");
+    assert_eq!(logged.last(), Some(&("error", failed.as_str())), "{logged:?}");
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -4,7 +4,7 @@
 
 use std::time::Duration;
 
-use crate::support::app::{assert_error, TestApp};
+use crate::support::app::{assert_error, assert_v2_error, TestApp};
 use crate::support::jobs::*;
 use futures::StreamExt;
 use reqwest::StatusCode;
@@ -314,6 +314,79 @@ async fn a_policy_is_deleted_alone_and_its_job_stays() {
     assert_error(again, StatusCode::NOT_FOUND, "not_found").await;
     let missing = app.delete("/v1/evaluations/nope").send().await.unwrap();
     assert_error(missing, StatusCode::NOT_FOUND, "not_found").await;
+}
+
+/// A policy deleted while its first `/act` is loading it stays deleted: the load that the delete
+/// overtook must not put it in the serving cache, where `/act` and `/v2` would answer from it
+/// until a restart while `GET /v1/policies/{id}` says 404. Raced many times over, each delete
+/// landing at another moment of the load (wide networks, so that a load takes milliseconds);
+/// after each race every route answers 404 for the deleted policy.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_policy_deleted_while_its_first_act_loads_it_is_never_served_again() {
+    const RACES: usize = 32;
+    let app = TestApp::spawn_with(|c| c.workers = 2).await;
+    let (unlabeled, _) = grid_datasets();
+    let u = upload(&app.client, &app.base_url, &unlabeled, "grid").await;
+    // One policy to time a first load with, and one per race; a single step is enough to have
+    // a policy, and the width is what makes it slow to load.
+    let mut jobs = Vec::new();
+    for seed in 0..=RACES as u64 {
+        let body = json!({"algorithm": "bc", "unlabeled_dataset": u,
+                          "config": {"iterations": 1, "seed": seed, "hidden_sizes": [1024, 1024],
+                                     "batch_size": 64}});
+        jobs.push(create_job(&app.client, &app.base_url, body).await);
+    }
+    let mut policies = Vec::new();
+    for job in &jobs {
+        let id = job["id"].as_str().unwrap();
+        let job = wait_for_status(&app.client, &app.base_url, id, "succeeded").await;
+        policies.push(job["policy_id"].as_str().unwrap().to_owned());
+    }
+    let act_body = json!({"observations": grid_observations()});
+    let flat: Vec<f32> = grid_observations().into_iter().flatten().collect();
+    let infer_body = json!({"inputs": [{"name": "observations", "datatype": "FP32",
+                                        "shape": [GRID_OBS_DIM, GRID_OBS_DIM], "data": flat}]});
+    let act = |policy: &str| app.post(&format!("/v1/policies/{policy}/act")).json(&act_body);
+
+    let timed = policies.pop().unwrap();
+    let started = std::time::Instant::now();
+    assert_eq!(act(&timed).send().await.unwrap().status(), StatusCode::OK);
+    let first_load = started.elapsed();
+    let started = std::time::Instant::now();
+    assert_eq!(act(&timed).send().await.unwrap().status(), StatusCode::OK);
+    let loaded = started.elapsed();
+
+    let mut answers = std::collections::BTreeMap::new();
+    for (race, policy) in policies.iter().enumerate() {
+        // From at once to past the end of a first load, spread evenly over the races.
+        let delay = first_load.mul_f64(1.5 * race as f64 / RACES as f64);
+        let (raced, deleted) = tokio::join!(act(policy).send(), async {
+            tokio::time::sleep(delay).await;
+            app.delete(&format!("/v1/policies/{policy}")).send().await
+        });
+        assert_eq!(deleted.unwrap().status(), StatusCode::NO_CONTENT, "race {race}");
+        // The act that raced the delete answers from the policy (it read it before the delete)
+        // or not at all; never an error of another kind.
+        let raced = raced.unwrap().status();
+        assert!(matches!(raced, StatusCode::OK | StatusCode::NOT_FOUND), "race {race}: {raced}");
+        *answers.entry(raced.as_u16()).or_insert(0) += 1;
+
+        let again = act(policy).send().await.unwrap();
+        assert_eq!(again.status(), StatusCode::NOT_FOUND, "race {race}: served after its delete");
+        assert_error(again, StatusCode::NOT_FOUND, "not_found").await;
+        let infer =
+            app.post(&format!("/v2/models/{policy}/infer")).json(&infer_body).send().await.unwrap();
+        assert_v2_error(infer, StatusCode::NOT_FOUND).await;
+        let ready = app.get(&format!("/v2/models/{policy}/ready")).send().await.unwrap();
+        assert_v2_error(ready, StatusCode::NOT_FOUND).await;
+        let record = app.get(&format!("/v1/policies/{policy}")).send().await.unwrap();
+        assert_error(record, StatusCode::NOT_FOUND, "not_found").await;
+    }
+    // What the races were like (a first load against a loaded policy's answer), for the log.
+    eprintln!(
+        "{RACES} races: first /act {first_load:?}, loaded /act {loaded:?}; racing /act \
+         answered {answers:?}"
+    );
 }
 
 async fn wait_for_evaluation(app: &TestApp, id: &str) -> Value {

@@ -14,6 +14,7 @@ mod support {
     pub mod app;
     pub mod jobs;
     pub mod postgres;
+    pub mod server_log;
     // The jobs' datasets come from the training core's tasks; their training helpers are
     // tests/learning's.
     #[allow(dead_code)]

@@ -15,6 +15,7 @@ mod support {
     pub mod app;
     pub mod jobs;
     pub mod postgres;
+    pub mod server_log;
     #[allow(dead_code)]
     pub mod tasks;
 }
