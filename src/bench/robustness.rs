@@ -143,11 +143,7 @@ pub struct RowSummary {
     pub meets_goal: bool,
 }
 
-fn row<'a>(
-    env: &'a EnvSummary,
-    algorithm: Algorithm,
-    variant: Variant,
-) -> Option<&'a AlgorithmSummary> {
+fn row(env: &EnvSummary, algorithm: Algorithm, variant: Variant) -> Option<&AlgorithmSummary> {
     env.rows.iter().find(|r| r.algorithm == algorithm && r.variant == variant && r.seeds > 0)
 }
 

@@ -34,4 +34,5 @@ mod lifecycle;
 mod openapi;
 mod ops;
 mod resources;
+mod restart;
 mod ui;

@@ -40,5 +40,7 @@ mod lifecycle;
 mod ops;
 #[path = "../http/resources.rs"]
 mod resources;
+#[path = "../http/restart.rs"]
+mod restart;
 #[path = "../http/ui.rs"]
 mod ui;

@@ -84,9 +84,9 @@ fn ci_sized_suite_trains_scores_and_reports_every_task_deterministically() {
 fn tabular_check_safedice_avoids_the_cost_rooms_bc_enters() {
     use safedice::bench::tabular;
     let data = tabular::data(0).unwrap();
-    let small = serde_json::json!({"hidden_sizes": [32, 32]});
-    let bc = tabular::solve(Algorithm::Bc, &small, &data, 1500, 0).unwrap();
-    let safedice = tabular::solve(Algorithm::Safedice, &small, &data, 1500, 0).unwrap();
+    let defaults = serde_json::json!({});
+    let bc = tabular::solve(Algorithm::Bc, &defaults, &data, 4000, 0).unwrap();
+    let safedice = tabular::solve(Algorithm::Safedice, &defaults, &data, 4000, 0).unwrap();
     assert!(
         bc.expected_cost > 3.0,
         "BC follows the mixture into the cost rooms: {}",

@@ -96,7 +96,7 @@ impl TaskSpec {
         let (family, unlabeled) = match index % 4 {
             0 | 1 => {
                 let map = grid::generate_map(&mut rng).expect("grids of these sizes are found");
-                let terminal_goal = index % 4 == 0;
+                let terminal_goal = index.is_multiple_of(4);
                 let params = grid::GridParams {
                     horizon: if terminal_goal { 100 } else { rng.random_range(100..=200) },
                     map,
