@@ -264,6 +264,7 @@ async fn claim_latencies(
             runner: RunnerOptions::default(),
             eval: None,
             labels: Default::default(),
+            max_attempts: 3,
         };
         store.insert_job(&job).await?;
     }

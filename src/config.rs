@@ -21,6 +21,10 @@ pub const DEFAULT_MIN_FREE_DISK: u64 = 1 << 30;
 /// minute.
 pub const DEFAULT_LEASE_SECONDS: u64 = 30;
 const LEASE_SECONDS_RANGE: std::ops::RangeInclusive<u64> = 3..=3600;
+pub use crate::domain::attempt::DEFAULT_MAX_ATTEMPTS;
+const MAX_ATTEMPTS_RANGE: std::ops::RangeInclusive<i64> =
+    1..=crate::domain::attempt::MOST_ATTEMPTS as i64;
+pub const DEFAULT_RETRY_BACKOFF_SECS: u64 = crate::domain::RetryBackoff::DEFAULT_BASE.as_secs();
 
 /// Log line format.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
@@ -108,6 +112,17 @@ pub struct ServeConfig {
     #[arg(long, env = "SAFEDICE_LEASE_SECONDS", default_value_t = DEFAULT_LEASE_SECONDS, value_parser = clap::value_parser!(u64).range(LEASE_SECONDS_RANGE))]
     pub lease_seconds: u64,
 
+    /// Attempts of a job whose worker vanishes (killed, out of memory, its machine lost) before
+    /// the job fails with the history of its attempts; a job may set its own `max_attempts`.
+    /// Errors that retrying cannot fix (bad data, divergence) fail a job at once.
+    #[arg(long, env = "SAFEDICE_MAX_ATTEMPTS", default_value_t = DEFAULT_MAX_ATTEMPTS, value_parser = clap::value_parser!(u32).range(MAX_ATTEMPTS_RANGE))]
+    pub max_attempts: u32,
+
+    /// Seconds a job whose worker vanished waits, after its lease expired, before its next
+    /// attempt; doubled per attempt (at most 600) with +-25% jitter. 0 retries at once.
+    #[arg(long, env = "SAFEDICE_RETRY_BACKOFF_SECS", default_value_t = DEFAULT_RETRY_BACKOFF_SECS)]
+    pub retry_backoff_secs: u64,
+
     /// Largest estimated peak memory of one training job, in bytes: POST /v1/jobs refuses (422
     /// job_too_large) a job whose configuration and datasets need more. Each worker runs one
     /// job, so training may use up to --workers times this.
@@ -140,6 +155,8 @@ impl std::fmt::Debug for ServeConfig {
             .field("max_concurrent_uploads", &self.max_concurrent_uploads)
             .field("workers", &self.workers)
             .field("lease_seconds", &self.lease_seconds)
+            .field("max_attempts", &self.max_attempts)
+            .field("retry_backoff_secs", &self.retry_backoff_secs)
             .field("max_job_memory", &self.max_job_memory)
             .field("min_free_disk", &self.min_free_disk)
             .finish()
@@ -168,6 +185,11 @@ pub struct WorkerConfig {
     #[arg(long, env = "SAFEDICE_LEASE_SECONDS", default_value_t = DEFAULT_LEASE_SECONDS, value_parser = clap::value_parser!(u64).range(LEASE_SECONDS_RANGE))]
     pub lease_seconds: u64,
 
+    /// Seconds before the next attempt of a job whose worker vanished (see `safedice serve
+    /// --help`).
+    #[arg(long, env = "SAFEDICE_RETRY_BACKOFF_SECS", default_value_t = DEFAULT_RETRY_BACKOFF_SECS)]
+    pub retry_backoff_secs: u64,
+
     /// Free space (bytes) the data directory needs before training paused by a full disk
     /// resumes.
     #[arg(long, env = "SAFEDICE_MIN_FREE_DISK", default_value_t = DEFAULT_MIN_FREE_DISK)]
@@ -185,6 +207,7 @@ impl std::fmt::Debug for WorkerConfig {
             .field("data_dir", &self.data_dir)
             .field("concurrency", &self.concurrency)
             .field("lease_seconds", &self.lease_seconds)
+            .field("retry_backoff_secs", &self.retry_backoff_secs)
             .field("min_free_disk", &self.min_free_disk)
             .field("log_format", &self.log_format)
             .finish()
@@ -231,6 +254,8 @@ impl ServeConfig {
             max_concurrent_uploads: 8,
             workers: 1,
             lease_seconds: DEFAULT_LEASE_SECONDS,
+            max_attempts: DEFAULT_MAX_ATTEMPTS,
+            retry_backoff_secs: DEFAULT_RETRY_BACKOFF_SECS,
             max_job_memory: DEFAULT_MAX_JOB_MEMORY,
             min_free_disk: DEFAULT_MIN_FREE_DISK,
         }

@@ -9,6 +9,7 @@ use tokio::task::JoinHandle;
 use tokio_util::sync::CancellationToken;
 
 use crate::config::ServeConfig;
+use crate::domain::RetryBackoff;
 use crate::http::connections::{self, ConnectionLimits};
 use crate::http::{self, AppState};
 use crate::jobs::{JobRunner, WorkerOptions};
@@ -53,7 +54,8 @@ impl Server {
             usize::from(config.workers),
             Duration::from_secs(config.lease_seconds),
             config.min_free_disk,
-        );
+        )
+        .with_retry_backoff(RetryBackoff::new(Duration::from_secs(config.retry_backoff_secs)));
         let jobs = JobRunner::new(store.clone(), options, shutdown.clone());
         jobs.start(true).await?;
         let policies = Arc::new(PolicyCache::new(store.clone()));

@@ -7,6 +7,7 @@ use std::time::Duration;
 use tokio_util::sync::CancellationToken;
 
 use crate::config::WorkerConfig;
+use crate::domain::RetryBackoff;
 use crate::jobs::{JobRunner, WorkerOptions};
 use crate::store::Store;
 
@@ -18,7 +19,8 @@ pub async fn run(config: WorkerConfig, shutdown: CancellationToken) -> anyhow::R
         usize::from(config.concurrency),
         Duration::from_secs(config.lease_seconds),
         config.min_free_disk,
-    );
+    )
+    .with_retry_backoff(RetryBackoff::new(Duration::from_secs(config.retry_backoff_secs)));
     tracing::info!(
         worker_id = %options.worker_id,
         database = store.backend().as_str(),

@@ -607,7 +607,21 @@ function jobSummary(job, onCancel) {
     job.status === 'failed' ? h('div', { class: 'error-box job-error', role: 'alert' },
       h('strong', {}, 'This job failed: '), h('span', { class: 'error-message' }, job.error || 'no reason recorded'),
       h('div', { class: 'hint' }, 'The log below tells what the worker did; fix what the message names (a knob of the config or the data) and queue a new job on the Jobs page.')) : null,
-    job.cancel_requested && job.status === 'running' ? h('div', { class: 'hint' }, 'Cancel requested; the job stops within a second.') : null);
+    job.cancel_requested && job.status === 'running' ? h('div', { class: 'hint' }, 'Cancel requested; the job stops within a second.') : null,
+    attemptNotice(job));
+}
+
+/** A job whose worker vanished: waiting for another worker, or for its retry after the backoff. */
+function attemptNotice(job) {
+  if (job.status === 'running' && job.lease_expired_at) {
+    return h('div', { class: 'notice', id: 'lease-expired', role: 'status' },
+      `Waiting for a worker: the worker stopped renewing its lease at ${fmtTime(job.lease_expired_at)} (progress is frozen). Another worker takes attempt ${job.attempt} of ${job.max_attempts} over from the last checkpoint, or retries the job.`);
+  }
+  if (job.status === 'queued' && job.retry_at) {
+    return h('div', { class: 'notice', id: 'retry-at', role: 'status' },
+      `Attempt ${job.attempt} of ${job.max_attempts} ended when its worker vanished (see the log); attempt ${job.attempt + 1} starts after ${fmtTime(job.retry_at)}, from the last checkpoint.`);
+  }
+  return null;
 }
 
 /** Name, tags and notes, editable (PATCH), and the delete button. */
@@ -654,6 +668,7 @@ function jobDetails(job) {
       h('dt', {}, 'unlabeled dataset'), h('dd', { class: 'mono' }, job.unlabeled_dataset),
       h('dt', {}, 'non-preferred dataset'), h('dd', { class: 'mono' }, job.non_preferred_dataset || '—'),
       h('dt', {}, 'worker'), h('dd', { class: 'mono', id: 'job-worker' }, job.worker || '—'),
+      h('dt', {}, 'attempts'), h('dd', { id: 'job-attempts' }, `${job.attempt} of ${job.max_attempts}`),
       h('dt', {}, 'created'), h('dd', {}, fmtTime(job.created_at)),
       h('dt', {}, 'started'), h('dd', { id: 'job-started' }, fmtTime(job.started_at)),
       h('dt', {}, 'finished'), h('dd', { id: 'job-finished' }, fmtTime(job.finished_at)))));
@@ -964,7 +979,8 @@ function evaluationsTable(items) {
       h('th', {}, 'Actions'), h('th', {}, 'Status'), h('th', { class: 'num' }, 'Normalized return'), h('th', { class: 'num' }, 'Average cost'),
       h('th', { class: 'num' }, 'Violation ratio'), h('th', { class: 'num' }, 'CVaR 10%'), h('th', { class: 'num' }, 'CVaR 5%'), h('th', {}, 'Finished'))),
     h('tbody', {}, items.map((e) => h('tr', { 'data-id': e.id, 'data-status': e.status },
-      h('td', {}, e.env), h('td', { class: 'num' }, fmt(e.episodes)), h('td', { class: 'num' }, String(e.seed)),
+      h('td', {}, e.env, e.source === 'external' ? h('span', { class: 'tag source-external', title: 'Run in your own simulator and recorded with POST /v1/policies/{id}/evaluations' }, 'external') : null),
+      h('td', { class: 'num' }, fmt(e.episodes)), h('td', { class: 'num' }, String(e.seed)),
       h('td', {}, e.deterministic ? 'deterministic' : 'sampled'),
       h('td', {}, statusPill(e.status), e.error ? h('div', { class: 'error-message' }, e.error) : null),
       h('td', { class: 'num eval-return' }, m(e, 'normalized_return')), h('td', { class: 'num eval-cost' }, m(e, 'average_cost')),

@@ -90,6 +90,15 @@ pub struct JobRecord {
     pub cancel_requested: bool,
     /// The worker that holds (or last held) the job's lease.
     pub worker: Option<String>,
+    /// Attempts started (a run handed back on shutdown gives its attempt back).
+    pub attempt: u32,
+    /// Attempts before the job fails for good when its workers keep vanishing.
+    pub max_attempts: u32,
+    /// A job queued again after its worker vanished: not claimed before this time.
+    pub retry_at: Option<DateTime<Utc>>,
+    /// A running job whose worker stopped renewing its lease at this time and that no worker
+    /// has taken over yet (waiting for a worker).
+    pub lease_expired_at: Option<DateTime<Utc>>,
     pub created_at: DateTime<Utc>,
     pub updated_at: DateTime<Utc>,
     pub started_at: Option<DateTime<Utc>>,

@@ -3,6 +3,7 @@
 //! evaluations, policies). No SQL, no HTTP:
 //! the store turns rows into these types once, and everything above works with them.
 
+pub mod attempt;
 pub mod evaluation;
 pub mod ids;
 pub mod job;
@@ -11,7 +12,8 @@ pub mod options;
 pub mod policy;
 pub mod progress;
 
-pub use evaluation::{EvaluationRecord, EvaluationStatus};
+pub use attempt::{AttemptOutcome, JobAttempt, RetryBackoff};
+pub use evaluation::{EvaluationRecord, EvaluationSource, EvaluationStatus};
 pub use ids::{DatasetId, EvaluationId, JobId, PolicyId};
 pub use job::{JobRecord, JobStatus};
 pub use labels::JobLabels;

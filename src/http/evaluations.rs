@@ -1,6 +1,7 @@
 //! `/v1/evaluations`: a trained policy evaluated on a built-in environment with the paper's
-//! metrics, as a background task (`POST /v1/policies/{id}/evaluate` queues one). The work
-//! happens in [`crate::jobs::evaluations`].
+//! metrics, as a background task (`POST /v1/policies/{id}/evaluate` queues one; the work
+//! happens in [`crate::jobs::evaluations`]), or recorded from the user's own simulator
+//! (`POST /v1/policies/{id}/evaluations`).
 
 use axum::extract::State;
 use axum::http::{header, StatusCode};
@@ -14,7 +15,10 @@ use super::error::ErrorBody;
 use super::extract::{Json, Path, Query};
 use super::pagination::{Page, PageParams};
 use super::{ApiError, AppState};
-use crate::domain::{rfc3339, EvalSpec, EvaluationId, EvaluationRecord, EvaluationStatus};
+use crate::domain::evaluation::ExternalEvaluation;
+use crate::domain::{
+    rfc3339, EvalSpec, EvaluationId, EvaluationRecord, EvaluationSource, EvaluationStatus,
+};
 use crate::envs::{self, Metrics, ReferenceStats};
 use crate::store::evaluations::NewEvaluation;
 use crate::store::{DeleteOutcome, Listing};
@@ -29,6 +33,9 @@ pub struct Evaluation {
     pub seed: u64,
     pub deterministic: bool,
     pub status: EvaluationStatus,
+    /// `builtin` (run by a worker on a built-in environment) or `external` (recorded from the
+    /// user's own simulator with `POST /v1/policies/{id}/evaluations`).
+    pub source: EvaluationSource,
     /// The paper's metrics over the episodes, once succeeded: normalized return, average cost,
     /// cost-violation ratio, CVaR k% cost and DSRL's normalized cost (definitions in
     /// README "Evaluation metrics").
@@ -59,6 +66,7 @@ impl From<EvaluationRecord> for Evaluation {
             seed: spec.seed,
             deterministic: spec.deterministic,
             status: evaluation.status,
+            source: evaluation.source,
             metrics,
             mean_episode_length,
             reference,
@@ -81,6 +89,7 @@ pub struct EvaluationFilter {
 pub fn router() -> OpenApiRouter<AppState> {
     OpenApiRouter::new()
         .routes(routes!(evaluate_policy))
+        .routes(routes!(record_evaluation))
         .routes(routes!(list_evaluations))
         .routes(routes!(get_evaluation, delete_evaluation))
 }
@@ -108,13 +117,45 @@ async fn evaluate_policy(
     envs::check_spaces(&spec.env, policy.obs_dim, &policy.action_space, "the policy's")
         .map_err(|e| ApiError::unprocessable("invalid_evaluation", format!("env: {e}")))?;
     let env = spec.env.clone();
-    let new = NewEvaluation { id: EvaluationId::generate(), policy_id: policy_id.into(), spec };
+    let id = EvaluationId::generate();
+    let new = NewEvaluation { id, policy_id: policy_id.into(), spec, report: None };
     let evaluation = state.store.insert_evaluation(&new).await?;
     state.jobs.evaluator().wake();
     let id = &evaluation.id;
     tracing::info!(evaluation_id = %id, policy_id = %evaluation.policy_id, %env, "evaluation queued");
     let location = format!("/v1/evaluations/{id}");
     Ok((StatusCode::ACCEPTED, [(header::LOCATION, location)], Json(Evaluation::from(evaluation))))
+}
+
+/// Record an evaluation run in your own simulator (MuJoCo, gymnasium, a real robot): send each
+/// episode's return and cost and the demonstrators' means on that simulator; the service
+/// computes the paper's metrics with the same code as its own evaluations and keeps them with
+/// the policy (`source: external`), beside the built-in ones, on the dashboard and in
+/// `GET /v1/evaluations`.
+#[utoipa::path(post, path = "/v1/policies/{id}/evaluations", tag = "evaluations",
+    params(("id" = String, Path, description = "Policy id")), request_body = ExternalEvaluation,
+    responses(
+        (status = 201, description = "Recorded, with its metrics", body = Evaluation),
+        (status = 404, description = "No such policy", body = ErrorBody),
+        (status = 422, description = "Episodes out of range, returns and costs of different \
+            lengths, a non-finite or negative value, or a reference that cannot normalise \
+            (`invalid_evaluation`, naming the field), or a malformed body (`invalid_body`)",
+            body = ErrorBody),
+    ))]
+async fn record_evaluation(
+    State(state): State<AppState>,
+    Path(policy_id): Path<String>,
+    Json(recorded): Json<ExternalEvaluation>,
+) -> Result<impl IntoResponse, ApiError> {
+    let (spec, report) =
+        recorded.into_report().map_err(|e| ApiError::unprocessable("invalid_evaluation", e))?;
+    let id = EvaluationId::generate();
+    let new = NewEvaluation { id, policy_id: policy_id.into(), spec, report: Some(report) };
+    let evaluation = state.store.insert_evaluation(&new).await?;
+    let id = &evaluation.id;
+    tracing::info!(evaluation_id = %id, policy_id = %evaluation.policy_id, "external evaluation recorded");
+    let location = format!("/v1/evaluations/{id}");
+    Ok((StatusCode::CREATED, [(header::LOCATION, location)], Json(Evaluation::from(evaluation))))
 }
 
 /// List evaluations, newest first.

@@ -24,7 +24,7 @@ use crate::algo::Algorithm;
 use crate::domain::{
     rfc3339, EvalOptions, JobLabels, JobProgress, JobRecord, JobStatus, RunnerOptions,
 };
-use crate::jobs::{JobEvent, JobRequest};
+use crate::jobs::{JobEvent, JobRequest, SubmitLimits};
 use crate::lttb::lttb_indices;
 use crate::store::jobs::{CancelOutcome, DeleteJobOutcome, JobQuery, MetricRow};
 use crate::store::logs::LogRow;
@@ -78,6 +78,10 @@ pub struct CreateJob {
     pub tags: Vec<String>,
     /// Free text, at most 10,000 characters.
     pub notes: Option<String>,
+    /// Attempts (1-100) before the job fails when the worker running it vanishes (killed, out
+    /// of memory, its machine lost); absent: the server's `--max-attempts` (3 by default).
+    /// Errors that retrying cannot fix fail the job at once.
+    pub max_attempts: Option<u32>,
 }
 
 /// `PATCH /v1/jobs/{id}` body (JSON merge patch): a key present replaces the field (`null`
@@ -135,6 +139,16 @@ pub struct Job {
     /// The worker that runs (or last ran) the job, `<host>-<pid>-<suffix>`: a `safedice worker`
     /// process or the worker pool of a `safedice serve` process.
     pub worker: Option<String>,
+    /// Attempts started so far (`GET /v1/jobs/{id}/attempts` lists them with how each ended).
+    pub attempt: u32,
+    /// Attempts before the job fails when its workers keep vanishing.
+    pub max_attempts: u32,
+    /// A `queued` job whose last worker vanished: no worker claims it before this time (the
+    /// retry backoff).
+    pub retry_at: Option<String>,
+    /// A `running` job whose worker stopped renewing its lease at this time: the job waits for
+    /// another worker to take it over (its progress is frozen meanwhile).
+    pub lease_expired_at: Option<String>,
     pub created_at: String,
     pub updated_at: String,
     pub started_at: Option<String>,
@@ -162,6 +176,10 @@ impl From<JobRecord> for Job {
             error: job.error,
             cancel_requested: job.cancel_requested,
             worker: job.worker,
+            attempt: job.attempt,
+            max_attempts: job.max_attempts,
+            retry_at: job.retry_at.as_ref().map(rfc3339),
+            lease_expired_at: job.lease_expired_at.as_ref().map(rfc3339),
             created_at: rfc3339(&job.created_at),
             updated_at: rfc3339(&job.updated_at),
             started_at: job.started_at.as_ref().map(rfc3339),
@@ -274,8 +292,13 @@ async fn create_job(
         runner: request.runner,
         eval: request.eval,
         labels: JobLabels { name: request.name, tags: request.tags, notes: request.notes },
+        max_attempts: request.max_attempts,
     };
-    let job = crate::jobs::submit(&state.store, request, state.config.max_job_memory).await?;
+    let limits = SubmitLimits {
+        max_job_memory: state.config.max_job_memory,
+        default_max_attempts: state.config.max_attempts,
+    };
+    let job = crate::jobs::submit(&state.store, request, limits).await?;
     state.jobs.wake();
     let location = format!("/v1/jobs/{}", job.id);
     Ok((StatusCode::CREATED, [(header::LOCATION, location)], Json(Job::from(job))))

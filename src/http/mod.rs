@@ -16,6 +16,7 @@ pub mod evaluations;
 pub mod extract;
 pub mod health;
 pub mod inference;
+pub mod job_attempts;
 pub mod jobs;
 pub mod openapi;
 pub mod pagination;
@@ -120,6 +121,7 @@ fn routes() -> OpenApiRouter<AppState> {
         .merge(algorithms::router())
         .merge(envs::router())
         .merge(jobs::router())
+        .merge(job_attempts::router())
         .merge(policies::router())
         .merge(evaluations::router())
         .merge(inference::router())

@@ -12,7 +12,8 @@ use tokio::sync::Notify;
 use tokio::task::JoinHandle;
 
 use super::{JobEvent, JobRunner};
-use crate::domain::{JobRecord, JobStatus};
+use crate::domain::attempt::MemorySample;
+use crate::domain::{JobRecord, JobStatus, RetryBackoff};
 use crate::store::leases::{host_name, LeaseTable};
 use crate::store::{Backend, Lease, Store, StoreError};
 
@@ -28,13 +29,21 @@ pub struct WorkerOptions {
     pub worker_id: String,
     /// Free space the data directory needs before paused training resumes (`--min-free-disk`).
     pub min_free_disk: u64,
+    /// How long a job whose worker vanished waits before its next attempt.
+    pub retry_backoff: RetryBackoff,
 }
 
 impl WorkerOptions {
     pub fn new(workers: usize, lease: Duration, min_free_disk: u64) -> Self {
         let suffix = uuid::Uuid::new_v4().simple().to_string();
         let worker_id = format!("{}-{}-{}", host_name(), std::process::id(), &suffix[..6]);
-        WorkerOptions { workers, lease, worker_id, min_free_disk }
+        let retry_backoff = RetryBackoff::new(RetryBackoff::DEFAULT_BASE);
+        WorkerOptions { workers, lease, worker_id, min_free_disk, retry_backoff }
+    }
+
+    pub fn with_retry_backoff(mut self, retry_backoff: RetryBackoff) -> Self {
+        self.retry_backoff = retry_backoff;
+        self
     }
 
     /// How often leases and the registry row are renewed: three renewals fit in one lease, so
@@ -96,10 +105,41 @@ pub(super) async fn register(runner: &JobRunner) -> Result<(), StoreError> {
 pub(super) async fn registry_heartbeat(runner: JobRunner) {
     let options = runner.inner.options.clone();
     while !super::sleep_unless_shutdown(&runner.inner.shutdown, options.heartbeat()).await {
-        if let Err(e) = runner.store().worker_heartbeat(&options.worker_id).await {
+        let memory = memory_sample();
+        if let Err(e) = runner.store().worker_heartbeat(&options.worker_id, memory).await {
             tracing::warn!(error = %e, "cannot record the worker heartbeat");
         }
     }
+}
+
+/// This process's resident memory and what it could still take: the machine's available memory,
+/// or less where a cgroup (v2) limit is nearer. None off Linux.
+fn memory_sample() -> Option<MemorySample> {
+    let status = std::fs::read_to_string("/proc/self/status").ok()?;
+    let rss_bytes = kib_field(&status, "VmRSS:")? * 1024;
+    let meminfo = std::fs::read_to_string("/proc/meminfo").ok()?;
+    let mut available_bytes = kib_field(&meminfo, "MemAvailable:")? * 1024;
+    if let Some(cgroup_left) = cgroup_memory_left() {
+        available_bytes = available_bytes.min(cgroup_left);
+    }
+    Some(MemorySample { rss_bytes, available_bytes })
+}
+
+/// A `Name:   1234 kB` field of a /proc file, in KiB.
+fn kib_field(text: &str, name: &str) -> Option<u64> {
+    let line = text.lines().find(|line| line.starts_with(name))?;
+    line[name.len()..].split_whitespace().next()?.parse().ok()
+}
+
+/// `memory.max - memory.current` of this process's cgroup (v2), when it has a limit.
+fn cgroup_memory_left() -> Option<u64> {
+    let cgroup = std::fs::read_to_string("/proc/self/cgroup").ok()?;
+    let path = cgroup.lines().find_map(|line| line.strip_prefix("0::"))?;
+    let dir = std::path::Path::new("/sys/fs/cgroup").join(path.trim_start_matches('/'));
+    let read = |name: &str| std::fs::read_to_string(dir.join(name)).ok();
+    let max: u64 = read("memory.max")?.trim().parse().ok()?;
+    let current: u64 = read("memory.current")?.trim().parse().ok()?;
+    Some(max.saturating_sub(current))
 }
 
 /// The notification channel every process listens on (PostgreSQL).

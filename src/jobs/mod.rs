@@ -37,7 +37,7 @@ use crate::domain::{JobId, JobStatus};
 use crate::store::Store;
 pub use evaluations::{evaluate_policy, Evaluator};
 pub use fleet::WorkerOptions;
-pub use submit::{submit, JobRequest, SubmitError};
+pub use submit::{submit, JobRequest, SubmitError, SubmitLimits};
 
 /// Something a watcher of a job wants to know.
 #[derive(Clone, Debug)]
@@ -276,10 +276,10 @@ impl JobRunner {
     /// too while the disk is full: it is retried until it goes through, the lease is lost, or
     /// shutdown begins (a job left `running` is claimed again once its lease expires). False
     /// when another worker had taken the job over meanwhile.
-    async fn release_when_possible(&self, lease: &crate::store::Lease) -> bool {
+    async fn release_when_possible(&self, lease: &crate::store::Lease, reason: &str) -> bool {
         let mut delay = STORAGE_RETRY;
         loop {
-            match self.store().release_job(lease).await {
+            match self.store().release_job(lease, reason).await {
                 Ok(()) => return true,
                 Err(crate::store::StoreError::LeaseLost(_)) => return false,
                 Err(e) => {

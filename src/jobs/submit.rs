@@ -4,6 +4,7 @@
 
 use crate::algo::memory::{estimate_job_memory, DataShape};
 use crate::algo::{self, Algorithm};
+use crate::domain::attempt::MOST_ATTEMPTS;
 use crate::domain::{
     DatasetId, DatasetRole, EvalOptions, JobId, JobLabels, JobRecord, RunnerOptions,
 };
@@ -22,6 +23,8 @@ pub struct JobRequest {
     pub eval: Option<serde_json::Value>,
     /// Name, tags and notes (checked here).
     pub labels: JobLabels,
+    /// Attempts before the job fails when its workers keep vanishing (None: the server's).
+    pub max_attempts: Option<u32>,
 }
 
 /// Why a job was not queued.
@@ -41,14 +44,28 @@ pub enum SubmitError {
     Store(#[from] StoreError),
 }
 
-/// Validates `request` and queues it. `max_job_memory` bounds the job's estimated peak memory:
-/// a job above it would take the worker's machine down when it starts, so it is refused here
-/// with a message saying what to change.
+/// The server's limits and defaults a job is queued under.
+#[derive(Clone, Copy, Debug)]
+pub struct SubmitLimits {
+    /// Bounds the job's estimated peak memory: a job above it would take the worker's machine
+    /// down when it starts, so it is refused with a message saying what to change.
+    pub max_job_memory: u64,
+    /// A job's `max_attempts` when it sets none.
+    pub default_max_attempts: u32,
+}
+
+/// Validates `request` and queues it under `limits`.
 pub async fn submit(
     store: &Store,
     request: JobRequest,
-    max_job_memory: u64,
+    limits: SubmitLimits,
 ) -> Result<JobRecord, SubmitError> {
+    let max_attempts = request.max_attempts.unwrap_or(limits.default_max_attempts);
+    if !(1..=MOST_ATTEMPTS).contains(&max_attempts) {
+        return Err(SubmitError::InvalidConfig(format!(
+            "max_attempts must be between 1 and {MOST_ATTEMPTS}, not {max_attempts}"
+        )));
+    }
     let labels = request.labels.validated().map_err(SubmitError::InvalidLabels)?;
     let invalid = SubmitError::InvalidConfig;
     let algorithm = request.algorithm;
@@ -72,7 +89,7 @@ pub async fn submit(
         }
         None => None,
     };
-    check_memory(&config, &unlabeled, non_preferred.as_ref(), max_job_memory)?;
+    check_memory(&config, &unlabeled, non_preferred.as_ref(), limits.max_job_memory)?;
     algo::check_fit(&config, &unlabeled, non_preferred.as_ref()).map_err(|e| invalid(e.message))?;
     if let Some(eval) = &eval {
         let (obs_dim, actions) = (unlabeled.obs_dim as usize, &unlabeled.action_space);
@@ -87,6 +104,7 @@ pub async fn submit(
         runner,
         eval,
         labels,
+        max_attempts,
     };
     let record = store.insert_job(&job).await?;
     tracing::info!(

@@ -105,6 +105,7 @@ pub(super) async fn run_worker(runner: JobRunner, index: usize) {
             break;
         }
         let options = &runner.inner.options;
+        reap_expired_jobs(&runner).await;
         match runner.store().claim_next_job(&options.worker_id, options.lease).await {
             Ok(Some((job, lease))) => run_job(&runner, job, lease).await,
             Ok(None) => super::wait_for_work(&runner.inner.wake, &shutdown).await,
@@ -118,6 +119,21 @@ pub(super) async fn run_worker(runner: JobRunner, index: usize) {
                 super::back_off(&shutdown).await;
             }
         }
+    }
+}
+
+/// Hands the jobs of workers that vanished back to the queue (or fails those out of attempts),
+/// and tells this process's event streams.
+async fn reap_expired_jobs(runner: &JobRunner) {
+    let options = &runner.inner.options;
+    match runner.store().reap_expired_jobs(&options.worker_id, &options.retry_backoff).await {
+        Ok(reaped) => {
+            for job in reaped {
+                tracing::warn!(job_id = %job.id, status = %job.status, "{}", job.message);
+                runner.publish(JobEvent::Status { job_id: job.id, status: job.status });
+            }
+        }
+        Err(e) => tracing::warn!(error = %e, "cannot look for jobs whose worker vanished"),
     }
 }
 
@@ -139,8 +155,8 @@ async fn run_job(runner: &JobRunner, job: JobRecord, lease: Lease) {
     runner.publish(JobEvent::Status { job_id: id.clone(), status: JobStatus::Running });
     tracing::info!("job started");
     let log = JobLog::new(runner, &lease);
-    let attempt = if lease.token > 1 { format!(" (claim {})", lease.token) } else { String::new() };
-    log.write(LogLevel::Info, &format!("claimed by worker {}{attempt}", log.worker)).await;
+    let attempt = format!("attempt {} of {}", job.attempt, job.max_attempts);
+    log.write(LogLevel::Info, &format!("claimed by worker {} ({attempt})", log.worker)).await;
     let run = TrainingRun::new(runner.clone(), Handle::current(), job, lease.clone(), cancel);
     let (outcome, metrics) = match tokio::task::spawn_blocking(move || run.drive()).await {
         Ok((Ok(outcome), metrics)) => (outcome, metrics),
@@ -155,7 +171,7 @@ async fn run_job(runner: &JobRunner, job: JobRecord, lease: Lease) {
         runner.storage_recovered();
     }
     let status = match ended {
-        Ended::LeaseLost => return log_lease_lost(),
+        Ended::LeaseLost => return end_after_lease_lost(runner, &lease).await,
         Ended::Written(status) => status,
         Ended::StoreUnavailable(message) => {
             tracing::error!(
@@ -164,8 +180,9 @@ async fn run_job(runner: &JobRunner, job: JobRecord, lease: Lease) {
                  training pauses until the data directory takes writes again"
             );
             runner.pause_for_storage();
-            if !runner.release_when_possible(&lease).await {
-                return log_lease_lost();
+            let reason = format!("the store could not take the run's writes: {message}");
+            if !runner.release_when_possible(&lease, &reason).await {
+                return end_after_lease_lost(runner, &lease).await;
             }
             JobStatus::Queued
         }
@@ -197,7 +214,8 @@ async fn write_end(
                 (JobStatus::Cancelled, written.map_err(Into::into))
             }
             Outcome::Released => {
-                (JobStatus::Queued, store.release_job(lease).await.map_err(Into::into))
+                let reason = "the worker shut down; the job resumes from its last checkpoint";
+                (JobStatus::Queued, store.release_job(lease, reason).await.map_err(Into::into))
             }
             Outcome::Failed(message) => {
                 tracing::warn!(error = %message, "job failed");
@@ -254,12 +272,21 @@ async fn store_policy(
     Ok(())
 }
 
-/// The end of a run whose job another worker took over: nothing more is written for it.
-fn log_lease_lost() {
+/// The end of a run whose job another worker took over: nothing more is written for the job;
+/// the run's own attempt says what happened (the reaper recorded it as a crash).
+async fn end_after_lease_lost(runner: &JobRunner, lease: &Lease) {
     tracing::warn!(
         "another worker took the job over after this worker's lease expired; this run stops \
          without writing anything more"
     );
+    let message = format!(
+        "worker {} came back after its lease had expired (paused, or cut off from the \
+         database) and stopped without writing",
+        runner.inner.options.worker_id
+    );
+    if let Err(e) = runner.store().record_lease_lost(lease, &message).await {
+        tracing::warn!(error = %e, "cannot record the lost lease on the job's attempt");
+    }
 }
 
 /// Writes a job's log lines ([`Store::append_job_log`]) as the worker holding its lease.

@@ -6,7 +6,9 @@ use std::time::Duration;
 use super::datasets::DeleteOutcome;
 use super::leases::{self, Lease, LeaseTable};
 use super::{now, parse_optional_time, parse_time, Listing, PageQuery, Store, StoreError};
-use crate::domain::{EvalSpec, EvaluationId, EvaluationRecord, EvaluationStatus, PolicyId};
+use crate::domain::{
+    EvalSpec, EvaluationId, EvaluationRecord, EvaluationSource, EvaluationStatus, PolicyId,
+};
 use crate::envs::EvalReport;
 
 /// An evaluation row as the database returns it; [`EvaluationRecord`] is its typed form.
@@ -19,6 +21,7 @@ struct EvaluationRow {
     seed: i64,
     deterministic: i64,
     status: String,
+    source: String,
     /// JSON of `envs::EvalReport`, once succeeded.
     report: Option<String>,
     error: Option<String>,
@@ -35,6 +38,7 @@ impl TryFrom<EvaluationRow> for EvaluationRecord {
             StoreError::Corrupt(format!("evaluation {}", row.id), format!("stored {what}: {e}"))
         };
         let status = row.status.parse().map_err(|e: String| corrupt("status", &e))?;
+        let source = row.source.parse().map_err(|e: String| corrupt("source", &e))?;
         let report = row.report.as_deref().map(serde_json::from_str::<EvalReport>).transpose();
         let report = report.map_err(|e| corrupt("report", &e))?;
         let owner = format!("evaluation {}", row.id);
@@ -52,22 +56,25 @@ impl TryFrom<EvaluationRow> for EvaluationRecord {
                 deterministic: row.deterministic != 0,
             },
             status,
+            source,
             report,
             error: row.error,
         })
     }
 }
 
-/// An evaluation to queue.
+/// An evaluation to queue, or one run elsewhere to record.
 #[derive(Clone, Debug)]
 pub struct NewEvaluation {
     pub id: EvaluationId,
     pub policy_id: PolicyId,
     pub spec: EvalSpec,
+    /// An external evaluation's report: recorded as `succeeded` (None: queued for a worker).
+    pub report: Option<EvalReport>,
 }
 
 const EVALUATION_COLUMNS: &str = "id, policy_id, env, episodes, seed, deterministic, status, \
-     report, error, created_at, started_at, finished_at";
+     source, report, error, created_at, started_at, finished_at";
 
 impl Store {
     /// Number of evaluations in each status, every status listed.
@@ -78,13 +85,39 @@ impl Store {
         self.counts_by_status("evaluations", &statuses).await
     }
 
+    /// Queues an evaluation, or records an external one with its report, if the policy still
+    /// exists: the check and the insert are one write transaction that keeps the policy row
+    /// from changing, so a concurrent delete of the policy (or its job) either commits first
+    /// (this answers `NotFound` for the policy) or waits for the evaluation and refuses.
     pub async fn insert_evaluation(
         &self,
         evaluation: &NewEvaluation,
     ) -> Result<EvaluationRecord, StoreError> {
+        let now = now();
+        let (status, source, report, finished_at) = match &evaluation.report {
+            None => (EvaluationStatus::Queued, EvaluationSource::Builtin, None, None),
+            Some(report) => {
+                let json = serde_json::to_string(report)
+                    .map_err(|e| StoreError::Corrupt("evaluation report".into(), e.to_string()))?;
+                (EvaluationStatus::Succeeded, EvaluationSource::External, Some(json), Some(&now))
+            }
+        };
+        let mut tx = self.begin_write().await?;
+        let policy: Option<String> = sqlx::query_scalar(&format!(
+            "SELECT id FROM policies WHERE id = $1{}",
+            self.backend.share_row()
+        ))
+        .bind(evaluation.policy_id.as_str())
+        .fetch_optional(&mut *tx)
+        .await?;
+        if policy.is_none() {
+            let id = evaluation.policy_id.to_string();
+            return Err(StoreError::NotFound { kind: "policy", id });
+        }
         sqlx::query(
             "INSERT INTO evaluations (id, policy_id, env, episodes, seed, deterministic, status, \
-             created_at) VALUES ($1, $2, $3, $4, $5, $6, $7, $8)",
+             source, report, created_at, started_at, finished_at) \
+             VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10, $11, $11)",
         )
         .bind(evaluation.id.as_str())
         .bind(evaluation.policy_id.as_str())
@@ -93,11 +126,20 @@ impl Store {
         // SQL integers are signed: seeds above i64::MAX are stored bit for bit.
         .bind(evaluation.spec.seed as i64)
         .bind(i64::from(evaluation.spec.deterministic))
-        .bind(EvaluationStatus::Queued.as_str())
-        .bind(now())
-        .execute(self.pool())
+        .bind(status.as_str())
+        .bind(source.as_str())
+        .bind(report)
+        .bind(&now)
+        .bind(finished_at)
+        .execute(&mut *tx)
         .await?;
-        self.evaluation(&evaluation.id).await
+        let row: EvaluationRow =
+            sqlx::query_as(&format!("SELECT {EVALUATION_COLUMNS} FROM evaluations WHERE id = $1"))
+                .bind(evaluation.id.as_str())
+                .fetch_one(&mut *tx)
+                .await?;
+        tx.commit().await?;
+        row.try_into()
     }
 
     pub async fn evaluation(&self, id: &str) -> Result<EvaluationRecord, StoreError> {
@@ -159,6 +201,7 @@ impl Store {
         lease_duration: Duration,
     ) -> Result<Option<(EvaluationRecord, Lease)>, StoreError> {
         let claim = leases::Claim {
+            claimable: leases::Claimable::QueuedOrExpired,
             table: LeaseTable::Evaluations,
             set: "started_at = $1",
             order: "created_at, id",

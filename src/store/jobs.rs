@@ -6,6 +6,7 @@ use std::time::Duration;
 
 use sqlx::{Any, Transaction};
 
+use super::attempts::end_attempt;
 use super::leases::{self, Lease, LeaseTable};
 use super::policies::NewPolicy;
 use super::{
@@ -14,7 +15,7 @@ use super::{
 };
 use crate::algo::ResolvedConfig;
 use crate::domain::{
-    DatasetId, EvalOptions, JobId, JobLabels, JobRecord, JobStatus, RunnerOptions,
+    AttemptOutcome, DatasetId, EvalOptions, JobId, JobLabels, JobRecord, JobStatus, RunnerOptions,
 };
 
 /// A job row as the database returns it; [`JobRecord`] is its typed form.
@@ -40,6 +41,12 @@ struct JobRow {
     error: Option<String>,
     cancel_requested: i64,
     lease_owner: Option<String>,
+    attempt: i64,
+    max_attempts: i64,
+    /// When a job queued again after a crash may next be claimed (null: now).
+    retry_at_ms: Option<i64>,
+    /// When the lease of a running job expired (null: it has not, or the job is not running).
+    lease_expired_at_ms: Option<i64>,
     created_at: String,
     updated_at: String,
     started_at: Option<String>,
@@ -96,6 +103,10 @@ impl TryFrom<JobRow> for JobRecord {
             error: row.error,
             cancel_requested: row.cancel_requested != 0,
             worker: row.lease_owner,
+            attempt: u32::try_from(row.attempt).unwrap_or(u32::MAX),
+            max_attempts: u32::try_from(row.max_attempts).unwrap_or(u32::MAX),
+            retry_at: row.retry_at_ms.map(from_millis),
+            lease_expired_at: row.lease_expired_at_ms.map(from_millis),
         })
     }
 }
@@ -110,6 +121,8 @@ pub struct NewJob {
     pub runner: RunnerOptions,
     pub eval: Option<EvalOptions>,
     pub labels: JobLabels,
+    /// Attempts before the job fails for good when its workers keep vanishing.
+    pub max_attempts: u32,
 }
 
 /// Which jobs a list shows: all of them, or those with a status, a tag, or a name or id that
@@ -177,9 +190,25 @@ pub enum CancelOutcome {
 const JOB_COLUMNS: &str = "id, algorithm, status, unlabeled_dataset_id, non_preferred_dataset_id, \
      config, runner, eval, step, total_steps, phase, iterations_per_second, alpha_hat, policy_id, \
      error, cancel_requested, lease_owner, created_at, updated_at, started_at, finished_at, name, \
-     tags, notes";
+     tags, notes, attempt, max_attempts";
+
+/// A stored time in milliseconds since the Unix epoch (the database's clock).
+fn from_millis(ms: i64) -> chrono::DateTime<chrono::Utc> {
+    chrono::DateTime::from_timestamp_millis(ms).unwrap_or_default()
+}
 
 impl Store {
+    /// The columns of a [`JobRow`]: the stored ones and two the database's clock decides (a
+    /// retry not yet due, a lease that expired with no worker having taken the job over yet).
+    fn job_columns(&self) -> String {
+        let now_ms = self.backend.now_ms();
+        format!(
+            "{JOB_COLUMNS}, CASE WHEN scheduled_ms > {now_ms} THEN scheduled_ms END AS retry_at_ms, \
+             CASE WHEN status = 'running' AND lease_expires_ms < {now_ms} THEN lease_expires_ms \
+             END AS lease_expired_at_ms"
+        )
+    }
+
     /// Number of jobs in each status, every status listed (zero when there are none).
     pub async fn job_counts_by_status(&self) -> Result<Vec<(&'static str, i64)>, sqlx::Error> {
         self.counts_by_status("jobs", &JobStatus::ALL.map(JobStatus::as_str)).await
@@ -210,7 +239,8 @@ impl Store {
         sqlx::query(
             "INSERT INTO jobs (id, algorithm, status, unlabeled_dataset_id, \
              non_preferred_dataset_id, config, runner, eval, total_steps, created_at, updated_at, \
-             name, tags, notes) VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10, $10, $11, $12, $13)",
+             name, tags, notes, max_attempts) \
+             VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10, $10, $11, $12, $13, $14)",
         )
         .bind(job.id.as_str())
         .bind(job.config.algorithm().as_str())
@@ -225,22 +255,25 @@ impl Store {
         .bind(job.labels.name.as_deref())
         .bind(to_json(&job.labels.tags))
         .bind(job.labels.notes.as_deref())
+        .bind(i64::from(job.max_attempts))
         .execute(&mut *tx)
         .await?;
-        let row: JobRow = sqlx::query_as(&format!("SELECT {JOB_COLUMNS} FROM jobs WHERE id = $1"))
-            .bind(job.id.as_str())
-            .fetch_one(&mut *tx)
-            .await?;
+        let row: JobRow =
+            sqlx::query_as(&format!("SELECT {} FROM jobs WHERE id = $1", self.job_columns()))
+                .bind(job.id.as_str())
+                .fetch_one(&mut *tx)
+                .await?;
         tx.commit().await?;
         row.try_into()
     }
 
     pub async fn job(&self, id: &str) -> Result<JobRecord, StoreError> {
-        let row: JobRow = sqlx::query_as(&format!("SELECT {JOB_COLUMNS} FROM jobs WHERE id = $1"))
-            .bind(id)
-            .fetch_optional(self.pool())
-            .await?
-            .ok_or_else(|| StoreError::NotFound { kind: "job", id: id.to_owned() })?;
+        let row: JobRow =
+            sqlx::query_as(&format!("SELECT {} FROM jobs WHERE id = $1", self.job_columns()))
+                .bind(id)
+                .fetch_optional(self.pool())
+                .await?
+                .ok_or_else(|| StoreError::NotFound { kind: "job", id: id.to_owned() })?;
         row.try_into()
     }
 
@@ -269,8 +302,9 @@ impl Store {
         let contains = search.as_deref().map(|q| format!("%{q}%"));
         let prefix = search.as_deref().map(|q| format!("{q}%"));
         let rows: Vec<JobRow> = sqlx::query_as(&format!(
-            "SELECT {JOB_COLUMNS} FROM jobs {WHERE} AND {} ORDER BY created_at DESC, id DESC \
+            "SELECT {} FROM jobs {WHERE} AND {} ORDER BY created_at DESC, id DESC \
              LIMIT $5 OFFSET $6",
+            self.job_columns(),
             Listing::Jobs.after(7)
         ))
         .bind(status)
@@ -348,6 +382,7 @@ impl Store {
             "DELETE FROM job_metrics WHERE job_id = $1",
             "DELETE FROM job_checkpoints WHERE job_id = $1",
             "DELETE FROM job_logs WHERE job_id = $1",
+            "DELETE FROM job_attempts WHERE job_id = $1",
             "DELETE FROM jobs WHERE id = $1",
         ] {
             sqlx::query(statement).bind(id).execute(&mut *tx).await?;
@@ -371,8 +406,8 @@ impl Store {
     /// how an API node follows jobs that workers in other processes run.
     pub async fn jobs_changed_since(&self, since: &str) -> Result<Vec<JobRecord>, StoreError> {
         let rows: Vec<JobRow> = sqlx::query_as(&format!(
-            "SELECT {JOB_COLUMNS} FROM jobs WHERE updated_at > $1 ORDER BY updated_at, id \
-             LIMIT 1000"
+            "SELECT {} FROM jobs WHERE updated_at > $1 ORDER BY updated_at, id LIMIT 1000",
+            self.job_columns()
         ))
         .bind(since)
         .fetch_all(self.pool())
@@ -380,10 +415,11 @@ impl Store {
         rows.into_iter().map(JobRecord::try_from).collect()
     }
 
-    /// Claims the next job for `worker` with a lease of `lease` from now, in one statement:
-    /// a queued job, or a running one whose lease expired (its worker is gone; this is a
-    /// takeover, and the job resumes from its checkpoint). Jobs that were already started once
-    /// go first, then the oldest. On PostgreSQL concurrent claimers skip each other's rows.
+    /// Claims the next job for `worker` with a lease of `lease` from now, in one statement: a
+    /// queued job whose retry time has come (a job whose worker died is queued again by
+    /// [`Store::reap_expired_jobs`], and resumes from its checkpoint). Jobs that were already
+    /// started once go first, then the oldest. On PostgreSQL concurrent claimers skip each
+    /// other's rows. The claim starts the job's next attempt.
     pub async fn claim_next_job(
         &self,
         worker: &str,
@@ -391,15 +427,19 @@ impl Store {
     ) -> Result<Option<(JobRecord, Lease)>, StoreError> {
         let claim = leases::Claim {
             table: LeaseTable::Jobs,
+            claimable: leases::Claimable::QueuedAndDue,
             set: "updated_at = $1, started_at = COALESCE(started_at, $1), \
-                  iterations_per_second = NULL, \
-                  lease_takeovers = lease_takeovers + CASE WHEN status = 'running' THEN 1 ELSE 0 END",
+                  iterations_per_second = NULL, attempt = attempt + 1, scheduled_ms = 0",
             order: "started_at IS NULL, created_at, id",
         };
         let claimed = claim.run(self, worker, lease_duration).await?;
         let Some((id, token)) = claimed else { return Ok(None) };
         let lease = Lease::new(id, token);
-        match self.job(&lease.id).await {
+        let job = self.job(&lease.id).await;
+        if let Ok(job) = &job {
+            self.start_attempt(&lease, worker, job.attempt).await?;
+        }
+        match job {
             // A row this version cannot read (e.g. written by another version) can never run:
             // it fails with the reason instead of blocking the queue.
             Err(StoreError::Corrupt(_, reason)) => {
@@ -413,17 +453,19 @@ impl Store {
 
     /// A running job handed back to the queue by the worker holding its lease (graceful
     /// shutdown after its checkpoint, or a store that cannot take its writes).
-    pub async fn release_job(&self, lease: &Lease) -> Result<(), StoreError> {
+    pub async fn release_job(&self, lease: &Lease, reason: &str) -> Result<(), StoreError> {
         let mut tx = self.begin_write().await?;
         leases::hold(&mut tx, LeaseTable::Jobs, lease).await?;
+        // Not the job's fault: the attempt is given back.
         sqlx::query(
             "UPDATE jobs SET status = 'queued', updated_at = $1, iterations_per_second = NULL, \
-                 lease_expires_ms = 0 WHERE id = $2",
+                 lease_expires_ms = 0, attempt = attempt - 1 WHERE id = $2",
         )
         .bind(now())
         .bind(&lease.id)
         .execute(&mut *tx)
         .await?;
+        end_attempt(&mut tx, lease, AttemptOutcome::Released, Some(reason)).await?;
         tx.commit().await?;
         Ok(())
     }
@@ -585,6 +627,7 @@ impl Store {
         .execute(&mut *tx)
         .await?;
         delete_checkpoint(&mut tx, &lease.id).await?;
+        end_attempt(&mut tx, lease, AttemptOutcome::Succeeded, None).await?;
         tx.commit().await?;
         Ok(())
     }
@@ -613,6 +656,11 @@ impl Store {
         .execute(&mut *tx)
         .await?;
         delete_checkpoint(&mut tx, &lease.id).await?;
+        let outcome = match status {
+            JobStatus::Cancelled => AttemptOutcome::Cancelled,
+            _ => AttemptOutcome::Failed,
+        };
+        end_attempt(&mut tx, lease, outcome, error).await?;
         tx.commit().await?;
         Ok(())
     }

@@ -14,6 +14,8 @@ use std::time::Duration;
 use sqlx::{Any, Transaction};
 
 use super::{now, Store, StoreError};
+use crate::domain::attempt::MemorySample;
+use crate::domain::JobStatus;
 
 /// A worker's claim on one running job or evaluation.
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -88,9 +90,21 @@ pub(super) async fn hold(
 /// lease in milliseconds.
 pub(super) struct Claim {
     pub table: LeaseTable,
+    pub claimable: Claimable,
     /// The table's own `SET` assignments (they see the row's old values).
     pub set: &'static str,
     pub order: &'static str,
+}
+
+/// Which rows a claim may take.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(super) enum Claimable {
+    /// Queued rows, and running rows whose lease expired (taken over in the claim itself:
+    /// evaluations, which are short and cheap to redo).
+    QueuedOrExpired,
+    /// Queued rows whose `scheduled_ms` has come (jobs: an expired lease first goes back to the
+    /// queue through the reaper, which counts the attempt and sets the backoff).
+    QueuedAndDue,
 }
 
 impl Claim {
@@ -102,8 +116,15 @@ impl Claim {
         lease: Duration,
     ) -> Result<Option<(String, i64)>, sqlx::Error> {
         let (table, now_ms) = (self.table.as_str(), store.backend.now_ms());
-        let claimable =
-            format!("(status = 'queued' OR (status = 'running' AND lease_expires_ms < {now_ms}))");
+        let claimable = match self.claimable {
+            Claimable::QueuedOrExpired => format!(
+                "(status = 'queued' OR (status = 'running' AND lease_expires_ms < {now_ms}))"
+            ),
+            Claimable::QueuedAndDue => {
+                let queued = JobStatus::Queued.as_str();
+                format!("(status = '{queued}' AND scheduled_ms <= {now_ms})")
+            }
+        };
         sqlx::query_as(&format!(
             "UPDATE {table} SET status = 'running', {}, lease_owner = $2, \
                  lease_token = lease_token + 1, lease_expires_ms = {now_ms} + $3 \
@@ -176,13 +197,22 @@ impl Store {
         Ok(())
     }
 
-    /// Records a worker's heartbeat.
-    pub async fn worker_heartbeat(&self, id: &str) -> Result<(), StoreError> {
+    /// Records a worker's heartbeat, with what it says of its memory (kept so that the end of
+    /// a job whose worker vanished can say whether memory ran out).
+    pub async fn worker_heartbeat(
+        &self,
+        id: &str,
+        memory: Option<MemorySample>,
+    ) -> Result<(), StoreError> {
+        let bytes = |b: u64| i64::try_from(b).unwrap_or(i64::MAX);
         sqlx::query(&format!(
-            "UPDATE workers SET heartbeat_ms = {} WHERE id = $1",
+            "UPDATE workers SET heartbeat_ms = {}, rss_bytes = $2, memory_available_bytes = $3 \
+             WHERE id = $1",
             self.backend.now_ms()
         ))
         .bind(id)
+        .bind(memory.map(|m| bytes(m.rss_bytes)))
+        .bind(memory.map(|m| bytes(m.available_bytes)))
         .execute(self.pool())
         .await?;
         Ok(())
@@ -258,7 +288,7 @@ pub fn host_name() -> String {
 mod tests {
     use super::*;
     use crate::algo::{Algorithm, Preset, ResolvedConfig};
-    use crate::domain::{JobId, JobStatus, RunnerOptions};
+    use crate::domain::{JobId, JobStatus, RetryBackoff, RunnerOptions};
     use crate::store::jobs::{MetricRow, NewJob, ProgressUpdate};
     use crate::store::test_support::store_with_a_dataset;
 
@@ -273,6 +303,7 @@ mod tests {
             runner: RunnerOptions::default(),
             eval: None,
             labels: Default::default(),
+            max_attempts: 3,
         };
         store.insert_job(&job).await.unwrap();
         (dir, store, id)
@@ -290,8 +321,11 @@ mod tests {
         let (_dir, store, id) = store_with_a_queued_job().await;
         // A lease that is already over when granted: the next claim takes the job over.
         let (_, stale) = store.claim_next_job("worker-a", Duration::ZERO).await.unwrap().unwrap();
-        // Past the expiry's millisecond: a lease is claimable once strictly expired.
+        // Past the expiry's millisecond: a lease is reaped once strictly expired.
         tokio::time::sleep(Duration::from_millis(5)).await;
+        let at_once = RetryBackoff::new(Duration::ZERO);
+        let reaped = store.reap_expired_jobs("worker-b", &at_once).await.unwrap();
+        assert_eq!(reaped.iter().map(|r| r.status).collect::<Vec<_>>(), [JobStatus::Queued]);
         let (job, fresh) =
             store.claim_next_job("worker-b", Duration::from_secs(60)).await.unwrap().unwrap();
         assert_eq!((job.status, job.worker.as_deref()), (JobStatus::Running, Some("worker-b")));
@@ -310,7 +344,7 @@ mod tests {
         assert!(lost(store.save_checkpoint(&stale, 1, b"ckpt", &[metric(1)]).await));
         assert!(lost(store.discard_metrics_after(&stale, 0).await.map(drop)));
         assert!(lost(store.renew_lease(LeaseTable::Jobs, &stale, Duration::from_secs(60)).await));
-        assert!(lost(store.release_job(&stale).await));
+        assert!(lost(store.release_job(&stale, "shutdown").await));
         assert!(lost(store.finish_job(&stale, JobStatus::Failed, Some("late"), &[]).await));
         let unchanged = store.job(&id).await.unwrap();
         assert_eq!((unchanged.status, unchanged.step), (JobStatus::Running, 0));

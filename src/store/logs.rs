@@ -1,5 +1,7 @@
 //! Each job's log: the lines its workers wrote about it, numbered per job.
 
+use sqlx::{Any, Transaction};
+
 use super::leases::{self, Lease, LeaseTable};
 use super::{now, Store, StoreError};
 
@@ -44,17 +46,7 @@ impl Store {
         let mut tx = self.begin_write().await?;
         // Holding the lease row-locks the job on PostgreSQL, so two lines never get one number.
         leases::hold(&mut tx, LeaseTable::Jobs, lease).await?;
-        sqlx::query(
-            "INSERT INTO job_logs (job_id, seq, time, level, worker, message) \
-             SELECT $1, COALESCE(MAX(seq), 0) + 1, $2, $3, $4, $5 FROM job_logs WHERE job_id = $1",
-        )
-        .bind(&lease.id)
-        .bind(now())
-        .bind(level.as_str())
-        .bind(worker)
-        .bind(message)
-        .execute(&mut *tx)
-        .await?;
+        insert_log_line(&mut tx, &lease.id, worker, level, message).await?;
         tx.commit().await?;
         Ok(())
     }
@@ -76,4 +68,27 @@ impl Store {
         .fetch_all(self.pool())
         .await?)
     }
+}
+
+/// Appends a line to job `id`'s log inside `tx`, numbered after its last line (the caller holds
+/// the job's row, so two lines never get one number).
+pub(super) async fn insert_log_line(
+    tx: &mut Transaction<'_, Any>,
+    id: &str,
+    worker: &str,
+    level: LogLevel,
+    message: &str,
+) -> Result<(), sqlx::Error> {
+    sqlx::query(
+        "INSERT INTO job_logs (job_id, seq, time, level, worker, message) \
+         SELECT $1, COALESCE(MAX(seq), 0) + 1, $2, $3, $4, $5 FROM job_logs WHERE job_id = $1",
+    )
+    .bind(id)
+    .bind(now())
+    .bind(level.as_str())
+    .bind(worker)
+    .bind(message)
+    .execute(&mut **tx)
+    .await?;
+    Ok(())
 }

@@ -21,6 +21,7 @@
 //! places where they differ (how a writing transaction begins, row locks, the clock) are the
 //! fragments of [`Backend`]. Each backend has its own migrations folder.
 
+pub mod attempts;
 pub mod datasets;
 pub mod evaluations;
 pub mod jobs;

@@ -457,6 +457,8 @@ test('the job page charts the training metrics in the browser, with values on ho
   const direct = await (await fetch(`${base}/v1/jobs/${state.job.id}/metrics.csv`)).text();
   assert.equal(csv.bytes.toString(), direct);
   assert.match(await page.textContent('#job-worker'), /-/);
+  assert.equal(await page.textContent('#job-attempts'), '1 of 3');
+  assert.equal(await page.locator('#lease-expired, #retry-at').count(), 0);
   await screenshot('job');
 });
 
@@ -553,6 +555,15 @@ test('the policy page turns pasted observations into the same actions as the API
   const row = page.locator(`#evaluations-table tr[data-id="${evaluation.id}"]`);
   assert.equal(Number(await row.locator('.eval-cost').textContent()), Number(evaluation.metrics.average_cost.toPrecision(4)));
   assert.equal(Number(await row.locator('.eval-return').textContent()), Number(evaluation.metrics.normalized_return.toPrecision(4)));
+  // An evaluation run in the user's own simulator shows beside it, marked external.
+  const recorded = await post(`/v1/policies/${job.policy_id}/evaluations`, { env: 'sim/walk', returns: [1, 2], costs: [0, 1],
+    reference: { preferred_return: 2, preferred_cost: 0.5, non_preferred_return: 2, non_preferred_cost: 1.5 } });
+  assert.equal(recorded.status, 201);
+  await page.reload();
+  const external = page.locator(`#evaluations-table tr[data-id="${recorded.body.id}"]`);
+  await external.waitFor();
+  assert.equal(await external.locator('.source-external').textContent(), 'external');
+  assert.equal(Number(await external.locator('.eval-return').textContent()), 75);
   await screenshot('policy');
 });
 

@@ -27,6 +27,7 @@ use serde_json::{json, Value};
 use sqlx::{AnyConnection, Connection, PgConnection};
 
 use process::Fleet;
+use safedice::domain::RetryBackoff;
 use safedice::store::Store;
 use support::jobs::{
     create_job, get_json, grid_datasets, upload, wait_for_status, ENDLESS_ITERATIONS,
@@ -178,6 +179,96 @@ async fn a_killed_workers_job_is_finished_by_another_with_the_same_weights() {
     assert_eq!(weights(&fleet, &done).await, weights(&fleet, &again).await, "bit for bit");
 }
 
+/// Polls the job until `done` says so of it (two minutes at most).
+async fn wait_for_job(fleet: &Fleet, id: &str, what: &str, done: impl Fn(&Value) -> bool) -> Value {
+    let started = Instant::now();
+    loop {
+        let job = get_json(&fleet.client, &format!("{}/v1/jobs/{id}", fleet.api_url)).await;
+        if done(&job) {
+            return job;
+        }
+        assert!(started.elapsed() < Duration::from_secs(120), "never {what}: {job}");
+        tokio::time::sleep(Duration::from_millis(25)).await;
+    }
+}
+
+/// The poison job: every worker that claims it is killed (SIGKILL, what the kernel's
+/// out-of-memory killer sends). While no worker is left the job shows that its lease expired;
+/// the next worker queues it again for after the backoff; at its `max_attempts` it fails with
+/// the history of its attempts instead of killing workers for ever.
+#[tokio::test]
+async fn a_job_that_kills_every_worker_fails_after_its_max_attempts() {
+    let Some(mut fleet) = Fleet::start(1).await else { return };
+    let (u, n) = upload_grid(&fleet).await;
+    let mut body = job(&u, &n, ENDLESS_ITERATIONS, 5);
+    body["max_attempts"] = json!(2);
+    let created = create_job(&fleet.client, &fleet.api_url, body).await;
+    let id = created["id"].as_str().unwrap();
+    assert_eq!((created["attempt"].as_u64(), created["max_attempts"].as_u64()), (Some(0), Some(2)));
+    let mut victims = Vec::new();
+    for attempt in 1..=2u64 {
+        let running = wait_for_job(&fleet, id, "running", |job| {
+            job["status"] == "running" && job["attempt"] == attempt && job["progress"]["step"] != 0
+        })
+        .await;
+        let victim = running["worker"].as_str().unwrap().to_owned();
+        fleet.kill_worker(&victim);
+        // No worker is left: the job says it waits for one, on the database's clock.
+        let waiting =
+            wait_for_job(&fleet, id, "lease expired", |job| job["lease_expired_at"].is_string())
+                .await;
+        assert_eq!(waiting["status"], "running");
+        fleet.start_worker();
+        victims.push(victim);
+        if attempt == 1 {
+            let queued =
+                wait_for_job(&fleet, id, "queued again", |job| job["status"] != "running").await;
+            assert_eq!(queued["status"], "queued", "{queued}");
+            assert!(queued["retry_at"].is_string(), "the backoff shows: {queued}");
+        }
+    }
+    let failed = wait_for_job(&fleet, id, "failed", |job| job["status"] == "failed").await;
+    let error = failed["error"].as_str().unwrap();
+    assert!(
+        error.starts_with("gave up after 2 attempts (2 ended with the worker gone)"),
+        "{error}"
+    );
+    assert!(error.contains("out-of-memory killer") && error.contains("GiB of memory"), "{error}");
+    assert_eq!((failed["attempt"].as_u64(), &failed["policy_id"]), (Some(2), &Value::Null));
+
+    let url = format!("{}/v1/jobs/{id}/attempts", fleet.api_url);
+    let attempts = get_json(&fleet.client, &url).await;
+    let attempts = attempts["attempts"].as_array().unwrap().clone();
+    let seen: Vec<(u64, &str, &str)> = attempts
+        .iter()
+        .map(|a| {
+            let worker = a["worker"].as_str().unwrap();
+            (a["attempt"].as_u64().unwrap(), worker, a["outcome"].as_str().unwrap())
+        })
+        .collect();
+    let expected: Vec<(u64, &str, &str)> =
+        victims.iter().zip(1..).map(|(w, n)| (n, w.as_str(), "crashed")).collect();
+    assert_eq!(seen, expected);
+    let mut conn = db(&fleet).await;
+    let (takeovers, checkpoints): (i64, i64) = sqlx::query_as(
+        "SELECT lease_takeovers, (SELECT COUNT(*) FROM job_checkpoints WHERE job_id = $1) \
+         FROM jobs WHERE id = $1",
+    )
+    .bind(id)
+    .fetch_one(&mut conn)
+    .await
+    .unwrap();
+    assert_eq!((takeovers, checkpoints), (2, 0));
+    // The job's log tells the story: each claim, the retry with its wait, the end.
+    let logs = get_json(&fleet.client, &format!("{}/v1/jobs/{id}/logs", fleet.api_url)).await;
+    let messages: Vec<&str> =
+        logs.as_array().unwrap().iter().map(|l| l["message"].as_str().unwrap()).collect();
+    let has = |prefix: &str| messages.iter().filter(|m| m.starts_with(prefix)).count();
+    assert_eq!(has("claimed by worker"), 2, "{messages:?}");
+    assert_eq!(has("attempt 1 of 2 ended: worker "), 1, "{messages:?}");
+    assert_eq!(messages.last(), Some(&error), "{messages:?}");
+}
+
 /// A snapshot of everything stored for a job.
 async fn stored(conn: &mut PgConnection, id: &str) -> (String, i64, f64, i64, i64) {
     let job: (String,) = sqlx::query_as(
@@ -230,6 +321,27 @@ async fn a_worker_paused_past_its_lease_writes_nothing_more_for_the_job() {
     let after = stored(&mut conn, id).await;
     assert_eq!(before, after, "the paused worker wrote nothing after waking up");
     assert_eq!(after.4, 1, "one policy");
+    // Its attempt says what happened: first taken for a crash, then amended by the worker.
+    let url = format!("{}/v1/jobs/{id}/attempts", fleet.api_url);
+    let started = Instant::now();
+    let outcomes = loop {
+        let attempts = get_json(&fleet.client, &url).await;
+        let outcomes: Vec<String> = attempts["attempts"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|a| format!("{} {} {}", a["attempt"], a["worker"], a["outcome"]))
+            .collect();
+        if outcomes.first().is_some_and(|o| o.ends_with("\"lease_lost\"")) {
+            break outcomes;
+        }
+        assert!(started.elapsed() < Duration::from_secs(30), "{outcomes:?}");
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    };
+    let winner = done["worker"].as_str().unwrap();
+    let expected =
+        [format!("1 \"{paused}\" \"lease_lost\""), format!("2 \"{winner}\" \"succeeded\"")];
+    assert_eq!(outcomes, expected);
 }
 
 #[tokio::test]
@@ -327,6 +439,8 @@ async fn a_transaction_left_open_by_a_stalled_worker_does_not_block_the_takeover
 
     let started = Instant::now();
     let taken = loop {
+        // The reaper skips the locked row until the server ends the stalled transaction.
+        taker.reap_expired_jobs("taker", &RetryBackoff::new(Duration::ZERO)).await.unwrap();
         if let Some((job, _)) =
             taker.claim_next_job("taker", Duration::from_secs(30)).await.unwrap()
         {

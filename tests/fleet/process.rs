@@ -9,6 +9,7 @@ use crate::support::postgres;
 
 /// Seconds of a lease in the test fleet: short, so a takeover comes quickly.
 const LEASE_SECONDS: &str = "3";
+const RETRY_BACKOFF_SECONDS: &str = "1";
 
 /// A child process and where its log goes.
 struct Process {
@@ -122,6 +123,8 @@ impl Fleet {
         let index = self.workers.len();
         let own = self.dir.path().join(format!("worker-{index}"));
         let mut args = vec!["worker".to_owned(), "--lease-seconds".into(), LEASE_SECONDS.into()];
+        // A short retry backoff: takeovers stay prompt, and a retry still waits a little.
+        args.extend(["--retry-backoff-secs".to_owned(), RETRY_BACKOFF_SECONDS.into()]);
         args.push("--data-dir".into());
         args.push(self.shared_sqlite.clone().unwrap_or(own).display().to_string());
         if self.shared_sqlite.is_none() {

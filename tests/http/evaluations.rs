@@ -213,6 +213,110 @@ async fn bad_evaluations_and_eval_blocks_are_refused_and_store_nothing() {
     let response = app.get("/v1/evaluations/no-such-evaluation").send().await.unwrap();
     assert_error(response, StatusCode::NOT_FOUND, "not_found").await;
     assert_eq!(app.count_rows("evaluations").await, 0);
+
+    // Evaluations recorded from the user's own simulator: checked field by field.
+    let record =
+        |body: Value| app.post(&format!("/v1/policies/{policy_id}/evaluations")).json(&body).send();
+    let reference = json!({"preferred_return": 100.0, "preferred_cost": 2.0,
+                           "non_preferred_return": 100.0, "non_preferred_cost": 10.0});
+    let external = |returns: Value, costs: Value| json!({"env": "sim/walk", "returns": returns, "costs": costs, "reference": reference});
+    let refused = [
+        (external(json!([]), json!([])), "invalid_evaluation", "returns must hold 1 to 100000"),
+        (external(json!([1.0, 2.0]), json!([1.0])), "invalid_evaluation", "costs must hold one"),
+        (external(json!([1.0]), json!([-1.0])), "invalid_evaluation", "costs[0] must be a finite"),
+        (external(json!([1.0]), json!(["x"])), "invalid_body", ""),
+        (json!({"env": "sim", "returns": [1.0], "costs": [1.0]}), "invalid_body", "reference"),
+        (
+            json!({"env": "", "returns": [1.0], "costs": [1.0], "reference": reference}),
+            "invalid_evaluation",
+            "env must be",
+        ),
+    ];
+    for (body, code, expected) in refused {
+        let response = record(body.clone()).await.unwrap();
+        let message = assert_error(response, StatusCode::UNPROCESSABLE_ENTITY, code).await;
+        assert!(message.contains(expected), "{body}: {message}");
+    }
+    let response = app
+        .post("/v1/policies/no-such-policy/evaluations")
+        .json(&external(json!([1.0]), json!([1.0])))
+        .send()
+        .await
+        .unwrap();
+    assert_error(response, StatusCode::NOT_FOUND, "not_found").await;
+    assert_eq!(app.count_rows("evaluations").await, 0);
+
+    let response =
+        record(external(json!([50.0, 70.0, 90.0, 110.0]), json!([0.0, 4.0, 7.0, 13.0]))).await;
+    let response = response.unwrap();
+    assert_eq!(response.status(), StatusCode::CREATED);
+    let location = response.headers()["location"].to_str().unwrap().to_owned();
+    let recorded: Value = response.json().await.unwrap();
+    assert_eq!(location, format!("/v1/evaluations/{}", recorded["id"].as_str().unwrap()));
+    assert_eq!(
+        (&recorded["status"], &recorded["source"], &recorded["env"], &recorded["episodes"]),
+        (&json!("succeeded"), &json!("external"), &json!("sim/walk"), &json!(4))
+    );
+    let m = &recorded["metrics"];
+    // By hand: 100 * 80 / 100; mean cost 6; kappa = (2 + 10) / 2; two of four above it; the
+    // worst episode's cost.
+    assert_eq!(
+        (&m["normalized_return"], &m["average_cost"], &m["cost_threshold"]),
+        (&json!(80.0), &json!(6.0), &json!(6.0))
+    );
+    assert_eq!((&m["cost_violation_ratio"], &m["cvar_cost"]["10"]), (&json!(0.5), &json!(13.0)));
+    let listed = app.url(&format!("/v1/evaluations?policy_id={policy_id}"));
+    assert_eq!(get_json(&app.client, &listed).await["items"], json!([recorded]));
+}
+
+/// Recording or queueing an evaluation while the policy's job is deleted: each race ends with
+/// the evaluation stored and the delete refused or done after it, or the policy gone and the
+/// evaluation refused with 404 — never a 500 from the database's foreign key.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn evaluations_racing_the_delete_of_their_policy_are_stored_or_refused_whole() {
+    let app = TestApp::spawn().await;
+    let (u, _) = upload_six_rooms(&app.client, &app.base_url).await;
+    let mut jobs = Vec::new();
+    for seed in 0..8 {
+        let body = json!({"algorithm": "bc", "unlabeled_dataset": u,
+                          "config": small_config(20, seed)});
+        jobs.push(create_job(&app.client, &app.base_url, body).await);
+    }
+    let reference = json!({"preferred_return": 1.0, "preferred_cost": 1.0,
+                           "non_preferred_return": 1.0, "non_preferred_cost": 2.0});
+    let mut outcomes = Vec::new();
+    for (index, job) in jobs.iter().enumerate() {
+        let id = job["id"].as_str().unwrap();
+        let done = wait_for_job(&app.client, &app.base_url, id, Duration::from_secs(120), |j| {
+            j["status"] == "succeeded"
+        });
+        let policy = done.await["policy_id"].as_str().unwrap().to_owned();
+        let (path, body) = if index % 2 == 0 {
+            let body =
+                json!({"env": "sim", "returns": [1.0], "costs": [1.0], "reference": reference});
+            (format!("/v1/policies/{policy}/evaluations"), body)
+        } else {
+            (format!("/v1/policies/{policy}/evaluate"), json!({"env": "six-rooms", "episodes": 5}))
+        };
+        let evaluate = app.post(&path).json(&body).send();
+        let delete = app.delete(&format!("/v1/jobs/{id}")).send();
+        let (evaluated, deleted) = tokio::join!(evaluate, delete);
+        let (evaluated, deleted) = (evaluated.unwrap().status(), deleted.unwrap().status());
+        let stored = app.count_where("evaluations", "policy_id", &policy).await;
+        outcomes.push((evaluated.as_u16(), deleted.as_u16(), stored));
+    }
+    eprintln!("(evaluate, delete, evaluations left) per race: {outcomes:?}");
+    for (index, &(evaluated, deleted, stored)) in outcomes.iter().enumerate() {
+        let ok = if index % 2 == 0 {
+            // Recorded then deleted with the policy, or refused once the policy was gone.
+            matches!((evaluated, deleted, stored), (201, 204, 0) | (404, 204, 0))
+        } else {
+            // Queued first: the delete refuses while it is queued or running (409), or comes
+            // after it finished (it goes with the policy); or the policy went first.
+            matches!((evaluated, deleted, stored), (202, 409, 1) | (202, 204, 0) | (404, 204, 0))
+        };
+        assert!(ok, "race {index}: {outcomes:?}");
+    }
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -431,6 +431,18 @@ async fn a_failed_run_is_ended_once_by_its_worker_which_publishes_the_failure() 
     let failed = format!("failed: {message}");
     assert_eq!(logged.iter().filter(|(_, m)| m.starts_with("failed: ")).count(), 1, "{logged:?}");
     assert_eq!(logged.last(), Some(&("error", failed.as_str())), "{logged:?}");
+    // (d) An error that retrying cannot fix ends the job on its first attempt: no retry.
+    assert_eq!((job["attempt"].as_u64(), job["max_attempts"].as_u64()), (Some(1), Some(3)));
+    let attempts = get_json(&app.client, &app.url(&format!("/v1/jobs/{id}/attempts"))).await;
+    let attempts = attempts["attempts"].as_array().unwrap();
+    assert_eq!(attempts.len(), 1, "{attempts:?}");
+    let only = &attempts[0];
+    assert_eq!(
+        (only["attempt"].as_u64(), only["worker"].as_str(), only["outcome"].as_str()),
+        (Some(1), job["worker"].as_str(), Some("failed"))
+    );
+    assert_eq!(only["message"].as_str(), Some(message.as_str()));
+    assert!(only["ended_at"].is_string(), "{only}");
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -159,7 +159,7 @@ async fn a_job_logs_its_story_and_exports_its_metrics() {
     let worker = job["worker"].as_str().unwrap();
     assert!(lines.iter().all(|l| l["worker"] == worker && l["level"] == "info"), "{lines:?}");
     let has = |prefix: &str| messages.iter().any(|m| m.starts_with(prefix));
-    assert_eq!(messages[0], format!("claimed by worker {worker}"));
+    assert_eq!(messages[0], format!("claimed by worker {worker} (attempt 1 of 3)"));
     assert!(has("training from scratch: "), "{messages:?}");
     assert!(
         has("phase discriminator from step 0") && has("phase policy from step"),

@@ -187,6 +187,19 @@ impl TestApp {
         count
     }
 
+    /// Rows of `table` whose `column` is `value`.
+    pub async fn count_where(&self, table: &str, column: &str, value: &str) -> i64 {
+        let mut db = self.db().await;
+        let count =
+            sqlx::query_scalar(&format!("SELECT COUNT(*) FROM {table} WHERE {column} = $1"))
+                .bind(value)
+                .fetch_one(&mut db)
+                .await
+                .expect("count rows");
+        db.close().await.unwrap();
+        count
+    }
+
     /// Files (not directories) under `sub` of the data directory, sorted.
     pub fn files_in(&self, sub: &str) -> Vec<PathBuf> {
         let mut files: Vec<PathBuf> = std::fs::read_dir(self.data_dir().join(sub))

@@ -117,3 +117,26 @@ def test_jobs_are_named_found_by_tag_and_deleted(client: Client, trained: dict) 
     with pytest.raises(ApiError) as gone:
         client.job(job["id"])
     assert gone.value.status == 404
+
+
+def test_evaluations_from_the_service_and_from_your_own_simulator(client: Client, trained: dict) -> None:
+    policy_id = trained["policy_id"]
+    queued = client.evaluate(policy_id, "point-goal", episodes=20, seed=1)
+    assert queued["status"] == "queued" and queued["source"] == "builtin"
+    reference = {"preferred_return": 10.0, "preferred_cost": 1.0,
+                 "non_preferred_return": 10.0, "non_preferred_cost": 3.0}
+    recorded = client.record_evaluation(
+        policy_id, "my-sim", returns=[5.0, 15.0], costs=[0.0, 4.0], reference=reference, lengths=[10, 30]
+    )
+    assert recorded["source"] == "external" and recorded["status"] == "succeeded"
+    # 100 * 10 / 10; kappa = 2; one of two episodes above it; CVaR 10% is the worst episode.
+    metrics = recorded["metrics"]
+    assert (metrics["normalized_return"], metrics["cost_threshold"]) == (100.0, 2.0)
+    assert (metrics["cost_violation_ratio"], metrics["cvar_cost"]["10"]) == (0.5, 4.0)
+    assert recorded["mean_episode_length"] == 20.0
+    ids = {e["id"] for e in client.evaluations(policy_id)}
+    assert {queued["id"], recorded["id"]} <= ids
+    assert client.evaluation(recorded["id"]) == recorded
+    with pytest.raises(ApiError) as refused:
+        client.record_evaluation(policy_id, "my-sim", returns=[1.0], costs=[-1.0], reference=reference)
+    assert (refused.value.status, refused.value.code) == (422, "invalid_evaluation")

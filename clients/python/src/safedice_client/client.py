@@ -247,7 +247,55 @@ class Client:
         actions = np.concatenate(parts)
         return actions[0] if single else actions
 
+    # -- evaluations ----------------------------------------------------------------------
+
+    def evaluate(
+        self, policy_id: str, env: str, episodes: int = 500, seed: int = 0, deterministic: bool = False
+    ) -> Json:
+        """Queues an evaluation on a built-in environment; poll `evaluation(id)` until it ends."""
+        body = {"env": env, "episodes": episodes, "seed": seed, "deterministic": deterministic}
+        return self._post_json(f"/v1/policies/{policy_id}/evaluate", body)
+
+    def record_evaluation(
+        self,
+        policy_id: str,
+        env: str,
+        returns: Sequence[float],
+        costs: Sequence[float],
+        reference: Mapping[str, float],
+        lengths: Optional[Sequence[int]] = None,
+        seed: int = 0,
+        deterministic: bool = False,
+    ) -> Json:
+        """Records an evaluation run in your own simulator: each episode's return and cost, and
+        `reference` (the demonstrators' `preferred_return`, `preferred_cost`,
+        `non_preferred_return`, `non_preferred_cost` on that simulator). The service computes
+        the paper's metrics and keeps them with the policy (`source: external`)."""
+        body: Json = {
+            "env": env,
+            "returns": [float(r) for r in returns],
+            "costs": [float(c) for c in costs],
+            "reference": dict(reference),
+            "seed": seed,
+            "deterministic": deterministic,
+        }
+        if lengths is not None:
+            body["lengths"] = [int(n) for n in lengths]
+        return self._post_json(f"/v1/policies/{policy_id}/evaluations", body)
+
+    def evaluation(self, evaluation_id: str) -> Json:
+        return self._get(f"/v1/evaluations/{evaluation_id}")
+
+    def evaluations(self, policy_id: Optional[str] = None, limit: int = 100) -> list:
+        """A policy's evaluations (built-in and external), newest first."""
+        query = f"?limit={limit}" + (f"&policy_id={policy_id}" if policy_id else "")
+        return self._get(f"/v1/evaluations{query}")["items"]
+
     # -- plumbing -------------------------------------------------------------------------
+
+    def _post_json(self, path: str, body: Json) -> Any:
+        return self._request("POST", path, json.dumps(body).encode(), "application/json")
+
 
     def _get(self, path: str) -> Json:
         return self._request("GET", path)
