@@ -378,6 +378,7 @@ async fn delete_job(
             if let Some(policy) = policy {
                 state.policies.forget(&policy);
             }
+            state.jobs.publish_api_change(JobEvent::Deleted { job_id: id.clone().into() });
             tracing::info!(job_id = %id, "job deleted");
             Ok(StatusCode::NO_CONTENT)
         }
@@ -412,6 +413,8 @@ async fn cancel_job(
 ) -> Result<Json<Job>, ApiError> {
     match state.store.request_cancel(&id).await? {
         CancelOutcome::Cancelled => {
+            let status = JobStatus::Cancelled;
+            state.jobs.publish_api_change(JobEvent::Status { job_id: id.clone().into(), status });
             tracing::info!(job_id = %id, "queued job cancelled");
         }
         CancelOutcome::Requested => {
@@ -678,7 +681,8 @@ fn point(row: &MetricRow) -> MetricPoint {
 #[utoipa::path(get, path = "/v1/jobs/{id}/events", tag = "jobs", params(("id" = String, Path)),
     responses(
         (status = 200, description = "`event: status` (data: Job) and `event: progress` \
-            (data: JobProgress)", content_type = "text/event-stream", body = String),
+            (data: JobProgress); the stream ends after a final status, or with `event: deleted` \
+            (data: `{\"id\": ...}`) once the job is deleted", content_type = "text/event-stream", body = String),
         (status = 404, body = ErrorBody),
     ))]
 async fn job_events(
@@ -697,10 +701,15 @@ async fn job_events(
                 return None;
             }
             let event = next_event(&mut receiver, &store, &id).await?;
-            let finished = matches!(&event, Update::Status(job) if job.status.is_final());
+            let finished = match &event {
+                Update::Status(job) => job.status.is_final(),
+                Update::Progress(_) => false,
+                Update::Deleted => true,
+            };
             let event = match event {
                 Update::Progress(progress) => json_event("progress", &progress),
                 Update::Status(job) => status_event(&job),
+                Update::Deleted => json_event("deleted", &serde_json::json!({"id": id})),
             };
             Some((event, (receiver, store, id, finished)))
         },
@@ -715,7 +724,13 @@ async fn job_events(
 enum Update {
     Progress(JobProgress),
     Status(Box<Job>),
+    /// The job is gone (deleted here, or on another API node).
+    Deleted,
 }
+
+/// How long a stream waits for an event before it checks that its job still exists: a job
+/// deleted through another API node announces nothing here.
+const STREAM_CHECK: Duration = Duration::from_secs(5);
 
 /// The next event of job `id`; None when the runner is gone or the job cannot be read.
 async fn next_event(
@@ -724,13 +739,21 @@ async fn next_event(
     id: &str,
 ) -> Option<Update> {
     loop {
-        match receiver.recv().await {
+        let Ok(received) = tokio::time::timeout(STREAM_CHECK, receiver.recv()).await else {
+            match store.job_status(id).await {
+                Err(StoreError::NotFound { .. }) => return Some(Update::Deleted),
+                _ => continue,
+            }
+        };
+        match received {
             Ok(event) if event.job_id().as_str() != id => continue,
             Ok(JobEvent::Progress { progress, .. }) => return Some(Update::Progress(progress)),
-            Ok(JobEvent::Status { .. }) => {
-                let job = store.job(id).await.ok()?;
-                return Some(Update::Status(Box::new(job.into())));
-            }
+            Ok(JobEvent::Deleted { .. }) => return Some(Update::Deleted),
+            Ok(JobEvent::Status { .. }) => match store.job(id).await {
+                Ok(job) => return Some(Update::Status(Box::new(job.into()))),
+                Err(StoreError::NotFound { .. }) => return Some(Update::Deleted),
+                Err(_) => return None,
+            },
             // A slow reader skipped some progress; the next event brings it up to date.
             Err(broadcast::error::RecvError::Lagged(_)) => continue,
             Err(broadcast::error::RecvError::Closed) => return None,

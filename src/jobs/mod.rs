@@ -46,12 +46,16 @@ pub enum JobEvent {
     Progress { job_id: JobId, progress: JobProgress },
     /// A job changed status (`running`, `queued` again on shutdown, or a final status).
     Status { job_id: JobId, status: JobStatus },
+    /// A finished job was deleted: its streams end.
+    Deleted { job_id: JobId },
 }
 
 impl JobEvent {
     pub fn job_id(&self) -> &JobId {
         match self {
-            JobEvent::Progress { job_id, .. } | JobEvent::Status { job_id, .. } => job_id,
+            JobEvent::Progress { job_id, .. }
+            | JobEvent::Status { job_id, .. }
+            | JobEvent::Deleted { job_id } => job_id,
         }
     }
 }
@@ -200,6 +204,12 @@ impl JobRunner {
 
     pub fn store(&self) -> &Store {
         &self.inner.store
+    }
+
+    /// Tells the event streams of a change the API made itself: a queued job cancelled, or a
+    /// finished job deleted (no worker publishes either).
+    pub fn publish_api_change(&self, event: JobEvent) {
+        self.publish(event);
     }
 
     /// Publishes an event of a job this process runs, to its own event streams and (on

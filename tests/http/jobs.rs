@@ -618,3 +618,33 @@ async fn bad_observations_get_the_exact_status_and_code() {
     assert_v2_error(version_two, StatusCode::NOT_FOUND).await;
     assert_eq!(app.get("/v2/health/ready").send().await.unwrap().status(), StatusCode::OK);
 }
+
+/// A job cancelled while queued and deleted right after: its open event stream ends, with the
+/// cancelled status or the `deleted` event last (it used to wait for ever: neither the cancel
+/// of a queued job nor the delete told the streams).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_event_stream_of_a_job_cancelled_then_deleted_at_once_ends() {
+    let app = TestApp::spawn_with(|c| c.workers = 0).await;
+    let (u, _) = upload_grid(&app).await;
+    for _ in 0..3 {
+        let body = json!({"algorithm": "bc", "unlabeled_dataset": u,
+                          "config": small_config(ENDLESS_ITERATIONS, 0)});
+        let job = create_job(&app.client, &app.base_url, body).await;
+        let id = job["id"].as_str().unwrap();
+        let stream = open_events(&app, id).await;
+        let cancel = app.post(&format!("/v1/jobs/{id}/cancel")).send().await.unwrap();
+        assert_eq!(cancel.status(), StatusCode::OK);
+        let delete = app.delete(&format!("/v1/jobs/{id}")).send().await.unwrap();
+        assert_eq!(delete.status(), StatusCode::NO_CONTENT);
+        let events = tokio::time::timeout(Duration::from_secs(20), events_until_the_end(stream))
+            .await
+            .expect("the stream of a deleted job ends");
+        let (name, last) = events.last().unwrap();
+        let ended = match name.as_str() {
+            "status" => last["status"] == "cancelled",
+            "deleted" => last == &json!({"id": id}),
+            _ => false,
+        };
+        assert!(ended, "{events:?}");
+    }
+}

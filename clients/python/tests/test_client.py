@@ -2,6 +2,7 @@
 address in SAFEDICE_URL and a `safedice datagen` directory in SAFEDICE_DATA)."""
 
 import os
+import time
 from pathlib import Path
 
 import numpy as np
@@ -74,6 +75,35 @@ def test_policy_files_download(client: Client, trained: dict, tmp_path: Path) ->
     assert model.stat().st_size > 1000
 
 
+def test_evaluations_from_the_service_and_from_your_own_simulator(client: Client, trained: dict) -> None:
+    policy_id = trained["policy_id"]
+    queued = client.evaluate(policy_id, "point-goal", episodes=20, seed=1)
+    assert queued["status"] == "queued" and queued["source"] == "builtin"
+    reference = {"preferred_return": 10.0, "preferred_cost": 1.0,
+                 "non_preferred_return": 10.0, "non_preferred_cost": 3.0}
+    recorded = client.record_evaluation(
+        policy_id, "my-sim", returns=[5.0, 15.0], costs=[0.0, 4.0], reference=reference, lengths=[10, 30]
+    )
+    assert recorded["source"] == "external" and recorded["status"] == "succeeded"
+    # 100 * 10 / 10; kappa = 2; one of two episodes above it; CVaR 10% is the worst episode.
+    metrics = recorded["metrics"]
+    assert (metrics["normalized_return"], metrics["cost_threshold"]) == (100.0, 2.0)
+    assert (metrics["cost_violation_ratio"], metrics["cvar_cost"]["10"]) == (0.5, 4.0)
+    assert recorded["mean_episode_length"] == 20.0
+    ids = {e["id"] for e in client.evaluations(policy_id)}
+    assert {queued["id"], recorded["id"]} <= ids
+    assert client.evaluation(recorded["id"]) == recorded
+    for _ in range(600):
+        finished = client.evaluation(queued["id"])
+        if finished["status"] in ("succeeded", "failed"):
+            break
+        time.sleep(0.1)
+    assert finished["status"] == "succeeded" and finished["metrics"]["cvar_cost"]["10"] >= 0
+    with pytest.raises(ApiError) as refused:
+        client.record_evaluation(policy_id, "my-sim", returns=[1.0], costs=[-1.0], reference=reference)
+    assert (refused.value.status, refused.value.code) == (422, "invalid_evaluation")
+
+
 def test_events_stream_until_the_job_ends(client: Client, trained: dict) -> None:
     events = list(client.events(trained["id"]))
     assert events[0][0] == "status" and events[-1][1]["status"] == "succeeded"
@@ -118,25 +148,3 @@ def test_jobs_are_named_found_by_tag_and_deleted(client: Client, trained: dict) 
         client.job(job["id"])
     assert gone.value.status == 404
 
-
-def test_evaluations_from_the_service_and_from_your_own_simulator(client: Client, trained: dict) -> None:
-    policy_id = trained["policy_id"]
-    queued = client.evaluate(policy_id, "point-goal", episodes=20, seed=1)
-    assert queued["status"] == "queued" and queued["source"] == "builtin"
-    reference = {"preferred_return": 10.0, "preferred_cost": 1.0,
-                 "non_preferred_return": 10.0, "non_preferred_cost": 3.0}
-    recorded = client.record_evaluation(
-        policy_id, "my-sim", returns=[5.0, 15.0], costs=[0.0, 4.0], reference=reference, lengths=[10, 30]
-    )
-    assert recorded["source"] == "external" and recorded["status"] == "succeeded"
-    # 100 * 10 / 10; kappa = 2; one of two episodes above it; CVaR 10% is the worst episode.
-    metrics = recorded["metrics"]
-    assert (metrics["normalized_return"], metrics["cost_threshold"]) == (100.0, 2.0)
-    assert (metrics["cost_violation_ratio"], metrics["cvar_cost"]["10"]) == (0.5, 4.0)
-    assert recorded["mean_episode_length"] == 20.0
-    ids = {e["id"] for e in client.evaluations(policy_id)}
-    assert {queued["id"], recorded["id"]} <= ids
-    assert client.evaluation(recorded["id"]) == recorded
-    with pytest.raises(ApiError) as refused:
-        client.record_evaluation(policy_id, "my-sim", returns=[1.0], costs=[-1.0], reference=reference)
-    assert (refused.value.status, refused.value.code) == (422, "invalid_evaluation")
