@@ -269,6 +269,64 @@ async fn a_job_that_kills_every_worker_fails_after_its_max_attempts() {
     assert_eq!(messages.last(), Some(&error), "{messages:?}");
 }
 
+/// Every database connection of the fleet cut while a job runs (the server terminates their
+/// backends, as a failover or an administrator does): the API node and the worker reconnect by
+/// themselves, the job is kept or handed back and resumed, nothing is written twice, and it ends
+/// with the weights and metrics of an uninterrupted run, still on its first attempt.
+#[tokio::test]
+async fn connections_cut_by_the_database_mid_run_lose_nothing_and_write_nothing_twice() {
+    let Some(fleet) = Fleet::start(1).await else { return };
+    let (u, n) = upload_grid(&fleet).await;
+    let body = job(&u, &n, 3000, 13);
+    let created = create_job(&fleet.client, &fleet.api_url, body.clone()).await;
+    let id = created["id"].as_str().unwrap();
+    wait_for_checkpoint(&fleet, id).await;
+    let mut conn = db(&fleet).await;
+    for _ in 0..3 {
+        let cut: i64 = sqlx::query_scalar(
+            "SELECT COUNT(*) FROM (SELECT pg_terminate_backend(pid) FROM pg_stat_activity \
+             WHERE datname = current_database() AND pid <> pg_backend_pid()) AS cut",
+        )
+        .fetch_one(&mut conn)
+        .await
+        .unwrap();
+        assert!(cut > 0, "the fleet holds connections");
+        tokio::time::sleep(Duration::from_millis(400)).await;
+    }
+    let done = wait_for_status(&fleet.client, &fleet.api_url, id, "succeeded").await;
+    assert_eq!(done["attempt"], 1, "a cut connection is not a crash: {done}");
+    let url = format!("{}/v1/jobs/{id}/attempts", fleet.api_url);
+    let attempts = get_json(&fleet.client, &url).await;
+    let outcomes: Vec<&str> = attempts["attempts"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|a| a["outcome"].as_str().unwrap())
+        .collect();
+    eprintln!("attempts after the cuts: {outcomes:?}");
+    assert!(
+        outcomes.last() == Some(&"succeeded")
+            && outcomes.iter().rev().skip(1).all(|o| *o == "released"),
+        "{outcomes:?}"
+    );
+
+    let again = create_job(&fleet.client, &fleet.api_url, body).await;
+    let again =
+        wait_for_status(&fleet.client, &fleet.api_url, again["id"].as_str().unwrap(), "succeeded")
+            .await;
+    assert_eq!(weights(&fleet, &done).await, weights(&fleet, &again).await, "bit for bit");
+    let rows = |id: String| {
+        let query = "SELECT name, step, value FROM job_metrics WHERE job_id = $1 \
+                     ORDER BY name, step";
+        sqlx::query_as::<_, (String, i64, f64)>(query).bind(id)
+    };
+    let interrupted = rows(id.to_owned()).fetch_all(&mut conn).await.unwrap();
+    let uninterrupted =
+        rows(again["id"].as_str().unwrap().to_owned()).fetch_all(&mut conn).await.unwrap();
+    assert!(!interrupted.is_empty());
+    assert!(interrupted == uninterrupted, "the same metric rows, each once, bit for bit");
+}
+
 /// A snapshot of everything stored for a job.
 async fn stored(conn: &mut PgConnection, id: &str) -> (String, i64, f64, i64, i64) {
     let job: (String,) = sqlx::query_as(
