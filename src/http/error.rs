@@ -209,6 +209,14 @@ impl From<crate::store::StoreError> for ApiError {
     fn from(e: crate::store::StoreError) -> Self {
         match e {
             crate::store::StoreError::NotFound { kind, id } => ApiError::not_found(kind, &id),
+            e if e.is_unreachable() => {
+                tracing::warn!(error = %e, "database unreachable; answering 503");
+                ApiError::unavailable(
+                    "database_unavailable",
+                    "the database cannot be reached (its connection was lost, or it is \
+                     restarting); nothing was changed, retry in a few seconds",
+                )
+            }
             e if e.is_busy() => {
                 tracing::warn!(error = %e, "database busy; answering 503");
                 ApiError::database_busy()
@@ -364,6 +372,21 @@ mod tests {
         assert_eq!(
             (error.status(), error.code()),
             (StatusCode::INSUFFICIENT_STORAGE, "insufficient_storage")
+        );
+    }
+
+    /// A lost database connection says so (it is not a busy lock), and both are 503s.
+    #[test]
+    fn an_unreachable_database_is_told_apart_from_a_busy_one() {
+        let reset = std::io::Error::from(std::io::ErrorKind::ConnectionReset);
+        let lost = ApiError::from(StoreError::Database(sqlx::Error::Io(reset)));
+        let waited = ApiError::from(StoreError::Database(sqlx::Error::PoolTimedOut));
+        assert_eq!(
+            [(lost.status(), lost.code()), (waited.status(), waited.code())],
+            [
+                (StatusCode::SERVICE_UNAVAILABLE, "database_unavailable"),
+                (StatusCode::SERVICE_UNAVAILABLE, "database_busy")
+            ]
         );
     }
 }

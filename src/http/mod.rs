@@ -28,13 +28,14 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use axum::extract::Request;
-use axum::http::{header, HeaderName, Method};
+use axum::http::{header, HeaderName, Method, StatusCode};
 use axum::middleware::{self, Next};
 use axum::response::{IntoResponse, Response};
 use axum::Router;
 use tokio_util::sync::CancellationToken;
 use tower::ServiceBuilder;
 use tower_http::catch_panic::CatchPanicLayer;
+use tower_http::classify::ServerErrorsFailureClass;
 use tower_http::cors::{AllowOrigin, CorsLayer};
 use tower_http::request_id::{MakeRequestUuid, PropagateRequestIdLayer, SetRequestIdLayer};
 use tower_http::trace::{DefaultOnResponse, TraceLayer};
@@ -110,6 +111,18 @@ impl AppState {
     }
 }
 
+/// A 5xx answer in the log: 503 is load shed on purpose (uploads slots taken, a busy or
+/// unreachable database, a timeout) and says so at WARN; every other one is an ERROR.
+fn log_failure(class: ServerErrorsFailureClass, latency: Duration, _span: &tracing::Span) {
+    let latency_ms = latency.as_millis();
+    match class {
+        ServerErrorsFailureClass::StatusCode(StatusCode::SERVICE_UNAVAILABLE) => {
+            tracing::warn!(latency_ms, "answered 503: the service shed this request")
+        }
+        other => tracing::error!(latency_ms, classification = %other, "response failed"),
+    }
+}
+
 /// Every route with its OpenAPI description, before middleware.
 fn routes() -> OpenApiRouter<AppState> {
     let bounded = OpenApiRouter::new()
@@ -173,7 +186,8 @@ pub fn app(state: AppState) -> anyhow::Result<Router> {
                 request_id,
             )
         })
-        .on_response(DefaultOnResponse::new().level(tracing::Level::INFO));
+        .on_response(DefaultOnResponse::new().level(tracing::Level::INFO))
+        .on_failure(log_failure);
     Ok(router.layer(
         ServiceBuilder::new()
             .layer(SetRequestIdLayer::new(REQUEST_ID, MakeRequestUuid))

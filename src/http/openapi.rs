@@ -165,7 +165,8 @@ pub fn document_shared_errors(doc: &mut OpenApiDoc) {
                     v2,
                     503,
                     "The service cannot answer now: the database stayed locked by other \
-                     writes (`database_busy`; nothing was changed), the request took longer \
+                     writes (`database_busy`; nothing was changed), cannot be reached \
+                     (`database_unavailable`; nothing was changed), the request took longer \
                      than 30 s (`timeout`), or the upload slots are taken (`too_many_uploads`); \
                      retry after `Retry-After` seconds",
                 );

@@ -128,6 +128,19 @@ impl StoreError {
     pub fn is_busy(&self) -> bool {
         matches!(self, StoreError::Database(e) if is_busy(e))
     }
+
+    /// The database itself cannot be reached (its connection lost, the server shutting down or
+    /// not accepting connections): a kind of busy that says more to an operator.
+    pub fn is_unreachable(&self) -> bool {
+        matches!(self, StoreError::Database(e) if is_unreachable(e))
+    }
+}
+
+/// An I/O error on the database's socket, or PostgreSQL's connection exceptions (class 08) and
+/// its administrator or crash shutdowns (57P01-57P03).
+pub fn is_unreachable(e: &sqlx::Error) -> bool {
+    matches!(e, sqlx::Error::Io(_))
+        || postgres_code(e).is_some_and(|code| code.starts_with("08") || code.starts_with("57P0"))
 }
 
 /// SQLite's primary result code of a database error (the low byte of the extended code sqlx
