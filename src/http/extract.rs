@@ -5,7 +5,8 @@
 use axum::extract::{FromRequest, FromRequestParts, Request};
 use axum::http::StatusCode;
 use axum::response::{IntoResponse, Response};
-use serde::de::DeserializeOwned;
+use serde::de::{DeserializeOwned, Deserializer, Error as _, MapAccess, SeqAccess, Visitor};
+use serde::Deserialize;
 
 use super::error::ApiError;
 
@@ -22,8 +23,8 @@ impl<T: DeserializeOwned, S: Send + Sync> FromRequest<S> for Json<T> {
     type Rejection = ApiError;
 
     async fn from_request(request: Request, state: &S) -> Result<Self, ApiError> {
-        let axum::Json(value) =
-            axum::Json::<serde_json::Value>::from_request(request, state).await?;
+        let axum::Json(StrictValue(value)) =
+            axum::Json::<StrictValue>::from_request(request, state).await?;
         deserialize_body(value).map(Json)
     }
 }
@@ -40,18 +41,33 @@ impl<T: DeserializeOwned, S: Send + Sync> FromRequest<S> for AnyContentTypeJson<
 
     async fn from_request(request: Request, state: &S) -> Result<Self, ApiError> {
         let bytes = axum::body::Bytes::from_request(request, state).await?;
-        let value = serde_json::from_slice(&bytes).map_err(|e| {
-            let message = format!("Failed to parse the request body as JSON: {e}");
-            ApiError::rejected(StatusCode::BAD_REQUEST, message)
-        })?;
+        let value = parse_strict(&bytes)?;
         deserialize_body(value).map(AnyContentTypeJson)
     }
 }
 
-/// A parsed JSON body as `T`, integral floats taken as integers.
+/// JSON text as a value with no repeated keys (400 for a syntax error, 422 for a repeat).
+pub(super) fn parse_strict(bytes: &[u8]) -> Result<serde_json::Value, ApiError> {
+    serde_json::from_slice::<StrictValue>(bytes).map(|StrictValue(value)| value).map_err(|e| {
+        let status =
+            if e.is_data() { StatusCode::UNPROCESSABLE_ENTITY } else { StatusCode::BAD_REQUEST };
+        ApiError::rejected(status, format!("Failed to parse the request body as JSON: {e}"))
+    })
+}
+
+/// A parsed JSON body as `T`, integral floats taken as integers. Every body is an object: serde
+/// would otherwise fill a struct from an array by position (`[null, null]` as a PATCH clearing
+/// the first two fields), which no client means.
 pub(super) fn deserialize_body<T: DeserializeOwned>(
     mut value: serde_json::Value,
 ) -> Result<T, ApiError> {
+    if !value.is_object() {
+        return Err(ApiError::Rejected {
+            status: StatusCode::UNPROCESSABLE_ENTITY,
+            code: "invalid_body",
+            message: "the request body must be a JSON object".to_owned(),
+        });
+    }
     integral_floats_to_integers(&mut value);
     serde_path_to_error::deserialize(value).map_err(|e| ApiError::Rejected {
         status: StatusCode::UNPROCESSABLE_ENTITY,
@@ -114,5 +130,106 @@ mod tests {
             json!({"episodes": 12, "seed": -3, "lr": 0.5, "big": 1e300, "nested": [[1, 2.5]],
                 "top": 1.8446744073709552e19, "exact": 9_200_000_000_000_000_000_u64})
         );
+    }
+}
+
+/// A JSON value read with every object's keys checked for repeats: serde_json keeps the last of
+/// a repeated key silently, so `{"seed": 1, "seed": 2}` would train with seed 2 while the client
+/// may have meant either.
+struct StrictValue(serde_json::Value);
+
+impl<'de> Deserialize<'de> for StrictValue {
+    fn deserialize<D: Deserializer<'de>>(deserializer: D) -> Result<Self, D::Error> {
+        deserializer.deserialize_any(StrictVisitor).map(StrictValue)
+    }
+}
+
+struct StrictVisitor;
+
+impl<'de> Visitor<'de> for StrictVisitor {
+    type Value = serde_json::Value;
+
+    fn expecting(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+        f.write_str("a JSON value")
+    }
+
+    fn visit_bool<E>(self, v: bool) -> Result<Self::Value, E> {
+        Ok(v.into())
+    }
+
+    fn visit_i64<E>(self, v: i64) -> Result<Self::Value, E> {
+        Ok(v.into())
+    }
+
+    fn visit_u64<E>(self, v: u64) -> Result<Self::Value, E> {
+        Ok(v.into())
+    }
+
+    fn visit_f64<E>(self, v: f64) -> Result<Self::Value, E> {
+        Ok(v.into())
+    }
+
+    fn visit_str<E>(self, v: &str) -> Result<Self::Value, E> {
+        Ok(v.into())
+    }
+
+    fn visit_string<E>(self, v: String) -> Result<Self::Value, E> {
+        Ok(v.into())
+    }
+
+    fn visit_unit<E>(self) -> Result<Self::Value, E> {
+        Ok(serde_json::Value::Null)
+    }
+
+    fn visit_seq<A: SeqAccess<'de>>(self, mut seq: A) -> Result<Self::Value, A::Error> {
+        let mut items = Vec::with_capacity(seq.size_hint().unwrap_or(0).min(4096));
+        while let Some(StrictValue(item)) = seq.next_element()? {
+            items.push(item);
+        }
+        Ok(serde_json::Value::Array(items))
+    }
+
+    fn visit_map<A: MapAccess<'de>>(self, mut map: A) -> Result<Self::Value, A::Error> {
+        let mut fields = serde_json::Map::new();
+        while let Some(key) = map.next_key::<String>()? {
+            if fields.contains_key(&key) {
+                return Err(A::Error::custom(format!("the key `{key}` appears twice")));
+            }
+            let StrictValue(value) = map.next_value()?;
+            fields.insert(key, value);
+        }
+        Ok(serde_json::Value::Object(fields))
+    }
+}
+
+#[cfg(test)]
+mod strict_tests {
+    use super::*;
+
+    #[test]
+    fn repeated_keys_are_refused_at_any_depth_and_everything_else_reads_as_serde_json() {
+        let text =
+            r#"{"a": [1, -2, 3.5, "x", null, true, {"b": {}}], "c": {"d": 18446744073709551615}}"#;
+        let strict = parse_strict(text.as_bytes()).unwrap();
+        assert_eq!(strict, serde_json::from_str::<serde_json::Value>(text).unwrap());
+        for repeated in [r#"{"seed": 1, "seed": 2}"#, r#"{"config": [{"x": 1, "x": 1}]}"#] {
+            let error = parse_strict(repeated.as_bytes()).unwrap_err();
+            assert_eq!(error.status(), StatusCode::UNPROCESSABLE_ENTITY);
+            assert!(error.to_string().contains("appears twice"), "{error}");
+        }
+        assert_eq!(parse_strict(b"{").unwrap_err().status(), StatusCode::BAD_REQUEST);
+    }
+
+    #[test]
+    fn a_body_must_be_an_object() {
+        #[derive(Deserialize, Debug)]
+        #[allow(dead_code)]
+        struct Patch {
+            name: Option<String>,
+            notes: Option<String>,
+        }
+        let positional = deserialize_body::<Patch>(serde_json::json!([null, null])).unwrap_err();
+        assert_eq!(positional.code(), "invalid_body");
+        assert!(deserialize_body::<Patch>(serde_json::json!({"name": "x"})).is_ok());
     }
 }

@@ -395,3 +395,55 @@ async fn logs_written_to_a_pipe_carry_no_terminal_colours() {
     assert!(logs.contains("safedice listening"), "{logs}");
     assert!(!logs.contains('\u{1b}'), "ANSI escape codes in piped logs: {logs}");
 }
+
+/// Bodies are JSON objects whose keys each appear once: an array is not read as a struct by
+/// position, and a repeated key is refused rather than the last one silently winning. Each is
+/// a 422 `invalid_body` that stores nothing.
+#[tokio::test]
+async fn positional_arrays_and_repeated_keys_are_refused_and_change_nothing() {
+    use crate::support::jobs::{create_job, grid_datasets, small_config, upload};
+    let app = TestApp::spawn_with(|c| c.workers = 0).await;
+    let u = upload(&app.client, &app.base_url, &grid_datasets().0, "grid").await;
+    let body = serde_json::json!({"algorithm": "bc", "unlabeled_dataset": u, "name": "kept",
+                                  "config": small_config(10, 0)});
+    let job = create_job(&app.client, &app.base_url, body).await;
+    let id = job["id"].as_str().unwrap();
+    let send = |method: reqwest::Method, path: String, text: &'static str| {
+        app.client
+            .request(method, app.url(&path))
+            .header("content-type", "application/json")
+            .body(text)
+            .send()
+    };
+    let refused = [
+        (reqwest::Method::PATCH, format!("/v1/jobs/{id}"), "[null, null]", "must be a JSON object"),
+        (
+            reqwest::Method::PATCH,
+            format!("/v1/jobs/{id}"),
+            r#"{"name": "a", "name": null}"#,
+            "`name` appears twice",
+        ),
+        (
+            reqwest::Method::POST,
+            "/v1/jobs".to_owned(),
+            r#"{"algorithm": "bc", "algorithm": "bc"}"#,
+            "appears twice",
+        ),
+        (reqwest::Method::POST, "/v1/jobs".to_owned(), r#"[["bc"]]"#, "must be a JSON object"),
+        (
+            reqwest::Method::POST,
+            "/v1/policies/p/act".to_owned(),
+            "[[[0.0]], true, 5]",
+            "must be a JSON object",
+        ),
+    ];
+    for (method, path, text, expected) in refused {
+        let response = send(method, path, text).await.unwrap();
+        let message =
+            assert_error(response, StatusCode::UNPROCESSABLE_ENTITY, "invalid_body").await;
+        assert!(message.contains(expected), "{text}: {message}");
+    }
+    assert_eq!(app.count_rows("jobs").await, 1);
+    let stored = app.get(&format!("/v1/jobs/{id}")).send().await.unwrap();
+    assert_eq!(stored.json::<serde_json::Value>().await.unwrap()["name"], "kept");
+}

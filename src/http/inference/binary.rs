@@ -15,7 +15,7 @@ use axum::response::{IntoResponse, Response};
 use serde::{Deserialize, Serialize};
 use utoipa::ToSchema;
 
-use super::super::extract::deserialize_body;
+use super::super::extract::{deserialize_body, parse_strict};
 use super::super::ApiError;
 
 /// Says how long the JSON header at the start of a body is.
@@ -51,9 +51,7 @@ impl<T: serde::de::DeserializeOwned, S: Send + Sync> FromRequest<S> for InferBod
                 )))
             }
         };
-        let value = serde_json::from_slice(&json).map_err(|e| {
-            bad_request(format!("Failed to parse the inference request header as JSON: {e}"))
-        })?;
+        let value = parse_strict(&json)?;
         Ok(InferBody { request: deserialize_body(value)?, binary: body })
     }
 }
