@@ -194,10 +194,15 @@ pub struct BenchArgs {
     /// episodes, 64-64 networks with batch 256): a few minutes on 2 cores.
     #[arg(long)]
     pub quick: bool,
-    /// Output directory for results.md, results.json and the plots. Default: `bench`
-    /// (`bench/robustness` with --suite).
+    /// Output directory for results.md, results.json and the plots. Default: `bench-results`
+    /// (`bench-results/robustness` with --suite). A directory that already holds files is
+    /// refused unless --force (the committed results in `bench/` are not overwritten by
+    /// accident).
     #[arg(long)]
     pub out: Option<PathBuf>,
+    /// Write into --out even if it already holds files (replacing the results there).
+    #[arg(long)]
+    pub force: bool,
     /// Policy-learning iterations per training. Default: 1000000 (300 with --quick).
     #[arg(long)]
     pub iterations: Option<u64>,
@@ -451,6 +456,29 @@ fn parse_list<T: Clone>(
     Ok(items)
 }
 
+/// Refuses an output directory that already holds files unless `force`: a run from the
+/// repository's root with `--out bench` would otherwise replace the committed results.
+fn check_out(out: &std::path::Path, force: bool) -> anyhow::Result<()> {
+    let mut files: Vec<String> = match std::fs::read_dir(out) {
+        Ok(entries) => entries
+            .filter_map(|e| e.ok())
+            .map(|e| e.file_name().to_string_lossy().into_owned())
+            .collect(),
+        Err(_) => return Ok(()),
+    };
+    if files.is_empty() || force {
+        return Ok(());
+    }
+    files.sort();
+    let shown = files.iter().take(4).cloned().collect::<Vec<_>>().join(", ");
+    anyhow::bail!(
+        "{} already holds files ({shown}{}); pass --force to replace the results there, or \
+         choose another --out",
+        out.display(),
+        if files.len() > 4 { ", ..." } else { "" }
+    )
+}
+
 /// `safedice bench`: runs the configured benchmark and writes its outputs; `command` is the
 /// command line recorded in results.md.
 pub fn run_cli(args: &BenchArgs, command: &str) -> anyhow::Result<()> {
@@ -459,8 +487,13 @@ pub fn run_cli(args: &BenchArgs, command: &str) -> anyhow::Result<()> {
     if std::env::var_os("RAYON_NUM_THREADS").is_none() {
         std::env::set_var("RAYON_NUM_THREADS", "1");
     }
+    let default_out = match args.suite {
+        Some(_) => "bench-results/robustness",
+        None => "bench-results",
+    };
+    let out = args.out.clone().unwrap_or_else(|| PathBuf::from(default_out));
+    check_out(&out, args.force)?;
     if let Some(SuiteName::Tabular) = args.suite {
-        let out = args.out.clone().unwrap_or_else(|| PathBuf::from("bench/robustness"));
         let iterations = args.iterations.unwrap_or(5000);
         for path in tabular::run_cli(iterations, args.data_seed, &out, command)? {
             println!("wrote {}", path.display());
@@ -470,7 +503,6 @@ pub fn run_cli(args: &BenchArgs, command: &str) -> anyhow::Result<()> {
     if let Some(SuiteName::Robustness) = args.suite {
         let config = args.to_suite_config()?;
         let splits = args.split.splits();
-        let out = args.out.clone().unwrap_or_else(|| PathBuf::from("bench/robustness"));
         let written = robustness::run_cli(config, &splits, args.tasks, &out, command)?;
         for path in written {
             println!("wrote {}", path.display());
@@ -480,11 +512,29 @@ pub fn run_cli(args: &BenchArgs, command: &str) -> anyhow::Result<()> {
     let config = args.to_config()?;
     let results = run(&config)?;
     let summary = summarize(&results);
-    let out = args.out.clone().unwrap_or_else(|| PathBuf::from("bench"));
     let written = write_outputs(&results, &summary, &out, command)?;
     print!("{}", report::console_table(&summary));
     for path in written {
         println!("wrote {}", path.display());
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn an_output_directory_with_files_is_only_written_with_force() {
+        let dir = tempfile::tempdir().unwrap();
+        let out = dir.path().join("results");
+        check_out(&out, false).expect("a directory that does not exist yet");
+        std::fs::create_dir(&out).unwrap();
+        check_out(&out, false).expect("an empty directory");
+        std::fs::write(out.join("results.md"), "earlier").unwrap();
+        let refused = check_out(&out, false).unwrap_err().to_string();
+        assert!(refused.contains("already holds files (results.md)"), "{refused}");
+        assert!(refused.contains("--force"), "{refused}");
+        check_out(&out, true).expect("--force");
+    }
 }
