@@ -44,3 +44,21 @@ mod resources;
 mod restart;
 #[path = "../http/ui.rs"]
 mod ui;
+
+/// Every file of `tests/http` runs here too unless it is named as left out above: a new file
+/// registered only in `tests/http/main.rs` fails this test instead of silently never running on
+/// PostgreSQL.
+#[test]
+fn every_http_test_file_runs_on_postgres_too() {
+    const LEFT_OUT: [&str; 4] = ["main.rs", "crash_resume.rs", "demo.rs", "openapi.rs"];
+    let registered = include_str!("main.rs");
+    let dir = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/http");
+    let mut missing: Vec<String> = std::fs::read_dir(dir)
+        .expect("tests/http")
+        .map(|entry| entry.unwrap().file_name().to_string_lossy().into_owned())
+        .filter(|name| name.ends_with(".rs") && !LEFT_OUT.contains(&name.as_str()))
+        .filter(|name| !registered.contains(&format!("#[path = \"../http/{name}\"]")))
+        .collect();
+    missing.sort();
+    assert!(missing.is_empty(), "add to tests/http_postgres/main.rs (or to LEFT_OUT): {missing:?}");
+}
