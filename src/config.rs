@@ -13,6 +13,9 @@ pub const DEFAULT_MAX_CONNECTIONS: u32 = 1024;
 /// 4 GiB: about forty times what a default job (batch 512, two layers of 256) on a
 /// 100k-transition dataset needs, so only configurations far off the defaults meet it.
 pub const DEFAULT_MAX_JOB_MEMORY: u64 = 4 << 30;
+/// 1 GiB of loaded policies: thousands of default-sized ones (256-256 networks take ~0.3 MB),
+/// or eight of the largest the memory estimate lets through.
+pub const DEFAULT_POLICY_CACHE_BYTES: u64 = 1 << 30;
 /// 1 GiB: room for one upload of the default --max-upload-bytes, and for thousands of
 /// checkpoints of default-sized networks.
 pub const DEFAULT_MIN_FREE_DISK: u64 = 1 << 30;
@@ -123,6 +126,11 @@ pub struct ServeConfig {
     #[arg(long, env = "SAFEDICE_RETRY_BACKOFF_SECS", default_value_t = DEFAULT_RETRY_BACKOFF_SECS)]
     pub retry_backoff_secs: u64,
 
+    /// Bytes of policy weights kept loaded for /act and /v2 (least recently used dropped
+    /// first, and loaded again when asked for); one policy is kept whatever its size.
+    #[arg(long, env = "SAFEDICE_POLICY_CACHE_BYTES", default_value_t = DEFAULT_POLICY_CACHE_BYTES)]
+    pub policy_cache_bytes: u64,
+
     /// Largest estimated peak memory of one training job, in bytes: POST /v1/jobs refuses (422
     /// job_too_large) a job whose configuration and datasets need more. Each worker runs one
     /// job, so training may use up to --workers times this.
@@ -157,6 +165,7 @@ impl std::fmt::Debug for ServeConfig {
             .field("lease_seconds", &self.lease_seconds)
             .field("max_attempts", &self.max_attempts)
             .field("retry_backoff_secs", &self.retry_backoff_secs)
+            .field("policy_cache_bytes", &self.policy_cache_bytes)
             .field("max_job_memory", &self.max_job_memory)
             .field("min_free_disk", &self.min_free_disk)
             .finish()
@@ -256,6 +265,7 @@ impl ServeConfig {
             lease_seconds: DEFAULT_LEASE_SECONDS,
             max_attempts: DEFAULT_MAX_ATTEMPTS,
             retry_backoff_secs: DEFAULT_RETRY_BACKOFF_SECS,
+            policy_cache_bytes: DEFAULT_POLICY_CACHE_BYTES,
             max_job_memory: DEFAULT_MAX_JOB_MEMORY,
             min_free_disk: DEFAULT_MIN_FREE_DISK,
         }

@@ -58,7 +58,7 @@ impl Server {
         .with_retry_backoff(RetryBackoff::new(Duration::from_secs(config.retry_backoff_secs)));
         let jobs = JobRunner::new(store.clone(), options, shutdown.clone());
         jobs.start(true).await?;
-        let policies = Arc::new(PolicyCache::new(store.clone()));
+        let policies = Arc::new(PolicyCache::new(store.clone(), config.policy_cache_bytes));
         let state = AppState::new(config, store.clone(), jobs.clone(), policies, shutdown.clone());
         let limits =
             ConnectionLimits::new(config_max_connections, Duration::from_secs(header_timeout_secs));

@@ -2,6 +2,7 @@
 //! read from the store and decoded once, then shared by every request.
 
 use std::collections::HashMap;
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, RwLock, RwLockWriteGuard};
 
 use crate::algo::Policy;
@@ -18,16 +19,17 @@ pub enum PolicyLoadError {
     Unreadable { id: String, message: String },
 }
 
-/// Policies loaded once from the store and shared by every request.
+/// Policies loaded once from the store and shared by every request, at most `budget` bytes of
+/// them: past it the least recently used are dropped (and loaded again if asked for), so one
+/// token that can act on every policy cannot hold them all in memory.
 pub struct PolicyCache {
     store: Store,
     slots: RwLock<Slots>,
 }
 
 /// What the cache holds, behind one lock so that a load's insert and a forget are ordered.
-#[derive(Default)]
 struct Slots {
-    loaded: HashMap<String, Arc<Policy>>,
+    loaded: Lru<Arc<Policy>>,
     /// The loads under way, per policy. A load reads the store and decodes outside the lock, so
     /// a delete (store, then [`PolicyCache::forget`]) can land in between; the forget marks the
     /// loads it overtook, and those insert nothing and answer as if the policy were already
@@ -63,8 +65,17 @@ impl Drop for LoadTicket<'_> {
 }
 
 impl PolicyCache {
-    pub fn new(store: Store) -> Self {
-        PolicyCache { store, slots: RwLock::new(Slots::default()) }
+    /// A cache of at most `budget` bytes of policy weights (one policy is kept whatever its
+    /// size).
+    pub fn new(store: Store, budget: u64) -> Self {
+        let slots = Slots { loaded: Lru::new(budget), loading: HashMap::new() };
+        PolicyCache { store, slots: RwLock::new(slots) }
+    }
+
+    /// (policies loaded, their bytes), for /metrics.
+    pub fn usage(&self) -> (usize, u64) {
+        let slots = self.slots.read().expect("policy cache lock");
+        (slots.loaded.len(), slots.loaded.bytes())
     }
 
     fn write(&self) -> RwLockWriteGuard<'_, Slots> {
@@ -87,6 +98,7 @@ impl PolicyCache {
             LoadTicket { cache: self, id }
         };
         let (spec, weights) = self.store.policy_artifact(id).await?;
+        let bytes = weights.len() as u64;
         let unreadable =
             |message: String| PolicyLoadError::Unreadable { id: id.to_owned(), message };
         let decoded = tokio::task::spawn_blocking(move || Policy::from_stored(&spec, &weights))
@@ -99,7 +111,7 @@ impl PolicyCache {
             return Err(StoreError::NotFound { kind: "policy", id: id.to_owned() }.into());
         }
         // Two first requests may both load it; every later one shares the first stored.
-        let policy = slots.loaded.entry(id.to_owned()).or_insert_with(|| Arc::new(policy)).clone();
+        let policy = slots.loaded.insert_if_absent(id, bytes, || Arc::new(policy));
         // The lock first: dropping the ticket takes it again. A forget from here on finds the
         // policy inserted and removes it.
         drop(slots);
@@ -156,4 +168,96 @@ pub async fn onnx_model(store: &Store, id: &str) -> Result<Vec<u8>, PolicyLoadEr
     .await
     .map_err(|e| unreadable(e.to_string()))?
     .map_err(|e| unreadable(e.to_string()))
+}
+
+/// Values by id with their sizes, dropped least recently used first once their sizes add up to
+/// more than `budget` (the value just inserted always stays). A read marks its entry used with
+/// an atomic tick, so reads share the lock.
+struct Lru<V> {
+    entries: HashMap<String, LruEntry<V>>,
+    bytes: u64,
+    budget: u64,
+    clock: AtomicU64,
+}
+
+struct LruEntry<V> {
+    value: V,
+    bytes: u64,
+    used: AtomicU64,
+}
+
+impl<V: Clone> Lru<V> {
+    fn new(budget: u64) -> Self {
+        Lru { entries: HashMap::new(), bytes: 0, budget, clock: AtomicU64::new(0) }
+    }
+
+    fn tick(&self) -> u64 {
+        self.clock.fetch_add(1, Ordering::Relaxed)
+    }
+
+    fn get(&self, id: &str) -> Option<V> {
+        let entry = self.entries.get(id)?;
+        entry.used.store(self.tick(), Ordering::Relaxed);
+        Some(entry.value.clone())
+    }
+
+    /// The stored value of `id`, inserting `make()` of `bytes` first if there is none (then
+    /// evicting others past the budget).
+    fn insert_if_absent(&mut self, id: &str, bytes: u64, make: impl FnOnce() -> V) -> V {
+        if let Some(value) = self.get(id) {
+            return value;
+        }
+        let value = make();
+        let used = AtomicU64::new(self.tick());
+        self.entries.insert(id.to_owned(), LruEntry { value: value.clone(), bytes, used });
+        self.bytes += bytes;
+        while self.bytes > self.budget && self.entries.len() > 1 {
+            let oldest = self
+                .entries
+                .iter()
+                .filter(|(key, _)| key.as_str() != id)
+                .min_by_key(|(_, entry)| entry.used.load(Ordering::Relaxed))
+                .map(|(key, _)| key.clone());
+            match oldest {
+                Some(key) => self.remove(&key),
+                None => break,
+            }
+        }
+        value
+    }
+
+    fn remove(&mut self, id: &str) {
+        if let Some(entry) = self.entries.remove(id) {
+            self.bytes -= entry.bytes;
+        }
+    }
+
+    fn len(&self) -> usize {
+        self.entries.len()
+    }
+
+    fn bytes(&self) -> u64 {
+        self.bytes
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::Lru;
+
+    #[test]
+    fn the_least_recently_used_go_first_once_the_budget_is_passed() {
+        let mut lru = Lru::new(100);
+        assert_eq!(lru.insert_if_absent("a", 40, || 'a'), 'a');
+        lru.insert_if_absent("b", 40, || 'b');
+        assert_eq!(lru.get("a"), Some('a')); // a is now more recent than b
+        lru.insert_if_absent("c", 40, || 'c'); // 120 > 100: b goes
+        assert_eq!((lru.get("b"), lru.len(), lru.bytes()), (None, 2, 80));
+        assert_eq!(lru.insert_if_absent("a", 40, || 'x'), 'a', "present: not made again");
+        // One value larger than the budget stays alone.
+        lru.insert_if_absent("huge", 500, || 'h');
+        assert_eq!((lru.len(), lru.bytes(), lru.get("huge")), (1, 500, Some('h')));
+        lru.remove("huge");
+        assert_eq!((lru.len(), lru.bytes()), (0, 0));
+    }
 }

@@ -54,6 +54,8 @@ pub struct Metrics {
     jobs: Family<StatusLabel, Gauge>,
     evaluations: Family<StatusLabel, Gauge>,
     fleet: FleetMetrics,
+    policies_loaded: Gauge,
+    policy_cache_bytes: Gauge,
 }
 
 /// What /metrics says of the workers sharing the database.
@@ -139,7 +141,28 @@ impl Metrics {
         registry.register("evaluations", "Policy evaluations by status", evaluations.clone());
         let fleet = FleetMetrics::default();
         fleet.register(&mut registry);
-        Metrics { registry, requests, latency, queue_depth, jobs, evaluations, fleet }
+        let (policies_loaded, policy_cache_bytes) = (Gauge::default(), Gauge::default());
+        registry.register(
+            "policies_loaded",
+            "Policies this process keeps loaded for /act and /v2",
+            policies_loaded.clone(),
+        );
+        registry.register(
+            "policy_cache_bytes",
+            "Bytes of weights of the loaded policies (at most --policy-cache-bytes, or one policy)",
+            policy_cache_bytes.clone(),
+        );
+        Metrics {
+            registry,
+            requests,
+            latency,
+            queue_depth,
+            jobs,
+            evaluations,
+            fleet,
+            policies_loaded,
+            policy_cache_bytes,
+        }
     }
 
     fn observe(&self, labels: RequestLabels, seconds: f64) {
@@ -195,6 +218,9 @@ async fn metrics(State(state): State<AppState>) -> Result<Response, ApiError> {
         state.metrics.evaluations.get_or_create(&StatusLabel { status }).set(count);
     }
     state.metrics.fleet.refresh(&state.store).await?;
+    let (loaded, bytes) = state.policies.usage();
+    state.metrics.policies_loaded.set(loaded as i64);
+    state.metrics.policy_cache_bytes.set(i64::try_from(bytes).unwrap_or(i64::MAX));
     let mut body = String::new();
     prometheus_client::encoding::text::encode(&mut body, &state.metrics.registry)
         .map_err(|e| ApiError::Internal(e.into()))?;

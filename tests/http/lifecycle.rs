@@ -453,3 +453,39 @@ async fn page_tokens_do_not_shift_when_jobs_are_added() {
 fn ids_in_order(page: &Value) -> Vec<String> {
     page["items"].as_array().unwrap().iter().map(|j| j["id"].as_str().unwrap().into()).collect()
 }
+
+/// `--policy-cache-bytes` bounds what serving keeps loaded: with room for one policy, acting on
+/// three in turn keeps one loaded (the others are dropped and loaded again when asked for), and
+/// every answer is the one the policy gave first.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_policy_cache_keeps_to_its_byte_budget_and_answers_the_same() {
+    let app = TestApp::spawn_with(|c| c.policy_cache_bytes = 1).await;
+    let (u, _) = upload_six_rooms(&app.client, &app.base_url).await;
+    let mut policies = Vec::new();
+    for seed in 0..3 {
+        let job = bc_job(&app, &u, json!({"config": small_config(60, seed)})).await;
+        let done =
+            wait_for_status(&app.client, &app.base_url, job["id"].as_str().unwrap(), "succeeded");
+        policies.push(done.await["policy_id"].as_str().unwrap().to_owned());
+    }
+    let act = json!({"observations": [vec![0.0; 103], vec![1.0; 103]], "deterministic": false, "seed": 4});
+    let answer = |policy: String| {
+        let request = app.post(&format!("/v1/policies/{policy}/act")).json(&act).send();
+        async move {
+            let response = request.await.unwrap();
+            assert_eq!(response.status(), StatusCode::OK);
+            response.json::<Value>().await.unwrap()["actions"].clone()
+        }
+    };
+    let mut first = Vec::new();
+    for policy in &policies {
+        first.push(answer(policy.clone()).await);
+    }
+    for round in 0..2 {
+        for (policy, expected) in policies.iter().zip(&first) {
+            assert_eq!(&answer(policy.clone()).await, expected, "round {round}");
+        }
+    }
+    let metrics = app.get("/metrics").send().await.unwrap().text().await.unwrap();
+    assert!(metrics.lines().any(|l| l == "safedice_policies_loaded 1"), "{metrics}");
+}
