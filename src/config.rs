@@ -13,6 +13,9 @@ pub const DEFAULT_MAX_CONNECTIONS: u32 = 1024;
 /// 4 GiB: about forty times what a default job (batch 512, two layers of 256) on a
 /// 100k-transition dataset needs, so only configurations far off the defaults meet it.
 pub const DEFAULT_MAX_JOB_MEMORY: u64 = 4 << 30;
+/// 16 KiB/s: a 1 GiB upload may take up to 18 hours; a slower one holds an upload slot with
+/// no prospect of finishing.
+pub const DEFAULT_MIN_BODY_RATE: u64 = 16 << 10;
 /// 1 GiB of loaded policies: thousands of default-sized ones (256-256 networks take ~0.3 MB),
 /// or eight of the largest the memory estimate lets through.
 pub const DEFAULT_POLICY_CACHE_BYTES: u64 = 1 << 30;
@@ -100,6 +103,12 @@ pub struct ServeConfig {
     #[arg(long, env = "SAFEDICE_BODY_IDLE_TIMEOUT_SECS", default_value_t = 30, value_parser = clap::value_parser!(u64).range(1..))]
     pub body_idle_timeout_secs: u64,
 
+    /// Bytes per second a request body (an upload) must average once it has been arriving for
+    /// --body-idle-timeout-secs; a slower one is abandoned with 408 `request_too_slow`, so a
+    /// body trickled a byte at a time cannot hold an upload slot for ever.
+    #[arg(long, env = "SAFEDICE_MIN_BODY_RATE", default_value_t = DEFAULT_MIN_BODY_RATE)]
+    pub min_body_rate: u64,
+
     /// Dataset uploads received at once; one more is answered 503 `too_many_uploads` with
     /// Retry-After.
     #[arg(long, env = "SAFEDICE_MAX_CONCURRENT_UPLOADS", default_value_t = 8, value_parser = clap::value_parser!(u16).range(1..))]
@@ -160,6 +169,7 @@ impl std::fmt::Debug for ServeConfig {
             .field("max_connections", &self.max_connections)
             .field("header_timeout_secs", &self.header_timeout_secs)
             .field("body_idle_timeout_secs", &self.body_idle_timeout_secs)
+            .field("min_body_rate", &self.min_body_rate)
             .field("max_concurrent_uploads", &self.max_concurrent_uploads)
             .field("workers", &self.workers)
             .field("lease_seconds", &self.lease_seconds)
@@ -260,6 +270,7 @@ impl ServeConfig {
             max_connections: DEFAULT_MAX_CONNECTIONS,
             header_timeout_secs: 15,
             body_idle_timeout_secs: 30,
+            min_body_rate: DEFAULT_MIN_BODY_RATE,
             max_concurrent_uploads: 8,
             workers: 1,
             lease_seconds: DEFAULT_LEASE_SECONDS,

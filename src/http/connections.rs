@@ -131,3 +131,30 @@ async fn accept_failed(error: &io::Error) {
         tracing::debug!(error = %error, "accept failed");
     }
 }
+
+/// A request body that ends in [`BodyTooSlow`] once, past `grace`, it has averaged fewer than
+/// `min_rate` bytes per second since it began.
+pub(crate) fn at_least(body: axum::body::Body, grace: Duration, min_rate: u64) -> axum::body::Body {
+    use futures::StreamExt;
+    let started = std::time::Instant::now();
+    let mut received: u64 = 0;
+    let paced = body.into_data_stream().map(move |chunk| {
+        let chunk = chunk.map_err(axum::BoxError::from)?;
+        received += chunk.len() as u64;
+        let elapsed = started.elapsed();
+        if let Some(late) = elapsed.checked_sub(grace) {
+            if (received as f64) < min_rate as f64 * late.as_secs_f64() {
+                return Err(BodyTooSlow { min_rate }.into());
+            }
+        }
+        Ok::<_, axum::BoxError>(chunk)
+    });
+    axum::body::Body::from_stream(paced)
+}
+
+/// A request body that arrived slower than `--min-body-rate` on average.
+#[derive(Debug, thiserror::Error)]
+#[error("the request body arrived slower than {min_rate} bytes/s on average")]
+pub struct BodyTooSlow {
+    pub min_rate: u64,
+}

@@ -154,7 +154,7 @@ pub fn upload_router() -> OpenApiRouter<AppState> {
     responses(
         (status = 201, description = "Stored; `Location` names the new resource", body = DatasetResource),
         (status = 400, description = "Not a multipart form, no `file` field, unknown or repeated field (`bad_request`, `missing_file`, `unknown_field`, `duplicate_field`)", body = ErrorBody),
-        (status = 408, description = "The body paused longer than --body-idle-timeout-secs (`request_timeout`); nothing was stored", body = ErrorBody),
+        (status = 408, description = "The body paused longer than --body-idle-timeout-secs (`request_timeout`) or arrived slower than --min-body-rate on average (`request_too_slow`); nothing was stored", body = ErrorBody),
         (status = 413, description = "The file exceeds --max-upload-bytes (`payload_too_large`); a declared Content-Length over the limit is answered before the body is read", body = ErrorBody),
         (status = 422, description = "The file is not a valid dataset (`invalid_dataset`, `unknown_format`, `empty_dataset`, `unsupported_format`) or the name/description is invalid (`invalid_name`, `invalid_description`); the message names the line, row or key", body = ErrorBody),
         (status = 503, description = "--max-concurrent-uploads uploads are in flight (`too_many_uploads`); retry after `Retry-After` seconds", body = ErrorBody),

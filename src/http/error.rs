@@ -51,6 +51,12 @@ pub enum ApiError {
          the request was abandoned and nothing was stored, send it again"
     )]
     RequestTimeout,
+    /// 408: the request body came slower than `--min-body-rate` on average.
+    #[error(
+        "the request body arrived slower than {0} bytes/s on average (--min-body-rate); the \
+         request was abandoned and nothing was stored, send it again over a faster link"
+    )]
+    BodyTooSlow(u64),
     /// 499 (as nginx logs it): the client closed the connection before its request was read.
     /// Nobody reads the answer; the status keeps such requests apart from server errors in
     /// the log and the metrics.
@@ -119,7 +125,7 @@ impl ApiError {
             ApiError::PayloadTooLarge { .. } => StatusCode::PAYLOAD_TOO_LARGE,
             ApiError::Unprocessable { .. } => StatusCode::UNPROCESSABLE_ENTITY,
             ApiError::Rejected { status, .. } => *status,
-            ApiError::RequestTimeout => StatusCode::REQUEST_TIMEOUT,
+            ApiError::RequestTimeout | ApiError::BodyTooSlow(_) => StatusCode::REQUEST_TIMEOUT,
             ApiError::ClientClosed => CLIENT_CLOSED_REQUEST,
             ApiError::InsufficientStorage => StatusCode::INSUFFICIENT_STORAGE,
             ApiError::Unavailable { .. } => StatusCode::SERVICE_UNAVAILABLE,
@@ -140,6 +146,7 @@ impl ApiError {
             ApiError::MethodNotAllowed => "method_not_allowed",
             ApiError::PayloadTooLarge { .. } => "payload_too_large",
             ApiError::RequestTimeout => "request_timeout",
+            ApiError::BodyTooSlow(_) => "request_too_slow",
             ApiError::ClientClosed => "client_closed_request",
             ApiError::InsufficientStorage => "insufficient_storage",
             ApiError::Internal(_) => "internal_error",
@@ -298,6 +305,9 @@ impl From<MultipartError> for ApiError {
     fn from(e: MultipartError) -> Self {
         if find_source::<tower_http::timeout::TimeoutError>(&e).is_some() {
             return ApiError::RequestTimeout;
+        }
+        if let Some(slow) = find_source::<super::connections::BodyTooSlow>(&e) {
+            return ApiError::BodyTooSlow(slow.min_rate);
         }
         if find_source::<hyper::Error>(&e).is_some_and(|h| h.is_incomplete_message())
             || find_source::<std::io::Error>(&e).is_some_and(|io| {

@@ -165,7 +165,10 @@ pub fn openapi_for(secured: bool) -> utoipa::openapi::OpenApi {
 /// The complete application: routes, fallbacks and middleware.
 pub fn app(state: AppState) -> anyhow::Result<Router> {
     let cors = cors_layer(&state.config)?;
-    let body_idle = Duration::from_secs(state.config.body_idle_timeout_secs);
+    let body_idle = BodyPace {
+        idle: Duration::from_secs(state.config.body_idle_timeout_secs),
+        min_rate: state.config.min_body_rate,
+    };
     let (router, _) = routes().split_for_parts();
     let router = router
         .fallback(error::route_not_found)
@@ -237,13 +240,23 @@ async fn timeout(request: Request, next: Next) -> Response {
 /// Fails a request body that pauses longer than `limit` between two pieces (a client trickling
 /// an upload would otherwise hold its connection and temp file for as long as it likes).
 async fn body_idle_timeout(
-    axum::extract::State(limit): axum::extract::State<Duration>,
+    axum::extract::State(pace): axum::extract::State<BodyPace>,
     request: Request,
     next: Next,
 ) -> Response {
     let (parts, body) = request.into_parts();
-    let body = axum::body::Body::new(tower_http::timeout::TimeoutBody::new(limit, body));
+    let body = axum::body::Body::new(tower_http::timeout::TimeoutBody::new(pace.idle, body));
+    let body = connections::at_least(body, pace.idle, pace.min_rate);
     next.run(Request::from_parts(parts, body)).await
+}
+
+/// How a request body must arrive: no pause longer than `idle`, and after the first `idle`,
+/// `min_rate` bytes per second on average (a body trickled a byte at a time would otherwise
+/// hold an upload slot for ever without ever pausing long).
+#[derive(Clone, Copy)]
+struct BodyPace {
+    idle: Duration,
+    min_rate: u64,
 }
 
 /// A panicking handler becomes a logged 500 with the usual error body.

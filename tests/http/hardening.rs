@@ -244,6 +244,42 @@ async fn an_upload_that_stalls_mid_body_gets_408_and_leaves_no_temp_file() {
     app.assert_no_datasets_stored().await;
 }
 
+/// An upload trickled a byte at a time never pauses past the idle timeout, so it is held to
+/// an average rate instead: 408 `request_too_slow` soon after the grace period, nothing stored,
+/// and its upload slot free again.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_upload_trickled_a_byte_at_a_time_gets_408_and_frees_its_slot() {
+    let app = TestApp::spawn_with(|c| {
+        c.body_idle_timeout_secs = 1;
+        c.min_body_rate = 1000;
+        c.max_concurrent_uploads = 1;
+    })
+    .await;
+    let head = "POST /v1/datasets HTTP/1.1\r\nHost: x\r\n\
+                Content-Type: multipart/form-data; boundary=XyZ\r\nContent-Length: 100000\r\n\r\n\
+                --XyZ\r\nContent-Disposition: form-data; name=\"file\"; filename=\"d.jsonl\"\r\n\r\n";
+    let mut stream = connect(&app, head.as_bytes());
+    let started = Instant::now();
+    let received = tokio::task::spawn_blocking(move || {
+        while started.elapsed() < PATIENCE && !was_answered(&stream) {
+            if stream.write_all(b" ").is_err() {
+                break;
+            }
+            std::thread::sleep(Duration::from_millis(300));
+        }
+        read_until_closed(&mut stream)
+    })
+    .await
+    .unwrap();
+    assert!(received.starts_with("HTTP/1.1 408"), "{received}");
+    assert!(received.contains("request_too_slow"), "{received}");
+    eprintln!("answered after {:?}", started.elapsed());
+    app.assert_no_datasets_stored().await;
+    // The one upload slot is free: a real upload goes through.
+    let (unlabeled, _) = crate::support::jobs::grid_datasets();
+    crate::support::jobs::upload(&app.client, &app.base_url, &unlabeled, "after").await;
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn an_upload_the_client_abandons_counts_as_499_not_as_a_server_error() {
     let app = TestApp::spawn().await;
