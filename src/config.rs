@@ -114,6 +114,12 @@ pub struct ServeConfig {
     #[arg(long, env = "SAFEDICE_MAX_CONCURRENT_UPLOADS", default_value_t = 8, value_parser = clap::value_parser!(u16).range(1..))]
     pub max_concurrent_uploads: u16,
 
+    /// Event streams open at once (`/v1/jobs/{id}/events`, `/v1/jobs/{id}/logs?follow=true`);
+    /// one more is answered 503 `too_many_streams` with Retry-After. Each stream also ends after
+    /// 15 minutes (clients reconnect), so the slots turn over.
+    #[arg(long, env = "SAFEDICE_MAX_STREAMS", default_value_t = 256, value_parser = clap::value_parser!(u32).range(1..))]
+    pub max_streams: u32,
+
     /// Training jobs this process runs concurrently; 0 serves the API only (jobs then run in
     /// `safedice worker` processes on the same database).
     #[arg(long, env = "SAFEDICE_WORKERS", default_value_t = 1)]
@@ -171,6 +177,7 @@ impl std::fmt::Debug for ServeConfig {
             .field("body_idle_timeout_secs", &self.body_idle_timeout_secs)
             .field("min_body_rate", &self.min_body_rate)
             .field("max_concurrent_uploads", &self.max_concurrent_uploads)
+            .field("max_streams", &self.max_streams)
             .field("workers", &self.workers)
             .field("lease_seconds", &self.lease_seconds)
             .field("max_attempts", &self.max_attempts)
@@ -272,6 +279,7 @@ impl ServeConfig {
             body_idle_timeout_secs: 30,
             min_body_rate: DEFAULT_MIN_BODY_RATE,
             max_concurrent_uploads: 8,
+            max_streams: 256,
             workers: 1,
             lease_seconds: DEFAULT_LEASE_SECONDS,
             max_attempts: DEFAULT_MAX_ATTEMPTS,

@@ -601,6 +601,7 @@ async fn job_log(
     State(state): State<AppState>,
     Path(id): Path<String>,
     Query(params): Query<LogParams>,
+    headers: axum::http::HeaderMap,
 ) -> Result<axum::response::Response, ApiError> {
     let limit = params.limit.unwrap_or(LOG_LIMIT);
     if !(1..=LOG_LIMIT).contains(&limit) {
@@ -616,13 +617,17 @@ async fn job_log(
         let rows = state.store.job_log(&id, after, limit).await?;
         return Ok(Json(rows.into_iter().map(LogLine::from).collect::<Vec<_>>()).into_response());
     }
+    let permit = stream_permit(&state)?;
+    // A client reconnecting (a stream ends after STREAM_LIFETIME) resumes after the last line
+    // it saw: each line's event id is its `seq`.
+    let after = last_event_id(&headers).unwrap_or(after);
     let lines = futures::stream::unfold(
         (state.store.clone(), id, after, Vec::<LogRow>::new(), false),
         |(store, id, mut after, mut pending, mut done)| async move {
             loop {
                 if let Some(row) = (!pending.is_empty()).then(|| pending.remove(0)) {
                     after = row.seq;
-                    let event = json_event("log", &LogLine::from(row));
+                    let event = json_event("log", &LogLine::from(row)).id(after.to_string());
                     return Some((event, (store, id, after, pending, done)));
                 }
                 if done {
@@ -639,9 +644,7 @@ async fn job_log(
             }
         },
     );
-    let stream =
-        lines.take_until(state.shutdown.clone().cancelled_owned()).map(Ok::<_, Infallible>);
-    Ok(Sse::new(stream).keep_alive(KeepAlive::default()).into_response())
+    Ok(Sse::new(bounded(lines, &state, permit)).keep_alive(KeepAlive::default()).into_response())
 }
 
 /// Per metric (rows come ordered by name, then step): at most `max_points` points, chosen by
@@ -689,6 +692,7 @@ async fn job_events(
     State(state): State<AppState>,
     Path(id): Path<String>,
 ) -> Result<Sse<impl Stream<Item = Result<Event, Infallible>>>, ApiError> {
+    let permit = stream_permit(&state)?;
     // Subscribe before reading the job, so no change between the two is missed.
     let receiver = state.jobs.subscribe();
     let job = Job::from(state.store.job(&id).await?);
@@ -714,11 +718,8 @@ async fn job_events(
             Some((event, (receiver, store, id, finished)))
         },
     );
-    let stream = futures::stream::once(std::future::ready(first))
-        .chain(updates)
-        .take_until(state.shutdown.clone().cancelled_owned())
-        .map(Ok);
-    Ok(Sse::new(stream).keep_alive(KeepAlive::default()))
+    let stream = futures::stream::once(std::future::ready(first)).chain(updates);
+    Ok(Sse::new(bounded(stream, &state, permit)).keep_alive(KeepAlive::default()))
 }
 
 enum Update {
@@ -759,6 +760,43 @@ async fn next_event(
             Err(broadcast::error::RecvError::Closed) => return None,
         }
     }
+}
+
+/// How long one event stream stays open: clients reconnect (an EventSource does so by itself,
+/// `Last-Event-ID` resumes a log), so a slot held by a forgotten tab turns over.
+const STREAM_LIFETIME: Duration = Duration::from_secs(15 * 60);
+
+/// A slot for one more event stream, or 503 `too_many_streams`.
+fn stream_permit(state: &AppState) -> Result<tokio::sync::OwnedSemaphorePermit, ApiError> {
+    state.streams.clone().try_acquire_owned().map_err(|_| {
+        ApiError::unavailable(
+            "too_many_streams",
+            format!(
+                "{} event streams are open already (--max-streams); retry shortly",
+                state.config.max_streams
+            ),
+        )
+    })
+}
+
+/// `events` ended by shutdown or after [`STREAM_LIFETIME`], holding `permit` while it runs.
+fn bounded(
+    events: impl Stream<Item = Event> + Send + 'static,
+    state: &AppState,
+    permit: tokio::sync::OwnedSemaphorePermit,
+) -> impl Stream<Item = Result<Event, Infallible>> + Send + 'static {
+    events
+        .take_until(state.shutdown.clone().cancelled_owned())
+        .take_until(tokio::time::sleep(STREAM_LIFETIME))
+        .map(move |event| {
+            let _held = &permit;
+            Ok(event)
+        })
+}
+
+/// The `Last-Event-ID` a reconnecting event-stream client sends.
+fn last_event_id(headers: &axum::http::HeaderMap) -> Option<i64> {
+    headers.get("last-event-id")?.to_str().ok()?.trim().parse().ok().filter(|id| *id >= 0)
 }
 
 fn status_event(job: &Job) -> Event {

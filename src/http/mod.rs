@@ -85,6 +85,8 @@ pub struct Services {
     pub policies: Arc<PolicyCache>,
     /// One permit per upload being received (`--max-concurrent-uploads`).
     pub uploads: Arc<tokio::sync::Semaphore>,
+    /// One permit per open event stream (`--max-streams`).
+    pub streams: Arc<tokio::sync::Semaphore>,
 }
 
 impl AppState {
@@ -98,12 +100,14 @@ impl AppState {
         let tokens =
             auth::Tokens::new(config.api_token.as_deref(), config.inference_token.as_deref());
         let uploads = tokio::sync::Semaphore::new(usize::from(config.max_concurrent_uploads));
+        let streams = tokio::sync::Semaphore::new(config.max_streams as usize);
         AppState(Arc::new(Services {
             metrics: Arc::new(prometheus::Metrics::new()),
             tokens: Arc::new(tokens),
             jobs,
             policies,
             uploads: Arc::new(uploads),
+            streams: Arc::new(streams),
             shutdown,
             config: Arc::new(config),
             store,

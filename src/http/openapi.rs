@@ -167,7 +167,8 @@ pub fn document_shared_errors(doc: &mut OpenApiDoc) {
                     "The service cannot answer now: the database stayed locked by other \
                      writes (`database_busy`; nothing was changed), cannot be reached \
                      (`database_unavailable`; nothing was changed), the request took longer \
-                     than 30 s (`timeout`), or the upload slots are taken (`too_many_uploads`); \
+                     than 30 s (`timeout`), the upload slots are taken (`too_many_uploads`) or the \
+                     event-stream slots (`too_many_streams`); \
                      retry after `Retry-After` seconds",
                 );
             }

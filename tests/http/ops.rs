@@ -225,3 +225,54 @@ async fn restart_keeps_the_database_and_clears_interrupted_uploads() {
         assert_eq!(journal, "wal");
     }
 }
+
+/// `--max-streams` caps the open event streams: one more is a 503 `too_many_streams` with
+/// Retry-After (while plain requests still answer), and closing a stream frees its slot. A log
+/// follower resumes after the `Last-Event-ID` it sends.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn event_streams_are_capped_and_a_closed_one_frees_its_slot() {
+    use crate::support::jobs::*;
+    let app = TestApp::spawn_with(|c| c.max_streams = 2).await;
+    let u = upload(&app.client, &app.base_url, &grid_datasets().0, "grid").await;
+    let body = serde_json::json!({"algorithm": "bc", "unlabeled_dataset": u,
+                                  "config": small_config(ENDLESS_ITERATIONS, 0)});
+    let job = create_job(&app.client, &app.base_url, body).await;
+    let id = job["id"].as_str().unwrap();
+    wait_for_status(&app.client, &app.base_url, id, "running").await;
+    let open = |path: String| app.get(&path).send();
+    let events = open(format!("/v1/jobs/{id}/events")).await.unwrap();
+    let logs = open(format!("/v1/jobs/{id}/logs?follow=true")).await.unwrap();
+    assert_eq!((events.status(), logs.status()), (StatusCode::OK, StatusCode::OK));
+    let refused = open(format!("/v1/jobs/{id}/events")).await.unwrap();
+    assert_eq!(refused.headers()["retry-after"], "1");
+    assert_error(refused, StatusCode::SERVICE_UNAVAILABLE, "too_many_streams").await;
+    assert_eq!(app.get("/healthz").send().await.unwrap().status(), StatusCode::OK);
+    drop(events);
+    let started = std::time::Instant::now();
+    loop {
+        let again = open(format!("/v1/jobs/{id}/events")).await.unwrap();
+        if again.status() == StatusCode::OK {
+            break;
+        }
+        assert!(started.elapsed() < std::time::Duration::from_secs(10), "the slot stayed taken");
+        tokio::time::sleep(std::time::Duration::from_millis(50)).await;
+    }
+    drop(logs);
+    // A follower reconnecting with Last-Event-ID 1 gets the lines after the first, each with
+    // its seq as event id, until the job has ended.
+    app.post(&format!("/v1/jobs/{id}/cancel")).send().await.unwrap();
+    let lines = get_json(&app.client, &app.url(&format!("/v1/jobs/{id}/logs"))).await;
+    let lines = lines.as_array().unwrap().len();
+    assert!(lines >= 2, "claimed, started, cancelled");
+    let resumed = app
+        .get(&format!("/v1/jobs/{id}/logs?follow=true"))
+        .header("last-event-id", "1")
+        .send()
+        .await
+        .unwrap();
+    let text = resumed.text().await.unwrap();
+    let ids: Vec<&str> =
+        text.lines().filter_map(|l| l.strip_prefix("id:")).map(str::trim).collect();
+    let expected: Vec<String> = (2..=lines).map(|seq| seq.to_string()).collect();
+    assert_eq!(ids, expected, "{text}");
+}

@@ -183,19 +183,26 @@ class Client:
 
     def events(self, job_id: str) -> Iterator[Tuple[str, Json]]:
         """The job's server-sent events as they come: ``("status", job)`` and
-        ``("progress", progress)``, until the job ends."""
-        request = self._build("GET", f"/v1/jobs/{job_id}/events")
-        with self._open(request, timeout=None) as response:
-            name, data = None, []
-            for raw in response:
-                line = raw.decode().rstrip("\n")
-                if line.startswith("event:"):
-                    name = line[6:].strip()
-                elif line.startswith("data:"):
-                    data.append(line[5:].strip())
-                elif not line and name is not None:
-                    yield name, json.loads("\n".join(data))
-                    name, data = None, []
+        ``("progress", progress)``, until the job ends (or ``("deleted", {"id": ...})``). The
+        service ends a stream after 15 minutes; this reconnects until the job has ended."""
+        while True:
+            request = self._build("GET", f"/v1/jobs/{job_id}/events")
+            with self._open(request, timeout=None) as response:
+                name, data = None, []
+                for raw in response:
+                    line = raw.decode().rstrip("\n")
+                    if line.startswith("event:"):
+                        name = line[6:].strip()
+                    elif line.startswith("data:"):
+                        data.append(line[5:].strip())
+                    elif not line and name is not None:
+                        payload = json.loads("\n".join(data))
+                        yield name, payload
+                        if name == "deleted" or (
+                            name == "status" and payload["status"] in FINAL_STATUSES
+                        ):
+                            return
+                        name, data = None, []
 
     def metrics(self, job_id: str, names: Optional[Sequence[str]] = None) -> Dict[str, np.ndarray]:
         """The job's recorded metrics: name -> array of (step, value) rows."""
