@@ -89,7 +89,7 @@ pub struct ServeConfig {
     pub log_format: LogFormat,
 
     /// Client connections open at once (lowered to fit the process's open-file limit); more
-    /// wait until one closes.
+    /// are answered 503 `too_many_connections` at once, so they can retry instead of hanging.
     #[arg(long, env = "SAFEDICE_MAX_CONNECTIONS", default_value_t = DEFAULT_MAX_CONNECTIONS, value_parser = clap::value_parser!(u32).range(1..))]
     pub max_connections: u32,
 

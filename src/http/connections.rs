@@ -32,7 +32,7 @@ const ENFILE: i32 = 23;
 /// The limits in force for client connections.
 #[derive(Clone, Copy, Debug)]
 pub struct ConnectionLimits {
-    /// Open client connections at most; more wait in the listen backlog.
+    /// Open client connections at most; more are answered 503 at once ([`SHED_AT_ONCE`] at a time).
     pub max_connections: usize,
     /// A request's headers must arrive within this (also the keep-alive idle limit).
     pub header_read_timeout: Duration,
@@ -70,10 +70,26 @@ pub async fn serve(
     let mut builder = auto::Builder::new(TokioExecutor::new());
     builder.http1().timer(TokioTimer::new()).header_read_timeout(limits.header_read_timeout);
     builder.http2().timer(TokioTimer::new());
+    let shedders = Arc::new(Semaphore::new(SHED_AT_ONCE));
     loop {
-        let slot = tokio::select! {
-            slot = slots.clone().acquire_owned() => slot.expect("the semaphore is never closed"),
-            () = shutdown.cancelled() => break,
+        let slot = match slots.clone().try_acquire_owned() {
+            Ok(slot) => slot,
+            // Every slot is taken: answer 503 to the newcomer at once rather than leave it in
+            // the backlog behind clients that hold their connections open.
+            Err(_) if shedders.available_permits() > 0 => {
+                tokio::select! {
+                    accepted = listener.accept() => match accepted {
+                        Ok((stream, _)) => shed(stream, shedders.clone()),
+                        Err(e) => accept_failed(&e).await,
+                    },
+                    () = shutdown.cancelled() => break,
+                }
+                continue;
+            }
+            Err(_) => tokio::select! {
+                slot = slots.clone().acquire_owned() => slot.expect("the semaphore is never closed"),
+                () = shutdown.cancelled() => break,
+            },
         };
         let stream = tokio::select! {
             accepted = listener.accept() => match accepted {
@@ -107,6 +123,53 @@ pub async fn serve(
     }
     drop(listener);
     graceful.shutdown().await;
+    Ok(())
+}
+
+/// Connections answered 503 at once while every slot is taken; past this many, newcomers wait
+/// in the listen backlog (each costs a descriptor, within [`RESERVED_DESCRIPTORS`]).
+const SHED_AT_ONCE: usize = 32;
+
+/// The body of the answer to a connection beyond the cap.
+const SHED_BODY: &str = "{\"error\":{\"code\":\"too_many_connections\",\"message\":\"every \
+    connection slot is taken (--max-connections); retry shortly\"}}";
+
+/// Writes a 503 (with [`SHED_BODY`]) to a connection beyond the cap and closes it (within a second),
+/// holding one of the [`SHED_AT_ONCE`] permits meanwhile.
+fn shed(stream: TcpStream, shedders: Arc<Semaphore>) {
+    use tokio::io::AsyncWriteExt;
+    let Ok(permit) = shedders.try_acquire_owned() else { return };
+    tokio::spawn(async move {
+        let mut stream = stream;
+        let response = format!(
+            "HTTP/1.1 503 Service Unavailable\r\nContent-Type: application/json\r\n\
+             Retry-After: 1\r\nConnection: close\r\nContent-Length: {}\r\n\r\n{SHED_BODY}",
+            SHED_BODY.len()
+        );
+        let answer = async {
+            // The request's headers first: an HTTP client takes an answer that comes before
+            // its request as a broken connection, not as a 503 to retry.
+            read_headers(&mut stream).await?;
+            stream.write_all(response.as_bytes()).await?;
+            stream.shutdown().await
+        };
+        let _ = tokio::time::timeout(Duration::from_secs(2), answer).await;
+        drop(permit);
+    });
+}
+
+/// Reads (and drops) a request's head, up to its blank line or 16 KiB.
+async fn read_headers(stream: &mut TcpStream) -> io::Result<()> {
+    use tokio::io::AsyncReadExt;
+    let mut head = Vec::new();
+    let mut chunk = [0u8; 1024];
+    while head.len() < 16 << 10 && !head.windows(4).any(|w| w == b"\r\n\r\n") {
+        let n = stream.read(&mut chunk).await?;
+        if n == 0 {
+            break;
+        }
+        head.extend_from_slice(&chunk[..n]);
+    }
     Ok(())
 }
 

@@ -199,8 +199,11 @@ impl IntoResponse for ApiError {
         let mut response = (status, axum::Json(body)).into_response();
         let headers = response.headers_mut();
         match status {
+            // Closed after the answer: a client without a valid token cannot hold a connection
+            // slot with one unauthenticated request after another.
             StatusCode::UNAUTHORIZED => {
                 headers.insert(header::WWW_AUTHENTICATE, HeaderValue::from_static("Bearer"));
+                headers.insert(header::CONNECTION, HeaderValue::from_static("close"));
             }
             // Busy or not ready (a burst of writes, an upload slot): worth retrying in a second.
             StatusCode::SERVICE_UNAVAILABLE => {

@@ -377,9 +377,53 @@ async fn idle_connections_beyond_the_cap_do_not_lock_out_healthz() {
     // Twice the cap of connections that never send a byte.
     let idle: Vec<TcpStream> = (0..8).map(|_| TcpStream::connect(app.addr).unwrap()).collect();
     let client = reqwest::Client::builder().timeout(PATIENCE).build().unwrap();
-    let response = client.get(app.url("/healthz")).send().await.unwrap();
-    assert_eq!(response.status(), StatusCode::OK);
+    // While the slots are taken a newcomer is told so at once (503 with Retry-After) instead of
+    // waiting in the backlog; once the idle ones are dropped at the header deadline it is served.
+    let started = Instant::now();
+    loop {
+        let response = client.get(app.url("/healthz")).send().await.unwrap();
+        if response.status() == StatusCode::OK {
+            break;
+        }
+        assert_eq!(response.headers()["retry-after"], "1");
+        assert_error(response, StatusCode::SERVICE_UNAVAILABLE, "too_many_connections").await;
+        assert!(started.elapsed() < PATIENCE, "never served");
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
     drop(idle);
+}
+
+/// Clients holding every slot with keep-alive requests (a /healthz or a 401 now and then) do
+/// not make newcomers time out: a 401 closes its connection, and a newcomer beyond the cap gets
+/// a prompt 503 it can retry.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn connections_held_by_keep_alive_clients_shed_newcomers_at_once() {
+    let app = TestApp::spawn_with(|c| {
+        c.max_connections = 2;
+        c.api_token = Some("secret".into());
+    })
+    .await;
+    // A 401 answers and closes: the slot is free again.
+    let mut unauthorized = connect(&app, b"GET /v1/jobs HTTP/1.1\r\nHost: x\r\n\r\n");
+    let received =
+        tokio::task::spawn_blocking(move || read_until_closed(&mut unauthorized)).await.unwrap();
+    assert!(received.starts_with("HTTP/1.1 401"), "{received}");
+    assert!(received.to_lowercase().contains("connection: close"), "{received}");
+    // Two keep-alive clients take both slots.
+    let holders: Vec<TcpStream> = (0..2)
+        .map(|_| {
+            let mut stream = connect(&app, b"GET /healthz HTTP/1.1\r\nHost: x\r\n\r\n");
+            let mut answer = [0u8; 12];
+            stream.read_exact(&mut answer).unwrap();
+            assert_eq!(&answer, b"HTTP/1.1 200");
+            stream
+        })
+        .collect();
+    let started = Instant::now();
+    let response = reqwest::get(app.url("/healthz")).await.unwrap();
+    assert!(started.elapsed() < Duration::from_secs(2), "answered at once, not after a timeout");
+    assert_error(response, StatusCode::SERVICE_UNAVAILABLE, "too_many_connections").await;
+    drop(holders);
 }
 
 #[tokio::test]
