@@ -32,10 +32,10 @@ pub struct Evaluation {
     pub episodes: usize,
     pub seed: u64,
     pub deterministic: bool,
-    pub status: EvaluationStatus,
     /// `builtin` (run by a worker on a built-in environment) or `external` (recorded from the
     /// user's own simulator with `POST /v1/policies/{id}/evaluations`).
     pub source: EvaluationSource,
+    pub status: EvaluationStatus,
     /// The paper's metrics over the episodes, once succeeded: normalized return, average cost,
     /// cost-violation ratio, CVaR k% cost and DSRL's normalized cost (definitions in
     /// README "Evaluation metrics").
@@ -65,8 +65,8 @@ impl From<EvaluationRecord> for Evaluation {
             episodes: spec.episodes,
             seed: spec.seed,
             deterministic: spec.deterministic,
-            status: evaluation.status,
             source: evaluation.source,
+            status: evaluation.status,
             metrics,
             mean_episode_length,
             reference,
