@@ -161,7 +161,7 @@ impl Store {
         }
         let lease = Lease::new(job.id.clone(), job.lease_token);
         end_attempt(&mut tx, &lease, AttemptOutcome::Crashed, Some(crash)).await?;
-        let time = now();
+        let time = self.db_now().await?;
         let give_up = job.attempt >= job.max_attempts;
         let (status, message) = if give_up {
             let history = self.crash_count(&mut tx, &job.id).await?;

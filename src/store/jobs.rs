@@ -340,7 +340,7 @@ impl Store {
         .bind(labels.name.as_deref())
         .bind(to_json(&labels.tags))
         .bind(labels.notes.as_deref())
-        .bind(now())
+        .bind(self.db_now().await?)
         .execute(self.pool())
         .await?;
         if updated.rows_affected() == 0 {
@@ -461,7 +461,7 @@ impl Store {
             "UPDATE jobs SET status = 'queued', updated_at = $1, iterations_per_second = NULL, \
                  lease_expires_ms = 0, attempt = attempt - 1 WHERE id = $2",
         )
-        .bind(now())
+        .bind(self.db_now().await?)
         .bind(&lease.id)
         .execute(&mut *tx)
         .await?;
@@ -487,7 +487,7 @@ impl Store {
         .bind(progress.phase)
         .bind(optional_real(progress.iterations_per_second))
         .bind(optional_real(progress.alpha_hat))
-        .bind(now())
+        .bind(self.db_now().await?)
         .bind(&lease.id)
         .bind(lease.token)
         .fetch_optional(self.pool())
@@ -622,7 +622,7 @@ impl Store {
         .bind(policy.id)
         .bind(step as i64)
         .bind(optional_real(policy.alpha_hat))
-        .bind(now())
+        .bind(self.db_now().await?)
         .bind(&lease.id)
         .execute(&mut *tx)
         .await?;
@@ -651,7 +651,7 @@ impl Store {
         )
         .bind(status.as_str())
         .bind(error)
-        .bind(now())
+        .bind(self.db_now().await?)
         .bind(&lease.id)
         .execute(&mut *tx)
         .await?;
@@ -668,7 +668,7 @@ impl Store {
     /// Cancels a queued job at once, or flags a running one for its worker. The status read and
     /// the update are one write transaction (the row locked), so a claim cannot slip in between.
     pub async fn request_cancel(&self, id: &str) -> Result<CancelOutcome, StoreError> {
-        let now = now();
+        let now = self.db_now().await?;
         let mut tx = self.begin_write().await?;
         let status: String = sqlx::query_scalar(&format!(
             "SELECT status FROM jobs WHERE id = $1{}",

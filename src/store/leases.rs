@@ -136,7 +136,7 @@ impl Claim {
             self.order,
             store.backend.skip_locked()
         ))
-        .bind(now())
+        .bind(store.db_now().await?)
         .bind(worker)
         .bind(millis(lease))
         .fetch_optional(store.pool())

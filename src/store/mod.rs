@@ -230,6 +230,26 @@ impl Backend {
     }
 }
 
+impl Store {
+    /// The current time as stored (RFC 3339, UTC, milliseconds) on the database's clock: on
+    /// PostgreSQL the server's, so every process of a fleet stamps `updated_at` from one clock
+    /// (the follower's "changed since" compares those stamps across processes); on SQLite this
+    /// machine's, which every process sharing the file shares.
+    pub(crate) async fn db_now(&self) -> Result<String, sqlx::Error> {
+        match self.backend {
+            Backend::Sqlite => Ok(now()),
+            Backend::Postgres => {
+                sqlx::query_scalar(
+                    "SELECT to_char(clock_timestamp() AT TIME ZONE 'UTC', \
+                     'YYYY-MM-DD\"T\"HH24:MI:SS.MS\"Z\"')",
+                )
+                .fetch_one(self.pool())
+                .await
+            }
+        }
+    }
+}
+
 /// Current time as stored: RFC 3339, UTC, milliseconds (text that sorts in time order).
 pub fn now() -> String {
     chrono::Utc::now().to_rfc3339_opts(chrono::SecondsFormat::Millis, true)
