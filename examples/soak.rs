@@ -6,8 +6,11 @@
 //!
 //! ```text
 //! cargo build --release && cargo run --release --example soak -- \
-//!     [--clients 8] [--seconds 300] [--workers 2] [--bin target/release/safedice]
+//!     [--clients 8] [--seconds 300] [--workers 2] [--nodes 1] [--bin target/release/safedice]
 //! ```
+//! `--nodes 2` starts two `safedice serve` processes on one SQLite data directory (the
+//! one-machine fleet the docs allow) and spreads the clients over them: no "database is locked"
+//! may surface as a 5xx, and nothing accepted by either node may go missing.
 //! The mix per client step: upload a small dataset (one in five invalid), submit a short job
 //! (BC or SafeDICE), cancel a job, delete a dataset (refused while a job uses it), read a job's
 //! metrics, list jobs, and `/act` on a trained policy. Exits non-zero on any 5xx, any transport
@@ -29,12 +32,18 @@ struct Args {
     clients: usize,
     seconds: u64,
     workers: u16,
+    nodes: usize,
     bin: String,
 }
 
 fn parse_args() -> anyhow::Result<Args> {
-    let mut args =
-        Args { clients: 8, seconds: 300, workers: 2, bin: "target/release/safedice".into() };
+    let mut args = Args {
+        clients: 8,
+        seconds: 300,
+        workers: 2,
+        nodes: 1,
+        bin: "target/release/safedice".into(),
+    };
     let mut it = std::env::args().skip(1);
     while let Some(flag) = it.next() {
         let mut value = || it.next().with_context(|| format!("{flag} needs a value"));
@@ -42,6 +51,7 @@ fn parse_args() -> anyhow::Result<Args> {
             "--clients" => args.clients = value()?.parse()?,
             "--seconds" => args.seconds = value()?.parse()?,
             "--workers" => args.workers = value()?.parse()?,
+            "--nodes" => args.nodes = value()?.parse()?,
             "--bin" => args.bin = value()?,
             other => bail!("unknown argument {other}"),
         }
@@ -49,16 +59,14 @@ fn parse_args() -> anyhow::Result<Args> {
     Ok(args)
 }
 
-/// The server under test, killed when dropped.
+/// A server under test, killed when dropped.
 struct ServerProcess {
     child: Child,
     url: String,
-    _data_dir: tempfile::TempDir,
 }
 
 impl ServerProcess {
-    async fn start(args: &Args) -> anyhow::Result<ServerProcess> {
-        let data_dir = tempfile::tempdir()?;
+    async fn start(args: &Args, data_dir: &tempfile::TempDir) -> anyhow::Result<ServerProcess> {
         let port = std::net::TcpListener::bind("127.0.0.1:0")?.local_addr()?.port();
         let child = Command::new(&args.bin)
             .args(["serve", "--bind", &format!("127.0.0.1:{port}"), "--workers"])
@@ -69,8 +77,7 @@ impl ServerProcess {
             .stdout(Stdio::null())
             .spawn()
             .with_context(|| format!("cannot start {} (build it first)", args.bin))?;
-        let server =
-            ServerProcess { child, url: format!("http://127.0.0.1:{port}"), _data_dir: data_dir };
+        let server = ServerProcess { child, url: format!("http://127.0.0.1:{port}") };
         let started = Instant::now();
         while reqwest::get(format!("{}/healthz", server.url)).await.is_err() {
             if started.elapsed() > Duration::from_secs(60) {
@@ -302,7 +309,12 @@ async fn list_all(
 #[tokio::main]
 async fn main() -> anyhow::Result<()> {
     let args = parse_args()?;
-    let server = ServerProcess::start(&args).await?;
+    let data_dir = tempfile::tempdir()?;
+    let mut nodes = Vec::new();
+    for _ in 0..args.nodes.max(1) {
+        nodes.push(ServerProcess::start(&args, &data_dir).await?);
+    }
+    let server = &nodes[0];
     let http = reqwest::Client::builder().timeout(Duration::from_secs(60)).build()?;
     let policy = train_policy(&http, &server.url).await?;
     let ledger = Arc::new(Mutex::new(Ledger::default()));
@@ -312,7 +324,7 @@ async fn main() -> anyhow::Result<()> {
         .map(|i| {
             let mut client = Client {
                 http: http.clone(),
-                url: server.url.clone(),
+                url: nodes[i % nodes.len()].url.clone(),
                 rng: ChaCha8Rng::seed_from_u64(100 + i as u64),
                 ledger: ledger.clone(),
                 policy: policy.clone(),
@@ -329,7 +341,8 @@ async fn main() -> anyhow::Result<()> {
     let mut samples = Vec::new();
     while Instant::now() < deadline {
         tokio::time::sleep(Duration::from_secs(10).min(deadline - Instant::now())).await;
-        let rss = server.rss_mib();
+        // The largest node's: each must plateau.
+        let rss = nodes.iter().map(ServerProcess::rss_mib).fold(0.0, f64::max);
         let requests = ledger.lock().unwrap().requests;
         println!("{:>6.0}  {:>9.1}  {:>9}", started.elapsed().as_secs_f64(), rss, requests);
         samples.push(rss);
@@ -346,10 +359,11 @@ async fn main() -> anyhow::Result<()> {
     let missing_datasets: Vec<_> = expected.difference(&listed_datasets).collect();
     let missing_jobs: Vec<_> = ledger.jobs.difference(&listed_jobs).collect();
     println!(
-        "\n{} requests in {elapsed:.0} s ({:.1}/s) from {} clients, --workers {}",
+        "\n{} requests in {elapsed:.0} s ({:.1}/s) from {} clients, {} node(s), --workers {}",
         ledger.requests,
         ledger.requests as f64 / elapsed,
         args.clients,
+        nodes.len(),
         args.workers
     );
     println!("by kind:   {:?}", ledger.by_kind);
