@@ -2,6 +2,7 @@
 address in SAFEDICE_URL and a `safedice datagen` directory in SAFEDICE_DATA)."""
 
 import os
+import socket
 import time
 from pathlib import Path
 
@@ -58,6 +59,18 @@ def test_a_trained_policy_acts_in_batches_like_one_request(client: Client, train
     assert whole.shape == (100, policy["action_space"]["dim"])
     assert np.array_equal(whole, batched)
     assert np.array_equal(client.act(policy["id"], observations[0]), whole[0])
+
+
+def test_calls_share_one_kept_alive_connection(client: Client, trained: dict) -> None:
+    observation = np.zeros(client.policy(trained["policy_id"])["obs_dim"])
+    client.act(trained["policy_id"], observation)
+    first = client._local.connection.sock
+    for _ in range(20):
+        client.act(trained["policy_id"], observation)
+    assert client._local.connection.sock is first, "every act on the same TCP connection"
+    # A connection the server closed meanwhile is replaced without the caller noticing.
+    client._local.connection.sock.shutdown(socket.SHUT_RDWR)
+    assert client.policy(trained["policy_id"])["id"] == trained["policy_id"]
 
 
 def test_metrics_come_back_as_arrays_per_name(client: Client, trained: dict) -> None:

@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import http.client
 import io
 import json
 import os
 import sys
+import threading
 import time
 import urllib.error
 import urllib.parse
@@ -51,6 +53,9 @@ class Client:
         self.base_url = base_url.rstrip("/")
         self.token = token if token is not None else os.environ.get("SAFEDICE_API_TOKEN")
         self.timeout = timeout
+        # One kept-alive connection per thread for the JSON calls: an agent calling `act` in a
+        # loop pays the TCP handshake once, not once per step.
+        self._local = threading.local()
 
     # -- environments and datasets -------------------------------------------------------
 
@@ -326,10 +331,50 @@ class Client:
     def _request(
         self, method: str, path: str, body: Optional[bytes] = None, content_type: Optional[str] = None
     ) -> Any:
-        request = self._build(method, path, body, content_type)
-        with self._open(request, self.timeout) as response:
-            content = response.read()
-        return json.loads(content) if content else None
+        """A JSON call on this thread's kept-alive connection. A connection the server closed
+        while it sat idle (its keep-alive deadline) fails before the server reads anything: the
+        call is sent once more on a fresh connection."""
+        headers = {"Content-Type": content_type} if content_type else {}
+        if self.token:
+            headers["Authorization"] = f"Bearer {self.token}"
+        target = urllib.parse.urlsplit(self.base_url).path + path
+        for attempt in range(2):
+            connection, reused = self._connection()
+            try:
+                connection.request(method, target, body=body, headers=headers)
+                response = connection.getresponse()
+                content = response.read()
+            except (http.client.RemoteDisconnected, ConnectionError):
+                self._drop_connection()
+                if attempt == 0 and reused:
+                    continue
+                raise
+            except BaseException:
+                self._drop_connection()
+                raise
+            if response.will_close:
+                self._drop_connection()
+            if response.status >= 400:
+                raise _api_error_from(response.status, content)
+            return json.loads(content) if content else None
+        raise AssertionError("unreachable")
+
+    def _connection(self) -> Tuple[http.client.HTTPConnection, bool]:
+        """This thread's connection, and whether it served a call before."""
+        connection = getattr(self._local, "connection", None)
+        if connection is not None:
+            return connection, True
+        parts = urllib.parse.urlsplit(self.base_url)
+        kind = http.client.HTTPSConnection if parts.scheme == "https" else http.client.HTTPConnection
+        connection = kind(parts.hostname, parts.port, timeout=self.timeout)
+        self._local.connection = connection
+        return connection, False
+
+    def _drop_connection(self) -> None:
+        connection = getattr(self._local, "connection", None)
+        if connection is not None:
+            connection.close()
+            self._local.connection = None
 
     def _download(self, path: str, target: Union[str, os.PathLike]) -> Path:
         target = Path(target)
@@ -341,14 +386,17 @@ class Client:
 
 
 def _api_error(e: urllib.error.HTTPError) -> ApiError:
-    body = e.read()
+    return _api_error_from(e.code, e.read())
+
+
+def _api_error_from(status: int, body: bytes) -> ApiError:
     try:
         error = json.loads(body)["error"]
         if isinstance(error, str):  # the Open Inference Protocol's shape
-            return ApiError(e.code, "error", error)
-        return ApiError(e.code, error["code"], error["message"])
+            return ApiError(status, "error", error)
+        return ApiError(status, error["code"], error["message"])
     except (ValueError, KeyError, TypeError):
-        return ApiError(e.code, "http_error", body.decode(errors="replace")[:500])
+        return ApiError(status, "http_error", body.decode(errors="replace")[:500])
 
 
 def _multipart(fields: Mapping[str, Optional[str]], filename: str, content: bytes) -> Tuple[bytes, str]:
