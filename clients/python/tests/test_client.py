@@ -50,6 +50,17 @@ def test_a_numpy_dict_uploads_as_the_same_dataset_as_its_file(client: Client) ->
     assert from_arrays["name"] == "arrays"
 
 
+def test_arrays_whose_episode_ends_nothing_marks_are_refused_before_upload(client: Client) -> None:
+    arrays = point_goal_arrays()
+    arrays.pop("timeouts", None)
+    arrays.pop("episode_ids", None)
+    arrays["terminals"] = np.zeros_like(arrays["terminals"])
+    before = client.datasets()["total"]
+    with pytest.raises(ValueError, match="no terminal marks"):
+        client.upload_dataset(arrays, name="one long episode")
+    assert client.datasets()["total"] == before
+
+
 def test_a_trained_policy_acts_in_batches_like_one_request(client: Client, trained: dict) -> None:
     assert trained["status"] == "succeeded"
     policy = client.policy(trained["policy_id"])

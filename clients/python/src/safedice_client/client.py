@@ -77,10 +77,16 @@ class Client:
         ``terminals``, optional ``timeouts``, ``rewards``, ``costs``, ``episode_ids``), sent
         as NPZ. ``role`` (``unlabeled`` or ``non_preferred``) says what it is for; jobs refuse
         it in the other's place.
+
+        Arrays whose episodes nothing marks (no ``timeouts`` or ``episode_ids``, while
+        ``next_observations[i]`` differs from ``observations[i + 1]`` at a row that is not
+        terminal) raise ``ValueError`` instead of uploading as one long episode.
         """
         if isinstance(data, Mapping):
+            arrays = {key: np.asarray(value) for key, value in data.items()}
+            _check_episode_ends(arrays)
             buffer = io.BytesIO()
-            np.savez(buffer, **{key: np.asarray(value) for key, value in data.items()})
+            np.savez(buffer, **arrays)
             filename, content = f"{name or 'dataset'}.npz", buffer.getvalue()
         else:
             path = Path(data)
@@ -383,6 +389,26 @@ class Client:
                 while chunk := response.read(1 << 20):
                     out.write(chunk)
         return target
+
+
+def _check_episode_ends(arrays: Mapping[str, np.ndarray]) -> None:
+    """Refuses arrays in the D4RL layout whose episode ends nothing marks: without ``timeouts``
+    or ``episode_ids`` the service ends episodes at terminals only, and a dataset of cut-off
+    episodes would become one long episode (one initial state for SafeDICE)."""
+    if "timeouts" in arrays or "episode_ids" in arrays:
+        return
+    obs, next_obs = arrays.get("observations"), arrays.get("next_observations")
+    terminals = arrays.get("terminals")
+    if obs is None or next_obs is None or terminals is None or len(obs) < 2:
+        return
+    jumps = np.any(next_obs[:-1].reshape(len(obs) - 1, -1) != obs[1:].reshape(len(obs) - 1, -1), axis=1)
+    unmarked = np.flatnonzero(jumps & ~terminals[:-1].astype(bool))
+    if len(unmarked):
+        raise ValueError(
+            f"{len(unmarked)} rows (first: {unmarked[0]}) end a trajectory (next_observations[i] "
+            "!= observations[i + 1]) that no terminal marks; add `timeouts` (True where an "
+            "episode was cut off) or `episode_ids`, or the dataset uploads as one long episode"
+        )
 
 
 def _api_error(e: urllib.error.HTTPError) -> ApiError:
