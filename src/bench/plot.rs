@@ -19,8 +19,8 @@ pub fn cost_vs_return(env: &EnvSummary) -> String {
             y: row.normalized_return.mean,
             color: Some(algorithm_color(row.algorithm).into()),
             group: Some(row.algorithm.display_name().into()),
-            x_error: Some(row.average_cost.se),
-            y_error: Some(row.normalized_return.se),
+            x_error: row.average_cost.error(),
+            y_error: row.normalized_return.error(),
         })
         .collect();
     let mut svg = scatter_svg(&ScatterChart {

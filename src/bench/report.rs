@@ -89,9 +89,9 @@ pub fn markdown(results: &BenchResults, summary: &Summary, command: &str) -> Str
     let _ = writeln!(
         md,
         "- Training: service preset, {} policy iterations per run (SafeDICE's discriminator \
-         trained for as many steps first, PPL's reward model for 10%), seeds 0..{}, {} thread(s) in parallel; {}{}",
+         trained for as many steps first, PPL's reward model for 10%), {}, {} thread(s) in parallel; {}{}",
         c.iterations,
-        c.seeds,
+        seeds_text(c.seeds),
         c.threads,
         BASELINE_KNOBS,
         if c.overrides.is_empty() {
@@ -347,4 +347,12 @@ fn write_speeds(md: &mut String, summary: &Summary) {
         }
     }
     let _ = writeln!(md);
+}
+
+/// "seed 0" or "seeds 0-4": the seeds a run used.
+pub(super) fn seeds_text(seeds: u64) -> String {
+    match seeds {
+        1 => "seed 0".to_owned(),
+        n => format!("seeds 0-{}", n.saturating_sub(1)),
+    }
 }

@@ -315,9 +315,9 @@ fn markdown(
     );
     let _ = writeln!(
         md,
-        "- Training: {} base policy iterations (× 1 grids, × 2 pace, × 4 nav), seeds 0..{}, overrides {}; {} evaluation episodes per policy; {} thread(s)",
+        "- Training: {} base policy iterations (× 1 grids, × 2 pace, × 4 nav), {}, overrides {}; {} evaluation episodes per policy; {} thread(s)",
         c.iterations,
-        c.seeds,
+        super::report::seeds_text(c.seeds),
         serde_json::Value::Object(c.overrides.clone()),
         c.eval_episodes,
         c.threads

@@ -22,15 +22,25 @@ impl Stat {
         }
         let mean = values.iter().sum::<f64>() / n as f64;
         if n < 2 {
-            return Stat { mean, se: 0.0 };
+            // One seed has no spread to speak of: no standard error (shown without ±).
+            return Stat { mean, se: f64::NAN };
         }
         let var = values.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / (n - 1) as f64;
         Stat { mean, se: (var / n as f64).sqrt() }
     }
 
-    /// `mean ± se` with `decimals` places.
+    /// `mean ± se` with `decimals` places; the mean alone when there is no standard error (one
+    /// seed).
     pub fn show(self, decimals: usize) -> String {
+        if self.se.is_nan() {
+            return format!("{:.*}", decimals, self.mean);
+        }
         format!("{:.*} ± {:.*}", decimals, self.mean, decimals, self.se)
+    }
+
+    /// The standard error if there is one (two seeds or more).
+    pub fn error(self) -> Option<f64> {
+        self.se.is_finite().then_some(self.se)
     }
 }
 
@@ -218,7 +228,11 @@ fn compare(rows: &[AlgorithmSummary]) -> Option<Comparison> {
         cost_ratio,
         return_difference,
         return_ratio,
-        as_expected: cost_ratio <= 0.9 && return_difference >= -10.0,
+        // Similar return: within 10 points and, where BC's return is positive, at least 0.9x it
+        // (0.4 against 2.9 is within 10 points and far from similar).
+        as_expected: cost_ratio <= 0.9
+            && return_difference >= -10.0
+            && return_ratio.is_none_or(|ratio| ratio >= 0.9),
         meets_goal: cost_ratio <= GOAL_COST_RATIO && safe_return >= GOAL_RETURN_RATIO * bc_return,
     })
 }
@@ -252,7 +266,41 @@ mod tests {
         assert_eq!(s.mean, 2.5);
         // Sample variance 5/3, SE = sqrt(5/3 / 4).
         assert!((s.se - (5.0f64 / 12.0).sqrt()).abs() < 1e-12);
-        assert_eq!(Stat::of(&[7.0]), Stat { mean: 7.0, se: 0.0 });
+        let one = Stat::of(&[7.0]);
+        assert_eq!((one.mean, one.error(), one.show(1)), (7.0, None, "7.0".to_owned()));
+        assert_eq!(s.show(2), "2.50 ± 0.65");
         assert!(Stat::of(&[]).mean.is_nan());
+    }
+
+    /// Within 10 points is not "similar" when the returns are a few points each: 0.4 against
+    /// 2.9 is a seventh of BC's.
+    #[test]
+    fn a_return_far_below_bc_in_ratio_is_not_called_similar() {
+        let stat = |mean| Stat { mean, se: 0.1 };
+        let row = |algorithm, cost: f64, ret: f64| AlgorithmSummary {
+            algorithm,
+            variant: Variant::Standard,
+            label: String::new(),
+            seeds: 2,
+            normalized_return: stat(ret),
+            average_cost: stat(cost),
+            cost_violation_ratio: stat(0.0),
+            cvar_50: stat(0.0),
+            cvar_20: stat(0.0),
+            cvar_10: stat(0.0),
+            cvar_5: stat(0.0),
+            normalized_cost: stat(0.0),
+            alpha_hat: None,
+            discriminator_auc_heldout: None,
+            discriminator_auc_unlabeled: None,
+            non_preferred_weight_share: None,
+            steps_per_second: 0.0,
+            train_seconds: 0.0,
+            eval_seconds: 0.0,
+        };
+        let low = compare(&[row(Algorithm::Safedice, 1.0, 0.4), row(Algorithm::Bc, 2.0, 2.9)]);
+        assert!(!low.unwrap().as_expected);
+        let close = compare(&[row(Algorithm::Safedice, 1.0, 95.0), row(Algorithm::Bc, 2.0, 100.0)]);
+        assert!(close.unwrap().as_expected);
     }
 }
