@@ -15,7 +15,7 @@ pub struct TransitionRow {
     pub episode: usize,
     pub obs: Vec<f32>,
     /// The action: a vector (continuous) or an index (discrete).
-    #[schema(value_type = Object)]
+    #[schema(value_type = Value)]
     pub action: serde_json::Value,
     pub reward: Option<f32>,
     pub cost: Option<f32>,

@@ -79,6 +79,7 @@ pub struct PolicyFilter {
 pub struct ActRequest {
     /// A batch of observations (1 to 16384 rows of `obs_dim` finite numbers each), in the
     /// dataset's original units.
+    #[schema(min_items = 1, max_items = 16384)]
     pub observations: Vec<Vec<f64>>,
     /// true (default): tanh of the Gaussian mean / argmax. false: sample.
     #[serde(default = "yes")]

@@ -386,6 +386,7 @@ pub struct InferParameters {
 #[derive(Debug, Deserialize, ToSchema)]
 pub struct InferRequest {
     pub id: Option<String>,
+    #[schema(min_items = 1)]
     pub inputs: Vec<InferInput>,
     /// The outputs wanted (absent: all of them, which is `actions`).
     pub outputs: Option<Vec<RequestedOutput>>,
