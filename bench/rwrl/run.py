@@ -55,9 +55,260 @@ def cmd_train_demonstrator(args) -> None:
     print(f"exported {target}")
 
 
+def demonstrator(env: str, kind: str, folder: Path = DEMOS):
+    """A committed demonstrator as a batch policy (stochastic, as the paper samples)."""
+    from actor_np import NumpyActor
+
+    actor = NumpyActor(Path(folder) / f"{env}-{kind}.npz")
+    return lambda obs, rng: actor.act(obs, rng)
+
+
+def data_dir(args) -> Path:
+    return Path(args.work) / "data" / args.env
+
+
+def cmd_generate(args) -> None:
+    from rollouts import concat_datasets, rollouts
+    from rwrl_env import PAPER_DEMONSTRATORS
+
+    paper = PAPER_DEMONSTRATORS[args.env]
+    n_u = args.unlabeled if args.unlabeled is not None else paper["unlabeled_episodes"]
+    n_n = args.labeled if args.labeled is not None else paper["labeled_episodes"]
+    n_u_np = int(round(n_u * args.non_preferred_share))
+    n_u_p = n_u - n_u_np
+    out = data_dir(args)
+    out.mkdir(parents=True, exist_ok=True)
+    t0 = time.time()
+    common = dict(lanes=args.lanes, max_steps=args.max_steps)
+    # Distinct seeds per part, so D^N never repeats an episode of D^U.
+    pref = rollouts(args.env, demonstrator(args.env, "preferred", args.demonstrators), n_u_p, args.data_seed * 10 + 1, **common)
+    nonp = rollouts(args.env, demonstrator(args.env, "non_preferred", args.demonstrators), n_u_np, args.data_seed * 10 + 2, **common)
+    lab = rollouts(args.env, demonstrator(args.env, "non_preferred", args.demonstrators), n_n, args.data_seed * 10 + 3, **common)
+    seconds = time.time() - t0
+
+    # D^U: both parts, episodes shuffled; the ground truth (which demonstrator made each
+    # episode) stays in the manifest and is never uploaded.
+    merged = concat_datasets([p["data"] for p in (pref, nonp) if "data" in p and len(p["data"]["rewards"])])
+    source = np.array([0] * n_u_p + [1] * n_u_np)
+    order = np.random.default_rng(args.data_seed).permutation(len(source))
+    ids = merged["episode_ids"]
+    starts = np.searchsorted(ids, np.arange(len(source)))
+    ends = np.append(starts[1:], len(ids))
+    idx = np.concatenate([np.arange(starts[e], ends[e]) for e in order])
+    unlabeled = {k: v[idx] for k, v in merged.items()}
+    new_id = np.empty(len(order), np.int64)
+    new_id[order] = np.arange(len(order))
+    unlabeled["episode_ids"] = new_id[unlabeled["episode_ids"]]
+    # Both tasks' action box is [-1, 1]; say so, rather than let the service infer it from the
+    # data's extremes.
+    box = dict(action_low=np.full(unlabeled["actions"].shape[1], -1.0, np.float32),
+               action_high=np.full(unlabeled["actions"].shape[1], 1.0, np.float32))
+    np.savez(out / "unlabeled.npz", **unlabeled, **box)
+    np.savez(out / "non_preferred.npz", **lab["data"], **box)
+
+    def summary(r):
+        return dict(episodes=int(len(r["returns"])), mean_return=float(r["returns"].mean()) if len(r["returns"]) else None,
+                    mean_cost=float(r["costs"].mean()) if len(r["costs"]) else None)
+
+    manifest = dict(
+        env=args.env, data_seed=args.data_seed, unlabeled_episodes=n_u, labeled_episodes=n_n,
+        unlabeled_non_preferred_episodes=n_u_np, non_preferred_share=args.non_preferred_share,
+        max_steps=args.max_steps, transitions=dict(unlabeled=int(len(unlabeled["rewards"])),
+                                                   non_preferred=int(len(lab["data"]["rewards"]))),
+        unlabeled_preferred=summary(pref), unlabeled_non_preferred=summary(nonp), labeled=summary(lab),
+        # The normalisation of evaluate: the preferred demonstrations' mean return, kappa
+        # the midpoint of both demonstrators' mean costs (as the service's metrics).
+        reference=dict(preferred_return=summary(pref)["mean_return"], preferred_cost=summary(pref)["mean_cost"],
+                       non_preferred_return=summary(nonp)["mean_return"] if n_u_np else summary(lab)["mean_return"],
+                       non_preferred_cost=summary(nonp)["mean_cost"] if n_u_np else summary(lab)["mean_cost"]),
+        unlabeled_episode_is_non_preferred=source[order].tolist(),
+        seconds=round(seconds, 1), cpu=_cpu_name(),
+    )
+    (out / "manifest.json").write_text(json.dumps(manifest, indent=1) + "\n")
+    print(json.dumps({k: v for k, v in manifest.items() if k != "unlabeled_episode_is_non_preferred"}, indent=1))
+
+
+def runs_dir(args) -> Path:
+    return Path(args.work) / "runs" / args.env
+
+
+def _server(args):
+    """The service: --url if given (token from SAFEDICE_API_TOKEN), else a `safedice serve` of
+    our own on a free port with its data in --service-dir (kept, so that `evaluate` finds the
+    policies `train` made)."""
+    import contextlib
+
+    from service import Client, Server, find_binary
+
+    if args.url:
+        return contextlib.nullcontext(Client(args.url, timeout=600))
+    service_dir = Path(args.service_dir or Path(args.work) / "service")
+    server = Server(find_binary(args.safedice), service_dir / "data", service_dir / "serve.log",
+                    extra=["--max-job-memory", str(16 << 30)])
+
+    class Ctx:
+        def __enter__(self):
+            c = server.client()
+            c.timeout = 600
+            return c
+
+        def __exit__(self, *exc):
+            server.stop()
+
+    return Ctx()
+
+
+def cmd_train(args) -> None:
+    out = runs_dir(args)
+    out.mkdir(parents=True, exist_ok=True)
+    record_path = out / "jobs.json"
+    record = json.loads(record_path.read_text()) if record_path.exists() else {"env": args.env, "jobs": []}
+    data = data_dir(args)
+    manifest = json.loads((data / "manifest.json").read_text())
+    with _server(args) as client:
+        ds = record.get("datasets")
+        if ds is None or args.reupload:
+            t0 = time.time()
+            u = client.upload_dataset(str(data / "unlabeled.npz"), name=f"rwrl-{args.env}-unlabeled", role="unlabeled",
+                                      description=f"RWRL {args.env}: {manifest['unlabeled_episodes']} episodes, "
+                                                  f"{manifest['unlabeled_non_preferred_episodes']} non-preferred")
+            n = client.upload_dataset(str(data / "non_preferred.npz"), name=f"rwrl-{args.env}-non-preferred",
+                                      role="non_preferred",
+                                      description=f"RWRL {args.env}: {manifest['labeled_episodes']} labeled non-preferred episodes")
+            ds = record["datasets"] = {"unlabeled": u["id"], "non_preferred": n["id"],
+                                       "unlabeled_transitions": u["transitions"],
+                                       "non_preferred_transitions": n["transitions"],
+                                       "upload_seconds": round(time.time() - t0, 1)}
+            record["jobs"] = []
+            record_path.write_text(json.dumps(record, indent=1) + "\n")
+            print(f"uploaded D^U {u['id']} ({u['transitions']} transitions) and D^N {n['id']}", flush=True)
+        done = {(j["algorithm"], j["seed"]) for j in record["jobs"]}
+        for seed in args.seeds:
+            for algo in args.algorithms:
+                if (algo, seed) in done:
+                    continue
+                config = {"seed": seed}
+                if args.iterations:
+                    config["iterations"] = args.iterations
+                if args.discriminator_iterations and algo == "safedice":
+                    config["discriminator_iterations"] = args.discriminator_iterations
+                job = client.submit_job(ds["unlabeled"], ds["non_preferred"] if algo != "bc" else None,
+                                        algorithm=algo, config=config,
+                                        name=f"rwrl {args.env} {algo} seed {seed}",
+                                        tags=["bench=rwrl", f"env=rwrl-{args.env}", f"algorithm={algo}"])
+                record["jobs"].append({"algorithm": algo, "seed": seed, "job_id": job["id"], "config": config,
+                                       "status": job["status"]})
+                record_path.write_text(json.dumps(record, indent=1) + "\n")
+                print(f"queued {algo} seed {seed}: job {job['id']}", flush=True)
+        for j in record["jobs"]:
+            if j.get("status") == "succeeded":
+                continue
+            try:
+                job = client.wait(j["job_id"], progress=False, poll=5)
+            except Exception as e:  # a failed job is recorded, the others go on
+                job = client.job(j["job_id"])
+                print(f"job {j['job_id']} ({j['algorithm']} seed {j['seed']}): {e}", flush=True)
+            j.update(status=job["status"], policy_id=job.get("policy_id"), error=job.get("error"),
+                     started_at=job.get("started_at"), finished_at=job.get("finished_at"),
+                     alpha_hat=job.get("alpha_hat"))
+            record_path.write_text(json.dumps(record, indent=1) + "\n")
+            print(f"{j['algorithm']} seed {j['seed']}: {job['status']} policy {job.get('policy_id')}", flush=True)
+
+
+def _onnx_policy(path: Path):
+    import onnxruntime as ort
+
+    opts = ort.SessionOptions()
+    opts.intra_op_num_threads = 1
+    opts.inter_op_num_threads = 1
+    sess = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+    name = sess.get_inputs()[0].name
+    return lambda obs, rng: sess.run(None, {name: np.asarray(obs, np.float32)})[0]
+
+
+def cmd_evaluate(args) -> None:
+    from rollouts import metrics, rollouts
+
+    out = runs_dir(args)
+    record = json.loads((out / "jobs.json").read_text())
+    reference = json.loads((data_dir(args) / "manifest.json").read_text())["reference"]
+    evals_path = out / "evaluations.json"
+    evals = json.loads(evals_path.read_text()) if evals_path.exists() else []
+    have = {(e["policy_id"], e["mode"], e["episodes"], e["seed"]) for e in evals}
+
+    def add(entry, returns, costs, seconds):
+        m = metrics(returns, costs, reference)
+        entry.update(env=args.env, episodes=args.episodes, seed=args.seed, mode=args.mode,
+                     metrics={k: m[k] for k in ("normalized_return", "average_return", "average_cost", "cvar10_cost")},
+                     more_metrics={k: v for k, v in m.items()
+                                   if k not in ("normalized_return", "average_return", "average_cost", "cvar10_cost")},
+                     seconds=round(seconds, 1))
+        evals.append(entry)
+        evals_path.write_text(json.dumps(evals, indent=1) + "\n")
+        print(f"{entry.get('algorithm')} seed {entry.get('train_seed')}: normalized return "
+              f"{m['normalized_return']:.1f}, average cost {m['average_cost']:.1f}, CVaR10 {m['cvar10_cost']:.1f}"
+              f" ({seconds:.0f} s)", flush=True)
+
+    common = dict(lanes=args.lanes, record=False, max_steps=args.max_steps)
+    if args.demonstrators_too:
+        for kind in ("preferred", "non_preferred"):
+            pid = f"demonstrator:{args.env}-{kind}"
+            if (pid, "sampled", args.episodes, args.seed) in have:
+                continue
+            t0 = time.time()
+            r = rollouts(args.env, demonstrator(args.env, kind, args.demonstrators), args.episodes, args.seed, **common)
+            mode, args.mode = args.mode, "sampled"
+            add({"policy_id": pid, "algorithm": f"demonstrator ({kind})", "train_seed": None},
+                r["returns"], r["costs"], time.time() - t0)
+            args.mode = mode
+    jobs = [j for j in record["jobs"] if j.get("status") == "succeeded"]
+    with _server(args) as client:
+        for j in jobs:
+            pid = j["policy_id"]
+            if (pid, args.mode, args.episodes, args.seed) in have:
+                continue
+            t0 = time.time()
+            if args.mode == "onnx":
+                path = out / "policies" / f"{pid}.onnx"
+                path.parent.mkdir(exist_ok=True)
+                if not path.exists():
+                    client.download_onnx(pid, path)
+                policy = _onnx_policy(path)
+            else:  # sampled actions through POST /v1/policies/{id}/act
+                policy = (lambda p: lambda obs, rng: client.act(p, obs, deterministic=False,
+                                                                seed=int(rng.integers(1 << 30))))(pid)
+            r = rollouts(args.env, policy, args.episodes, args.seed, **common)
+            add({"policy_id": pid, "job_id": j["job_id"], "algorithm": j["algorithm"], "train_seed": j["seed"]},
+                r["returns"], r["costs"], time.time() - t0)
+
+
+def cmd_report(args) -> None:
+    import report
+
+    res = report.build(Path(args.work), Path(args.demonstrators), args.mode)
+    res["cpu"] = _cpu_name()
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "results.json").write_text(json.dumps(res, indent=1) + "\n")
+    header = args.header.read_text() if args.header else ""
+    (out / "results.md").write_text(header + report.markdown(res, args.mode))
+    print(f"wrote {out / 'results.md'} and {out / 'results.json'}")
+
+
+def _cpu_name() -> str:
+    try:
+        for line in open("/proc/cpuinfo"):
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip() + f" ({os.cpu_count()} CPUs)"
+    except OSError:
+        pass
+    return "unknown"
+
+
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--work", default=str(HERE / "work"))
+    p.add_argument("--demonstrators", default=str(DEMOS), help="folder of the demonstrators' .npz")
     sub = p.add_subparsers(dest="cmd", required=True)
 
     t = sub.add_parser("train-demonstrator")
@@ -71,6 +322,52 @@ def main(argv=None) -> None:
     t.add_argument("--eval-episodes", type=int, default=5)
     t.add_argument("--hidden", type=int, default=256)
     t.set_defaults(fn=cmd_train_demonstrator)
+
+    g = sub.add_parser("generate")
+    g.add_argument("--env", choices=["cartpole", "walker"], required=True)
+    g.add_argument("--unlabeled", type=int, default=None, help="episodes in D^U (default: the paper's)")
+    g.add_argument("--labeled", type=int, default=None, help="episodes in D^N (default: the paper's)")
+    g.add_argument("--non-preferred-share", type=float, default=0.5,
+                   help="share of D^U's episodes from the non-preferred demonstrator")
+    g.add_argument("--data-seed", type=int, default=0)
+    g.add_argument("--lanes", type=int, default=8, help="environments stepped together")
+    g.add_argument("--max-steps", type=int, default=None, help="cut episodes short (smoke test only)")
+    g.set_defaults(fn=cmd_generate)
+
+    def service_flags(q):
+        q.add_argument("--env", choices=["cartpole", "walker"], required=True)
+        q.add_argument("--url", default=None, help="a running service (token: SAFEDICE_API_TOKEN); "
+                       "default: start `safedice serve` on a free port with data in --service-dir")
+        q.add_argument("--service-dir", default=None, help="default: <work>/service")
+        q.add_argument("--safedice", default=None, help="the safedice binary (default: $SAFEDICE_BIN, "
+                       "target/release/safedice, PATH)")
+
+    tr = sub.add_parser("train")
+    service_flags(tr)
+    tr.add_argument("--algorithms", type=lambda v: v.split(","), default=["safedice", "bc"])
+    tr.add_argument("--seeds", type=lambda v: [int(x) for x in v.split(",")], default=[0, 1, 2])
+    tr.add_argument("--iterations", type=int, default=None, help="default: the service's")
+    tr.add_argument("--discriminator-iterations", type=int, default=None, help="default: the service's")
+    tr.add_argument("--reupload", action="store_true")
+    tr.set_defaults(fn=cmd_train)
+
+    ev = sub.add_parser("evaluate")
+    service_flags(ev)
+    ev.add_argument("--episodes", type=int, default=100)
+    ev.add_argument("--seed", type=int, default=100, help="evaluation seed (environments 1000*seed + i)")
+    ev.add_argument("--mode", choices=["onnx", "act"], default="onnx",
+                    help="onnx: the ONNX export's deterministic action in onnxruntime; act: sampled "
+                         "actions from POST /v1/policies/{id}/act")
+    ev.add_argument("--lanes", type=int, default=10)
+    ev.add_argument("--max-steps", type=int, default=None, help="cut episodes short (smoke test only)")
+    ev.add_argument("--demonstrators-too", action="store_true", help="also evaluate the demonstrators")
+    ev.set_defaults(fn=cmd_evaluate)
+
+    rp = sub.add_parser("report")
+    rp.add_argument("--out", default=str(HERE))
+    rp.add_argument("--mode", choices=["onnx", "act"], default="onnx", help="which evaluations to tabulate")
+    rp.add_argument("--header", type=Path, default=None, help="markdown put before the tables")
+    rp.set_defaults(fn=cmd_report)
 
     args = p.parse_args(argv)
     args.fn(args)
