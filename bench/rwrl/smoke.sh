@@ -40,7 +40,8 @@ work="$(mktemp -d)"
 trap 'rm -rf "$work"' EXIT
 export OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 MUJOCO_GL=disable
 
-run() { "$py" "$here/run.py" --work "$work" "$@"; }
+# RWRL_DEMONSTRATORS: another folder of demonstrator .npz files (default: the committed ones).
+run() { "$py" "$here/run.py" --work "$work" ${RWRL_DEMONSTRATORS:+--demonstrators "$RWRL_DEMONSTRATORS"} "$@"; }
 run generate --env cartpole --unlabeled 6 --labeled 2 --max-steps 200 --lanes 3
 run train --env cartpole --seeds 0 --algorithms safedice,bc --iterations 300 --discriminator-iterations 200
 run evaluate --env cartpole --episodes 3 --max-steps 200 --lanes 3 --demonstrators-too
