@@ -83,7 +83,7 @@ def rollouts(env_name: str, policy: Policy, episodes: int, seed: int, lanes: int
         active = still
     out = {k: np.asarray(v) for k, v in out.items()}
     if record:
-        out["data"] = {k: np.concatenate(v) for k, v in cols.items()}
+        out["data"] = {k: np.concatenate(v) if v else np.zeros(0) for k, v in cols.items()}
     return out
 
 

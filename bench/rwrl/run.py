@@ -45,9 +45,10 @@ def cmd_train_demonstrator(args) -> None:
 
     penalty = 0.0 if args.kind == "non_preferred" else (
         args.penalty if args.penalty is not None else DEFAULT_PENALTY[args.env])
-    out = Path(args.work) / "sac" / f"{args.env}-{args.kind}-seed{args.seed}"
+    out = Path(args.work) / "sac" / f"{args.env}-{args.kind}-seed{args.seed}{args.tag}"
     state = sac.train(args.env, args.kind, out, args.steps, args.seed, penalty,
-                      args.checkpoint_every, args.eval_episodes, args.hidden)
+                      args.checkpoint_every, args.eval_episodes, args.hidden,
+                      Path(args.init_from) if args.init_from else None)
     DEMOS.mkdir(exist_ok=True)
     target = DEMOS / f"{args.env}-{args.kind}.npz"
     target.write_bytes((out / "actor.npz").read_bytes())
@@ -81,10 +82,36 @@ def cmd_generate(args) -> None:
     t0 = time.time()
     common = dict(lanes=args.lanes, max_steps=args.max_steps)
     # Distinct seeds per part, so D^N never repeats an episode of D^U.
-    pref = rollouts(args.env, demonstrator(args.env, "preferred", args.demonstrators), n_u_p, args.data_seed * 10 + 1, **common)
-    nonp = rollouts(args.env, demonstrator(args.env, "non_preferred", args.demonstrators), n_u_np, args.data_seed * 10 + 2, **common)
-    lab = rollouts(args.env, demonstrator(args.env, "non_preferred", args.demonstrators), n_n, args.data_seed * 10 + 3, **common)
-    seconds = time.time() - t0
+    # Each part is cached in <out>/parts/ under a key of what made it (demonstrator file,
+    # episodes, seed, cut), so parts can be made in separate processes (--only) and a rerun
+    # reuses them.
+    import hashlib
+
+    def part(name, kind, episodes, seed):
+        actor = Path(args.demonstrators) / f"{args.env}-{kind}.npz"
+        key = hashlib.sha256(actor.read_bytes() + repr((episodes, seed, args.max_steps)).encode()).hexdigest()[:16]
+        path = out / "parts" / f"{name}-{key}.npz"
+        if path.exists():
+            z = np.load(path)
+            return {"returns": z["returns"], "costs": z["costs"], "seconds": float(z["seconds"]),
+                    "data": {k[5:]: z[k] for k in z.files if k.startswith("data_")}}
+        if args.only and args.only != name:
+            return None
+        t = time.time()
+        r = rollouts(args.env, demonstrator(args.env, kind, args.demonstrators), episodes, seed, **common)
+        r["seconds"] = time.time() - t
+        path.parent.mkdir(exist_ok=True)
+        np.savez(path, returns=r["returns"], costs=r["costs"], seconds=r["seconds"],
+                 **{f"data_{k}": v for k, v in r["data"].items()})
+        print(f"{name}: {episodes} episodes in {r['seconds']:.0f} s", flush=True)
+        return r
+
+    pref = part("unlabeled_preferred", "preferred", n_u_p, args.data_seed * 10 + 1)
+    nonp = part("unlabeled_non_preferred", "non_preferred", n_u_np, args.data_seed * 10 + 2)
+    lab = part("labeled", "non_preferred", n_n, args.data_seed * 10 + 3)
+    if args.only:
+        return
+    seconds = pref["seconds"] + nonp["seconds"] + lab["seconds"]  # CPU-bound, one thread each
 
     # D^U: both parts, episodes shuffled; the ground truth (which demonstrator made each
     # episode) stays in the manifest and is never uploaded.
@@ -144,7 +171,7 @@ def _server(args):
         return contextlib.nullcontext(Client(args.url, timeout=600))
     service_dir = Path(args.service_dir or Path(args.work) / "service")
     server = Server(find_binary(args.safedice), service_dir / "data", service_dir / "serve.log",
-                    extra=["--max-job-memory", str(16 << 30)])
+                    extra=["--max-job-memory", str(16 << 30), "--workers", str(args.workers)])
 
     class Ctx:
         def __enter__(self):
@@ -321,6 +348,8 @@ def main(argv=None) -> None:
     t.add_argument("--checkpoint-every", type=int, default=10_000)
     t.add_argument("--eval-episodes", type=int, default=5)
     t.add_argument("--hidden", type=int, default=256)
+    t.add_argument("--init-from", default=None, help="a SAC model.zip to start from (fine-tuning)")
+    t.add_argument("--tag", default="", help="suffix of the run folder under work/sac/")
     t.set_defaults(fn=cmd_train_demonstrator)
 
     g = sub.add_parser("generate")
@@ -332,6 +361,8 @@ def main(argv=None) -> None:
     g.add_argument("--data-seed", type=int, default=0)
     g.add_argument("--lanes", type=int, default=8, help="environments stepped together")
     g.add_argument("--max-steps", type=int, default=None, help="cut episodes short (smoke test only)")
+    g.add_argument("--only", choices=["unlabeled_preferred", "unlabeled_non_preferred", "labeled"], default=None,
+                   help="make only this part (to run parts in parallel processes); a run without it merges")
     g.set_defaults(fn=cmd_generate)
 
     def service_flags(q):
@@ -339,6 +370,8 @@ def main(argv=None) -> None:
         q.add_argument("--url", default=None, help="a running service (token: SAFEDICE_API_TOKEN); "
                        "default: start `safedice serve` on a free port with data in --service-dir")
         q.add_argument("--service-dir", default=None, help="default: <work>/service")
+        q.add_argument("--workers", type=int, default=1, help="jobs our own server trains at once "
+                       "(one CPU thread each)")
         q.add_argument("--safedice", default=None, help="the safedice binary (default: $SAFEDICE_BIN, "
                        "target/release/safedice, PATH)")
 

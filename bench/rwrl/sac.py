@@ -86,7 +86,7 @@ def export_actor(model, path: Path, meta: dict) -> None:
 
 
 def train(name: str, kind: str, out: Path, steps: int, seed: int, penalty: float,
-          checkpoint_every: int, eval_episodes: int, hidden: int) -> dict:
+          checkpoint_every: int, eval_episodes: int, hidden: int, init_from: Path | None = None) -> dict:
     import torch
     from stable_baselines3 import SAC
 
@@ -111,6 +111,12 @@ def train(name: str, kind: str, out: Path, steps: int, seed: int, penalty: float
         model = SAC("MlpPolicy", env, seed=seed, device="cpu", verbose=0,
                     policy_kwargs=dict(net_arch=[hidden, hidden]))
         state["steps"] = 0
+        if init_from is not None:
+            # Fine-tuning: start from another run's networks (e.g. the non-preferred
+            # demonstrator, to then learn the penalised reward), with an empty replay buffer.
+            model.set_parameters(str(init_from), exact_match=False, device="cpu")
+            state["init_from"] = str(init_from)
+            print(f"starting from the networks of {init_from}", flush=True)
     while state["steps"] < steps:
         chunk = min(checkpoint_every, steps - state["steps"])
         t0, c0 = time.time(), time.process_time()
