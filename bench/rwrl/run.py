@@ -88,6 +88,8 @@ def cmd_generate(args) -> None:
     import hashlib
 
     def part(name, kind, episodes, seed):
+        if args.only and args.only != name:
+            return None
         actor = Path(args.demonstrators) / f"{args.env}-{kind}.npz"
         key = hashlib.sha256(actor.read_bytes() + repr((episodes, seed, args.max_steps)).encode()).hexdigest()[:16]
         path = out / "parts" / f"{name}-{key}.npz"
@@ -95,8 +97,6 @@ def cmd_generate(args) -> None:
             z = np.load(path)
             return {"returns": z["returns"], "costs": z["costs"], "seconds": float(z["seconds"]),
                     "data": {k[5:]: z[k] for k in z.files if k.startswith("data_")}}
-        if args.only and args.only != name:
-            return None
         t = time.time()
         r = rollouts(args.env, demonstrator(args.env, kind, args.demonstrators), episodes, seed, **common)
         r["seconds"] = time.time() - t
