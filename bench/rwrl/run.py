@@ -48,7 +48,7 @@ def cmd_train_demonstrator(args) -> None:
     out = Path(args.work) / "sac" / f"{args.env}-{args.kind}-seed{args.seed}{args.tag}"
     state = sac.train(args.env, args.kind, out, args.steps, args.seed, penalty,
                       args.checkpoint_every, args.eval_episodes, args.hidden,
-                      Path(args.init_from) if args.init_from else None)
+                      Path(args.init_from) if args.init_from else None, args.gamma)
     DEMOS.mkdir(exist_ok=True)
     target = DEMOS / f"{args.env}-{args.kind}.npz"
     target.write_bytes((out / "actor.npz").read_bytes())
@@ -348,6 +348,7 @@ def main(argv=None) -> None:
     t.add_argument("--checkpoint-every", type=int, default=10_000)
     t.add_argument("--eval-episodes", type=int, default=5)
     t.add_argument("--hidden", type=int, default=256)
+    t.add_argument("--gamma", type=float, default=0.99, help="SAC's discount")
     t.add_argument("--init-from", default=None, help="a SAC model.zip to start from (fine-tuning)")
     t.add_argument("--tag", default="", help="suffix of the run folder under work/sac/")
     t.set_defaults(fn=cmd_train_demonstrator)

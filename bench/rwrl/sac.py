@@ -86,7 +86,8 @@ def export_actor(model, path: Path, meta: dict) -> None:
 
 
 def train(name: str, kind: str, out: Path, steps: int, seed: int, penalty: float,
-          checkpoint_every: int, eval_episodes: int, hidden: int, init_from: Path | None = None) -> dict:
+          checkpoint_every: int, eval_episodes: int, hidden: int, init_from: Path | None = None,
+          gamma: float = 0.99) -> dict:
     import torch
     from stable_baselines3 import SAC
 
@@ -94,7 +95,7 @@ def train(name: str, kind: str, out: Path, steps: int, seed: int, penalty: float
     out.mkdir(parents=True, exist_ok=True)
     state_path = out / "state.json"
     state = json.loads(state_path.read_text()) if state_path.exists() else {
-        "env": name, "kind": kind, "seed": seed, "penalty": penalty, "hidden": [hidden, hidden],
+        "env": name, "kind": kind, "seed": seed, "penalty": penalty, "hidden": [hidden, hidden], "gamma": gamma,
         "steps": 0, "wall_seconds": 0.0, "cpu_seconds": 0.0, "evaluations": [],
     }
     if state["steps"] and (state["seed"] != seed or state["penalty"] != penalty):
@@ -108,14 +109,20 @@ def train(name: str, kind: str, out: Path, steps: int, seed: int, penalty: float
             model.load_replay_buffer(buffer_path)
         print(f"resuming {out} at step {state['steps']}", flush=True)
     else:
-        model = SAC("MlpPolicy", env, seed=seed, device="cpu", verbose=0,
-                    policy_kwargs=dict(net_arch=[hidden, hidden]))
+        if init_from is not None:
+            # Fine-tuning: another run's whole model (networks, optimisers and the entropy
+            # coefficient, which set_parameters would leave at its initial 1.0), on this run's
+            # reward and discount, with an empty replay buffer filled for 1,000 steps first.
+            model = SAC.load(init_from, env=env, device="cpu")
+            model.gamma = gamma
+            model.set_random_seed(seed)
+            model.learning_starts = model.num_timesteps + 1000
+            state["init_from"] = str(init_from)
+        else:
+            model = SAC("MlpPolicy", env, seed=seed, device="cpu", verbose=0, gamma=gamma,
+                        policy_kwargs=dict(net_arch=[hidden, hidden]))
         state["steps"] = 0
         if init_from is not None:
-            # Fine-tuning: start from another run's networks (e.g. the non-preferred
-            # demonstrator, to then learn the penalised reward), with an empty replay buffer.
-            model.set_parameters(str(init_from), exact_match=False, device="cpu")
-            state["init_from"] = str(init_from)
             print(f"starting from the networks of {init_from}", flush=True)
     while state["steps"] < steps:
         chunk = min(checkpoint_every, steps - state["steps"])
