@@ -56,6 +56,34 @@ def cmd_train_demonstrator(args) -> None:
     print(f"exported {target}")
 
 
+def cmd_pick_demonstrator(args) -> None:
+    """Commit one checkpoint of a SAC run as the demonstrator: the checkpoint with the lowest
+    mean cost among those within --return-floor of the best return, on fresh episodes."""
+    import sac
+
+    run = Path(args.run)
+    state = json.loads((run / "state.json").read_text())
+    rows = []
+    for snap in sorted((run / "snapshots").glob("actor-*.npz"), key=lambda p: int(p.stem.split("-")[1])):
+        if args.min_step and int(snap.stem.split("-")[1]) < args.min_step:
+            continue
+        r, c = sac.evaluate(snap, state["env"], args.episodes, seed=args.seed, deterministic=False)
+        rows.append({"steps": int(snap.stem.split("-")[1]), "return": float(r.mean()), "cost": float(c.mean()),
+                     "path": str(snap)})
+        print(f"{snap.name}: return {r.mean():.1f} cost {c.mean():.1f}", flush=True)
+    best_return = max(r["return"] for r in rows)
+    eligible = [r for r in rows if r["return"] >= args.return_floor * best_return]
+    chosen = min(eligible, key=lambda r: r["cost"])
+    DEMOS.mkdir(exist_ok=True)
+    kind = state["kind"]
+    (DEMOS / f"{state['env']}-{kind}.npz").write_bytes(Path(chosen["path"]).read_bytes())
+    state["chosen"] = {"steps": chosen["steps"], "return": chosen["return"], "cost": chosen["cost"],
+                       "episodes": args.episodes, "seed": args.seed, "return_floor": args.return_floor,
+                       "candidates": [{k: r[k] for k in ("steps", "return", "cost")} for r in rows]}
+    (DEMOS / f"{state['env']}-{kind}.json").write_text(json.dumps(state, indent=1) + "\n")
+    print(f"chose step {chosen['steps']}: return {chosen['return']:.1f} cost {chosen['cost']:.1f}")
+
+
 def demonstrator(env: str, kind: str, folder: Path = DEMOS):
     """A committed demonstrator as a batch policy (stochastic, as the paper samples)."""
     from actor_np import NumpyActor
@@ -352,6 +380,14 @@ def main(argv=None) -> None:
     t.add_argument("--init-from", default=None, help="a SAC model.zip to start from (fine-tuning)")
     t.add_argument("--tag", default="", help="suffix of the run folder under work/sac/")
     t.set_defaults(fn=cmd_train_demonstrator)
+
+    pk = sub.add_parser("pick-demonstrator")
+    pk.add_argument("--run", required=True, help="a SAC run folder under work/sac/")
+    pk.add_argument("--episodes", type=int, default=20)
+    pk.add_argument("--seed", type=int, default=777)
+    pk.add_argument("--return-floor", type=float, default=0.97)
+    pk.add_argument("--min-step", type=int, default=0)
+    pk.set_defaults(fn=cmd_pick_demonstrator)
 
     g = sub.add_parser("generate")
     g.add_argument("--env", choices=["cartpole", "walker"], required=True)

@@ -135,6 +135,8 @@ def train(name: str, kind: str, out: Path, steps: int, seed: int, penalty: float
         model.save_replay_buffer(buffer_path)
         meta = {k: state[k] for k in ("env", "kind", "seed", "penalty", "steps", "hidden")}
         export_actor(model, out / "actor.npz", meta)
+        (out / "snapshots").mkdir(exist_ok=True)  # every checkpoint's actor, to choose from
+        (out / "snapshots" / f"actor-{state['steps']}.npz").write_bytes((out / "actor.npz").read_bytes())
         rets, costs = evaluate(out / "actor.npz", name, eval_episodes, seed=10_000 + state["steps"],
                                deterministic=False)
         state["evaluations"].append({"steps": state["steps"], "return": float(rets.mean()),
