@@ -37,7 +37,7 @@ import numpy as np  # noqa: E402
 
 DEMOS = HERE / "demonstrators"
 # The cost penalty of the preferred demonstrator's reward (reward - penalty * cost).
-DEFAULT_PENALTY = {"cartpole": 1.0, "walker": 1.0}
+DEFAULT_PENALTY = {"cartpole": 0.5, "walker": 1.0}  # cartpole: the committed demonstrator's
 
 
 def cmd_train_demonstrator(args) -> None:
@@ -372,7 +372,7 @@ def main(argv=None) -> None:
     t.add_argument("--steps", type=int, default=100_000)
     t.add_argument("--seed", type=int, default=0)
     t.add_argument("--penalty", type=float, default=None,
-                   help="preferred only: reward - penalty * cost (default: 1.0)")
+                   help="preferred only: reward - penalty * cost (default: cartpole 0.5, walker 1.0)")
     t.add_argument("--checkpoint-every", type=int, default=10_000)
     t.add_argument("--eval-episodes", type=int, default=5)
     t.add_argument("--hidden", type=int, default=256)
