@@ -57,6 +57,21 @@ def _seconds(job):
         return None
 
 
+def _summary(evals, mode):
+    rows = {}
+    for e in evals:
+        if e["mode"] == mode:
+            rows.setdefault(e["algorithm"], []).append(e)
+    summary = {}
+    for algo, es in rows.items():
+        ms = {k: _mse([e["metrics"][k] for e in es]) for k in
+              ("normalized_return", "average_return", "average_cost", "cvar10_cost")}
+        ms["cost_violation_ratio"] = _mse([e["more_metrics"]["cost_violation_ratio"] for e in es])
+        summary[algo] = {"seeds": sorted(e["train_seed"] for e in es), "episodes": es[0]["episodes"],
+                         "metrics": {k: {"mean": m, "se": s} for k, (m, s) in ms.items()}}
+    return summary
+
+
 def build(work: Path, demos: Path, mode: str = "onnx") -> dict:
     out = {"envs": {}}
     for env in TASKS:
@@ -68,31 +83,27 @@ def build(work: Path, demos: Path, mode: str = "onnx") -> dict:
         if not (manifest or jobs or any(states.values())):
             continue
         entry["demonstrator_training"] = {
-            k: ({f: s[f] for f in ("steps", "seed", "penalty", "hidden", "wall_seconds", "cpu_seconds")}
+            k: ({f: s.get(f) for f in ("steps", "seed", "penalty", "gamma", "hidden", "wall_seconds", "cpu_seconds",
+                                       "init_from", "chosen")}
                 | {"last_evaluation": s["evaluations"][-1] if s["evaluations"] else None})
             if s else None for k, s in states.items()}
         if manifest:
             entry["data"] = {k: v for k, v in manifest.items() if k != "unlabeled_episode_is_non_preferred"}
         entry["paper_demonstrators"] = PAPER_DEMONSTRATORS[env]
         entry["demonstrator_evaluations"] = [e for e in evals if e["policy_id"].startswith("demonstrator:")]
-        rows = {}
-        for e in evals:
-            if e["policy_id"].startswith("demonstrator:") or e["mode"] != mode:
+        entry["runs"] = {}
+        for run_dir in sorted((work / "runs").glob(f"{env}*")):
+            if run_dir.name != env and not run_dir.name.startswith(env + "-"):
                 continue
-            rows.setdefault(e["algorithm"], []).append(e)
-        summary = {}
-        for algo, es in rows.items():
-            ms = {k: _mse([e["metrics"][k] for e in es]) for k in
-                  ("normalized_return", "average_return", "average_cost", "cvar10_cost")}
-            ms["cost_violation_ratio"] = _mse([e["more_metrics"]["cost_violation_ratio"] for e in es])
-            summary[algo] = {"seeds": sorted(e["train_seed"] for e in es), "episodes": es[0]["episodes"],
-                             "metrics": {k: {"mean": m, "se": s} for k, (m, s) in ms.items()}}
-        entry["summary"] = summary
-        entry["evaluations"] = [e for e in evals if not e["policy_id"].startswith("demonstrator:")]
-        if jobs:
-            entry["jobs"] = [{k: j.get(k) for k in ("algorithm", "seed", "job_id", "policy_id", "status", "config",
-                                                    "alpha_hat")} | {"seconds": _seconds(j)} for j in jobs["jobs"]]
-            entry["datasets"] = jobs.get("datasets")
+            r_jobs = _load(run_dir / "jobs.json")
+            r_evals = [e for e in (_load(run_dir / "evaluations.json") or [])
+                       if not e["policy_id"].startswith("demonstrator:")]
+            run = {"summary": {m: _summary(r_evals, m) for m in ("onnx", "act")}, "evaluations": r_evals}
+            if r_jobs:
+                run["jobs"] = [{k: j.get(k) for k in ("algorithm", "seed", "job_id", "policy_id", "status", "config",
+                                                      "alpha_hat")} | {"seconds": _seconds(j)} for j in r_jobs["jobs"]]
+                run["datasets"] = r_jobs.get("datasets")
+            entry["runs"][run_dir.name] = run
         out["envs"][env] = entry
     return out
 
@@ -113,6 +124,8 @@ def markdown(res: dict, mode: str) -> str:
             ret = f"{d['metrics']['average_return']:.1f}" if d else "—"
             cost = f"{d['metrics']['average_cost']:.1f}" if d else "—"
             steps = f"{st['steps']:,}" if st else "—"
+            if st and st.get("chosen"):
+                steps = f"fine-tune {st['chosen']['steps']:,} of {st['steps']:,}"
             pen = f"{st['penalty']}" if st else "—"
             wall = f"{st['wall_seconds'] / 60:.0f} min" if st else "—"
             lines.append(f"| {kind.replace('_', '-')} | {steps} | {pen} | {wall} | {ret} | {cost} | "
@@ -134,36 +147,43 @@ def markdown(res: dict, mode: str) -> str:
                       f"{(data['unlabeled_non_preferred']['mean_return'] or float('nan')):.1f}, cost "
                       f"{(data['unlabeled_non_preferred']['mean_cost'] or float('nan')):.1f} (these normalise the "
                       "return and set κ below)."]
-        if e.get("summary"):
-            lines += ["", f"### Policies through the service ({mode})", "",
-                      "| algorithm | seeds | normalized return | average cost | cost-violation ratio | CVaR 10% cost | "
-                      "paper: return / cost / violation / CVaR 10% |", "|---|---|---|---|---|---|---|"]
-            for algo in ("bc", "safedice", "dwbc", "ppl", "dexperts"):
-                s = e["summary"].get(algo)
-                if not s:
+        for run_name, run in e.get("runs", {}).items():
+            lines += ["", f"### Run `{run_name}`"]
+            for mode_ in ("act", "onnx"):
+                summ = run["summary"].get(mode_)
+                if not summ:
                     continue
-                m = s["metrics"]
-                p = PAPER_RESULTS[env].get(algo)
-                ptxt = (f"{p[0]:.1f} / {p[2]:.1f} / {p[4]:.2f} / {p[6]:.1f}" if p else "—")
-                lines.append(f"| {LABELS.get(algo, algo)} | {len(s['seeds'])} | "
-                             f"{_fmt(m['normalized_return']['mean'], m['normalized_return']['se'])} | "
-                             f"{_fmt(m['average_cost']['mean'], m['average_cost']['se'])} | "
-                             f"{_fmt(m['cost_violation_ratio']['mean'], m['cost_violation_ratio']['se'], 2)} | "
-                             f"{_fmt(m['cvar10_cost']['mean'], m['cvar10_cost']['se'])} | {ptxt} |")
-            bc, sd = e["summary"].get("bc"), e["summary"].get("safedice")
-            if bc and sd:
-                rc = sd["metrics"]["average_cost"]["mean"] / max(bc["metrics"]["average_cost"]["mean"], 1e-9)
-                rr = sd["metrics"]["normalized_return"]["mean"] / max(bc["metrics"]["normalized_return"]["mean"], 1e-9)
-                goal = "met" if rc <= 0.6 and rr >= 0.95 else "missed"
-                lines += ["", f"SafeDICE / BC: average cost {rc:.2f}x at {rr:.2f}x the normalized return "
-                              f"(issue goal ≤ 0.6x at ≥ 0.95x: {goal})."]
-        if e.get("jobs"):
-            lines += ["", "### Jobs", "", "| algorithm | seed | config sent | status | alpha-hat | train time |",
-                      "|---|---|---|---|---|---|"]
-            for j in e["jobs"]:
-                secs = f"{j['seconds'] / 60:.1f} min" if j.get("seconds") else "—"
-                ah = f"{j['alpha_hat']:.3f}" if isinstance(j.get("alpha_hat"), (int, float)) else "—"
-                lines.append(f"| {LABELS.get(j['algorithm'], j['algorithm'])} | {j['seed']} | "
-                             f"`{json.dumps(j['config'])}` | {j['status']} | {ah} | {secs} |")
+                how = ("sampled actions through POST /act (as the paper evaluates)" if mode_ == "act"
+                       else "the ONNX export's deterministic action in onnxruntime")
+                eps = next(iter(summ.values()))["episodes"]
+                lines += ["", f"Policies through the service, {eps} episodes each, {how}:", "",
+                          "| algorithm | seeds | normalized return | average cost | cost-violation ratio | CVaR 10% cost | "
+                          "paper: return / cost / violation / CVaR 10% |", "|---|---|---|---|---|---|---|"]
+                for algo in ("bc", "safedice", "dwbc", "ppl", "dexperts"):
+                    s_ = summ.get(algo)
+                    if not s_:
+                        continue
+                    m = s_["metrics"]
+                    p = PAPER_RESULTS[env].get(algo)
+                    ptxt = (f"{p[0]:.1f} / {p[2]:.1f} / {p[4]:.2f} / {p[6]:.1f}" if p else "—")
+                    lines.append(f"| {LABELS.get(algo, algo)} | {len(s_['seeds'])} | "
+                                 f"{_fmt(m['normalized_return']['mean'], m['normalized_return']['se'])} | "
+                                 f"{_fmt(m['average_cost']['mean'], m['average_cost']['se'])} | "
+                                 f"{_fmt(m['cost_violation_ratio']['mean'], m['cost_violation_ratio']['se'], 2)} | "
+                                 f"{_fmt(m['cvar10_cost']['mean'], m['cvar10_cost']['se'])} | {ptxt} |")
+                bc, sd = summ.get("bc"), summ.get("safedice")
+                if bc and sd:
+                    rc = sd["metrics"]["average_cost"]["mean"] / max(bc["metrics"]["average_cost"]["mean"], 1e-9)
+                    rr = sd["metrics"]["normalized_return"]["mean"] / max(bc["metrics"]["normalized_return"]["mean"], 1e-9)
+                    goal = "met" if rc <= 0.6 and rr >= 0.95 else "missed"
+                    lines += ["", f"SafeDICE / BC: average cost {rc:.2f}x at {rr:.2f}x the normalized return "
+                                  f"(issue goal ≤ 0.6x at ≥ 0.95x: {goal})."]
+            if run.get("jobs"):
+                lines += ["", "| job | seed | config sent | status | alpha-hat | train time |", "|---|---|---|---|---|---|"]
+                for j in run["jobs"]:
+                    secs = f"{j['seconds'] / 60:.1f} min" if j.get("seconds") else "—"
+                    ah = f"{j['alpha_hat']:.3f}" if isinstance(j.get("alpha_hat"), (int, float)) else "—"
+                    lines.append(f"| {LABELS.get(j['algorithm'], j['algorithm'])} | {j['seed']} | "
+                                 f"`{json.dumps(j['config'])}` | {j['status']} | {ah} | {secs} |")
         lines.append("")
     return "\n".join(lines)

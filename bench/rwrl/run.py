@@ -184,7 +184,7 @@ def cmd_generate(args) -> None:
 
 
 def runs_dir(args) -> Path:
-    return Path(args.work) / "runs" / args.env
+    return Path(args.work) / "runs" / (getattr(args, "run_name", None) or args.env)
 
 
 def _server(args):
@@ -237,6 +237,8 @@ def cmd_train(args) -> None:
             record["jobs"] = []
             record_path.write_text(json.dumps(record, indent=1) + "\n")
             print(f"uploaded D^U {u['id']} ({u['transitions']} transitions) and D^N {n['id']}", flush=True)
+        # Cancelled or failed jobs are queued again.
+        record["jobs"] = [j for j in record["jobs"] if j.get("status") not in ("cancelled", "failed")]
         done = {(j["algorithm"], j["seed"]) for j in record["jobs"]}
         for seed in args.seeds:
             for algo in args.algorithms:
@@ -316,8 +318,14 @@ def cmd_evaluate(args) -> None:
             add({"policy_id": pid, "algorithm": f"demonstrator ({kind})", "train_seed": None},
                 r["returns"], r["costs"], time.time() - t0)
             args.mode = mode
-    jobs = [j for j in record["jobs"] if j.get("status") == "succeeded"]
     with _server(args) as client:
+        jobs = []
+        for j in record["jobs"]:
+            if j.get("status") != "succeeded":  # `train` may still be waiting on an earlier job
+                job = client.job(j["job_id"])
+                j = dict(j, status=job["status"], policy_id=job.get("policy_id"))
+            if j["status"] == "succeeded":
+                jobs.append(j)
         for j in jobs:
             pid = j["policy_id"]
             if (pid, args.mode, args.episodes, args.seed) in have:
@@ -340,6 +348,18 @@ def cmd_evaluate(args) -> None:
 def cmd_report(args) -> None:
     import report
 
+    if args.url:  # bring the recorded job statuses up to date first
+        from service import Client
+
+        client = Client(args.url)
+        for record_path in (Path(args.work) / "runs").glob("*/jobs.json"):
+            record = json.loads(record_path.read_text())
+            for j in record["jobs"]:
+                job = client.job(j["job_id"])
+                j.update(status=job["status"], policy_id=job.get("policy_id"), error=job.get("error"),
+                         started_at=job.get("started_at"), finished_at=job.get("finished_at"),
+                         alpha_hat=job.get("alpha_hat"), progress=job.get("progress"))
+            record_path.write_text(json.dumps(record, indent=1) + "\n")
     res = report.build(Path(args.work), Path(args.demonstrators), args.mode)
     res["cpu"] = _cpu_name()
     out = Path(args.out)
@@ -407,6 +427,8 @@ def main(argv=None) -> None:
         q.add_argument("--url", default=None, help="a running service (token: SAFEDICE_API_TOKEN); "
                        "default: start `safedice serve` on a free port with data in --service-dir")
         q.add_argument("--service-dir", default=None, help="default: <work>/service")
+        q.add_argument("--run-name", default=None, help="record under <work>/runs/<run-name>/ "
+                       "(default: the env), e.g. to keep a shorter-training run apart")
         q.add_argument("--workers", type=int, default=1, help="jobs our own server trains at once "
                        "(one CPU thread each)")
         q.add_argument("--safedice", default=None, help="the safedice binary (default: $SAFEDICE_BIN, "
@@ -437,6 +459,7 @@ def main(argv=None) -> None:
     rp.add_argument("--out", default=str(HERE))
     rp.add_argument("--mode", choices=["onnx", "act"], default="onnx", help="which evaluations to tabulate")
     rp.add_argument("--header", type=Path, default=None, help="markdown put before the tables")
+    rp.add_argument("--url", default=None, help="refresh the jobs' statuses from this service first")
     rp.set_defaults(fn=cmd_report)
 
     args = p.parse_args(argv)
