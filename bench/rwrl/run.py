@@ -199,7 +199,7 @@ def _server(args):
         return contextlib.nullcontext(Client(args.url, timeout=600))
     service_dir = Path(args.service_dir or Path(args.work) / "service")
     server = Server(find_binary(args.safedice), service_dir / "data", service_dir / "serve.log",
-                    extra=["--max-job-memory", str(16 << 30), "--workers", str(args.workers)])
+                    extra=["--workers", str(args.workers)])
 
     class Ctx:
         def __enter__(self):
