@@ -1,0 +1,66 @@
+#!/usr/bin/env bash
+# Smoke test of the RWRL harness, end to end at toy sizes: the committed cartpole demonstrators
+# generate a tiny D^U and D^N (200-step episodes) in MuJoCo, a fresh `safedice serve` (temp
+# dir, free port) takes them through the Python client, trains SafeDICE and BC for a few
+# hundred iterations, and each policy's ONNX export runs in the simulator with onnxruntime;
+# the metrics must come back finite. Needs requirements.txt only (no torch).
+#
+#   bash bench/rwrl/smoke.sh            # from the repository root
+#
+# The safedice binary: $SAFEDICE_BIN, else target/release/safedice, else `safedice` on PATH.
+# Python: $RWRL_PYTHON, else bench/rwrl/.venv (created with requirements.txt if missing).
+set -euo pipefail
+
+here="$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)"
+root="$(cd "$here/../.." && pwd)"
+started=$(date +%s)
+
+py="${RWRL_PYTHON:-}"
+if [[ -z "$py" ]]; then
+  if [[ ! -x "$here/.venv/bin/python" ]]; then
+    echo "smoke: creating $here/.venv from requirements.txt"
+    python3 -m venv "$here/.venv"
+    "$here/.venv/bin/pip" install --quiet -r "$here/requirements.txt"
+  fi
+  py="$here/.venv/bin/python"
+fi
+
+if [[ -z "${SAFEDICE_BIN:-}" ]]; then
+  if [[ -x "$root/target/release/safedice" ]]; then
+    export SAFEDICE_BIN="$root/target/release/safedice"
+  elif command -v safedice >/dev/null; then
+    export SAFEDICE_BIN="$(command -v safedice)"
+  else
+    echo "smoke: no safedice binary (cargo build --release, or set SAFEDICE_BIN)" >&2
+    exit 1
+  fi
+fi
+
+work="$(mktemp -d)"
+trap 'rm -rf "$work"' EXIT
+export OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 MUJOCO_GL=disable
+
+# RWRL_DEMONSTRATORS: another folder of demonstrator .npz files (default: the committed ones).
+run() { "$py" "$here/run.py" --work "$work" ${RWRL_DEMONSTRATORS:+--demonstrators "$RWRL_DEMONSTRATORS"} "$@"; }
+run generate --env cartpole --unlabeled 6 --labeled 2 --max-steps 200 --lanes 3
+run train --env cartpole --seeds 0 --algorithms safedice,bc --iterations 300 --discriminator-iterations 200
+run evaluate --env cartpole --episodes 3 --max-steps 200 --lanes 3 --demonstrators-too
+run report --out "$work/report"
+
+"$py" - "$work" <<'EOF'
+import json, math, sys
+from pathlib import Path
+work = Path(sys.argv[1])
+evals = json.loads((work / "runs/cartpole/evaluations.json").read_text())
+algos = {e["algorithm"] for e in evals}
+assert {"safedice", "bc", "demonstrator (preferred)", "demonstrator (non_preferred)"} <= algos, algos
+for e in evals:
+    assert set(e["metrics"]) == {"normalized_return", "average_return", "average_cost", "cvar10_cost"}, e
+    assert all(math.isfinite(v) for v in e["metrics"].values()), e
+    assert e["episodes"] == 3 and e["env"] == "cartpole", e
+jobs = json.loads((work / "runs/cartpole/jobs.json").read_text())["jobs"]
+assert all(j["status"] == "succeeded" for j in jobs), jobs
+assert "SafeDICE" in (work / "report/results.md").read_text()
+print(f"smoke: {len(evals)} evaluations, {len(jobs)} jobs succeeded")
+EOF
+echo "smoke: passed in $(( $(date +%s) - started )) s"
