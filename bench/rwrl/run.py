@@ -341,7 +341,12 @@ def cmd_evaluate(args) -> None:
                 policy = (lambda p: lambda obs, rng: client.act(p, obs, deterministic=False,
                                                                 seed=int(rng.integers(1 << 30))))(pid)
             r = rollouts(args.env, policy, args.episodes, args.seed, **common)
-            add({"policy_id": pid, "job_id": j["job_id"], "algorithm": j["algorithm"], "train_seed": j["seed"]},
+            # Recorded in the service too, beside its own evaluations (the policy page shows it).
+            recorded = client.record_evaluation(
+                pid, f"dm_control/{args.env} ({args.mode})", r["returns"].tolist(), r["costs"].tolist(),
+                reference, seed=args.seed, deterministic=args.mode == "onnx")
+            add({"policy_id": pid, "job_id": j["job_id"], "algorithm": j["algorithm"], "train_seed": j["seed"],
+                 "service_evaluation_id": recorded["id"]},
                 r["returns"], r["costs"], time.time() - t0)
 
 
