@@ -206,11 +206,17 @@ async fn a_job_that_kills_every_worker_fails_after_its_max_attempts() {
     let id = created["id"].as_str().unwrap();
     assert_eq!((created["attempt"].as_u64(), created["max_attempts"].as_u64()), (Some(0), Some(2)));
     let mut victims = Vec::new();
+    let mut killed_at = 0;
     for attempt in 1..=2u64 {
+        // Past the step the last attempt was killed at: this attempt's worker has claimed the
+        // job, logged it and trained (the row keeps the last attempt's step until then).
         let running = wait_for_job(&fleet, id, "running", |job| {
-            job["status"] == "running" && job["attempt"] == attempt && job["progress"]["step"] != 0
+            job["status"] == "running"
+                && job["attempt"] == attempt
+                && job["progress"]["step"].as_u64().unwrap() > killed_at
         })
         .await;
+
         let victim = running["worker"].as_str().unwrap().to_owned();
         fleet.kill_worker(&victim);
         // No worker is left: the job says it waits for one, on the database's clock.
@@ -218,6 +224,8 @@ async fn a_job_that_kills_every_worker_fails_after_its_max_attempts() {
             wait_for_job(&fleet, id, "lease expired", |job| job["lease_expired_at"].is_string())
                 .await;
         assert_eq!(waiting["status"], "running");
+        // Frozen where the killed worker last wrote it.
+        killed_at = waiting["progress"]["step"].as_u64().unwrap();
         fleet.start_worker();
         victims.push(victim);
         if attempt == 1 {
