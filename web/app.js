@@ -357,7 +357,14 @@ function jobForm(datasets, envs, finished, onCreated) {
     }
     showEstimate();
   };
+  // BC reads no Dᴺ: the select is disabled and nothing is sent (a job that named a dataset it
+  // does not use would keep that dataset from being deleted).
+  const showNonPreferred = () => {
+    nonPreferred.disabled = !ALGORITHMS[algorithm.value]?.needs_non_preferred;
+  };
   algorithm.addEventListener('change', showKnobs);
+  algorithm.addEventListener('change', showNonPreferred);
+  showNonPreferred();
   preset.addEventListener('change', showKnobs);
   knobInputs.forEach(({ input }) => input.addEventListener('input', showEstimate));
   showKnobs();
@@ -392,7 +399,7 @@ function jobForm(datasets, envs, finished, onCreated) {
     if (name.value.trim()) body.name = name.value.trim();
     if (parseTags(tags.value).length) body.tags = parseTags(tags.value);
     if (notes.value.trim()) body.notes = notes.value.trim();
-    if (nonPreferred.value) body.non_preferred_dataset = nonPreferred.value;
+    if (nonPreferred.value && !nonPreferred.disabled) body.non_preferred_dataset = nonPreferred.value;
     if (logEvery.value.trim()) body.runner = { log_every: Number(logEvery.value.trim()) };
     if (evalEnv.value) {
       const { iterations } = stepPlan(algorithm.value, config);

@@ -247,8 +247,12 @@ test('the job form defaults the datasets by role, estimates the run and creates 
   assert.equal(await page.inputValue('#job-non-preferred'), state.nonPreferred.id);
   const unlabeledChoices = await page.$$eval('#job-unlabeled option', (os) => os.map((o) => o.value));
   assert.ok(!unlabeledChoices.includes(state.nonPreferred.id));
+  // BC reads no Dᴺ: its select is disabled while BC is chosen (nothing of it is sent).
+  await page.selectOption('#job-algorithm', 'bc');
+  assert.equal(await page.isDisabled('#job-non-preferred'), true);
   // Empty iterations: the preset's run, said in steps before anything is queued.
   await page.selectOption('#job-algorithm', 'safedice');
+  assert.equal(await page.isDisabled('#job-non-preferred'), false);
   // The service preset trains SafeDICE's discriminator for as many steps as the iterations.
   assert.match(await page.textContent('#job-estimate'), /^200,000 steps = 100,000 discriminator pretraining \+ 100,000 policy iterations: no finished job/);
   assert.equal(await page.getAttribute('#job-discriminator_iterations', 'placeholder'), 'iterations');
