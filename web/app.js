@@ -940,7 +940,7 @@ function policiesPage(view) {
       h('thead', {}, h('tr', {}, h('th', {}, 'Policy'), h('th', {}, 'Algorithm'), h('th', {}, 'Job'),
         h('th', { class: 'num' }, 'Obs dim'), h('th', {}, 'Actions'), h('th', { class: 'num' }, 'α̂'), h('th', {}, 'Created'))),
       h('tbody', {}, items.map((p) => h('tr', { 'data-id': p.id },
-        h('td', { class: 'mono' }, h('a', { href: `#/policies/${p.id}` }, shortId(p.id))),
+        h('td', {}, h('a', { href: `#/policies/${p.id}`, class: p.job_name ? 'policy-name' : 'mono' }, p.job_name || shortId(p.id))),
         h('td', {}, algoBadge(p.algorithm)),
         h('td', { class: 'mono' }, h('a', { href: `#/jobs/${p.job_id}` }, shortId(p.job_id))),
         h('td', { class: 'num' }, fmt(p.obs_dim)),

@@ -23,7 +23,10 @@ pub fn write_npz(d: &Dataset, path: &Path) -> io::Result<()> {
     let n = d.len() as u64;
     let obs_shape = [n, d.obs_dim() as u64];
     let total_bytes = (d.observations().len() + d.next_observations().len()) as u64 * 4;
+    // A fixed entry time (the zip epoch, 1980-01-01): two downloads of one dataset are the same
+    // bytes, whatever second they were written in.
     let options = FileOptions::default()
+        .last_modified_time(npyz::zip::DateTime::default())
         .compression_method(CompressionMethod::Stored)
         .large_file(total_bytes > u32::MAX as u64 / 2);
     let mut npz = NpzWriter::create(path)?;

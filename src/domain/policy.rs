@@ -22,4 +22,6 @@ pub struct PolicyRecord {
     /// SafeDICE's alpha-hat.
     pub alpha_hat: Option<f64>,
     pub created_at: DateTime<Utc>,
+    /// The name people gave its job (read with the policy: a rename shows at once).
+    pub job_name: Option<String>,
 }

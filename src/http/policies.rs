@@ -29,6 +29,8 @@ pub struct PolicyResource {
     pub algorithm: Algorithm,
     /// The job that trained it.
     pub job_id: String,
+    /// That job's name (absent: none).
+    pub job_name: Option<String>,
     pub obs_dim: usize,
     /// The dataset's action space; actions are returned in its units.
     #[schema(value_type = Object)]
@@ -54,6 +56,7 @@ impl From<PolicyRecord> for PolicyResource {
             weights_url: format!("/v1/policies/{}/weights", policy.id),
             algorithm: policy.algorithm,
             job_id: policy.job_id.into_string(),
+            job_name: policy.job_name,
             obs_dim: policy.obs_dim,
             action_space: serde_json::to_value(&policy.action_space).unwrap_or_default(),
             final_metrics: serde_json::Value::Object(policy.final_metrics),

@@ -19,6 +19,7 @@ struct PolicyRow {
     final_metrics: String,
     alpha_hat: Option<f64>,
     created_at: String,
+    job_name: Option<String>,
 }
 
 impl TryFrom<PolicyRow> for PolicyRecord {
@@ -46,6 +47,7 @@ impl TryFrom<PolicyRow> for PolicyRecord {
             final_metrics,
             alpha_hat: row.alpha_hat,
             created_at,
+            job_name: row.job_name,
         })
     }
 }
@@ -65,7 +67,8 @@ pub struct NewPolicy<'a> {
 }
 
 const POLICY_COLUMNS: &str =
-    "id, job_id, algorithm, obs_dim, action_space, spec, final_metrics, alpha_hat, created_at";
+    "id, job_id, algorithm, obs_dim, action_space, spec, final_metrics, alpha_hat, created_at, \
+     (SELECT name FROM jobs WHERE jobs.id = policies.job_id) AS job_name";
 
 /// Inserts a policy inside the caller's transaction (the job's completion).
 pub(super) async fn insert_policy(

@@ -523,6 +523,10 @@ test('the policy page turns pasted observations into the same actions as the API
   const job = (await api(`/v1/jobs/${state.job.id}`)).body;
   assert.ok(job.policy_id);
   state.policy = job.policy_id;
+  // The policies list names each policy by its job's name.
+  await page.goto(`${base}/#/policies`);
+  const listed = page.locator(`#policies-table tr[data-id="${job.policy_id}"] .policy-name`);
+  assert.equal(await listed.textContent(), job.name);
   await page.goto(`${base}/#/policies/${job.policy_id}`);
   await page.waitForSelector('#act-form');
   const obsDim = state.unlabeled.obs_dim;
