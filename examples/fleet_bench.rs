@@ -265,6 +265,7 @@ async fn claim_latencies(
             eval: None,
             labels: Default::default(),
             max_attempts: 3,
+            register: None,
         };
         store.insert_job(&job).await?;
     }

@@ -11,8 +11,9 @@ use tokio_util::sync::CancellationToken;
 use crate::config::ServeConfig;
 use crate::domain::RetryBackoff;
 use crate::http::connections::{self, ConnectionLimits};
-use crate::http::{self, AppState};
+use crate::http::{self, AppState, Serving};
 use crate::jobs::{JobRunner, WorkerOptions};
+use crate::serving::registry::ModelRegistry;
 use crate::serving::PolicyCache;
 use crate::store::Store;
 
@@ -59,7 +60,14 @@ impl Server {
         let jobs = JobRunner::new(store.clone(), options, shutdown.clone());
         jobs.start(true).await?;
         let policies = Arc::new(PolicyCache::new(store.clone(), config.policy_cache_bytes));
-        let state = AppState::new(config, store.clone(), jobs.clone(), policies, shutdown.clone());
+        let models = Arc::new(ModelRegistry::new(store.clone(), policies.clone()));
+        // The named models are loaded before the server answers, as a model repository does.
+        if let Err(e) = models.refresh_all().await {
+            tracing::error!(error = %e, "cannot load the named models; they load on first use");
+        }
+        models.clone().watch(shutdown.clone());
+        let services = Serving { policies, models };
+        let state = AppState::new(config, store.clone(), jobs.clone(), services, shutdown.clone());
         let limits =
             ConnectionLimits::new(config_max_connections, Duration::from_secs(header_timeout_secs));
         tracing::info!(max_connections = limits.max_connections, "connection limits");

@@ -99,6 +99,8 @@ pub struct JobRecord {
     /// A running job whose worker stopped renewing its lease at this time and that no worker
     /// has taken over yet (waiting for a worker).
     pub lease_expired_at: Option<DateTime<Utc>>,
+    /// The model its policy becomes a version of when it succeeds.
+    pub register: Option<super::model::Registration>,
     pub created_at: DateTime<Utc>,
     pub updated_at: DateTime<Utc>,
     pub started_at: Option<DateTime<Utc>>,

@@ -8,6 +8,7 @@ pub mod evaluation;
 pub mod ids;
 pub mod job;
 pub mod labels;
+pub mod model;
 pub mod options;
 pub mod policy;
 pub mod progress;

@@ -68,8 +68,11 @@ impl Tokens {
 pub fn requirement(method: &Method, path: &str) -> Requirement {
     let segments: Vec<&str> = path.trim_start_matches('/').split('/').collect();
     match segments.as_slice() {
+        // Loading and unloading models changes what this server serves: not an agent's call.
+        ["v2", "repository", ..] => Requirement::Api,
         ["v2", ..] => Requirement::Action,
-        ["v1", "policies", _, "act"] if method == Method::POST => Requirement::Action,
+        ["v1", "policies" | "models", _, "act"] if method == Method::POST => Requirement::Action,
+        ["v1", "models", _, "versions", _, "act"] if method == Method::POST => Requirement::Action,
         ["v1", ..] => Requirement::Api,
         _ => Requirement::Open,
     }
@@ -103,7 +106,8 @@ pub async fn require_token(
         (None, _) => Err(ApiError::Unauthorized("the bearer token is not valid for this server")),
         (Some(Caller::Inference), Requirement::Api) => Err(ApiError::Forbidden(
             "the inference token may only call the action endpoints \
-             (POST /v1/policies/{id}/act, /v2/...); use the API token",
+             (POST /v1/policies/{id}/act, POST /v1/models/{name}/act, /v2/... but \
+             /v2/repository); use the API token",
         )),
         (Some(_), _) => Ok(next.run(request).await),
     }
@@ -125,6 +129,10 @@ mod tests {
         assert_eq!(requirement(&Method::GET, "/v1/policies/p1/weights"), Requirement::Api);
         assert_eq!(requirement(&Method::POST, "/v2/models/p1/infer"), Requirement::Action);
         assert_eq!(requirement(&Method::GET, "/v1x/datasets"), Requirement::Open);
+        assert_eq!(requirement(&Method::POST, "/v1/models/m@prod/act"), Requirement::Action);
+        assert_eq!(requirement(&Method::POST, "/v1/models/m/versions/2/act"), Requirement::Action);
+        assert_eq!(requirement(&Method::PUT, "/v1/models/m/aliases/prod"), Requirement::Api);
+        assert_eq!(requirement(&Method::POST, "/v2/repository/index"), Requirement::Api);
     }
 
     #[test]

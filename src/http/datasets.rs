@@ -490,7 +490,7 @@ async fn delete_dataset(
     match state.store.delete_dataset(&id).await? {
         DeleteOutcome::Deleted => Ok(StatusCode::NO_CONTENT),
         DeleteOutcome::NotFound => Err(ApiError::not_found("dataset", &id)),
-        DeleteOutcome::InUse(jobs) => Err(ApiError::conflict(
+        DeleteOutcome::InUse(jobs) | DeleteOutcome::Registered(jobs) => Err(ApiError::conflict(
             "dataset_in_use",
             format!(
                 "dataset {id} is used by queued or running job(s) {}; cancel them or wait for \

@@ -219,6 +219,9 @@ impl From<crate::store::StoreError> for ApiError {
     fn from(e: crate::store::StoreError) -> Self {
         match e {
             crate::store::StoreError::NotFound { kind, id } => ApiError::not_found(kind, &id),
+            crate::store::StoreError::Conflict { code, message } => {
+                ApiError::conflict(code, message)
+            }
             e if e.is_unreachable() => {
                 tracing::warn!(error = %e, "database unreachable; answering 503");
                 ApiError::unavailable(
@@ -249,6 +252,17 @@ impl From<crate::jobs::SubmitError> for ApiError {
                 ApiError::unprocessable("invalid_labels", message)
             }
             SubmitError::Store(e) => e.into(),
+        }
+    }
+}
+
+impl From<crate::serving::registry::ResolveError> for ApiError {
+    fn from(e: crate::serving::registry::ResolveError) -> Self {
+        use crate::serving::registry::ResolveError;
+        match e {
+            ResolveError::NotFound(message) => ApiError::NotFound(message),
+            unloaded @ ResolveError::Unloaded(_) => ApiError::NotFound(unloaded.to_string()),
+            ResolveError::Load(e) => e.into(),
         }
     }
 }

@@ -202,7 +202,7 @@ async fn delete_evaluation(
     match state.store.delete_evaluation(&id).await? {
         DeleteOutcome::Deleted => Ok(StatusCode::NO_CONTENT),
         DeleteOutcome::NotFound => Err(ApiError::not_found("evaluation", &id)),
-        DeleteOutcome::InUse(_) => Err(ApiError::conflict(
+        DeleteOutcome::InUse(_) | DeleteOutcome::Registered(_) => Err(ApiError::conflict(
             "evaluation_active",
             format!("evaluation {id} is queued or running; delete it once it has finished"),
         )),

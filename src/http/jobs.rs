@@ -21,6 +21,7 @@ use super::extract::{Json, Path, Query};
 use super::pagination::{Page, PageParams};
 use super::{ApiError, AppState};
 use crate::algo::Algorithm;
+use crate::domain::model::Registration;
 use crate::domain::{
     rfc3339, EvalOptions, JobLabels, JobProgress, JobRecord, JobStatus, RunnerOptions,
 };
@@ -82,6 +83,9 @@ pub struct CreateJob {
     /// of memory, its machine lost); absent: the server's `--max-attempts` (3 by default).
     /// Errors that retrying cannot fix fail the job at once.
     pub max_attempts: Option<u32>,
+    /// When the job succeeds, its policy becomes the next version of this existing model (and
+    /// `alias`, if given, moves to that version) in the same transaction.
+    pub register: Option<Registration>,
 }
 
 /// `PATCH /v1/jobs/{id}` body (JSON merge patch): a key present replaces the field (`null`
@@ -149,6 +153,8 @@ pub struct Job {
     /// A `running` job whose worker stopped renewing its lease at this time: the job waits for
     /// another worker to take it over (its progress is frozen meanwhile).
     pub lease_expired_at: Option<String>,
+    /// The model its policy becomes a version of when it succeeds.
+    pub register: Option<Registration>,
     pub created_at: String,
     pub updated_at: String,
     pub started_at: Option<String>,
@@ -180,6 +186,7 @@ impl From<JobRecord> for Job {
             max_attempts: job.max_attempts,
             retry_at: job.retry_at.as_ref().map(rfc3339),
             lease_expired_at: job.lease_expired_at.as_ref().map(rfc3339),
+            register: job.register,
             created_at: rfc3339(&job.created_at),
             updated_at: rfc3339(&job.updated_at),
             started_at: job.started_at.as_ref().map(rfc3339),
@@ -293,6 +300,7 @@ async fn create_job(
         eval: request.eval,
         labels: JobLabels { name: request.name, tags: request.tags, notes: request.notes },
         max_attempts: request.max_attempts,
+        register: request.register,
     };
     let limits = SubmitLimits {
         max_job_memory: state.config.max_job_memory,
@@ -367,7 +375,8 @@ async fn update_job(
         (status = 204, description = "Deleted"),
         (status = 404, body = ErrorBody),
         (status = 409, description = "The job is queued or running (`job_active`), or an \
-            evaluation of its policy is (`policy_in_use`)", body = ErrorBody),
+            evaluation of its policy is, or a model version points at its policy \
+            (`policy_in_use`)", body = ErrorBody),
     ))]
 async fn delete_job(
     State(state): State<AppState>,
@@ -386,6 +395,14 @@ async fn delete_job(
         DeleteJobOutcome::Active(status) => Err(ApiError::conflict(
             "job_active",
             format!("job {id} is {status}; cancel it (POST /v1/jobs/{id}/cancel), then delete it"),
+        )),
+        DeleteJobOutcome::PolicyRegistered(versions) => Err(ApiError::conflict(
+            "policy_in_use",
+            format!(
+                "the policy of job {id} is registered as {}; delete those versions first \
+                 (DELETE /v1/models/{{name}}/versions/{{n}}), then the job",
+                versions.join(", ")
+            ),
         )),
         DeleteJobOutcome::PolicyInUse(evaluations) => Err(ApiError::conflict(
             "policy_in_use",

@@ -18,6 +18,8 @@ pub mod health;
 pub mod inference;
 pub mod job_attempts;
 pub mod jobs;
+pub mod model_serving;
+pub mod models;
 pub mod openapi;
 pub mod pagination;
 pub mod policies;
@@ -43,6 +45,7 @@ use utoipa_axum::router::OpenApiRouter;
 
 use crate::config::ServeConfig;
 use crate::jobs::JobRunner;
+use crate::serving::registry::ModelRegistry;
 use crate::serving::PolicyCache;
 use crate::store::Store;
 pub use error::ApiError;
@@ -83,6 +86,8 @@ pub struct Services {
     pub jobs: JobRunner,
     /// Trained policies loaded for inference.
     pub policies: Arc<PolicyCache>,
+    /// Named models: which policy answers `name`, `name@alias` or a version.
+    pub models: Arc<ModelRegistry>,
     /// One permit per upload being received (`--max-concurrent-uploads`).
     pub uploads: Arc<tokio::sync::Semaphore>,
     /// One permit per open event stream (`--max-streams`).
@@ -94,7 +99,7 @@ impl AppState {
         config: ServeConfig,
         store: Store,
         jobs: JobRunner,
-        policies: Arc<PolicyCache>,
+        serving: Serving,
         shutdown: CancellationToken,
     ) -> Self {
         let tokens =
@@ -105,7 +110,8 @@ impl AppState {
             metrics: Arc::new(prometheus::Metrics::new()),
             tokens: Arc::new(tokens),
             jobs,
-            policies,
+            policies: serving.policies,
+            models: serving.models,
             uploads: Arc::new(uploads),
             streams: Arc::new(streams),
             shutdown,
@@ -113,6 +119,12 @@ impl AppState {
             store,
         }))
     }
+}
+
+/// What serves trained policies: the policy cache and the named models' routing tables.
+pub struct Serving {
+    pub policies: Arc<PolicyCache>,
+    pub models: Arc<ModelRegistry>,
 }
 
 /// A 5xx answer in the log: 503 is load shed on purpose (uploads slots taken, a busy or
@@ -141,6 +153,8 @@ fn routes() -> OpenApiRouter<AppState> {
         .merge(job_attempts::router())
         .merge(policies::router())
         .merge(evaluations::router())
+        .merge(models::router())
+        .merge(model_serving::router())
         .merge(inference::router())
         .layer(middleware::from_fn(timeout));
     // Routes that legitimately take long: uploads of up to --max-upload-bytes, event streams.

@@ -137,13 +137,14 @@ async fn list_policies(
 }
 
 /// Delete a policy and its finished evaluations (download it first to keep it); its job stays,
-/// without a policy. Refused while an evaluation of it is queued or running.
+/// without a policy. Refused while a model version points at it or an evaluation of it is
+/// queued or running.
 #[utoipa::path(delete, path = "/v1/policies/{id}", tag = "policies", params(("id" = String, Path)),
     responses(
         (status = 204, description = "Deleted"),
         (status = 404, body = ErrorBody),
-        (status = 409, description = "An evaluation of it is queued or running \
-            (`policy_in_use`)", body = ErrorBody),
+        (status = 409, description = "A model version points at it, or an evaluation of it \
+            is queued or running (`policy_in_use`)", body = ErrorBody),
     ))]
 async fn delete_policy(
     State(state): State<AppState>,
@@ -155,6 +156,14 @@ async fn delete_policy(
             Ok(StatusCode::NO_CONTENT)
         }
         DeleteOutcome::NotFound => Err(ApiError::not_found("policy", &id)),
+        DeleteOutcome::Registered(versions) => Err(ApiError::conflict(
+            "policy_in_use",
+            format!(
+                "policy {id} is registered as {}; delete those versions first (DELETE \
+                 /v1/models/{{name}}/versions/{{n}}), after pointing their aliases elsewhere",
+                versions.join(", ")
+            ),
+        )),
         DeleteOutcome::InUse(evaluations) => Err(ApiError::conflict(
             "policy_in_use",
             format!(
@@ -255,6 +264,14 @@ async fn act(
     Json(request): Json<ActRequest>,
 ) -> Result<Json<ActResponse>, ApiError> {
     let policy = state.policies.get(&id).await?;
+    Ok(Json(act_on(policy, request).await?))
+}
+
+/// `/act` on a loaded policy (by id here, by model name in [`super::model_serving`]).
+pub(crate) async fn act_on(
+    policy: std::sync::Arc<crate::algo::Policy>,
+    request: ActRequest,
+) -> Result<ActResponse, ApiError> {
     let spec = policy.spec();
     let observations = Observations::from_rows(&request.observations, spec.obs_dim)?;
     let width = spec.action_space.width();
@@ -265,5 +282,5 @@ async fn act(
         }
         Actions::Discrete(indices) => ActionList::Discrete(indices),
     };
-    Ok(Json(ActResponse { actions }))
+    Ok(ActResponse { actions })
 }

@@ -5,6 +5,7 @@
 use crate::algo::memory::{estimate_job_memory, DataShape};
 use crate::algo::{self, Algorithm};
 use crate::domain::attempt::MOST_ATTEMPTS;
+use crate::domain::model::Registration;
 use crate::domain::{
     DatasetId, DatasetRole, EvalOptions, JobId, JobLabels, JobRecord, RunnerOptions,
 };
@@ -25,6 +26,8 @@ pub struct JobRequest {
     pub labels: JobLabels,
     /// Attempts before the job fails when its workers keep vanishing (None: the server's).
     pub max_attempts: Option<u32>,
+    /// The model the policy becomes a version of on success (it must exist).
+    pub register: Option<Registration>,
 }
 
 /// Why a job was not queued.
@@ -67,6 +70,9 @@ pub async fn submit(
         )));
     }
     let labels = request.labels.validated().map_err(SubmitError::InvalidLabels)?;
+    if let Some(register) = &request.register {
+        check_registration(store, register).await?;
+    }
     let invalid = SubmitError::InvalidConfig;
     let algorithm = request.algorithm;
     let raw_config = request.config.as_ref().unwrap_or(&serde_json::Value::Null);
@@ -105,6 +111,7 @@ pub async fn submit(
         eval,
         labels,
         max_attempts,
+        register: request.register,
     };
     let record = store.insert_job(&job).await?;
     tracing::info!(
@@ -114,6 +121,21 @@ pub async fn submit(
         "job queued"
     );
     Ok(record)
+}
+
+/// A job's `register` names an existing model and a valid alias. (A model deleted between this
+/// check and the insert is no loss: the job then registers nothing and says so; deletes are
+/// refused once the job is queued.)
+async fn check_registration(store: &Store, register: &Registration) -> Result<(), SubmitError> {
+    register.validated().map_err(SubmitError::InvalidConfig)?;
+    match store.model(&register.model).await {
+        Ok(_) => Ok(()),
+        Err(StoreError::NotFound { .. }) => Err(SubmitError::InvalidConfig(format!(
+            "register.model: model {} does not exist; create it first (POST /v1/models)",
+            register.model
+        ))),
+        Err(e) => Err(e.into()),
+    }
 }
 
 /// A dataset uploaded with the other role is refused in this place (a swapped pair of ids is

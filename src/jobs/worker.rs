@@ -268,7 +268,18 @@ async fn store_policy(
         alpha_hat,
     };
     log.write(LogLevel::Info, &format!("succeeded at step {step}: policy {policy_id}")).await;
-    store.finish_job_succeeded(lease, &[], &policy, step).await?;
+    if let Some(register) = store.job(&lease.id).await?.register {
+        let alias = register.alias.as_deref().map(|a| format!(", alias {a} moved to it"));
+        let message = format!(
+            "registering the policy as the next version of model {}{}",
+            register.model,
+            alias.unwrap_or_default()
+        );
+        log.write(LogLevel::Info, &message).await;
+    }
+    if let Some((model, version)) = store.finish_job_succeeded(lease, &[], &policy, step).await? {
+        tracing::info!(%model, version, %policy_id, "policy registered as a model version");
+    }
     Ok(())
 }
 

@@ -301,6 +301,7 @@ mod tests {
             eval: None,
             labels: Default::default(),
             max_attempts,
+            register: None,
         };
         store.insert_job(&job).await.unwrap();
         id

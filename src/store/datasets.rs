@@ -150,6 +150,8 @@ pub enum DeleteOutcome {
     /// Queued or running work (ids) still needs it: jobs of a dataset, evaluations of a
     /// policy, the evaluation itself.
     InUse(Vec<String>),
+    /// Model versions (`name version n`) point at it: a policy that may be deployed.
+    Registered(Vec<String>),
 }
 
 /// The dataset id a canonical file belongs to, from its name `<id>.canonical`.

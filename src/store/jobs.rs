@@ -14,6 +14,7 @@ use super::{
     StoreError,
 };
 use crate::algo::ResolvedConfig;
+use crate::domain::model::{MoveNote, Registration};
 use crate::domain::{
     AttemptOutcome, DatasetId, EvalOptions, JobId, JobLabels, JobRecord, JobStatus, RunnerOptions,
 };
@@ -43,6 +44,8 @@ struct JobRow {
     lease_owner: Option<String>,
     attempt: i64,
     max_attempts: i64,
+    register_model: Option<String>,
+    register_alias: Option<String>,
     /// When a job queued again after a crash may next be claimed (null: now).
     retry_at_ms: Option<i64>,
     /// When the lease of a running job expired (null: it has not, or the job is not running).
@@ -105,6 +108,9 @@ impl TryFrom<JobRow> for JobRecord {
             worker: row.lease_owner,
             attempt: u32::try_from(row.attempt).unwrap_or(u32::MAX),
             max_attempts: u32::try_from(row.max_attempts).unwrap_or(u32::MAX),
+            register: row
+                .register_model
+                .map(|model| Registration { model, alias: row.register_alias }),
             retry_at: row.retry_at_ms.map(from_millis),
             lease_expired_at: row.lease_expired_at_ms.map(from_millis),
         })
@@ -123,6 +129,8 @@ pub struct NewJob {
     pub labels: JobLabels,
     /// Attempts before the job fails for good when its workers keep vanishing.
     pub max_attempts: u32,
+    /// The model its policy becomes a version of when it succeeds.
+    pub register: Option<Registration>,
 }
 
 /// Which jobs a list shows: all of them, or those with a status, a tag, or a name or id that
@@ -156,6 +164,8 @@ pub enum DeleteJobOutcome {
     Active(JobStatus),
     /// Its policy has evaluations queued or running (their ids).
     PolicyInUse(Vec<String>),
+    /// Its policy is registered as these model versions (`name version n`).
+    PolicyRegistered(Vec<String>),
 }
 
 /// One recorded scalar of a training step.
@@ -190,7 +200,7 @@ pub enum CancelOutcome {
 const JOB_COLUMNS: &str = "id, algorithm, status, unlabeled_dataset_id, non_preferred_dataset_id, \
      config, runner, eval, step, total_steps, phase, iterations_per_second, alpha_hat, policy_id, \
      error, cancel_requested, lease_owner, created_at, updated_at, started_at, finished_at, name, \
-     tags, notes, attempt, max_attempts";
+     tags, notes, attempt, max_attempts, register_model, register_alias";
 
 /// A stored time in milliseconds since the Unix epoch (the database's clock).
 fn from_millis(ms: i64) -> chrono::DateTime<chrono::Utc> {
@@ -239,8 +249,8 @@ impl Store {
         sqlx::query(
             "INSERT INTO jobs (id, algorithm, status, unlabeled_dataset_id, \
              non_preferred_dataset_id, config, runner, eval, total_steps, created_at, updated_at, \
-             name, tags, notes, max_attempts) \
-             VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10, $10, $11, $12, $13, $14)",
+             name, tags, notes, max_attempts, register_model, register_alias) \
+             VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10, $10, $11, $12, $13, $14, $15, $16)",
         )
         .bind(job.id.as_str())
         .bind(job.config.algorithm().as_str())
@@ -256,6 +266,8 @@ impl Store {
         .bind(to_json(&job.labels.tags))
         .bind(job.labels.notes.as_deref())
         .bind(i64::from(job.max_attempts))
+        .bind(job.register.as_ref().map(|r| r.model.as_str()))
+        .bind(job.register.as_ref().and_then(|r| r.alias.as_deref()))
         .execute(&mut *tx)
         .await?;
         let row: JobRow =
@@ -376,6 +388,12 @@ impl Store {
                 .bind(id)
                 .fetch_optional(&mut *tx)
                 .await?;
+        if let Some(policy) = &policy {
+            let versions = super::models::versions_of_policy(&mut tx, policy).await?;
+            if !versions.is_empty() {
+                return Ok(DeleteJobOutcome::PolicyRegistered(versions));
+            }
+        }
         for statement in [
             "DELETE FROM evaluations WHERE policy_id IN (SELECT id FROM policies WHERE job_id = $1)",
             "DELETE FROM policies WHERE job_id = $1",
@@ -599,19 +617,21 @@ impl Store {
         Ok(rows)
     }
 
-    /// Completes a job: its last metrics, its policy and the `succeeded` status in one
-    /// transaction; the checkpoint is no longer needed.
+    /// Completes a job: its last metrics, its policy, the model version its `register` asks for
+    /// and the `succeeded` status in one transaction; the checkpoint is no longer needed.
+    /// Returns the version registered (model, number), if any.
     pub async fn finish_job_succeeded(
         &self,
         lease: &Lease,
         pending_metrics: &[MetricRow],
         policy: &NewPolicy<'_>,
         step: u64,
-    ) -> Result<(), StoreError> {
+    ) -> Result<Option<(String, u32)>, StoreError> {
         let mut tx = self.begin_write().await?;
         leases::hold(&mut tx, LeaseTable::Jobs, lease).await?;
         insert_metric_rows(&mut tx, &lease.id, pending_metrics).await?;
         super::policies::insert_policy(&mut tx, policy).await?;
+        let registered = self.register_policy(&mut tx, &lease.id, policy.id).await?;
         sqlx::query(
             "UPDATE jobs SET status = 'succeeded', policy_id = $1, step = $2, \
                  alpha_hat = COALESCE(CAST($3 AS DOUBLE PRECISION), alpha_hat), \
@@ -629,7 +649,41 @@ impl Store {
         delete_checkpoint(&mut tx, &lease.id).await?;
         end_attempt(&mut tx, lease, AttemptOutcome::Succeeded, None).await?;
         tx.commit().await?;
-        Ok(())
+        Ok(registered)
+    }
+
+    /// The job's `register`, inside its completion. A delete of the model is refused while the
+    /// job is queued or running; one that slipped in between the job's check and its insert
+    /// leaves the policy unregistered (logged), never the job failed.
+    async fn register_policy(
+        &self,
+        tx: &mut Transaction<'_, Any>,
+        job_id: &str,
+        policy_id: &str,
+    ) -> Result<Option<(String, u32)>, StoreError> {
+        let (model, alias): (Option<String>, Option<String>) =
+            sqlx::query_as("SELECT register_model, register_alias FROM jobs WHERE id = $1")
+                .bind(job_id)
+                .fetch_one(&mut **tx)
+                .await?;
+        let Some(model) = model else { return Ok(None) };
+        let source = format!("job {job_id}");
+        let note = MoveNote { actor: source.clone(), reason: Some("registered on success".into()) };
+        let version = super::models::NewVersion {
+            model: &model,
+            policy_id,
+            description: "",
+            source: &source,
+            alias: alias.as_deref().map(|alias| (alias, &note)),
+        };
+        match super::models::register_in(tx, self, &version).await {
+            Ok(number) => Ok(Some((model, number))),
+            Err(StoreError::NotFound { kind: "model", .. }) => {
+                tracing::warn!(%model, job_id, "the job's model was deleted: policy not registered");
+                Ok(None)
+            }
+            Err(e) => Err(e),
+        }
     }
 
     /// Ends a job as `failed` (with `error`) or `cancelled`, storing its last metrics; its

@@ -304,6 +304,7 @@ mod tests {
             eval: None,
             labels: Default::default(),
             max_attempts: 3,
+            register: None,
         };
         store.insert_job(&job).await.unwrap();
         (dir, store, id)

@@ -27,6 +27,7 @@ pub mod evaluations;
 pub mod jobs;
 pub mod leases;
 pub mod logs;
+pub mod models;
 pub mod policies;
 pub mod storage;
 #[cfg(test)]
@@ -66,6 +67,7 @@ pub enum Listing {
     Jobs,
     Policies,
     Evaluations,
+    Models,
 }
 
 impl Listing {
@@ -75,14 +77,25 @@ impl Listing {
             Listing::Jobs => "jobs",
             Listing::Policies => "policies",
             Listing::Evaluations => "evaluations",
+            Listing::Models => "models",
+        }
+    }
+
+    /// The column that names a row (models are named, everything else has an id).
+    fn key(self) -> &'static str {
+        match self {
+            Listing::Models => "name",
+            _ => "id",
         }
     }
 
     /// The keyset condition with the anchor id bound at `$n`: rows listed after the anchor.
     fn after(self, n: usize) -> String {
         format!(
-            "(${n} IS NULL OR (created_at, id) < (SELECT created_at, id FROM {} WHERE id = ${n}))",
-            self.table()
+            "(${n} IS NULL OR (created_at, {key}) < \
+             (SELECT created_at, {key} FROM {} WHERE {key} = ${n}))",
+            self.table(),
+            key = self.key()
         )
     }
 }
@@ -116,6 +129,10 @@ pub enum StoreError {
     /// the write was refused and nothing of it is stored.
     #[error("the lease on {0} was taken over by another worker")]
     LeaseLost(String),
+    /// The change conflicts with what is stored (a name taken, a resource still in use); `code`
+    /// is the API's error code for it.
+    #[error("{message}")]
+    Conflict { code: &'static str, message: String },
     #[error(transparent)]
     Database(#[from] sqlx::Error),
     #[error(transparent)]
@@ -498,11 +515,14 @@ impl Store {
 
     /// Whether row `id` of a list's table exists (the anchor of a keyset page).
     pub async fn page_anchor_exists(&self, list: Listing, id: &str) -> Result<bool, StoreError> {
-        let found: Option<String> =
-            sqlx::query_scalar(&format!("SELECT id FROM {} WHERE id = $1", list.table()))
-                .bind(id)
-                .fetch_optional(self.pool())
-                .await?;
+        let found: Option<String> = sqlx::query_scalar(&format!(
+            "SELECT {key} FROM {} WHERE {key} = $1",
+            list.table(),
+            key = list.key()
+        ))
+        .bind(id)
+        .fetch_optional(self.pool())
+        .await?;
         Ok(found.is_some())
     }
 

@@ -140,12 +140,16 @@ impl Store {
             .ok_or_else(|| StoreError::NotFound { kind: "policy", id: id.to_owned() })
     }
 
-    /// Deletes a policy and its finished evaluations, unless an evaluation of it is queued or
-    /// running; its job stays, without a policy.
+    /// Deletes a policy and its finished evaluations, unless a model version points at it or an
+    /// evaluation of it is queued or running; its job stays, without a policy.
     pub async fn delete_policy(&self, id: &str) -> Result<DeleteOutcome, StoreError> {
         let Some((mut tx, _)) = self.begin_delete("policies", "id", id).await? else {
             return Ok(DeleteOutcome::NotFound);
         };
+        let versions = super::models::versions_of_policy(&mut tx, id).await?;
+        if !versions.is_empty() {
+            return Ok(DeleteOutcome::Registered(versions));
+        }
         let busy: Vec<String> = sqlx::query_scalar(
             "SELECT id FROM evaluations WHERE policy_id = $1 AND status IN ('queued', 'running') \
              ORDER BY id",

@@ -2,10 +2,13 @@
 //! `POST /v1/policies/{id}/act`) over the Open Inference Protocol (KServe v2) routes served here:
 //! `GET /v2` (server metadata), `GET /v2/health/live`, `GET /v2/health/ready`, and per model
 //! `GET /v2/models/{id}`, `GET …/ready`, `POST …/infer`, each also under
-//! `/v2/models/{id}/versions/1/`. Errors under `/v2` have the protocol's shape
-//! `{"error": "message"}` ([`binary::v2_error_shape`]).
+//! `/v2/models/{id}/versions/{version}/`; the repository and statistics extensions
+//! ([`repository`]). Errors under `/v2` have the protocol's shape `{"error": "message"}`
+//! ([`binary::v2_error_shape`]).
 //!
-//! A v2 model is a policy (its id is the model name, its one version `1`). `infer` takes one
+//! A v2 model is a policy (its id is the model name, its one version `1`) or a named model
+//! (`name`: its latest version; `name@alias`: the alias's version; `/versions/{n}`: version n;
+//! the answer's `model_version` says which answered). `infer` takes one
 //! FP32 input `observations` of shape `[B, obs_dim]`, as JSON or as binary tensor data
 //! ([`binary`]), and answers one output `actions`: FP32 `[B, action_dim]` for continuous spaces,
 //! INT64 `[B]` for discrete ones, as JSON or binary as the request asks; deterministic unless
@@ -13,10 +16,12 @@
 //! as `/act`.
 
 pub mod binary;
+pub mod repository;
 
 use std::sync::Arc;
 
 use axum::extract::State;
+use axum::http::HeaderMap;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
@@ -28,9 +33,11 @@ use axum::response::{IntoResponse, Response};
 use binary::{InferBody, V2Error};
 
 use super::extract::{Json, Path};
+use super::model_serving;
 use super::{ApiError, AppState};
 use crate::algo::Policy;
 use crate::data::{ActionSpace, Actions};
+use crate::serving::registry::Answer;
 
 /// The name of a model's one input tensor (KServe v2 metadata and `infer`).
 const INPUT_NAME: &str = "observations";
@@ -144,6 +151,7 @@ pub fn router() -> OpenApiRouter<AppState> {
         .routes(routes!(version_metadata))
         .routes(routes!(version_ready))
         .routes(routes!(version_infer))
+        .merge(repository::router())
 }
 
 /// KServe v2 server metadata.
@@ -151,7 +159,7 @@ pub fn router() -> OpenApiRouter<AppState> {
 pub struct ServerMetadata {
     pub name: String,
     pub version: String,
-    /// Protocol extensions served: `binary_tensor_data`.
+    /// Protocol extensions served: `binary_tensor_data`, `model_repository`, `statistics`.
     pub extensions: Vec<String>,
 }
 
@@ -162,31 +170,56 @@ async fn server_metadata() -> Json<ServerMetadata> {
     Json(ServerMetadata {
         name: "safedice".into(),
         version: env!("CARGO_PKG_VERSION").into(),
-        extensions: vec!["binary_tensor_data".into()],
+        extensions: ["binary_tensor_data", "model_repository", "statistics"]
+            .map(String::from)
+            .to_vec(),
     })
 }
 
-/// `{id, version}` of the versioned routes: only version 1 exists.
+/// `{id, version}` of the versioned routes.
 #[derive(Debug, Deserialize)]
 struct ModelVersion {
     id: String,
     version: String,
 }
 
-impl ModelVersion {
-    fn id(self) -> Result<String, ApiError> {
-        if self.version == MODEL_VERSION {
-            Ok(self.id)
-        } else {
-            Err(ApiError::not_found(
+/// What a v2 model name resolves to: a policy by its id (one version, `1`), or a named model
+/// (`name`: its latest version, `name@alias`, or a version by number).
+struct Served {
+    /// The name as requested.
+    name: String,
+    /// The version that answers.
+    version: String,
+    policy: Arc<Policy>,
+    /// For a named model: the version chosen, its statistics and the model's versions.
+    answer: Option<(Answer, Vec<u32>)>,
+}
+
+async fn served(
+    state: &AppState,
+    name: String,
+    version: Option<String>,
+    key: Option<&str>,
+) -> Result<Served, ApiError> {
+    if uuid::Uuid::try_parse(&name).is_ok() {
+        if let Some(version) = version.filter(|v| v != MODEL_VERSION) {
+            return Err(ApiError::not_found(
                 "model version",
-                &format!(
-                    "{} of model {} (its only version is {MODEL_VERSION})",
-                    self.version, self.id
-                ),
-            ))
+                &format!("{version} of model {name} (its only version is {MODEL_VERSION})"),
+            ));
         }
+        let policy = state.policies.get(&name).await?;
+        return Ok(Served { name, version: MODEL_VERSION.into(), policy, answer: None });
     }
+    let reference = model_serving::reference(&name, version.as_deref())?;
+    let answer = state.models.resolve(&reference, key).await?;
+    let versions = state.models.versions(&reference.model);
+    Ok(Served {
+        name,
+        version: answer.target.version.to_string(),
+        policy: answer.target.policy.clone(),
+        answer: Some((answer, versions)),
+    })
 }
 
 /// KServe v2 liveness / readiness answer.
@@ -261,7 +294,7 @@ async fn model_metadata(
     State(state): State<AppState>,
     Path(id): Path<String>,
 ) -> Result<Json<ModelMetadata>, ApiError> {
-    metadata_of(&state, id).await
+    metadata_of(&state, id, None).await
 }
 
 /// KServe v2 model metadata of a policy's version (always `1`).
@@ -272,16 +305,24 @@ async fn version_metadata(
     State(state): State<AppState>,
     Path(model): Path<ModelVersion>,
 ) -> Result<Json<ModelMetadata>, ApiError> {
-    metadata_of(&state, model.id()?).await
+    metadata_of(&state, model.id, Some(model.version)).await
 }
 
-async fn metadata_of(state: &AppState, id: String) -> Result<Json<ModelMetadata>, ApiError> {
-    let policy = state.policies.get(&id).await?;
-    let spec = policy.spec();
+async fn metadata_of(
+    state: &AppState,
+    id: String,
+    version: Option<String>,
+) -> Result<Json<ModelMetadata>, ApiError> {
+    let served = served(state, id, version, None).await?;
+    let versions = match &served.answer {
+        Some((_, versions)) => versions.iter().map(u32::to_string).collect(),
+        None => vec![MODEL_VERSION.into()],
+    };
+    let spec = served.policy.spec();
     let (datatype, shape) = output_layout(&spec.action_space);
     Ok(Json(ModelMetadata {
-        name: id,
-        versions: vec![MODEL_VERSION.into()],
+        name: served.name,
+        versions,
         // The runtime, as other servers name theirs (`onnxruntime_onnx`, `pytorch_libtorch`);
         // the algorithm is in `parameters`.
         platform: "safedice".into(),
@@ -314,7 +355,7 @@ async fn model_ready(
     State(state): State<AppState>,
     Path(id): Path<String>,
 ) -> Result<Json<ModelReady>, ApiError> {
-    ready_of(&state, id).await
+    ready_of(&state, id, None).await
 }
 
 /// KServe v2 readiness of a policy's version (always `1`).
@@ -325,12 +366,16 @@ async fn version_ready(
     State(state): State<AppState>,
     Path(model): Path<ModelVersion>,
 ) -> Result<Json<ModelReady>, ApiError> {
-    ready_of(&state, model.id()?).await
+    ready_of(&state, model.id, Some(model.version)).await
 }
 
-async fn ready_of(state: &AppState, id: String) -> Result<Json<ModelReady>, ApiError> {
-    state.policies.get(&id).await?;
-    Ok(Json(ModelReady { name: id, ready: true }))
+async fn ready_of(
+    state: &AppState,
+    id: String,
+    version: Option<String>,
+) -> Result<Json<ModelReady>, ApiError> {
+    let served = served(state, id, version, None).await?;
+    Ok(Json(ModelReady { name: served.name, ready: true }))
 }
 
 /// One input tensor of an inference request.
@@ -436,9 +481,11 @@ pub struct InferResponse {
 async fn infer(
     State(state): State<AppState>,
     Path(id): Path<String>,
+    headers: HeaderMap,
     body: InferBody<InferRequest>,
 ) -> Result<Response, ApiError> {
-    infer_with(&state, id, body).await
+    let served = served(&state, id, None, model_serving::request_key(&headers)).await?;
+    infer_timed(served, body).await
 }
 
 /// KServe v2 inference on a policy's version (always `1`).
@@ -455,15 +502,29 @@ async fn version_infer(
     Path(model): Path<ModelVersion>,
     body: InferBody<InferRequest>,
 ) -> Result<Response, ApiError> {
-    infer_with(&state, model.id()?, body).await
+    let served = served(&state, model.id, Some(model.version), None).await?;
+    infer_timed(served, body).await
+}
+
+/// Runs the inference, counting it in the version's statistics (named models) and naming the
+/// version that answered in the `x-safedice-model-version` header.
+async fn infer_timed(served: Served, body: InferBody<InferRequest>) -> Result<Response, ApiError> {
+    let started = std::time::Instant::now();
+    let policy = served.policy.clone();
+    let result = infer_with(policy, served.name, served.version, body).await;
+    let Some((answer, _)) = &served.answer else { return result };
+    answer.target.stats.record(result.is_ok(), started.elapsed());
+    let mut response = result?;
+    model_serving::tag_version(&mut response, answer);
+    Ok(response)
 }
 
 async fn infer_with(
-    state: &AppState,
-    id: String,
+    policy: Arc<Policy>,
+    name: String,
+    version: String,
     InferBody { request, mut binary }: InferBody<InferRequest>,
 ) -> Result<Response, ApiError> {
-    let policy = state.policies.get(&id).await?;
     let obs_dim = policy.spec().obs_dim;
     let [input] = &request.inputs[..] else {
         return Err(bad_input(format!(
@@ -527,8 +588,8 @@ async fn infer_with(
         Vec::new()
     };
     let response = InferResponse {
-        model_name: id,
-        model_version: MODEL_VERSION.into(),
+        model_name: name,
+        model_version: version,
         id: request.id,
         outputs: vec![output],
     };

@@ -1,5 +1,8 @@
 //! Trained policies kept loaded for serving actions (`/act` and the KServe v2 routes): each is
-//! read from the store and decoded once, then shared by every request.
+//! read from the store and decoded once, then shared by every request. [`registry`] resolves
+//! named models (`name`, `name@alias`, a version) to them.
+
+pub mod registry;
 
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicU64, Ordering};

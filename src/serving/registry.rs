@@ -1,0 +1,445 @@
+//! Serving by name: which policy answers `name`, `name@alias` or a version of a named model.
+//!
+//! Each process keeps a routing table per model, built from the store ([`Store::model_routes`])
+//! and swapped whole: the policies of the latest version and of every alias (and canary) are
+//! loaded first and held by the table, and only then does the new table replace the old one.
+//! A request resolves against one table, so it never sees an alias pointing at a version whose
+//! policy is still loading, and requests in flight keep the policy they resolved (an `Arc`)
+//! while the table changes under them: moving an alias loses no request.
+//!
+//! The table follows the store: this process refreshes a model at once after changing it
+//! ([`ModelRegistry::refresh_model`]); changes made elsewhere (another API node, a worker
+//! registering a job's policy) arrive by PostgreSQL notification within milliseconds, and by a
+//! poll of every model's revision each [`POLL`] on either store.
+
+use std::collections::{BTreeMap, HashMap, HashSet};
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex, RwLock};
+use std::time::Duration;
+
+use tokio_util::sync::CancellationToken;
+
+use super::{PolicyCache, PolicyLoadError};
+use crate::algo::Policy;
+use crate::domain::model::{AliasTarget, ModelRef, ModelRoutes, Selector, BASIS_POINTS};
+use crate::domain::PolicyId;
+use crate::store::models::MODELS_CHANNEL;
+use crate::store::{Store, StoreError};
+
+/// How often every model's revision is compared with the loaded one (the fallback when no
+/// notification arrives, and the only way on SQLite).
+pub const POLL: Duration = Duration::from_secs(1);
+
+/// Request counts and time of one version on this process (the Open Inference Protocol's
+/// statistics extension).
+#[derive(Debug, Default)]
+pub struct VersionStats {
+    pub success: AtomicU64,
+    pub success_ns: AtomicU64,
+    pub fail: AtomicU64,
+    pub fail_ns: AtomicU64,
+    /// Milliseconds since the Unix epoch of the last request (0: none yet).
+    pub last_inference_ms: AtomicU64,
+}
+
+impl VersionStats {
+    /// Counts one request that took `elapsed`.
+    pub fn record(&self, ok: bool, elapsed: Duration) {
+        let (count, ns) =
+            if ok { (&self.success, &self.success_ns) } else { (&self.fail, &self.fail_ns) };
+        count.fetch_add(1, Ordering::Relaxed);
+        ns.fetch_add(elapsed.as_nanos() as u64, Ordering::Relaxed);
+        let now = chrono::Utc::now().timestamp_millis().max(0) as u64;
+        self.last_inference_ms.store(now, Ordering::Relaxed);
+    }
+}
+
+/// A version ready to answer: its policy loaded.
+#[derive(Clone)]
+pub struct Target {
+    pub version: u32,
+    pub policy_id: PolicyId,
+    pub policy: Arc<Policy>,
+    pub stats: Arc<VersionStats>,
+}
+
+struct AliasRoute {
+    main: Target,
+    canary: Option<(Target, u32)>,
+}
+
+/// One model's routing table, of one revision.
+struct Deployed {
+    revision: u64,
+    latest: Option<Target>,
+    aliases: HashMap<String, AliasRoute>,
+    versions: BTreeMap<u32, PolicyId>,
+}
+
+/// What answers a request: the model's name and the version chosen, with its policy.
+pub struct Answer {
+    pub model: String,
+    pub target: Target,
+}
+
+/// Why a name resolves to nothing.
+#[derive(Debug, thiserror::Error)]
+pub enum ResolveError {
+    /// No such model, alias or version (the message says which).
+    #[error("{0}")]
+    NotFound(String),
+    /// The model was unloaded from this process (`POST /v2/repository/models/{name}/unload`).
+    #[error("model {0} is unloaded on this server; load it again with POST /v2/repository/models/{0}/load")]
+    Unloaded(String),
+    #[error(transparent)]
+    Load(#[from] PolicyLoadError),
+}
+
+impl From<StoreError> for ResolveError {
+    fn from(e: StoreError) -> Self {
+        ResolveError::Load(e.into())
+    }
+}
+
+/// A model as the repository index lists it.
+pub struct IndexEntry {
+    pub name: String,
+    /// `READY` or `UNAVAILABLE`.
+    pub state: &'static str,
+    /// Why it is not ready (empty when it is).
+    pub reason: String,
+    pub latest_version: Option<u32>,
+}
+
+/// The routing tables of this process.
+pub struct ModelRegistry {
+    store: Store,
+    policies: Arc<PolicyCache>,
+    tables: RwLock<HashMap<String, Arc<Deployed>>>,
+    unloaded: Mutex<HashSet<String>>,
+    stats: Mutex<HashMap<(String, u32), Arc<VersionStats>>>,
+}
+
+impl ModelRegistry {
+    pub fn new(store: Store, policies: Arc<PolicyCache>) -> Self {
+        ModelRegistry {
+            store,
+            policies,
+            tables: RwLock::new(HashMap::new()),
+            unloaded: Mutex::new(HashSet::new()),
+            stats: Mutex::new(HashMap::new()),
+        }
+    }
+
+    fn table(&self, model: &str) -> Option<Arc<Deployed>> {
+        self.tables.read().expect("model tables lock").get(model).cloned()
+    }
+
+    fn is_unloaded(&self, model: &str) -> bool {
+        self.unloaded.lock().expect("unloaded lock").contains(model)
+    }
+
+    /// The statistics of a version on this process, created on first use.
+    pub fn stats(&self, model: &str, version: u32) -> Arc<VersionStats> {
+        let mut stats = self.stats.lock().expect("stats lock");
+        stats.entry((model.to_owned(), version)).or_default().clone()
+    }
+
+    /// The version that answers `reference`; `key` (a client's request key) picks between an
+    /// alias's version and its canary the same way every time, on every node.
+    pub async fn resolve(
+        &self,
+        reference: &ModelRef,
+        key: Option<&str>,
+    ) -> Result<Answer, ResolveError> {
+        let model = &reference.model;
+        if self.is_unloaded(model) {
+            return Err(ResolveError::Unloaded(model.clone()));
+        }
+        let table = match self.table(model) {
+            Some(table) => table,
+            // Created or first registered on another node since the last poll.
+            None => {
+                self.refresh_model(model).await?;
+                self.table(model).ok_or_else(|| {
+                    ResolveError::NotFound(format!("model {model} does not exist"))
+                })?
+            }
+        };
+        let target = match &reference.selector {
+            Selector::Latest => table.latest.clone().ok_or_else(|| {
+                ResolveError::NotFound(format!("model {model} has no version yet"))
+            })?,
+            Selector::Alias(alias) => {
+                let route = table.aliases.get(alias).ok_or_else(|| {
+                    ResolveError::NotFound(format!("model {model} has no alias {alias}"))
+                })?;
+                pick(route, key).clone()
+            }
+            Selector::Version(version) => self.version_target(model, &table, *version).await?,
+        };
+        Ok(Answer { model: model.clone(), target })
+    }
+
+    /// A version by number: the loaded one if an alias or `latest` holds it, else through the
+    /// policy cache.
+    async fn version_target(
+        &self,
+        model: &str,
+        table: &Deployed,
+        version: u32,
+    ) -> Result<Target, ResolveError> {
+        let held = table.latest.iter().chain(table.aliases.values().flat_map(|route| {
+            std::iter::once(&route.main).chain(route.canary.as_ref().map(|(c, _)| c))
+        }));
+        if let Some(target) = held.into_iter().find(|t| t.version == version) {
+            return Ok(target.clone());
+        }
+        let policy_id = table.versions.get(&version).ok_or_else(|| {
+            ResolveError::NotFound(format!("model {model} has no version {version}"))
+        })?;
+        self.load(model, version, policy_id).await
+    }
+
+    async fn load(
+        &self,
+        model: &str,
+        version: u32,
+        policy_id: &PolicyId,
+    ) -> Result<Target, ResolveError> {
+        let policy = self.policies.get(policy_id.as_str()).await?;
+        Ok(Target {
+            version,
+            policy_id: policy_id.clone(),
+            policy,
+            stats: self.stats(model, version),
+        })
+    }
+
+    /// Reads the model from the store and, if it changed, loads the policies its new table needs
+    /// and swaps the table in (or drops it: the model was deleted). A policy that fails to load
+    /// leaves the old table serving, and the error is returned (the next poll tries again).
+    pub async fn refresh_model(&self, name: &str) -> Result<(), ResolveError> {
+        if self.is_unloaded(name) {
+            return Ok(());
+        }
+        let Some(routes) = self.store.model_routes(name).await? else {
+            self.tables.write().expect("model tables lock").remove(name);
+            return Ok(());
+        };
+        if self.table(name).is_some_and(|t| t.revision >= routes.revision) {
+            return Ok(());
+        }
+        let table = Arc::new(self.build(&routes).await?);
+        let mut tables = self.tables.write().expect("model tables lock");
+        // Two refreshes may race; the newer revision stays.
+        if tables.get(name).is_none_or(|t| t.revision < table.revision) {
+            tables.insert(name.to_owned(), table);
+        }
+        Ok(())
+    }
+
+    async fn build(&self, routes: &ModelRoutes) -> Result<Deployed, ResolveError> {
+        let versions: BTreeMap<u32, PolicyId> = routes.versions.iter().cloned().collect();
+        let model = &routes.name;
+        let latest = match versions.last_key_value() {
+            Some((&version, policy_id)) => Some(self.load(model, version, policy_id).await?),
+            None => None,
+        };
+        let mut aliases = HashMap::new();
+        for (alias, AliasTarget { version, canary }) in &routes.aliases {
+            let main = self.target_of(model, &versions, *version).await?;
+            let canary = match canary {
+                Some(c) => {
+                    Some((self.target_of(model, &versions, c.version).await?, c.basis_points))
+                }
+                None => None,
+            };
+            aliases.insert(alias.clone(), AliasRoute { main, canary });
+        }
+        Ok(Deployed { revision: routes.revision, latest, aliases, versions })
+    }
+
+    async fn target_of(
+        &self,
+        model: &str,
+        versions: &BTreeMap<u32, PolicyId>,
+        version: u32,
+    ) -> Result<Target, ResolveError> {
+        let policy_id = versions.get(&version).ok_or_else(|| {
+            ResolveError::NotFound(format!("model {model} has no version {version}"))
+        })?;
+        self.load(model, version, policy_id).await
+    }
+
+    /// Brings every table up to its model's revision in the store; drops deleted models.
+    pub async fn refresh_all(&self) -> Result<(), ResolveError> {
+        let revisions = self.store.model_revisions().await?;
+        let stored: HashSet<&str> = revisions.iter().map(|(name, _)| name.as_str()).collect();
+        self.tables
+            .write()
+            .expect("model tables lock")
+            .retain(|name, _| stored.contains(name.as_str()));
+        for (name, revision) in &revisions {
+            let current = self.table(name).map(|t| t.revision);
+            if current != Some(*revision) {
+                if let Err(e) = self.refresh_model(name).await {
+                    tracing::error!(model = %name, error = %e, "cannot load the model's new versions; the previous ones keep serving");
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// Follows the store's changes until shutdown: a poll every [`POLL`], and on PostgreSQL the
+    /// notifications of [`MODELS_CHANNEL`].
+    pub fn watch(self: Arc<Self>, shutdown: CancellationToken) {
+        let poller = self.clone();
+        let stop = shutdown.clone();
+        tokio::spawn(async move {
+            loop {
+                if let Err(e) = poller.refresh_all().await {
+                    tracing::warn!(error = %e, "cannot read the models' revisions");
+                }
+                tokio::select! {
+                    () = stop.cancelled() => return,
+                    () = tokio::time::sleep(POLL) => {}
+                }
+            }
+        });
+        if let Some(url) = self.store.database_url().map(str::to_owned) {
+            tokio::spawn(listen(self, url, shutdown));
+        }
+    }
+
+    /// Every model: whether it is ready here.
+    pub async fn index(&self) -> Result<Vec<IndexEntry>, StoreError> {
+        let revisions = self.store.model_revisions().await?;
+        let mut entries = Vec::with_capacity(revisions.len());
+        for (name, _) in revisions {
+            let table = self.table(&name);
+            let latest_version = table.as_ref().and_then(|t| t.versions.keys().last().copied());
+            let (state, reason) = if self.is_unloaded(&name) {
+                ("UNAVAILABLE", "unloaded".to_owned())
+            } else {
+                match &table {
+                    Some(t) if t.latest.is_some() => ("READY", String::new()),
+                    Some(_) => ("UNAVAILABLE", "no version registered".to_owned()),
+                    None => ("UNAVAILABLE", "not loaded yet".to_owned()),
+                }
+            };
+            entries.push(IndexEntry { name, state, reason, latest_version });
+        }
+        Ok(entries)
+    }
+
+    /// Loads a model on this process (again after an unload) and waits until it is ready.
+    pub async fn load_model(&self, name: &str) -> Result<(), ResolveError> {
+        self.unloaded.lock().expect("unloaded lock").remove(name);
+        self.refresh_model(name).await?;
+        if self.table(name).is_none() {
+            return Err(ResolveError::NotFound(format!("model {name} does not exist")));
+        }
+        Ok(())
+    }
+
+    /// Stops serving a model on this process (its policies are released once the requests in
+    /// flight finish). Other processes of a fleet keep serving it.
+    pub async fn unload_model(&self, name: &str) -> Result<(), ResolveError> {
+        self.store.model(name).await?;
+        self.unloaded.lock().expect("unloaded lock").insert(name.to_owned());
+        self.tables.write().expect("model tables lock").remove(name);
+        Ok(())
+    }
+
+    /// The version numbers of a loaded model, in order.
+    pub fn versions(&self, model: &str) -> Vec<u32> {
+        self.table(model).map(|t| t.versions.keys().copied().collect()).unwrap_or_default()
+    }
+
+    /// The statistics of every version of `model` requested on this process, by version.
+    pub fn model_stats(&self, model: &str) -> Vec<(u32, Arc<VersionStats>)> {
+        let stats = self.stats.lock().expect("stats lock");
+        let mut found: Vec<_> = stats
+            .iter()
+            .filter(|((name, _), _)| name == model)
+            .map(|((_, version), s)| (*version, s.clone()))
+            .collect();
+        found.sort_by_key(|(version, _)| *version);
+        found
+    }
+
+    /// The revision this process serves of `model` (None: not loaded).
+    pub fn revision(&self, model: &str) -> Option<u64> {
+        self.table(model).map(|t| t.revision)
+    }
+}
+
+/// The alias's version, or its canary's for `basis_points` of every 10,000 request keys (or of
+/// random draws when the client sends no key).
+fn pick<'a>(route: &'a AliasRoute, key: Option<&str>) -> &'a Target {
+    let Some((canary, basis_points)) = &route.canary else { return &route.main };
+    let draw = match key {
+        Some(key) => (fnv1a(key.as_bytes()) % u64::from(BASIS_POINTS)) as u32,
+        None => rand::random_range(0..BASIS_POINTS),
+    };
+    if draw < *basis_points {
+        canary
+    } else {
+        &route.main
+    }
+}
+
+/// FNV-1a, 64 bits: a hash that is the same in every process and every build, so a request key
+/// goes to the same version on every node of a fleet.
+fn fnv1a(bytes: &[u8]) -> u64 {
+    bytes.iter().fold(0xcbf2_9ce4_8422_2325, |hash, &b| {
+        (hash ^ u64::from(b)).wrapping_mul(0x0100_0000_01b3)
+    })
+}
+
+/// Refreshes a model as soon as another process's change of it is notified, until shutdown,
+/// reconnecting after a lost connection (the poll covers the gaps).
+async fn listen(registry: Arc<ModelRegistry>, url: String, shutdown: CancellationToken) {
+    while !shutdown.is_cancelled() {
+        match sqlx::postgres::PgListener::connect(&url).await {
+            Ok(mut listener) => match listener.listen(MODELS_CHANNEL).await {
+                Ok(()) => loop {
+                    tokio::select! {
+                        () = shutdown.cancelled() => return,
+                        received = listener.recv() => match received {
+                            Ok(notification) => {
+                                if let Err(e) = registry.refresh_model(notification.payload()).await {
+                                    tracing::error!(model = notification.payload(), error = %e, "cannot load the model's new versions; the previous ones keep serving");
+                                }
+                            }
+                            Err(e) => {
+                                tracing::warn!(error = %e, "lost the model notification connection");
+                                break;
+                            }
+                        },
+                    }
+                },
+                Err(e) => tracing::warn!(error = %e, "cannot listen for model notifications"),
+            },
+            Err(e) => tracing::warn!(error = %e, "cannot open the model notification connection"),
+        }
+        tokio::select! {
+            () = shutdown.cancelled() => return,
+            () = tokio::time::sleep(POLL) => {}
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::fnv1a;
+
+    #[test]
+    fn the_request_key_hash_is_fnv1a() {
+        // FNV-1a's published test vectors: the split must not change between builds.
+        assert_eq!(fnv1a(b""), 0xcbf2_9ce4_8422_2325);
+        assert_eq!(fnv1a(b"a"), 0xaf63_dc4c_8601_ec8c);
+        assert_eq!(fnv1a(b"foobar"), 0x8594_4171_f739_67e8);
+    }
+}

@@ -1,0 +1,706 @@
+//! Named models: their versions (each a policy), aliases and the history of every alias move.
+//!
+//! Every change of a model bumps its `revision` in the same transaction, so a serving process
+//! that remembers the revision it loaded knows whether to look again; on PostgreSQL the
+//! transaction also notifies [`MODELS_CHANNEL`] with the model's name, delivered on commit, so
+//! the other API nodes of a fleet look at once rather than at their next poll.
+
+use sqlx::{Any, Transaction};
+
+use super::{parse_time, Listing, PageQuery, Store, StoreError};
+use crate::domain::job::JobStatus;
+use crate::domain::model::{
+    AliasMove, AliasRecord, AliasTarget, Canary, ModelRecord, ModelRoutes, ModelVersionRecord,
+    MoveNote,
+};
+
+/// The PostgreSQL notification channel of model changes; the payload is the model's name.
+pub const MODELS_CHANNEL: &str = "safedice_models";
+
+/// A new model's fields.
+#[derive(Clone, Debug)]
+pub struct NewModel<'a> {
+    pub name: &'a str,
+    pub description: &'a str,
+    pub tags: &'a [String],
+}
+
+/// A new version's fields.
+#[derive(Clone, Debug)]
+pub struct NewVersion<'a> {
+    pub model: &'a str,
+    pub policy_id: &'a str,
+    pub description: &'a str,
+    /// `api`, or `job <id>`.
+    pub source: &'a str,
+    /// An alias to move to the new version in the same transaction.
+    pub alias: Option<(&'a str, &'a MoveNote)>,
+}
+
+#[derive(sqlx::FromRow)]
+struct ModelRow {
+    name: String,
+    description: String,
+    tags: String,
+    created_at: String,
+    updated_at: String,
+    latest_version: Option<i64>,
+    version_count: i64,
+}
+
+const MODEL_COLUMNS: &str = "name, description, tags, created_at, updated_at, \
+     (SELECT MAX(version) FROM model_versions WHERE model = models.name) AS latest_version, \
+     (SELECT COUNT(*) FROM model_versions WHERE model = models.name) AS version_count";
+
+#[derive(sqlx::FromRow)]
+struct AliasRow {
+    alias: String,
+    version: i64,
+    canary_version: Option<i64>,
+    canary_basis_points: Option<i64>,
+    updated_at: String,
+}
+
+#[derive(sqlx::FromRow)]
+struct VersionRow {
+    model: String,
+    version: i64,
+    policy_id: String,
+    job_id: String,
+    description: String,
+    source: String,
+    created_at: String,
+}
+
+const VERSION_COLUMNS: &str = "model, version, policy_id, description, source, created_at, \
+     (SELECT job_id FROM policies WHERE policies.id = model_versions.policy_id) AS job_id";
+
+#[derive(sqlx::FromRow)]
+struct MoveRow {
+    seq: i64,
+    alias: String,
+    from_version: Option<i64>,
+    to_version: Option<i64>,
+    to_canary_version: Option<i64>,
+    to_canary_basis_points: Option<i64>,
+    actor: String,
+    reason: Option<String>,
+    moved_at: String,
+}
+
+fn canary(version: Option<i64>, basis_points: Option<i64>) -> Option<Canary> {
+    Some(Canary { version: version? as u32, basis_points: basis_points? as u32 })
+}
+
+impl AliasRow {
+    fn into_record(self, model: &str) -> Result<AliasRecord, StoreError> {
+        Ok(AliasRecord {
+            target: AliasTarget {
+                version: self.version as u32,
+                canary: canary(self.canary_version, self.canary_basis_points),
+            },
+            updated_at: parse_time(&format!("alias {model}@{}", self.alias), &self.updated_at)?,
+            alias: self.alias,
+        })
+    }
+}
+
+impl TryFrom<VersionRow> for ModelVersionRecord {
+    type Error = StoreError;
+
+    fn try_from(row: VersionRow) -> Result<Self, StoreError> {
+        let owner = format!("model {} version {}", row.model, row.version);
+        Ok(ModelVersionRecord {
+            created_at: parse_time(&owner, &row.created_at)?,
+            version: row.version as u32,
+            policy_id: row.policy_id.into(),
+            job_id: row.job_id,
+            description: row.description,
+            source: row.source,
+            model: row.model,
+        })
+    }
+}
+
+impl MoveRow {
+    fn into_move(self, model: &str) -> Result<AliasMove, StoreError> {
+        let to = self.to_version.map(|version| AliasTarget {
+            version: version as u32,
+            canary: canary(self.to_canary_version, self.to_canary_basis_points),
+        });
+        Ok(AliasMove {
+            moved_at: parse_time(&format!("model {model} move {}", self.seq), &self.moved_at)?,
+            seq: self.seq as u64,
+            alias: self.alias,
+            from_version: self.from_version.map(|v| v as u32),
+            to,
+            actor: self.actor,
+            reason: self.reason,
+        })
+    }
+}
+
+fn model_not_found(name: &str) -> StoreError {
+    StoreError::NotFound { kind: "model", id: name.to_owned() }
+}
+
+fn version_not_found(model: &str, version: u32) -> StoreError {
+    StoreError::NotFound { kind: "model version", id: format!("{model} version {version}") }
+}
+
+impl Store {
+    /// Creates a model; `model_exists` (409) when the name is taken.
+    pub async fn create_model(&self, model: &NewModel<'_>) -> Result<ModelRecord, StoreError> {
+        let now = self.db_now().await?;
+        let tags = serde_json::Value::from(model.tags.to_vec()).to_string();
+        let mut tx = self.begin_write().await?;
+        let inserted = sqlx::query(
+            "INSERT INTO models (name, description, tags, created_at, updated_at) \
+             VALUES ($1, $2, $3, $4, $4) ON CONFLICT (name) DO NOTHING",
+        )
+        .bind(model.name)
+        .bind(model.description)
+        .bind(&tags)
+        .bind(&now)
+        .execute(&mut *tx)
+        .await?;
+        if inserted.rows_affected() == 0 {
+            return Err(StoreError::Conflict {
+                code: "model_exists",
+                message: format!(
+                    "a model named {} exists already; pick another name, or add a version to it",
+                    model.name
+                ),
+            });
+        }
+        self.notify_model(&mut tx, model.name).await?;
+        tx.commit().await?;
+        self.model(model.name).await
+    }
+
+    pub async fn model(&self, name: &str) -> Result<ModelRecord, StoreError> {
+        let row: ModelRow =
+            sqlx::query_as(&format!("SELECT {MODEL_COLUMNS} FROM models WHERE name = $1"))
+                .bind(name)
+                .fetch_optional(self.pool())
+                .await?
+                .ok_or_else(|| model_not_found(name))?;
+        self.model_record(row).await
+    }
+
+    async fn model_record(&self, row: ModelRow) -> Result<ModelRecord, StoreError> {
+        let owner = format!("model {}", row.name);
+        let tags = serde_json::from_str(&row.tags)
+            .map_err(|e| StoreError::Corrupt(owner.clone(), format!("stored tags: {e}")))?;
+        let aliases = self.aliases(&row.name).await?;
+        Ok(ModelRecord {
+            description: row.description,
+            tags,
+            latest_version: row.latest_version.map(|v| v as u32),
+            version_count: row.version_count as u64,
+            aliases,
+            created_at: parse_time(&owner, &row.created_at)?,
+            updated_at: parse_time(&owner, &row.updated_at)?,
+            name: row.name,
+        })
+    }
+
+    async fn aliases(&self, model: &str) -> Result<Vec<AliasRecord>, StoreError> {
+        let rows: Vec<AliasRow> = sqlx::query_as(
+            "SELECT alias, version, canary_version, canary_basis_points, updated_at \
+             FROM model_aliases WHERE model = $1 ORDER BY alias",
+        )
+        .bind(model)
+        .fetch_all(self.pool())
+        .await?;
+        rows.into_iter().map(|row| row.into_record(model)).collect()
+    }
+
+    /// A page of models, newest first; and the total.
+    pub async fn list_models(
+        &self,
+        page: &PageQuery,
+    ) -> Result<(Vec<ModelRecord>, u64), StoreError> {
+        let rows: Vec<ModelRow> = sqlx::query_as(&format!(
+            "SELECT {MODEL_COLUMNS} FROM models WHERE {} \
+             ORDER BY created_at DESC, name DESC LIMIT $1 OFFSET $2",
+            Listing::Models.after(3)
+        ))
+        .bind(i64::from(page.limit))
+        .bind(page.offset as i64)
+        .bind(page.after.as_deref())
+        .fetch_all(self.pool())
+        .await?;
+        let total: i64 =
+            sqlx::query_scalar("SELECT COUNT(*) FROM models").fetch_one(self.pool()).await?;
+        let mut records = Vec::with_capacity(rows.len());
+        for row in rows {
+            records.push(self.model_record(row).await?);
+        }
+        Ok((records, total as u64))
+    }
+
+    /// Changes a model's description and/or tags.
+    pub async fn update_model(
+        &self,
+        name: &str,
+        description: Option<&str>,
+        tags: Option<&[String]>,
+    ) -> Result<ModelRecord, StoreError> {
+        let tags = tags.map(|tags| serde_json::Value::from(tags.to_vec()).to_string());
+        let updated = sqlx::query(
+            "UPDATE models SET description = COALESCE($2, description), tags = COALESCE($3, tags), \
+             updated_at = $4 WHERE name = $1",
+        )
+        .bind(name)
+        .bind(description)
+        .bind(tags)
+        .bind(self.db_now().await?)
+        .execute(self.pool())
+        .await?;
+        if updated.rows_affected() == 0 {
+            return Err(model_not_found(name));
+        }
+        self.model(name).await
+    }
+
+    /// Deletes a model with its versions and history (never the policies). Refused (409
+    /// `model_in_use`) while an alias points at one of its versions (agents may be using it)
+    /// or a queued or running job will register into it.
+    pub async fn delete_model(&self, name: &str) -> Result<(), StoreError> {
+        let mut tx = self.begin_write().await?;
+        lock_model(&mut tx, self, name).await?;
+        let aliases: Vec<String> =
+            sqlx::query_scalar("SELECT alias FROM model_aliases WHERE model = $1 ORDER BY alias")
+                .bind(name)
+                .fetch_all(&mut *tx)
+                .await?;
+        let jobs: Vec<String> = sqlx::query_scalar(
+            "SELECT id FROM jobs WHERE register_model = $1 AND status IN ($2, $3) ORDER BY id",
+        )
+        .bind(name)
+        .bind(JobStatus::Queued.as_str())
+        .bind(JobStatus::Running.as_str())
+        .fetch_all(&mut *tx)
+        .await?;
+        if !aliases.is_empty() || !jobs.is_empty() {
+            let mut uses = Vec::new();
+            if !aliases.is_empty() {
+                uses.push(format!(
+                    "alias(es) {} may be serving agents (delete them first: DELETE \
+                     /v1/models/{name}/aliases/{{alias}})",
+                    aliases.join(", ")
+                ));
+            }
+            if !jobs.is_empty() {
+                uses.push(format!("job(s) {} will register into it", jobs.join(", ")));
+            }
+            return Err(StoreError::Conflict {
+                code: "model_in_use",
+                message: format!("model {name} is in use: {}", uses.join("; ")),
+            });
+        }
+        for table in ["model_alias_moves", "model_aliases", "model_versions", "models"] {
+            let column = if table == "models" { "name" } else { "model" };
+            sqlx::query(&format!("DELETE FROM {table} WHERE {column} = $1"))
+                .bind(name)
+                .execute(&mut *tx)
+                .await?;
+        }
+        self.notify_model(&mut tx, name).await?;
+        tx.commit().await?;
+        Ok(())
+    }
+
+    /// Registers a policy as the model's next version (numbers never repeat, and concurrent
+    /// registrations get consecutive ones: the model's row is the lock); moves `alias` to it if
+    /// given.
+    pub async fn register_version(
+        &self,
+        version: &NewVersion<'_>,
+    ) -> Result<ModelVersionRecord, StoreError> {
+        let mut tx = self.begin_write().await?;
+        let number = register_in(&mut tx, self, version).await?;
+        tx.commit().await?;
+        self.model_version(version.model, number).await
+    }
+
+    pub async fn model_version(
+        &self,
+        model: &str,
+        version: u32,
+    ) -> Result<ModelVersionRecord, StoreError> {
+        let row: VersionRow = sqlx::query_as(&format!(
+            "SELECT {VERSION_COLUMNS} FROM model_versions WHERE model = $1 AND version = $2"
+        ))
+        .bind(model)
+        .bind(i64::from(version))
+        .fetch_optional(self.pool())
+        .await?
+        .ok_or_else(|| version_not_found(model, version))?;
+        row.try_into()
+    }
+
+    /// A model's versions, newest first (`limit` after skipping `offset`); and how many it has.
+    pub async fn model_versions(
+        &self,
+        model: &str,
+        limit: u32,
+        offset: u64,
+    ) -> Result<(Vec<ModelVersionRecord>, u64), StoreError> {
+        self.model(model).await?;
+        let rows: Vec<VersionRow> = sqlx::query_as(&format!(
+            "SELECT {VERSION_COLUMNS} FROM model_versions WHERE model = $1 \
+             ORDER BY version DESC LIMIT $2 OFFSET $3"
+        ))
+        .bind(model)
+        .bind(i64::from(limit))
+        .bind(offset as i64)
+        .fetch_all(self.pool())
+        .await?;
+        let total: i64 = sqlx::query_scalar("SELECT COUNT(*) FROM model_versions WHERE model = $1")
+            .bind(model)
+            .fetch_one(self.pool())
+            .await?;
+        let records = rows.into_iter().map(TryInto::try_into).collect::<Result<_, _>>()?;
+        Ok((records, total as u64))
+    }
+
+    /// Deletes a version no alias points at (its number is never handed out again).
+    pub async fn delete_model_version(&self, model: &str, version: u32) -> Result<(), StoreError> {
+        let mut tx = self.begin_write().await?;
+        bump(&mut tx, model).await?;
+        let aliases: Vec<String> = sqlx::query_scalar(
+            "SELECT alias FROM model_aliases WHERE model = $1 \
+             AND (version = $2 OR canary_version = $2) ORDER BY alias",
+        )
+        .bind(model)
+        .bind(i64::from(version))
+        .fetch_all(&mut *tx)
+        .await?;
+        if !aliases.is_empty() {
+            return Err(StoreError::Conflict {
+                code: "version_in_use",
+                message: format!(
+                    "{model} version {version} is served by alias(es) {}; point them elsewhere \
+                     first",
+                    aliases.join(", ")
+                ),
+            });
+        }
+        let deleted = sqlx::query("DELETE FROM model_versions WHERE model = $1 AND version = $2")
+            .bind(model)
+            .bind(i64::from(version))
+            .execute(&mut *tx)
+            .await?;
+        if deleted.rows_affected() == 0 {
+            return Err(version_not_found(model, version));
+        }
+        self.notify_model(&mut tx, model).await?;
+        tx.commit().await?;
+        Ok(())
+    }
+
+    /// Points `alias` at `target` (creating it), recording the move.
+    pub async fn set_alias(
+        &self,
+        model: &str,
+        alias: &str,
+        target: &AliasTarget,
+        note: &MoveNote,
+    ) -> Result<AliasMove, StoreError> {
+        let mut tx = self.begin_write().await?;
+        let seq = set_alias_in(&mut tx, self, model, alias, Some(target), note).await?;
+        tx.commit().await?;
+        self.alias_move(model, seq).await
+    }
+
+    /// Deletes `alias`, recording the move; NotFound if the model has no such alias.
+    pub async fn delete_alias(
+        &self,
+        model: &str,
+        alias: &str,
+        note: &MoveNote,
+    ) -> Result<AliasMove, StoreError> {
+        let mut tx = self.begin_write().await?;
+        let seq = set_alias_in(&mut tx, self, model, alias, None, note).await?;
+        tx.commit().await?;
+        self.alias_move(model, seq).await
+    }
+
+    async fn alias_move(&self, model: &str, seq: u64) -> Result<AliasMove, StoreError> {
+        let row: MoveRow = sqlx::query_as(&format!(
+            "SELECT {MOVE_COLUMNS} FROM model_alias_moves WHERE model = $1 AND seq = $2"
+        ))
+        .bind(model)
+        .bind(seq as i64)
+        .fetch_one(self.pool())
+        .await?;
+        row.into_move(model)
+    }
+
+    /// The moves of a model's aliases (of `alias` only, when given), newest first.
+    pub async fn alias_history(
+        &self,
+        model: &str,
+        alias: Option<&str>,
+        limit: u32,
+    ) -> Result<Vec<AliasMove>, StoreError> {
+        self.model(model).await?;
+        let rows: Vec<MoveRow> = sqlx::query_as(&format!(
+            "SELECT {MOVE_COLUMNS} FROM model_alias_moves WHERE model = $1 \
+             AND ($2 IS NULL OR alias = $2) ORDER BY seq DESC LIMIT $3"
+        ))
+        .bind(model)
+        .bind(alias)
+        .bind(i64::from(limit))
+        .fetch_all(self.pool())
+        .await?;
+        rows.into_iter().map(|row| row.into_move(model)).collect()
+    }
+
+    /// Every model's revision: what a serving process compares with what it loaded.
+    pub async fn model_revisions(&self) -> Result<Vec<(String, u64)>, StoreError> {
+        let rows: Vec<(String, i64)> =
+            sqlx::query_as("SELECT name, revision FROM models").fetch_all(self.pool()).await?;
+        Ok(rows.into_iter().map(|(name, revision)| (name, revision as u64)).collect())
+    }
+
+    /// What serving needs of a model (None: there is no such model), read in one transaction
+    /// so the versions and aliases are of one revision.
+    pub async fn model_routes(&self, name: &str) -> Result<Option<ModelRoutes>, StoreError> {
+        let mut tx = self.pool().begin().await?;
+        let revision: Option<i64> =
+            sqlx::query_scalar("SELECT revision FROM models WHERE name = $1")
+                .bind(name)
+                .fetch_optional(&mut *tx)
+                .await?;
+        let Some(revision) = revision else { return Ok(None) };
+        let versions: Vec<(i64, String)> = sqlx::query_as(
+            "SELECT version, policy_id FROM model_versions WHERE model = $1 ORDER BY version",
+        )
+        .bind(name)
+        .fetch_all(&mut *tx)
+        .await?;
+        let aliases: Vec<AliasRow> = sqlx::query_as(
+            "SELECT alias, version, canary_version, canary_basis_points, updated_at \
+             FROM model_aliases WHERE model = $1 ORDER BY alias",
+        )
+        .bind(name)
+        .fetch_all(&mut *tx)
+        .await?;
+        tx.commit().await?;
+        Ok(Some(ModelRoutes {
+            name: name.to_owned(),
+            revision: revision as u64,
+            versions: versions.into_iter().map(|(v, policy)| (v as u32, policy.into())).collect(),
+            aliases: aliases
+                .into_iter()
+                .map(|row| {
+                    let target = AliasTarget {
+                        version: row.version as u32,
+                        canary: canary(row.canary_version, row.canary_basis_points),
+                    };
+                    (row.alias, target)
+                })
+                .collect(),
+        }))
+    }
+
+    /// Tells the fleet's other processes that `model` changed, on commit (PostgreSQL's NOTIFY is
+    /// transactional); nothing on SQLite, whose processes poll.
+    async fn notify_model(
+        &self,
+        tx: &mut Transaction<'_, Any>,
+        model: &str,
+    ) -> Result<(), sqlx::Error> {
+        if self.backend() == super::Backend::Postgres {
+            sqlx::query("SELECT CAST(pg_notify($1, $2) AS TEXT)")
+                .bind(MODELS_CHANNEL)
+                .bind(model)
+                .execute(&mut **tx)
+                .await?;
+        }
+        Ok(())
+    }
+}
+
+/// The model versions that point at a policy, as `name version n`.
+pub(super) async fn versions_of_policy(
+    tx: &mut Transaction<'_, Any>,
+    policy_id: &str,
+) -> Result<Vec<String>, sqlx::Error> {
+    let rows: Vec<(String, i64)> = sqlx::query_as(
+        "SELECT model, version FROM model_versions WHERE policy_id = $1 ORDER BY model, version",
+    )
+    .bind(policy_id)
+    .fetch_all(&mut **tx)
+    .await?;
+    Ok(rows.into_iter().map(|(model, v)| format!("{model} version {v}")).collect())
+}
+
+const MOVE_COLUMNS: &str = "seq, alias, from_version, to_version, to_canary_version, \
+     to_canary_basis_points, actor, reason, moved_at";
+
+/// Bumps the model's revision (locking its row until the transaction ends) and returns the new
+/// revision; NotFound if there is no such model.
+async fn bump(tx: &mut Transaction<'_, Any>, model: &str) -> Result<u64, StoreError> {
+    let revision: Option<i64> = sqlx::query_scalar(
+        "UPDATE models SET revision = revision + 1, updated_at = $2 WHERE name = $1 \
+         RETURNING revision",
+    )
+    .bind(model)
+    .bind(super::now())
+    .fetch_optional(&mut **tx)
+    .await?;
+    revision.map(|r| r as u64).ok_or_else(|| model_not_found(model))
+}
+
+async fn lock_model(
+    tx: &mut Transaction<'_, Any>,
+    store: &Store,
+    model: &str,
+) -> Result<(), StoreError> {
+    let found: Option<String> = sqlx::query_scalar(&format!(
+        "SELECT name FROM models WHERE name = $1{}",
+        store.backend().lock_row()
+    ))
+    .bind(model)
+    .fetch_optional(&mut **tx)
+    .await?;
+    found.map(|_| ()).ok_or_else(|| model_not_found(model))
+}
+
+/// Registers a version inside the caller's transaction (also a job's completion); returns its
+/// number.
+pub(super) async fn register_in(
+    tx: &mut Transaction<'_, Any>,
+    store: &Store,
+    version: &NewVersion<'_>,
+) -> Result<u32, StoreError> {
+    let number: Option<i64> = sqlx::query_scalar(
+        "UPDATE models SET last_version = last_version + 1, revision = revision + 1, \
+         updated_at = $2 WHERE name = $1 RETURNING last_version",
+    )
+    .bind(version.model)
+    .bind(super::now())
+    .fetch_optional(&mut **tx)
+    .await?;
+    let number = number.ok_or_else(|| model_not_found(version.model))?;
+    let policy: Option<String> = sqlx::query_scalar(&format!(
+        "SELECT id FROM policies WHERE id = $1{}",
+        store.backend().share_row()
+    ))
+    .bind(version.policy_id)
+    .fetch_optional(&mut **tx)
+    .await?;
+    if policy.is_none() {
+        return Err(StoreError::NotFound { kind: "policy", id: version.policy_id.to_owned() });
+    }
+    sqlx::query(
+        "INSERT INTO model_versions (model, version, policy_id, description, source, created_at) \
+         VALUES ($1, $2, $3, $4, $5, $6)",
+    )
+    .bind(version.model)
+    .bind(number)
+    .bind(version.policy_id)
+    .bind(version.description)
+    .bind(version.source)
+    .bind(super::now())
+    .execute(&mut **tx)
+    .await?;
+    let number = number as u32;
+    if let Some((alias, note)) = version.alias {
+        let target = AliasTarget { version: number, canary: None };
+        set_alias_in(tx, store, version.model, alias, Some(&target), note).await?;
+    } else {
+        store.notify_model(tx, version.model).await?;
+    }
+    Ok(number)
+}
+
+/// Points `alias` at `target` (None: deletes it) inside the caller's transaction and records the
+/// move; returns the move's `seq`.
+async fn set_alias_in(
+    tx: &mut Transaction<'_, Any>,
+    store: &Store,
+    model: &str,
+    alias: &str,
+    target: Option<&AliasTarget>,
+    note: &MoveNote,
+) -> Result<u64, StoreError> {
+    let seq = bump(tx, model).await?;
+    let from: Option<i64> =
+        sqlx::query_scalar("SELECT version FROM model_aliases WHERE model = $1 AND alias = $2")
+            .bind(model)
+            .bind(alias)
+            .fetch_optional(&mut **tx)
+            .await?;
+    let now = super::now();
+    match target {
+        Some(target) => {
+            for version in std::iter::once(target.version).chain(target.canary.map(|c| c.version)) {
+                check_version(tx, model, version).await?;
+            }
+            sqlx::query(
+                "INSERT INTO model_aliases (model, alias, version, canary_version, \
+                     canary_basis_points, updated_at) VALUES ($1, $2, $3, $4, $5, $6) \
+                 ON CONFLICT (model, alias) DO UPDATE SET version = excluded.version, \
+                     canary_version = excluded.canary_version, \
+                     canary_basis_points = excluded.canary_basis_points, \
+                     updated_at = excluded.updated_at",
+            )
+            .bind(model)
+            .bind(alias)
+            .bind(i64::from(target.version))
+            .bind(target.canary.map(|c| i64::from(c.version)))
+            .bind(target.canary.map(|c| i64::from(c.basis_points)))
+            .bind(&now)
+            .execute(&mut **tx)
+            .await?;
+        }
+        None => {
+            if from.is_none() {
+                return Err(StoreError::NotFound { kind: "alias", id: format!("{model}@{alias}") });
+            }
+            sqlx::query("DELETE FROM model_aliases WHERE model = $1 AND alias = $2")
+                .bind(model)
+                .bind(alias)
+                .execute(&mut **tx)
+                .await?;
+        }
+    }
+    sqlx::query(
+        "INSERT INTO model_alias_moves (model, seq, alias, from_version, to_version, \
+             to_canary_version, to_canary_basis_points, actor, reason, moved_at) \
+         VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10)",
+    )
+    .bind(model)
+    .bind(seq as i64)
+    .bind(alias)
+    .bind(from)
+    .bind(target.map(|t| i64::from(t.version)))
+    .bind(target.and_then(|t| t.canary).map(|c| i64::from(c.version)))
+    .bind(target.and_then(|t| t.canary).map(|c| i64::from(c.basis_points)))
+    .bind(&note.actor)
+    .bind(note.reason.as_deref())
+    .bind(&now)
+    .execute(&mut **tx)
+    .await?;
+    store.notify_model(tx, model).await?;
+    Ok(seq)
+}
+
+async fn check_version(
+    tx: &mut Transaction<'_, Any>,
+    model: &str,
+    version: u32,
+) -> Result<(), StoreError> {
+    let found: Option<i64> =
+        sqlx::query_scalar("SELECT version FROM model_versions WHERE model = $1 AND version = $2")
+            .bind(model)
+            .bind(i64::from(version))
+            .fetch_optional(&mut **tx)
+            .await?;
+    found.map(|_| ()).ok_or_else(|| version_not_found(model, version))
+}
