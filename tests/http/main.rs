@@ -31,6 +31,7 @@ mod evaluations;
 mod hardening;
 mod jobs;
 mod lifecycle;
+mod models;
 mod openapi;
 mod ops;
 mod resources;

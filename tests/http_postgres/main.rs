@@ -36,6 +36,8 @@ mod hardening;
 mod jobs;
 #[path = "../http/lifecycle.rs"]
 mod lifecycle;
+#[path = "../http/models.rs"]
+mod models;
 #[path = "../http/ops.rs"]
 mod ops;
 #[path = "../http/resources.rs"]
