@@ -18,6 +18,7 @@ pub mod health;
 pub mod inference;
 pub mod job_attempts;
 pub mod jobs;
+pub mod model_names;
 pub mod model_serving;
 pub mod models;
 pub mod openapi;

@@ -7,50 +7,20 @@
 use std::time::Instant;
 
 use axum::extract::State;
-use axum::http::{HeaderMap, HeaderName, HeaderValue};
+use axum::http::HeaderMap;
 use axum::response::{IntoResponse, Response};
 use utoipa_axum::router::OpenApiRouter;
 use utoipa_axum::routes;
 
 use super::error::ErrorBody;
 use super::extract::{Json, Path};
+use super::model_names::{reference, request_key, tag_version};
 use super::policies::{act_on, ActRequest, ActResponse};
 use super::{ApiError, AppState};
 use crate::domain::model::ModelRef;
-use crate::serving::registry::Answer;
-
-/// The version that answered a request by model name.
-pub const MODEL_VERSION_HEADER: HeaderName = HeaderName::from_static("x-safedice-model-version");
-/// The policy behind that version.
-pub const POLICY_ID_HEADER: HeaderName = HeaderName::from_static("x-safedice-policy-id");
-/// A client's key for a request: the same key always gets the same side of a canary.
-pub const REQUEST_KEY_HEADER: HeaderName = HeaderName::from_static("x-safedice-request-key");
 
 pub fn router() -> OpenApiRouter<AppState> {
     OpenApiRouter::new().routes(routes!(act_by_name)).routes(routes!(act_by_version))
-}
-
-/// A model reference from a path: a name that breaks the rules names no model (404).
-pub(crate) fn reference(name: &str, version: Option<&str>) -> Result<ModelRef, ApiError> {
-    match version {
-        None => ModelRef::parse(name),
-        Some(version) => ModelRef::with_version(name, version),
-    }
-    .map_err(|rule| ApiError::NotFound(format!("model {name:?} does not exist ({rule})")))
-}
-
-/// The request key header, if the client sent one.
-pub(crate) fn request_key(headers: &HeaderMap) -> Option<&str> {
-    headers.get(REQUEST_KEY_HEADER).and_then(|v| v.to_str().ok())
-}
-
-/// Adds which version answered (and its policy) to a response.
-pub(crate) fn tag_version(response: &mut Response, answer: &Answer) {
-    let headers = response.headers_mut();
-    headers.insert(MODEL_VERSION_HEADER, HeaderValue::from(answer.target.version));
-    if let Ok(policy) = HeaderValue::from_str(answer.target.policy_id.as_str()) {
-        headers.insert(POLICY_ID_HEADER, policy);
-    }
 }
 
 /// Actions from a named model: `name` serves its latest version, `name@alias` the alias's

@@ -15,7 +15,7 @@
 use std::collections::{BTreeMap, HashMap, HashSet};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, RwLock};
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use tokio_util::sync::CancellationToken;
 
@@ -29,6 +29,10 @@ use crate::store::{Store, StoreError};
 /// How often every model's revision is compared with the loaded one (the fallback when no
 /// notification arrives, and the only way on SQLite).
 pub const POLL: Duration = Duration::from_secs(1);
+
+/// How often a request for a model, alias or version this process does not know may look for
+/// it in the store.
+const MISS_RECHECK: Duration = Duration::from_millis(250);
 
 /// Request counts and time of one version on this process (the Open Inference Protocol's
 /// statistics extension).
@@ -118,6 +122,8 @@ pub struct ModelRegistry {
     tables: RwLock<HashMap<String, Arc<Deployed>>>,
     unloaded: Mutex<HashSet<String>>,
     stats: Mutex<HashMap<(String, u32), Arc<VersionStats>>>,
+    /// When a request last made this process look in the store for a name it did not know.
+    miss_checked: Mutex<HashMap<String, Instant>>,
 }
 
 impl ModelRegistry {
@@ -128,6 +134,7 @@ impl ModelRegistry {
             tables: RwLock::new(HashMap::new()),
             unloaded: Mutex::new(HashSet::new()),
             stats: Mutex::new(HashMap::new()),
+            miss_checked: Mutex::new(HashMap::new()),
         }
     }
 
@@ -156,16 +163,42 @@ impl ModelRegistry {
         if self.is_unloaded(model) {
             return Err(ResolveError::Unloaded(model.clone()));
         }
-        let table = match self.table(model) {
-            Some(table) => table,
-            // Created or first registered on another node since the last poll.
-            None => {
+        match self.resolve_loaded(reference, key).await {
+            // An alias or version made on another node a moment ago, before its notification
+            // arrived: one look at the store (at most every MISS_RECHECK per model, so requests
+            // for names that do not exist cannot turn into a query each).
+            Err(ResolveError::NotFound(_)) if self.may_recheck(model) => {
                 self.refresh_model(model).await?;
-                self.table(model).ok_or_else(|| {
-                    ResolveError::NotFound(format!("model {model} does not exist"))
-                })?
+                self.resolve_loaded(reference, key).await
             }
-        };
+            answered => answered,
+        }
+    }
+
+    fn may_recheck(&self, model: &str) -> bool {
+        let mut checked = self.miss_checked.lock().expect("miss lock");
+        let now = Instant::now();
+        match checked.get(model) {
+            Some(at) if now.duration_since(*at) < MISS_RECHECK => false,
+            _ => {
+                if checked.len() > 10_000 {
+                    checked.clear();
+                }
+                checked.insert(model.to_owned(), now);
+                true
+            }
+        }
+    }
+
+    async fn resolve_loaded(
+        &self,
+        reference: &ModelRef,
+        key: Option<&str>,
+    ) -> Result<Answer, ResolveError> {
+        let model = &reference.model;
+        let table = self
+            .table(model)
+            .ok_or_else(|| ResolveError::NotFound(format!("model {model} does not exist")))?;
         let target = match &reference.selector {
             Selector::Latest => table.latest.clone().ok_or_else(|| {
                 ResolveError::NotFound(format!("model {model} has no version yet"))

@@ -27,6 +27,7 @@ pub mod evaluations;
 pub mod jobs;
 pub mod leases;
 pub mod logs;
+pub mod model_aliases;
 pub mod models;
 pub mod policies;
 pub mod storage;

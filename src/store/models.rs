@@ -7,15 +7,13 @@
 
 use sqlx::{Any, Transaction};
 
+pub use super::model_aliases::MODELS_CHANNEL;
+use super::model_aliases::{bump, canary, model_not_found, version_not_found};
 use super::{parse_time, Listing, PageQuery, Store, StoreError};
 use crate::domain::job::JobStatus;
 use crate::domain::model::{
-    AliasMove, AliasRecord, AliasTarget, Canary, ModelRecord, ModelRoutes, ModelVersionRecord,
-    MoveNote,
+    AliasRecord, AliasTarget, ModelRecord, ModelRoutes, ModelVersionRecord, MoveNote,
 };
-
-/// The PostgreSQL notification channel of model changes; the payload is the model's name.
-pub const MODELS_CHANNEL: &str = "safedice_models";
 
 /// A new model's fields.
 #[derive(Clone, Debug)]
@@ -75,23 +73,6 @@ struct VersionRow {
 const VERSION_COLUMNS: &str = "model, version, policy_id, description, source, created_at, \
      (SELECT job_id FROM policies WHERE policies.id = model_versions.policy_id) AS job_id";
 
-#[derive(sqlx::FromRow)]
-struct MoveRow {
-    seq: i64,
-    alias: String,
-    from_version: Option<i64>,
-    to_version: Option<i64>,
-    to_canary_version: Option<i64>,
-    to_canary_basis_points: Option<i64>,
-    actor: String,
-    reason: Option<String>,
-    moved_at: String,
-}
-
-fn canary(version: Option<i64>, basis_points: Option<i64>) -> Option<Canary> {
-    Some(Canary { version: version? as u32, basis_points: basis_points? as u32 })
-}
-
 impl AliasRow {
     fn into_record(self, model: &str) -> Result<AliasRecord, StoreError> {
         Ok(AliasRecord {
@@ -120,32 +101,6 @@ impl TryFrom<VersionRow> for ModelVersionRecord {
             model: row.model,
         })
     }
-}
-
-impl MoveRow {
-    fn into_move(self, model: &str) -> Result<AliasMove, StoreError> {
-        let to = self.to_version.map(|version| AliasTarget {
-            version: version as u32,
-            canary: canary(self.to_canary_version, self.to_canary_basis_points),
-        });
-        Ok(AliasMove {
-            moved_at: parse_time(&format!("model {model} move {}", self.seq), &self.moved_at)?,
-            seq: self.seq as u64,
-            alias: self.alias,
-            from_version: self.from_version.map(|v| v as u32),
-            to,
-            actor: self.actor,
-            reason: self.reason,
-        })
-    }
-}
-
-fn model_not_found(name: &str) -> StoreError {
-    StoreError::NotFound { kind: "model", id: name.to_owned() }
-}
-
-fn version_not_found(model: &str, version: u32) -> StoreError {
-    StoreError::NotFound { kind: "model version", id: format!("{model} version {version}") }
 }
 
 impl Store {
@@ -401,64 +356,6 @@ impl Store {
         Ok(())
     }
 
-    /// Points `alias` at `target` (creating it), recording the move.
-    pub async fn set_alias(
-        &self,
-        model: &str,
-        alias: &str,
-        target: &AliasTarget,
-        note: &MoveNote,
-    ) -> Result<AliasMove, StoreError> {
-        let mut tx = self.begin_write().await?;
-        let seq = set_alias_in(&mut tx, self, model, alias, Some(target), note).await?;
-        tx.commit().await?;
-        self.alias_move(model, seq).await
-    }
-
-    /// Deletes `alias`, recording the move; NotFound if the model has no such alias.
-    pub async fn delete_alias(
-        &self,
-        model: &str,
-        alias: &str,
-        note: &MoveNote,
-    ) -> Result<AliasMove, StoreError> {
-        let mut tx = self.begin_write().await?;
-        let seq = set_alias_in(&mut tx, self, model, alias, None, note).await?;
-        tx.commit().await?;
-        self.alias_move(model, seq).await
-    }
-
-    async fn alias_move(&self, model: &str, seq: u64) -> Result<AliasMove, StoreError> {
-        let row: MoveRow = sqlx::query_as(&format!(
-            "SELECT {MOVE_COLUMNS} FROM model_alias_moves WHERE model = $1 AND seq = $2"
-        ))
-        .bind(model)
-        .bind(seq as i64)
-        .fetch_one(self.pool())
-        .await?;
-        row.into_move(model)
-    }
-
-    /// The moves of a model's aliases (of `alias` only, when given), newest first.
-    pub async fn alias_history(
-        &self,
-        model: &str,
-        alias: Option<&str>,
-        limit: u32,
-    ) -> Result<Vec<AliasMove>, StoreError> {
-        self.model(model).await?;
-        let rows: Vec<MoveRow> = sqlx::query_as(&format!(
-            "SELECT {MOVE_COLUMNS} FROM model_alias_moves WHERE model = $1 \
-             AND ($2 IS NULL OR alias = $2) ORDER BY seq DESC LIMIT $3"
-        ))
-        .bind(model)
-        .bind(alias)
-        .bind(i64::from(limit))
-        .fetch_all(self.pool())
-        .await?;
-        rows.into_iter().map(|row| row.into_move(model)).collect()
-    }
-
     /// Every model's revision: what a serving process compares with what it loaded.
     pub async fn model_revisions(&self) -> Result<Vec<(String, u64)>, StoreError> {
         let rows: Vec<(String, i64)> =
@@ -506,23 +403,6 @@ impl Store {
                 .collect(),
         }))
     }
-
-    /// Tells the fleet's other processes that `model` changed, on commit (PostgreSQL's NOTIFY is
-    /// transactional); nothing on SQLite, whose processes poll.
-    async fn notify_model(
-        &self,
-        tx: &mut Transaction<'_, Any>,
-        model: &str,
-    ) -> Result<(), sqlx::Error> {
-        if self.backend() == super::Backend::Postgres {
-            sqlx::query("SELECT CAST(pg_notify($1, $2) AS TEXT)")
-                .bind(MODELS_CHANNEL)
-                .bind(model)
-                .execute(&mut **tx)
-                .await?;
-        }
-        Ok(())
-    }
 }
 
 /// The model versions that point at a policy, as `name version n`.
@@ -537,23 +417,6 @@ pub(super) async fn versions_of_policy(
     .fetch_all(&mut **tx)
     .await?;
     Ok(rows.into_iter().map(|(model, v)| format!("{model} version {v}")).collect())
-}
-
-const MOVE_COLUMNS: &str = "seq, alias, from_version, to_version, to_canary_version, \
-     to_canary_basis_points, actor, reason, moved_at";
-
-/// Bumps the model's revision (locking its row until the transaction ends) and returns the new
-/// revision; NotFound if there is no such model.
-async fn bump(tx: &mut Transaction<'_, Any>, model: &str) -> Result<u64, StoreError> {
-    let revision: Option<i64> = sqlx::query_scalar(
-        "UPDATE models SET revision = revision + 1, updated_at = $2 WHERE name = $1 \
-         RETURNING revision",
-    )
-    .bind(model)
-    .bind(super::now())
-    .fetch_optional(&mut **tx)
-    .await?;
-    revision.map(|r| r as u64).ok_or_else(|| model_not_found(model))
 }
 
 async fn lock_model(
@@ -612,95 +475,10 @@ pub(super) async fn register_in(
     let number = number as u32;
     if let Some((alias, note)) = version.alias {
         let target = AliasTarget { version: number, canary: None };
-        set_alias_in(tx, store, version.model, alias, Some(&target), note).await?;
+        super::model_aliases::set_alias_in(tx, store, version.model, alias, Some(&target), note)
+            .await?;
     } else {
         store.notify_model(tx, version.model).await?;
     }
     Ok(number)
-}
-
-/// Points `alias` at `target` (None: deletes it) inside the caller's transaction and records the
-/// move; returns the move's `seq`.
-async fn set_alias_in(
-    tx: &mut Transaction<'_, Any>,
-    store: &Store,
-    model: &str,
-    alias: &str,
-    target: Option<&AliasTarget>,
-    note: &MoveNote,
-) -> Result<u64, StoreError> {
-    let seq = bump(tx, model).await?;
-    let from: Option<i64> =
-        sqlx::query_scalar("SELECT version FROM model_aliases WHERE model = $1 AND alias = $2")
-            .bind(model)
-            .bind(alias)
-            .fetch_optional(&mut **tx)
-            .await?;
-    let now = super::now();
-    match target {
-        Some(target) => {
-            for version in std::iter::once(target.version).chain(target.canary.map(|c| c.version)) {
-                check_version(tx, model, version).await?;
-            }
-            sqlx::query(
-                "INSERT INTO model_aliases (model, alias, version, canary_version, \
-                     canary_basis_points, updated_at) VALUES ($1, $2, $3, $4, $5, $6) \
-                 ON CONFLICT (model, alias) DO UPDATE SET version = excluded.version, \
-                     canary_version = excluded.canary_version, \
-                     canary_basis_points = excluded.canary_basis_points, \
-                     updated_at = excluded.updated_at",
-            )
-            .bind(model)
-            .bind(alias)
-            .bind(i64::from(target.version))
-            .bind(target.canary.map(|c| i64::from(c.version)))
-            .bind(target.canary.map(|c| i64::from(c.basis_points)))
-            .bind(&now)
-            .execute(&mut **tx)
-            .await?;
-        }
-        None => {
-            if from.is_none() {
-                return Err(StoreError::NotFound { kind: "alias", id: format!("{model}@{alias}") });
-            }
-            sqlx::query("DELETE FROM model_aliases WHERE model = $1 AND alias = $2")
-                .bind(model)
-                .bind(alias)
-                .execute(&mut **tx)
-                .await?;
-        }
-    }
-    sqlx::query(
-        "INSERT INTO model_alias_moves (model, seq, alias, from_version, to_version, \
-             to_canary_version, to_canary_basis_points, actor, reason, moved_at) \
-         VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10)",
-    )
-    .bind(model)
-    .bind(seq as i64)
-    .bind(alias)
-    .bind(from)
-    .bind(target.map(|t| i64::from(t.version)))
-    .bind(target.and_then(|t| t.canary).map(|c| i64::from(c.version)))
-    .bind(target.and_then(|t| t.canary).map(|c| i64::from(c.basis_points)))
-    .bind(&note.actor)
-    .bind(note.reason.as_deref())
-    .bind(&now)
-    .execute(&mut **tx)
-    .await?;
-    store.notify_model(tx, model).await?;
-    Ok(seq)
-}
-
-async fn check_version(
-    tx: &mut Transaction<'_, Any>,
-    model: &str,
-    version: u32,
-) -> Result<(), StoreError> {
-    let found: Option<i64> =
-        sqlx::query_scalar("SELECT version FROM model_versions WHERE model = $1 AND version = $2")
-            .bind(model)
-            .bind(i64::from(version))
-            .fetch_optional(&mut **tx)
-            .await?;
-    found.map(|_| ()).ok_or_else(|| version_not_found(model, version))
 }

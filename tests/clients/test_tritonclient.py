@@ -8,12 +8,15 @@ mismatch.
 
 import sys
 import time
+import urllib.request
 
 import numpy as np
 import tritonclient.http as httpclient
 from tritonclient.utils import InferenceServerException
 
-from common import act, train
+import json
+
+from common import act, call, train
 
 ADDRESS = sys.argv[1]
 
@@ -46,6 +49,55 @@ def check_policy(client, policy, env):
         assert np.allclose(got, expected, rtol=0, atol=1e-6), (env, "default", got, expected)
     print(f"{env}: {output['datatype']} actions of {policy} agree with /act "
           "(JSON and binary, with and without a version)")
+
+
+def infer(client, name, observations, version=""):
+    inputs = [httpclient.InferInput("observations", list(observations.shape), "FP32")]
+    inputs[0].set_data_from_numpy(observations)
+    result = client.infer(name, inputs, model_version=version)
+    return result.as_numpy("actions"), result.get_response()["model_version"]
+
+
+def check_named_model(client, first, second):
+    """A named model with two versions and a `production` alias at version 1: tritonclient
+    addresses it by name, by name@alias and by version, and gets /act's actions of the policy
+    behind each; the repository and statistics extensions answer it."""
+    call("POST", "/v1/models", json.dumps({"name": "pilot"}).encode())
+    for policy in (first, second):
+        call("POST", "/v1/models/pilot/versions", json.dumps({"policy_id": policy}).encode())
+    request = urllib.request.Request(
+        f"http://{ADDRESS}/v1/models/pilot/aliases/production", method="PUT",
+        data=json.dumps({"version": 1, "actor": "tritonclient-test"}).encode(),
+        headers={"Content-Type": "application/json"})
+    urllib.request.urlopen(request, timeout=60).read()
+    assert client.get_model_metadata("pilot")["versions"] == ["1", "2"]
+    assert client.is_model_ready("pilot@production") and client.is_model_ready("pilot", "2")
+    observations = np.random.default_rng(1).uniform(-1, 1, size=(16, 21)).astype(np.float32)
+    by_first, by_second = act(first, observations), act(second, observations)
+    for name, version, expected, answered in [
+        ("pilot@production", "", by_first, "1"),
+        ("pilot", "", by_second, "2"),
+        ("pilot", "1", by_first, "1"),
+        ("pilot", "2", by_second, "2"),
+    ]:
+        got, model_version = infer(client, name, observations, version)
+        assert model_version == answered, (name, version, model_version)
+        assert np.allclose(got, expected, rtol=0, atol=1e-6), (name, version)
+    index = {m["name"]: m for m in client.get_model_repository_index()}
+    assert index["pilot"]["state"] == "READY", index
+    client.unload_model("pilot")
+    try:
+        infer(client, "pilot@production", observations)
+    except InferenceServerException as e:
+        assert "unloaded" in str(e), str(e)
+    else:
+        raise AssertionError("an unloaded model answered")
+    client.load_model("pilot")
+    assert np.allclose(infer(client, "pilot@production", observations)[0], by_first, rtol=0, atol=1e-6)
+    stats = client.get_inference_statistics("pilot", "1")["model_stats"][0]
+    assert stats["inference_stats"]["success"]["count"] >= 3, stats
+    print("named model: pilot, pilot@production and versions 1-2 agree with /act; repository "
+          "index, unload, load and statistics answer")
 
 
 def check_errors(client, policy):
@@ -88,6 +140,7 @@ def main():
     for env, policy in policies.items():
         check_policy(client, policy, env)
     check_errors(client, policies["six-rooms"])
+    check_named_model(client, policies["point-goal"], train("point-goal", "safedice"))
     print("tritonclient: all checks passed")
 
 

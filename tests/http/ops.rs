@@ -115,7 +115,18 @@ async fn the_inference_token_reaches_only_action_endpoints() {
     let server: serde_json::Value =
         as_agent(reqwest::Method::GET, "/v2").send().await.unwrap().json().await.unwrap();
     assert_eq!(server["name"], "safedice");
-    assert_eq!(server["extensions"], serde_json::json!(["binary_tensor_data"]));
+    assert_eq!(
+        server["extensions"],
+        serde_json::json!(["binary_tensor_data", "model_repository", "statistics"])
+    );
+    // A named model's action routes are an agent's; the model repository is not.
+    let response =
+        as_agent(reqwest::Method::POST, "/v1/models/pilot@production/act").json(&act).send();
+    assert_error(response.await.unwrap(), StatusCode::NOT_FOUND, "not_found").await;
+    let response = as_agent(reqwest::Method::POST, "/v2/repository/index").send().await.unwrap();
+    assert_v2_error(response, StatusCode::FORBIDDEN).await;
+    let response = as_agent(reqwest::Method::PUT, "/v1/models/pilot/aliases/production").send();
+    assert_error(response.await.unwrap(), StatusCode::FORBIDDEN, "forbidden").await;
     let response = as_agent(reqwest::Method::GET, "/v2/no/such/route").send().await.unwrap();
     assert_v2_error(response, StatusCode::NOT_FOUND).await;
 }

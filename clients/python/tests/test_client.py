@@ -4,6 +4,7 @@ address in SAFEDICE_URL and a `safedice datagen` directory in SAFEDICE_DATA)."""
 import os
 import socket
 import time
+import uuid
 from pathlib import Path
 
 import numpy as np
@@ -172,3 +173,34 @@ def test_jobs_are_named_found_by_tag_and_deleted(client: Client, trained: dict) 
         client.job(job["id"])
     assert gone.value.status == 404
 
+
+
+def test_a_policy_is_registered_promoted_and_acted_on_by_name(client: Client) -> None:
+    name = f"pilot-{uuid.uuid4().hex[:8]}"
+    client.create_model(name, description="the point-goal agent", tags=["client-test"])
+    unlabeled = client.upload_dataset(DATA / "point-goal" / "unlabeled.npz")
+    job = client.submit_job(
+        unlabeled["id"],
+        algorithm="bc",
+        config={"iterations": 100, "hidden_sizes": [32, 32], "batch_size": 64, "seed": 5},
+        register={"model": name, "alias": "staging"},
+    )
+    policy_id = client.wait(job["id"], timeout=300)["policy_id"]
+    (version,) = client.versions(name)
+    assert (version["version"], version["policy_id"], version["job_id"]) == (1, policy_id, job["id"])
+    assert client.model(name)["aliases"][0]["alias"] == "staging"
+    moved = client.set_alias(name, "production", 1, actor="pytest", reason="first")
+    assert (moved["from_version"], moved["to_version"], moved["actor"]) == (None, 1, "pytest")
+    observations = np.eye(client.policy(policy_id)["obs_dim"], dtype=np.float32)
+    by_name = client.act(model=f"{name}@production", observations=observations)
+    np.testing.assert_array_equal(by_name, client.act(policy_id, observations))
+    np.testing.assert_array_equal(client.act(model=name, observations=observations), by_name)
+    assert [m["to_version"] for m in client.model_history(name, alias="production")] == [1]
+    with pytest.raises(ApiError) as refused:
+        client.delete_model(name)
+    assert (refused.value.status, refused.value.code) == (409, "model_in_use")
+    for alias in ("production", "staging"):
+        client.delete_alias(name, alias, actor="pytest")
+    client.delete_model(name)
+    with pytest.raises(ValueError):
+        client.act(observations=observations)

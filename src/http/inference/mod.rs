@@ -33,7 +33,7 @@ use axum::response::{IntoResponse, Response};
 use binary::{InferBody, V2Error};
 
 use super::extract::{Json, Path};
-use super::model_serving;
+use super::model_names;
 use super::{ApiError, AppState};
 use crate::algo::Policy;
 use crate::data::{ActionSpace, Actions};
@@ -211,7 +211,7 @@ async fn served(
         let policy = state.policies.get(&name).await?;
         return Ok(Served { name, version: MODEL_VERSION.into(), policy, answer: None });
     }
-    let reference = model_serving::reference(&name, version.as_deref())?;
+    let reference = model_names::reference(&name, version.as_deref())?;
     let answer = state.models.resolve(&reference, key).await?;
     let versions = state.models.versions(&reference.model);
     Ok(Served {
@@ -484,7 +484,7 @@ async fn infer(
     headers: HeaderMap,
     body: InferBody<InferRequest>,
 ) -> Result<Response, ApiError> {
-    let served = served(&state, id, None, model_serving::request_key(&headers)).await?;
+    let served = served(&state, id, None, model_names::request_key(&headers)).await?;
     infer_timed(served, body).await
 }
 
@@ -515,7 +515,7 @@ async fn infer_timed(served: Served, body: InferBody<InferRequest>) -> Result<Re
     let Some((answer, _)) = &served.answer else { return result };
     answer.target.stats.record(result.is_ok(), started.elapsed());
     let mut response = result?;
-    model_serving::tag_version(&mut response, answer);
+    model_names::tag_version(&mut response, answer);
     Ok(response)
 }
 

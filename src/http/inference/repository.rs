@@ -17,7 +17,7 @@ use utoipa_axum::routes;
 
 use super::binary::V2Error;
 use crate::http::extract::Path;
-use crate::http::model_serving::reference;
+use crate::http::model_names::reference;
 use crate::http::{ApiError, AppState};
 use crate::serving::registry::VersionStats;
 

@@ -115,10 +115,13 @@ class Client:
         name: Optional[str] = None,
         tags: Optional[Sequence[str]] = None,
         notes: Optional[str] = None,
+        register: Optional[Mapping[str, str]] = None,
     ) -> Json:
         """Queues a training job; the job (status ``queued``). See GET /v1/algorithms for each
         algorithm's configuration keys and defaults. ``name``, ``tags`` and ``notes`` are for
-        people (``jobs(tag=...)`` finds them) and never change what is trained."""
+        people (``jobs(tag=...)`` finds them) and never change what is trained. ``register``
+        (``{"model": name, "alias": "staging"}``) makes the policy the model's next version when
+        the job succeeds."""
         job: Json = {"algorithm": algorithm, "unlabeled_dataset": unlabeled_dataset}
         optional = {
             "non_preferred_dataset": non_preferred_dataset,
@@ -128,6 +131,7 @@ class Client:
             "name": name,
             "tags": list(tags) if tags is not None else None,
             "notes": notes,
+            "register": dict(register) if register is not None else None,
         }
         job.update({key: value for key, value in optional.items() if value is not None})
         return self._request("POST", "/v1/jobs", json.dumps(job).encode(), "application/json")
@@ -239,14 +243,22 @@ class Client:
 
     def act(
         self,
-        policy_id: str,
-        observations: np.ndarray,
+        policy_id: Optional[str] = None,
+        observations: Optional[np.ndarray] = None,
         deterministic: bool = True,
         seed: Optional[int] = None,
         batch_size: int = ACT_BATCH,
+        model: Optional[str] = None,
     ) -> np.ndarray:
         """Actions for observations (``[B, obs_dim]`` or one ``[obs_dim]``), in batches of
-        `batch_size` requests: float ``[B, dim]`` (continuous) or int ``[B]`` (discrete)."""
+        `batch_size` requests: float ``[B, dim]`` (continuous) or int ``[B]`` (discrete). From a
+        policy by id, or from a named model: ``model="pilot"`` (its latest version) or
+        ``model="pilot@production"`` (the alias's version)."""
+        if (policy_id is None) == (model is None):
+            raise ValueError("act needs a policy_id or a model, not both")
+        if observations is None:
+            raise ValueError("act needs observations")
+        path = f"/v1/policies/{policy_id}/act" if model is None else f"/v1/models/{model}/act"
         observations = np.asarray(observations, dtype=np.float32)
         single = observations.ndim == 1
         batch = observations[None, :] if single else observations
@@ -258,12 +270,64 @@ class Client:
             }
             if seed is not None:
                 body["seed"] = seed + start
-            answer = self._request(
-                "POST", f"/v1/policies/{policy_id}/act", json.dumps(body).encode(), "application/json"
-            )
+            answer = self._request("POST", path, json.dumps(body).encode(), "application/json")
             parts.append(np.asarray(answer["actions"]))
         actions = np.concatenate(parts)
         return actions[0] if single else actions
+
+    # -- models ---------------------------------------------------------------------------
+
+    def create_model(self, name: str, description: str = "", tags: Sequence[str] = ()) -> Json:
+        """A named model agents address; its versions are registered policies."""
+        return self._post_json("/v1/models", {"name": name, "description": description, "tags": list(tags)})
+
+    def model(self, name: str) -> Json:
+        return self._get(f"/v1/models/{name}")
+
+    def models(self, limit: int = 50) -> list:
+        return self._get(f"/v1/models?limit={limit}")["items"]
+
+    def register(self, model: str, policy_id: str, alias: Optional[str] = None, description: str = "") -> Json:
+        """Registers a policy as the model's next version (moving `alias` to it if given)."""
+        body: Json = {"policy_id": policy_id, "description": description}
+        if alias is not None:
+            body["alias"] = alias
+        return self._post_json(f"/v1/models/{model}/versions", body)
+
+    def versions(self, model: str) -> list:
+        """The model's versions, newest first."""
+        return self._get(f"/v1/models/{model}/versions?limit=500")["items"]
+
+    def set_alias(
+        self,
+        model: str,
+        alias: str,
+        version: int,
+        canary: Optional[Tuple[int, float]] = None,
+        actor: Optional[str] = None,
+        reason: Optional[str] = None,
+    ) -> Json:
+        """Points `alias` at `version` (``canary=(version, weight)`` sends that share of the
+        requests to another version); the move as the history keeps it."""
+        body: Json = {"version": version}
+        if canary is not None:
+            body["canary"] = {"version": canary[0], "weight": canary[1]}
+        body.update({k: v for k, v in {"actor": actor, "reason": reason}.items() if v is not None})
+        return self._request(
+            "PUT", f"/v1/models/{model}/aliases/{alias}", json.dumps(body).encode(), "application/json"
+        )
+
+    def delete_alias(self, model: str, alias: str, actor: Optional[str] = None) -> None:
+        query = f"?actor={urllib.parse.quote(actor)}" if actor else ""
+        self._request("DELETE", f"/v1/models/{model}/aliases/{alias}{query}")
+
+    def model_history(self, model: str, alias: Optional[str] = None) -> list:
+        """Every move of the model's aliases (of `alias` only, if given), newest first."""
+        query = f"?alias={urllib.parse.quote(alias)}" if alias else ""
+        return self._get(f"/v1/models/{model}/history{query}")["items"]
+
+    def delete_model(self, name: str) -> None:
+        self._request("DELETE", f"/v1/models/{name}")
 
     # -- evaluations ----------------------------------------------------------------------
 
