@@ -157,7 +157,7 @@ function modelMeta(model, onDeleted) {
     problem);
 }
 
-function aliasesCard(model, onRollback) {
+function aliasesCard(model, onRollback, onRemove) {
   const body = model.aliases.length
     ? tableWrap(h('table', { id: 'aliases-table' },
       h('thead', {}, h('tr', {}, h('th', {}, 'Alias'), h('th', {}, 'Version'), h('th', {}, 'Canary'), h('th', {}, 'Moved'), h('th', {}, ''))),
@@ -167,10 +167,11 @@ function aliasesCard(model, onRollback) {
         h('td', { class: 'canary' }, a.canary ? canaryText(a.canary) : h('span', { class: 'muted' }, 'none')),
         h('td', {}, fmtTime(a.updated_at)),
         h('td', { class: 'row-actions' },
-          h('button', { type: 'button', class: 'secondary rollback', onclick: () => onRollback(a) }, 'Roll back')))))))
+          h('button', { type: 'button', class: 'secondary rollback', onclick: () => onRollback(a) }, 'Roll back'),
+          h('button', { type: 'button', class: 'danger remove-alias', onclick: () => onRemove(a) }, 'Remove')))))))
     : h('div', { class: 'empty', id: 'aliases-empty' }, 'No aliases yet: promote a version below to create one (e.g. production).');
   return h('div', { class: 'card', id: 'aliases-card' }, h('h2', {}, 'Aliases'), body,
-    h('p', { class: 'hint' }, 'Roll back points an alias where it pointed before its latest move (see the history below).'));
+    h('p', { class: 'hint' }, 'Roll back points an alias where it pointed before its latest move (see the history below). Agents calling a removed alias get 404.'));
 }
 
 function versionsCard(model, versions, onPromote) {
@@ -299,13 +300,29 @@ function modelPage(view, name) {
     }
   };
 
+  const onRemove = (alias) => {
+    notice.replaceChildren();
+    dialog.show({
+      title: `Remove ${alias.alias}`,
+      fields: [h('p', { class: 'hint' }, `Agents calling ${name}@${alias.alias} get 404 from then on; the move is kept in the history.`)],
+      question: `Remove the alias ${alias.alias} (now at ${vText(alias.version)})?`,
+      confirmLabel: 'Remove',
+      action: async () => {
+        await api(withParams(`${modelPath(name)}/aliases/${encodeURIComponent(alias.alias)}`,
+          { actor: DASHBOARD_ACTOR, reason: 'removed from the dashboard' }), { method: 'DELETE' });
+        notice.replaceChildren(h('div', { class: 'notice', id: 'model-moved' }, `Removed ${alias.alias} (it pointed at ${vText(alias.version)}).`));
+        await load().catch((err) => slot.replaceChildren(errorBox(err)));
+      },
+    });
+  };
+
   const load = async () => {
     const [m, versions, history] = await Promise.all([api(modelPath(name)),
       api(withParams(`${modelPath(name)}/versions`, { limit: 500 })), api(withParams(`${modelPath(name)}/history`, { limit: 200 }))]);
     if (mine !== generation) return;
     model = m;
     slot.replaceChildren(
-      h('div', { class: 'grid2' }, modelMeta(model, () => { location.hash = '#/models'; }), aliasesCard(model, onRollback)),
+      h('div', { class: 'grid2' }, modelMeta(model, () => { location.hash = '#/models'; }), aliasesCard(model, onRollback, onRemove)),
       versionsCard(model, versions, onPromote),
       historyCard(history));
   };

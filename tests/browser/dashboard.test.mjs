@@ -791,6 +791,17 @@ test('the job form registers the job’s policy as the next version of a model, 
   assert.equal(await page.textContent(`${row} .source`), v3.source);
   assert.equal(await page.getAttribute(`${row} .job-link`, 'href'), `#/jobs/${id}`);
   assert.equal(await page.textContent('#aliases-table tr[data-alias="staging"] .version'), 'v3');
+
+  // staging is removed through the dialog; the history keeps the move.
+  await page.click('#aliases-table tr[data-alias="staging"] button.remove-alias');
+  await page.waitForSelector('#model-dialog[open]');
+  assert.equal(await page.textContent('#dialog-question'), 'Remove the alias staging (now at v3)?');
+  await page.click('#dialog-confirm');
+  await page.waitForSelector('#aliases-table tr[data-alias="staging"]', { state: 'detached' });
+  assert.deepEqual((await api('/v1/models/pilot')).body.aliases.map((a) => a.alias), ['production']);
+  const [removal] = (await api('/v1/models/pilot/history?alias=staging')).body.items;
+  assert.deepEqual([removal.from_version, removal.to_version ?? null, removal.actor], [3, null, 'dashboard']);
+  assert.equal(await page.textContent(`#history-table tr[data-seq="${removal.seq}"] .move`), 'v3 → deleted');
 });
 
 test('in a narrow window no page is wider than the window and no placeholder is cut off', async () => {
