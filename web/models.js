@@ -244,6 +244,21 @@ function modelPage(view, name) {
     await moved(move);
   };
 
+  // The API moves an alias whatever it points at now, so a move confirmed on a page that is out
+  // of date would undo someone else's: the alias is read again first and the move is refused here
+  // if it no longer points where the question said (null: the alias did not exist).
+  const unmoved = async (alias, asked) => {
+    const now = (await api(modelPath(name))).aliases.find((a) => a.alias === alias);
+    const version = now ? now.version : null;
+    if (version !== asked) {
+      await load().catch(() => {});
+      let what = `${alias} points at ${vText(version)} now, not ${vText(asked)} as this page showed: it was moved meanwhile.`;
+      if (version === null) what = `${alias} was removed meanwhile.`;
+      else if (asked === null) what = `${alias} was created meanwhile, at ${vText(version)}.`;
+      throw new ApiError(0, null, `${what} Nothing was moved; the page shows the current state, check it and try again.`);
+    }
+  };
+
   const onPromote = (version) => {
     const existing = model.aliases;
     const choice = h('select', { id: 'promote-alias' },
@@ -269,7 +284,12 @@ function modelPage(view, name) {
         h('p', { class: 'hint' }, `Alias names follow the model name rule (${MODEL_NAME_RULE}); not all digits, not “latest”.`)],
       question: '',
       confirmLabel: 'Promote',
-      action: () => setAlias(aliasName(), version.version, `promoted ${vText(version.version)} from the dashboard`),
+      action: async () => {
+        const alias = aliasName();
+        const asked = existing.find((a) => a.alias === alias);
+        await unmoved(alias, asked ? asked.version : null);
+        await setAlias(alias, version.version, `promoted ${vText(version.version)} from the dashboard`);
+      },
     });
     ask();
   };
@@ -293,7 +313,10 @@ function modelPage(view, name) {
         fields: [h('p', { class: 'hint' }, `Its latest move (seq ${latest.seq}, by ${latest.actor}, ${fmtTime(latest.moved_at)}) was ${historyText(latest)}.`)],
         question: `Roll ${alias.alias} back from ${vText(now)} to ${vText(target)}${canary ? `, with ${canaryText(canary)} as before` : ''}?`,
         confirmLabel: 'Roll back',
-        action: () => setAlias(alias.alias, target, `rolled back from ${vText(now)} to ${vText(target)}`, canary),
+        action: async () => {
+          await unmoved(alias.alias, now);
+          await setAlias(alias.alias, target, `rolled back from ${vText(now)} to ${vText(target)}`, canary);
+        },
       });
     } catch (err) {
       notice.replaceChildren(errorBox(err, 'rollback-error'));

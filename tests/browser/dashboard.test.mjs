@@ -802,6 +802,21 @@ test('the job form registers the job’s policy as the next version of a model, 
   const [removal] = (await api('/v1/models/pilot/history?alias=staging')).body.items;
   assert.deepEqual([removal.from_version, removal.to_version ?? null, removal.actor], [3, null, 'dashboard']);
   assert.equal(await page.textContent(`#history-table tr[data-seq="${removal.seq}"] .move`), 'v3 → deleted');
+
+  // A move confirmed on a page that is out of date is refused instead of undoing someone else's.
+  await page.click('#versions-table tr[data-version="3"] button.promote');
+  await page.waitForSelector('#model-dialog[open]');
+  assert.equal(await page.textContent('#dialog-question'), 'Point production from v1 to v3?');
+  const meanwhile = await api('/v1/models/pilot/aliases/production', { method: 'PUT', headers: { 'content-type': 'application/json' },
+    body: JSON.stringify({ version: 2, actor: 'someone else' }) });
+  assert.equal(meanwhile.status, 200);
+  await page.click('#dialog-confirm');
+  assert.match(await (await page.waitForSelector('.dialog-error .error-message')).textContent(), /^production points at v2 now, not v1 as this page showed/);
+  assert.equal((await api('/v1/models/pilot')).body.aliases.find((a) => a.alias === 'production').version, 2);
+  assert.equal((await api('/v1/models/pilot/history?alias=production')).body.items[0].actor, 'someone else');
+  await page.waitForSelector('#aliases-table tr[data-alias="production"] .version:has-text("v2")');
+  await page.click('#dialog-cancel');
+  await page.waitForSelector('#model-dialog', { state: 'hidden' });
 });
 
 test('in a narrow window no page is wider than the window and no placeholder is cut off', async () => {
