@@ -1,8 +1,8 @@
 // ceiling: the dashboard's six pages in one script, embedded as is by src/http/ui.rs, no build
 // SafeDICE dashboard: a small vanilla-JS single-page app over the JSON API (/v1), on the
-// helpers of lib.js and the charts of charts.js. Pages are hash routes; lists refresh by polling
-// (EventSource cannot send the Authorization header, and polling a page of jobs once a second is
-// cheap).
+// helpers of lib.js, the charts of charts.js and the models pages of models.js. Pages are hash
+// routes; lists refresh by polling (EventSource cannot send the Authorization header, and
+// polling a page of jobs once a second is cheap).
 'use strict';
 
 // Each algorithm's colour is the --accent of its class algo-<name> (badges, progress bars).
@@ -20,6 +20,9 @@ const routes = [
   [/^#\/compare$/, comparePage, 'compare'],
   [/^#\/policies$/, policiesPage, 'policies'],
   [/^#\/policies\/([\w-]+)$/, policyPage, 'policies'],
+  // Pages of models.js.
+  [/^#\/models$/, modelsPage, 'models'],
+  [/^#\/models\/([A-Za-z0-9][\w.-]*)$/, modelPage, 'models'],
 ];
 
 function route() {
@@ -291,7 +294,7 @@ function datasetChoices(datasets, role) {
 /** "a, b" → ["a", "b"]: tags as typed in a field. */
 const parseTags = (text) => text.split(',').map((t) => t.trim()).filter(Boolean);
 
-function jobForm(datasets, envs, finished, onCreated) {
+function jobForm(datasets, envs, finished, models, onCreated) {
   const algorithm = h('select', { name: 'algorithm', id: 'job-algorithm' },
     Object.entries(ALGORITHMS).map(([value, a]) => h('option', { value }, a.label)));
   const option = (d) => h('option', { value: d.id }, `${d.name} (${fmt(d.transitions)} transitions)`);
@@ -315,6 +318,7 @@ function jobForm(datasets, envs, finished, onCreated) {
   const evalEvery = h('input', { name: 'eval_every', id: 'job-eval-every', inputmode: 'numeric', placeholder: 'iterations / 10' });
   const evalEpisodes = h('input', { name: 'eval_episodes', id: 'job-eval-episodes', inputmode: 'numeric', placeholder: '500' });
   const estimate = h('p', { class: 'estimate', id: 'job-estimate' });
+  const register = registerFields(models);
   // Only the environments whose spaces match the unlabeled dataset's can evaluate the policy.
   const showEnvs = () => {
     const dataset = datasets.find((d) => d.id === unlabeled.value);
@@ -386,7 +390,8 @@ function jobForm(datasets, envs, finished, onCreated) {
       h('label', {}, 'Record metrics every (steps)', logEvery),
       h('label', {}, 'Evaluate on environment', evalEnv),
       h('label', {}, 'Evaluate every (policy steps)', evalEvery),
-      h('label', {}, 'Evaluation episodes', evalEpisodes)),
+      h('label', {}, 'Evaluation episodes', evalEpisodes),
+      register.labels),
     estimate,
     h('p', { class: 'hint' }, 'Empty fields take the preset’s value (the placeholders). SafeDICE first trains its discriminator (as many steps as the iterations in the service preset, a tenth in the others) and PPL its reward model (a tenth), unless set; those steps count in the job’s progress. With an environment, the policy is evaluated every N policy steps and at the end (the paper’s metrics, charted on the job page).'),
     h('div', { class: 'form-actions' }, submit), result);
@@ -407,6 +412,7 @@ function jobForm(datasets, envs, finished, onCreated) {
       body.eval = { env: evalEnv.value, every: Number(evalEvery.value.trim() || Math.max(1, Math.round(iterations / 10))) };
       if (evalEpisodes.value.trim()) body.eval.episodes = Number(evalEpisodes.value.trim());
     }
+    if (register.value()) body.register = register.value();
     submit.disabled = true;
     try {
       const job = await api('/v1/jobs', { method: 'POST', json: body });
@@ -482,14 +488,14 @@ function jobsPage(view) {
   view.append(h('h1', {}, 'Jobs'), formSlot,
     h('div', { class: 'card' }, h('div', { class: 'card-head' }, h('h2', {}, 'Jobs'), filters), listError, list, pages.nav));
 
-  Promise.all([api('/v1/datasets?limit=100'), api('/v1/envs'), api('/v1/jobs?status=succeeded&limit=100')])
-    .then(([datasets, envs, finished]) => {
+  Promise.all([api('/v1/datasets?limit=100'), api('/v1/envs'), api('/v1/jobs?status=succeeded&limit=100'), api('/v1/models?limit=100')])
+    .then(([datasets, envs, finished, models]) => {
       if (!datasets.items.length) {
         formSlot.replaceChildren(h('div', { class: 'card' }, h('div', { class: 'empty' },
           'Upload datasets first: a job trains on an unlabeled dataset and (except BC) a non-preferred one. ',
           h('a', { href: '#/datasets' }, 'Go to Datasets.'))));
       } else {
-        formSlot.replaceChildren(jobForm(datasets.items, envs.items, finished.items, () => pages.reload().catch(() => {})));
+        formSlot.replaceChildren(jobForm(datasets.items, envs.items, finished.items, models.items, () => pages.reload().catch(() => {})));
       }
     }).catch((err) => formSlot.replaceChildren(errorBox(err)));
   every(LIST_POLL_MS, () => pages.reload(), (err) => listError.replaceChildren(errorBox(err)));

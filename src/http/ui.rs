@@ -15,13 +15,14 @@ const CSS: &str = "text/css; charset=utf-8";
 
 /// Every embedded file of the dashboard: URL path, content type, contents. index.html loads the
 /// scripts in this order (each uses what the ones before it define).
-const ASSETS: [(&str, &str, &str); 8] = [
+const ASSETS: [(&str, &str, &str); 9] = [
     ("/ui/style.css", CSS, include_str!("../../web/style.css")),
     ("/ui/favicon.svg", "image/svg+xml", include_str!("../../web/favicon.svg")),
     ("/ui/vendor/uPlot.min.css", CSS, include_str!("../../web/vendor/uPlot.min.css")),
     ("/ui/vendor/uPlot.iife.min.js", JS, include_str!("../../web/vendor/uPlot.iife.min.js")),
     ("/ui/lib.js", JS, include_str!("../../web/lib.js")),
     ("/ui/charts.js", JS, include_str!("../../web/charts.js")),
+    ("/ui/models.js", JS, include_str!("../../web/models.js")),
     ("/ui/app.js", JS, include_str!("../../web/app.js")),
     (
         "/ui/vendor/uPlot.LICENSE",

@@ -631,11 +631,200 @@ test('compare shows the paper’s metrics side by side, exports them, and plots 
   assert.ok(lines.some((l) => l.startsWith('alpha_hat,')));
 });
 
+test('a model is created on the Models page, and a name that breaks the rule shows the server’s rule', async () => {
+  await page.goto(`${base}/#/models`);
+  await page.waitForSelector('#models-list .empty');
+  assert.equal(await page.getAttribute('nav a[data-nav="models"]', 'class'), 'active');
+  // The page states the rule before anything is sent.
+  assert.match(await page.textContent('#model-name-rule'), /1-64 characters from ASCII letters, digits and - _ \./);
+  assert.match(await page.textContent('#model-name-rule'), /starting with a letter or a digit/);
+
+  // A name starting with a dash is refused; the page shows the server's 422 as it comes.
+  const direct = await post('/v1/models', { name: '-pilot', description: '', tags: [] });
+  assert.equal(direct.status, 422);
+  assert.equal(direct.body.error.code, 'invalid_name');
+  await page.fill('#model-name', '-pilot');
+  await page.click('#model-submit');
+  const shown = await page.waitForSelector('.model-form-error .error-message');
+  assert.equal(await shown.textContent(), direct.body.error.message);
+  assert.match(await shown.textContent(), /starting with a letter or a digit/);
+  assert.equal(await page.textContent('.model-form-error .error-code'), 'invalid_name');
+  assert.equal((await api('/v1/models')).body.total, 0);
+
+  await page.fill('#model-name', 'pilot');
+  await page.fill('#model-description', 'six-rooms navigator');
+  await page.fill('#model-tags', 'browser, six-rooms');
+  await page.click('#model-submit');
+  await page.waitForSelector('#model-created a[href="#/models/pilot"]');
+  const row = '#models-table tr[data-name="pilot"]';
+  await page.waitForSelector(row);
+  const model = (await api('/v1/models/pilot')).body;
+  assert.equal(model.description, 'six-rooms navigator');
+  assert.deepEqual(model.tags, ['browser', 'six-rooms']);
+  assert.equal(model.latest_version ?? null, null);
+  assert.equal(await page.textContent(`${row} .latest`), '—');
+  assert.equal(await page.textContent(`${row} .aliases`), 'none');
+  assert.equal(await page.inputValue('#model-name'), '', 'the form is cleared after a create');
+});
+
+test('versions are promoted through the dialog and rolled back; the model page and the API agree', async () => {
+  // Two trained policies as versions 1 and 2 (the SafeDICE job's and the BC job's).
+  const v1 = await post('/v1/models/pilot/versions', { policy_id: state.policy, description: 'safedice small' });
+  assert.equal(v1.status, 201);
+  assert.equal(v1.body.version, 1);
+  const v2 = await post('/v1/models/pilot/versions', { policy_id: state.bcJob.policy_id });
+  assert.equal(v2.status, 201);
+  assert.equal(v2.body.version, 2);
+
+  await page.goto(`${base}/#/models/pilot`);
+  await page.waitForSelector('#versions-table tr[data-version="2"]');
+  assert.match(await page.textContent('#model-description-text'), /six-rooms navigator/);
+  assert.deepEqual(await page.$$eval('#model-tags-list .tag', (ts) => ts.map((t) => t.textContent)), ['browser', 'six-rooms']);
+  assert.deepEqual(await page.$$eval('#versions-table tbody tr', (trs) => trs.map((tr) => tr.dataset.version)), ['2', '1']);
+  // Each version links to its policy and its job (the paper's metrics are one click away).
+  const first = '#versions-table tr[data-version="1"]';
+  assert.equal(await page.getAttribute(`${first} .policy-link`, 'href'), `#/policies/${state.policy}`);
+  assert.equal(await page.getAttribute(`${first} .job-link`, 'href'), `#/jobs/${state.job.id}`);
+  assert.equal(await page.textContent(`${first} .source`), 'api');
+  assert.ok(await page.isVisible('#aliases-empty'));
+
+  // v1 to a new alias, production: the dialog asks first.
+  await page.click(`${first} button.promote`);
+  await page.waitForSelector('#model-dialog[open]');
+  await page.fill('#promote-new-alias', 'production');
+  assert.equal(await page.textContent('#dialog-question'), 'Point the new alias production at v1?');
+  await page.click('#dialog-confirm');
+  await page.waitForSelector('#model-dialog', { state: 'hidden' });
+  await page.waitForSelector('#aliases-table tr[data-alias="production"] .version:has-text("v1")');
+
+  // Cancelling the dialog moves nothing.
+  const second = '#versions-table tr[data-version="2"]';
+  await page.click(`${second} button.promote`);
+  await page.waitForSelector('#model-dialog[open]');
+  assert.equal(await page.inputValue('#promote-alias'), 'production');
+  assert.equal(await page.textContent('#dialog-question'), 'Point production from v1 to v2?');
+  await page.click('#dialog-cancel');
+  await page.waitForSelector('#model-dialog', { state: 'hidden' });
+  assert.equal((await api('/v1/models/pilot/history')).body.items.length, 1);
+
+  // v2 to production, this time confirmed.
+  await page.click(`${second} button.promote`);
+  await page.waitForSelector('#model-dialog[open]');
+  assert.equal(await page.textContent('#dialog-question'), 'Point production from v1 to v2?');
+  await page.click('#dialog-confirm');
+  await page.waitForSelector('#aliases-table tr[data-alias="production"] .version:has-text("v2")');
+  assert.equal(await page.textContent('#model-moved'), 'production now points at v2 (was v1).');
+  assert.equal((await api('/v1/models/pilot')).body.aliases[0].version, 2);
+
+  // Roll back: production goes where it pointed before its latest move.
+  await page.click('#aliases-table tr[data-alias="production"] button.rollback');
+  await page.waitForSelector('#model-dialog[open]');
+  assert.equal(await page.textContent('#dialog-question'), 'Roll production back from v2 to v1?');
+  await page.click('#dialog-confirm');
+  await page.waitForSelector('#aliases-table tr[data-alias="production"] .version:has-text("v1")');
+
+  // The API says what the page says.
+  const model = (await api('/v1/models/pilot')).body;
+  assert.equal(model.latest_version, 2);
+  assert.equal(model.version_count, 2);
+  assert.deepEqual(model.aliases.map((a) => [a.alias, a.version, a.canary ?? null]), [['production', 1, null]]);
+  const history = (await api('/v1/models/pilot/history')).body.items;
+  assert.deepEqual(history.map((m) => [m.alias, m.from_version ?? null, m.to_version, m.actor]),
+    [['production', 2, 1, 'dashboard'], ['production', 1, 2, 'dashboard'], ['production', null, 1, 'dashboard']]);
+  const rows = await page.$$eval('#history-table tbody tr', (trs) => trs.map((tr) => ({ seq: tr.dataset.seq,
+    alias: tr.querySelector('.alias').textContent, move: tr.querySelector('.move').textContent, actor: tr.querySelector('.actor').textContent })));
+  assert.deepEqual(rows, history.map((m, i) => ({ seq: String(m.seq), alias: 'production', move: ['v2 → v1', 'v1 → v2', 'created at v1'][i], actor: 'dashboard' })));
+  assert.deepEqual(await page.$$eval(`${first} .alias-tag`, (ts) => ts.map((t) => t.textContent)), ['production']);
+  assert.equal(await page.$$eval(`${second} .alias-tag`, (ts) => ts.length), 0);
+  await screenshot('model');
+
+  // While production points at a version, the model cannot be deleted: the server's 409 shows.
+  await page.click('#model-delete');
+  await page.click('#model-delete');
+  assert.equal(await (await page.waitForSelector('.model-delete-error .error-code')).textContent(), 'model_in_use');
+  assert.equal((await api('/v1/models/pilot')).status, 200);
+
+  // The list shows where the alias points now.
+  await page.click('nav a[data-nav="models"]');
+  await page.waitForSelector('#models-table tr[data-name="pilot"] .alias-chip');
+  assert.equal(await page.textContent('#models-table tr[data-name="pilot"] .aliases'), 'production → v1');
+  assert.equal(await page.textContent('#models-table tr[data-name="pilot"] .latest'), 'v2');
+
+  // A version's policy link opens the policy page.
+  await page.goto(`${base}/#/models/pilot`);
+  await page.click(`${second} .policy-link`);
+  await page.waitForSelector('#policy-meta');
+  assert.equal(await page.evaluate(() => location.hash), `#/policies/${state.bcJob.policy_id}`);
+});
+
+test('the job form registers the job’s policy as the next version of a model, with an alias', async () => {
+  await page.goto(`${base}/#/jobs`);
+  await page.waitForSelector('#job-form');
+  assert.deepEqual(await page.$$eval('#job-register-model option', (os) => os.map((o) => o.value)), ['', 'pilot']);
+  assert.equal(await page.isDisabled('#job-register-alias'), true);
+  await page.selectOption('#job-algorithm', 'bc');
+  await page.fill('#job-name', 'registered bc');
+  await page.fill('#job-iterations', '300');
+  await page.fill('#job-hidden_sizes', '32, 32');
+  await page.fill('#job-batch_size', '64');
+  await page.selectOption('#job-eval-env', '');
+  await page.selectOption('#job-register-model', 'pilot');
+  await page.fill('#job-register-alias', 'staging');
+  await page.click('#job-submit');
+  const link = await page.waitForSelector('#job-created a');
+  const id = (await link.getAttribute('href')).replace('#/jobs/', '');
+  const job = (await api(`/v1/jobs/${id}`)).body;
+  assert.equal(job.name, 'registered bc');
+  assert.deepEqual(job.register, { model: 'pilot', alias: 'staging' });
+  const done = await finished(id);
+  assert.equal(done.status, 'succeeded');
+
+  const model = (await api('/v1/models/pilot')).body;
+  assert.equal(model.latest_version, 3);
+  assert.deepEqual(model.aliases.map((a) => [a.alias, a.version]).sort(), [['production', 1], ['staging', 3]]);
+  const v3 = (await api('/v1/models/pilot/versions/3')).body;
+  assert.equal(v3.policy_id, done.policy_id);
+  assert.equal(v3.job_id, id);
+  await page.goto(`${base}/#/models/pilot`);
+  const row = '#versions-table tr[data-version="3"]';
+  await page.waitForSelector(row);
+  assert.equal(await page.textContent(`${row} .source`), v3.source);
+  assert.equal(await page.getAttribute(`${row} .job-link`, 'href'), `#/jobs/${id}`);
+  assert.equal(await page.textContent('#aliases-table tr[data-alias="staging"] .version'), 'v3');
+
+  // staging is removed through the dialog; the history keeps the move.
+  await page.click('#aliases-table tr[data-alias="staging"] button.remove-alias');
+  await page.waitForSelector('#model-dialog[open]');
+  assert.equal(await page.textContent('#dialog-question'), 'Remove the alias staging (now at v3)?');
+  await page.click('#dialog-confirm');
+  await page.waitForSelector('#aliases-table tr[data-alias="staging"]', { state: 'detached' });
+  assert.deepEqual((await api('/v1/models/pilot')).body.aliases.map((a) => a.alias), ['production']);
+  const [removal] = (await api('/v1/models/pilot/history?alias=staging')).body.items;
+  assert.deepEqual([removal.from_version, removal.to_version ?? null, removal.actor], [3, null, 'dashboard']);
+  assert.equal(await page.textContent(`#history-table tr[data-seq="${removal.seq}"] .move`), 'v3 → deleted');
+
+  // A move confirmed on a page that is out of date is refused instead of undoing someone else's.
+  await page.click('#versions-table tr[data-version="3"] button.promote');
+  await page.waitForSelector('#model-dialog[open]');
+  assert.equal(await page.textContent('#dialog-question'), 'Point production from v1 to v3?');
+  const meanwhile = await api('/v1/models/pilot/aliases/production', { method: 'PUT', headers: { 'content-type': 'application/json' },
+    body: JSON.stringify({ version: 2, actor: 'someone else' }) });
+  assert.equal(meanwhile.status, 200);
+  await page.click('#dialog-confirm');
+  assert.match(await (await page.waitForSelector('.dialog-error .error-message')).textContent(), /^production points at v2 now, not v1 as this page showed/);
+  assert.equal((await api('/v1/models/pilot')).body.aliases.find((a) => a.alias === 'production').version, 2);
+  assert.equal((await api('/v1/models/pilot/history?alias=production')).body.items[0].actor, 'someone else');
+  await page.waitForSelector('#aliases-table tr[data-alias="production"] .version:has-text("v2")');
+  await page.click('#dialog-cancel');
+  await page.waitForSelector('#model-dialog', { state: 'hidden' });
+});
+
 test('in a narrow window no page is wider than the window and no placeholder is cut off', async () => {
   for (const width of [1360, 420]) {
     await page.setViewportSize({ width, height: 900 });
     for (const [hash, ready] of [['#/datasets', '#datasets-table'], ['#/jobs', '#jobs-table'],
-      [`#/jobs/${state.job.id}`, '#charts .u-over'], ['#/compare', '#compare-table'], [`#/policies/${state.policy}`, '#act-form']]) {
+      [`#/jobs/${state.job.id}`, '#charts .u-over'], ['#/compare', '#compare-table'], [`#/policies/${state.policy}`, '#act-form'],
+      ['#/models', '#models-table'], ['#/models/pilot', '#history-table']]) {
       await page.goto(`${base}/${hash}`);
       await page.waitForSelector(ready);
       await page.waitForTimeout(200); // charts take their width on the next frame

@@ -1,0 +1,378 @@
+// SafeDICE dashboard, the models pages: named models for deployment (/v1/models), their numbered
+// versions (each a trained policy) and their aliases with the history of every move, and the
+// job form's "register as a version" fields. Loaded after lib.js and before app.js, whose route
+// table and job form use these functions.
+'use strict';
+
+/** The rule the server applies to model and alias names (src/domain/model.rs, NAME_RULE). The
+ *  page states it; the server checks it and its 422 message is shown as it comes. */
+const MODEL_NAME_RULE = '1-64 characters from ASCII letters, digits and - _ . (dash, underscore, dot), starting with a letter or a digit';
+/** Who the alias moves made here are recorded as, in the model's history. */
+const DASHBOARD_ACTOR = 'dashboard';
+
+const vText = (version) => (version === null || version === undefined ? '—' : `v${version}`);
+const modelHref = (name) => `#/models/${encodeURIComponent(name)}`;
+const modelPath = (name) => `/v1/models/${encodeURIComponent(name)}`;
+const pctText = (weight) => `${Number((weight * 100).toPrecision(4))}%`;
+const canaryText = (canary) => (canary ? `${vText(canary.version)} takes ${pctText(canary.weight)}` : null);
+
+/** "production → v2" (and its canary), as the list and the model page show an alias. */
+function aliasChip(alias) {
+  return h('span', { class: 'alias-chip', 'data-alias': alias.alias },
+    h('strong', {}, alias.alias), ` → ${vText(alias.version)}`,
+    alias.canary ? h('span', { class: 'muted' }, ` (canary ${canaryText(alias.canary)})`) : null);
+}
+
+// ---------- the list ----------
+
+function modelsTable(items) {
+  if (!items.length) {
+    return h('div', { class: 'empty' }, 'No models yet. Create one above, then register trained policies as its versions ',
+      '(from the job form, or POST /v1/models/{name}/versions).');
+  }
+  return tableWrap(h('table', { id: 'models-table' },
+    h('thead', {}, h('tr', {}, h('th', {}, 'Model'), h('th', { class: 'num' }, 'Latest'), h('th', { class: 'num' }, 'Versions'),
+      h('th', {}, 'Aliases'), h('th', {}, 'Updated'))),
+    h('tbody', {}, items.map((m) => h('tr', { 'data-name': m.name },
+      h('td', {}, h('a', { href: modelHref(m.name), class: 'model-name' }, m.name),
+        m.description ? h('div', { class: 'muted' }, m.description) : null, h('div', { class: 'tags' }, tagChips(m.tags))),
+      h('td', { class: 'num latest' }, vText(m.latest_version)),
+      h('td', { class: 'num' }, fmt(m.version_count)),
+      h('td', { class: 'aliases' }, m.aliases.length ? m.aliases.map(aliasChip) : h('span', { class: 'muted' }, 'none')),
+      h('td', {}, fmtTime(m.updated_at)))))));
+}
+
+function modelForm(onCreated) {
+  const name = h('input', { id: 'model-name', name: 'name', placeholder: 'e.g. pilot', spellcheck: 'false', autocomplete: 'off' });
+  const description = h('input', { id: 'model-description', name: 'description', placeholder: 'what it is for' });
+  const tags = h('input', { id: 'model-tags', name: 'tags', placeholder: 'comma-separated, e.g. walker' });
+  const submit = h('button', { type: 'submit', id: 'model-submit' }, 'Create model');
+  const result = h('div', { id: 'model-form-result' });
+  const form = h('form', { id: 'model-form', class: 'card', autocomplete: 'off' }, h('h2', {}, 'New model'),
+    h('div', { class: 'form-grid' },
+      h('label', {}, 'Name', name),
+      h('label', {}, 'Tags', tags),
+      h('label', { class: 'wide' }, 'Description', description)),
+    h('p', { class: 'hint', id: 'model-name-rule' }, `Name: ${MODEL_NAME_RULE}. Agents call it as name (the latest version) or name@alias.`),
+    h('div', { class: 'form-actions' }, submit), result);
+  form.addEventListener('submit', async (event) => {
+    event.preventDefault();
+    result.replaceChildren();
+    const body = { name: name.value.trim(), description: description.value.trim(), tags: parseTags(tags.value) };
+    submit.disabled = true;
+    try {
+      const model = await api('/v1/models', { method: 'POST', json: body });
+      result.replaceChildren(h('div', { class: 'notice', id: 'model-created' }, 'Created model ',
+        h('a', { href: modelHref(model.name) }, model.name), '. Register versions from the job form or the API.'));
+      form.reset();
+      onCreated(model);
+    } catch (err) {
+      result.replaceChildren(errorBox(err, 'model-form-error'));
+    } finally {
+      submit.disabled = false;
+    }
+  });
+  return form;
+}
+
+function modelsPage(view) {
+  const list = h('div', { id: 'models-list' });
+  const pages = pagedList({ path: '/v1/models', size: PAGE_SIZE, id: 'models-pager',
+    render: (items) => list.replaceChildren(modelsTable(items)) });
+  const reload = () => pages.reload().catch((err) => list.replaceChildren(errorBox(err)));
+  view.append(h('h1', {}, 'Models'), modelForm(reload),
+    h('div', { class: 'card' }, h('h2', {}, 'Models'), list, pages.nav));
+  reload();
+}
+
+// ---------- one model ----------
+
+/** The page's one confirmation dialog (a <dialog>, so it is part of the page and tests can drive
+ *  it). `open` fills it: a title, fields, the question, and the action its Confirm button runs;
+ *  an error of the action stays in the dialog, success closes it. */
+function actionDialog() {
+  const title = h('h2', { id: 'dialog-title' });
+  const fields = h('div', { id: 'dialog-fields' });
+  const question = h('p', { id: 'dialog-question', class: 'dialog-question' });
+  const problem = h('div', { id: 'dialog-error' });
+  const confirm = h('button', { type: 'submit', id: 'dialog-confirm' }, 'Confirm');
+  const cancel = h('button', { type: 'button', class: 'secondary', id: 'dialog-cancel' }, 'Cancel');
+  const form = h('form', { method: 'dialog' }, title, fields, question, problem, h('div', { class: 'form-actions' }, confirm, cancel));
+  const dialog = h('dialog', { id: 'model-dialog', class: 'modal' }, form);
+  let action = null;
+  cancel.addEventListener('click', () => dialog.close('cancel'));
+  form.addEventListener('submit', async (event) => {
+    event.preventDefault();
+    if (!action || confirm.disabled) return;
+    problem.replaceChildren();
+    confirm.disabled = true;
+    try {
+      await action();
+      dialog.close('confirm');
+    } catch (err) {
+      problem.replaceChildren(errorBox(err, 'dialog-error'));
+    } finally {
+      confirm.disabled = false;
+    }
+  });
+  /** Sets the question, and whether Confirm can be pressed. */
+  const ask = (text, ok) => {
+    question.textContent = text;
+    confirm.disabled = !ok;
+  };
+  const show = (spec) => {
+    title.textContent = spec.title;
+    fields.replaceChildren(...(spec.fields || []));
+    problem.replaceChildren();
+    confirm.textContent = spec.confirmLabel || 'Confirm';
+    action = spec.action;
+    ask(spec.question, true);
+    if (!dialog.open) dialog.showModal();
+  };
+  return { element: dialog, show, ask };
+}
+
+function modelMeta(model, onDeleted) {
+  const problem = h('div', {});
+  const remove = confirmButton('Delete model', 'Really delete the model, its versions and history?', async () => {
+    try {
+      await api(modelPath(model.name), { method: 'DELETE' });
+      onDeleted();
+    } catch (err) {
+      problem.replaceChildren(errorBox(err, 'model-delete-error'));
+    }
+  }, { id: 'model-delete' });
+  const served = `${location.origin}/v1/models/${model.name}@<alias>/act`;
+  return h('div', { class: 'card', id: 'model-meta' }, h('h2', {}, 'About'),
+    h('dl', { class: 'kv' },
+      h('dt', {}, 'description'), h('dd', { id: 'model-description-text' }, model.description || h('span', { class: 'muted' }, 'none')),
+      h('dt', {}, 'tags'), h('dd', { id: 'model-tags-list' }, model.tags.length ? tagChips(model.tags) : h('span', { class: 'muted' }, 'none')),
+      h('dt', {}, 'latest version'), h('dd', { id: 'model-latest' }, vText(model.latest_version)),
+      h('dt', {}, 'versions'), h('dd', {}, fmt(model.version_count)),
+      h('dt', {}, 'created'), h('dd', {}, fmtTime(model.created_at)),
+      h('dt', {}, 'updated'), h('dd', {}, fmtTime(model.updated_at)),
+      h('dt', {}, 'served at'), h('dd', { class: 'mono served-at' }, served)),
+    h('div', { class: 'form-actions wrap' }, remove),
+    h('p', { class: 'hint' }, 'A model can be deleted once no alias points at its versions (its policies stay).'),
+    problem);
+}
+
+function aliasesCard(model, onRollback, onRemove) {
+  const body = model.aliases.length
+    ? tableWrap(h('table', { id: 'aliases-table' },
+      h('thead', {}, h('tr', {}, h('th', {}, 'Alias'), h('th', {}, 'Version'), h('th', {}, 'Canary'), h('th', {}, 'Moved'), h('th', {}, ''))),
+      h('tbody', {}, model.aliases.map((a) => h('tr', { 'data-alias': a.alias },
+        h('td', { class: 'alias' }, h('strong', {}, a.alias)),
+        h('td', { class: 'version' }, vText(a.version)),
+        h('td', { class: 'canary' }, a.canary ? canaryText(a.canary) : h('span', { class: 'muted' }, 'none')),
+        h('td', {}, fmtTime(a.updated_at)),
+        h('td', { class: 'row-actions' },
+          h('button', { type: 'button', class: 'secondary rollback', onclick: () => onRollback(a) }, 'Roll back'),
+          h('button', { type: 'button', class: 'danger remove-alias', onclick: () => onRemove(a) }, 'Remove')))))))
+    : h('div', { class: 'empty', id: 'aliases-empty' }, 'No aliases yet: promote a version below to create one (e.g. production).');
+  return h('div', { class: 'card', id: 'aliases-card' }, h('h2', {}, 'Aliases'), body,
+    h('p', { class: 'hint' }, 'Roll back points an alias where it pointed before its latest move (see the history below). Agents calling a removed alias get 404.'));
+}
+
+function versionsCard(model, versions, onPromote) {
+  const pointing = (version) => model.aliases.filter((a) => a.version === version);
+  const body = versions.items.length
+    ? tableWrap(h('table', { id: 'versions-table' },
+      h('thead', {}, h('tr', {}, h('th', {}, 'Version'), h('th', {}, 'Aliases'), h('th', {}, 'Policy'), h('th', {}, 'Job'),
+        h('th', {}, 'Source'), h('th', {}, 'Description'), h('th', {}, 'Registered'), h('th', {}, ''))),
+      h('tbody', {}, versions.items.map((v) => h('tr', { 'data-version': v.version },
+        h('td', { class: 'version' }, h('strong', {}, vText(v.version))),
+        h('td', { class: 'aliases' }, pointing(v.version).map((a) => h('span', { class: 'tag alias-tag' }, a.alias))),
+        h('td', { class: 'mono' }, h('a', { href: `#/policies/${v.policy_id}`, class: 'policy-link', title: 'the policy: evaluations, actions, downloads' }, shortId(v.policy_id))),
+        h('td', { class: 'mono' }, h('a', { href: `#/jobs/${v.job_id}`, class: 'job-link', title: 'the job: training and evaluation metrics' }, shortId(v.job_id))),
+        h('td', { class: 'source' }, v.source),
+        h('td', {}, v.description || h('span', { class: 'muted' }, '—')),
+        h('td', {}, fmtTime(v.created_at)),
+        h('td', { class: 'row-actions' },
+          h('button', { type: 'button', class: 'promote', onclick: () => onPromote(v) }, 'Promote to…')))))))
+    : h('div', { class: 'empty', id: 'versions-empty' }, 'No versions yet. A job with “Register as a version of model” set registers its policy when it succeeds; ',
+      h('code', {}, `POST /v1/models/${model.name}/versions {"policy_id": …}`), ' registers one already trained.');
+  const more = versions.total > versions.items.length
+    ? h('p', { class: 'hint' }, `The newest ${versions.items.length} of ${versions.total} versions.`) : null;
+  return h('div', { class: 'card', id: 'versions-card' }, h('h2', {}, 'Versions'), body, more);
+}
+
+function historyText(move) {
+  if (move.from_version === null || move.from_version === undefined) return `created at ${vText(move.to_version)}`;
+  if (move.to_version === null || move.to_version === undefined) return `${vText(move.from_version)} → deleted`;
+  return `${vText(move.from_version)} → ${vText(move.to_version)}`;
+}
+
+function historyCard(history) {
+  const body = history.items.length
+    ? tableWrap(h('table', { id: 'history-table' },
+      h('thead', {}, h('tr', {}, h('th', { class: 'num' }, 'Seq'), h('th', {}, 'Alias'), h('th', {}, 'Move'), h('th', {}, 'Canary'),
+        h('th', {}, 'Actor'), h('th', {}, 'Reason'), h('th', {}, 'When'))),
+      h('tbody', {}, history.items.map((m) => h('tr', { 'data-seq': m.seq },
+        h('td', { class: 'num' }, String(m.seq)),
+        h('td', { class: 'alias' }, m.alias),
+        h('td', { class: 'move' }, historyText(m)),
+        h('td', {}, m.canary ? canaryText(m.canary) : '—'),
+        h('td', { class: 'actor' }, m.actor),
+        h('td', { class: 'reason' }, m.reason || '—'),
+        h('td', {}, fmtTime(m.moved_at)))))))
+    : h('div', { class: 'empty', id: 'history-empty' }, 'No alias has been moved yet.');
+  return h('div', { class: 'card', id: 'history-card' }, h('h2', {}, 'Alias history'), body);
+}
+
+function modelPage(view, name) {
+  const slot = h('div', {});
+  const notice = h('div', { id: 'model-notice' });
+  const dialog = actionDialog();
+  view.append(h('h1', {}, 'Model ', h('span', { class: 'mono', id: 'model-title' }, name)), notice, slot, dialog.element);
+  const mine = generation;
+  let model;
+
+  const moved = (move) => {
+    notice.replaceChildren(h('div', { class: 'notice', id: 'model-moved' },
+      move.from_version === null || move.from_version === undefined
+        ? `${move.alias} now points at ${vText(move.to_version)}.`
+        : `${move.alias} now points at ${vText(move.to_version)} (was ${vText(move.from_version)}).`));
+    // The move is done: a failure to redraw shows on the page, not as the move's error.
+    return load().catch((err) => slot.replaceChildren(errorBox(err)));
+  };
+
+  const setAlias = async (alias, version, reason, canary) => {
+    const body = { version, actor: DASHBOARD_ACTOR, reason };
+    if (canary) body.canary = canary;
+    const move = await api(`${modelPath(name)}/aliases/${encodeURIComponent(alias)}`, { method: 'PUT', json: body });
+    await moved(move);
+  };
+
+  // The API moves an alias whatever it points at now, so a move confirmed on a page that is out
+  // of date would undo someone else's: the alias is read again first and the move is refused here
+  // if it no longer points where the question said (null: the alias did not exist).
+  const unmoved = async (alias, asked) => {
+    const now = (await api(modelPath(name))).aliases.find((a) => a.alias === alias);
+    const version = now ? now.version : null;
+    if (version !== asked) {
+      await load().catch(() => {});
+      let what = `${alias} points at ${vText(version)} now, not ${vText(asked)} as this page showed: it was moved meanwhile.`;
+      if (version === null) what = `${alias} was removed meanwhile.`;
+      else if (asked === null) what = `${alias} was created meanwhile, at ${vText(version)}.`;
+      throw new ApiError(0, null, `${what} Nothing was moved; the page shows the current state, check it and try again.`);
+    }
+  };
+
+  const onPromote = (version) => {
+    const existing = model.aliases;
+    const choice = h('select', { id: 'promote-alias' },
+      existing.map((a) => h('option', { value: a.alias }, `${a.alias} (now ${vText(a.version)})`)),
+      h('option', { value: '' }, 'a new alias…'));
+    const typed = h('input', { id: 'promote-new-alias', placeholder: 'alias name, e.g. production', spellcheck: 'false', autocomplete: 'off' });
+    const typedLabel = h('label', {}, 'New alias', typed);
+    const aliasName = () => choice.value || typed.value.trim();
+    const ask = () => {
+      typedLabel.hidden = choice.value !== '';
+      const alias = aliasName();
+      const current = existing.find((a) => a.alias === alias);
+      if (!alias) dialog.ask('Choose an alias or type a new one.', false);
+      else if (current && current.version === version.version && !current.canary) dialog.ask(`${alias} already points at ${vText(version.version)}.`, false);
+      else if (current) dialog.ask(`Point ${alias} from ${vText(current.version)} to ${vText(version.version)}?${current.canary ? ` Its canary (${canaryText(current.canary)}) ends.` : ''}`, true);
+      else dialog.ask(`Point the new alias ${alias} at ${vText(version.version)}?`, true);
+    };
+    choice.addEventListener('change', ask);
+    typed.addEventListener('input', ask);
+    dialog.show({
+      title: `Promote ${vText(version.version)} of ${name}`,
+      fields: [h('div', { class: 'form-grid' }, h('label', {}, 'Alias', choice), typedLabel),
+        h('p', { class: 'hint' }, `Alias names follow the model name rule (${MODEL_NAME_RULE}); not all digits, not “latest”.`)],
+      question: '',
+      confirmLabel: 'Promote',
+      action: async () => {
+        const alias = aliasName();
+        const asked = existing.find((a) => a.alias === alias);
+        await unmoved(alias, asked ? asked.version : null);
+        await setAlias(alias, version.version, `promoted ${vText(version.version)} from the dashboard`);
+      },
+    });
+    ask();
+  };
+
+  const onRollback = async (alias) => {
+    notice.replaceChildren();
+    try {
+      // The alias's latest move, read now (not from when the page loaded): it says where the
+      // alias pointed before; the move before it, where that version's canary stood.
+      const { items } = await api(withParams(`${modelPath(name)}/history`, { alias: alias.alias, limit: 2 }));
+      const [latest, before] = items;
+      const target = latest ? latest.from_version : null;
+      if (target === null || target === undefined) {
+        notice.replaceChildren(errorBox({ message: `${alias.alias} was created at ${vText(alias.version)} and has pointed nowhere else: there is nothing to roll back to.` }, 'rollback-error'));
+        return;
+      }
+      const canary = before && before.to_version === target ? before.canary : null;
+      const now = latest.to_version;
+      dialog.show({
+        title: `Roll back ${alias.alias}`,
+        fields: [h('p', { class: 'hint' }, `Its latest move (seq ${latest.seq}, by ${latest.actor}, ${fmtTime(latest.moved_at)}) was ${historyText(latest)}.`)],
+        question: `Roll ${alias.alias} back from ${vText(now)} to ${vText(target)}${canary ? `, with ${canaryText(canary)} as before` : ''}?`,
+        confirmLabel: 'Roll back',
+        action: async () => {
+          await unmoved(alias.alias, now);
+          await setAlias(alias.alias, target, `rolled back from ${vText(now)} to ${vText(target)}`, canary);
+        },
+      });
+    } catch (err) {
+      notice.replaceChildren(errorBox(err, 'rollback-error'));
+    }
+  };
+
+  const onRemove = (alias) => {
+    notice.replaceChildren();
+    dialog.show({
+      title: `Remove ${alias.alias}`,
+      fields: [h('p', { class: 'hint' }, `Agents calling ${name}@${alias.alias} get 404 from then on; the move is kept in the history.`)],
+      question: `Remove the alias ${alias.alias} (now at ${vText(alias.version)})?`,
+      confirmLabel: 'Remove',
+      action: async () => {
+        await api(withParams(`${modelPath(name)}/aliases/${encodeURIComponent(alias.alias)}`,
+          { actor: DASHBOARD_ACTOR, reason: 'removed from the dashboard' }), { method: 'DELETE' });
+        notice.replaceChildren(h('div', { class: 'notice', id: 'model-moved' }, `Removed ${alias.alias} (it pointed at ${vText(alias.version)}).`));
+        await load().catch((err) => slot.replaceChildren(errorBox(err)));
+      },
+    });
+  };
+
+  const load = async () => {
+    const [m, versions, history] = await Promise.all([api(modelPath(name)),
+      api(withParams(`${modelPath(name)}/versions`, { limit: 500 })), api(withParams(`${modelPath(name)}/history`, { limit: 200 }))]);
+    if (mine !== generation) return;
+    model = m;
+    slot.replaceChildren(
+      h('div', { class: 'grid2' }, modelMeta(model, () => { location.hash = '#/models'; }), aliasesCard(model, onRollback, onRemove)),
+      versionsCard(model, versions, onPromote),
+      historyCard(history));
+  };
+  load().catch((err) => slot.replaceChildren(err.status === 404
+    ? h('div', { class: 'error-box not-found', role: 'alert' },
+      h('span', { class: 'error-message' }, `There is no model named ${name}: it was deleted, or the link is wrong. `),
+      h('a', { href: '#/models' }, 'Go to the models list.'))
+    : errorBox(err)));
+}
+
+// ---------- the job form's registration ----------
+
+/** The job form's "Register as a version of model" select and alias field: `labels` go into the
+ *  form's grid, `value()` is the job's `register` (or null). */
+function registerFields(models) {
+  const model = h('select', { name: 'register_model', id: 'job-register-model' },
+    h('option', { value: '' }, models.length ? '— do not register —' : '— no models yet —'),
+    models.map((m) => h('option', { value: m.name }, m.latest_version ? `${m.name} (latest ${vText(m.latest_version)})` : m.name)));
+  const alias = h('input', { name: 'register_alias', id: 'job-register-alias', placeholder: 'optional, e.g. staging', spellcheck: 'false', disabled: true });
+  model.addEventListener('change', () => { alias.disabled = !model.value; });
+  return {
+    labels: [h('label', {}, 'Register as a version of model', model), h('label', {}, 'and point alias', alias)],
+    value: () => {
+      if (!model.value) return null;
+      const register = { model: model.value };
+      if (alias.value.trim()) register.alias = alias.value.trim();
+      return register;
+    },
+  };
+}
