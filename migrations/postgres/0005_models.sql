@@ -42,6 +42,8 @@ CREATE TABLE model_alias_moves (
     seq                    BIGINT NOT NULL,
     alias                  TEXT NOT NULL,
     from_version           BIGINT,
+    from_canary_version    BIGINT,
+    from_canary_basis_points BIGINT,
     to_version             BIGINT,
     to_canary_version      BIGINT,
     to_canary_basis_points BIGINT,

@@ -43,6 +43,8 @@ CREATE TABLE model_alias_moves (
     seq                    INTEGER NOT NULL,
     alias                  TEXT NOT NULL,
     from_version           INTEGER,
+    from_canary_version    INTEGER,
+    from_canary_basis_points INTEGER,
     to_version             INTEGER,
     to_canary_version      INTEGER,
     to_canary_basis_points INTEGER,

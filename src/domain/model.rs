@@ -157,8 +157,11 @@ pub struct ModelVersionRecord {
     pub model: String,
     pub version: u32,
     pub policy_id: PolicyId,
-    /// The job that trained the policy.
+    /// The job that trained the policy, and its name.
     pub job_id: String,
+    pub job_name: Option<String>,
+    /// The algorithm that trained the policy.
+    pub algorithm: String,
     pub description: String,
     /// Who registered it: `api`, or `job <id>` for a job's `register`.
     pub source: String,
@@ -194,18 +197,22 @@ pub struct AliasMove {
     /// Increases with every change of the model.
     pub seq: u64,
     pub alias: String,
-    pub from_version: Option<u32>,
+    /// Where it pointed before (None: it was created).
+    pub from: Option<AliasTarget>,
     pub to: Option<AliasTarget>,
     pub actor: String,
     pub reason: Option<String>,
     pub moved_at: chrono::DateTime<chrono::Utc>,
 }
 
-/// Who moves an alias and why, as the history keeps it.
+/// Who moves an alias and why, as the history keeps it; and the version the mover saw it at.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct MoveNote {
     pub actor: String,
     pub reason: Option<String>,
+    /// The move only happens if the alias points at this version now (a page or script that
+    /// read the alias, then moves it, does not undo a move someone made in between).
+    pub expected_version: Option<u32>,
 }
 
 /// A job's `register`: its policy becomes the next version of `model` when it succeeds, and

@@ -137,6 +137,10 @@ pub struct ModelVersion {
     pub policy_id: String,
     /// The job that trained the policy (its metrics, evaluations and configuration).
     pub job_id: String,
+    /// That job's name (absent: none).
+    pub job_name: Option<String>,
+    /// The algorithm that trained the policy.
+    pub algorithm: String,
     pub description: String,
     /// `api`, or `job <id>` for a job's `register`.
     pub source: String,
@@ -153,6 +157,8 @@ impl From<ModelVersionRecord> for ModelVersion {
             version: v.version,
             policy_id: v.policy_id.into_string(),
             job_id: v.job_id,
+            job_name: v.job_name,
+            algorithm: v.algorithm,
             description: v.description,
             source: v.source,
             created_at: rfc3339(&v.created_at),
@@ -172,14 +178,19 @@ pub struct SetAlias {
     pub actor: Option<String>,
     /// Why, for the history.
     pub reason: Option<String>,
+    /// Move only if the alias points at this version now (409 `alias_moved` otherwise): a
+    /// client that read the alias does not undo a move made meanwhile.
+    pub expected_version: Option<u32>,
 }
 
-/// `?actor=&reason=` of an alias's delete.
+/// `?actor=&reason=&expected_version=` of an alias's delete.
 #[derive(Debug, Deserialize, IntoParams)]
 #[into_params(parameter_in = Query)]
 pub struct MoveParams {
     pub actor: Option<String>,
     pub reason: Option<String>,
+    /// Delete only if the alias points at this version now (409 `alias_moved` otherwise).
+    pub expected_version: Option<u32>,
 }
 
 /// One move of an alias.
@@ -190,6 +201,8 @@ pub struct AliasMoveResource {
     pub alias: String,
     /// Where it pointed before (absent: it was created).
     pub from_version: Option<u32>,
+    /// The canary it had before: a rollback restores `from_version` with this canary.
+    pub from_canary: Option<CanaryShare>,
     /// Where it points after (absent: it was deleted).
     pub to_version: Option<u32>,
     pub canary: Option<CanaryShare>,
@@ -203,7 +216,8 @@ impl From<AliasMove> for AliasMoveResource {
         AliasMoveResource {
             seq: m.seq,
             alias: m.alias,
-            from_version: m.from_version,
+            from_version: m.from.as_ref().map(|t| t.version),
+            from_canary: m.from.and_then(|t| t.canary).map(Into::into),
             to_version: m.to.as_ref().map(|t| t.version),
             canary: m.to.and_then(|t| t.canary).map(Into::into),
             actor: m.actor,
@@ -282,7 +296,11 @@ fn model_name(name: &str) -> Result<(), ApiError> {
         .map_err(|rule| ApiError::NotFound(format!("model {name:?} does not exist ({rule})")))
 }
 
-fn note(actor: Option<String>, reason: Option<String>) -> Result<MoveNote, ApiError> {
+fn note(
+    actor: Option<String>,
+    reason: Option<String>,
+    expected_version: Option<u32>,
+) -> Result<MoveNote, ApiError> {
     let actor = actor.unwrap_or_else(|| "api".into());
     check_text("actor", &actor, MAX_ACTOR_CHARS)?;
     if actor.trim().is_empty() {
@@ -291,7 +309,7 @@ fn note(actor: Option<String>, reason: Option<String>) -> Result<MoveNote, ApiEr
     if let Some(reason) = &reason {
         check_text("reason", reason, MAX_ACTOR_CHARS)?;
     }
-    Ok(MoveNote { actor, reason })
+    Ok(MoveNote { actor, reason, expected_version })
 }
 
 /// Create a model: a name agents address and versions are registered under.
@@ -406,7 +424,7 @@ async fn create_version(
         // The alias must not resolve to a policy that cannot load: load it first.
         state.policies.get(&request.policy_id).await?;
     }
-    let note = note(request.actor, Some("registered with the alias".into()))?;
+    let note = note(request.actor, Some("registered with the alias".into()), None)?;
     let version = NewVersion {
         model: &name,
         policy_id: &request.policy_id,
@@ -510,6 +528,8 @@ fn canary_of(share: Option<CanaryShare>) -> Result<Option<Canary>, ApiError> {
     responses(
         (status = 200, body = AliasMoveResource),
         (status = 404, description = "No such model or version", body = ErrorBody),
+        (status = 409, description = "The alias is not at `expected_version` (`alias_moved`)",
+         body = ErrorBody),
         (status = 422, description = "A bad alias name (`invalid_name`), canary \
             (`invalid_canary`) or actor (`invalid_model`)", body = ErrorBody),
     ))]
@@ -527,11 +547,12 @@ async fn set_alias(
             "canary.version is the alias's own version; name another version",
         ));
     }
-    let note = note(request.actor, request.reason)?;
+    let note = note(request.actor, request.reason, request.expected_version)?;
     preload(&state, &path.name, &target).await?;
     let moved = state.store.set_alias(&path.name, &path.alias, &target, &note).await?;
     refresh(&state, &path.name).await;
-    tracing::info!(model = %path.name, alias = %path.alias, from = ?moved.from_version, to = target.version, actor = %note.actor, "alias moved");
+    let from = moved.from.as_ref().map(|t| t.version);
+    tracing::info!(model = %path.name, alias = %path.alias, ?from, to = target.version, actor = %note.actor, "alias moved");
     Ok(Json(moved.into()))
 }
 
@@ -548,14 +569,16 @@ async fn preload(state: &AppState, model: &str, target: &AliasTarget) -> Result<
 /// Delete an alias (recorded in the history); agents addressing it get 404 from then on.
 #[utoipa::path(delete, path = "/v1/models/{name}/aliases/{alias}", tag = "models",
     params(("name" = String, Path), ("alias" = String, Path), MoveParams),
-    responses((status = 204, description = "Deleted"), (status = 404, body = ErrorBody)))]
+    responses((status = 204, description = "Deleted"), (status = 404, body = ErrorBody),
+        (status = 409, description = "The alias is not at `expected_version` (`alias_moved`)",
+         body = ErrorBody)))]
 async fn delete_alias(
     State(state): State<AppState>,
     Path(path): Path<AliasPath>,
     Query(params): Query<MoveParams>,
 ) -> Result<StatusCode, ApiError> {
     model_name(&path.name)?;
-    let note = note(params.actor, params.reason)?;
+    let note = note(params.actor, params.reason, params.expected_version)?;
     state.store.delete_alias(&path.name, &path.alias, &note).await?;
     refresh(&state, &path.name).await;
     Ok(StatusCode::NO_CONTENT)

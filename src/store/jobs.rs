@@ -668,7 +668,8 @@ impl Store {
                 .await?;
         let Some(model) = model else { return Ok(None) };
         let source = format!("job {job_id}");
-        let note = MoveNote { actor: source.clone(), reason: Some("registered on success".into()) };
+        let reason = Some("registered on success".into());
+        let note = MoveNote { actor: source.clone(), reason, expected_version: None };
         let version = super::models::NewVersion {
             model: &model,
             policy_id,

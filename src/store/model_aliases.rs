@@ -14,6 +14,8 @@ struct MoveRow {
     seq: i64,
     alias: String,
     from_version: Option<i64>,
+    from_canary_version: Option<i64>,
+    from_canary_basis_points: Option<i64>,
     to_version: Option<i64>,
     to_canary_version: Option<i64>,
     to_canary_basis_points: Option<i64>,
@@ -32,7 +34,10 @@ impl MoveRow {
             moved_at: parse_time(&format!("model {model} move {}", self.seq), &self.moved_at)?,
             seq: self.seq as u64,
             alias: self.alias,
-            from_version: self.from_version.map(|v| v as u32),
+            from: self.from_version.map(|version| AliasTarget {
+                version: version as u32,
+                canary: canary(self.from_canary_version, self.from_canary_basis_points),
+            }),
             to,
             actor: self.actor,
             reason: self.reason,
@@ -116,8 +121,9 @@ impl Store {
     }
 }
 
-const MOVE_COLUMNS: &str = "seq, alias, from_version, to_version, to_canary_version, \
-     to_canary_basis_points, actor, reason, moved_at";
+const MOVE_COLUMNS: &str = "seq, alias, from_version, from_canary_version, \
+     from_canary_basis_points, to_version, to_canary_version, to_canary_basis_points, actor, \
+     reason, moved_at";
 
 /// Points `alias` at `target` (None: deletes it) inside the caller's transaction and records the
 /// move; returns the move's `seq`.
@@ -130,12 +136,28 @@ pub(super) async fn set_alias_in(
     note: &MoveNote,
 ) -> Result<u64, StoreError> {
     let seq = bump(tx, model).await?;
-    let from: Option<i64> =
-        sqlx::query_scalar("SELECT version FROM model_aliases WHERE model = $1 AND alias = $2")
-            .bind(model)
-            .bind(alias)
-            .fetch_optional(&mut **tx)
-            .await?;
+    let from: Option<(i64, Option<i64>, Option<i64>)> = sqlx::query_as(
+        "SELECT version, canary_version, canary_basis_points FROM model_aliases \
+         WHERE model = $1 AND alias = $2",
+    )
+    .bind(model)
+    .bind(alias)
+    .fetch_optional(&mut **tx)
+    .await?;
+    if let Some(expected) = note.expected_version {
+        let current = from.map(|(version, _, _)| version as u32);
+        if current != Some(expected) {
+            let now =
+                current.map_or("does not exist".to_owned(), |v| format!("points at version {v}"));
+            return Err(StoreError::Conflict {
+                code: "alias_moved",
+                message: format!(
+                    "{model}@{alias} {now}, not version {expected} as expected: someone moved \
+                     it meanwhile; read it again (GET /v1/models/{model}) and decide"
+                ),
+            });
+        }
+    }
     let now = super::now();
     match target {
         Some(target) => {
@@ -171,14 +193,17 @@ pub(super) async fn set_alias_in(
         }
     }
     sqlx::query(
-        "INSERT INTO model_alias_moves (model, seq, alias, from_version, to_version, \
-             to_canary_version, to_canary_basis_points, actor, reason, moved_at) \
-         VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10)",
+        "INSERT INTO model_alias_moves (model, seq, alias, from_version, from_canary_version, \
+             from_canary_basis_points, to_version, to_canary_version, to_canary_basis_points, \
+             actor, reason, moved_at) \
+         VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10, $11, $12)",
     )
     .bind(model)
     .bind(seq as i64)
     .bind(alias)
-    .bind(from)
+    .bind(from.map(|(version, _, _)| version))
+    .bind(from.and_then(|(_, version, _)| version))
+    .bind(from.and_then(|(_, _, basis_points)| basis_points))
     .bind(target.map(|t| i64::from(t.version)))
     .bind(target.and_then(|t| t.canary).map(|c| i64::from(c.version)))
     .bind(target.and_then(|t| t.canary).map(|c| i64::from(c.basis_points)))

@@ -65,13 +65,18 @@ struct VersionRow {
     version: i64,
     policy_id: String,
     job_id: String,
+    job_name: Option<String>,
+    algorithm: String,
     description: String,
     source: String,
     created_at: String,
 }
 
-const VERSION_COLUMNS: &str = "model, version, policy_id, description, source, created_at, \
-     (SELECT job_id FROM policies WHERE policies.id = model_versions.policy_id) AS job_id";
+const VERSION_COLUMNS: &str = "model, version, model_versions.policy_id, description, source, \
+     model_versions.created_at, p.job_id, p.algorithm, \
+     (SELECT name FROM jobs WHERE jobs.id = p.job_id) AS job_name";
+/// The versions with their policies (every version has one: a policy in use is never deleted).
+const VERSIONS: &str = "model_versions JOIN policies AS p ON p.id = model_versions.policy_id";
 
 impl AliasRow {
     fn into_record(self, model: &str) -> Result<AliasRecord, StoreError> {
@@ -96,6 +101,8 @@ impl TryFrom<VersionRow> for ModelVersionRecord {
             version: row.version as u32,
             policy_id: row.policy_id.into(),
             job_id: row.job_id,
+            job_name: row.job_name,
+            algorithm: row.algorithm,
             description: row.description,
             source: row.source,
             model: row.model,
@@ -286,7 +293,7 @@ impl Store {
         version: u32,
     ) -> Result<ModelVersionRecord, StoreError> {
         let row: VersionRow = sqlx::query_as(&format!(
-            "SELECT {VERSION_COLUMNS} FROM model_versions WHERE model = $1 AND version = $2"
+            "SELECT {VERSION_COLUMNS} FROM {VERSIONS} WHERE model = $1 AND version = $2"
         ))
         .bind(model)
         .bind(i64::from(version))
@@ -305,7 +312,7 @@ impl Store {
     ) -> Result<(Vec<ModelVersionRecord>, u64), StoreError> {
         self.model(model).await?;
         let rows: Vec<VersionRow> = sqlx::query_as(&format!(
-            "SELECT {VERSION_COLUMNS} FROM model_versions WHERE model = $1 \
+            "SELECT {VERSION_COLUMNS} FROM {VERSIONS} WHERE model = $1 \
              ORDER BY version DESC LIMIT $2 OFFSET $3"
         ))
         .bind(model)

@@ -523,3 +523,55 @@ async fn a_transaction_left_open_by_a_stalled_worker_does_not_block_the_takeover
     assert!(late.is_err() || open.commit().await.is_err(), "the stalled transaction still commits");
     assert_eq!(taker.job(id).await.unwrap().step, 0);
 }
+
+/// Serving by name across processes: a worker registers each job's policy as the next version
+/// of a model (moving `production` to the first), a second API node serves the alias, and a
+/// move or delete made on the first API node reaches the second (PostgreSQL notification).
+#[tokio::test]
+async fn an_alias_moved_on_one_api_node_is_served_by_the_other() {
+    let Some(mut fleet) = Fleet::start(1).await else { return };
+    let (u, n) = upload_grid(&fleet).await;
+    let api = fleet.api_url.clone();
+    let created = fleet.client.post(format!("{api}/v1/models")).json(&json!({"name": "pilot"}));
+    assert_eq!(created.send().await.unwrap().status(), StatusCode::CREATED);
+    for (seed, alias) in [(1, Some("production")), (2, None)] {
+        let mut body = job(&u, &n, 200, seed);
+        body["register"] = json!({"model": "pilot", "alias": alias});
+        let queued = create_job(&fleet.client, &api, body).await;
+        wait_for_status(&fleet.client, &api, queued["id"].as_str().unwrap(), "succeeded").await;
+    }
+    let other = fleet.start_api_node().await;
+    let observations = json!({"observations": support::jobs::grid_observations()});
+    let version_on = |url: String| {
+        let (client, body) = (fleet.client.clone(), observations.clone());
+        async move {
+            let answer = client.post(format!("{url}/v1/models/pilot@production/act")).json(&body);
+            let answer = answer.send().await.unwrap();
+            let header = answer.headers().get("x-safedice-model-version");
+            (answer.status(), header.map(|v| v.to_str().unwrap().to_owned()))
+        }
+    };
+    assert_eq!(version_on(api.clone()).await, (StatusCode::OK, Some("1".into())));
+    assert_eq!(version_on(other.clone()).await, (StatusCode::OK, Some("1".into())));
+
+    let moved = fleet
+        .client
+        .put(format!("{api}/v1/models/pilot/aliases/production"))
+        .json(&json!({"version": 2, "actor": "fleet-test"}));
+    assert_eq!(moved.send().await.unwrap().status(), StatusCode::OK);
+    assert_eq!(version_on(api.clone()).await, (StatusCode::OK, Some("2".into())), "at once here");
+    let started = Instant::now();
+    while version_on(other.clone()).await != (StatusCode::OK, Some("2".into())) {
+        assert!(started.elapsed() < Duration::from_secs(10), "the other node never followed");
+        tokio::time::sleep(Duration::from_millis(5)).await;
+    }
+    eprintln!("the other API node followed the move after {:?}", started.elapsed());
+
+    let deleted = fleet.client.delete(format!("{api}/v1/models/pilot/aliases/production"));
+    assert_eq!(deleted.send().await.unwrap().status(), StatusCode::NO_CONTENT);
+    let started = Instant::now();
+    while version_on(other.clone()).await.0 != StatusCode::NOT_FOUND {
+        assert!(started.elapsed() < Duration::from_secs(10), "the other node kept the alias");
+        tokio::time::sleep(Duration::from_millis(5)).await;
+    }
+}

@@ -57,6 +57,9 @@ pub struct Fleet {
     dir: tempfile::TempDir,
     _api: Process,
     workers: Vec<Process>,
+    /// More API nodes started by [`Fleet::start_api_node`].
+    more_api: Vec<Process>,
+    store_args: Vec<String>,
 }
 
 impl Fleet {
@@ -88,6 +91,7 @@ impl Fleet {
         let mut api_args: Vec<String> =
             ["serve", "--workers", "0", "--bind", &bind].map(str::to_owned).to_vec();
         api_args.extend(store_args(dir.path().join("api")));
+        let node_store_args = store_args(dir.path().join("api-2"));
         let api = Process::spawn(&api_args, dir.path().join("api.log"));
         let database_url = database_url.unwrap_or_else(|| {
             let file = shared_sqlite.as_ref().unwrap().join("safedice.sqlite");
@@ -101,6 +105,8 @@ impl Fleet {
             dir,
             _api: api,
             workers: Vec::new(),
+            more_api: Vec::new(),
+            store_args: node_store_args,
         };
         fleet.wait_for_api().await;
         for _ in 0..workers {
@@ -116,6 +122,33 @@ impl Fleet {
             assert!(started.elapsed() < Duration::from_secs(60), "the API node did not come up");
             tokio::time::sleep(Duration::from_millis(50)).await;
         }
+    }
+
+    /// Starts a second API node (`serve --workers 0`) on the same store; its URL once ready.
+    pub async fn start_api_node(&mut self) -> String {
+        let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
+        let url = format!("http://127.0.0.1:{port}");
+        let bind = format!("127.0.0.1:{port}");
+        let mut args: Vec<String> =
+            ["serve", "--workers", "0", "--bind", &bind].map(str::to_owned).to_vec();
+        args.extend(self.store_args.iter().cloned());
+        let log = self.dir.path().join(format!("api-{}.log", self.more_api.len() + 2));
+        self.more_api.push(Process::spawn(&args, log));
+        let started = Instant::now();
+        while !self
+            .client
+            .get(format!("{url}/readyz"))
+            .send()
+            .await
+            .is_ok_and(|r| r.status().is_success())
+        {
+            assert!(
+                started.elapsed() < Duration::from_secs(60),
+                "the second API node did not come up"
+            );
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+        url
     }
 
     /// Starts one more worker process (its own data directory).

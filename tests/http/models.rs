@@ -225,8 +225,23 @@ async fn aliases_move_with_their_history_and_serve_by_name_what_the_policy_route
         (by_first.clone(), Some("1".into()))
     );
 
-    move_alias(&app, "pilot", "production", json!({"version": 2, "actor": "bob"})).await;
+    move_alias(
+        &app,
+        "pilot",
+        "production",
+        json!({"version": 2, "actor": "bob", "expected_version": 1}),
+    )
+    .await;
     assert_eq!(act(&app, "/v1/models/pilot@production/act", None).await.0, by_second);
+    // A mover that read the alias at version 1 does not undo bob's move.
+    let stale = app
+        .request(reqwest::Method::PUT, "/v1/models/pilot/aliases/production")
+        .json(&json!({"version": 1, "expected_version": 1}))
+        .send()
+        .await
+        .unwrap();
+    let message = assert_error(stale, StatusCode::CONFLICT, "alias_moved").await;
+    assert!(message.contains("points at version 2"), "{message}");
     move_alias(
         &app,
         "pilot",
@@ -364,8 +379,16 @@ async fn a_canary_answers_its_share_and_the_same_key_always_gets_the_same_versio
     register(&app, "pilot", &first).await;
     register(&app, "pilot", &second).await;
     let canary = json!({"version": 1, "canary": {"version": 2, "weight": 0.25}});
-    let moved = move_alias(&app, "pilot", "production", canary).await;
+    let version = get_json(&app.client, &app.url("/v1/models/pilot/versions/2")).await;
+    assert_eq!((version["algorithm"].as_str(), &version["job_name"]), (Some("bc"), &Value::Null));
+    let moved = move_alias(&app, "pilot", "production", canary.clone()).await;
     assert_eq!(moved["canary"], json!({"version": 2, "weight": 0.25}));
+    let ended = move_alias(&app, "pilot", "production", json!({"version": 2})).await;
+    assert_eq!(
+        (ended["from_version"].as_u64(), &ended["from_canary"]),
+        (Some(1), &json!({"version": 2, "weight": 0.25}))
+    );
+    move_alias(&app, "pilot", "production", canary.clone()).await;
     let mut canaries = 0;
     for key in 0..200 {
         let key = format!("agent-{key}");
