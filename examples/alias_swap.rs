@@ -162,7 +162,11 @@ async fn post(client: &reqwest::Client, url: String, body: Value) -> anyhow::Res
 
 /// Trains three BC policies on node 0 and registers them as versions 1-3 of `pilot`, with
 /// `production` at version 1. Returns the policies' actions for the load's observation.
-async fn prepare(client: &reqwest::Client, url: &str, body: &Value) -> anyhow::Result<Vec<Value>> {
+async fn prepare(
+    client: &reqwest::Client,
+    url: &str,
+    body: &Value,
+) -> anyhow::Result<(Vec<Value>, Vec<String>)> {
     let dir = tempfile::tempdir()?;
     let file = dir.path().join("synthetic.npz");
     safedice::data::write_npz(&synthetic_dataset(), &file)?;
@@ -173,7 +177,7 @@ async fn prepare(client: &reqwest::Client, url: &str, body: &Value) -> anyhow::R
     let dataset: Value =
         client.post(format!("{url}/v1/datasets")).multipart(form).send().await?.json().await?;
     post(client, format!("{url}/v1/models"), json!({"name": "pilot"})).await?;
-    let mut actions = Vec::new();
+    let (mut actions, mut policies) = (Vec::new(), Vec::new());
     for seed in 1..=3 {
         let job = post(
             client,
@@ -193,6 +197,7 @@ async fn prepare(client: &reqwest::Client, url: &str, body: &Value) -> anyhow::R
         };
         let answer = post(client, format!("{url}/v1/policies/{policy}/act"), body.clone()).await?;
         actions.push(answer["actions"].clone());
+        policies.push(policy);
     }
     let alias = client
         .put(format!("{url}/v1/models/pilot/aliases/production"))
@@ -202,7 +207,7 @@ async fn prepare(client: &reqwest::Client, url: &str, body: &Value) -> anyhow::R
     if !alias.status().is_success() {
         bail!("cannot set production: {}", alias.status());
     }
-    Ok(actions)
+    Ok((actions, policies))
 }
 
 /// What the load saw.
@@ -358,14 +363,13 @@ fn report(name: &str, tally: &Tally, seconds: u64) -> f64 {
 /// from when it was due: a request that waited for a free connection because the server was
 /// slow is charged that wait.
 async fn open_loop(
-    node: &str,
+    url: String,
     rate: f64,
     seconds: u64,
     connections: usize,
     body: &Value,
 ) -> anyhow::Result<(Vec<Duration>, u64)> {
     let body = bytes::Bytes::from(serde_json::to_vec(body)?);
-    let url = format!("{node}{ACT_PATH}");
     let total = (rate * seconds as f64) as u64;
     // The schedule is kept by an OS thread (its sleeps wake within tens of microseconds; the
     // runtime's timer rounds to milliseconds, which would be charged to the server).
@@ -429,7 +433,8 @@ async fn main() -> anyhow::Result<()> {
     let observation: Vec<f32> = (0..OBS_DIM).map(|i| (i as f32 * 0.37).sin()).collect();
     let body = json!({"observations": [observation]});
     let client = reqwest::Client::new();
-    let expected = Arc::new(prepare(&client, &urls[0], &body).await?);
+    let (expected, policies) = prepare(&client, &urls[0], &body).await?;
+    let expected = Arc::new(expected);
     if expected[0] == expected[1] {
         bail!("versions 1 and 2 act alike: the check could not tell them apart");
     }
@@ -462,12 +467,19 @@ async fn main() -> anyhow::Result<()> {
     println!("\nopen loop on node 0 (latency from each request's due time):\n");
     println!("| rate | req/s | p50 ms | p99 ms | failed |");
     println!("|---|---|---|---|---|");
-    for share in [0.25, 0.5, 0.75] {
+    let by_name = format!("{}{ACT_PATH}", urls[0]);
+    let by_id = format!("{}/v1/policies/{}/act", urls[0], policies[0]);
+    for (share, url, route) in [
+        (0.25, &by_name, "by name"),
+        (0.5, &by_name, "by name"),
+        (0.75, &by_name, "by name"),
+        (0.5, &by_id, "by policy id"),
+    ] {
         let rate = saturating * share / args.nodes as f64;
         let (latencies, failed) =
-            open_loop(&urls[0], rate, args.seconds, args.connections, &body).await?;
+            open_loop(url.clone(), rate, args.seconds, args.connections, &body).await?;
         println!(
-            "| {:.0}% | {rate:.0} | {:.2} | {:.2} | {failed} |",
+            "| {:.0}% {route} | {rate:.0} | {:.2} | {:.2} | {failed} |",
             share * 100.0,
             quantile(&latencies, 0.5),
             quantile(&latencies, 0.99)
