@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Single-observation inference latency on loopback: `wrk -t2 -c32` (Debian's `wrk`) against a
 # release build, on a BC policy of the paper's size (256-256) trained on point-goal data:
-# POST /v1/policies/{id}/act, and /v2/models/{id}/infer in JSON and in binary tensor data.
+# POST /v1/policies/{id}/act, and /v2/models/{id}/infer in JSON and in binary tensor data; the
+# same policy by model name (POST /v1/models/pilot@production/act, /v2/models/pilot@production).
 # wrk shares the machine's cores with the server.
 #
 #   cargo build --release --bin safedice && bench/act_latency.sh [target/release/safedice] [seconds]
@@ -30,6 +31,9 @@ JOB=$(curl -s -H 'content-type: application/json' "$API/v1/jobs" -d "{\"algorith
 until [ "$(curl -s "$API/v1/jobs/$JOB" | id_of status)" = succeeded ]; do sleep 0.2; done
 POLICY=$(curl -s "$API/v1/jobs/$JOB" | id_of policy_id)
 OBS_DIM=$(curl -s "$API/v1/policies/$POLICY" | id_of obs_dim)
+curl -sf -H 'content-type: application/json' "$API/v1/models" -d '{"name": "pilot"}' >/dev/null
+curl -sf -H 'content-type: application/json' "$API/v1/models/pilot/versions" \
+  -d "{\"policy_id\": \"$POLICY\", \"alias\": \"production\"}" >/dev/null
 
 python3 - "$WORK" "$OBS_DIM" <<'PY'
 import json, struct, sys
@@ -52,7 +56,8 @@ PY
 
 echo "| route | req/s | p50 | p99 | non-2xx |"
 echo "|---|---|---|---|---|"
-for run in act:/v1/policies/$POLICY/act v2_json:/v2/models/$POLICY/infer v2_binary:/v2/models/$POLICY/infer; do
+for run in act:/v1/policies/$POLICY/act v2_json:/v2/models/$POLICY/infer v2_binary:/v2/models/$POLICY/infer \
+    act:/v1/models/pilot@production/act v2_json:/v2/models/pilot@production/infer; do
   name="${run%%:*}"; path="${run#*:}"
   curl -s -o /dev/null -X POST "$API$path" >/dev/null || true   # warm the policy cache
   out="$(wrk -t2 -c32 -d"${SECONDS_PER_RUN}s" --latency -s "$WORK/$name.lua" "$API$path")"
@@ -60,5 +65,5 @@ for run in act:/v1/policies/$POLICY/act v2_json:/v2/models/$POLICY/infer v2_bina
   p50=$(echo "$out" | awk '$1 == "50%" {print $2}')
   p99=$(echo "$out" | awk '$1 == "99%" {print $2}')
   errors=$(echo "$out" | awk '/Non-2xx/ {print $NF}')
-  echo "| $name | $rps | $p50 | $p99 | ${errors:-0} |"
+  echo "| $name ${path%/*} | $rps | $p50 | $p99 | ${errors:-0} |"
 done
