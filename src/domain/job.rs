@@ -101,6 +101,8 @@ pub struct JobRecord {
     pub lease_expired_at: Option<DateTime<Utc>>,
     /// The model its policy becomes a version of when it succeeds.
     pub register: Option<super::model::Registration>,
+    /// The experiment whose grid it belongs to, and its arm's label there.
+    pub experiment: Option<(String, String)>,
     pub created_at: DateTime<Utc>,
     pub updated_at: DateTime<Utc>,
     pub started_at: Option<DateTime<Utc>>,

@@ -5,6 +5,7 @@
 
 pub mod attempt;
 pub mod evaluation;
+pub mod experiment;
 pub mod ids;
 pub mod job;
 pub mod labels;

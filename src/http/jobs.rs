@@ -155,6 +155,8 @@ pub struct Job {
     pub lease_expired_at: Option<String>,
     /// The model its policy becomes a version of when it succeeds.
     pub register: Option<Registration>,
+    /// The experiment whose grid it belongs to (`GET /v1/experiments/{id}`).
+    pub experiment_id: Option<String>,
     pub created_at: String,
     pub updated_at: String,
     pub started_at: Option<String>,
@@ -187,6 +189,7 @@ impl From<JobRecord> for Job {
             retry_at: job.retry_at.as_ref().map(rfc3339),
             lease_expired_at: job.lease_expired_at.as_ref().map(rfc3339),
             register: job.register,
+            experiment_id: job.experiment.map(|(id, _)| id),
             created_at: rfc3339(&job.created_at),
             updated_at: rfc3339(&job.updated_at),
             started_at: job.started_at.as_ref().map(rfc3339),

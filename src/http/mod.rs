@@ -13,6 +13,7 @@ pub mod datasets;
 pub mod envs;
 pub mod error;
 pub mod evaluations;
+pub mod experiments;
 pub mod extract;
 pub mod health;
 pub mod inference;
@@ -154,6 +155,7 @@ fn routes() -> OpenApiRouter<AppState> {
         .merge(job_attempts::router())
         .merge(policies::router())
         .merge(evaluations::router())
+        .merge(experiments::router())
         .merge(models::router())
         .merge(model_serving::router())
         .merge(inference::router())

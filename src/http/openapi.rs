@@ -40,6 +40,8 @@ const SECURITY_SCHEME: &str = "bearer";
         (name = "environments", description = "Built-in benchmark environments"),
         (name = "evaluations", description = "Policies evaluated on the built-in environments \
             with the paper's metrics"),
+        (name = "experiments", description = "A grid of algorithms × seeds on one pair of \
+            datasets, queued as jobs; the paper's metrics per algorithm as mean ± standard error"),
         (name = "models", description = "Named models for deployment: numbered versions (each \
             a policy), aliases such as `production` with the history of every move, canaries, \
             and actions by name (`name`, `name@alias`, a version)"),

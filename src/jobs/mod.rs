@@ -19,6 +19,7 @@
 //! up to [`STORAGE_RETRY_MAX`]), rather than failing job after job for good.
 
 pub mod evaluations;
+pub mod experiments;
 pub mod fleet;
 pub mod submit;
 mod worker;

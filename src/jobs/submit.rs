@@ -63,6 +63,23 @@ pub async fn submit(
     request: JobRequest,
     limits: SubmitLimits,
 ) -> Result<JobRecord, SubmitError> {
+    let job = prepare(store, request, limits).await?;
+    let record = store.insert_job(&job).await?;
+    tracing::info!(
+        job_id = %record.id,
+        algorithm = %record.algorithm,
+        total_steps = record.total_steps,
+        "job queued"
+    );
+    Ok(record)
+}
+
+/// Validates `request` under `limits` against the stored datasets' metadata: the job to insert.
+pub async fn prepare(
+    store: &Store,
+    request: JobRequest,
+    limits: SubmitLimits,
+) -> Result<NewJob, SubmitError> {
     let max_attempts = request.max_attempts.unwrap_or(limits.default_max_attempts);
     if !(1..=MOST_ATTEMPTS).contains(&max_attempts) {
         return Err(SubmitError::InvalidConfig(format!(
@@ -113,14 +130,7 @@ pub async fn submit(
         max_attempts,
         register: request.register,
     };
-    let record = store.insert_job(&job).await?;
-    tracing::info!(
-        job_id = %record.id,
-        %algorithm,
-        total_steps = record.total_steps,
-        "job queued"
-    );
-    Ok(record)
+    Ok(job)
 }
 
 /// A job's `register` names an existing model and a valid alias. (A model deleted between this

@@ -46,6 +46,8 @@ struct JobRow {
     max_attempts: i64,
     register_model: Option<String>,
     register_alias: Option<String>,
+    experiment_id: Option<String>,
+    experiment_arm: Option<String>,
     /// When a job queued again after a crash may next be claimed (null: now).
     retry_at_ms: Option<i64>,
     /// When the lease of a running job expired (null: it has not, or the job is not running).
@@ -111,6 +113,7 @@ impl TryFrom<JobRow> for JobRecord {
             register: row
                 .register_model
                 .map(|model| Registration { model, alias: row.register_alias }),
+            experiment: row.experiment_id.map(|id| (id, row.experiment_arm.unwrap_or_default())),
             retry_at: row.retry_at_ms.map(from_millis),
             lease_expired_at: row.lease_expired_at_ms.map(from_millis),
         })
@@ -200,7 +203,8 @@ pub enum CancelOutcome {
 const JOB_COLUMNS: &str = "id, algorithm, status, unlabeled_dataset_id, non_preferred_dataset_id, \
      config, runner, eval, step, total_steps, phase, iterations_per_second, alpha_hat, policy_id, \
      error, cancel_requested, lease_owner, created_at, updated_at, started_at, finished_at, name, \
-     tags, notes, attempt, max_attempts, register_model, register_alias";
+     tags, notes, attempt, max_attempts, register_model, register_alias, experiment_id, \
+     experiment_arm";
 
 /// A stored time in milliseconds since the Unix epoch (the database's clock).
 fn from_millis(ms: i64) -> chrono::DateTime<chrono::Utc> {
@@ -229,18 +233,36 @@ impl Store {
     /// [`Store::delete_dataset`] either commits first (and this answers `NotFound` for the
     /// dataset) or sees the queued job and refuses.
     pub async fn insert_job(&self, job: &NewJob) -> Result<JobRecord, StoreError> {
-        let now = now();
+        let mut tx = self.begin_write().await?;
+        self.insert_job_in(&mut tx, job, None).await?;
+        let row: JobRow =
+            sqlx::query_as(&format!("SELECT {} FROM jobs WHERE id = $1", self.job_columns()))
+                .bind(job.id.as_str())
+                .fetch_one(&mut *tx)
+                .await?;
+        tx.commit().await?;
+        row.try_into()
+    }
+
+    /// Inserts a queued job inside the caller's write transaction, after checking (and, on
+    /// PostgreSQL, share-locking) its datasets; `experiment` is (experiment id, arm label) for
+    /// a job of an experiment's grid.
+    pub(super) async fn insert_job_in(
+        &self,
+        tx: &mut Transaction<'_, Any>,
+        job: &NewJob,
+        experiment: Option<(&str, &str)>,
+    ) -> Result<(), StoreError> {
         let config = to_json(&job.config);
         let runner = to_json(&job.runner);
         let eval = job.eval.as_ref().map(to_json);
-        let mut tx = self.begin_write().await?;
         for dataset in std::iter::once(&job.unlabeled_dataset).chain(&job.non_preferred_dataset) {
             let found: Option<String> = sqlx::query_scalar(&format!(
                 "SELECT id FROM datasets WHERE id = $1{}",
                 self.backend.share_row()
             ))
             .bind(dataset.as_str())
-            .fetch_optional(&mut *tx)
+            .fetch_optional(&mut **tx)
             .await?;
             if found.is_none() {
                 return Err(StoreError::NotFound { kind: "dataset", id: dataset.to_string() });
@@ -249,8 +271,10 @@ impl Store {
         sqlx::query(
             "INSERT INTO jobs (id, algorithm, status, unlabeled_dataset_id, \
              non_preferred_dataset_id, config, runner, eval, total_steps, created_at, updated_at, \
-             name, tags, notes, max_attempts, register_model, register_alias) \
-             VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10, $10, $11, $12, $13, $14, $15, $16)",
+             name, tags, notes, max_attempts, register_model, register_alias, experiment_id, \
+             experiment_arm) \
+             VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10, $10, $11, $12, $13, $14, $15, $16, \
+             $17, $18)",
         )
         .bind(job.id.as_str())
         .bind(job.config.algorithm().as_str())
@@ -261,22 +285,18 @@ impl Store {
         .bind(runner)
         .bind(eval)
         .bind(job.config.total_steps() as i64)
-        .bind(&now)
+        .bind(now())
         .bind(job.labels.name.as_deref())
         .bind(to_json(&job.labels.tags))
         .bind(job.labels.notes.as_deref())
         .bind(i64::from(job.max_attempts))
         .bind(job.register.as_ref().map(|r| r.model.as_str()))
         .bind(job.register.as_ref().and_then(|r| r.alias.as_deref()))
-        .execute(&mut *tx)
+        .bind(experiment.map(|(id, _)| id))
+        .bind(experiment.map(|(_, arm)| arm))
+        .execute(&mut **tx)
         .await?;
-        let row: JobRow =
-            sqlx::query_as(&format!("SELECT {} FROM jobs WHERE id = $1", self.job_columns()))
-                .bind(job.id.as_str())
-                .fetch_one(&mut *tx)
-                .await?;
-        tx.commit().await?;
-        row.try_into()
+        Ok(())
     }
 
     pub async fn job(&self, id: &str) -> Result<JobRecord, StoreError> {

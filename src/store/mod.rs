@@ -24,6 +24,7 @@
 pub mod attempts;
 pub mod datasets;
 pub mod evaluations;
+pub mod experiments;
 pub mod jobs;
 pub mod leases;
 pub mod logs;
@@ -69,6 +70,7 @@ pub enum Listing {
     Policies,
     Evaluations,
     Models,
+    Experiments,
 }
 
 impl Listing {
@@ -79,6 +81,7 @@ impl Listing {
             Listing::Policies => "policies",
             Listing::Evaluations => "evaluations",
             Listing::Models => "models",
+            Listing::Experiments => "experiments",
         }
     }
 

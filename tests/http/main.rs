@@ -28,6 +28,7 @@ mod datasets;
 mod demo;
 mod envs;
 mod evaluations;
+mod experiments;
 mod hardening;
 mod jobs;
 mod lifecycle;

@@ -30,6 +30,8 @@ mod datasets;
 mod envs;
 #[path = "../http/evaluations.rs"]
 mod evaluations;
+#[path = "../http/experiments.rs"]
+mod experiments;
 #[path = "../http/hardening.rs"]
 mod hardening;
 #[path = "../http/jobs.rs"]

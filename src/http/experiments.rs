@@ -1,0 +1,324 @@
+//! `/v1/experiments`: a grid of algorithms × seeds on one pair of datasets, queued as ordinary
+//! jobs (named, tagged `experiment=<id>`, in the fleet's queue), and its results: the paper's
+//! metrics per algorithm as mean ± standard error over the seeds, with the per-seed values.
+
+use axum::extract::State;
+use axum::http::{header, StatusCode};
+use axum::response::{IntoResponse, Response};
+use serde::{Deserialize, Serialize};
+use utoipa::ToSchema;
+use utoipa_axum::router::OpenApiRouter;
+use utoipa_axum::routes;
+
+use super::error::ErrorBody;
+use super::extract::{Json, Path, Query};
+use super::pagination::{Page, PageParams};
+use super::{ApiError, AppState};
+use crate::algo::Algorithm;
+use crate::domain::experiment::{Arm, ExperimentRecord};
+use crate::domain::{rfc3339, JobStatus};
+use crate::jobs::experiments::{self, ArmResult, ExperimentRequest, JobResult};
+use crate::jobs::{JobEvent, SubmitLimits};
+use crate::store::experiments::DeleteExperimentOutcome;
+use crate::store::jobs::CancelOutcome;
+use crate::store::Listing;
+
+/// An entry of `algorithms`: an algorithm's name, or the algorithm with a label and its own
+/// configuration keys.
+#[derive(Debug, Deserialize, ToSchema)]
+#[serde(untagged)]
+pub enum ArmInput {
+    Name(Algorithm),
+    Arm(Arm),
+}
+
+/// `POST /v1/experiments` body.
+#[derive(Debug, Deserialize, ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct CreateExperiment {
+    /// For people; the jobs are named `<name> · <label> · seed <s>`.
+    pub name: Option<String>,
+    pub unlabeled_dataset: String,
+    /// Used by the algorithms that need Dᴺ (never given to BC).
+    pub non_preferred_dataset: Option<String>,
+    /// E.g. `["safedice", "bc", {"algorithm": "dwbc", "label": "dwbc-eta", "config": {...}}]`.
+    #[schema(min_items = 1)]
+    pub algorithms: Vec<ArmInput>,
+    /// The seeds (1-50, distinct), or `seed_count` for 0..n.
+    pub seeds: Option<Vec<u64>>,
+    pub seed_count: Option<u32>,
+    /// Configuration keys every algorithm shares (e.g. `{"iterations": 20000}`); not `seed`.
+    #[schema(value_type = Option<Object>)]
+    pub config: Option<serde_json::Value>,
+    /// Each job's in-training evaluation, as a job's `eval` block: its metrics are the
+    /// experiment's results until an on-demand evaluation of the policy exists.
+    #[schema(value_type = Option<Object>)]
+    pub eval: Option<serde_json::Value>,
+    /// Tags every job gets besides `experiment=<id>`.
+    #[serde(default)]
+    pub tags: Vec<String>,
+}
+
+/// How many of the grid's jobs are in each status.
+#[derive(Debug, Default, Serialize, ToSchema)]
+pub struct GridProgress {
+    pub total: usize,
+    pub queued: usize,
+    pub running: usize,
+    pub succeeded: usize,
+    pub failed: usize,
+    pub cancelled: usize,
+}
+
+/// An experiment with its jobs and results.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct Experiment {
+    pub id: String,
+    pub name: Option<String>,
+    pub unlabeled_dataset: String,
+    pub non_preferred_dataset: Option<String>,
+    pub algorithms: Vec<Arm>,
+    pub seeds: Vec<u64>,
+    #[schema(value_type = Option<Object>)]
+    pub config: Option<serde_json::Value>,
+    #[schema(value_type = Option<Object>)]
+    pub eval: Option<serde_json::Value>,
+    pub tags: Vec<String>,
+    pub created_at: String,
+    pub progress: GridProgress,
+    /// Every job: its arm, seed, status, policy and metrics.
+    pub jobs: Vec<JobResult>,
+    /// Per algorithm: mean ± standard error over the seeds with metrics.
+    pub results: Vec<ArmResult>,
+}
+
+/// An experiment as lists show it.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct ExperimentSummary {
+    pub id: String,
+    pub name: Option<String>,
+    pub algorithms: Vec<String>,
+    pub seeds: Vec<u64>,
+    pub created_at: String,
+}
+
+pub fn router() -> OpenApiRouter<AppState> {
+    OpenApiRouter::new()
+        .routes(routes!(create_experiment, list_experiments))
+        .routes(routes!(get_experiment, delete_experiment))
+        .routes(routes!(cancel_experiment))
+        .routes(routes!(experiment_csv))
+}
+
+fn progress(jobs: &[JobResult]) -> GridProgress {
+    let mut progress = GridProgress { total: jobs.len(), ..GridProgress::default() };
+    for job in jobs {
+        let slot = match job.status {
+            JobStatus::Queued => &mut progress.queued,
+            JobStatus::Running => &mut progress.running,
+            JobStatus::Succeeded => &mut progress.succeeded,
+            JobStatus::Failed => &mut progress.failed,
+            JobStatus::Cancelled => &mut progress.cancelled,
+        };
+        *slot += 1;
+    }
+    progress
+}
+
+async fn resource(state: &AppState, record: ExperimentRecord) -> Result<Experiment, ApiError> {
+    let (jobs, results) = experiments::results(&state.store, &record).await?;
+    let spec = record.spec;
+    Ok(Experiment {
+        id: record.id,
+        name: record.name,
+        unlabeled_dataset: spec.unlabeled_dataset,
+        non_preferred_dataset: spec.non_preferred_dataset,
+        algorithms: spec.arms,
+        seeds: spec.seeds,
+        config: spec.config,
+        eval: spec.eval,
+        tags: spec.tags,
+        created_at: rfc3339(&record.created_at),
+        progress: progress(&jobs),
+        jobs,
+        results,
+    })
+}
+
+/// Queue an experiment: every algorithm × every seed as a job, all or none (each job is
+/// validated as `POST /v1/jobs` would; a refusal names the entry and the field).
+#[utoipa::path(post, path = "/v1/experiments", tag = "experiments", request_body = CreateExperiment,
+    responses(
+        (status = 201, body = Experiment, headers(("location" = String))),
+        (status = 404, description = "A dataset does not exist", body = ErrorBody),
+        (status = 422, description = "No algorithm, an unknown one, 0 or repeated seeds, more \
+            than 100 jobs, a bad configuration (`invalid_config`, naming `algorithms[i]`), bad \
+            tags (`invalid_labels`), a job above --max-job-memory (`job_too_large`)",
+         body = ErrorBody),
+    ))]
+async fn create_experiment(
+    State(state): State<AppState>,
+    Json(body): Json<CreateExperiment>,
+) -> Result<impl IntoResponse, ApiError> {
+    let arms = body
+        .algorithms
+        .into_iter()
+        .map(|arm| match arm {
+            ArmInput::Name(algorithm) => Arm { label: None, algorithm, config: None },
+            ArmInput::Arm(arm) => arm,
+        })
+        .collect();
+    let request = ExperimentRequest {
+        name: body.name,
+        unlabeled_dataset: body.unlabeled_dataset,
+        non_preferred_dataset: body.non_preferred_dataset,
+        arms,
+        seeds: body.seeds,
+        seed_count: body.seed_count,
+        config: body.config,
+        eval: body.eval,
+        tags: body.tags,
+    };
+    let limits = SubmitLimits {
+        max_job_memory: state.config.max_job_memory,
+        default_max_attempts: state.config.max_attempts,
+    };
+    let record = experiments::submit_experiment(&state.store, request, limits).await?;
+    state.jobs.wake();
+    let location = format!("/v1/experiments/{}", record.id);
+    let experiment = resource(&state, record).await?;
+    Ok((StatusCode::CREATED, [(header::LOCATION, location)], Json(experiment)))
+}
+
+/// List experiments, newest first.
+#[utoipa::path(get, path = "/v1/experiments", tag = "experiments", params(PageParams),
+    responses((status = 200, body = Page<ExperimentSummary>), (status = 400, body = ErrorBody)))]
+async fn list_experiments(
+    State(state): State<AppState>,
+    Query(page): Query<PageParams>,
+) -> Result<Json<Page<ExperimentSummary>>, ApiError> {
+    let page = page.resolve(&state.store, Listing::Experiments).await?;
+    let (records, total) = state.store.list_experiments(&page).await?;
+    let items = records
+        .into_iter()
+        .map(|r| ExperimentSummary {
+            algorithms: r.spec.arms.iter().map(Arm::label).collect(),
+            seeds: r.spec.seeds,
+            created_at: rfc3339(&r.created_at),
+            name: r.name,
+            id: r.id,
+        })
+        .collect();
+    Ok(Json(Page::new(items, total, page, |e: &ExperimentSummary| &e.id)))
+}
+
+/// An experiment: its grid, progress, every job's metrics and each algorithm's mean ± SE.
+#[utoipa::path(get, path = "/v1/experiments/{id}", tag = "experiments",
+    params(("id" = String, Path)),
+    responses((status = 200, body = Experiment), (status = 404, body = ErrorBody)))]
+async fn get_experiment(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+) -> Result<Json<Experiment>, ApiError> {
+    let record = state.store.experiment(&id).await?;
+    Ok(Json(resource(&state, record).await?))
+}
+
+/// Cancel every queued or running job of the experiment (finished ones stay).
+#[utoipa::path(post, path = "/v1/experiments/{id}/cancel", tag = "experiments",
+    params(("id" = String, Path)),
+    responses((status = 200, body = Experiment), (status = 404, body = ErrorBody)))]
+async fn cancel_experiment(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+) -> Result<Json<Experiment>, ApiError> {
+    let record = state.store.experiment(&id).await?;
+    for job in state.store.experiment_jobs(&id).await? {
+        let job_id = job.id.to_string();
+        match state.store.request_cancel(&job_id).await? {
+            CancelOutcome::Cancelled => {
+                let status = JobStatus::Cancelled;
+                let event = JobEvent::Status { job_id: job.id.clone(), status };
+                state.jobs.publish_api_change(event);
+            }
+            CancelOutcome::Requested => state.jobs.cancel_running(&job_id),
+            CancelOutcome::AlreadyFinished(_) => {}
+        }
+    }
+    tracing::info!(experiment_id = %id, "experiment cancelled");
+    Ok(Json(resource(&state, record).await?))
+}
+
+/// Delete an experiment whose jobs have all ended, with its jobs (their metrics, logs,
+/// policies and evaluations). Refused while a job of it is queued or running.
+#[utoipa::path(delete, path = "/v1/experiments/{id}", tag = "experiments",
+    params(("id" = String, Path)),
+    responses((status = 204, description = "Deleted"), (status = 404, body = ErrorBody),
+        (status = 409, description = "Jobs of it are queued or running (`experiment_active`), \
+            or a model version points at one of its policies (`policy_in_use`)",
+         body = ErrorBody)))]
+async fn delete_experiment(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+) -> Result<StatusCode, ApiError> {
+    match state.store.delete_experiment(&id).await? {
+        DeleteExperimentOutcome::Deleted { policies, jobs } => {
+            for policy in &policies {
+                state.policies.forget(policy);
+            }
+            for job in jobs {
+                state.jobs.publish_api_change(JobEvent::Deleted { job_id: job.into() });
+            }
+            tracing::info!(experiment_id = %id, "experiment deleted");
+            Ok(StatusCode::NO_CONTENT)
+        }
+        DeleteExperimentOutcome::NotFound => Err(ApiError::not_found("experiment", &id)),
+        DeleteExperimentOutcome::Active(jobs) => Err(ApiError::conflict(
+            "experiment_active",
+            format!(
+                "job(s) {} of experiment {id} are queued or running; cancel the experiment \
+                 (POST /v1/experiments/{id}/cancel), then delete it",
+                jobs.join(", ")
+            ),
+        )),
+    }
+}
+
+/// The results as CSV, long format (one value per row): every job's metrics (`seed` a number)
+/// and each algorithm's `mean` and `se` rows.
+#[utoipa::path(get, path = "/v1/experiments/{id}/results.csv", tag = "experiments",
+    params(("id" = String, Path)),
+    responses((status = 200, description = "CSV: arm,algorithm,seed,job_id,metric,value",
+        content_type = "text/csv", body = String), (status = 404, body = ErrorBody)))]
+async fn experiment_csv(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+) -> Result<Response, ApiError> {
+    let record = state.store.experiment(&id).await?;
+    let experiment = resource(&state, record).await?;
+    let mut csv = String::from("arm,algorithm,seed,job_id,metric,value\n");
+    let algorithm_of =
+        |arm: &str| experiment.results.iter().find(|r| r.label == arm).map(|r| r.algorithm.clone());
+    for job in &experiment.jobs {
+        let algorithm = algorithm_of(&job.arm).unwrap_or_default();
+        for (metric, value) in &job.metrics {
+            let (arm, seed, job_id) = (&job.arm, job.seed, &job.job_id);
+            csv.push_str(&format!("{arm},{algorithm},{seed},{job_id},{metric},{value}\n"));
+        }
+    }
+    for arm in &experiment.results {
+        for (metric, summary) in &arm.metrics {
+            let (label, algorithm) = (&arm.label, &arm.algorithm);
+            csv.push_str(&format!("{label},{algorithm},mean,,{metric},{}\n", summary.mean));
+            if let Some(se) = summary.se {
+                csv.push_str(&format!("{label},{algorithm},se,,{metric},{se}\n"));
+            }
+        }
+    }
+    let disposition = format!("attachment; filename=\"experiment-{id}.csv\"");
+    Ok((
+        [(header::CONTENT_TYPE, "text/csv".to_owned()), (header::CONTENT_DISPOSITION, disposition)],
+        csv,
+    )
+        .into_response())
+}
