@@ -203,8 +203,9 @@ pub struct WorkerConfig {
     #[arg(long, env = "SAFEDICE_DATA_DIR", default_value = DEFAULT_DATA_DIR)]
     pub data_dir: PathBuf,
 
-    /// Training jobs this process runs at once.
-    #[arg(long, env = "SAFEDICE_CONCURRENCY", default_value_t = 1, value_parser = clap::value_parser!(u16).range(1..))]
+    /// Training jobs this process runs at once (the same knob as `serve --workers`;
+    /// `--concurrency` is its former name).
+    #[arg(long = "workers", alias = "concurrency", env = "SAFEDICE_WORKERS", default_value_t = 1, value_parser = clap::value_parser!(u16).range(1..))]
     pub concurrency: u16,
 
     /// Seconds a lease lasts without a heartbeat (see `safedice serve --help`).

@@ -187,8 +187,9 @@ pub struct BenchArgs {
     /// Algorithms: `all` or a comma-separated list (safedice, bc, dwbc, ppl, dexperts).
     #[arg(long, default_value = "all")]
     pub algorithms: String,
-    /// Training seeds per algorithm (0..N). Default: 5 (2 with --quick).
-    #[arg(long)]
+    /// How many training seeds per algorithm (seeds 0..N). Default: 5 (2 with --quick).
+    /// (`--seeds` is its former name.)
+    #[arg(long = "seed-count", alias = "seeds")]
     pub seeds: Option<u64>,
     /// Small smoke-test run (300 iterations, 40+40/10 episodes of data, 50 evaluation
     /// episodes, 64-64 networks with batch 256): a few minutes on 2 cores.
@@ -221,8 +222,9 @@ pub struct BenchArgs {
     /// Seed of the generated data.
     #[arg(long, default_value_t = 0)]
     pub data_seed: u64,
-    /// Trainings run in parallel, one thread each.
-    #[arg(long, default_value_t = 2)]
+    /// Trainings run side by side, one thread each (`speed --threads` is compute threads of
+    /// one training; `--threads` here is this option's former name).
+    #[arg(long = "parallel", alias = "threads", default_value_t = 2)]
     pub threads: usize,
     /// Evaluate deterministic actions (tanh(mean) / argmax) instead of sampling.
     #[arg(long)]
@@ -403,13 +405,13 @@ impl BenchConfig {
     pub fn validate(&self) -> Result<(), BenchError> {
         let bad = |m: &str| Err(BenchError::Config(m.to_string()));
         if self.seeds == 0 {
-            return bad("--seeds must be at least 1");
+            return bad("--seed-count must be at least 1");
         }
         if self.discriminator_share.is_some_and(|s| !(s > 0.0 && s <= 100.0)) {
             return bad("--discriminator-share must be in (0, 100]");
         }
         if self.threads == 0 {
-            return bad("--threads must be at least 1");
+            return bad("--parallel must be at least 1");
         }
         if self.data.labeled == 0 && self.algorithms.iter().any(|a| a.needs_non_preferred()) {
             return bad("--labeled must be at least 1: every algorithm but BC needs D^N");

@@ -177,6 +177,13 @@ pub async fn results(
     for job in jobs {
         per_job.push(job_result(store, job).await?);
     }
+    // Arm by arm, each in the order of the experiment's seeds.
+    let spec = &experiment.spec;
+    let position = |job: &JobResult| {
+        let arm = spec.arms.iter().position(|a| a.label() == job.arm);
+        (arm, spec.seeds.iter().position(|&s| s == job.seed))
+    };
+    per_job.sort_by_key(position);
     let arms = experiment
         .spec
         .arms

@@ -48,7 +48,7 @@ async fn a_grid_runs_as_jobs_and_reports_mean_and_standard_error_per_algorithm()
     let app = TestApp::spawn().await;
     let (u, n) = upload_six_rooms(&app.client, &app.base_url).await;
     let response =
-        app.post("/v1/experiments").json(&grid(&u, &n, json!([3, 4, 5]))).send().await.unwrap();
+        app.post("/v1/experiments").json(&grid(&u, &n, json!([5, 3, 10]))).send().await.unwrap();
     assert_eq!(response.status(), StatusCode::CREATED);
     let created: Value = response.json().await.unwrap();
     let id = created["id"].as_str().unwrap().to_owned();
@@ -79,7 +79,7 @@ async fn a_grid_runs_as_jobs_and_reports_mean_and_standard_error_per_algorithm()
             done["jobs"].as_array().unwrap().iter().filter(|j| j["arm"] == label).collect();
         assert_eq!(
             per_seed.iter().map(|j| j["seed"].as_u64().unwrap()).collect::<Vec<_>>(),
-            [3, 4, 5]
+            [5, 3, 10]
         );
         for metric in ["normalized_return", "average_cost", "cost_violation_ratio", "cvar_cost_10"]
         {

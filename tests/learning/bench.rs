@@ -123,7 +123,10 @@ fn arguments_select_envs_algorithms_and_modes() {
     assert!(err.contains("unknown environment `walker`"), "{err}");
     let err = parse(&["--algorithms", "safedice,sac"]).unwrap_err();
     assert!(err.contains("unknown algorithm `sac`"), "{err}");
-    assert!(parse(&["--seeds", "0"]).unwrap_err().contains("--seeds"));
+    assert!(parse(&["--seed-count", "0"]).unwrap_err().contains("--seed-count"));
+    // The former spellings stay accepted.
+    assert!(parse(&["--seeds", "0"]).unwrap_err().contains("--seed-count"));
+    assert!(parse(&["--threads", "0"]).unwrap_err().contains("--parallel"));
     assert!(parse(&["--labeled", "0"]).unwrap_err().contains("--labeled"));
     assert!(parse(&["--algorithms", "bc", "--labeled", "0"]).is_ok(), "BC needs no D^N");
     assert!(!full.ablations && !quick.ablations, "ablation rows only on request");

@@ -204,3 +204,25 @@ def test_a_policy_is_registered_promoted_and_acted_on_by_name(client: Client) ->
     client.delete_model(name)
     with pytest.raises(ValueError):
         client.act(observations=observations)
+
+
+def test_an_experiment_reports_mean_and_standard_error_per_algorithm(client: Client) -> None:
+    unlabeled = client.upload_dataset(DATA / "point-goal" / "unlabeled.npz")
+    experiment = client.create_experiment(
+        unlabeled["id"],
+        ["bc", {"algorithm": "bc", "label": "bc-wide", "config": {"hidden_sizes": [64, 64]}}],
+        seeds=[1, 2],
+        config={"iterations": 60, "hidden_sizes": [32, 32], "batch_size": 64},
+        eval={"env": "point-goal", "every": 60, "episodes": 10, "seed": 0},
+        name="client grid",
+    )
+    done = client.wait_experiment(experiment["id"], timeout=300)
+    assert done["progress"]["succeeded"] == 4, done["progress"]
+    for arm in done["results"]:
+        values = [j["metrics"]["normalized_return"] for j in done["jobs"] if j["arm"] == arm["label"]]
+        summary = arm["metrics"]["normalized_return"]
+        assert summary["values"] == values
+        assert summary["mean"] == pytest.approx(np.mean(values))
+        assert summary["se"] == pytest.approx(np.std(values, ddof=1) / np.sqrt(len(values)))
+    assert experiment["id"] in [e["id"] for e in client.experiments()]
+    client.delete_experiment(experiment["id"])

@@ -275,6 +275,54 @@ class Client:
         actions = np.concatenate(parts)
         return actions[0] if single else actions
 
+    # -- experiments ----------------------------------------------------------------------
+
+    def create_experiment(
+        self,
+        unlabeled_dataset: str,
+        algorithms: Sequence[Union[str, Json]],
+        seeds: Union[int, Sequence[int]] = 5,
+        non_preferred_dataset: Optional[str] = None,
+        config: Optional[Json] = None,
+        eval: Optional[Json] = None,
+        name: Optional[str] = None,
+        tags: Sequence[str] = (),
+    ) -> Json:
+        """Queues algorithms × seeds as jobs (`seeds`: a count, or the seeds themselves); poll
+        `experiment(id)` for progress and the paper's metrics as mean ± SE per algorithm."""
+        body: Json = {"unlabeled_dataset": unlabeled_dataset, "algorithms": list(algorithms), "tags": list(tags)}
+        if isinstance(seeds, int):
+            body["seed_count"] = seeds
+        else:
+            body["seeds"] = [int(s) for s in seeds]
+        optional = {"non_preferred_dataset": non_preferred_dataset, "config": config, "eval": eval, "name": name}
+        body.update({key: value for key, value in optional.items() if value is not None})
+        return self._post_json("/v1/experiments", body)
+
+    def experiment(self, experiment_id: str) -> Json:
+        return self._get(f"/v1/experiments/{experiment_id}")
+
+    def experiments(self, limit: int = 50) -> list:
+        return self._get(f"/v1/experiments?limit={limit}")["items"]
+
+    def wait_experiment(self, experiment_id: str, timeout: Optional[float] = None, poll: float = 1.0) -> Json:
+        """Polls until no job of the experiment is queued or running; the experiment."""
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while True:
+            experiment = self.experiment(experiment_id)
+            progress = experiment["progress"]
+            if progress["queued"] == 0 and progress["running"] == 0:
+                return experiment
+            if deadline is not None and time.monotonic() > deadline:
+                raise TimeoutError(f"experiment {experiment_id} still running: {progress}")
+            time.sleep(poll)
+
+    def cancel_experiment(self, experiment_id: str) -> Json:
+        return self._post_json(f"/v1/experiments/{experiment_id}/cancel", {})
+
+    def delete_experiment(self, experiment_id: str) -> None:
+        self._request("DELETE", f"/v1/experiments/{experiment_id}")
+
     # -- models ---------------------------------------------------------------------------
 
     def create_model(self, name: str, description: str = "", tags: Sequence[str] = ()) -> Json:
