@@ -205,7 +205,7 @@ pub struct WorkerConfig {
 
     /// Training jobs this process runs at once (the same knob as `serve --workers`;
     /// `--concurrency` is its former name).
-    #[arg(long = "workers", alias = "concurrency", env = "SAFEDICE_WORKERS", default_value_t = 1, value_parser = clap::value_parser!(u16).range(1..))]
+    #[arg(long = "workers", alias = "concurrency", value_name = "N", env = "SAFEDICE_WORKERS", default_value_t = 1, value_parser = clap::value_parser!(u16).range(1..))]
     pub concurrency: u16,
 
     /// Seconds a lease lasts without a heartbeat (see `safedice serve --help`).

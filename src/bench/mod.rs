@@ -189,7 +189,7 @@ pub struct BenchArgs {
     pub algorithms: String,
     /// How many training seeds per algorithm (seeds 0..N). Default: 5 (2 with --quick).
     /// (`--seeds` is its former name.)
-    #[arg(long = "seed-count", alias = "seeds")]
+    #[arg(long = "seed-count", alias = "seeds", value_name = "N")]
     pub seeds: Option<u64>,
     /// Small smoke-test run (300 iterations, 40+40/10 episodes of data, 50 evaluation
     /// episodes, 64-64 networks with batch 256): a few minutes on 2 cores.
@@ -224,7 +224,7 @@ pub struct BenchArgs {
     pub data_seed: u64,
     /// Trainings run side by side, one thread each (`speed --threads` is compute threads of
     /// one training; `--threads` here is this option's former name).
-    #[arg(long = "parallel", alias = "threads", default_value_t = 2)]
+    #[arg(long = "parallel", alias = "threads", value_name = "N", default_value_t = 2)]
     pub threads: usize,
     /// Evaluate deterministic actions (tanh(mean) / argmax) instead of sampling.
     #[arg(long)]
