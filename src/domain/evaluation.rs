@@ -118,7 +118,8 @@ pub struct ExternalEvaluation {
     /// The demonstrators' means on this simulator.
     pub reference: ExternalReference,
     /// The seed the episodes were run with (recorded, not used). Default 0.
-    #[serde(default)]
+    #[serde(default, deserialize_with = "super::deserialize_seed")]
+    #[schema(maximum = 9223372036854775807_u64)]
     pub seed: u64,
     /// Whether the policy acted deterministically (recorded, not used). Default false.
     #[serde(default)]

@@ -9,6 +9,32 @@ pub const MAX_TAGS: usize = 32;
 pub const MAX_TAG_CHARS: usize = 64;
 pub const MAX_NOTES_CHARS: usize = 10_000;
 
+/// A tag as the API describes it (request bodies declare their tags as a list of these), so
+/// clients and schema-driven testers know the rule [`check_tag`] enforces.
+pub struct TagSchema;
+
+impl utoipa::PartialSchema for TagSchema {
+    fn schema() -> utoipa::openapi::RefOr<utoipa::openapi::schema::Schema> {
+        use utoipa::openapi::schema::{ObjectBuilder, Type};
+        ObjectBuilder::new()
+            .schema_type(Type::String)
+            .pattern(Some(TAG_PATTERN))
+            .min_length(Some(1))
+            .max_length(Some(MAX_TAG_CHARS))
+            .description(Some("1-64 characters from letters, digits and `- _ . : / =`"))
+            .into()
+    }
+}
+
+impl ToSchema for TagSchema {
+    fn name() -> std::borrow::Cow<'static, str> {
+        "Tag".into()
+    }
+}
+
+/// [`check_tag`]'s rule as a regular expression.
+pub const TAG_PATTERN: &str = "^[A-Za-z0-9._:/=-]{1,64}$";
+
 /// A job's name, tags and notes.
 #[derive(Clone, Debug, Default, PartialEq, Eq, Serialize, Deserialize, ToSchema)]
 pub struct JobLabels {
@@ -71,7 +97,20 @@ fn check_text(field: &str, text: String, max: usize, newlines: bool) -> Result<S
     if text.chars().any(control) {
         return Err(format!("{field}: control characters are not allowed"));
     }
+    if let Some(c) = text.chars().find(|&c| is_bidi_control(c)) {
+        return Err(format!(
+            "{field}: U+{:04X} changes the direction text is shown in (a name could then read \
+             as another); write the text without it",
+            c as u32
+        ));
+    }
     Ok(text)
+}
+
+/// The Unicode bidirectional formatting characters (embeddings, overrides, isolates, marks):
+/// invisible, and they reorder what follows them on screen.
+pub fn is_bidi_control(c: char) -> bool {
+    matches!(c, '\u{061C}' | '\u{200E}' | '\u{200F}' | '\u{202A}'..='\u{202E}' | '\u{2066}'..='\u{2069}')
 }
 
 #[cfg(test)]
@@ -102,6 +141,8 @@ mod tests {
         let cases = [
             (labels(Some(&long), &[], None), "name: at most 200"),
             (labels(Some("a\u{7}b"), &[], None), "name: control"),
+            (labels(Some("invoice\u{202e}fdp.exe"), &[], None), "name: U+202E"),
+            (labels(None, &[], Some("note \u{2066}x")), "notes: U+2066"),
             (labels(None, &["has space"], None), "tags: \"has space\""),
             (labels(None, &[""], None), "tags: \"\""),
             (labels(None, &["%"], None), "tags: \"%\""),

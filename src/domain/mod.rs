@@ -48,6 +48,30 @@ impl DatasetRole {
     }
 }
 
+/// The largest seed the API takes: seeds are described as 64-bit signed integers (`int64`), the
+/// widest integer every JSON client and schema tool agrees on.
+pub const MAX_SEED: u64 = i64::MAX as u64;
+
+/// Deserializes a seed, refusing one above [`MAX_SEED`] with a message that says why.
+pub fn deserialize_seed<'de, D: serde::Deserializer<'de>>(d: D) -> Result<u64, D::Error> {
+    let seed = <u64 as serde::Deserialize>::deserialize(d)?;
+    if seed > MAX_SEED {
+        return Err(serde::de::Error::custom(format!(
+            "seed {seed} is above {MAX_SEED}, the largest 64-bit signed integer (seeds are int64)"
+        )));
+    }
+    Ok(seed)
+}
+
+/// [`deserialize_seed`] for an optional seed.
+pub fn deserialize_optional_seed<'de, D: serde::Deserializer<'de>>(
+    d: D,
+) -> Result<Option<u64>, D::Error> {
+    #[derive(serde::Deserialize)]
+    struct Seed(#[serde(deserialize_with = "deserialize_seed")] u64);
+    Ok(<Option<Seed> as serde::Deserialize>::deserialize(d)?.map(|Seed(s)| s))
+}
+
 /// A time as the API shows it: RFC 3339, UTC, milliseconds (`2026-01-31T12:00:00.000Z`).
 pub fn rfc3339(time: &chrono::DateTime<chrono::Utc>) -> String {
     time.to_rfc3339_opts(chrono::SecondsFormat::Millis, true)

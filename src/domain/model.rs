@@ -76,6 +76,9 @@ pub fn check_text(field: &str, text: &str, max: usize) -> Result<(), String> {
     if text.chars().any(|c| c.is_control() && c != '\n' && c != '\t') {
         return Err(format!("{field}: control characters are not allowed"));
     }
+    if let Some(c) = text.chars().find(|&c| super::labels::is_bidi_control(c)) {
+        return Err(format!("{field}: U+{:04X} changes the direction text is shown in", c as u32));
+    }
     Ok(())
 }
 

@@ -74,7 +74,8 @@ pub struct EvalSpec {
     pub episodes: usize,
     /// Seed of the episodes' initial states and of sampled actions: the same seed and policy
     /// give the same metrics. Default 0.
-    #[serde(default)]
+    #[serde(default, deserialize_with = "super::deserialize_seed")]
+    #[schema(maximum = 9223372036854775807_u64)]
     pub seed: u64,
     /// true: tanh of the Gaussian mean / argmax; false (default, as the paper): sampled actions.
     #[serde(default)]
@@ -105,7 +106,8 @@ pub struct EvalOptions {
     pub episodes: usize,
     /// Seed of every evaluation (the same initial states each time, so the history compares
     /// like with like). Default 0.
-    #[serde(default)]
+    #[serde(default, deserialize_with = "super::deserialize_seed")]
+    #[schema(maximum = 9223372036854775807_u64)]
     pub seed: u64,
     /// Deterministic actions instead of sampled ones (default false).
     #[serde(default)]

@@ -16,6 +16,7 @@ use super::pagination::{Page, PageParams};
 use super::{ApiError, AppState};
 use crate::algo::Algorithm;
 use crate::domain::experiment::{Arm, ExperimentRecord};
+use crate::domain::labels::TagSchema;
 use crate::domain::{rfc3339, JobStatus};
 use crate::jobs::experiments::{self, ArmResult, ExperimentRequest, JobResult};
 use crate::jobs::{JobEvent, SubmitLimits};
@@ -56,6 +57,7 @@ pub struct CreateExperiment {
     pub eval: Option<serde_json::Value>,
     /// Tags every job gets besides `experiment=<id>`.
     #[serde(default)]
+    #[schema(value_type = Vec<TagSchema>)]
     pub tags: Vec<String>,
 }
 

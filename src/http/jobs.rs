@@ -21,6 +21,7 @@ use super::extract::{Json, Path, Query};
 use super::pagination::{Page, PageParams};
 use super::{ApiError, AppState};
 use crate::algo::Algorithm;
+use crate::domain::labels::TagSchema;
 use crate::domain::model::Registration;
 use crate::domain::{
     rfc3339, EvalOptions, JobLabels, JobProgress, JobRecord, JobStatus, RunnerOptions,
@@ -76,6 +77,7 @@ pub struct CreateJob {
     /// Up to 32 tags of 1-64 characters from letters, digits and `- _ . : / =`, e.g.
     /// `env=point-goal`; `GET /v1/jobs?tag=` filters by one.
     #[serde(default)]
+    #[schema(value_type = Vec<TagSchema>)]
     pub tags: Vec<String>,
     /// Free text, at most 10,000 characters.
     pub notes: Option<String>,
@@ -97,7 +99,7 @@ pub struct UpdateJob {
     #[schema(value_type = Option<String>)]
     pub name: Option<Option<String>>,
     #[serde(default, deserialize_with = "present")]
-    #[schema(value_type = Option<Vec<String>>)]
+    #[schema(value_type = Option<Vec<TagSchema>>)]
     pub tags: Option<Option<Vec<String>>>,
     #[serde(default, deserialize_with = "present")]
     #[schema(value_type = Option<String>)]
@@ -612,8 +614,12 @@ const LOG_POLL: Duration = Duration::from_millis(500);
 #[utoipa::path(get, path = "/v1/jobs/{id}/logs", tag = "jobs",
     params(("id" = String, Path), LogParams),
     responses(
-        (status = 200, description = "The lines (JSON), or with `follow=true` `event: log` \
-            events (data: LogLine)", body = Vec<LogLine>),
+        (status = 200, description = "The lines (JSON), or with `follow=true` a server-sent \
+            event stream of `event: log` events whose data is a LogLine",
+         content(
+            (Vec<LogLine> = "application/json"),
+            (String = "text/event-stream"),
+         )),
         (status = 400, description = "Bad `after` or `limit`", body = ErrorBody),
         (status = 404, body = ErrorBody),
     ))]

@@ -20,7 +20,10 @@ use super::{ApiError, AppState};
 use crate::domain::model::ModelRef;
 
 pub fn router() -> OpenApiRouter<AppState> {
-    OpenApiRouter::new().routes(routes!(act_by_name)).routes(routes!(act_by_version))
+    OpenApiRouter::new()
+        .routes(routes!(act_by_name))
+        .routes(routes!(act_by_version))
+        .layer(axum::extract::DefaultBodyLimit::max(super::inference::ACTION_BODY_LIMIT))
 }
 
 /// Actions from a named model: `name` serves its latest version, `name@alias` the alias's

@@ -13,7 +13,7 @@ use super::error::ErrorBody;
 use super::extract::{Json, Path, Query};
 use super::pagination::{Page, PageParams};
 use super::{ApiError, AppState};
-use crate::domain::labels::{check_tag, MAX_TAGS};
+use crate::domain::labels::{check_tag, TagSchema, MAX_TAGS};
 use crate::domain::model::{
     self, AliasMove, AliasRecord, AliasTarget, Canary, ModelRecord, ModelVersionRecord, MoveNote,
     BASIS_POINTS, MAX_ACTOR_CHARS, MAX_DESCRIPTION_CHARS,
@@ -35,6 +35,7 @@ pub struct CreateModel {
     pub description: String,
     /// Up to 32 tags of 1-64 characters from letters, digits and `- _ . : / =`.
     #[serde(default)]
+    #[schema(value_type = Vec<TagSchema>)]
     pub tags: Vec<String>,
 }
 
@@ -43,6 +44,7 @@ pub struct CreateModel {
 #[serde(deny_unknown_fields)]
 pub struct UpdateModel {
     pub description: Option<String>,
+    #[schema(value_type = Option<Vec<TagSchema>>)]
     pub tags: Option<Vec<String>>,
 }
 

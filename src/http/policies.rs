@@ -81,13 +81,16 @@ pub struct PolicyFilter {
 #[serde(deny_unknown_fields)]
 pub struct ActRequest {
     /// A batch of observations (1 to 16384 rows of `obs_dim` finite numbers each), in the
-    /// dataset's original units.
+    /// dataset's original units. The body may be up to 16 MiB (other JSON bodies: 2 MB).
     #[schema(min_items = 1, max_items = 16384)]
     pub observations: Vec<Vec<f64>>,
     /// true (default): tanh of the Gaussian mean / argmax. false: sample.
     #[serde(default = "yes")]
     pub deterministic: bool,
-    /// Seed for sampling (`deterministic: false`); the same seed gives the same actions.
+    /// Seed for sampling (`deterministic: false`); the same seed gives the same actions. At
+    /// most 2^63 - 1.
+    #[serde(default, deserialize_with = "crate::domain::deserialize_optional_seed")]
+    #[schema(maximum = 9223372036854775807_u64)]
     pub seed: Option<u64>,
 }
 
@@ -117,7 +120,11 @@ pub fn router() -> OpenApiRouter<AppState> {
         .routes(routes!(get_policy, delete_policy))
         .routes(routes!(policy_weights))
         .routes(routes!(export_policy))
-        .routes(routes!(act))
+        .merge(
+            OpenApiRouter::new()
+                .routes(routes!(act))
+                .layer(axum::extract::DefaultBodyLimit::max(inference::ACTION_BODY_LIMIT)),
+        )
 }
 
 /// List trained policies, newest first.

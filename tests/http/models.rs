@@ -442,3 +442,45 @@ async fn a_job_registers_its_policy_as_the_next_version_when_it_succeeds() {
     assert_eq!(version.as_deref(), Some("1"));
     assert_eq!(by_name, act(&app, &format!("/v1/policies/{policy}/act"), None).await.0);
 }
+
+/// The documented batch limit is reachable on every action route: 16,384 observations as JSON
+/// are far over the 2 MB other bodies may have; the action routes take up to 16 MiB. One row
+/// more is 422 `batch_too_large`, a body over 16 MiB 413.
+#[tokio::test]
+async fn a_full_batch_fits_every_action_route_and_one_row_more_is_refused() {
+    let app = TestApp::spawn().await;
+    let [(_, policy), _] = two_policies(&app).await;
+    create_model(&app, "pilot").await;
+    register(&app, "pilot", &policy).await;
+    let row: Vec<f64> = (0..GRID_OBS_DIM).map(|i| (i as f64 + 1.0) * 0.123_456_789_012_3).collect();
+    let batch = |rows: usize| json!({"observations": vec![row.clone(); rows]});
+    let full = serde_json::to_vec(&batch(16_384)).unwrap();
+    assert!(full.len() > 2_000_000, "the test's body must be over the 2 MB default");
+    for path in [format!("/v1/policies/{policy}/act"), "/v1/models/pilot/act".into()] {
+        let response = app
+            .post(&path)
+            .header("content-type", "application/json")
+            .body(full.clone())
+            .send()
+            .await
+            .unwrap();
+        assert_eq!(response.status(), StatusCode::OK, "{path}");
+        let body: Value = response.json().await.unwrap();
+        assert_eq!(body["actions"].as_array().unwrap().len(), 16_384);
+        let response = app.post(&path).json(&batch(16_385)).send().await.unwrap();
+        assert_error(response, StatusCode::UNPROCESSABLE_ENTITY, "batch_too_large").await;
+    }
+    let v2 = json!({"inputs": [{"name": "observations", "datatype": "FP32",
+                                "shape": [16_384, GRID_OBS_DIM], "data": vec![row.clone(); 16_384]}]});
+    let response = app.post("/v2/models/pilot/infer").json(&v2).send().await.unwrap();
+    assert_eq!(response.status(), StatusCode::OK);
+    let huge = vec![b' '; (16 << 20) + 1];
+    let response = app
+        .post("/v1/models/pilot/act")
+        .header("content-type", "application/json")
+        .body(huge)
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(response.status(), StatusCode::PAYLOAD_TOO_LARGE);
+}

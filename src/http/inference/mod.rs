@@ -48,6 +48,11 @@ const MODEL_VERSION: &str = "1";
 
 /// Largest batch one request may send.
 pub const MAX_BATCH_ROWS: usize = 16_384;
+/// Largest request body of the action routes (`/act`, `/v2/…/infer`): a full batch of 16,384
+/// observations as JSON needs far more than the 2 MB every other JSON body may have (about 12
+/// bytes per value: 16,384 rows of 80 values), and as binary tensor data up to 256 values per
+/// row. A larger body is refused with 413 before it is read.
+pub const ACTION_BODY_LIMIT: usize = 16 << 20;
 /// Batches up to this many rows run on the request's task (a few microseconds of matrix
 /// products); larger ones move to a blocking thread so they cannot stall other requests.
 const INLINE_ROWS: usize = 64;
@@ -141,16 +146,19 @@ pub async fn act(
 }
 
 pub fn router() -> OpenApiRouter<AppState> {
+    let infer = OpenApiRouter::new()
+        .routes(routes!(infer))
+        .routes(routes!(version_infer))
+        .layer(axum::extract::DefaultBodyLimit::max(ACTION_BODY_LIMIT));
     OpenApiRouter::new()
         .routes(routes!(server_metadata))
         .routes(routes!(live))
         .routes(routes!(ready))
         .routes(routes!(model_metadata))
         .routes(routes!(model_ready))
-        .routes(routes!(infer))
         .routes(routes!(version_metadata))
         .routes(routes!(version_ready))
-        .routes(routes!(version_infer))
+        .merge(infer)
         .merge(repository::router())
 }
 
@@ -421,7 +429,9 @@ pub struct RequestedOutputParameters {
 pub struct InferParameters {
     /// Default true: tanh of the mean / argmax. false samples.
     pub deterministic: Option<bool>,
-    /// Makes sampling reproducible.
+    /// Makes sampling reproducible (at most 2^63 - 1).
+    #[serde(default, deserialize_with = "crate::domain::deserialize_optional_seed")]
+    #[schema(maximum = 9223372036854775807_u64)]
     pub seed: Option<u64>,
     /// Every output as binary tensor data (when `outputs` names none).
     pub binary_data_output: Option<bool>,
