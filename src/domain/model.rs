@@ -224,8 +224,13 @@ pub struct MoveNote {
 #[serde(deny_unknown_fields)]
 pub struct Registration {
     /// An existing model's name.
+    #[schema(pattern = "^[A-Za-z0-9][A-Za-z0-9._-]*$", min_length = 1, max_length = 64)]
     pub model: String,
     /// An alias to point at the new version (created if the model has none of that name).
+    #[schema(
+        pattern = r"^(?:[A-Za-z][A-Za-z0-9._-]*|[0-9]+[A-Za-z._-][A-Za-z0-9._-]*)$",
+        max_length = 64
+    )]
     pub alias: Option<String>,
 }
 

@@ -194,7 +194,9 @@ async fn create_experiment(
 
 /// List experiments, newest first.
 #[utoipa::path(get, path = "/v1/experiments", tag = "experiments", params(PageParams),
-    responses((status = 200, body = Page<ExperimentSummary>), (status = 400, body = ErrorBody)))]
+    responses((status = 200, body = Page<ExperimentSummary>), (status = 400, body = ErrorBody),
+        (status = 404, description = "A `page_token` that is not an item of this list \
+            (`page_token_not_found`)", body = ErrorBody)))]
 async fn list_experiments(
     State(state): State<AppState>,
     Query(page): Query<PageParams>,

@@ -32,6 +32,10 @@ pub struct CreateModel {
     pub name: String,
     /// Free text, at most 10,000 characters.
     #[serde(default)]
+    #[schema(
+        pattern = r"^[^\x00-\x08\x0b-\x1f\x7f-\x9f\u061c\u200e\u200f\u202a-\u202e\u2066-\u2069]*$",
+        max_length = 10000
+    )]
     pub description: String,
     /// Up to 32 tags of 1-64 characters from letters, digits and `- _ . : / =`.
     #[serde(default)]
@@ -43,6 +47,10 @@ pub struct CreateModel {
 #[derive(Debug, Deserialize, ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct UpdateModel {
+    #[schema(
+        pattern = r"^[^\x00-\x08\x0b-\x1f\x7f-\x9f\u061c\u200e\u200f\u202a-\u202e\u2066-\u2069]*$",
+        max_length = 10000
+    )]
     pub description: Option<String>,
     #[schema(value_type = Option<Vec<TagSchema>>)]
     pub tags: Option<Vec<String>>,
@@ -79,6 +87,7 @@ pub struct Alias {
 pub struct CanaryShare {
     pub version: u32,
     /// The share of requests, 0.0001-0.9999 (kept in steps of 0.0001).
+    #[schema(minimum = 0.0001, maximum = 0.9999)]
     pub weight: f64,
 }
 
@@ -124,10 +133,22 @@ pub struct CreateVersion {
     /// The trained policy this version serves.
     pub policy_id: String,
     #[serde(default)]
+    #[schema(
+        pattern = r"^[^\x00-\x08\x0b-\x1f\x7f-\x9f\u061c\u200e\u200f\u202a-\u202e\u2066-\u2069]*$",
+        max_length = 10000
+    )]
     pub description: String,
     /// An alias to move to the new version at once (e.g. `staging`).
+    #[schema(
+        pattern = r"^(?:[A-Za-z][A-Za-z0-9._-]*|[0-9]+[A-Za-z._-][A-Za-z0-9._-]*)$",
+        max_length = 64
+    )]
     pub alias: Option<String>,
     /// Who registers it, for the alias's history (default `api`).
+    #[schema(
+        pattern = r"^[^\x00-\x1f\x7f-\x9f\u061c\u200e\u200f\u202a-\u202e\u2066-\u2069]*[^\s\x00-\x1f\x7f-\x9f\u061c\u200e\u200f\u202a-\u202e\u2066-\u2069][^\x00-\x1f\x7f-\x9f\u061c\u200e\u200f\u202a-\u202e\u2066-\u2069]*$",
+        max_length = 200
+    )]
     pub actor: Option<String>,
 }
 
@@ -177,8 +198,16 @@ pub struct SetAlias {
     /// Another version answering a share of the requests (absent: none).
     pub canary: Option<CanaryShare>,
     /// Who moves it, for the history (default `api`), at most 200 characters.
+    #[schema(
+        pattern = r"^[^\x00-\x1f\x7f-\x9f\u061c\u200e\u200f\u202a-\u202e\u2066-\u2069]*[^\s\x00-\x1f\x7f-\x9f\u061c\u200e\u200f\u202a-\u202e\u2066-\u2069][^\x00-\x1f\x7f-\x9f\u061c\u200e\u200f\u202a-\u202e\u2066-\u2069]*$",
+        max_length = 200
+    )]
     pub actor: Option<String>,
     /// Why, for the history.
+    #[schema(
+        pattern = r"^[^\x00-\x08\x0b-\x1f\x7f-\x9f\u061c\u200e\u200f\u202a-\u202e\u2066-\u2069]*$",
+        max_length = 200
+    )]
     pub reason: Option<String>,
     /// Move only if the alias points at this version now (409 `alias_moved` otherwise): a
     /// client that read the alias does not undo a move made meanwhile.
@@ -189,7 +218,16 @@ pub struct SetAlias {
 #[derive(Debug, Deserialize, IntoParams)]
 #[into_params(parameter_in = Query)]
 pub struct MoveParams {
+    /// Who deletes it, for the history (default `api`).
+    #[param(
+        pattern = r"^[^\x00-\x1f\x7f-\x9f\u061c\u200e\u200f\u202a-\u202e\u2066-\u2069]*[^\s\x00-\x1f\x7f-\x9f\u061c\u200e\u200f\u202a-\u202e\u2066-\u2069][^\x00-\x1f\x7f-\x9f\u061c\u200e\u200f\u202a-\u202e\u2066-\u2069]*$",
+        max_length = 200
+    )]
     pub actor: Option<String>,
+    #[param(
+        pattern = r"^[^\x00-\x08\x0b-\x1f\x7f-\x9f\u061c\u200e\u200f\u202a-\u202e\u2066-\u2069]*$",
+        max_length = 200
+    )]
     pub reason: Option<String>,
     /// Delete only if the alias points at this version now (409 `alias_moved` otherwise).
     pub expected_version: Option<u32>,
@@ -234,7 +272,9 @@ impl From<AliasMove> for AliasMoveResource {
 #[into_params(parameter_in = Query)]
 pub struct VersionParams {
     /// 1-500 (default 50).
+    #[param(minimum = 1, maximum = 500)]
     pub limit: Option<u32>,
+    #[param(minimum = 0, maximum = 9223372036854775807_i64)]
     pub offset: Option<u64>,
 }
 
@@ -252,6 +292,7 @@ pub struct HistoryParams {
     /// Only this alias's moves.
     pub alias: Option<String>,
     /// 1-1000 (default 100).
+    #[param(minimum = 1, maximum = 1000)]
     pub limit: Option<u32>,
 }
 
@@ -459,7 +500,13 @@ async fn list_versions(
             format!("limit must be between 1 and 500, got {limit}"),
         ));
     }
-    let offset = params.offset.unwrap_or(0).min(i64::MAX as u64);
+    let offset = params.offset.unwrap_or(0);
+    if offset > i64::MAX as u64 {
+        return Err(ApiError::bad_request(
+            "invalid_pagination",
+            format!("offset must be between 0 and {}, got {offset}", i64::MAX),
+        ));
+    }
     let (records, total) = state.store.model_versions(&name, limit, offset).await?;
     Ok(Json(VersionList { items: records.into_iter().map(Into::into).collect(), total }))
 }
@@ -500,9 +547,16 @@ async fn delete_version(
 }
 
 /// `{name, alias}` of an alias's routes.
-#[derive(Debug, Deserialize)]
+#[derive(Debug, Deserialize, IntoParams)]
+#[into_params(parameter_in = Path)]
 struct AliasPath {
     name: String,
+    /// An alias's name: 1-64 characters from ASCII letters, digits and `- _ .`, starting with a
+    /// letter or digit, not all digits, not `latest`.
+    #[param(
+        pattern = r"^(?:[A-Za-z][A-Za-z0-9._-]*|[0-9]+[A-Za-z._-][A-Za-z0-9._-]*)$",
+        max_length = 64
+    )]
     alias: String,
 }
 
@@ -526,7 +580,7 @@ fn canary_of(share: Option<CanaryShare>) -> Result<Option<Canary>, ApiError> {
 /// server answers from the new version as soon as the call returns; the other API nodes of a
 /// fleet follow within about a second. Every move is kept in the model's history.
 #[utoipa::path(put, path = "/v1/models/{name}/aliases/{alias}", tag = "models",
-    params(("name" = String, Path), ("alias" = String, Path)), request_body = SetAlias,
+    params(AliasPath), request_body = SetAlias,
     responses(
         (status = 200, body = AliasMoveResource),
         (status = 404, description = "No such model or version", body = ErrorBody),
@@ -543,14 +597,15 @@ async fn set_alias(
     model_name(&path.name)?;
     model::check_alias_name(&path.alias).map_err(invalid_name)?;
     let target = AliasTarget { version: request.version, canary: canary_of(request.canary)? };
+    let note = note(request.actor, request.reason, request.expected_version)?;
+    // Versions that do not exist are 404 before anything else is said of them.
+    preload(&state, &path.name, &target).await?;
     if target.canary.is_some_and(|c| c.version == target.version) {
         return Err(ApiError::unprocessable(
             "invalid_canary",
             "canary.version is the alias's own version; name another version",
         ));
     }
-    let note = note(request.actor, request.reason, request.expected_version)?;
-    preload(&state, &path.name, &target).await?;
     let moved = state.store.set_alias(&path.name, &path.alias, &target, &note).await?;
     refresh(&state, &path.name).await;
     let from = moved.from.as_ref().map(|t| t.version);
@@ -570,8 +625,9 @@ async fn preload(state: &AppState, model: &str, target: &AliasTarget) -> Result<
 
 /// Delete an alias (recorded in the history); agents addressing it get 404 from then on.
 #[utoipa::path(delete, path = "/v1/models/{name}/aliases/{alias}", tag = "models",
-    params(("name" = String, Path), ("alias" = String, Path), MoveParams),
+    params(AliasPath, MoveParams),
     responses((status = 204, description = "Deleted"), (status = 404, body = ErrorBody),
+        (status = 422, description = "A bad actor or reason (`invalid_model`)", body = ErrorBody),
         (status = 409, description = "The alias is not at `expected_version` (`alias_moved`)",
          body = ErrorBody)))]
 async fn delete_alias(
