@@ -177,7 +177,7 @@ function experimentSummary(e, actions) {
     onclick: (event) => { event.preventDefault(); actions.csv(csvPath); } }, 'Results (CSV)');
   return [h('h2', {}, 'Progress'),
     h('div', { class: 'grid-progress' }, progressBar({ algorithm: 'grid', progress: { fraction } }, true),
-      h('span', { id: 'experiment-progress', 'data-active': gridActive(e) }, progressText(p))),
+      h('span', { id: 'experiment-progress', 'data-active': String(gridActive(e)) }, progressText(p))),
     h('dl', { class: 'kv' },
       h('dt', {}, 'algorithms'), h('dd', {}, e.algorithms.map((a) => (a.label && a.label !== a.algorithm
         ? h('span', { class: 'tag' }, `${a.label} (${algoLabel(a.algorithm)})`) : algoBadge(a.algorithm)))),
