@@ -85,7 +85,7 @@ function experimentForm(datasets, envs, onCreated) {
   const fillEnvs = () => {
     const dataset = datasets.find((d) => d.id === unlabeled.value);
     const fitting = dataset ? envs.filter((e) => envFits(e, dataset.obs_dim, dataset.action_space)) : [];
-    evalEnv.replaceChildren(h('option', { value: '' }, 'no evaluation'), fitting.map((e) => h('option', { value: e.name }, e.name)));
+    evalEnv.replaceChildren(h('option', { value: '' }, 'no evaluation'), ...fitting.map((e) => h('option', { value: e.name }, e.name)));
     if (fitting.length) evalEnv.value = fitting[0].name;
   };
   unlabeled.addEventListener('change', fillEnvs);
@@ -183,8 +183,8 @@ function experimentSummary(e, actions) {
         ? h('span', { class: 'tag' }, `${a.label} (${algoLabel(a.algorithm)})`) : algoBadge(a.algorithm)))),
       h('dt', {}, 'seeds'), h('dd', {}, e.seeds.join(', ')),
       h('dt', {}, 'datasets'), h('dd', { class: 'mono' }, `Dᵁ ${shortId(e.unlabeled_dataset)}`, e.non_preferred_dataset ? `, Dᴺ ${shortId(e.non_preferred_dataset)}` : ''),
-      h('dt', {}, 'config'), h('dd', { class: 'mono' }, e.config ? JSON.stringify(e.config) : 'presets'),
-      h('dt', {}, 'evaluation'), h('dd', { class: 'mono' }, e.eval ? JSON.stringify(e.eval) : 'none in training'),
+      h('dt', {}, 'config'), h('dd', { class: 'mono wrap-any' }, e.config ? JSON.stringify(e.config) : 'presets'),
+      h('dt', {}, 'evaluation'), h('dd', { class: 'mono wrap-any' }, e.eval ? JSON.stringify(e.eval) : 'none in training'),
       e.tags.length ? [h('dt', {}, 'tags'), h('dd', {}, tagChips(e.tags))] : null,
       h('dt', {}, 'created'), h('dd', {}, fmtTime(e.created_at))),
     h('div', { class: 'form-actions wrap' },

@@ -948,7 +948,10 @@ test('an experiment of 2 algorithms × 3 seeds is queued from the form and its p
     return box && box.dataset.series && JSON.parse(box.dataset.series).length === 6;
   });
   await page.selectOption('#curve-mode', 'mean');
-  await page.waitForFunction(() => !JSON.parse(document.querySelector('.chart-box[data-chart="experiment-curves"]').dataset.series).some(([n]) => / · seed /.test(n)));
+  await page.waitForFunction(() => {
+    const box = document.querySelector('.chart-box[data-chart="experiment-curves"]');
+    return box && box.dataset.series && !JSON.parse(box.dataset.series).some(([n]) => / · seed /.test(n));
+  });
 
   // The scatter: one point per algorithm at its means, error bars where the seeds differ.
   const points = await page.$$eval('.chart-box[data-chart="experiment-scatter"] g.point', (gs) => gs.map((g) => ({ label: g.dataset.label, x: Number(g.dataset.x), y: Number(g.dataset.y) })));
