@@ -23,6 +23,9 @@ const routes = [
   // Pages of models.js.
   [/^#\/models$/, modelsPage, 'models'],
   [/^#\/models\/([A-Za-z0-9][\w.-]*)$/, modelPage, 'models'],
+  // Pages of experiments.js.
+  [/^#\/experiments$/, experimentsPage, 'experiments'],
+  [/^#\/experiments\/([\w-]+)$/, experimentPage, 'experiments'],
 ];
 
 function route() {

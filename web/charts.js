@@ -37,17 +37,20 @@ function uplotOptions(spec, width, log) {
     series: [
       { label: 'step', value: (u, v) => (v === null || v === undefined ? '—' : fmt(v)) },
       ...spec.series.map((s) => ({
-        label: s.name, stroke: s.color, width: 1.6, spanGaps: true,
-        points: { show: markers || s.points.length === 1, size: 5 },
+        label: s.name, stroke: s.color, width: s.width || 1.6, spanGaps: true, dash: s.dash,
+        points: { show: !s.thin && (markers || s.points.length === 1), size: 5 },
         value: (u, v) => (v === null || v === undefined ? '—' : fmt(v)),
       })),
     ],
+    // Shaded bands between two series (1-based as uPlot counts them, the x column being 0):
+    // spec.bands = [{series: [upper, lower], fill}], e.g. a mean ± standard error.
+    bands: spec.bands,
     cursor: { drag: { x: true, y: false } },
   };
 }
 
 /** A line chart of `spec` = {key, title, xLabel, yLabel, series: [{name, points: [[x, y]],
- *  color}]}: a .chart-box with the title, a log-scale switch, the plot and its legend (which
+ *  color, width?, dash?, thin?}], bands?}: a .chart-box with the title, a log-scale switch, the plot and its legend (which
  *  shows the values under the cursor). `box.update(spec)` draws new points of the same series
  *  in place (keeping a zoom the user made). */
 function lineChart(spec) {
@@ -114,15 +117,15 @@ function niceTicks(lo, hi, count = 5) {
 const SVG_NS = 'http://www.w3.org/2000/svg';
 function s(tag, attrs, ...children) {
   const el = document.createElementNS(SVG_NS, tag);
-  for (const [k, v] of Object.entries(attrs || {})) el.setAttribute(k, v);
+  for (const [k, v] of Object.entries(attrs || {})) if (v !== null && v !== undefined) el.setAttribute(k, v);
   for (const c of children.flat(Infinity)) if (c !== null && c !== undefined) el.append(c instanceof Node ? c : document.createTextNode(String(c)));
   return el;
 }
 
-/** A scatter plot of labelled points ({label, x, y, color, group}) as SVG. With `fromZero` both
- *  axes include 0, so a small difference is drawn small (cost and return are on ratio scales);
- *  without it the axes fit the points. Each point is a <g class="point"> with its label, and its
- *  exact values on hover. */
+/** A scatter plot of labelled points ({label, x, y, color, group, xErr?, yErr?}) as SVG. With
+ *  `fromZero` both axes include 0, so a small difference is drawn small (cost and return are on
+ *  ratio scales); without it the axes fit the points. Each point is a <g class="point"> with its
+ *  label, and its exact values on hover; xErr / yErr (e.g. standard errors) draw error bars. */
 function scatterChart({ key, title, xLabel, yLabel, points, fromZero }) {
   const W = 640; const H = 360; const L = 70; const R = 20; const T = 34; const B = 48;
   const shown = points.filter((p) => Number.isFinite(p.x) && Number.isFinite(p.y));
@@ -132,8 +135,12 @@ function scatterChart({ key, title, xLabel, yLabel, points, fromZero }) {
     if (fromZero) { lo = Math.min(lo, 0); hi = Math.max(hi, 0); }
     return niceTicks(lo, hi);
   };
-  const xt = extent(shown.map((p) => p.x));
-  const yt = extent(shown.map((p) => p.y));
+  const err = (e) => (Number.isFinite(e) ? e : 0);
+  const xt = extent(shown.flatMap((p) => [p.x - err(p.xErr), p.x + err(p.xErr)]));
+  const yt = extent(shown.flatMap((p) => [p.y - err(p.yErr), p.y + err(p.yErr)]));
+  const bar = (x1, y1, x2, y2, cap) => [s('line', { x1, y1, x2, y2, class: 'error-bar' }),
+    cap === 'h' ? [s('line', { x1: x1 - 4, x2: x1 + 4, y1, y2: y1, class: 'error-bar' }), s('line', { x1: x2 - 4, x2: x2 + 4, y1: y2, y2, class: 'error-bar' })]
+      : [s('line', { x1, x2: x1, y1: y1 - 4, y2: y1 + 4, class: 'error-bar' }), s('line', { x1: x2, x2, y1: y2 - 4, y2: y2 + 4, class: 'error-bar' })]];
   const px = (x) => L + ((x - xt[0]) / (xt.at(-1) - xt[0])) * (W - L - R);
   const py = (y) => H - B - ((y - yt[0]) / (yt.at(-1) - yt[0])) * (H - T - B);
   const svg = s('svg', { viewBox: `0 0 ${W} ${H}`, role: 'img', 'aria-label': title, class: 'scatter' },
@@ -147,7 +154,10 @@ function scatterChart({ key, title, xLabel, yLabel, points, fromZero }) {
     shown.map((p) => {
       const x = px(p.x); const y = py(p.y);
       const right = x > W - R - 120;
-      return s('g', { class: 'point', 'data-label': p.label, 'data-x': p.x, 'data-y': p.y },
+      return s('g', { class: 'point', 'data-label': p.label, 'data-x': p.x, 'data-y': p.y,
+        'data-x-err': Number.isFinite(p.xErr) ? p.xErr : null, 'data-y-err': Number.isFinite(p.yErr) ? p.yErr : null },
+        Number.isFinite(p.xErr) && p.xErr > 0 ? bar(px(p.x - p.xErr), y, px(p.x + p.xErr), y, 'h') : null,
+        Number.isFinite(p.yErr) && p.yErr > 0 ? bar(x, py(p.y - p.yErr), x, py(p.y + p.yErr), 'v') : null,
         s('circle', { cx: x, cy: y, r: 5.5, fill: p.color, stroke: '#111827', 'stroke-width': 0.6 },
           s('title', {}, `${p.label} (${p.group}): ${xLabel} ${fmt(p.x)}, ${yLabel} ${fmt(p.y)}`)),
         s('text', { x: right ? x - 8 : x + 8, y: y - 7, 'text-anchor': right ? 'end' : 'start', class: 'point-label' }, p.label));

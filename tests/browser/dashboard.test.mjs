@@ -835,6 +835,181 @@ test('in a narrow window no page is wider than the window and no placeholder is 
   await page.setViewportSize({ width: 1360, height: 900 });
 });
 
+// ---------- experiments ----------
+
+/** A number as a page shows it ("12.34", "1,234", "1.20e-4") and the tolerance its shown
+ *  precision allows against `exact`: half a unit of the last shown digit, or of the `sig`-th
+ *  significant digit where the page rounds to significant digits. */
+function closeToShown(text, exact, sig) {
+  const t = text.replace(/,/g, '').trim();
+  const [mantissa, exponent] = t.split('e');
+  const decimals = (mantissa.split('.')[1] || '').length;
+  const byDecimals = 0.5 * 10 ** (Number(exponent || 0) - decimals);
+  const bySignificant = exact === 0 ? 0 : 0.5 * 10 ** (Math.floor(Math.log10(Math.abs(exact))) - (sig - 1));
+  const tolerance = Math.max(byDecimals, bySignificant) * (1 + 1e-9) + 1e-12;
+  return Math.abs(Number(t) - exact) <= tolerance;
+}
+
+/** Mean and standard error (sample standard deviation / √n; null for one value). */
+function meanSe(values) {
+  const n = values.length;
+  const mean = values.reduce((a, b) => a + b, 0) / n;
+  const se = n > 1 ? Math.sqrt(values.reduce((a, v) => a + (v - mean) ** 2, 0) / (n - 1) / n) : null;
+  return { mean, se, n };
+}
+
+test('an experiment of 2 algorithms × 3 seeds is queued from the form and its page shows mean ± SE, curves and the scatter', async () => {
+  await page.setViewportSize({ width: 1400, height: 900 });
+  await page.goto(`${base}/#/experiments`);
+  await page.waitForSelector('#experiment-form');
+  assert.ok(await page.isVisible('nav a[data-nav="experiments"].active'));
+  // A refusal shows the server's message as it comes.
+  const refused = await post('/v1/experiments', { unlabeled_dataset: state.unlabeled.id, algorithms: ['bc'], seed_count: 0 });
+  assert.equal(refused.status, 422);
+  await page.fill('#exp-seeds', '0');
+  await page.click('#exp-submit');
+  assert.equal(await (await page.waitForSelector('.experiment-form-error .error-message')).textContent(), refused.body.error.message);
+
+  // The datasets default by role; SafeDICE and BC are checked; small networks, a short run.
+  assert.equal(await page.inputValue('#exp-unlabeled'), state.unlabeled.id);
+  assert.equal(await page.inputValue('#exp-non-preferred'), state.nonPreferred.id);
+  const checked = await page.$$eval('#exp-algorithms input:checked', (bs) => bs.map((b) => b.value));
+  assert.deepEqual(checked.sort(), ['bc', 'safedice']);
+  await page.fill('#exp-name', 'browser grid');
+  await page.fill('#exp-seeds', '3');
+  await page.fill('#exp-iterations', '300');
+  await page.fill('#exp-hidden-sizes', '32, 32');
+  await page.fill('#exp-batch-size', '64');
+  assert.equal(await page.inputValue('#exp-eval-env'), 'six-rooms');
+  await page.fill('#exp-eval-every', '100');
+  await page.fill('#exp-eval-episodes', '50');
+  await page.click('#exp-submit');
+  await page.waitForSelector('#experiment-created');
+  const listed = (await api('/v1/experiments')).body;
+  assert.equal(listed.total, 1);
+  const id = listed.items[0].id;
+  const created = (await api(`/v1/experiments/${id}`)).body;
+  assert.equal(created.name, 'browser grid');
+  assert.deepEqual(created.seeds, [0, 1, 2]);
+  assert.deepEqual(created.algorithms.map((a) => a.algorithm).sort(), ['bc', 'safedice']);
+  assert.deepEqual(created.config, { iterations: 300, hidden_sizes: [32, 32], batch_size: 64 });
+  assert.equal(created.eval.env, 'six-rooms');
+  assert.equal(created.progress.total, 6);
+  await page.waitForSelector(`#experiments-table tr[data-id="${id}"]`);
+
+  // Its page follows the grid to the end.
+  await page.click(`#experiment-created a[href="#/experiments/${id}"]`);
+  await page.waitForSelector('#experiment-progress');
+  await page.waitForSelector('#experiment-progress[data-active="false"]', { timeout: 600000 });
+  const experiment = (await api(`/v1/experiments/${id}`)).body;
+  assert.equal(experiment.progress.succeeded, 6, JSON.stringify(experiment.progress));
+  assert.match(await page.textContent('#experiment-progress'), /^6 of 6 jobs finished: 6 succeeded/);
+  assert.equal(await page.isDisabled('#experiment-cancel'), true);
+
+  // Each arm's mean ± SE, computed here from the jobs' per-seed metrics.
+  const labels = experiment.algorithms.map((a) => a.label || a.algorithm);
+  await page.waitForFunction((n) => document.querySelectorAll('#experiment-results-table tr.arm-row').length === n, labels.length);
+  const metrics = await page.$$eval('#experiment-results-table thead th[data-metric]', (ths) => ths.map((t) => t.dataset.metric));
+  assert.deepEqual(metrics.slice(0, 7), ['normalized_return', 'average_cost', 'cost_violation_ratio', 'cvar_cost_50', 'cvar_cost_20', 'cvar_cost_10', 'cvar_cost_5']);
+  for (const label of labels) {
+    const jobs = experiment.jobs.filter((j) => j.arm === label);
+    assert.equal(jobs.length, 3);
+    const row = `#experiment-results-table tr.arm-row[data-label="${label}"]`;
+    assert.equal((await page.textContent(`${row} td.n-seeds`)).trim(), '3 seeds');
+    for (const metric of metrics) {
+      const expected = meanSe(jobs.map((j) => j.metrics[metric]));
+      const text = (await page.textContent(`${row} td.mean-se[data-metric="${metric}"]`)).trim();
+      const [mean, se] = text.split(' ± ');
+      assert.ok(closeToShown(mean, expected.mean, 4), `${label} ${metric}: shown ${text}, computed mean ${expected.mean}`);
+      assert.ok(se !== undefined && closeToShown(se, expected.se, 2), `${label} ${metric}: shown ${text}, computed se ${expected.se}`);
+    }
+    // Per seed: the values, the job and the policy, once expanded.
+    const seedRows = `#experiment-results-table tr.seed-row[data-arm="${label}"]`;
+    assert.equal(await page.isVisible(seedRows), false);
+    await page.click(`${row} button.seeds-toggle`);
+    await page.waitForSelector(seedRows, { state: 'visible' });
+    for (const job of jobs) {
+      const seedRow = `${seedRows}[data-seed="${job.seed}"]`;
+      assert.ok(await page.$(`${seedRow} a.job-link[href="#/jobs/${job.job_id}"]`), `${label} seed ${job.seed} links its job`);
+      assert.ok(await page.$(`${seedRow} a.policy-link[href="#/policies/${job.policy_id}"]`), `${label} seed ${job.seed} links its policy`);
+      const shown = await page.textContent(`${seedRow} td.seed-value[data-metric="normalized_return"]`);
+      assert.ok(closeToShown(shown, job.metrics.normalized_return, 4), `${label} seed ${job.seed}: ${shown}`);
+    }
+  }
+
+  // The curves: eval/normalized_return by default, one mean line per algorithm (with its band).
+  await page.waitForSelector('.chart-box[data-chart="experiment-curves"] .u-over');
+  assert.equal(await page.inputValue('#curve-metric'), 'eval/normalized_return');
+  const curveNames = JSON.parse(await page.getAttribute('.chart-box[data-chart="experiment-curves"]', 'data-series')).map(([name]) => name);
+  assert.deepEqual(curveNames.filter((n) => !/SE$/.test(n)).sort(), [...labels].sort());
+  await page.selectOption('#curve-mode', 'seeds');
+  await page.waitForFunction(() => {
+    const box = document.querySelector('.chart-box[data-chart="experiment-curves"]');
+    return box && box.dataset.series && JSON.parse(box.dataset.series).length === 6;
+  });
+  await page.selectOption('#curve-mode', 'mean');
+  await page.waitForFunction(() => {
+    const box = document.querySelector('.chart-box[data-chart="experiment-curves"]');
+    return box && box.dataset.series && !JSON.parse(box.dataset.series).some(([n]) => / · seed /.test(n));
+  });
+
+  // The scatter: one point per algorithm at its means, error bars where the seeds differ.
+  const points = await page.$$eval('.chart-box[data-chart="experiment-scatter"] g.point', (gs) => gs.map((g) => ({ label: g.dataset.label, x: Number(g.dataset.x), y: Number(g.dataset.y) })));
+  assert.deepEqual(points.map((p) => p.label).sort(), [...labels].sort());
+  for (const p of points) {
+    const result = experiment.results.find((r) => r.label === p.label);
+    assert.equal(p.x, result.metrics.average_cost.mean);
+    assert.equal(p.y, result.metrics.normalized_return.mean);
+  }
+  const anySpread = experiment.results.some((r) => r.metrics.normalized_return.se > 0 || r.metrics.average_cost.se > 0);
+  if (anySpread) assert.ok(await page.$('.chart-box[data-chart="experiment-scatter"] line.error-bar'));
+
+  // The CSV of the results, one line per job and metric.
+  const file = await downloaded(() => page.click('#experiment-csv'));
+  const lines = file.bytes.toString().trim().split('\n');
+  assert.equal(lines[0], 'arm,algorithm,seed,job_id,metric,value');
+  assert.ok(lines.some((l) => l.startsWith(`bc,bc,0,${experiment.jobs.find((j) => j.arm === 'bc' && j.seed === 0).job_id},normalized_return,`)));
+
+  for (const width of [1400, 500]) {
+    await page.setViewportSize({ width, height: 900 });
+    await page.waitForTimeout(300); // charts take their width on the next frame
+    assert.deepEqual(await layoutProblems(), [], `experiment page at ${width}px`);
+    await screenshot(`experiment-${width}`);
+  }
+  await page.goto(`${base}/#/experiments`);
+  await page.waitForSelector('#experiments-table');
+  assert.deepEqual(await layoutProblems(), [], 'experiments list at 500px');
+  await screenshot('experiments-500');
+  await page.setViewportSize({ width: 1360, height: 900 });
+  state.experiment = id;
+});
+
+test('an experiment is cancelled and deleted through the page’s dialog; deleting an active one shows the server’s refusal', async () => {
+  const created = await post('/v1/experiments', { name: 'to cancel', unlabeled_dataset: state.unlabeled.id, algorithms: ['bc'],
+    seed_count: 1, config: { iterations: 200000, hidden_sizes: [32, 32], batch_size: 64 } });
+  assert.equal(created.status, 201);
+  const id = created.body.id;
+  await page.goto(`${base}/#/experiments/${id}`);
+  await page.waitForSelector('#experiment-progress[data-active="true"]');
+  await page.click('#experiment-delete');
+  await page.waitForSelector('#model-dialog[open]');
+  await page.click('#dialog-confirm');
+  assert.equal(await (await page.waitForSelector('#model-dialog .dialog-error .error-code')).textContent(), 'experiment_active');
+  await page.click('#dialog-cancel');
+  await page.click('#experiment-cancel');
+  await page.waitForSelector('#model-dialog[open]');
+  await page.click('#dialog-confirm');
+  await page.waitForSelector('#experiment-cancelled');
+  await page.waitForSelector('#experiment-progress[data-active="false"]');
+  assert.match(await page.textContent('#experiment-progress'), /1 cancelled/);
+  await page.click('#experiment-delete');
+  await page.click('#dialog-confirm');
+  await page.waitForFunction(() => location.hash === '#/experiments');
+  assert.equal((await api(`/v1/experiments/${id}`)).status, 404);
+  await page.waitForSelector(`#experiments-table tr[data-id="${state.experiment}"]`);
+  assert.equal(await page.$(`#experiments-table tr[data-id="${id}"]`), null);
+});
+
 test('with an API token the pages say so once, then work once the token is saved', async () => {
   const secured = await startServer('token', ['--api-token', TOKEN]);
   await page.goto(`${secured}/#/jobs`);
