@@ -88,7 +88,8 @@ pub struct Summary {
     /// Standard error of the mean: sample standard deviation / √n (absent for one value).
     pub se: Option<f64>,
     pub n: usize,
-    /// Per seed, in the order of the arm's `seeds`.
+    /// The values it summarises: one per seed whose job has the metric, in the order of the
+    /// experiment's `seeds` (the jobs list pairs each value with its seed).
     pub values: Vec<f64>,
 }
 
