@@ -102,6 +102,7 @@ pub struct ExperimentSummary {
     pub algorithms: Vec<String>,
     pub seeds: Vec<u64>,
     pub created_at: String,
+    pub progress: GridProgress,
 }
 
 pub fn router() -> OpenApiRouter<AppState> {
@@ -113,18 +114,25 @@ pub fn router() -> OpenApiRouter<AppState> {
 }
 
 fn progress(jobs: &[JobResult]) -> GridProgress {
-    let mut progress = GridProgress { total: jobs.len(), ..GridProgress::default() };
+    let mut progress = GridProgress::default();
     for job in jobs {
-        let slot = match job.status {
-            JobStatus::Queued => &mut progress.queued,
-            JobStatus::Running => &mut progress.running,
-            JobStatus::Succeeded => &mut progress.succeeded,
-            JobStatus::Failed => &mut progress.failed,
-            JobStatus::Cancelled => &mut progress.cancelled,
-        };
-        *slot += 1;
+        progress.count(job.status, 1);
     }
     progress
+}
+
+impl GridProgress {
+    fn count(&mut self, status: JobStatus, n: usize) {
+        let slot = match status {
+            JobStatus::Queued => &mut self.queued,
+            JobStatus::Running => &mut self.running,
+            JobStatus::Succeeded => &mut self.succeeded,
+            JobStatus::Failed => &mut self.failed,
+            JobStatus::Cancelled => &mut self.cancelled,
+        };
+        *slot += n;
+        self.total += n;
+    }
 }
 
 async fn resource(state: &AppState, record: ExperimentRecord) -> Result<Experiment, ApiError> {
@@ -203,16 +211,21 @@ async fn list_experiments(
 ) -> Result<Json<Page<ExperimentSummary>>, ApiError> {
     let page = page.resolve(&state.store, Listing::Experiments).await?;
     let (records, total) = state.store.list_experiments(&page).await?;
-    let items = records
-        .into_iter()
-        .map(|r| ExperimentSummary {
+    let mut items = Vec::with_capacity(records.len());
+    for r in records {
+        let mut progress = GridProgress::default();
+        for (status, n) in state.store.experiment_status_counts(&r.id).await? {
+            progress.count(status, n as usize);
+        }
+        items.push(ExperimentSummary {
             algorithms: r.spec.arms.iter().map(Arm::label).collect(),
             seeds: r.spec.seeds,
             created_at: rfc3339(&r.created_at),
             name: r.name,
             id: r.id,
-        })
-        .collect();
+            progress,
+        });
+    }
     Ok(Json(Page::new(items, total, page, |e: &ExperimentSummary| &e.id)))
 }
 

@@ -98,6 +98,27 @@ impl Store {
         Ok((records, total as u64))
     }
 
+    /// How many of an experiment's jobs are in each status (statuses with none left out).
+    pub async fn experiment_status_counts(
+        &self,
+        id: &str,
+    ) -> Result<Vec<(JobStatus, u64)>, StoreError> {
+        let rows: Vec<(String, i64)> = sqlx::query_as(
+            "SELECT status, COUNT(*) FROM jobs WHERE experiment_id = $1 GROUP BY status",
+        )
+        .bind(id)
+        .fetch_all(self.pool())
+        .await?;
+        rows.into_iter()
+            .map(|(status, n)| {
+                let status = status
+                    .parse()
+                    .map_err(|e: String| StoreError::Corrupt(format!("experiment {id}"), e))?;
+                Ok((status, n as u64))
+            })
+            .collect()
+    }
+
     /// The jobs of an experiment, in the order they were queued (arm by arm, seed by seed).
     pub async fn experiment_jobs(&self, id: &str) -> Result<Vec<JobRecord>, StoreError> {
         let ids: Vec<String> = sqlx::query_scalar(

@@ -144,6 +144,7 @@ async fn a_grid_runs_as_jobs_and_reports_mean_and_standard_error_per_algorithm()
         (listed["total"].as_u64(), listed["items"][0]["id"].as_str()),
         (Some(1), Some(&*id))
     );
+    assert_eq!(listed["items"][0]["progress"], again["progress"], "the list counts statuses too");
     assert_eq!(
         app.delete(&format!("/v1/experiments/{id}")).send().await.unwrap().status(),
         StatusCode::NO_CONTENT
