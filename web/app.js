@@ -152,7 +152,7 @@ function datasetsTable(items, actions) {
     return h('div', { class: 'empty' }, 'No datasets yet. Drop a JSONL, CSV or NPZ file above; ',
       h('code', {}, 'safedice datagen --env six-rooms --out demo'), ' writes an unlabeled and a non-preferred set to try.');
   }
-  return tableWrap(h('table', { id: 'datasets-table' },
+  return tableWrap(h('table', { id: 'datasets-table', class: 'sticky-actions' },
     h('thead', {}, h('tr', {},
       h('th', {}, 'Name'), h('th', {}, 'Role'), h('th', {}, 'Format'), h('th', { class: 'num' }, 'Transitions'),
       h('th', { class: 'num' }, 'Episodes'), h('th', { class: 'num' }, 'Obs dim'), h('th', {}, 'Actions'),
@@ -437,12 +437,21 @@ function stepPlanOf(job) {
   return { ...plan, total: job.progress.total, pretraining: job.progress.total - plan.iterations };
 }
 
+/** A fraction as a percentage that never reads 0% for a job that has started or 100% for one
+ *  that has not finished. */
+function percentText(fraction) {
+  const pct = (fraction || 0) * 100;
+  if (pct > 0 && pct < 1) return '<1%';
+  if (pct > 99 && pct < 100) return '>99%';
+  return `${Math.round(pct)}%`;
+}
+
 function jobsTable(jobs, onCancel) {
   if (!jobs.length) {
     return h('div', { class: 'empty' }, 'No jobs here. Upload an unlabeled and a non-preferred dataset on the ',
       h('a', { href: '#/datasets' }, 'Datasets'), ' page, then queue a job with the form above (or clear the filters).');
   }
-  return tableWrap(h('table', { id: 'jobs-table' },
+  return tableWrap(h('table', { id: 'jobs-table', class: 'sticky-actions' },
     h('thead', {}, h('tr', {}, h('th', {}, 'Job'), h('th', {}, 'Algorithm'), h('th', {}, 'Status'),
       h('th', {}, 'Progress'), h('th', { class: 'num' }, 'Step'), h('th', { class: 'num' }, 'it/s'),
       h('th', { class: 'num' }, 'ETA'), h('th', { class: 'num' }, 'α̂'), h('th', {}, 'Created'), h('th', {}, ''))),
@@ -451,7 +460,7 @@ function jobsTable(jobs, onCancel) {
         job.name ? h('span', { class: 'muted mono id' }, ` ${shortId(job.id)}`) : null, h('div', { class: 'tags' }, tagChips(job.tags))),
       h('td', {}, algoBadge(job.algorithm)),
       h('td', { class: 'status-cell' }, statusPill(job.status)),
-      h('td', {}, progressBar(job), ' ', h('span', { class: 'muted pct' }, `${Math.round(job.progress.fraction * 100)}%`)),
+      h('td', {}, h('span', { class: 'progress-cell' }, progressBar(job), h('span', { class: 'muted pct' }, percentText(job.progress.fraction)))),
       h('td', { class: 'num step' }, `${fmt(job.progress.step)} / ${fmt(job.progress.total)}`),
       h('td', { class: 'num' }, fmt(job.progress.iterations_per_second, 3)),
       h('td', { class: 'num' }, fmtDuration(job.progress.eta_seconds)),
@@ -515,12 +524,13 @@ const METRIC_GROUPS = [
 ];
 
 // The evaluation charts of a job with an eval block (the paper's metrics over training steps);
-// the other eval/ metrics are listed in the latest-evaluation table.
+// the other eval/ metrics are listed in the latest-evaluation table. Axis titles stay
+// short enough for the chart's height; the note under a chart says the rest.
 const EVAL_CHARTS = [
-  { key: 'eval-return', title: 'Normalized return', y: 'normalized return (100 = preferred demos)', names: ['eval/normalized_return'] },
-  { key: 'eval-cost', title: 'Average cost', y: 'cost per episode', names: ['eval/average_cost'] },
-  { key: 'eval-violation', title: 'Cost-violation ratio', y: 'share of episodes with cost > κ', names: ['eval/cost_violation_ratio'] },
-  { key: 'eval-cvar', title: 'CVaR k% cost', y: 'mean cost of the worst k% episodes', names: ['eval/cvar_cost_50', 'eval/cvar_cost_20', 'eval/cvar_cost_10', 'eval/cvar_cost_5'] },
+  { key: 'eval-return', title: 'Normalized return', y: 'normalized return', note: '100 = the preferred demonstrations’ mean return.', names: ['eval/normalized_return'] },
+  { key: 'eval-cost', title: 'Average cost', y: 'cost per episode', note: 'Mean cost of an episode.', names: ['eval/average_cost'] },
+  { key: 'eval-violation', title: 'Cost-violation ratio', y: 'share over κ', note: 'Share of episodes whose cost exceeds κ, the midpoint of the two demonstrators’ mean costs.', names: ['eval/cost_violation_ratio'] },
+  { key: 'eval-cvar', title: 'CVaR k% cost', y: 'CVaR cost', note: 'Mean cost of the worst k% of episodes.', names: ['eval/cvar_cost_50', 'eval/cvar_cost_20', 'eval/cvar_cost_10', 'eval/cvar_cost_5'] },
 ];
 const isEval = (name) => name.startsWith('eval/');
 const X_LABEL = 'training step (all phases)';
@@ -574,6 +584,7 @@ function evalChartSpecs(job, series) {
     title: `${chart.title} on ${job.eval.env}`,
     xLabel: X_LABEL,
     yLabel: chart.y,
+    note: chart.note,
     series: chart.names.filter((n) => series.has(n)).map((name, i) => ({
       name: name.replace('eval/cvar_cost_', 'CVaR ').replace(/^CVaR (\d+)$/, 'CVaR $1%'), points: series.get(name), color: seriesColor(job, i) })),
   }));
@@ -726,11 +737,13 @@ function jobPage(view, id) {
   const charts = chartGrid('charts');
   const once = h('div', {});
   const details = h('div', {});
+  const evaluations = h('div', {});
   const log = logPanel(id);
   const csv = h('button', { type: 'button', class: 'secondary', id: 'metrics-csv' }, 'Download all metrics (CSV)');
   csv.addEventListener('click', () => download(`/v1/jobs/${id}/metrics.csv`, `job-${id}-metrics.csv`).catch((err) => problem.replaceChildren(errorBox(err))));
-  const body = h('div', { hidden: true }, summary, labels, evalHeading, evalAbout, evalCharts, evalLatest,
-    h('div', { class: 'card-head' }, h('h2', {}, 'Training metrics'), csv), chartsNote, charts, once, log, details);
+  // The charts come first; the name/tags/notes editor sits below them, beside the facts.
+  const body = h('div', { hidden: true }, summary, evaluations, evalHeading, evalAbout, evalCharts, evalLatest,
+    h('div', { class: 'card-head' }, h('h2', {}, 'Training metrics'), csv), chartsNote, charts, once, log, labels, details);
   view.append(h('h1', {}, 'Job ', title, ' ', tags), problem, body);
   let lastChartStep = -1;
   let shownLabels = false;
@@ -756,6 +769,7 @@ function jobPage(view, id) {
       evalHeading.hidden = !job.eval;
       await drawCharts(job, { chartsNote, charts, once, evalAbout, evalCharts, evalLatest });
     }
+    if (job.policy_id) evaluations.replaceChildren(await policyEvaluationsCard(job.policy_id));
     return !FINAL.has(job.status);
   }, (err) => {
     if (err.status === 404) {
@@ -766,6 +780,16 @@ function jobPage(view, id) {
     problem.replaceChildren(errorBox(err));
     return undefined;
   });
+}
+
+/** Every evaluation of a job's policy (the one taken at the end of training among them), as the
+ *  policy page lists them. */
+async function policyEvaluationsCard(policyId) {
+  const page = await api(`/v1/evaluations?policy_id=${policyId}&limit=50`);
+  return h('div', { class: 'card', id: 'job-evaluations', style: 'margin-top:18px' },
+    h('div', { class: 'card-head' }, h('h2', {}, 'Evaluations of the trained policy'),
+      h('a', { href: `#/policies/${policyId}` }, 'Evaluate it on the policy page →')),
+    evaluationsTable(page.items));
 }
 
 async function drawCharts(job, slots) {
@@ -812,6 +836,35 @@ async function finalMetrics(job) {
   return last;
 }
 
+/** A stored evaluation's metrics under the names a job's `eval` block records them with. */
+function evaluationValues(e) {
+  const m = e.metrics;
+  return {
+    'eval/normalized_return': m.normalized_return, 'eval/average_return': m.average_return,
+    'eval/return_std': m.return_std, 'eval/average_cost': m.average_cost, 'eval/cost_std': m.cost_std,
+    'eval/cost_violation_ratio': m.cost_violation_ratio, 'eval/cvar_cost_50': m.cvar_cost['50'],
+    'eval/cvar_cost_20': m.cvar_cost['20'], 'eval/cvar_cost_10': m.cvar_cost['10'],
+    'eval/cvar_cost_5': m.cvar_cost['5'], 'eval/normalized_cost': m.normalized_cost,
+  };
+}
+
+/** Where an evaluation's episodes ran, in words. */
+function evaluationKind(e) {
+  if (e.training_step != null) return `at the end of training (step ${fmt(e.training_step)})`;
+  return e.source === 'external' ? 'in your simulator' : 'after training';
+}
+
+/** A job's numbers for Compare: the last value of every metric it recorded, with the paper's
+ *  metrics from its policy's newest succeeded evaluation where it has one (run after training,
+ *  recorded from your simulator, or taken at the end of training) — the rule an experiment's
+ *  results follow. */
+async function comparedValues(job) {
+  const [last, evaluations] = await Promise.all([finalMetrics(job),
+    job.policy_id ? api(`/v1/evaluations?policy_id=${job.policy_id}&limit=50`) : { items: [] }]);
+  const evaluation = evaluations.items.find((e) => e.status === 'succeeded' && e.metrics) || null;
+  return { values: evaluation ? { ...last, ...evaluationValues(evaluation) } : last, evaluation };
+}
+
 // The paper's metrics, in the order the paper reports them; everything else a job records is a
 // training diagnostic.
 const PAPER_METRICS = ['eval/normalized_return', 'eval/average_cost', 'eval/cost_violation_ratio',
@@ -828,7 +881,7 @@ function comparePage(view) {
   const output = h('div', { id: 'compare-output' });
   view.append(h('h1', {}, 'Compare finished jobs'),
     h('div', { class: 'card' }, h('h2', {}, 'Jobs'), picker, more,
-      h('p', { class: 'hint' }, 'The paper’s metrics (normalized return, average cost, violation ratio, CVaR) come first, from each job’s last evaluation; the training diagnostics are listed below them.')),
+      h('p', { class: 'hint' }, 'The paper’s metrics (normalized return, average cost, violation ratio, CVaR) come first, from the newest evaluation of each job’s policy (after training, from your simulator, or at the end of training), else from its last evaluation during training; the training diagnostics are listed below them.')),
     output);
   const cache = new Map();
   const jobs = [];
@@ -842,26 +895,35 @@ function comparePage(view) {
       output.replaceChildren(h('div', { class: 'empty' }, 'Tick two or more jobs above to compare them.'));
       return;
     }
-    const finals = await Promise.all(chosen.map(async (j) => {
-      if (!cache.has(j.id)) cache.set(j.id, await finalMetrics(j));
+    const compared = await Promise.all(chosen.map(async (j) => {
+      if (!cache.has(j.id)) cache.set(j.id, await comparedValues(j));
       return cache.get(j.id);
     }));
+    const finals = compared.map((c) => c.values);
     const recorded = new Set(finals.flatMap((f) => Object.keys(f)));
     const paper = PAPER_METRICS.filter((n) => recorded.has(n));
     const diagnostics = [...recorded].filter((n) => !PAPER_METRICS.includes(n)).sort();
-    const head = h('tr', {}, h('th', {}, 'Metric (last value)'), chosen.map((j) =>
+    const head = h('tr', {}, h('th', {}, 'Metric'), chosen.map((j) =>
       h('th', { class: 'num' }, algoBadge(j.algorithm), ' ', h('span', { class: j.name ? '' : 'mono' }, jobTitle(j)))));
     const metricRow = (n) => h('tr', { 'data-metric': n }, h('td', { class: 'mono' }, n), finals.map((f) => h('td', { class: 'num' }, fmt(f[n]))));
     const facts = [
       ['α̂', chosen.map((j) => j.alpha_hat)],
       ['iterations', chosen.map((j) => j.config.iterations)],
       ['seed', chosen.map((j) => j.config.seed)],
-      ['evaluated on', chosen.map((j) => (j.eval ? `${j.eval.env} · ${j.eval.episodes} episodes` : null))],
+      ['evaluated on', compared.map(({ evaluation: e }, i) => (e ? `${e.env} · ${fmt(e.episodes)} episodes`
+        : chosen[i].eval && finals[i]['eval/normalized_return'] !== undefined ? `${chosen[i].eval.env} · ${fmt(chosen[i].eval.episodes)} episodes` : null))],
+      ['evaluation', compared.map(({ evaluation: e }, i) => (e ? evaluationKind(e)
+        : finals[i]['eval/normalized_return'] !== undefined ? 'during training' : null))],
     ];
+    const unevaluated = chosen.filter((j, i) => finals[i]['eval/normalized_return'] === undefined);
     const table = tableWrap(h('table', { id: 'compare-table' }, h('thead', {}, head),
-      h('tbody', {}, facts.map(([label, values]) => h('tr', {}, h('td', {}, label), values.map((v) => h('td', { class: 'num' }, fmt(v))))),
-        paper.length ? h('tr', { class: 'section' }, h('td', { colspan: chosen.length + 1 }, 'Paper metrics (last evaluation)')) : null,
+      h('tbody', {}, facts.map(([label, values]) => h('tr', { 'data-fact': label }, h('td', {}, label), values.map((v) => h('td', { class: 'num' }, fmt(v))))),
+        paper.length ? h('tr', { class: 'section' }, h('td', { colspan: chosen.length + 1 }, 'Paper metrics (newest evaluation)')) : null,
         paper.map(metricRow))));
+    const missing = unevaluated.length ? h('p', { class: 'hint', id: 'compare-unevaluated' },
+      'No evaluation yet for ', unevaluated.map((j, i) => [i ? ', ' : '', j.policy_id
+        ? h('a', { href: `#/policies/${j.policy_id}` }, jobTitle(j)) : jobTitle(j)]),
+      ': evaluate a policy on its page (or record one from your simulator) to give it the paper’s metrics.') : null;
     const diagnosticsTable = diagnostics.length ? h('details', { id: 'compare-diagnostics' },
       h('summary', {}, `Training diagnostics (${diagnostics.length})`),
       tableWrap(h('table', {}, h('tbody', {}, diagnostics.map(metricRow))))) : null;
@@ -872,7 +934,9 @@ function comparePage(view) {
       ...[...paper, ...diagnostics].map((n) => [n, ...finals.map((f) => f[n])]),
     ], 'compare.csv') }, 'Export CSV');
 
-    const axisNames = () => [...paper, ...(showDiagnostics.checked || !paper.length ? diagnostics : [])]
+    // Training diagnostics only when asked: several are SafeDICE's alone, so they would leave
+    // the other algorithms without a point.
+    const axisNames = () => [...paper, ...(showDiagnostics.checked ? diagnostics : [])]
       .filter((n) => finals.some((f) => typeof f[n] === 'number'));
     const xSelect = h('select', { id: 'scatter-x' });
     const ySelect = h('select', { id: 'scatter-y' });
@@ -888,6 +952,10 @@ function comparePage(view) {
     };
     const scatter = h('div', {});
     const drawScatter = () => {
+      if (!axisNames().length) {
+        scatter.replaceChildren(h('div', { class: 'empty', id: 'scatter-empty' }, 'None of these jobs has an evaluation yet, so there are no paper metrics to plot (tick “offer training diagnostics” to plot those).'));
+        return;
+      }
       const [x, y] = [xSelect.value, ySelect.value];
       xSelect.dataset.chosen = x;
       ySelect.dataset.chosen = y;
@@ -905,7 +973,7 @@ function comparePage(view) {
     showDiagnostics.onchange = () => { fillAxes(); drawScatter(); };
     fillAxes();
     output.replaceChildren(h('div', { class: 'grid2' },
-      h('div', { class: 'card' }, h('div', { class: 'card-head' }, h('h2', {}, 'Side by side'), exportCsv), table, diagnosticsTable),
+      h('div', { class: 'card' }, h('div', { class: 'card-head' }, h('h2', {}, 'Side by side'), exportCsv), table, missing, diagnosticsTable),
       h('div', { class: 'card' }, h('h2', {}, 'Scatter'),
         h('div', { class: 'axis-pick' }, 'x', xSelect, 'y', ySelect),
         h('div', { class: 'axis-options' }, h('label', {}, fromZero, ' axes from 0'), h('label', {}, showDiagnostics, ' offer training diagnostics')),
@@ -995,7 +1063,8 @@ function evaluationsTable(items) {
       h('th', {}, 'Actions'), h('th', {}, 'Status'), h('th', { class: 'num' }, 'Normalized return'), h('th', { class: 'num' }, 'Average cost'),
       h('th', { class: 'num' }, 'Violation ratio'), h('th', { class: 'num' }, 'CVaR 10%'), h('th', { class: 'num' }, 'CVaR 5%'), h('th', {}, 'Finished'))),
     h('tbody', {}, items.map((e) => h('tr', { 'data-id': e.id, 'data-status': e.status },
-      h('td', {}, e.env, e.source === 'external' ? h('span', { class: 'tag source-external', title: 'Run in your own simulator and recorded with POST /v1/policies/{id}/evaluations' }, 'external') : null),
+      h('td', {}, e.env, e.source === 'external' ? h('span', { class: 'tag source-external', title: 'Run in your own simulator and recorded with POST /v1/policies/{id}/evaluations' }, 'external') : null,
+        e.training_step != null ? h('span', { class: 'tag source-training', title: `Taken by the job’s worker at step ${fmt(e.training_step)}, the end of training (its eval block)` }, 'end of training') : null),
       h('td', { class: 'num' }, fmt(e.episodes)), h('td', { class: 'num' }, String(e.seed)),
       h('td', {}, e.deterministic ? 'deterministic' : 'sampled'),
       h('td', {}, statusPill(e.status), e.error ? h('div', { class: 'error-message' }, e.error) : null),

@@ -24,6 +24,18 @@ function alignSeries(series) {
 
 const allPositive = (series) => series.every((s) => s.points.every((p) => !Number.isFinite(p[1]) || p[1] > 0));
 
+/** An axis title cut with an ellipsis to `room` px (uPlot draws a y title along the plot's
+ *  height in bold 12 px and clips what does not fit); the chart's title and note say it whole. */
+function fitAxisLabel(label, room) {
+  if (!label) return label;
+  const context = document.createElement('canvas').getContext('2d');
+  context.font = `bold 12px ${getComputedStyle(document.body).fontFamily}`;
+  if (context.measureText(label).width <= room) return label;
+  let cut = label;
+  while (cut.length > 1 && context.measureText(`${cut}…`).width > room) cut = cut.slice(0, -1);
+  return `${cut.trimEnd()}…`;
+}
+
 function uplotOptions(spec, width, log) {
   const markers = spec.series.every((s) => s.points.length <= MARKER_LIMIT);
   return {
@@ -32,7 +44,7 @@ function uplotOptions(spec, width, log) {
     scales: { x: { time: false }, y: log ? { distr: 3 } : {} },
     axes: [
       { label: spec.xLabel, values: (u, ticks) => ticks.map((t) => fmt(t)) },
-      { label: spec.yLabel, size: 64, values: (u, ticks) => ticks.map((t) => fmt(t, 3)) },
+      { label: fitAxisLabel(spec.yLabel, CHART_HEIGHT - 70), size: 64, values: (u, ticks) => ticks.map((t) => fmt(t, 3)) },
     ],
     series: [
       { label: 'step', value: (u, v) => (v === null || v === undefined ? '—' : fmt(v)) },
@@ -59,7 +71,7 @@ function lineChart(spec) {
   const logLabel = h('label', { class: 'muted chart-option', title: 'Logarithmic y axis (only when every value is positive)' }, logBox, ' log y');
   const box = h('div', { class: 'chart-box', 'data-chart': spec.key },
     h('div', { class: 'chart-head' }, h('span', { class: 'chart-title' }, spec.title), logLabel), plot,
-    h('div', { class: 'hint chart-hint' }, 'Drag to zoom, double-click to reset.'));
+    h('div', { class: 'hint chart-hint' }, spec.note ? `${spec.note} ` : '', 'Drag to zoom, double-click to reset.'));
   let current = spec;
   let chart = null;
   let zoomed = false;
@@ -122,6 +134,53 @@ function s(tag, attrs, ...children) {
   return el;
 }
 
+// Point labels are 11 px text (style.css svg.scatter .point-label), measured in the page's font.
+const LABEL_FONT_PX = 11;
+const LABEL_HEIGHT = 12;
+const LABEL_MAX_CHARS = 28;
+let measureContext = null;
+
+/** The drawn width of a point label, in SVG units (the scatter's viewBox is its CSS size or
+ *  larger, so a label never takes more room than this). */
+function labelWidth(text) {
+  if (!measureContext) {
+    measureContext = document.createElement('canvas').getContext('2d');
+    measureContext.font = `${LABEL_FONT_PX}px ${getComputedStyle(document.body).fontFamily}`;
+  }
+  return measureContext.measureText(text).width + 2;
+}
+
+/** Where to write each point's label ({x, y, text} in SVG units): the first of eight spots
+ *  around the point whose box stays inside `frame` and overlaps no label placed before nor any
+ *  point; when none is free, the spot that overlaps least. Long labels are cut with an ellipsis
+ *  (the point's tooltip has the whole name). Returns {x, y, anchor, text, box} per point. */
+function placeLabels(points, frame) {
+  const boxes = [];
+  const dots = points.map((p) => ({ x0: p.x - 6, x1: p.x + 6, y0: p.y - 6, y1: p.y + 6 }));
+  const overlap = (a, b) => Math.max(0, Math.min(a.x1, b.x1) - Math.max(a.x0, b.x0))
+    * Math.max(0, Math.min(a.y1, b.y1) - Math.max(a.y0, b.y0));
+  return points.map((p, i) => {
+    const text = p.text.length > LABEL_MAX_CHARS ? `${p.text.slice(0, LABEL_MAX_CHARS - 1)}…` : p.text;
+    const w = labelWidth(text);
+    // [anchor, x offset, baseline offset]: right, left, above, below, then the diagonals.
+    const spots = [['start', 9, 4], ['end', -9, 4], ['middle', 0, -10], ['middle', 0, 18],
+      ['start', 8, -7], ['end', -8, -7], ['start', 8, 15], ['end', -8, 15]];
+    let best = null;
+    for (const [anchor, dx, dy] of spots) {
+      const x = p.x + dx; const y = p.y + dy;
+      const x0 = anchor === 'start' ? x : anchor === 'end' ? x - w : x - w / 2;
+      const box = { x0, x1: x0 + w, y0: y - LABEL_HEIGHT + 2, y1: y + 3 };
+      const outside = box.x0 < frame.left + 2 || box.x1 > frame.right - 2 || box.y0 < frame.top || box.y1 > frame.bottom;
+      const cost = (outside ? 1e6 : 0) + boxes.reduce((sum, b) => sum + overlap(box, b), 0)
+        + dots.reduce((sum, d, j) => sum + (j === i ? 0 : overlap(box, d)), 0);
+      if (!best || cost < best.cost) best = { x, y, anchor, text, box, cost };
+      if (cost === 0) break;
+    }
+    boxes.push(best.box);
+    return best;
+  });
+}
+
 /** A scatter plot of labelled points ({label, x, y, color, group, xErr?, yErr?}) as SVG. With
  *  `fromZero` both axes include 0, so a small difference is drawn small (cost and return are on
  *  ratio scales); without it the axes fit the points. Each point is a <g class="point"> with its
@@ -129,9 +188,13 @@ function s(tag, attrs, ...children) {
 function scatterChart({ key, title, xLabel, yLabel, points, fromZero }) {
   const W = 640; const H = 360; const L = 70; const R = 20; const T = 34; const B = 48;
   const shown = points.filter((p) => Number.isFinite(p.x) && Number.isFinite(p.y));
+  // A margin around the points, so none sits on the frame (a 0 kept by fromZero stays the edge).
   const extent = (values) => {
     let lo = Math.min(...values); let hi = Math.max(...values);
     if (!values.length) { lo = 0; hi = 1; }
+    const pad = (hi - lo) * 0.08 || Math.abs(hi) * 0.08 || 1;
+    lo = fromZero && lo >= 0 ? lo : lo - pad;
+    hi = fromZero && hi <= 0 ? hi : hi + pad;
     if (fromZero) { lo = Math.min(lo, 0); hi = Math.max(hi, 0); }
     return niceTicks(lo, hi);
   };
@@ -151,16 +214,16 @@ function scatterChart({ key, title, xLabel, yLabel, points, fromZero }) {
       s('text', { x: L - 6, y: py(t) + 4, 'text-anchor': 'end', class: 'tick' }, fmt(t, 3))]),
     s('text', { x: (L + W - R) / 2, y: H - 8, 'text-anchor': 'middle', class: 'x-label' }, xLabel),
     s('text', { x: 14, y: (T + H - B) / 2, 'text-anchor': 'middle', transform: `rotate(-90 14 ${(T + H - B) / 2})`, class: 'y-label' }, yLabel),
-    shown.map((p) => {
+    placeLabels(shown.map((p) => ({ x: px(p.x), y: py(p.y), text: p.label })), { left: L, right: W - R, top: T, bottom: H - B })
+      .map((spot, i) => [shown[i], spot]).map(([p, spot]) => {
       const x = px(p.x); const y = py(p.y);
-      const right = x > W - R - 120;
       return s('g', { class: 'point', 'data-label': p.label, 'data-x': p.x, 'data-y': p.y,
         'data-x-err': Number.isFinite(p.xErr) ? p.xErr : null, 'data-y-err': Number.isFinite(p.yErr) ? p.yErr : null },
         Number.isFinite(p.xErr) && p.xErr > 0 ? bar(px(p.x - p.xErr), y, px(p.x + p.xErr), y, 'h') : null,
         Number.isFinite(p.yErr) && p.yErr > 0 ? bar(x, py(p.y - p.yErr), x, py(p.y + p.yErr), 'v') : null,
         s('circle', { cx: x, cy: y, r: 5.5, fill: p.color, stroke: '#111827', 'stroke-width': 0.6 },
           s('title', {}, `${p.label} (${p.group}): ${xLabel} ${fmt(p.x)}, ${yLabel} ${fmt(p.y)}`)),
-        s('text', { x: right ? x - 8 : x + 8, y: y - 7, 'text-anchor': right ? 'end' : 'start', class: 'point-label' }, p.label));
+        s('text', { x: spot.x, y: spot.y, 'text-anchor': spot.anchor, class: 'point-label' }, spot.text));
     }),
     shown.length ? null : s('text', { x: W / 2, y: H / 2, 'text-anchor': 'middle', class: 'tick' }, 'No job has both metrics.'));
   const groups = [...new Map(shown.map((p) => [p.group, p.color])).entries()];

@@ -177,7 +177,7 @@ function aliasesCard(model, onRollback, onRemove) {
 function versionsCard(model, versions, onPromote) {
   const pointing = (version) => model.aliases.filter((a) => a.version === version);
   const body = versions.items.length
-    ? tableWrap(h('table', { id: 'versions-table' },
+    ? tableWrap(h('table', { id: 'versions-table', class: 'sticky-actions' },
       h('thead', {}, h('tr', {}, h('th', {}, 'Version'), h('th', {}, 'Aliases'), h('th', {}, 'Policy'), h('th', {}, 'Job'),
         h('th', {}, 'Source'), h('th', {}, 'Description'), h('th', {}, 'Registered'), h('th', {}, ''))),
       h('tbody', {}, versions.items.map((v) => h('tr', { 'data-version': v.version },

@@ -94,6 +94,9 @@ pub struct EvaluationRecord {
     pub report: Option<EvalReport>,
     /// Why it failed.
     pub error: Option<String>,
+    /// The job's step (every phase counts) at which its worker ran it, for the evaluation a job
+    /// with an `eval` block records at the end of training; None for one run after training.
+    pub training_step: Option<u64>,
     pub created_at: DateTime<Utc>,
     pub started_at: Option<DateTime<Utc>>,
     pub finished_at: Option<DateTime<Utc>>,

@@ -35,6 +35,11 @@ pub struct Evaluation {
     /// `builtin` (run by a worker on a built-in environment) or `external` (recorded from the
     /// user's own simulator with `POST /v1/policies/{id}/evaluations`).
     pub source: EvaluationSource,
+    /// Set on the evaluation a job with an `eval` block takes at the end of training: the job's
+    /// step it ran at (its last; every phase counts). The job's `eval/*` metrics at that step are
+    /// the same numbers. `null` on evaluations run after training.
+    #[schema(minimum = 0)]
+    pub training_step: Option<u64>,
     pub status: EvaluationStatus,
     /// The paper's metrics over the episodes, once succeeded: normalized return, average cost,
     /// cost-violation ratio, CVaR k% cost and DSRL's normalized cost (definitions in
@@ -66,6 +71,7 @@ impl From<EvaluationRecord> for Evaluation {
             seed: spec.seed,
             deterministic: spec.deterministic,
             source: evaluation.source,
+            training_step: evaluation.training_step,
             status: evaluation.status,
             metrics,
             mean_episode_length,

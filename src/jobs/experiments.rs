@@ -239,7 +239,11 @@ async fn newest_evaluation(
     let (evaluations, _) = store.list_evaluations(Some(policy), &page).await?;
     Ok(evaluations.into_iter().find_map(|e| {
         let report = e.report?;
-        let from = format!("evaluation {} ({}, {})", e.id, e.source.as_str(), report.env);
+        let source = match e.training_step {
+            Some(step) => format!("taken at training step {step}"),
+            None => e.source.as_str().to_owned(),
+        };
+        let from = format!("evaluation {} ({source}, {})", e.id, report.env);
         Some((from, named(report.metrics.named_values().to_vec())))
     }))
 }

@@ -10,6 +10,7 @@ use super::fleet::LeaseKeeper;
 use super::{EvalOptions, JobEvent, JobProgress, JobRunner, RunnerOptions};
 use crate::algo::{self, Policy, Trainer};
 use crate::domain::{JobRecord, JobStatus, PolicyId};
+use crate::store::evaluations::TrainingEvaluation;
 use crate::store::jobs::{MetricRow, ProgressUpdate};
 use crate::store::leases::LeaseTable;
 use crate::store::logs::LogLevel;
@@ -64,6 +65,9 @@ struct TrainedPolicy {
     alpha_hat: Option<f64>,
     /// The step training ended at.
     step: u64,
+    /// The evaluation the run took at that step (its job's `eval` block), stored as an
+    /// evaluation of the policy.
+    evaluation: Option<TrainingEvaluation>,
 }
 
 /// What writing a run's end came to.
@@ -254,7 +258,7 @@ async fn store_policy(
         .into_iter()
         .map(|(name, value)| (name, value.into()))
         .collect();
-    let TrainedPolicy { artifact, alpha_hat, step } = trained;
+    let TrainedPolicy { artifact, alpha_hat, step, evaluation } = trained;
     let policy_id = PolicyId::generate();
     let policy = NewPolicy {
         id: &policy_id,
@@ -277,7 +281,9 @@ async fn store_policy(
         );
         log.write(LogLevel::Info, &message).await;
     }
-    if let Some((model, version)) = store.finish_job_succeeded(lease, &[], &policy, step).await? {
+    if let Some((model, version)) =
+        store.finish_job_succeeded(lease, &[], &policy, step, evaluation.as_ref()).await?
+    {
         tracing::info!(%model, version, %policy_id, "policy registered as a model version");
     }
     Ok(())
@@ -361,6 +367,8 @@ struct TrainingRun {
     /// The phase last written to the log.
     logged_phase: Option<&'static str>,
     alpha_logged: bool,
+    /// The run's latest evaluation; the one at its last step is stored with the policy.
+    last_evaluation: Option<TrainingEvaluation>,
 }
 
 impl TrainingRun {
@@ -382,6 +390,7 @@ impl TrainingRun {
             log,
             logged_phase: None,
             alpha_logged: false,
+            last_evaluation: None,
         }
     }
 
@@ -481,10 +490,14 @@ impl TrainingRun {
             }
         }
         self.log_milestones(trainer);
+        let step = trainer.progress().step;
         let trained = TrainedPolicy {
             artifact: trainer.export_policy()?,
             alpha_hat: trainer.alpha_hat(),
-            step: trainer.progress().step,
+            step,
+            // The schedule evaluates at the last step, which no checkpoint precedes in another
+            // run, so a run that reaches the end has taken it.
+            evaluation: self.last_evaluation.take().filter(|e| e.step == step),
         };
         Ok(Outcome::Succeeded(Box::new(trained)))
     }
@@ -523,6 +536,7 @@ impl TrainingRun {
                     ),
                 );
                 self.record(step, &m.named_values());
+                self.last_evaluation = Some(TrainingEvaluation { step, report });
                 Ok(EvalOutcome::Recorded)
             }
             Err(_) if interrupted() => Ok(EvalOutcome::Interrupted),

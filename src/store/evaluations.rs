@@ -3,6 +3,8 @@
 
 use std::time::Duration;
 
+use sqlx::{Any, Transaction};
+
 use super::datasets::DeleteOutcome;
 use super::leases::{self, Lease, LeaseTable};
 use super::{now, parse_optional_time, parse_time, Listing, PageQuery, Store, StoreError};
@@ -25,6 +27,7 @@ struct EvaluationRow {
     /// JSON of `envs::EvalReport`, once succeeded.
     report: Option<String>,
     error: Option<String>,
+    training_step: Option<i64>,
     created_at: String,
     started_at: Option<String>,
     finished_at: Option<String>,
@@ -59,6 +62,7 @@ impl TryFrom<EvaluationRow> for EvaluationRecord {
             source,
             report,
             error: row.error,
+            training_step: row.training_step.map(|step| step as u64),
         })
     }
 }
@@ -74,7 +78,49 @@ pub struct NewEvaluation {
 }
 
 const EVALUATION_COLUMNS: &str = "id, policy_id, env, episodes, seed, deterministic, status, \
-     source, report, error, created_at, started_at, finished_at";
+     source, report, error, training_step, created_at, started_at, finished_at";
+
+/// Records the evaluation a job's worker ran at the end of training as a succeeded built-in
+/// evaluation of the job's new policy, inside the job's completion (so the policy never exists
+/// without it).
+pub(super) async fn insert_training_evaluation(
+    tx: &mut Transaction<'_, Any>,
+    policy_id: &str,
+    evaluation: &TrainingEvaluation,
+    now: &str,
+) -> Result<(), StoreError> {
+    let report = &evaluation.report;
+    let json = serde_json::to_string(report)
+        .map_err(|e| StoreError::Corrupt("evaluation report".into(), e.to_string()))?;
+    sqlx::query(
+        "INSERT INTO evaluations (id, policy_id, env, episodes, seed, deterministic, status, \
+         source, report, training_step, created_at, started_at, finished_at) \
+         VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10, $11, $11, $11)",
+    )
+    .bind(EvaluationId::generate().as_str())
+    .bind(policy_id)
+    .bind(&report.env)
+    .bind(report.episodes as i64)
+    // SQL integers are signed: seeds above i64::MAX are stored bit for bit.
+    .bind(report.seed as i64)
+    .bind(i64::from(report.deterministic))
+    .bind(EvaluationStatus::Succeeded.as_str())
+    .bind(EvaluationSource::Builtin.as_str())
+    .bind(json)
+    .bind(evaluation.step as i64)
+    .bind(now)
+    .execute(&mut **tx)
+    .await?;
+    Ok(())
+}
+
+/// The evaluation a run took at its last step (its job's `eval` block), stored with its policy.
+#[derive(Clone, Debug)]
+pub struct TrainingEvaluation {
+    /// The step it ran at (the run's last).
+    pub step: u64,
+    pub report: EvalReport,
+}
 
 impl Store {
     /// Number of evaluations in each status, every status listed.

@@ -7,6 +7,7 @@ use std::time::Duration;
 use sqlx::{Any, Transaction};
 
 use super::attempts::end_attempt;
+use super::evaluations::{insert_training_evaluation, TrainingEvaluation};
 use super::leases::{self, Lease, LeaseTable};
 use super::policies::NewPolicy;
 use super::{
@@ -637,8 +638,9 @@ impl Store {
         Ok(rows)
     }
 
-    /// Completes a job: its last metrics, its policy, the model version its `register` asks for
-    /// and the `succeeded` status in one transaction; the checkpoint is no longer needed.
+    /// Completes a job: its last metrics, its policy (with the evaluation the run took at its
+    /// end, if its job has an `eval` block), the model version its `register` asks for and the
+    /// `succeeded` status in one transaction; the checkpoint is no longer needed.
     /// Returns the version registered (model, number), if any.
     pub async fn finish_job_succeeded(
         &self,
@@ -646,11 +648,15 @@ impl Store {
         pending_metrics: &[MetricRow],
         policy: &NewPolicy<'_>,
         step: u64,
+        evaluation: Option<&TrainingEvaluation>,
     ) -> Result<Option<(String, u32)>, StoreError> {
         let mut tx = self.begin_write().await?;
         leases::hold(&mut tx, LeaseTable::Jobs, lease).await?;
         insert_metric_rows(&mut tx, &lease.id, pending_metrics).await?;
         super::policies::insert_policy(&mut tx, policy).await?;
+        if let Some(evaluation) = evaluation {
+            insert_training_evaluation(&mut tx, policy.id, evaluation, &now()).await?;
+        }
         let registered = self.register_policy(&mut tx, &lease.id, policy.id).await?;
         sqlx::query(
             "UPDATE jobs SET status = 'succeeded', policy_id = $1, step = $2, \

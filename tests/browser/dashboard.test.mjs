@@ -109,6 +109,27 @@ async function layoutProblems() {
   });
 }
 
+/** Texts of an SVG chart that collide: point labels overlapping each other or a point other than
+ *  their own, and any text sticking out of the SVG (as the page draws them, in page pixels). */
+async function labelProblems(selector) {
+  return page.evaluate((sel) => {
+    const problems = [];
+    for (const svg of document.querySelectorAll(sel)) {
+      const frame = svg.getBoundingClientRect();
+      const boxes = [...svg.querySelectorAll('text')].map((t) => ({ text: t.textContent, label: t.classList.contains('point-label'), r: t.getBoundingClientRect() }));
+      const dots = [...svg.querySelectorAll('g.point')].map((g) => ({ label: g.dataset.label, r: g.querySelector('circle').getBoundingClientRect() }));
+      const meet = (a, b) => a.left < b.right - 0.5 && b.left < a.right - 0.5 && a.top < b.bottom - 0.5 && b.top < a.bottom - 0.5;
+      for (const b of boxes) {
+        if (b.r.left < frame.left - 0.5 || b.r.right > frame.right + 0.5 || b.r.top < frame.top - 0.5 || b.r.bottom > frame.bottom + 0.5) problems.push(`“${b.text}” sticks out of the chart`);
+      }
+      const labels = boxes.filter((b) => b.label);
+      labels.forEach((a, i) => labels.slice(i + 1).forEach((b) => { if (meet(a.r, b.r)) problems.push(`“${a.text}” overlaps “${b.text}”`); }));
+      for (const l of labels) for (const d of dots) if (!d.label.startsWith(l.text.replace(/…$/, '')) && meet(l.r, d.r)) problems.push(`“${l.text}” covers the point of ${d.label}`);
+    }
+    return problems;
+  }, selector);
+}
+
 async function screenshot(name) {
   if (!SCREENSHOT_DIR) return;
   mkdirSync(SCREENSHOT_DIR, { recursive: true });
@@ -555,10 +576,15 @@ test('the policy page turns pasted observations into the same actions as the API
   await page.fill('#eval-episodes', '200');
   await page.fill('#eval-seed', '3');
   await page.click('#eval-submit');
-  await page.waitForSelector('#evaluations-table tr[data-status="succeeded"]', { timeout: 60_000 });
+  // Two succeeded rows: this one and the job's own at the end of training.
+  await page.waitForFunction(() => document.querySelectorAll('#evaluations-table tr[data-status="succeeded"]').length === 2, null, { timeout: 60_000 });
   const evaluations = (await api(`/v1/evaluations?policy_id=${job.policy_id}`)).body.items;
-  assert.equal(evaluations.length, 1);
-  const [evaluation] = evaluations;
+  // The one just run, and the job's own at the end of training (its eval block), marked so.
+  assert.equal(evaluations.length, 2);
+  const [evaluation, atEnd] = evaluations;
+  assert.equal(atEnd.training_step, job.progress.total);
+  await page.waitForSelector(`#evaluations-table tr[data-id="${atEnd.id}"] .source-training`);
+  assert.equal(evaluation.training_step, null);
   assert.deepEqual([evaluation.env, evaluation.episodes, evaluation.seed, evaluation.deterministic], ['six-rooms', 200, 3, false]);
   const row = page.locator(`#evaluations-table tr[data-id="${evaluation.id}"]`);
   assert.equal(Number(await row.locator('.eval-cost').textContent()), Number(evaluation.metrics.average_cost.toPrecision(4)));
@@ -819,7 +845,25 @@ test('the job form registers the job’s policy as the next version of a model, 
   await page.waitForSelector('#model-dialog', { state: 'hidden' });
 });
 
+/** Rows of `table` whose last cell (Cancel, Delete, Promote…) is not wholly inside the window. */
+async function actionsOutOfView(table) {
+  return page.$$eval(`${table} tbody tr`, (rows) => rows.map((row) => row.lastElementChild.getBoundingClientRect())
+    .filter((r) => r.width > 0 && (r.left < -0.5 || r.right > window.innerWidth + 0.5))
+    .map((r) => `${Math.round(r.left)}-${Math.round(r.right)} in ${window.innerWidth}`));
+}
+
 test('in a narrow window no page is wider than the window and no placeholder is cut off', async () => {
+  for (const width of [500, 420]) {
+    await page.setViewportSize({ width, height: 900 });
+    for (const [hash, table] of [['#/jobs', '#jobs-table'], ['#/datasets', '#datasets-table'], ['#/models/pilot', '#versions-table']]) {
+      await page.goto(`${base}/${hash}`);
+      await page.waitForSelector(table);
+      assert.deepEqual(await actionsOutOfView(table), [], `${table}'s actions at ${width}px`);
+    }
+    await page.goto(`${base}/#/jobs`);
+    await page.waitForSelector('#jobs-table');
+    await screenshot(`jobs-${width}`);
+  }
   for (const width of [1360, 420]) {
     await page.setViewportSize({ width, height: 900 });
     for (const [hash, ready] of [['#/datasets', '#datasets-table'], ['#/jobs', '#jobs-table'],
@@ -974,6 +1018,7 @@ test('an experiment of 2 algorithms × 3 seeds is queued from the form and its p
     await page.setViewportSize({ width, height: 900 });
     await page.waitForTimeout(300); // charts take their width on the next frame
     assert.deepEqual(await layoutProblems(), [], `experiment page at ${width}px`);
+    assert.deepEqual(await labelProblems('.chart-box[data-chart="experiment-scatter"] svg'), [], `experiment scatter at ${width}px`);
     await screenshot(`experiment-${width}`);
   }
   await page.goto(`${base}/#/experiments`);
@@ -1025,6 +1070,66 @@ test('with an API token the pages say so once, then work once the token is saved
   await page.waitForSelector('#job-form .empty, #jobs-list .empty');
   assert.equal(await page.evaluate(() => sessionStorage.getItem('safedice.token')), TOKEN);
   await page.evaluate(() => sessionStorage.clear());
+});
+
+// ---------- after the demo ----------
+
+/** `safedice demo --serve` on a free port with its own data dir (short runs: the test is about
+ *  what the pages show, not how well the policies do); resolves once both of the demo's
+ *  evaluations have succeeded, with the server's address. */
+async function startDemo() {
+  const port = await freePort();
+  const child = spawn(BIN, ['demo', '--serve', '--bind', `127.0.0.1:${port}`, '--data-dir', join(work, 'data-demo'),
+    '--iterations', '300', '--episodes', '50'], { stdio: ['ignore', 'ignore', 'pipe'], env: { ...process.env, RUST_LOG: 'warn' } });
+  let stderr = '';
+  child.stderr.on('data', (chunk) => { stderr += chunk; });
+  servers.push(child);
+  const url = `http://127.0.0.1:${port}`;
+  for (let i = 0; i < 1800; i += 1) {
+    if (child.exitCode !== null) throw new Error(`safedice demo --serve exited with ${child.exitCode}: ${stderr}`);
+    try {
+      const evaluations = await (await fetch(`${url}/v1/evaluations`)).json();
+      if (evaluations.items.filter((e) => e.status === 'succeeded').length === 2) return url;
+    } catch (_) { /* not listening yet */ }
+    await new Promise((r) => setTimeout(r, 200));
+  }
+  throw new Error(`the demo did not finish: ${stderr}`);
+}
+
+test('after demo --serve, Compare shows both policies’ paper metrics and a cost-return point for each', async () => {
+  const demo = await startDemo();
+  const get = async (path) => (await fetch(`${demo}${path}`)).json();
+  const jobs = (await get('/v1/jobs')).items;
+  assert.deepEqual(jobs.map((j) => j.algorithm).sort(), ['bc', 'safedice']);
+  await page.setViewportSize({ width: 1400, height: 900 });
+  await page.goto(`${demo}/#/compare`);
+  await page.waitForFunction(() => document.querySelectorAll('#compare-table thead th').length === 3);
+  // The paper's metrics for both, from the demo's evaluations (POST …/evaluate).
+  const rows = await page.$$eval('#compare-table tr[data-metric]', (trs) => trs.map((tr) => tr.dataset.metric));
+  assert.deepEqual(rows, ['eval/normalized_return', 'eval/average_cost', 'eval/cost_violation_ratio',
+    'eval/cvar_cost_50', 'eval/cvar_cost_20', 'eval/cvar_cost_10', 'eval/cvar_cost_5']);
+  assert.equal(await page.$('#compare-unevaluated'), null);
+  const where = await page.$$eval('#compare-table tr[data-fact="evaluated on"] td.num', (tds) => tds.map((t) => t.textContent));
+  assert.deepEqual(where, ['six-rooms · 50 episodes', 'six-rooms · 50 episodes']);
+  assert.equal(await page.inputValue('#scatter-x'), 'eval/average_cost');
+  assert.equal(await page.inputValue('#scatter-y'), 'eval/normalized_return');
+  const points = await page.$$eval('.chart-box[data-chart="scatter"] g.point', (gs) => gs.map((g) => ({ label: g.dataset.label, x: Number(g.dataset.x), y: Number(g.dataset.y) })));
+  assert.equal(points.length, 2);
+  const headers = await page.$$eval('#compare-table thead th.num', (ths) => ths.map((t) => t.textContent));
+  for (const job of jobs) {
+    const [evaluation] = (await get(`/v1/evaluations?policy_id=${job.policy_id}`)).items;
+    const point = points.find((p) => headers.some((hd) => hd.includes(p.label)) && p.x === evaluation.metrics.average_cost);
+    assert.ok(point, `a point at ${job.algorithm}'s evaluation: ${JSON.stringify(points)}`);
+    assert.equal(point.y, evaluation.metrics.normalized_return);
+  }
+  assert.deepEqual(await labelProblems('.chart-box[data-chart="scatter"] svg'), []);
+  await screenshot('compare-after-demo');
+  await page.setViewportSize({ width: 500, height: 900 });
+  await page.waitForTimeout(200);
+  assert.deepEqual(await labelProblems('.chart-box[data-chart="scatter"] svg'), []);
+  assert.deepEqual(await layoutProblems(), []);
+  await screenshot('compare-after-demo-500');
+  await page.setViewportSize({ width: 1360, height: 900 });
 });
 
 test('no uncaught errors in the pages', () => {

@@ -109,6 +109,21 @@ async fn jobs_record_eval_metrics_and_evaluations_match_a_local_run() {
     let local_cvar = local.metrics.cvar_cost.k5.into();
     assert_same_numbers(&resource["final_metrics"]["eval/cvar_cost_5"], &local_cvar);
 
+    // That last evaluation is also stored as an evaluation of the policy, marked with its step.
+    let stored =
+        get_json(&app.client, &app.url(&format!("/v1/evaluations?policy_id={policy_id}"))).await;
+    assert_eq!(stored["total"], 1, "{stored}");
+    let at_end = &stored["items"][0];
+    assert_eq!(
+        (&at_end["training_step"], &at_end["source"], &at_end["status"]),
+        (&json!(100), &json!("builtin"), &json!("succeeded"))
+    );
+    assert_eq!(
+        (&at_end["env"], &at_end["episodes"], &at_end["seed"]),
+        (&json!("six-rooms"), &json!(30), &json!(5))
+    );
+    assert_same_numbers(&at_end["metrics"], &serde_json::to_value(&local.metrics).unwrap());
+
     // A background evaluation with other episodes and seed.
     let response = app
         .post(&format!("/v1/policies/{policy_id}/evaluate"))
@@ -141,7 +156,7 @@ async fn jobs_record_eval_metrics_and_evaluations_match_a_local_run() {
 
     let metrics = app.get("/metrics").send().await.unwrap().text().await.unwrap();
     assert!(
-        metrics.lines().any(|l| l == r#"safedice_evaluations{status="succeeded"} 1"#),
+        metrics.lines().any(|l| l == r#"safedice_evaluations{status="succeeded"} 2"#),
         "{metrics}"
     );
     assert!(
@@ -150,8 +165,10 @@ async fn jobs_record_eval_metrics_and_evaluations_match_a_local_run() {
     );
     let listed =
         get_json(&app.client, &app.url(&format!("/v1/evaluations?policy_id={policy_id}"))).await;
-    assert_eq!(listed["total"], 1);
+    assert_eq!(listed["total"], 2);
     assert_eq!(listed["items"][0]["id"], done["id"]);
+    assert_eq!(listed["items"][0]["training_step"], Value::Null);
+    assert_eq!(listed["items"][1]["id"], at_end["id"]);
     let none = get_json(&app.client, &app.url("/v1/evaluations?policy_id=nope")).await;
     assert_eq!(none["total"], 0);
 }
@@ -212,7 +229,8 @@ async fn bad_evaluations_and_eval_blocks_are_refused_and_store_nothing() {
     assert_error(response, StatusCode::NOT_FOUND, "not_found").await;
     let response = app.get("/v1/evaluations/no-such-evaluation").send().await.unwrap();
     assert_error(response, StatusCode::NOT_FOUND, "not_found").await;
-    assert_eq!(app.count_rows("evaluations").await, 0);
+    // Only the job's own evaluation at the end of training.
+    assert_eq!(app.count_rows("evaluations").await, 1);
 
     // Evaluations recorded from the user's own simulator: checked field by field.
     let record =
@@ -244,7 +262,8 @@ async fn bad_evaluations_and_eval_blocks_are_refused_and_store_nothing() {
         .await
         .unwrap();
     assert_error(response, StatusCode::NOT_FOUND, "not_found").await;
-    assert_eq!(app.count_rows("evaluations").await, 0);
+    // Only the job's own evaluation at the end of training.
+    assert_eq!(app.count_rows("evaluations").await, 1);
 
     let response =
         record(external(json!([50.0, 70.0, 90.0, 110.0]), json!([0.0, 4.0, 7.0, 13.0]))).await;
@@ -266,7 +285,11 @@ async fn bad_evaluations_and_eval_blocks_are_refused_and_store_nothing() {
     );
     assert_eq!((&m["cost_violation_ratio"], &m["cvar_cost"]["10"]), (&json!(0.5), &json!(13.0)));
     let listed = app.url(&format!("/v1/evaluations?policy_id={policy_id}"));
-    assert_eq!(get_json(&app.client, &listed).await["items"], json!([recorded]));
+    // Newest first: the recorded one, then the job's own at the end of training.
+    let items = get_json(&app.client, &listed).await["items"].clone();
+    assert_eq!(items.as_array().map(Vec::len), Some(2));
+    assert_eq!(items[0], recorded);
+    assert!(items[1]["training_step"].is_u64(), "{items}");
 }
 
 /// Recording or queueing an evaluation while the policy's job is deleted: each race ends with
@@ -366,7 +389,8 @@ async fn a_seed_above_the_largest_int64_is_refused_everywhere_a_seed_is_taken() 
         assert_error(response.await.unwrap(), StatusCode::UNPROCESSABLE_ENTITY, "invalid_body")
             .await;
     assert!(message.contains("int64"), "{message}");
-    assert_eq!(app.count_rows("evaluations").await, 0);
+    // Only the job's own evaluation at the end of training.
+    assert_eq!(app.count_rows("evaluations").await, 1);
     let largest = json!({"env": "six-rooms", "episodes": 5, "seed": too_big - 1});
     let response = app.post(&format!("/v1/policies/{policy}/evaluate")).json(&largest).send();
     assert_eq!(response.await.unwrap().status(), StatusCode::ACCEPTED);

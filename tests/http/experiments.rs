@@ -95,7 +95,14 @@ async fn a_grid_runs_as_jobs_and_reports_mean_and_standard_error_per_algorithm()
             );
             assert!((summary["se"].as_f64().unwrap() - se).abs() <= 1e-9 * se.max(1.0), "{metric}");
         }
-        assert!(per_seed.iter().all(|j| j["metrics_from"] == "in-training eval"));
+        // Each job's evaluation at the end of training, stored as an evaluation of its policy.
+        assert!(
+            per_seed.iter().all(|j| j["metrics_from"]
+                .as_str()
+                .is_some_and(|from| from.contains("(taken at training step ")
+                    && from.ends_with(", six-rooms)"))),
+            "{per_seed:?}"
+        );
     }
 
     // An on-demand evaluation of a policy replaces that job's in-training numbers.

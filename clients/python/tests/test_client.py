@@ -226,3 +226,29 @@ def test_an_experiment_reports_mean_and_standard_error_per_algorithm(client: Cli
         assert summary["se"] == pytest.approx(np.std(values, ddof=1) / np.sqrt(len(values)))
     assert experiment["id"] in [e["id"] for e in client.experiments()]
     client.delete_experiment(experiment["id"])
+
+
+def test_a_dataset_is_previewed_and_downloads_as_the_arrays_it_was_made_of(
+    client: Client, tmp_path: Path
+) -> None:
+    arrays = point_goal_arrays()
+    dataset = client.upload_dataset(arrays, name="round trip")
+    assert client.dataset(dataset["id"])["transitions"] == len(arrays["observations"])
+    preview = client.preview(dataset["id"], rows=3, episodes=2)
+    assert len(preview["transitions"]) == 3
+    assert len(preview["episodes"]) == 2
+    np.testing.assert_allclose(preview["transitions"][0]["obs"], arrays["observations"][0], rtol=1e-6)
+    path = client.download_dataset(dataset["id"], tmp_path / "round-trip.npz")
+    with np.load(path) as npz:
+        for key in ("observations", "actions", "next_observations"):
+            np.testing.assert_array_equal(npz[key], arrays[key].astype(npz[key].dtype), err_msg=key)
+    with pytest.raises(ApiError) as missing:
+        client.preview(str(uuid.uuid4()))
+    assert missing.value.status == 404
+
+
+def test_algorithms_list_what_each_needs(client: Client) -> None:
+    algorithms = {a["name"]: a for a in client.algorithms()}
+    assert {"safedice", "bc"} <= set(algorithms)
+    assert algorithms["safedice"]["needs_non_preferred"] is True
+    assert algorithms["bc"]["needs_non_preferred"] is False

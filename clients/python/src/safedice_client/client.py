@@ -99,8 +99,26 @@ class Client:
         """A page of datasets, newest first (``items``, ``total``, ``next_offset``)."""
         return self._get(f"/v1/datasets?limit={limit}&offset={offset}")
 
+    def dataset(self, dataset_id: str) -> Json:
+        """One dataset's description (role, sizes, statistics)."""
+        return self._get(f"/v1/datasets/{dataset_id}")
+
+    def preview(self, dataset_id: str, rows: int = 10, episodes: int = 20) -> Json:
+        """The first `rows` transitions (0-100) and a summary of the first `episodes` episodes
+        (0-1000: length, return, cost, how it ended) as stored."""
+        return self._get(f"/v1/datasets/{dataset_id}/preview?rows={rows}&episodes={episodes}")
+
+    def download_dataset(self, dataset_id: str, path: Union[str, os.PathLike]) -> Path:
+        """The dataset as stored, as an NPZ file in the D4RL/DSRL layout (``numpy.load`` reads
+        it; uploading it again gives the same dataset)."""
+        return self._download(f"/v1/datasets/{dataset_id}/download", path)
+
     def delete_dataset(self, dataset_id: str) -> None:
         self._request("DELETE", f"/v1/datasets/{dataset_id}")
+
+    def algorithms(self) -> list:
+        """The algorithms a job can run: name, what it needs, its config keys and defaults."""
+        return self._get("/v1/algorithms")["items"]
 
     # -- jobs -----------------------------------------------------------------------------
 
