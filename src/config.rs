@@ -114,6 +114,13 @@ pub struct ServeConfig {
     #[arg(long, env = "SAFEDICE_MAX_CONCURRENT_UPLOADS", default_value_t = 8, value_parser = clap::value_parser!(u16).range(1..))]
     pub max_concurrent_uploads: u16,
 
+    /// Heavy reads served at once: dataset previews and downloads, policy files and exports,
+    /// each of which holds a dataset or a policy file in memory while it is built and sent; one
+    /// more is answered 503 `too_many_heavy_reads` with Retry-After, so memory stays bounded
+    /// by this many of them whatever the number of clients.
+    #[arg(long, env = "SAFEDICE_MAX_HEAVY_READS", default_value_t = 4, value_parser = clap::value_parser!(u16).range(1..))]
+    pub max_heavy_reads: u16,
+
     /// Event streams open at once (`/v1/jobs/{id}/events`, `/v1/jobs/{id}/logs?follow=true`);
     /// one more is answered 503 `too_many_streams` with Retry-After. Each stream also ends after
     /// 15 minutes (clients reconnect), so the slots turn over.
@@ -178,6 +185,7 @@ impl std::fmt::Debug for ServeConfig {
             .field("min_body_rate", &self.min_body_rate)
             .field("max_concurrent_uploads", &self.max_concurrent_uploads)
             .field("max_streams", &self.max_streams)
+            .field("max_heavy_reads", &self.max_heavy_reads)
             .field("workers", &self.workers)
             .field("lease_seconds", &self.lease_seconds)
             .field("max_attempts", &self.max_attempts)
@@ -281,6 +289,7 @@ impl ServeConfig {
             min_body_rate: DEFAULT_MIN_BODY_RATE,
             max_concurrent_uploads: 8,
             max_streams: 256,
+            max_heavy_reads: 4,
             workers: 1,
             lease_seconds: DEFAULT_LEASE_SECONDS,
             max_attempts: DEFAULT_MAX_ATTEMPTS,

@@ -3,6 +3,7 @@
 
 use std::path::Path;
 
+use axum::body::Body;
 use axum::extract::multipart::{Field, Multipart, MultipartRejection};
 use axum::extract::{DefaultBodyLimit, State};
 use axum::http::{header, HeaderMap, HeaderValue, StatusCode};
@@ -12,6 +13,7 @@ use serde::Serialize;
 use sha2::{Digest, Sha256};
 use tempfile::NamedTempFile;
 use tokio::io::AsyncWriteExt;
+use tokio_util::io::ReaderStream;
 use utoipa::ToSchema;
 use utoipa_axum::router::OpenApiRouter;
 use utoipa_axum::routes;
@@ -428,6 +430,8 @@ pub struct PreviewParams {
         (status = 400, description = "`rows` or `episodes` out of range (`invalid_preview`)",
             body = ErrorBody),
         (status = 404, description = "No such dataset (`not_found`)", body = ErrorBody),
+        (status = 503, description = "--max-heavy-reads dataset or policy files are being \
+            built or sent (`too_many_heavy_reads`); retry after `Retry-After` seconds", body = ErrorBody),
     ))]
 async fn preview_dataset(
     State(state): State<AppState>,
@@ -441,6 +445,8 @@ async fn preview_dataset(
             format!("rows must be 0 to 100 and episodes 0 to 1000, got {rows} and {episodes}"),
         ));
     }
+    // The whole dataset is decoded to find its first episodes' ends.
+    let _permit = super::heavy_read_permit(&state)?;
     let dataset = state.store.load_dataset(&id).await?;
     let preview = tokio::task::spawn_blocking(move || data::preview(&dataset, rows, episodes));
     Ok(Json(preview.await?))
@@ -454,21 +460,34 @@ async fn preview_dataset(
         (status = 200, description = "NPZ file", content_type = "application/octet-stream",
             body = Vec<u8>),
         (status = 404, description = "No such dataset (`not_found`)", body = ErrorBody),
+        (status = 503, description = "--max-heavy-reads dataset or policy files are being \
+            built or sent (`too_many_heavy_reads`); retry after `Retry-After` seconds", body = ErrorBody),
     ))]
 async fn download_dataset(
     State(state): State<AppState>,
     UrlPath(id): UrlPath<String>,
 ) -> Result<Response, ApiError> {
+    let permit = super::heavy_read_permit(&state)?;
     let dataset = state.store.load_dataset(&id).await?;
     let tmp_dir = state.store.tmp_dir();
-    let bytes = tokio::task::spawn_blocking(move || {
+    // Written to a temp file and sent from it: the decoded dataset is dropped before the first
+    // byte goes out, and the file is never read into memory whole.
+    let (file, bytes) = tokio::task::spawn_blocking(move || {
         let file = tempfile::Builder::new().suffix(".npz").tempfile_in(&tmp_dir)?;
         data::write_npz(&dataset, file.path())?;
-        std::fs::read(file.path())
+        // A second handle reads it after the name is gone (the temp file is unlinked when
+        // `file` drops here), so nothing is left behind whatever happens to the response.
+        let handle = file.reopen()?;
+        let bytes = handle.metadata()?.len();
+        Ok::<_, std::io::Error>((handle, bytes))
     })
     .await?
     .map_err(|e| ApiError::Internal(anyhow::anyhow!("writing the NPZ file: {e}")))?;
-    super::attachment(&format!("dataset-{id}.npz"), super::OCTET_STREAM, bytes)
+    let body = Body::from_stream(ReaderStream::new(tokio::fs::File::from_std(file)));
+    let name = format!("dataset-{id}.npz");
+    let mut response = super::attachment_holding(&name, super::OCTET_STREAM, body, permit)?;
+    response.headers_mut().insert(header::CONTENT_LENGTH, HeaderValue::from(bytes));
+    Ok(response)
 }
 
 /// Delete a dataset and its stored data.

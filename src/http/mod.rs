@@ -94,6 +94,8 @@ pub struct Services {
     pub uploads: Arc<tokio::sync::Semaphore>,
     /// One permit per open event stream (`--max-streams`).
     pub streams: Arc<tokio::sync::Semaphore>,
+    /// One permit per heavy read being built or sent (`--max-heavy-reads`).
+    pub heavy_reads: Arc<tokio::sync::Semaphore>,
 }
 
 impl AppState {
@@ -108,6 +110,7 @@ impl AppState {
             auth::Tokens::new(config.api_token.as_deref(), config.inference_token.as_deref());
         let uploads = tokio::sync::Semaphore::new(usize::from(config.max_concurrent_uploads));
         let streams = tokio::sync::Semaphore::new(config.max_streams as usize);
+        let heavy_reads = tokio::sync::Semaphore::new(usize::from(config.max_heavy_reads));
         AppState(Arc::new(Services {
             metrics: Arc::new(prometheus::Metrics::new()),
             tokens: Arc::new(tokens),
@@ -116,6 +119,7 @@ impl AppState {
             models: serving.models,
             uploads: Arc::new(uploads),
             streams: Arc::new(streams),
+            heavy_reads: Arc::new(heavy_reads),
             shutdown,
             config: Arc::new(config),
             store,
@@ -293,6 +297,41 @@ fn panic_response(panic: Box<dyn std::any::Any + Send + 'static>) -> Response {
 pub(crate) const OCTET_STREAM: &str = "application/octet-stream";
 
 /// A file download: `bytes` of `content_type`, saved by browsers and `curl -OJ` as `file_name`.
+/// A slot for one more heavy read (a dataset preview or download, a policy file or export), or
+/// 503 `too_many_heavy_reads` with Retry-After. Hand the permit to [`attachment_holding`] so
+/// it is held until the file has been sent.
+pub(crate) fn heavy_read_permit(
+    state: &AppState,
+) -> Result<tokio::sync::OwnedSemaphorePermit, ApiError> {
+    state.heavy_reads.clone().try_acquire_owned().map_err(|_| {
+        ApiError::unavailable(
+            "too_many_heavy_reads",
+            format!(
+                "{} dataset or policy files are being built or sent already (--max-heavy-reads); \
+                 retry shortly",
+                state.config.max_heavy_reads
+            ),
+        )
+    })
+}
+
+/// [`attachment`] whose body holds `permit` until it has been sent (or the client went away):
+/// a file is in memory, or on its way out of a temp file, until then.
+pub(crate) fn attachment_holding(
+    file_name: &str,
+    content_type: &'static str,
+    body: impl Into<axum::body::Body>,
+    permit: tokio::sync::OwnedSemaphorePermit,
+) -> Result<axum::response::Response, ApiError> {
+    use futures::StreamExt;
+    let chunks = body.into().into_data_stream().map(move |chunk| {
+        // The stream owns the permit: it is released when hyper drops the finished body.
+        let _held = &permit;
+        chunk
+    });
+    attachment(file_name, content_type, axum::body::Body::from_stream(chunks))
+}
+
 pub(crate) fn attachment(
     file_name: &str,
     content_type: &'static str,

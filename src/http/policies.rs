@@ -12,7 +12,7 @@ use super::error::ErrorBody;
 use super::extract::{Json, Path, Query};
 use super::inference::{self, Observations};
 use super::pagination::{Page, PageParams};
-use super::{attachment, ApiError, AppState, OCTET_STREAM};
+use super::{ApiError, AppState, OCTET_STREAM};
 use crate::algo::Algorithm;
 use crate::data::Actions;
 use crate::domain::{rfc3339, PolicyRecord};
@@ -203,16 +203,20 @@ async fn get_policy(
          body = Vec<u8>,
          headers(("x-safedice-policy-spec" = String, description = "The policy spec (JSON)"))),
         (status = 404, body = ErrorBody),
+        (status = 503, description = "--max-heavy-reads dataset or policy files are being \
+            built or sent (`too_many_heavy_reads`); retry after `Retry-After` seconds", body = ErrorBody),
     ))]
 async fn policy_weights(
     State(state): State<AppState>,
     Path(id): Path<String>,
 ) -> Result<Response, ApiError> {
+    let permit = super::heavy_read_permit(&state)?;
     let (spec, _) = state.store.policy_artifact(&id).await?;
     let weights = crate::serving::portable_weights(&state.store, &id).await?;
     let spec = HeaderValue::from_str(&spec)
         .map_err(|e| ApiError::Internal(anyhow::anyhow!("policy {id}: spec header: {e}")))?;
-    let mut response = attachment(&format!("policy-{id}.safetensors"), OCTET_STREAM, weights)?;
+    let name = format!("policy-{id}.safetensors");
+    let mut response = super::attachment_holding(&name, OCTET_STREAM, weights, permit)?;
     response.headers_mut().insert(SPEC_HEADER, spec);
     Ok(response)
 }
@@ -244,6 +248,8 @@ pub enum ExportFormat {
          body = Vec<u8>),
         (status = 400, description = "Unknown format", body = ErrorBody),
         (status = 404, body = ErrorBody),
+        (status = 503, description = "--max-heavy-reads dataset or policy files are being \
+            built or sent (`too_many_heavy_reads`); retry after `Retry-After` seconds", body = ErrorBody),
     ))]
 async fn export_policy(
     State(state): State<AppState>,
@@ -251,8 +257,9 @@ async fn export_policy(
     Query(query): Query<ExportQuery>,
 ) -> Result<Response, ApiError> {
     let ExportFormat::Onnx = query.format.unwrap_or(ExportFormat::Onnx);
+    let permit = super::heavy_read_permit(&state)?;
     let model = crate::serving::onnx_model(&state.store, &id).await?;
-    attachment(&format!("policy-{id}.onnx"), OCTET_STREAM, model)
+    super::attachment_holding(&format!("policy-{id}.onnx"), OCTET_STREAM, model, permit)
 }
 
 /// Actions for a batch of observations. Callable with the inference token.

@@ -422,3 +422,64 @@ async fn a_dataset_previews_its_first_rows_and_episodes_and_downloads_as_npz() {
         assert_error(app.get(path).send().await.unwrap(), StatusCode::NOT_FOUND, "not_found").await;
     }
 }
+
+/// `rows` transitions of `obs_dim` distinct values each, in episodes of 1,000 steps: an NPZ of
+/// about 8 · rows · obs_dim bytes, far larger than a socket's buffers at the sizes used here.
+fn wide_dataset(rows: usize, obs_dim: usize) -> Dataset {
+    let observations: Vec<f32> = (0..rows * obs_dim).map(|i| (i % 9973) as f32 * 1e-3).collect();
+    let actions: Vec<f32> = (0..rows).map(|i| (i % 7) as f32 * 0.1 - 0.3).collect();
+    Dataset::new(DatasetParts {
+        obs_dim,
+        action_space: ActionSpace::infer_continuous(&actions, 1),
+        next_observations: observations.iter().map(|v| v + 0.5).collect(),
+        observations,
+        actions: Actions::Continuous(actions),
+        terminals: (0..rows).map(|i| i % 1000 == 999).collect(),
+        episode_ids: (0..rows).map(|i| (i / 1000) as u32).collect(),
+        rewards: None,
+        costs: None,
+    })
+    .unwrap()
+}
+
+/// Heavy reads (a dataset's preview and download, a policy's files) beyond `--max-heavy-reads`
+/// get 503 `too_many_heavy_reads` with Retry-After while one is still being sent, and the slot
+/// is free again once that file has gone out whole.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn heavy_reads_beyond_the_cap_get_503_until_the_file_in_flight_is_sent() {
+    let app = TestApp::spawn_with(|c| c.max_heavy_reads = 1).await;
+    let dataset = wide_dataset(100_000, 48);
+    let id = crate::support::jobs::upload(&app.client, &app.base_url, &dataset, "wide").await;
+    // The client reads the headers only: ~38 MB stay to be sent, so the server is mid-send.
+    let download = app.get(&format!("/v1/datasets/{id}/download")).send().await.unwrap();
+    assert_eq!(download.status(), StatusCode::OK);
+    let length: u64 = download.headers()["content-length"].to_str().unwrap().parse().unwrap();
+    for path in [
+        format!("/v1/datasets/{id}/preview"),
+        format!("/v1/datasets/{id}/download"),
+        "/v1/policies/no-such-policy/weights".to_owned(),
+    ] {
+        let response = app.get(&path).send().await.unwrap();
+        assert_eq!(response.headers()["retry-after"], "1", "{path}");
+        assert_error(response, StatusCode::SERVICE_UNAVAILABLE, "too_many_heavy_reads").await;
+    }
+    // The file, whole and as the dataset writes it.
+    let received = download.bytes().await.unwrap();
+    assert_eq!(received.len() as u64, length);
+    let dir = tempfile::tempdir().unwrap();
+    write_npz(&dataset, &dir.path().join("wide.npz")).unwrap();
+    assert!(received == std::fs::read(dir.path().join("wide.npz")).unwrap());
+    // Sent: the slot is free (released as the server drops the finished body).
+    let started = std::time::Instant::now();
+    loop {
+        let response = app.get(&format!("/v1/datasets/{id}/preview?rows=2")).send().await.unwrap();
+        if response.status() == StatusCode::OK {
+            let preview: serde_json::Value = response.json().await.unwrap();
+            assert_eq!(preview["transitions"].as_array().map(Vec::len), Some(2));
+            break;
+        }
+        assert_eq!(response.status(), StatusCode::SERVICE_UNAVAILABLE);
+        assert!(started.elapsed() < std::time::Duration::from_secs(10), "the slot stayed taken");
+        tokio::time::sleep(std::time::Duration::from_millis(20)).await;
+    }
+}
