@@ -5,7 +5,8 @@
 #   binary tensor data;
 # - test_onnxruntime.py: onnxruntime on the ONNX export (GET /v1/policies/{id}/export) and on
 #   `safedice export` of the downloaded policy file;
-# - clients/python: the Python client's own tests (pytest) and its walk-through.
+# - clients/python: the Python client's own tests (pytest; its evaluation in a simulator runs in
+#   gymnasium's CartPole-v1) and its walk-through.
 # Every action is compared with /v1/policies/{id}/act; any mismatch or error fails the run.
 #
 #   tests/clients/run.sh [path/to/safedice]     (default: target/debug/safedice)
@@ -16,10 +17,10 @@ cd "$(dirname "$0")/../.."
 BIN="${1:-target/debug/safedice}"
 VENV=.venv-clients
 
-if [ ! -x "$VENV/bin/python" ] || ! "$VENV/bin/python" -c 'import tritonclient.http, onnxruntime' 2>/dev/null; then
+if [ ! -x "$VENV/bin/python" ] || ! "$VENV/bin/python" -c 'import tritonclient.http, onnxruntime, gymnasium' 2>/dev/null; then
   python3 -m venv "$VENV"
   "$VENV/bin/pip" install --quiet "tritonclient[http]==2.73.0" "onnxruntime==1.23.2" "numpy==2.4.6" \
-    "pytest==8.4.2"
+    "pytest==8.4.2" "gymnasium==1.2.2"
 fi
 # The client as a user installs it, from this checkout, every run.
 "$VENV/bin/pip" install --quiet --no-deps --force-reinstall ./clients/python

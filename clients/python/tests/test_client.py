@@ -252,3 +252,71 @@ def test_algorithms_list_what_each_needs(client: Client) -> None:
     assert {"safedice", "bc"} <= set(algorithms)
     assert algorithms["safedice"]["needs_non_preferred"] is True
     assert algorithms["bc"]["needs_non_preferred"] is False
+
+
+def cartpole_demonstrations(episodes: int, seed: int) -> dict:
+    """Episodes of a hand-written CartPole-v1 controller (push the cart the way the pole falls)
+    in the D4RL layout, from gymnasium itself."""
+    import gymnasium
+
+    env = gymnasium.make("CartPole-v1")
+    rows: dict = {k: [] for k in ("observations", "actions", "next_observations", "rewards", "terminals", "timeouts")}
+    for episode in range(episodes):
+        obs, _ = env.reset(seed=seed + episode)
+        done = False
+        while not done:
+            action = int(obs[2] + 0.5 * obs[3] > 0)
+            next_obs, reward, terminated, truncated, _ = env.step(action)
+            for key, value in zip(rows, (obs, action, next_obs, reward, terminated, truncated)):
+                rows[key].append(value)
+            obs, done = next_obs, terminated or truncated
+    arrays = {k: np.asarray(v) for k, v in rows.items()}
+    for key in ("observations", "next_observations", "rewards"):
+        arrays[key] = arrays[key].astype(np.float32)
+    arrays["actions"] = arrays["actions"].astype(np.int64)
+    return arrays
+
+
+def cart_off_centre(obs, action, next_obs, info) -> float:
+    """The test's cost: 1 for each step that ends with the cart more than 0.5 from the centre."""
+    return float(abs(next_obs[0]) > 0.5)
+
+
+def test_a_policy_is_evaluated_in_gymnasium_over_http_and_locally_and_recorded(client: Client) -> None:
+    import gymnasium
+
+    demos = client.upload_dataset(cartpole_demonstrations(12, seed=100), name="cartpole demos")
+    assert demos["action_space"] == {"type": "discrete", "n": 2}
+    job = client.submit_job(demos["id"], algorithm="bc",
+                            config={"iterations": 400, "hidden_sizes": [32, 32], "batch_size": 64, "seed": 1})
+    policy_id = client.wait(job["id"], timeout=300)["policy_id"]
+
+    env = gymnasium.make("CartPole-v1")
+    over_http = client.rollout(policy_id, env, episodes=4, seed=7, cost=cart_off_centre)
+    in_onnxruntime = client.rollout(policy_id, env, episodes=4, seed=7, cost=cart_off_centre, local=True)
+    # A deterministic policy: the same episodes whichever way it acts.
+    assert over_http == in_onnxruntime
+    assert all(n >= 1 for n in over_http.lengths)
+    assert over_http.returns == [float(n) for n in over_http.lengths]  # CartPole pays 1 per step
+
+    reference = {"preferred_return": 500.0, "preferred_cost": 1.0,
+                 "non_preferred_return": 300.0, "non_preferred_cost": 9.0}
+    recorded = client.evaluate(policy_id, env, episodes=4, seed=7, deterministic=True,
+                               reference=reference, cost=cart_off_centre, local=True)
+    assert (recorded["source"], recorded["env"], recorded["episodes"]) == ("external", "CartPole-v1", 4)
+    metrics = recorded["metrics"]
+    assert metrics["normalized_return"] == pytest.approx(100 * np.mean(over_http.returns) / 500.0)
+    assert metrics["average_cost"] == pytest.approx(np.mean(over_http.costs))
+    assert metrics["cost_violation_ratio"] == pytest.approx(np.mean(np.asarray(over_http.costs) > 5.0))
+    assert recorded["mean_episode_length"] == pytest.approx(np.mean(over_http.lengths))
+    assert recorded["id"] in {e["id"] for e in client.evaluations(policy_id)}
+
+    # Sampled actions go through act with a seed per step: the same call, the same episodes.
+    sampled = client.rollout(policy_id, env, episodes=2, seed=3, deterministic=False, cost=cart_off_centre)
+    assert sampled == client.rollout(policy_id, env, episodes=2, seed=3, deterministic=False, cost=cart_off_centre)
+    with pytest.raises(ValueError, match="deterministic"):
+        client.rollout(policy_id, env, episodes=1, deterministic=False, local=True, cost=cart_off_centre)
+    with pytest.raises(ValueError, match="no 'cost'"):
+        client.rollout(policy_id, env, episodes=1)
+    with pytest.raises(ValueError, match="reference"):
+        client.evaluate(policy_id, env, episodes=1, cost=cart_off_centre)

@@ -7,10 +7,11 @@
     >>> job = client.wait(job["id"])                  # a progress line on stderr
     >>> actions = client.act(job["policy_id"], observations)
 
-Only the standard library and numpy: datasets go up as NPZ in the D4RL/DSRL layout (see the
+Only the standard library and numpy (onnxruntime too for `evaluate(..., local=True)`): datasets go up as NPZ in the D4RL/DSRL layout (see the
 service's docs/datasets.md), policies come down as safetensors or ONNX files.
 """
 
 from .client import ApiError, Client, JobFailed
+from .simulator import Rollouts
 
-__all__ = ["ApiError", "Client", "JobFailed"]
+__all__ = ["ApiError", "Client", "JobFailed", "Rollouts"]

@@ -18,6 +18,8 @@ from typing import Any, Dict, Iterator, Mapping, Optional, Sequence, Tuple, Unio
 
 import numpy as np
 
+from . import simulator
+
 Json = Dict[str, Any]
 DatasetSource = Union[str, os.PathLike, Mapping[str, np.ndarray]]
 
@@ -398,11 +400,71 @@ class Client:
     # -- evaluations ----------------------------------------------------------------------
 
     def evaluate(
-        self, policy_id: str, env: str, episodes: int = 500, seed: int = 0, deterministic: bool = False
+        self,
+        policy_id: str,
+        env: Any,
+        episodes: int = 500,
+        seed: int = 0,
+        deterministic: bool = False,
+        *,
+        reference: Optional[Mapping[str, float]] = None,
+        cost: Optional[simulator.CostFn] = None,
+        local: bool = False,
+        max_steps: Optional[int] = None,
+        name: Optional[str] = None,
     ) -> Json:
-        """Queues an evaluation on a built-in environment; poll `evaluation(id)` until it ends."""
-        body = {"env": env, "episodes": episodes, "seed": seed, "deterministic": deterministic}
-        return self._post_json(f"/v1/policies/{policy_id}/evaluate", body)
+        """Evaluates a policy with the paper's metrics.
+
+        `env` a built-in environment's name: queues the evaluation on the service (poll
+        `evaluation(id)` until it ends) and returns it.
+
+        `env` a gymnasium-style environment object (your simulator): rolls the policy out
+        `episodes` times here (episode i reset with seed ``seed + i``), acting through ``act``
+        over HTTP, or with ``local=True`` through the policy's ONNX export in onnxruntime
+        (deterministic actions only); each step's cost is ``info["cost"]`` unless `cost`
+        (``cost(obs, action, next_obs, info)``) says otherwise. The episodes' returns and costs
+        are recorded with `reference` (the demonstrators' ``preferred_return``,
+        ``preferred_cost``, ``non_preferred_return``, ``non_preferred_cost`` on that
+        simulator) under `name` (default: the environment's id); returns the stored evaluation
+        (``source: external``) with the metrics the service computed."""
+        if isinstance(env, str):
+            body = {"env": env, "episodes": episodes, "seed": seed, "deterministic": deterministic}
+            return self._post_json(f"/v1/policies/{policy_id}/evaluate", body)
+        if reference is None:
+            raise ValueError(
+                "an evaluation in your own simulator needs reference= (the demonstrators' mean "
+                "returns and costs there) to normalise the return and set the cost threshold"
+            )
+        rollouts = self.rollout(policy_id, env, episodes, seed, deterministic, cost=cost,
+                                local=local, max_steps=max_steps)
+        return self.record_evaluation(
+            policy_id, name or simulator.env_name(env), rollouts.returns, rollouts.costs,
+            reference, lengths=rollouts.lengths, seed=seed, deterministic=deterministic,
+        )
+
+    def rollout(
+        self,
+        policy_id: str,
+        env: Any,
+        episodes: int = 10,
+        seed: int = 0,
+        deterministic: bool = True,
+        *,
+        cost: Optional[simulator.CostFn] = None,
+        local: bool = False,
+        max_steps: Optional[int] = None,
+    ) -> simulator.Rollouts:
+        """Rolls the policy out in a gymnasium-style environment (see `evaluate`) without
+        recording anything: each episode's return, cost and length."""
+        policy = self.policy(policy_id)
+        discrete = policy["action_space"]["type"] == "discrete"
+        if local:
+            if not deterministic:
+                raise ValueError("the ONNX export acts deterministically: pass deterministic=True, or local=False to sample through act")
+            actor = simulator.onnx_actor(self, policy_id, discrete)
+        else:
+            actor = simulator.http_actor(self, policy_id, discrete, deterministic, seed)
+        return simulator.roll_out(env, actor, episodes, seed, cost or simulator.info_cost, max_steps)
 
     def record_evaluation(
         self,
