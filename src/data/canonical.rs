@@ -11,7 +11,7 @@
 use std::borrow::Cow;
 use std::collections::HashMap;
 
-use safetensors::tensor::{Dtype, TensorView};
+use safetensors::tensor::{Dtype, TensorInfo, TensorView};
 use safetensors::SafeTensors;
 
 use super::error::ParseError;
@@ -64,35 +64,57 @@ pub fn encode_canonical(d: &Dataset) -> Vec<u8> {
 /// Decodes the canonical form; [`Dataset::new`] checks the columns again (storage may have
 /// been damaged).
 pub fn decode_canonical(bytes: &[u8]) -> Result<Dataset, ParseError> {
-    let corrupt =
-        |what: String| ParseError::corrupt_canonical(format!("canonical dataset: {what}"));
     let (_, header) =
         SafeTensors::read_metadata(bytes).map_err(|e| corrupt(format!("unreadable ({e})")))?;
-    let meta = header.metadata().clone().unwrap_or_default();
-    let field = |key: &str| meta.get(key).ok_or_else(|| corrupt(format!("no `{key}` metadata")));
-    if field("format")? != FORMAT_TAG {
-        return Err(corrupt("not a safedice dataset".into()));
-    }
-    let version = field("version")?;
-    if version != VERSION {
-        return Err(corrupt(format!("version {version}, this build reads {VERSION}")));
-    }
-    let obs_dim: usize = field("obs_dim")?.parse().map_err(|_| corrupt("bad obs_dim".into()))?;
-    let action_space: ActionSpace = serde_json::from_str(field("action_space")?)
-        .map_err(|e| corrupt(format!("bad action_space ({e})")))?;
+    let scalars = Scalars::of(header.metadata().as_ref())?;
     let tensors =
         SafeTensors::deserialize(bytes).map_err(|e| corrupt(format!("unreadable ({e})")))?;
-    let column = |name: &str, dtype: Dtype| -> Result<Option<&[u8]>, ParseError> {
-        match tensors.tensor(name) {
-            Ok(view) if view.dtype() == dtype => Ok(Some(view.data())),
-            Ok(view) => Err(corrupt(format!("`{name}` has dtype {:?}", view.dtype()))),
-            Err(_) => Ok(None),
+    decode_columns(&scalars, |name, dtype| match tensors.tensor(name) {
+        Ok(view) if view.dtype() == dtype => Ok(Some(view.data())),
+        Ok(view) => Err(corrupt(format!("`{name}` has dtype {:?}", view.dtype()))),
+        Err(_) => Ok(None),
+    })
+}
+
+fn corrupt(what: String) -> ParseError {
+    ParseError::corrupt_canonical(format!("canonical dataset: {what}"))
+}
+
+/// The dataset's scalars, from the metadata.
+struct Scalars {
+    obs_dim: usize,
+    action_space: ActionSpace,
+}
+
+impl Scalars {
+    fn of(meta: Option<&HashMap<String, String>>) -> Result<Scalars, ParseError> {
+        let empty = HashMap::new();
+        let meta = meta.unwrap_or(&empty);
+        let field =
+            |key: &str| meta.get(key).ok_or_else(|| corrupt(format!("no `{key}` metadata")));
+        if field("format")? != FORMAT_TAG {
+            return Err(corrupt("not a safedice dataset".into()));
         }
-    };
+        let version = field("version")?;
+        if version != VERSION {
+            return Err(corrupt(format!("version {version}, this build reads {VERSION}")));
+        }
+        let obs_dim = field("obs_dim")?.parse().map_err(|_| corrupt("bad obs_dim".into()))?;
+        let action_space = serde_json::from_str(field("action_space")?)
+            .map_err(|e| corrupt(format!("bad action_space ({e})")))?;
+        Ok(Scalars { obs_dim, action_space })
+    }
+}
+
+/// A dataset from its columns' bytes, as `column(name, dtype)` finds them (None: absent).
+fn decode_columns<'a>(
+    scalars: &Scalars,
+    column: impl Fn(&str, Dtype) -> Result<Option<&'a [u8]>, ParseError>,
+) -> Result<Dataset, ParseError> {
     let required = |name: &str, dtype: Dtype| {
         column(name, dtype)?.ok_or_else(|| corrupt(format!("no `{name}` column")))
     };
-    let actions = match action_space {
+    let actions = match scalars.action_space {
         ActionSpace::Continuous { .. } => {
             Actions::Continuous(f32s(required("actions", Dtype::F32)?))
         }
@@ -103,8 +125,8 @@ pub fn decode_canonical(bytes: &[u8]) -> Result<Dataset, ParseError> {
         return Err(corrupt("`terminals` holds a value other than 0/1".into()));
     }
     Dataset::new(DatasetParts {
-        obs_dim,
-        action_space,
+        obs_dim: scalars.obs_dim,
+        action_space: scalars.action_space.clone(),
         observations: f32s(required("observations", Dtype::F32)?),
         actions,
         next_observations: f32s(required("next_observations", Dtype::F32)?),
@@ -114,6 +136,112 @@ pub fn decode_canonical(bytes: &[u8]) -> Result<Dataset, ParseError> {
         costs: column("costs", Dtype::F32)?.map(f32s),
     })
     .map_err(|e| corrupt(e.to_string()))
+}
+
+/// Bytes of the length prefix of a canonical file (safetensors: a little-endian u64).
+pub const CANONICAL_PREFIX_BYTES: usize = 8;
+
+/// A canonical file's header, read without its columns: where each column's bytes lie, so the
+/// first rows of a large dataset can be read alone (a preview) instead of the whole file.
+pub struct CanonicalHeader {
+    scalars: Scalars,
+    /// Offset of the first column byte in the file.
+    data_start: u64,
+    columns: HashMap<String, TensorInfo>,
+}
+
+/// Length of the JSON header that follows the prefix, from the prefix's 8 bytes.
+pub fn canonical_header_len(prefix: [u8; CANONICAL_PREFIX_BYTES]) -> Result<usize, ParseError> {
+    let n = u64::from_le_bytes(prefix);
+    // safetensors' own bound on a header (100 MB); ours hold a few hundred bytes.
+    usize::try_from(n)
+        .ok()
+        .filter(|&n| n <= 100_000_000)
+        .ok_or_else(|| corrupt(format!("header of {n} bytes")))
+}
+
+impl CanonicalHeader {
+    /// Parses the JSON header (the `header_len` bytes after the prefix) of a file of
+    /// `file_len` bytes, checking that every column lies inside it.
+    pub fn parse(header: &[u8], file_len: u64) -> Result<CanonicalHeader, ParseError> {
+        let metadata: safetensors::tensor::Metadata = serde_json::from_slice(header)
+            .map_err(|e| corrupt(format!("unreadable header ({e})")))?;
+        let scalars = Scalars::of(metadata.metadata().as_ref())?;
+        let data_start = (CANONICAL_PREFIX_BYTES + header.len()) as u64;
+        let columns: HashMap<_, _> =
+            metadata.tensors().into_iter().map(|(name, info)| (name, info.clone())).collect();
+        if columns.values().any(|info| {
+            let (begin, end) = info.data_offsets;
+            begin > end || data_start.saturating_add(end as u64) > file_len
+        }) {
+            return Err(corrupt("a column lies outside the file".into()));
+        }
+        Ok(CanonicalHeader { scalars, data_start, columns })
+    }
+
+    /// Transitions in the dataset.
+    pub fn rows(&self) -> usize {
+        self.columns.get("episode_ids").and_then(|info| info.shape.first().copied()).unwrap_or(0)
+    }
+
+    /// The file's byte range holding rows `0..rows` of column `name`, if it has that column.
+    pub fn prefix_range(&self, name: &str, rows: usize) -> Option<std::ops::Range<u64>> {
+        let info = self.columns.get(name)?;
+        let (begin, end) = info.data_offsets;
+        let row_bytes = info.shape.iter().skip(1).product::<usize>() * info.dtype.bitsize() / 8;
+        let total_rows = info.shape.first().copied().unwrap_or(0);
+        let len = (rows.min(total_rows) * row_bytes).min(end - begin);
+        let start = self.data_start + begin as u64;
+        Some(start..start + len as u64)
+    }
+
+    /// Each column's byte range for rows `0..rows`.
+    pub fn prefix_ranges(&self, rows: usize) -> Vec<(String, std::ops::Range<u64>)> {
+        let mut ranges: Vec<_> = self
+            .columns
+            .keys()
+            .map(|name| {
+                (name.clone(), self.prefix_range(name, rows).expect("a column of the header"))
+            })
+            .collect();
+        ranges.sort_by_key(|(_, range)| range.start);
+        ranges
+    }
+
+    /// A dataset of the first rows from each column's bytes over its [`Self::prefix_ranges`].
+    pub fn decode_prefix(&self, columns: &HashMap<String, Vec<u8>>) -> Result<Dataset, ParseError> {
+        decode_columns(&self.scalars, |name, dtype| {
+            match (self.columns.get(name), columns.get(name)) {
+                (Some(info), Some(_)) if info.dtype != dtype => {
+                    Err(corrupt(format!("`{name}` has dtype {:?}", info.dtype)))
+                }
+                (Some(_), Some(bytes)) => Ok(Some(bytes.as_slice())),
+                _ => Ok(None),
+            }
+        })
+    }
+}
+
+/// Rows to read for a preview of `rows` transitions and `episodes` episodes, from the
+/// `episode_ids` column (little-endian u32 bytes): enough for both, never past the end, and at
+/// least one (a dataset is never empty).
+pub fn preview_rows(episode_ids: &[u8], rows: usize, episodes: usize) -> usize {
+    let ids = u32s(episode_ids);
+    let mut ended = 0;
+    let mut end = ids.len();
+    for i in 1..ids.len() {
+        if ids[i] != ids[i - 1] {
+            ended += 1;
+            if ended == episodes {
+                end = i;
+                break;
+            }
+        }
+    }
+    if episodes == 0 {
+        end = 0;
+    }
+    rows.max(end).max(1).min(ids.len())
 }
 
 // Columns as little-endian bytes: a borrow on little-endian machines, a copy elsewhere. Decoding
@@ -141,4 +269,104 @@ fn f32s(bytes: &[u8]) -> Vec<f32> {
 
 fn u32s(bytes: &[u8]) -> Vec<u32> {
     bytes.chunks_exact(4).map(|c| u32::from_le_bytes(c.try_into().expect("4 bytes"))).collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::data::preview;
+
+    /// Episodes of lengths 1, 2, 3, … (ids not in order), 5-wide observations, with rewards
+    /// and costs; continuous or discrete actions.
+    fn episodes_of_growing_length(episodes: usize, discrete: bool) -> Dataset {
+        let lengths: Vec<usize> = (1..=episodes).collect();
+        let n: usize = lengths.iter().sum();
+        let episode_ids = lengths
+            .iter()
+            .enumerate()
+            .flat_map(|(e, &len)| std::iter::repeat_n((e as u32 * 7919) % 1000, len))
+            .collect();
+        let ends: Vec<usize> = lengths
+            .iter()
+            .scan(0, |at, len| {
+                *at += len;
+                Some(*at - 1)
+            })
+            .collect();
+        let (action_space, actions) = if discrete {
+            (
+                ActionSpace::Discrete { n: 3 },
+                Actions::Discrete((0..n as u32).map(|i| i % 3).collect()),
+            )
+        } else {
+            let a: Vec<f32> = (0..n * 2).map(|i| (i % 11) as f32 * 0.1 - 0.5).collect();
+            (ActionSpace::infer_continuous(&a, 2), Actions::Continuous(a))
+        };
+        Dataset::new(DatasetParts {
+            obs_dim: 5,
+            action_space,
+            observations: (0..n * 5).map(|i| i as f32 * 0.01).collect(),
+            actions,
+            next_observations: (0..n * 5).map(|i| i as f32 * 0.01 + 0.05).collect(),
+            terminals: (0..n).map(|i| ends.contains(&i) && i % 2 == 0).collect(),
+            episode_ids,
+            rewards: Some((0..n).map(|i| (i % 5) as f32).collect()),
+            costs: Some((0..n).map(|i| (i % 3 == 0) as u8 as f32).collect()),
+        })
+        .unwrap()
+    }
+
+    /// The preview of the prefix read from byte ranges, and the bytes read.
+    fn preview_from_ranges(
+        bytes: &[u8],
+        rows: usize,
+        episodes: usize,
+    ) -> (preview::DatasetPreview, usize) {
+        let mut read = 0;
+        let mut take = |range: std::ops::Range<u64>| {
+            read += (range.end - range.start) as usize;
+            bytes[range.start as usize..range.end as usize].to_vec()
+        };
+        let prefix: [u8; CANONICAL_PREFIX_BYTES] = take(0..8).try_into().unwrap();
+        let header_len = canonical_header_len(prefix).unwrap() as u64;
+        let header = CanonicalHeader::parse(&take(8..8 + header_len), bytes.len() as u64).unwrap();
+        let ids = take(header.prefix_range("episode_ids", header.rows()).unwrap());
+        let keep = preview_rows(&ids, rows, episodes);
+        let columns =
+            header.prefix_ranges(keep).into_iter().map(|(name, r)| (name, take(r))).collect();
+        let prefix = header.decode_prefix(&columns).unwrap();
+        (preview::preview(&prefix, rows, episodes), read)
+    }
+
+    #[test]
+    fn a_preview_from_the_first_rows_equals_the_preview_of_the_whole_dataset() {
+        for discrete in [false, true] {
+            let d = episodes_of_growing_length(40, discrete);
+            let bytes = encode_canonical(&d);
+            for (rows, episodes) in
+                [(0, 0), (10, 0), (0, 5), (3, 5), (100, 1), (0, 1000), (100, 39), (820, 40)]
+            {
+                let (from_ranges, _) = preview_from_ranges(&bytes, rows, episodes);
+                assert_eq!(
+                    from_ranges,
+                    preview::preview(&d, rows, episodes),
+                    "{rows} rows, {episodes} episodes"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn a_preview_reads_the_rows_it_shows_and_the_episode_ids_not_the_whole_file() {
+        let d = episodes_of_growing_length(400, false); // 80,200 transitions
+        let bytes = encode_canonical(&d);
+        let (shown, read) = preview_from_ranges(&bytes, 10, 20);
+        assert_eq!((shown.transitions.len(), shown.episodes.len()), (10, 20));
+        // The first 20 episodes hold 210 rows; the ids are 4 bytes per transition.
+        // Beyond the ids: the header and 210 rows of 57 bytes (observations and next ones 20
+        // each, actions 8, terminal 1, reward 4, cost 4).
+        let beyond_ids = read - 4 * d.len();
+        assert!(beyond_ids < 2000 + 210 * 57, "read {beyond_ids} bytes beyond the ids");
+        assert!(read * 10 < bytes.len(), "read {read} of {} bytes", bytes.len());
+    }
 }

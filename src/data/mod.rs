@@ -29,7 +29,10 @@ use std::path::Path;
 
 use serde::{Deserialize, Serialize};
 
-pub use canonical::{decode_canonical, encode_canonical};
+pub use canonical::{
+    canonical_header_len, decode_canonical, encode_canonical, preview_rows, CanonicalHeader,
+    CANONICAL_PREFIX_BYTES,
+};
 pub use error::ParseError;
 pub use model::{ActionSpace, Actions, Dataset, DatasetParts, ModelError};
 pub use preview::{preview, DatasetPreview, EpisodeSummary, TransitionRow};

@@ -445,9 +445,9 @@ async fn preview_dataset(
             format!("rows must be 0 to 100 and episodes 0 to 1000, got {rows} and {episodes}"),
         ));
     }
-    // The whole dataset is decoded to find its first episodes' ends.
+    // Only the rows shown are read, but a preview of long episodes still reads many.
     let _permit = super::heavy_read_permit(&state)?;
-    let dataset = state.store.load_dataset(&id).await?;
+    let dataset = state.store.load_dataset_prefix(&id, rows, episodes).await?;
     let preview = tokio::task::spawn_blocking(move || data::preview(&dataset, rows, episodes));
     Ok(Json(preview.await?))
 }

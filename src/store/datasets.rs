@@ -345,6 +345,89 @@ impl Store {
         .map_err(std::io::Error::other)?
     }
 
+    /// The first rows of a dataset: enough for a preview of `rows` transitions and `episodes`
+    /// episodes. Read from the stored file's ranges alone (its header, the `episode_ids`
+    /// column, then each column's first rows), so memory grows with what is shown and 4 bytes
+    /// per transition, not with the dataset. The whole file's checksum is left to full loads.
+    pub async fn load_dataset_prefix(
+        &self,
+        id: &str,
+        rows: usize,
+        episodes: usize,
+    ) -> Result<Dataset, StoreError> {
+        let record = self
+            .dataset(id)
+            .await?
+            .ok_or_else(|| StoreError::NotFound { kind: "dataset", id: id.to_owned() })?;
+        let corrupt = |e: data::ParseError| StoreError::Corrupt(id.to_owned(), e.to_string());
+        let prefix_len = data::CANONICAL_PREFIX_BYTES as u64;
+        let prefix = self.read_canonical_range(id, 0..prefix_len).await?;
+        let prefix = prefix.try_into().map_err(|_| {
+            StoreError::Corrupt(id.to_owned(), "shorter than its header's length".into())
+        })?;
+        let header_len = data::canonical_header_len(prefix).map_err(corrupt)? as u64;
+        let header = self.read_canonical_range(id, prefix_len..prefix_len + header_len).await?;
+        let header =
+            data::CanonicalHeader::parse(&header, record.canonical_bytes).map_err(corrupt)?;
+        let ids = match header.prefix_range("episode_ids", header.rows()) {
+            Some(range) => self.read_canonical_range(id, range).await?,
+            None => Vec::new(),
+        };
+        let keep = data::preview_rows(&ids, rows, episodes);
+        let mut columns = std::collections::HashMap::new();
+        for (name, range) in header.prefix_ranges(keep) {
+            columns.insert(name, self.read_canonical_range(id, range).await?);
+        }
+        header.decode_prefix(&columns).map_err(corrupt)
+    }
+
+    /// Bytes `range` of a dataset's canonical file: a positional read of the file (SQLite), or
+    /// the stored chunks that cover it (PostgreSQL).
+    async fn read_canonical_range(
+        &self,
+        id: &str,
+        range: std::ops::Range<u64>,
+    ) -> Result<Vec<u8>, StoreError> {
+        let len = usize::try_from(range.end - range.start).map_err(std::io::Error::other)?;
+        match self.backend {
+            Backend::Sqlite => {
+                let path = self.canonical_path(id);
+                let read = tokio::task::spawn_blocking(move || {
+                    use std::os::unix::fs::FileExt;
+                    let mut bytes = vec![0; len];
+                    std::fs::File::open(&path)?.read_exact_at(&mut bytes, range.start)?;
+                    Ok::<_, std::io::Error>(bytes)
+                });
+                Ok(read.await.map_err(std::io::Error::other)??)
+            }
+            Backend::Postgres => {
+                let chunk = CHUNK_BYTES as u64;
+                let (first, last) = (range.start / chunk, range.end.saturating_sub(1) / chunk);
+                let mut covering = sqlx::query_scalar::<_, Vec<u8>>(
+                    "SELECT data FROM dataset_chunks WHERE dataset_id = $1 AND seq >= $2 \
+                     AND seq <= $3 ORDER BY seq",
+                )
+                .bind(id)
+                .bind(first as i64)
+                .bind(last as i64)
+                .fetch(self.pool());
+                let mut bytes = Vec::with_capacity(len);
+                let mut at = first * chunk;
+                while let Some(data) = covering.try_next().await? {
+                    let from = range.start.saturating_sub(at) as usize;
+                    let to = ((range.end - at) as usize).min(data.len());
+                    bytes.extend_from_slice(&data[from.min(to)..to]);
+                    at += chunk;
+                }
+                if bytes.len() != len {
+                    let why = format!("its stored chunks end before byte {}", range.end);
+                    return Err(StoreError::Corrupt(id.to_owned(), why));
+                }
+                Ok(bytes)
+            }
+        }
+    }
+
     async fn read_canonical_file(&self, id: &str, path: &Path) -> Result<Vec<u8>, StoreError> {
         let read_path = path.to_path_buf();
         let read = tokio::task::spawn_blocking(move || std::fs::read(read_path))
