@@ -16,6 +16,7 @@ use safetensors::SafeTensors;
 
 use super::error::ParseError;
 use super::model::{ActionSpace, Actions, Dataset, DatasetParts};
+use super::preview::EpisodeColumns;
 
 /// One tensor to write: name, dtype, shape, little-endian bytes.
 type Column<'a> = (&'static str, Dtype, Vec<usize>, Cow<'a, [u8]>);
@@ -208,6 +209,45 @@ impl CanonicalHeader {
         ranges
     }
 
+    /// The byte ranges of rows `0..rows` of the columns an episode summary reads (terminals,
+    /// rewards and costs; the caller has the episode ids).
+    pub fn episode_column_ranges(&self, rows: usize) -> Vec<(String, std::ops::Range<u64>)> {
+        ["terminals", "rewards", "costs"]
+            .into_iter()
+            .filter_map(|name| Some((name.to_owned(), self.prefix_range(name, rows)?)))
+            .collect()
+    }
+
+    /// The episode columns from the episode ids and the bytes over
+    /// [`Self::episode_column_ranges`] (every column as long as the ids).
+    pub fn decode_episode_columns(
+        &self,
+        episode_ids: &[u8],
+        columns: &HashMap<String, Vec<u8>>,
+    ) -> Result<EpisodeColumns, ParseError> {
+        let episode_ids = u32s(episode_ids);
+        let n = episode_ids.len();
+        let terminals =
+            columns.get("terminals").ok_or_else(|| corrupt("no `terminals` column".into()))?;
+        if terminals.len() != n || terminals.iter().any(|&t| t > 1) {
+            return Err(corrupt("`terminals` does not match the episode ids".into()));
+        }
+        let floats = |name: &str| -> Result<Option<Vec<f32>>, ParseError> {
+            match columns.get(name).map(|bytes| f32s(bytes)) {
+                Some(values) if values.len() != n => {
+                    Err(corrupt(format!("`{name}` does not match the episode ids")))
+                }
+                found => Ok(found),
+            }
+        };
+        Ok(EpisodeColumns {
+            terminals: terminals.iter().map(|&t| t == 1).collect(),
+            rewards: floats("rewards")?,
+            costs: floats("costs")?,
+            episode_ids,
+        })
+    }
+
     /// A dataset of the first rows from each column's bytes over its [`Self::prefix_ranges`].
     pub fn decode_prefix(&self, columns: &HashMap<String, Vec<u8>>) -> Result<Dataset, ParseError> {
         decode_columns(&self.scalars, |name, dtype| {
@@ -331,11 +371,18 @@ mod tests {
         let header_len = canonical_header_len(prefix).unwrap() as u64;
         let header = CanonicalHeader::parse(&take(8..8 + header_len), bytes.len() as u64).unwrap();
         let ids = take(header.prefix_range("episode_ids", header.rows()).unwrap());
-        let keep = preview_rows(&ids, rows, episodes);
-        let columns =
-            header.prefix_ranges(keep).into_iter().map(|(name, r)| (name, take(r))).collect();
-        let prefix = header.decode_prefix(&columns).unwrap();
-        (preview::preview(&prefix, rows, episodes), read)
+        let summarised = preview_rows(&ids, rows, episodes);
+        let head_rows = rows.clamp(1, header.rows());
+        let head =
+            header.prefix_ranges(head_rows).into_iter().map(|(name, r)| (name, take(r))).collect();
+        let head = header.decode_prefix(&head).unwrap();
+        let columns: HashMap<_, _> = header
+            .episode_column_ranges(summarised)
+            .into_iter()
+            .map(|(name, r)| (name, take(r)))
+            .collect();
+        let columns = header.decode_episode_columns(&ids[..summarised * 4], &columns).unwrap();
+        (preview::preview_parts(&head, rows, &columns, episodes), read)
     }
 
     #[test]
@@ -357,16 +404,27 @@ mod tests {
     }
 
     #[test]
+    fn a_preview_of_every_episode_reads_no_observation_beyond_the_rows_shown() {
+        let d = episodes_of_growing_length(400, false);
+        let bytes = encode_canonical(&d);
+        let (shown, read) = preview_from_ranges(&bytes, 10, 1000);
+        assert_eq!(shown, preview::preview(&d, 10, 1000));
+        // Ids (4), terminal (1), reward (4), cost (4) per transition, and 10 whole rows.
+        assert!(read < 13 * d.len() + 2000 + 10 * 57, "read {read} of {} bytes", bytes.len());
+    }
+
+    #[test]
     fn a_preview_reads_the_rows_it_shows_and_the_episode_ids_not_the_whole_file() {
         let d = episodes_of_growing_length(400, false); // 80,200 transitions
         let bytes = encode_canonical(&d);
         let (shown, read) = preview_from_ranges(&bytes, 10, 20);
         assert_eq!((shown.transitions.len(), shown.episodes.len()), (10, 20));
         // The first 20 episodes hold 210 rows; the ids are 4 bytes per transition.
-        // Beyond the ids: the header and 210 rows of 57 bytes (observations and next ones 20
-        // each, actions 8, terminal 1, reward 4, cost 4).
+        // Beyond the ids: the header, 10 rows of 57 bytes (observations and next ones 20 each,
+        // actions 8, terminal 1, reward 4, cost 4) and the 210 rows of the first 20 episodes'
+        // terminals, rewards and costs.
         let beyond_ids = read - 4 * d.len();
-        assert!(beyond_ids < 2000 + 210 * 57, "read {beyond_ids} bytes beyond the ids");
+        assert!(beyond_ids < 2000 + 10 * 57 + 210 * 9, "read {beyond_ids} bytes beyond the ids");
         assert!(read * 10 < bytes.len(), "read {read} of {} bytes", bytes.len());
     }
 }

@@ -35,7 +35,9 @@ pub use canonical::{
 };
 pub use error::ParseError;
 pub use model::{ActionSpace, Actions, Dataset, DatasetParts, ModelError};
-pub use preview::{preview, DatasetPreview, EpisodeSummary, TransitionRow};
+pub use preview::{
+    preview, preview_parts, DatasetPreview, EpisodeColumns, EpisodeSummary, TransitionRow,
+};
 pub use rows::MAX_DISCRETE_ACTIONS;
 pub use stats::{stats, DatasetStats, Summary};
 pub use writers::{write_csv, write_jsonl, write_npz};

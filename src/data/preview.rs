@@ -46,21 +46,70 @@ pub struct DatasetPreview {
     pub episodes: Vec<EpisodeSummary>,
 }
 
+/// The per-transition columns an episode summary reads: a preview of many episodes needs these
+/// (9-13 bytes a transition) without the observations and actions.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct EpisodeColumns {
+    pub episode_ids: Vec<u32>,
+    pub terminals: Vec<bool>,
+    pub rewards: Option<Vec<f32>>,
+    pub costs: Option<Vec<f32>>,
+}
+
+impl EpisodeColumns {
+    /// The columns of a whole dataset.
+    pub fn of(d: &Dataset) -> EpisodeColumns {
+        EpisodeColumns {
+            episode_ids: d.episode_ids().to_vec(),
+            terminals: d.terminals().to_vec(),
+            rewards: d.rewards().map(<[f32]>::to_vec),
+            costs: d.costs().map(<[f32]>::to_vec),
+        }
+    }
+
+    /// Each episode's rows: runs of one episode id, as [`Dataset::episode_ranges`].
+    fn episode_ranges(&self) -> Vec<std::ops::Range<usize>> {
+        let ids = &self.episode_ids;
+        let mut ranges = Vec::new();
+        let mut start = 0;
+        for i in 1..=ids.len() {
+            if i == ids.len() || ids[i] != ids[start] {
+                ranges.push(start..i);
+                start = i;
+            }
+        }
+        ranges
+    }
+}
+
+/// The first `rows` transitions of `d` and its first `episodes` episodes.
 pub fn preview(d: &Dataset, rows: usize, episodes: usize) -> DatasetPreview {
-    let ranges = d.episode_ranges();
+    preview_parts(d, rows, &EpisodeColumns::of(d), episodes)
+}
+
+/// A preview from the dataset's first rows (`head`, at least `rows` of them or all) and the
+/// episode columns of at least its first `episodes` episodes (or all): what a preview of a
+/// stored dataset reads instead of the whole file.
+pub fn preview_parts(
+    head: &Dataset,
+    rows: usize,
+    columns: &EpisodeColumns,
+    episodes: usize,
+) -> DatasetPreview {
+    let ranges = columns.episode_ranges();
     let episode_of = |i: usize| ranges.partition_point(|r| r.end <= i);
-    let sum = |column: Option<&[f32]>, r: &std::ops::Range<usize>| {
+    let sum = |column: Option<&Vec<f32>>, r: &std::ops::Range<usize>| {
         column.map(|c| c[r.clone()].iter().map(|&v| f64::from(v)).sum())
     };
-    let transitions = (0..rows.min(d.len()))
+    let transitions = (0..rows.min(head.len()))
         .map(|i| TransitionRow {
             index: i,
             episode: episode_of(i),
-            obs: d.obs(i).to_vec(),
-            action: action_json(d.actions(), d.action_space().width(), i),
-            reward: d.rewards().map(|r| r[i]),
-            cost: d.costs().map(|c| c[i]),
-            terminal: d.terminals()[i],
+            obs: head.obs(i).to_vec(),
+            action: action_json(head.actions(), head.action_space().width(), i),
+            reward: head.rewards().map(|r| r[i]),
+            cost: head.costs().map(|c| c[i]),
+            terminal: head.terminals()[i],
         })
         .collect();
     let episodes = ranges
@@ -71,9 +120,9 @@ pub fn preview(d: &Dataset, rows: usize, episodes: usize) -> DatasetPreview {
             episode,
             start: r.start,
             length: r.len(),
-            episode_return: sum(d.rewards(), r),
-            cost: sum(d.costs(), r),
-            terminal: d.terminals()[r.end - 1],
+            episode_return: sum(columns.rewards.as_ref(), r),
+            cost: sum(columns.costs.as_ref(), r),
+            terminal: columns.terminals[r.end - 1],
         })
         .collect();
     DatasetPreview { transitions, episodes }

@@ -345,16 +345,17 @@ impl Store {
         .map_err(std::io::Error::other)?
     }
 
-    /// The first rows of a dataset: enough for a preview of `rows` transitions and `episodes`
-    /// episodes. Read from the stored file's ranges alone (its header, the `episode_ids`
-    /// column, then each column's first rows), so memory grows with what is shown and 4 bytes
-    /// per transition, not with the dataset. The whole file's checksum is left to full loads.
-    pub async fn load_dataset_prefix(
+    /// A preview of a stored dataset's first `rows` transitions and `episodes` episodes, read
+    /// from the file's ranges alone: its header, the `episode_ids` column, the first rows of
+    /// every column, and the terminals, rewards and costs of the episodes summarised. Memory
+    /// grows with the rows shown and 13 bytes a transition, not with the observations. The
+    /// whole file's checksum is left to full loads.
+    pub async fn preview_dataset(
         &self,
         id: &str,
         rows: usize,
         episodes: usize,
-    ) -> Result<Dataset, StoreError> {
+    ) -> Result<data::DatasetPreview, StoreError> {
         let record = self
             .dataset(id)
             .await?
@@ -373,12 +374,26 @@ impl Store {
             Some(range) => self.read_canonical_range(id, range).await?,
             None => Vec::new(),
         };
-        let keep = data::preview_rows(&ids, rows, episodes);
+        let summarised = data::preview_rows(&ids, rows, episodes);
+        let head_rows = rows.clamp(1, header.rows().max(1));
+        let head = self.read_ranges(id, header.prefix_ranges(head_rows)).await?;
+        let head = header.decode_prefix(&head).map_err(corrupt)?;
+        let columns = self.read_ranges(id, header.episode_column_ranges(summarised)).await?;
+        let ids = &ids[..(summarised * 4).min(ids.len())];
+        let columns = header.decode_episode_columns(ids, &columns).map_err(corrupt)?;
+        Ok(data::preview_parts(&head, rows, &columns, episodes))
+    }
+
+    async fn read_ranges(
+        &self,
+        id: &str,
+        ranges: Vec<(String, std::ops::Range<u64>)>,
+    ) -> Result<std::collections::HashMap<String, Vec<u8>>, StoreError> {
         let mut columns = std::collections::HashMap::new();
-        for (name, range) in header.prefix_ranges(keep) {
+        for (name, range) in ranges {
             columns.insert(name, self.read_canonical_range(id, range).await?);
         }
-        header.decode_prefix(&columns).map_err(corrupt)
+        Ok(columns)
     }
 
     /// Bytes `range` of a dataset's canonical file: a positional read of the file (SQLite), or
