@@ -153,6 +153,15 @@ impl ApiError {
         }
     }
 
+    /// The database cannot be reached: the request was fine and is worth repeating.
+    fn database_unavailable() -> Self {
+        ApiError::unavailable(
+            "database_unavailable",
+            "the database cannot be reached (its connection was lost, or it is restarting); \
+             nothing was changed, retry in a few seconds",
+        )
+    }
+
     /// A lock another writer held for too long: the request was fine and is worth repeating.
     fn database_busy() -> Self {
         ApiError::unavailable(
@@ -197,6 +206,7 @@ impl IntoResponse for ApiError {
         };
         let body = ErrorBody { error: ErrorDetail { code: self.code().to_owned(), message } };
         let mut response = (status, axum::Json(body)).into_response();
+        response.extensions_mut().insert(ErrorCode(self.code()));
         let headers = response.headers_mut();
         match status {
             // Closed after the answer: a client without a valid token cannot hold a connection
@@ -215,6 +225,28 @@ impl IntoResponse for ApiError {
     }
 }
 
+/// The code of an error answer, kept on the response for the middleware after the handler.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct ErrorCode(pub &'static str);
+
+/// No pooled database connection in time reads as `database_busy`, but it is also what a
+/// database that is down looks like (the pool keeps retrying to connect until its deadline).
+/// After such an answer, one fresh connection attempt tells the two apart, and an outage is
+/// answered `database_unavailable`, which tells an operator where to look.
+pub async fn name_database_outages(
+    axum::extract::State(state): axum::extract::State<super::AppState>,
+    request: axum::extract::Request,
+    next: axum::middleware::Next,
+) -> Response {
+    let response = next.run(request).await;
+    let busy = response.extensions().get::<ErrorCode>() == Some(&ErrorCode("database_busy"));
+    if busy && !state.store.database_reachable().await {
+        tracing::warn!("the database cannot be reached; answering 503 database_unavailable");
+        return ApiError::database_unavailable().into_response();
+    }
+    response
+}
+
 impl From<crate::store::StoreError> for ApiError {
     fn from(e: crate::store::StoreError) -> Self {
         match e {
@@ -224,11 +256,7 @@ impl From<crate::store::StoreError> for ApiError {
             }
             e if e.is_unreachable() => {
                 tracing::warn!(error = %e, "database unreachable; answering 503");
-                ApiError::unavailable(
-                    "database_unavailable",
-                    "the database cannot be reached (its connection was lost, or it is \
-                     restarting); nothing was changed, retry in a few seconds",
-                )
+                ApiError::database_unavailable()
             }
             e if e.is_busy() => {
                 tracing::warn!(error = %e, "database busy; answering 503");

@@ -199,6 +199,7 @@ pub fn app(state: AppState) -> anyhow::Result<Router> {
         .fallback(error::route_not_found)
         .method_not_allowed_fallback(error::method_not_allowed)
         .layer(middleware::from_fn_with_state(state.clone(), auth::require_token))
+        .layer(middleware::from_fn_with_state(state.clone(), error::name_database_outages))
         .layer(middleware::from_fn(inference::binary::v2_error_shape))
         .layer(middleware::from_fn_with_state(state.clone(), prometheus::track))
         .layer(middleware::from_fn_with_state(body_idle, body_idle_timeout))

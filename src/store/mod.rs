@@ -465,6 +465,24 @@ impl Store {
         &self.pool
     }
 
+    /// Whether a new connection to the database can be made now (within 2 s). An SQLite file is
+    /// always there; a PostgreSQL server may be down, which its pool reports only as no
+    /// connection in time, like a busy pool.
+    pub async fn database_reachable(&self) -> bool {
+        use sqlx::{ConnectOptions, Connection};
+        if self.backend == Backend::Sqlite {
+            return true;
+        }
+        let options = self.pool.connect_options();
+        match tokio::time::timeout(Duration::from_secs(2), options.connect()).await {
+            Ok(Ok(connection)) => {
+                let _ = connection.close().await;
+                true
+            }
+            _ => false,
+        }
+    }
+
     pub fn backend(&self) -> Backend {
         self.backend
     }

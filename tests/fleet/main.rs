@@ -335,6 +335,85 @@ async fn connections_cut_by_the_database_mid_run_lose_nothing_and_write_nothing_
     assert!(interrupted == uninterrupted, "the same metric rows, each once, bit for bit");
 }
 
+/// PostgreSQL stopped for 20 s while two jobs train on two workers (its own cluster, so the
+/// tests beside it keep theirs): meanwhile the API node answers 503 `database_unavailable`
+/// (not `database_busy`); once it is back the processes reconnect by themselves (none is
+/// restarted) and each job ends `succeeded` once, with the weights and the metric rows (each
+/// step once) of an uninterrupted run of the same job.
+#[tokio::test]
+async fn postgres_stopped_for_twenty_seconds_mid_training_loses_and_duplicates_nothing() {
+    let Some(cluster) = support::postgres::private_cluster() else { return };
+    let fleet = Fleet::start_on_database(cluster.new_database().await, 2).await;
+    let (u, n) = upload_grid(&fleet).await;
+    let bodies = [job(&u, &n, 3000, 31), job(&u, &n, 3000, 32)];
+    let mut ids = Vec::new();
+    for body in &bodies {
+        ids.push(
+            create_job(&fleet.client, &fleet.api_url, body.clone()).await["id"]
+                .as_str()
+                .unwrap()
+                .to_owned(),
+        );
+    }
+    for id in &ids {
+        wait_for_checkpoint(&fleet, id).await;
+    }
+
+    let stopped = Instant::now();
+    cluster.stop();
+    let url = format!("{}/v1/jobs/{}", fleet.api_url, ids[0]);
+    let response = fleet.client.get(&url).send().await.unwrap();
+    assert_eq!(response.status(), StatusCode::SERVICE_UNAVAILABLE);
+    let body: Value = response.json().await.unwrap();
+    assert_eq!(body["error"]["code"], "database_unavailable", "{body}");
+    tokio::time::sleep(Duration::from_secs(20).saturating_sub(stopped.elapsed())).await;
+    cluster.start_again();
+    eprintln!("PostgreSQL was down for {:?}", stopped.elapsed());
+
+    let mut done = Vec::new();
+    for id in &ids {
+        let job = wait_for_job(&fleet, id, "succeeded after the outage", |j| {
+            ["succeeded", "failed", "cancelled"].contains(&j["status"].as_str().unwrap_or(""))
+        })
+        .await;
+        assert_eq!(job["status"], "succeeded", "{job}");
+        eprintln!("job {id}: attempt {} of {}", job["attempt"], job["max_attempts"]);
+        done.push(job);
+    }
+    let mut conn = db(&fleet).await;
+    let rows = |id: String| {
+        let query =
+            "SELECT name, step, value FROM job_metrics WHERE job_id = $1 ORDER BY name, step";
+        sqlx::query_as::<_, (String, i64, f64)>(query).bind(id)
+    };
+    for (body, job) in bodies.into_iter().zip(&done) {
+        let again = create_job(&fleet.client, &fleet.api_url, body).await;
+        let again = wait_for_status(
+            &fleet.client,
+            &fleet.api_url,
+            again["id"].as_str().unwrap(),
+            "succeeded",
+        )
+        .await;
+        assert_eq!(weights(&fleet, job).await, weights(&fleet, &again).await, "bit for bit");
+        let interrupted =
+            rows(job["id"].as_str().unwrap().to_owned()).fetch_all(&mut conn).await.unwrap();
+        let uninterrupted =
+            rows(again["id"].as_str().unwrap().to_owned()).fetch_all(&mut conn).await.unwrap();
+        assert!(!interrupted.is_empty());
+        assert!(interrupted == uninterrupted, "the same metric rows, each once, bit for bit");
+        let policies: i64 = sqlx::query_scalar("SELECT COUNT(*) FROM policies WHERE job_id = $1")
+            .bind(job["id"].as_str().unwrap())
+            .fetch_one(&mut conn)
+            .await
+            .unwrap();
+        assert_eq!(policies, 1, "one policy per job");
+    }
+    let jobs: i64 =
+        sqlx::query_scalar("SELECT COUNT(*) FROM jobs").fetch_one(&mut conn).await.unwrap();
+    assert_eq!(jobs, 4, "no job lost or made twice");
+}
+
 /// A snapshot of everything stored for a job.
 async fn stored(conn: &mut PgConnection, id: &str) -> (String, i64, f64, i64, i64) {
     let job: (String,) = sqlx::query_as(

@@ -70,6 +70,11 @@ impl Fleet {
         Some(Fleet::start_on(Some(database_url), workers).await)
     }
 
+    /// The same on a database of the caller's (e.g. on a private cluster it stops and starts).
+    pub async fn start_on_database(database_url: String, workers: usize) -> Fleet {
+        Fleet::start_on(Some(database_url), workers).await
+    }
+
     /// The same on SQLite: every process on this machine shares one data directory.
     pub async fn start_sqlite(workers: usize) -> Fleet {
         Fleet::start_on(None, workers).await

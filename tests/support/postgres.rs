@@ -17,9 +17,16 @@ use std::time::{Duration, Instant};
 
 use sqlx::Connection;
 
-/// The running cluster.
+/// The running cluster. (`bin`, `data` and `options` serve stopping and starting a private
+/// cluster, which only tests/fleet does: dead code in the other binaries.)
+#[allow(dead_code)]
 pub struct Cluster {
     port: u16,
+    /// Where its binaries are, its data directory and its server options: what stopping and
+    /// starting it again needs.
+    bin: PathBuf,
+    data: PathBuf,
+    options: String,
 }
 
 static CLUSTER: OnceLock<Option<Cluster>> = OnceLock::new();
@@ -43,6 +50,14 @@ pub fn cluster() -> Option<&'static Cluster> {
             }
         })
         .as_ref()
+}
+
+/// A cluster of the caller's own, for a test that stops and starts the server (the shared one
+/// must stay up for the tests beside it); None as for [`cluster`].
+#[allow(dead_code)]
+pub fn private_cluster() -> Option<Cluster> {
+    cluster()?;
+    Some(Cluster::start(&bin_dir()?))
 }
 
 fn required() -> bool {
@@ -131,9 +146,38 @@ impl Cluster {
             .stderr(Stdio::null())
             .spawn()
             .expect("start the PostgreSQL watchdog");
-        let cluster = Cluster { port };
+        let cluster = Cluster {
+            port,
+            bin: PathBuf::from(bin.to_string()),
+            data: PathBuf::from(data.to_string()),
+            options,
+        };
         cluster.wait_until_ready(&bin.to_string(), &format!("{data}.log"));
         cluster
+    }
+
+    #[allow(dead_code)]
+    /// Stops the server (`pg_ctl stop -m fast`: clients are disconnected, nothing is lost) and
+    /// waits until it is down. Its watchdog keeps waiting, so [`Self::start_again`] works.
+    pub fn stop(&self) {
+        let (bin, data) = (self.bin.display(), self.data.display());
+        let stop = format!("'{bin}/pg_ctl' -D '{data}' -m fast -w stop >/dev/null");
+        assert!(as_owner(&stop).status().expect("run pg_ctl stop").success(), "pg_ctl stop failed");
+    }
+
+    #[allow(dead_code)]
+    /// Starts the stopped server again on the same port and data; returns once it is ready.
+    pub fn start_again(&self) {
+        let (bin, data) = (self.bin.display(), self.data.display());
+        let start = format!(
+            "'{bin}/pg_ctl' -D '{data}' -o \"{}\" -l '{data}.log' -w start >/dev/null",
+            self.options
+        );
+        assert!(
+            as_owner(&start).status().expect("run pg_ctl start").success(),
+            "pg_ctl start failed"
+        );
+        self.wait_until_ready(&bin.to_string(), &format!("{data}.log"));
     }
 
     fn admin_url(&self) -> String {
