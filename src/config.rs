@@ -10,6 +10,8 @@ pub const DEFAULT_DATA_DIR: &str = "./safedice-data";
 /// 1 GiB.
 pub const DEFAULT_MAX_UPLOAD_BYTES: u64 = 1 << 30;
 pub const DEFAULT_MAX_CONNECTIONS: u32 = 1024;
+/// A quarter of the connection slots: one address cannot take them all.
+pub const DEFAULT_MAX_CONNECTIONS_PER_ADDRESS: u32 = 256;
 /// 4 GiB: about forty times what a default job (batch 512, two layers of 256) on a
 /// 100k-transition dataset needs, so only configurations far off the defaults meet it.
 pub const DEFAULT_MAX_JOB_MEMORY: u64 = 4 << 30;
@@ -92,6 +94,13 @@ pub struct ServeConfig {
     /// are answered 503 `too_many_connections` at once, so they can retry instead of hanging.
     #[arg(long, env = "SAFEDICE_MAX_CONNECTIONS", default_value_t = DEFAULT_MAX_CONNECTIONS, value_parser = clap::value_parser!(u32).range(1..))]
     pub max_connections: u32,
+
+    /// Client connections open at once from one IP address; more from it are answered 503
+    /// `too_many_connections_from_address` at once, so one client (or a script holding idle
+    /// sockets) cannot take every slot. Behind a reverse proxy every client has the proxy's
+    /// address: raise it to --max-connections there.
+    #[arg(long, env = "SAFEDICE_MAX_CONNECTIONS_PER_ADDRESS", default_value_t = DEFAULT_MAX_CONNECTIONS_PER_ADDRESS, value_parser = clap::value_parser!(u32).range(1..))]
+    pub max_connections_per_address: u32,
 
     /// Seconds a client may take to send a request's headers; also how long an idle
     /// keep-alive connection stays open.
@@ -180,6 +189,7 @@ impl std::fmt::Debug for ServeConfig {
             .field("max_upload_bytes", &self.max_upload_bytes)
             .field("log_format", &self.log_format)
             .field("max_connections", &self.max_connections)
+            .field("max_connections_per_address", &self.max_connections_per_address)
             .field("header_timeout_secs", &self.header_timeout_secs)
             .field("body_idle_timeout_secs", &self.body_idle_timeout_secs)
             .field("min_body_rate", &self.min_body_rate)
@@ -284,6 +294,7 @@ impl ServeConfig {
             max_upload_bytes: DEFAULT_MAX_UPLOAD_BYTES,
             log_format: LogFormat::Pretty,
             max_connections: DEFAULT_MAX_CONNECTIONS,
+            max_connections_per_address: DEFAULT_MAX_CONNECTIONS_PER_ADDRESS,
             header_timeout_secs: 15,
             body_idle_timeout_secs: 30,
             min_body_rate: DEFAULT_MIN_BODY_RATE,

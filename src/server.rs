@@ -50,6 +50,7 @@ impl Server {
             "safedice listening"
         );
         let config_max_connections = config.max_connections as usize;
+        let per_address = config.max_connections_per_address as usize;
         let header_timeout_secs = config.header_timeout_secs;
         let options = WorkerOptions::new(
             usize::from(config.workers),
@@ -68,9 +69,16 @@ impl Server {
         models.clone().watch(shutdown.clone());
         let services = Serving { policies, models };
         let state = AppState::new(config, store.clone(), jobs.clone(), services, shutdown.clone());
-        let limits =
-            ConnectionLimits::new(config_max_connections, Duration::from_secs(header_timeout_secs));
-        tracing::info!(max_connections = limits.max_connections, "connection limits");
+        let limits = ConnectionLimits::new(
+            config_max_connections,
+            per_address,
+            Duration::from_secs(header_timeout_secs),
+        );
+        tracing::info!(
+            max_connections = limits.max_connections,
+            per_address = limits.max_per_address,
+            "connection limits"
+        );
         let app = http::app(state)?;
         let task = tokio::spawn(connections::serve(listener, app, limits, shutdown.clone()));
         Ok(Server { local_addr, shutdown, task, store, jobs })

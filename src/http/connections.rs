@@ -34,6 +34,8 @@ const ENFILE: i32 = 23;
 pub struct ConnectionLimits {
     /// Open client connections at most; more are answered 503 at once ([`SHED_AT_ONCE`] at a time).
     pub max_connections: usize,
+    /// Open connections from one IP address at most; more from it are answered 503 at once.
+    pub max_per_address: usize,
     /// A request's headers must arrive within this (also the keep-alive idle limit).
     pub header_read_timeout: Duration,
 }
@@ -41,7 +43,7 @@ pub struct ConnectionLimits {
 impl ConnectionLimits {
     /// `configured`, lowered to what the process's open-file limit leaves after
     /// [`RESERVED_DESCRIPTORS`]. Raises the soft limit to the hard one first, as servers do.
-    pub fn new(configured: usize, header_read_timeout: Duration) -> Self {
+    pub fn new(configured: usize, per_address: usize, header_read_timeout: Duration) -> Self {
         let descriptors = rlimit::increase_nofile_limit(u64::MAX).unwrap_or(1024);
         let affordable = descriptors.saturating_sub(RESERVED_DESCRIPTORS).max(8);
         let max_connections = configured.min(usize::try_from(affordable).unwrap_or(usize::MAX));
@@ -53,7 +55,8 @@ impl ConnectionLimits {
                 "--max-connections lowered to fit the open-file limit"
             );
         }
-        ConnectionLimits { max_connections, header_read_timeout }
+        let max_per_address = per_address.min(max_connections);
+        ConnectionLimits { max_connections, max_per_address, header_read_timeout }
     }
 }
 
@@ -71,6 +74,7 @@ pub async fn serve(
     builder.http1().timer(TokioTimer::new()).header_read_timeout(limits.header_read_timeout);
     builder.http2().timer(TokioTimer::new());
     let shedders = Arc::new(Semaphore::new(SHED_AT_ONCE));
+    let addresses = PerAddress::new(limits.max_per_address);
     loop {
         let slot = match slots.clone().try_acquire_owned() {
             Ok(slot) => slot,
@@ -79,7 +83,7 @@ pub async fn serve(
             Err(_) if shedders.available_permits() > 0 => {
                 tokio::select! {
                     accepted = listener.accept() => match accepted {
-                        Ok((stream, _)) => shed(stream, shedders.clone()),
+                        Ok((stream, _)) => shed(stream, shedders.clone(), SHED_BODY),
                         Err(e) => accept_failed(&e).await,
                     },
                     () = shutdown.cancelled() => break,
@@ -91,15 +95,21 @@ pub async fn serve(
                 () = shutdown.cancelled() => break,
             },
         };
-        let stream = tokio::select! {
+        let (stream, peer) = tokio::select! {
             accepted = listener.accept() => match accepted {
-                Ok((stream, _)) => stream,
+                Ok(accepted) => accepted,
                 Err(e) => {
                     accept_failed(&e).await;
                     continue;
                 }
             },
             () = shutdown.cancelled() => break,
+        };
+        let Some(address_slot) = addresses.take(peer.ip()) else {
+            // The global slot goes back at once; the newcomer is told why.
+            drop(slot);
+            shed(stream, shedders.clone(), SHED_ADDRESS_BODY);
+            continue;
         };
         // Small responses (/act) go out at once instead of waiting for Nagle's timer.
         let _ = stream.set_nodelay(true);
@@ -118,7 +128,7 @@ pub async fn serve(
                     tracing::debug!(error = %e, "connection ended with an error");
                 }
             }
-            drop(slot);
+            drop((slot, address_slot));
         });
     }
     drop(listener);
@@ -134,17 +144,65 @@ const SHED_AT_ONCE: usize = 32;
 const SHED_BODY: &str = "{\"error\":{\"code\":\"too_many_connections\",\"message\":\"every \
     connection slot is taken (--max-connections); retry shortly\"}}";
 
-/// Writes a 503 (with [`SHED_BODY`]) to a connection beyond the cap and closes it (within a second),
+/// The body of the answer to a connection beyond the per-address cap.
+const SHED_ADDRESS_BODY: &str = "{\"error\":{\"code\":\"too_many_connections_from_address\",\
+    \"message\":\"this address holds as many connections as one address may \
+    (--max-connections-per-address); close one or retry shortly\"}}";
+
+/// Open connections per client address, capped; a [`AddressSlot`] gives its place back when
+/// dropped. A mutex over a map: taken once per accepted connection and once per close.
+#[derive(Clone)]
+struct PerAddress {
+    open: Arc<std::sync::Mutex<std::collections::HashMap<std::net::IpAddr, usize>>>,
+    max: usize,
+}
+
+impl PerAddress {
+    fn new(max: usize) -> Self {
+        PerAddress { open: Arc::default(), max }
+    }
+
+    /// A place for one more connection from `ip`, unless it holds `max` already.
+    fn take(&self, ip: std::net::IpAddr) -> Option<AddressSlot> {
+        let mut open = self.open.lock().expect("per-address lock");
+        let count = open.entry(ip).or_insert(0);
+        if *count >= self.max {
+            return None;
+        }
+        *count += 1;
+        Some(AddressSlot { addresses: self.clone(), ip })
+    }
+}
+
+struct AddressSlot {
+    addresses: PerAddress,
+    ip: std::net::IpAddr,
+}
+
+impl Drop for AddressSlot {
+    fn drop(&mut self) {
+        let mut open = self.addresses.open.lock().expect("per-address lock");
+        if let Some(count) = open.get_mut(&self.ip) {
+            *count -= 1;
+            // Forgotten once closed, so the map holds only addresses with open connections.
+            if *count == 0 {
+                open.remove(&self.ip);
+            }
+        }
+    }
+}
+
+/// Writes a 503 with `body` to a connection beyond a cap and closes it (within a second),
 /// holding one of the [`SHED_AT_ONCE`] permits meanwhile.
-fn shed(stream: TcpStream, shedders: Arc<Semaphore>) {
+fn shed(stream: TcpStream, shedders: Arc<Semaphore>, body: &'static str) {
     use tokio::io::AsyncWriteExt;
     let Ok(permit) = shedders.try_acquire_owned() else { return };
     tokio::spawn(async move {
         let mut stream = stream;
         let response = format!(
             "HTTP/1.1 503 Service Unavailable\r\nContent-Type: application/json\r\n\
-             Retry-After: 1\r\nConnection: close\r\nContent-Length: {}\r\n\r\n{SHED_BODY}",
-            SHED_BODY.len()
+             Retry-After: 1\r\nConnection: close\r\nContent-Length: {}\r\n\r\n{body}",
+            body.len()
         );
         let answer = async {
             // The request's headers first: an HTTP client takes an answer that comes before

@@ -426,6 +426,54 @@ async fn connections_held_by_keep_alive_clients_shed_newcomers_at_once() {
     drop(holders);
 }
 
+/// One address holding its share of connections (`--max-connections-per-address`) gets a
+/// prompt 503 for one more, while another address is served; a slot it closes is its own again.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn one_address_cannot_take_more_than_its_share_of_connections() {
+    let app = TestApp::spawn_with(|c| c.max_connections_per_address = 2).await;
+    let healthz = b"GET /healthz HTTP/1.1\r\nHost: x\r\n\r\n";
+    let mut holders: Vec<TcpStream> = (0..2)
+        .map(|_| {
+            let mut stream = connect(&app, healthz);
+            let mut answer = [0u8; 12];
+            stream.read_exact(&mut answer).unwrap();
+            assert_eq!(&answer, b"HTTP/1.1 200");
+            stream
+        })
+        .collect();
+    // A third connection from 127.0.0.1: answered at once and closed.
+    let mut third = connect(&app, healthz);
+    let received =
+        tokio::task::spawn_blocking(move || read_until_closed(&mut third)).await.unwrap();
+    assert!(received.starts_with("HTTP/1.1 503"), "{received}");
+    assert!(received.contains("Retry-After: 1"), "{received}");
+    let body: serde_json::Value =
+        serde_json::from_str(received.split("\r\n\r\n").nth(1).unwrap()).unwrap();
+    assert_eq!(body["error"]["code"], "too_many_connections_from_address", "{body}");
+    // Another loopback address is served meanwhile.
+    let socket = tokio::net::TcpSocket::new_v4().unwrap();
+    socket.bind("127.0.0.2:0".parse().unwrap()).unwrap();
+    let mut other = socket.connect(app.addr).await.unwrap().into_std().unwrap();
+    other.set_nonblocking(false).unwrap();
+    other.set_read_timeout(Some(PATIENCE)).unwrap();
+    other.write_all(healthz).unwrap();
+    let mut answer = [0u8; 12];
+    other.read_exact(&mut answer).unwrap();
+    assert_eq!(&answer, b"HTTP/1.1 200");
+    // 127.0.0.1 closes one of its two: a newcomer from it is served again.
+    drop(holders.pop());
+    let started = Instant::now();
+    loop {
+        let response = reqwest::get(app.url("/healthz")).await.unwrap();
+        if response.status() == StatusCode::OK {
+            break;
+        }
+        assert!(started.elapsed() < PATIENCE, "the closed slot never came back");
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    drop((holders, other));
+}
+
 #[tokio::test]
 async fn offsets_beyond_what_sql_can_count_are_refused() {
     let app = TestApp::spawn().await;
