@@ -465,22 +465,16 @@ impl Store {
         &self.pool
     }
 
-    /// Whether a new connection to the database can be made now (within 2 s). An SQLite file is
-    /// always there; a PostgreSQL server may be down, which its pool reports only as no
-    /// connection in time, like a busy pool.
+    /// Whether a new connection to the database can be made within 2 s (always, for SQLite):
+    /// to its pool a PostgreSQL server that is down looks busy (no connection in time).
     pub async fn database_reachable(&self) -> bool {
         use sqlx::{ConnectOptions, Connection};
-        if self.backend == Backend::Sqlite {
-            return true;
-        }
         let options = self.pool.connect_options();
-        match tokio::time::timeout(Duration::from_secs(2), options.connect()).await {
-            Ok(Ok(connection)) => {
-                let _ = connection.close().await;
-                true
-            }
-            _ => false,
-        }
+        let connected = async { options.connect().await?.close().await };
+        self.backend == Backend::Sqlite
+            || tokio::time::timeout(Duration::from_secs(2), connected)
+                .await
+                .is_ok_and(|c| c.is_ok())
     }
 
     pub fn backend(&self) -> Backend {
