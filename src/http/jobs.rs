@@ -606,7 +606,6 @@ impl From<LogRow> for LogLine {
 }
 
 const LOG_LIMIT: u32 = 1000;
-const LOG_POLL: Duration = Duration::from_millis(500);
 
 /// A job's log: what its workers wrote about it (claimed, resumed from a checkpoint, phases,
 /// alpha-hat, evaluations, checkpoints, how it ended, why it failed). JSON lines in order, or
@@ -645,31 +644,9 @@ async fn job_log(
     }
     let permit = stream_permit(&state)?;
     // A client reconnecting (a stream ends after STREAM_LIFETIME) resumes after the last line
-    // it saw: each line's event id is its `seq`.
+    // it saw: each line's event id is its `seq`. Subscribed before anything is read.
     let after = last_event_id(&headers).unwrap_or(after);
-    let lines = futures::stream::unfold(
-        (state.store.clone(), id, after, Vec::<LogRow>::new(), false),
-        |(store, id, mut after, mut pending, mut done)| async move {
-            loop {
-                if let Some(row) = (!pending.is_empty()).then(|| pending.remove(0)) {
-                    after = row.seq;
-                    let event = json_event("log", &LogLine::from(row)).id(after.to_string());
-                    return Some((event, (store, id, after, pending, done)));
-                }
-                if done {
-                    return None;
-                }
-                // Read the status first: lines written before a final status are then all
-                // in the read that follows.
-                let finished = store.job_status(&id).await.map_or(true, JobStatus::is_final);
-                pending = store.job_log(&id, after, LOG_LIMIT).await.ok()?;
-                done = finished && pending.is_empty();
-                if pending.is_empty() && !done {
-                    tokio::time::sleep(LOG_POLL).await;
-                }
-            }
-        },
-    );
+    let lines = super::log_follower::follow(state.store.clone(), state.jobs.subscribe(), id, after);
     Ok(Sse::new(bounded(lines, &state, permit)).keep_alive(KeepAlive::default()).into_response())
 }
 
@@ -829,7 +806,7 @@ fn status_event(job: &Job) -> Event {
     json_event("status", job)
 }
 
-fn json_event(name: &str, data: &impl Serialize) -> Event {
+pub(super) fn json_event(name: &str, data: &impl Serialize) -> Event {
     Event::default().event(name).json_data(data).unwrap_or_else(|e| {
         tracing::error!(error = %e, "cannot serialise an event");
         Event::default().event("error").data("event serialisation failed")

@@ -19,6 +19,7 @@ pub mod health;
 pub mod inference;
 pub mod job_attempts;
 pub mod jobs;
+mod log_follower;
 pub mod model_names;
 pub mod model_serving;
 pub mod models;

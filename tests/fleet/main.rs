@@ -501,6 +501,11 @@ async fn cancel_and_progress_cross_from_the_api_node_to_a_worker_process() {
     // The API node trains nothing: this progress comes from the worker process.
     let progress = events.next_named("progress").await;
     assert!(progress["step"].as_u64().unwrap() > 0, "{progress}");
+    // Its log follower, fed by the events relayed from the worker, sees the worker's lines.
+    let logs_url = format!("{}/v1/jobs/{id}/logs?follow=true", fleet.api_url);
+    let mut logs = EventReader::open(&fleet.client, &logs_url).await;
+    let claimed = logs.next_named("log").await;
+    assert!(claimed["message"].as_str().unwrap().starts_with("claimed by worker"), "{claimed}");
 
     let asked = Instant::now();
     let response =
@@ -514,6 +519,12 @@ async fn cancel_and_progress_cross_from_the_api_node_to_a_worker_process() {
         assert_eq!(status["status"], "running", "{status}");
     }
     eprintln!("cancel reached the worker and came back in {:?}", asked.elapsed());
+    // The follower ends after the worker's last line, which says it stopped.
+    let mut last = claimed;
+    while let Some(line) = logs.next_named_or_end("log").await {
+        last = line;
+    }
+    assert!(last["message"].as_str().unwrap().starts_with("cancelled at step"), "{last}");
     let job = get_json(&fleet.client, &format!("{}/v1/jobs/{id}", fleet.api_url)).await;
     assert_eq!(job["status"], "cancelled");
     assert!(job["progress"]["step"].as_u64().unwrap() > 0);
@@ -532,8 +543,14 @@ impl EventReader {
         EventReader { body: response.bytes_stream().boxed(), buffer: String::new() }
     }
 
-    /// The data of the next event called `name` (others are skipped); panics after a minute.
+    /// The data of the next event called `name` (others are skipped); panics after a minute
+    /// or if the stream ends first.
     async fn next_named(&mut self, name: &str) -> Value {
+        self.next_named_or_end(name).await.expect("the stream ended")
+    }
+
+    /// The same, or None once the stream has ended.
+    async fn next_named_or_end(&mut self, name: &str) -> Option<Value> {
         let deadline = Instant::now() + Duration::from_secs(60);
         loop {
             while let Some(end) = self.buffer.find("\n\n") {
@@ -546,14 +563,13 @@ impl EventReader {
                         .map(str::to_owned)
                 };
                 if field("event:").as_deref() == Some(name) {
-                    return serde_json::from_str(&field("data:").unwrap()).unwrap();
+                    return Some(serde_json::from_str(&field("data:").unwrap()).unwrap());
                 }
             }
             let left = deadline.saturating_duration_since(Instant::now());
             let chunk = tokio::time::timeout(left, self.body.next())
                 .await
-                .unwrap_or_else(|_| panic!("no {name} event within a minute"))
-                .expect("the stream ended")
+                .unwrap_or_else(|_| panic!("no {name} event within a minute"))?
                 .unwrap();
             self.buffer.push_str(&String::from_utf8_lossy(&chunk));
         }
