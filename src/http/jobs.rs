@@ -646,7 +646,11 @@ async fn job_log(
     // A client reconnecting (a stream ends after STREAM_LIFETIME) resumes after the last line
     // it saw: each line's event id is its `seq`. Subscribed before anything is read.
     let after = last_event_id(&headers).unwrap_or(after);
-    let lines = super::log_follower::follow(state.store.clone(), state.jobs.subscribe(), id, after);
+    let rows = super::log_follower::follow(state.store.clone(), state.jobs.subscribe(), id, after);
+    let lines = rows.map(|row| {
+        let seq = row.seq.to_string();
+        json_event("log", &LogLine::from(row)).id(seq)
+    });
     Ok(Sse::new(bounded(lines, &state, permit)).keep_alive(KeepAlive::default()).into_response())
 }
 
@@ -806,7 +810,7 @@ fn status_event(job: &Job) -> Event {
     json_event("status", job)
 }
 
-pub(super) fn json_event(name: &str, data: &impl Serialize) -> Event {
+fn json_event(name: &str, data: &impl Serialize) -> Event {
     Event::default().event(name).json_data(data).unwrap_or_else(|e| {
         tracing::error!(error = %e, "cannot serialise an event");
         Event::default().event("error").data("event serialisation failed")

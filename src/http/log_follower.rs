@@ -10,7 +10,6 @@
 use std::collections::VecDeque;
 use std::time::Duration;
 
-use axum::response::sse::Event;
 use futures::Stream;
 use tokio::sync::broadcast;
 use tokio::time::Instant;
@@ -41,15 +40,15 @@ struct Follower {
     last_read: Option<Instant>,
 }
 
-/// The lines of job `id` after line `after`, as events named `log` whose id is the line's
-/// `seq`, until the job has ended and its last line was sent. `events` must be subscribed
-/// before the job was read, so that no change between the two is missed.
+/// The lines of job `id` after line `after`, until the job has ended and its last line was
+/// sent. `events` must be subscribed before the job was read, so that no change between the
+/// two is missed.
 pub(super) fn follow(
     store: Store,
     events: broadcast::Receiver<JobEvent>,
     id: String,
     after: i64,
-) -> impl Stream<Item = Event> + Send + 'static {
+) -> impl Stream<Item = LogRow> + Send + 'static {
     let follower = Follower {
         store,
         events,
@@ -62,8 +61,7 @@ pub(super) fn follow(
     futures::stream::unfold(follower, |mut follower| async move {
         let row = follower.next_line().await?;
         follower.after = row.seq;
-        let event = super::jobs::json_event("log", &super::jobs::LogLine::from(row));
-        Some((event.id(follower.after.to_string()), follower))
+        Some((row, follower))
     })
 }
 
