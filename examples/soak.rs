@@ -11,10 +11,19 @@
 //! `--nodes 2` starts two `safedice serve` processes on one SQLite data directory (the
 //! one-machine fleet the docs allow) and spreads the clients over them: no "database is locked"
 //! may surface as a 5xx, and nothing accepted by either node may go missing.
+//!
+//! A fleet on PostgreSQL: `--database-url postgres://… --nodes 2 --workers 0
+//! --worker-processes 2 --kill-every 120` starts two API nodes (`serve --workers 0`) and two
+//! `safedice worker` processes, each with a data directory of its own, and SIGKILLs one worker
+//! every 120 s (a new one takes its place). At the end every job still queued or running is
+//! cancelled, and each job must have ended exactly once: a final status, and for a succeeded
+//! job exactly one succeeded attempt and a policy. Every process's RSS and open descriptors are
+//! sampled every 10 s.
 //! The mix per client step: upload a small dataset (one in five invalid), submit a short job
 //! (BC or SafeDICE), cancel a job, delete a dataset (refused while a job uses it), read a job's
-//! metrics, list jobs, and `/act` on a trained policy. Exits non-zero on any 5xx, any transport
-//! error, or anything accepted and then missing.
+//! metrics, list jobs, follow a job's events for a moment, and `/act` on a trained policy.
+//! Exits non-zero on any 5xx, any transport error, anything accepted and then missing, or a
+//! job that did not end exactly once.
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::process::{Child, Command, Stdio};
@@ -34,6 +43,11 @@ struct Args {
     workers: u16,
     nodes: usize,
     bin: String,
+    /// PostgreSQL: every process on this database, each with a data directory of its own.
+    database_url: Option<String>,
+    worker_processes: usize,
+    /// Seconds between two SIGKILLs of a worker process (0: never).
+    kill_every: u64,
 }
 
 fn parse_args() -> anyhow::Result<Args> {
@@ -43,6 +57,9 @@ fn parse_args() -> anyhow::Result<Args> {
         workers: 2,
         nodes: 1,
         bin: "target/release/safedice".into(),
+        database_url: None,
+        worker_processes: 0,
+        kill_every: 0,
     };
     let mut it = std::env::args().skip(1);
     while let Some(flag) = it.next() {
@@ -53,31 +70,33 @@ fn parse_args() -> anyhow::Result<Args> {
             "--workers" => args.workers = value()?.parse()?,
             "--nodes" => args.nodes = value()?.parse()?,
             "--bin" => args.bin = value()?,
+            "--database-url" => args.database_url = Some(value()?),
+            "--worker-processes" => args.worker_processes = value()?.parse()?,
+            "--kill-every" => args.kill_every = value()?.parse()?,
             other => bail!("unknown argument {other}"),
         }
     }
     Ok(args)
 }
 
-/// A server under test, killed when dropped.
+/// A process under test (an API node or a worker), killed when dropped.
 struct ServerProcess {
     child: Child,
     url: String,
+    name: String,
 }
 
 impl ServerProcess {
-    async fn start(args: &Args, data_dir: &tempfile::TempDir) -> anyhow::Result<ServerProcess> {
+    /// A `safedice serve` with `--workers` from the arguments.
+    async fn start(
+        args: &Args,
+        data_dir: &std::path::Path,
+        name: String,
+    ) -> anyhow::Result<ServerProcess> {
         let port = std::net::TcpListener::bind("127.0.0.1:0")?.local_addr()?.port();
-        let child = Command::new(&args.bin)
-            .args(["serve", "--bind", &format!("127.0.0.1:{port}"), "--workers"])
-            .arg(args.workers.to_string())
-            .arg("--data-dir")
-            .arg(data_dir.path())
-            .env("RUST_LOG", "warn")
-            .stdout(Stdio::null())
-            .spawn()
-            .with_context(|| format!("cannot start {} (build it first)", args.bin))?;
-        let server = ServerProcess { child, url: format!("http://127.0.0.1:{port}") };
+        let bind = format!("127.0.0.1:{port}");
+        let serve = ["serve", "--bind", &bind, "--workers", &args.workers.to_string()];
+        let server = ServerProcess::spawn(args, &serve, data_dir, name, format!("http://{bind}"))?;
         let started = Instant::now();
         while reqwest::get(format!("{}/healthz", server.url)).await.is_err() {
             if started.elapsed() > Duration::from_secs(60) {
@@ -86,6 +105,35 @@ impl ServerProcess {
             tokio::time::sleep(Duration::from_millis(50)).await;
         }
         Ok(server)
+    }
+
+    /// A `safedice worker` process.
+    fn worker(
+        args: &Args,
+        data_dir: &std::path::Path,
+        name: String,
+    ) -> anyhow::Result<ServerProcess> {
+        ServerProcess::spawn(args, &["worker"], data_dir, name, String::new())
+    }
+
+    fn spawn(
+        args: &Args,
+        command: &[&str],
+        data_dir: &std::path::Path,
+        name: String,
+        url: String,
+    ) -> anyhow::Result<ServerProcess> {
+        let mut child = Command::new(&args.bin);
+        child.args(command).arg("--data-dir").arg(data_dir);
+        if let Some(database) = &args.database_url {
+            child.args(["--database-url", database]);
+        }
+        let child = child
+            .env("RUST_LOG", "warn")
+            .stdout(Stdio::null())
+            .spawn()
+            .with_context(|| format!("cannot start {} (build it first)", args.bin))?;
+        Ok(ServerProcess { child, url, name })
     }
 
     /// Resident memory now, in MiB.
@@ -99,6 +147,11 @@ impl ServerProcess {
             .and_then(|v| v.parse().ok())
             .unwrap_or(0.0);
         kib / 1024.0
+    }
+
+    /// Open file descriptors now.
+    fn open_fds(&self) -> usize {
+        std::fs::read_dir(format!("/proc/{}/fd", self.child.id())).map_or(0, |d| d.count())
     }
 }
 
@@ -239,9 +292,13 @@ impl Client {
                 let request = self.http.get(format!("{url}/v1/jobs/{job}/metrics?max_points=200"));
                 self.send("metrics", request).await?;
             }
-            63..=69 => {
+            63..=66 => {
                 let request = self.http.get(format!("{url}/v1/jobs?limit=100"));
                 self.send("list", request).await?;
+            }
+            67..=69 => {
+                let Some(job) = self.pick(&jobs).cloned() else { return Ok(()) };
+                self.follow_events(&format!("{url}/v1/jobs/{job}/events")).await;
             }
             _ => {
                 let obs: Vec<f32> =
@@ -254,6 +311,27 @@ impl Client {
             }
         }
         Ok(())
+    }
+}
+
+impl Client {
+    /// Opens a job's event stream and reads it for up to a second (a dashboard tab that comes
+    /// and goes).
+    async fn follow_events(&mut self, url: &str) {
+        use futures::StreamExt;
+        let response = match self.http.get(url).send().await {
+            Ok(response) => response,
+            Err(e) => {
+                self.ledger.lock().unwrap().failures.push(format!("events: transport {e}"));
+                return;
+            }
+        };
+        self.ledger.lock().unwrap().record("events", response.status().as_u16());
+        let mut body = response.bytes_stream();
+        let _ = tokio::time::timeout(Duration::from_secs(1), async {
+            while body.next().await.is_some() {}
+        })
+        .await;
     }
 }
 
@@ -306,17 +384,106 @@ async fn list_all(
     }
 }
 
+/// The processes of the run: API nodes and worker processes, with their data directories.
+struct Processes {
+    nodes: Vec<ServerProcess>,
+    workers: Vec<ServerProcess>,
+    root: tempfile::TempDir,
+    started_workers: usize,
+}
+
+impl Processes {
+    async fn start(args: &Args) -> anyhow::Result<Processes> {
+        let root = tempfile::tempdir()?;
+        // SQLite: one shared data directory; PostgreSQL: one each, as a fleet runs.
+        let dir = |name: &str| match args.database_url {
+            Some(_) => root.path().join(name),
+            None => root.path().join("shared"),
+        };
+        let mut nodes = Vec::new();
+        for i in 0..args.nodes.max(1) {
+            let name = format!("api-{}", i + 1);
+            nodes.push(ServerProcess::start(args, &dir(&name), name).await?);
+        }
+        let mut processes = Processes { nodes, workers: Vec::new(), root, started_workers: 0 };
+        for _ in 0..args.worker_processes {
+            processes.start_worker(args)?;
+        }
+        Ok(processes)
+    }
+
+    fn start_worker(&mut self, args: &Args) -> anyhow::Result<()> {
+        self.started_workers += 1;
+        let name = format!("worker-{}", self.started_workers);
+        let dir = self.root.path().join(&name);
+        self.workers.push(ServerProcess::worker(args, &dir, name)?);
+        Ok(())
+    }
+
+    /// SIGKILLs the oldest worker process and starts a new one in its place.
+    fn kill_a_worker(&mut self, args: &Args) -> anyhow::Result<String> {
+        if self.workers.is_empty() {
+            bail!("no worker process to kill");
+        }
+        let killed = self.workers.remove(0);
+        let name = killed.name.clone();
+        drop(killed);
+        self.start_worker(args)?;
+        Ok(name)
+    }
+
+    fn all(&self) -> impl Iterator<Item = &ServerProcess> {
+        self.nodes.iter().chain(&self.workers)
+    }
+}
+
+/// Cancels every job not yet final, waits until all are, and returns the jobs that did not end
+/// exactly once (not final, or succeeded without exactly one succeeded attempt and a policy).
+async fn jobs_not_ended_once(
+    http: &reqwest::Client,
+    url: &str,
+    jobs: &BTreeSet<String>,
+) -> anyhow::Result<Vec<String>> {
+    const FINAL: [&str; 3] = ["succeeded", "failed", "cancelled"];
+    for id in jobs {
+        let _ = http.post(format!("{url}/v1/jobs/{id}/cancel")).send().await?;
+    }
+    let deadline = Instant::now() + Duration::from_secs(300);
+    let mut wrong = Vec::new();
+    for id in jobs {
+        let job = loop {
+            let job: Value = http.get(format!("{url}/v1/jobs/{id}")).send().await?.json().await?;
+            if FINAL.contains(&job["status"].as_str().unwrap_or("")) || Instant::now() > deadline {
+                break job;
+            }
+            tokio::time::sleep(Duration::from_millis(200)).await;
+        };
+        let status = job["status"].as_str().unwrap_or("?").to_owned();
+        if !FINAL.contains(&status.as_str()) {
+            wrong.push(format!("{id}: still {status}"));
+            continue;
+        }
+        let attempts: Value =
+            http.get(format!("{url}/v1/jobs/{id}/attempts")).send().await?.json().await?;
+        let succeeded = attempts["attempts"]
+            .as_array()
+            .map_or(0, |a| a.iter().filter(|a| a["outcome"] == "succeeded").count());
+        let expected = usize::from(status == "succeeded");
+        if succeeded != expected || (status == "succeeded") != job["policy_id"].is_string() {
+            wrong.push(format!("{id}: {status} with {succeeded} succeeded attempts"));
+        }
+    }
+    Ok(wrong)
+}
+
 #[tokio::main]
 async fn main() -> anyhow::Result<()> {
     let args = parse_args()?;
-    let data_dir = tempfile::tempdir()?;
-    let mut nodes = Vec::new();
-    for _ in 0..args.nodes.max(1) {
-        nodes.push(ServerProcess::start(&args, &data_dir).await?);
-    }
-    let server = &nodes[0];
+    let mut processes = Processes::start(&args).await?;
+    let node_urls: Vec<String> = processes.nodes.iter().map(|n| n.url.clone()).collect();
+    let url = node_urls[0].clone();
     let http = reqwest::Client::builder().timeout(Duration::from_secs(60)).build()?;
-    let policy = train_policy(&http, &server.url).await?;
+    let policy = train_policy(&http, &url).await?;
     let ledger = Arc::new(Mutex::new(Ledger::default()));
     let started = Instant::now();
     let deadline = started + Duration::from_secs(args.seconds);
@@ -324,7 +491,7 @@ async fn main() -> anyhow::Result<()> {
         .map(|i| {
             let mut client = Client {
                 http: http.clone(),
-                url: nodes[i % nodes.len()].url.clone(),
+                url: node_urls[i % node_urls.len()].clone(),
                 rng: ChaCha8Rng::seed_from_u64(100 + i as u64),
                 ledger: ledger.clone(),
                 policy: policy.clone(),
@@ -337,34 +504,64 @@ async fn main() -> anyhow::Result<()> {
             })
         })
         .collect();
-    println!("{:>6}  {:>9}  {:>9}", "t (s)", "RSS (MiB)", "requests");
+    let names: Vec<String> = processes.all().map(|p| p.name.clone()).collect();
+    println!(
+        "every 10 s: requests so far, then RSS (MiB) / open fds of each process ({})",
+        names.join(", ")
+    );
     let mut samples = Vec::new();
+    let mut next_kill =
+        (args.kill_every > 0).then(|| started + Duration::from_secs(args.kill_every));
     while Instant::now() < deadline {
         tokio::time::sleep(Duration::from_secs(10).min(deadline - Instant::now())).await;
-        // The largest node's: each must plateau.
-        let rss = nodes.iter().map(ServerProcess::rss_mib).fold(0.0, f64::max);
+        if next_kill.is_some_and(|at| Instant::now() >= at) {
+            let killed = processes.kill_a_worker(&args)?;
+            println!("  SIGKILL {killed}; started worker-{}", processes.started_workers);
+            next_kill = next_kill.map(|at| at + Duration::from_secs(args.kill_every));
+        }
+        let rss: Vec<f64> = processes.all().map(ServerProcess::rss_mib).collect();
+        let cells: Vec<String> = processes
+            .all()
+            .zip(&rss)
+            .map(|(p, rss)| format!("{} {rss:.0}/{}", p.name, p.open_fds()))
+            .collect();
         let requests = ledger.lock().unwrap().requests;
-        println!("{:>6.0}  {:>9.1}  {:>9}", started.elapsed().as_secs_f64(), rss, requests);
-        samples.push(rss);
+        println!(
+            "{:>5.0} s {:>8}  {}",
+            started.elapsed().as_secs_f64(),
+            requests,
+            cells.join("  ")
+        );
+        // The API nodes' (workers come and go): each must plateau.
+        samples.push(rss[..processes.nodes.len()].iter().cloned().fold(0.0, f64::max));
     }
     for client in clients {
         client.await??;
     }
     let elapsed = started.elapsed().as_secs_f64();
-    let listed_datasets = list_all(&http, &server.url, "/v1/datasets").await?;
-    let listed_jobs = list_all(&http, &server.url, "/v1/jobs").await?;
+    let listed_datasets = list_all(&http, &url, "/v1/datasets").await?;
+    let listed_jobs = list_all(&http, &url, "/v1/jobs").await?;
+    let jobs = ledger.lock().unwrap().jobs.clone();
+    let not_once = if args.database_url.is_some() {
+        jobs_not_ended_once(&http, &url, &jobs).await?
+    } else {
+        Vec::new()
+    };
     let ledger = ledger.lock().unwrap();
     let expected: BTreeSet<_> =
         ledger.datasets.difference(&ledger.deleted_datasets).cloned().collect();
     let missing_datasets: Vec<_> = expected.difference(&listed_datasets).collect();
     let missing_jobs: Vec<_> = ledger.jobs.difference(&listed_jobs).collect();
     println!(
-        "\n{} requests in {elapsed:.0} s ({:.1}/s) from {} clients, {} node(s), --workers {}",
+        "\n{} requests in {elapsed:.0} s ({:.1}/s) from {} clients, {} API node(s) with \
+         --workers {}, {} worker process(es) ({} started in all)",
         ledger.requests,
         ledger.requests as f64 / elapsed,
         args.clients,
-        nodes.len(),
-        args.workers
+        processes.nodes.len(),
+        args.workers,
+        processes.workers.len(),
+        processes.started_workers,
     );
     println!("by kind:   {:?}", ledger.by_kind);
     println!("by status: {:?}", ledger.by_status);
@@ -376,11 +573,17 @@ async fn main() -> anyhow::Result<()> {
         missing_datasets.len(),
         missing_jobs.len()
     );
+    if args.database_url.is_some() {
+        println!("jobs that did not end exactly once: {}", not_once.len());
+        for job in not_once.iter().take(20) {
+            println!("  {job}");
+        }
+    }
     let third = samples.len() / 3;
     if third > 0 {
         let mean = |s: &[f64]| s.iter().sum::<f64>() / s.len() as f64;
         println!(
-            "RSS: first third {:.1} MiB, last third {:.1} MiB, max {:.1} MiB",
+            "API nodes' RSS: first third {:.1} MiB, last third {:.1} MiB, max {:.1} MiB",
             mean(&samples[..third]),
             mean(&samples[samples.len() - third..]),
             samples.iter().cloned().fold(0.0, f64::max)
@@ -390,7 +593,11 @@ async fn main() -> anyhow::Result<()> {
     for failure in ledger.failures.iter().take(20) {
         println!("  {failure}");
     }
-    if !ledger.failures.is_empty() || !missing_datasets.is_empty() || !missing_jobs.is_empty() {
+    if !ledger.failures.is_empty()
+        || !missing_datasets.is_empty()
+        || !missing_jobs.is_empty()
+        || !not_once.is_empty()
+    {
         bail!("the soak found failures");
     }
     Ok(())
