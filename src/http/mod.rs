@@ -180,6 +180,7 @@ pub fn openapi() -> utoipa::openapi::OpenApi {
 pub fn openapi_for(secured: bool) -> utoipa::openapi::OpenApi {
     let mut doc = routes().into_openapi();
     openapi::document_shared_errors(&mut doc);
+    openapi::link_created_resources(&mut doc);
     if secured {
         openapi::secure_api_routes(&mut doc);
     } else {

@@ -20,7 +20,7 @@ use crate::domain::model::{
 };
 use crate::domain::rfc3339;
 use crate::store::models::{NewModel, NewVersion};
-use crate::store::Listing;
+use crate::store::{Listing, StoreError};
 
 /// `POST /v1/models` body.
 #[derive(Debug, Deserialize, ToSchema)]
@@ -451,9 +451,10 @@ async fn delete_model(
     params(("name" = String, Path)), request_body = CreateVersion,
     responses(
         (status = 201, body = ModelVersion, headers(("location" = String))),
-        (status = 404, description = "No such model or policy", body = ErrorBody),
+        (status = 404, description = "No such model", body = ErrorBody),
         (status = 422, description = "A bad alias name (`invalid_name`) or text \
-            (`invalid_model`)", body = ErrorBody),
+            (`invalid_model`), or a `policy_id` that names no policy (`unknown_policy`)",
+            body = ErrorBody),
     ))]
 async fn create_version(
     State(state): State<AppState>,
@@ -462,6 +463,16 @@ async fn create_version(
 ) -> Result<impl IntoResponse, ApiError> {
     model_name(&name)?;
     check_text("description", &request.description, MAX_DESCRIPTION_CHARS)?;
+    // The body names the policy: one that does not exist makes the body wrong (422); 404 is
+    // for the model the path names.
+    let unknown_policy = || {
+        let message = format!("policy_id: no policy {:?}", request.policy_id);
+        ApiError::unprocessable("unknown_policy", message)
+    };
+    match state.store.policy(&request.policy_id).await {
+        Err(StoreError::NotFound { .. }) => return Err(unknown_policy()),
+        found => drop(found?),
+    }
     if let Some(alias) = &request.alias {
         model::check_alias_name(alias).map_err(invalid_name)?;
         // The alias must not resolve to a policy that cannot load: load it first.
@@ -475,7 +486,11 @@ async fn create_version(
         source: "api",
         alias: request.alias.as_deref().map(|alias| (alias, &note)),
     };
-    let record = state.store.register_version(&version).await?;
+    let record = match state.store.register_version(&version).await {
+        // Deleted since the check above.
+        Err(StoreError::NotFound { kind: "policy", .. }) => return Err(unknown_policy()),
+        registered => registered?,
+    };
     refresh(&state, &name).await;
     tracing::info!(model = %name, version = record.version, policy_id = %record.policy_id.as_str(), "model version registered");
     let location = format!("/v1/models/{name}/versions/{}", record.version);

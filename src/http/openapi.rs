@@ -3,16 +3,18 @@
 //! stale; `UPDATE_OPENAPI=1 cargo test --test http openapi::` or `safedice openapi` regenerates
 //! it).
 
+use std::collections::BTreeMap;
 use std::sync::OnceLock;
 
 use axum::extract::State;
 use axum::http::header;
 use axum::response::{IntoResponse, Response};
 use utoipa::openapi::content::ContentBuilder;
+use utoipa::openapi::link::{Link, LinkBuilder};
 use utoipa::openapi::path::{Operation, PathItem};
 use utoipa::openapi::response::ResponseBuilder;
 use utoipa::openapi::security::{Http, HttpAuthScheme, SecurityScheme};
-use utoipa::openapi::{OpenApi as OpenApiDoc, Ref, SecurityRequirement};
+use utoipa::openapi::{OpenApi as OpenApiDoc, Ref, RefOr, SecurityRequirement};
 use utoipa::OpenApi;
 use utoipa_axum::router::OpenApiRouter;
 use utoipa_axum::routes;
@@ -193,6 +195,77 @@ pub fn document_shared_errors(doc: &mut OpenApiDoc) {
 
 /// Adds an error answer with the shared error body (the inference protocol's on `/v2`), unless
 /// the operation documents that status already (its own description is more specific).
+/// What a create answers with points at its resource's operations: OpenAPI links from each
+/// `POST` that creates (a 201 or 202 answer) to the operations under the created resource's
+/// path, the new path parameter taken from the answer's body (`id`, `name`, `version`) and the
+/// others from the request's path. An evaluation, created under its policy, lives under
+/// `/v1/evaluations/{id}`. Clients (and schemathesis's stateful phase) follow them.
+pub fn link_created_resources(doc: &mut OpenApiDoc) {
+    let ids: BTreeMap<(String, &'static str), String> = doc
+        .paths
+        .paths
+        .iter()
+        .flat_map(|(path, item)| {
+            [
+                ("get", &item.get),
+                ("put", &item.put),
+                ("post", &item.post),
+                ("patch", &item.patch),
+                ("delete", &item.delete),
+            ]
+            .into_iter()
+            .filter_map(move |(method, op)| {
+                Some(((path.clone(), method), op.as_ref()?.operation_id.clone()?))
+            })
+        })
+        .collect();
+    let created_under = |path: &str| -> Option<String> {
+        match path {
+            "/v1/policies/{id}/evaluate" | "/v1/policies/{id}/evaluations" => {
+                Some("/v1/evaluations".to_owned())
+            }
+            _ if !path.ends_with('}') => Some(path.to_owned()),
+            _ => None,
+        }
+    };
+    for (path, item) in doc.paths.paths.iter_mut() {
+        let (Some(post), Some(collection)) = (item.post.as_mut(), created_under(path)) else {
+            continue;
+        };
+        let known: Vec<&str> = path_parameters(path).collect();
+        let links: BTreeMap<String, RefOr<Link>> = ids
+            .iter()
+            .filter_map(|((target, _), operation_id)| {
+                let rest = target.strip_prefix(&collection)?.strip_prefix("/{")?;
+                let created = &rest[..rest.find('}')?];
+                let mut link = LinkBuilder::new().operation_id(operation_id.clone());
+                for name in path_parameters(target) {
+                    let value = if name == created {
+                        format!("$response.body#/{created}")
+                    } else if known.contains(&name) && collection == *path {
+                        format!("$request.path.{name}")
+                    } else {
+                        return None; // a parameter nothing here can fill (an alias name)
+                    };
+                    link = link.parameter(name, value);
+                }
+                let link = link.build();
+                Some((operation_id.clone(), RefOr::T(link)))
+            })
+            .collect();
+        for (status, response) in post.responses.responses.iter_mut() {
+            if let (true, RefOr::T(response)) = (status == "201" || status == "202", response) {
+                response.links.extend(links.clone());
+            }
+        }
+    }
+}
+
+/// The `{parameters}` of a path template, in order.
+fn path_parameters(path: &str) -> impl Iterator<Item = &str> {
+    path.split('/').filter_map(|segment| segment.strip_prefix('{')?.strip_suffix('}'))
+}
+
 fn add_error(operation: &mut Operation, v2: bool, status: u16, description: &str) {
     let schema = if v2 { "V2Error" } else { "ErrorBody" };
     let responses = &mut operation.responses.responses;
@@ -210,7 +283,21 @@ fn add_error(operation: &mut Operation, v2: bool, status: u16, description: &str
 
 /// The description as YAML, as committed in `api/openapi.yaml`.
 pub fn yaml() -> anyhow::Result<String> {
-    Ok(super::openapi().to_yaml()?)
+    Ok(spell_link_fields(super::openapi().to_yaml()?, " operation_id: ", " operationId: "))
+}
+
+/// The description as served at `/v1/openapi.json` (pretty JSON), for a server with
+/// (`secured`) or without an API token.
+pub fn json(secured: bool) -> String {
+    let text = super::openapi_for(secured).to_pretty_json().expect("the document serializes");
+    spell_link_fields(text, "\"operation_id\":", "\"operationId\":")
+}
+
+/// utoipa 5.5 writes a link's `operationId` as `operation_id` (its `Link` lacks the camelCase
+/// renaming the rest of the document has). No other key of this document has that name (a
+/// test checks), so the serialized text is corrected.
+fn spell_link_fields(text: String, wrong: &str, right: &str) -> String {
+    text.replace(wrong, right)
 }
 
 pub fn router() -> OpenApiRouter<AppState> {
@@ -226,8 +313,6 @@ async fn openapi_json(State(state): State<AppState>) -> Response {
     static OPEN: OnceLock<String> = OnceLock::new();
     let secured = state.config.api_token.is_some();
     let cell = if secured { &SECURED } else { &OPEN };
-    let body = cell.get_or_init(|| {
-        super::openapi_for(secured).to_pretty_json().expect("the OpenAPI document serializes")
-    });
+    let body = cell.get_or_init(|| json(secured));
     ([(header::CONTENT_TYPE, "application/json")], body.as_str()).into_response()
 }

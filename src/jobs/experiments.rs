@@ -38,7 +38,13 @@ fn invalid(message: String) -> SubmitError {
 fn seeds_of(request: &ExperimentRequest) -> Result<Vec<u64>, SubmitError> {
     let seeds = match (&request.seeds, request.seed_count) {
         (Some(seeds), None) => seeds.clone(),
-        (None, Some(count)) => (0..u64::from(count)).collect(),
+        // Checked before the list is made: a count of 2^31 would be 16 GiB of seeds.
+        (None, Some(count)) if (1..=MAX_SEEDS).contains(&(count as usize)) => {
+            (0..u64::from(count)).collect()
+        }
+        (None, Some(count)) => {
+            return Err(invalid(format!("seed_count: 1 to {MAX_SEEDS} seeds, got {count}")))
+        }
         (None, None) => return Err(invalid("seeds: give `seeds` (a list) or `seed_count`".into())),
         (Some(_), Some(_)) => {
             return Err(invalid("seeds: give `seeds` or `seed_count`, not both".into()))

@@ -231,6 +231,15 @@ async fn a_bad_grid_is_refused_with_the_field_named_and_nothing_queued() {
             "invalid_config",
             "102 jobs",
         ),
+        // Refused before a list of 2^31 seeds is made (that request used to hang the server).
+        (
+            with(&|b| {
+                b.as_object_mut().unwrap().remove("seeds");
+                b["seed_count"] = json!(2_147_483_647u32);
+            }),
+            "invalid_config",
+            "seed_count",
+        ),
         (with(&|b| b["algorithms"] = json!([])), "invalid_config", "algorithms"),
         (with(&|b| b["algorithms"] = json!(["bc", "bc"])), "invalid_config", "label"),
         (with(&|b| b["algorithms"] = json!(["nope"])), "invalid_body", "algorithms"),

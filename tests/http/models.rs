@@ -183,8 +183,12 @@ async fn concurrent_registrations_number_versions_without_gaps_or_repeats() {
     let message = assert_error(response, StatusCode::CONFLICT, "policy_in_use").await;
     assert!(message.contains("pilot version"), "{message}");
     // Registering what does not exist changes nothing.
+    // A policy the body names that does not exist makes the body wrong (the model exists).
     let missing = app.post("/v1/models/pilot/versions").json(&json!({"policy_id": "nope"})).send();
-    assert_error(missing.await.unwrap(), StatusCode::NOT_FOUND, "not_found").await;
+    let message =
+        assert_error(missing.await.unwrap(), StatusCode::UNPROCESSABLE_ENTITY, "unknown_policy")
+            .await;
+    assert!(message.contains("policy_id"), "{message}");
     let missing = app.post("/v1/models/ghost/versions").json(&json!({"policy_id": policy})).send();
     assert_error(missing.await.unwrap(), StatusCode::NOT_FOUND, "not_found").await;
     assert_eq!(app.count_rows("model_versions").await, 16);

@@ -26,7 +26,9 @@ async fn without_a_token_the_served_description_claims_no_authentication() {
     let app = TestApp::spawn().await;
     let served: serde_json::Value =
         app.get("/v1/openapi.json").send().await.unwrap().json().await.unwrap();
-    assert_eq!(served, serde_json::to_value(safedice::http::openapi_for(false)).unwrap());
+    let generated: serde_json::Value =
+        serde_json::from_str(&safedice::http::openapi::json(false)).unwrap();
+    assert_eq!(served, generated);
     assert!(served["components"].get("securitySchemes").is_none(), "{}", served["components"]);
     for (path, item) in served["paths"].as_object().unwrap() {
         for (method, operation) in item.as_object().unwrap() {
@@ -61,7 +63,8 @@ async fn the_served_description_is_the_generated_one_and_covers_every_route() {
     let app = TestApp::spawn_with(|c| c.api_token = Some("s3cret".into())).await;
     let served: serde_json::Value =
         app.get("/v1/openapi.json").send().await.unwrap().json().await.unwrap();
-    let generated = serde_json::to_value(safedice::http::openapi()).unwrap();
+    let generated: serde_json::Value =
+        serde_json::from_str(&safedice::http::openapi::json(true)).unwrap();
     assert_eq!(served, generated);
     let paths = served["paths"].as_object().unwrap();
     for path in ["/healthz", "/readyz", "/metrics", "/v1/openapi.json"] {
@@ -74,4 +77,47 @@ async fn the_served_description_is_the_generated_one_and_covers_every_route() {
     );
     assert!(served["paths"]["/healthz"]["get"].get("security").is_none());
     assert!(served["components"]["schemas"]["ErrorBody"].is_object());
+}
+
+/// Every create points at its resource's operations with OpenAPI links (what clients and
+/// schemathesis's stateful phase follow), spelled as OpenAPI spells them.
+#[test]
+fn creates_link_to_the_operations_of_what_they_created() {
+    let yaml = safedice::http::openapi::yaml().unwrap();
+    assert!(!yaml.contains("operation_id"), "a link field in utoipa's spelling");
+    let doc: serde_json::Value =
+        serde_json::from_str(&safedice::http::openapi::json(true)).unwrap();
+    let links =
+        |path: &str, status: &str| doc["paths"][path]["post"]["responses"][status]["links"].clone();
+    let datasets = links("/v1/datasets", "201");
+    assert_eq!(datasets["get_dataset"]["operationId"], "get_dataset");
+    assert_eq!(datasets["delete_dataset"]["parameters"]["id"], "$response.body#/id");
+    assert_eq!(links("/v1/jobs", "201")["cancel_job"]["parameters"]["id"], "$response.body#/id");
+    assert_eq!(
+        links("/v1/models", "201")["get_model"]["parameters"]["name"],
+        "$response.body#/name"
+    );
+    let version = links("/v1/models/{name}/versions", "201");
+    assert_eq!(version["get_version"]["parameters"]["name"], "$request.path.name");
+    assert_eq!(version["get_version"]["parameters"]["version"], "$response.body#/version");
+    let evaluation = links("/v1/policies/{id}/evaluate", "202");
+    assert_eq!(evaluation["get_evaluation"]["parameters"]["id"], "$response.body#/id");
+    // Every link names an operation of the document.
+    let operations: Vec<&str> = doc["paths"]
+        .as_object()
+        .unwrap()
+        .values()
+        .flat_map(|item| item.as_object().unwrap().values())
+        .filter_map(|op| op["operationId"].as_str())
+        .collect();
+    let mut count = 0;
+    for item in doc["paths"].as_object().unwrap().values() {
+        for response in item["post"]["responses"].as_object().into_iter().flat_map(|r| r.values()) {
+            for link in response["links"].as_object().into_iter().flat_map(|l| l.values()) {
+                assert!(operations.contains(&link["operationId"].as_str().unwrap()), "{link}");
+                count += 1;
+            }
+        }
+    }
+    assert!(count >= 30, "{count} links");
 }
