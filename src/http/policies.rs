@@ -211,7 +211,9 @@ async fn policy_weights(
     Path(id): Path<String>,
 ) -> Result<Response, ApiError> {
     let permit = super::heavy_read_permit(&state)?;
-    let (spec, _) = state.store.policy_artifact(&id).await?;
+    // The spec from the policy's row; the weights (the large part) are read once, by the file.
+    let spec = serde_json::to_string(&state.store.policy(&id).await?.spec)
+        .map_err(|e| ApiError::Internal(anyhow::anyhow!("policy {id}: spec: {e}")))?;
     let weights = crate::serving::portable_weights(&state.store, &id).await?;
     let spec = HeaderValue::from_str(&spec)
         .map_err(|e| ApiError::Internal(anyhow::anyhow!("policy {id}: spec header: {e}")))?;
