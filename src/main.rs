@@ -90,14 +90,7 @@ enum ExportFormat {
 
 fn export(args: ExportArgs) -> anyhow::Result<()> {
     let ExportFormat::Onnx = args.format;
-    let bytes = std::fs::read(&args.policy)?;
-    let (policy, metadata) = safedice::algo::Policy::from_portable(&bytes)?;
-    let key = safedice::algo::policy::PORTABLE_METADATA_KEY;
-    let model = safedice::algo::onnx::export(
-        policy.spec(),
-        &bytes,
-        &[(key, serde_json::to_string(&metadata)?)],
-    )?;
+    let model = safedice::algo::onnx::export_portable(&std::fs::read(&args.policy)?)?;
     std::fs::write(&args.out, &model)?;
     println!(
         "wrote {} ({} bytes, ONNX opset {})",

@@ -32,6 +32,14 @@ use crate::data::ActionSpace;
 pub const OPSET: i64 = 13;
 const IR_VERSION: i64 = 8;
 
+/// The ONNX model of a portable policy file (what `GET /v1/policies/{id}/weights` serves and
+/// `safedice export` reads), the file's metadata kept in the model's metadata properties.
+pub fn export_portable(file: &[u8]) -> Result<Vec<u8>, TrainError> {
+    let (policy, metadata) = super::Policy::from_portable(file)?;
+    let json = serde_json::to_string(&metadata).map_err(|e| TrainError::Other(e.to_string()))?;
+    export(policy.spec(), file, &[(super::policy::PORTABLE_METADATA_KEY, json)])
+}
+
 /// The ONNX model of a policy: `spec` and its safetensors `weights`; `metadata` (e.g. the
 /// portable file's JSON) is kept in the model's metadata properties.
 pub fn export(

@@ -161,16 +161,10 @@ pub async fn portable_weights(store: &Store, id: &str) -> Result<Vec<u8>, Policy
 pub async fn onnx_model(store: &Store, id: &str) -> Result<Vec<u8>, PolicyLoadError> {
     let unreadable = |message: String| PolicyLoadError::Unreadable { id: id.to_owned(), message };
     let file = portable_weights(store, id).await?;
-    tokio::task::spawn_blocking(move || {
-        let (policy, metadata) = Policy::from_portable(&file)?;
-        let json = serde_json::to_string(&metadata)
-            .map_err(|e| crate::algo::TrainError::Other(e.to_string()))?;
-        let key = crate::algo::policy::PORTABLE_METADATA_KEY;
-        crate::algo::onnx::export(policy.spec(), &file, &[(key, json)])
-    })
-    .await
-    .map_err(|e| unreadable(e.to_string()))?
-    .map_err(|e| unreadable(e.to_string()))
+    tokio::task::spawn_blocking(move || crate::algo::onnx::export_portable(&file))
+        .await
+        .map_err(|e| unreadable(e.to_string()))?
+        .map_err(|e| unreadable(e.to_string()))
 }
 
 /// Values by id with their sizes, dropped least recently used first once their sizes add up to
