@@ -71,7 +71,7 @@ pub fn decode_canonical(bytes: &[u8]) -> Result<Dataset, ParseError> {
     let tensors =
         SafeTensors::deserialize(bytes).map_err(|e| corrupt(format!("unreadable ({e})")))?;
     decode_columns(&scalars, |name, dtype| match tensors.tensor(name) {
-        Ok(view) if view.dtype() == dtype => Ok(Some(view.data())),
+        Ok(view) if view.dtype() == dtype => Ok(Some(Cow::Borrowed(view.data()))),
         Ok(view) => Err(corrupt(format!("`{name}` has dtype {:?}", view.dtype()))),
         Err(_) => Ok(None),
     })
@@ -107,34 +107,42 @@ impl Scalars {
     }
 }
 
-/// A dataset from its columns' bytes, as `column(name, dtype)` finds them (None: absent).
+/// A dataset from its columns' bytes, as `column(name, dtype)` finds them (None: absent),
+/// asked for one at a time: each column's bytes are converted and dropped before the next is
+/// asked for, so a caller that reads them from storage holds one column's bytes at most.
 fn decode_columns<'a>(
     scalars: &Scalars,
-    column: impl Fn(&str, Dtype) -> Result<Option<&'a [u8]>, ParseError>,
+    mut column: impl FnMut(&str, Dtype) -> Result<Option<Cow<'a, [u8]>>, ParseError>,
 ) -> Result<Dataset, ParseError> {
-    let required = |name: &str, dtype: Dtype| {
+    let mut required = |name: &str, dtype: Dtype| {
         column(name, dtype)?.ok_or_else(|| corrupt(format!("no `{name}` column")))
     };
     let actions = match scalars.action_space {
         ActionSpace::Continuous { .. } => {
-            Actions::Continuous(f32s(required("actions", Dtype::F32)?))
+            Actions::Continuous(f32s(&required("actions", Dtype::F32)?))
         }
-        ActionSpace::Discrete { .. } => Actions::Discrete(u32s(required("actions", Dtype::U32)?)),
+        ActionSpace::Discrete { .. } => Actions::Discrete(u32s(&required("actions", Dtype::U32)?)),
     };
     let terminals = required("terminals", Dtype::U8)?;
     if terminals.iter().any(|&t| t > 1) {
         return Err(corrupt("`terminals` holds a value other than 0/1".into()));
     }
+    let terminals = terminals.iter().map(|&t| t == 1).collect();
+    let observations = f32s(&required("observations", Dtype::F32)?);
+    let next_observations = f32s(&required("next_observations", Dtype::F32)?);
+    let episode_ids = u32s(&required("episode_ids", Dtype::U32)?);
+    let rewards = column("rewards", Dtype::F32)?.map(|bytes| f32s(&bytes));
+    let costs = column("costs", Dtype::F32)?.map(|bytes| f32s(&bytes));
     Dataset::new(DatasetParts {
         obs_dim: scalars.obs_dim,
         action_space: scalars.action_space.clone(),
-        observations: f32s(required("observations", Dtype::F32)?),
+        observations,
         actions,
-        next_observations: f32s(required("next_observations", Dtype::F32)?),
-        terminals: terminals.iter().map(|&t| t == 1).collect(),
-        episode_ids: u32s(required("episode_ids", Dtype::U32)?),
-        rewards: column("rewards", Dtype::F32)?.map(f32s),
-        costs: column("costs", Dtype::F32)?.map(f32s),
+        next_observations,
+        terminals,
+        episode_ids,
+        rewards,
+        costs,
     })
     .map_err(|e| corrupt(e.to_string()))
 }
@@ -255,9 +263,29 @@ impl CanonicalHeader {
                 (Some(info), Some(_)) if info.dtype != dtype => {
                     Err(corrupt(format!("`{name}` has dtype {:?}", info.dtype)))
                 }
-                (Some(_), Some(bytes)) => Ok(Some(bytes.as_slice())),
+                (Some(_), Some(bytes)) => Ok(Some(Cow::Borrowed(bytes.as_slice()))),
                 _ => Ok(None),
             }
+        })
+    }
+
+    /// The whole dataset, each column read with `read` (its byte range in the file) and
+    /// converted before the next is read: memory holds the decoded dataset and one column's
+    /// bytes, not the file and the dataset.
+    pub fn decode_by_column(
+        &self,
+        mut read: impl FnMut(std::ops::Range<u64>) -> Result<Vec<u8>, ParseError>,
+    ) -> Result<Dataset, ParseError> {
+        let rows = self.rows();
+        decode_columns(&self.scalars, |name, dtype| match self.columns.get(name) {
+            Some(info) if info.dtype != dtype => {
+                Err(corrupt(format!("`{name}` has dtype {:?}", info.dtype)))
+            }
+            Some(_) => {
+                let range = self.prefix_range(name, rows).expect("a column of the header");
+                Ok(Some(Cow::Owned(read(range)?)))
+            }
+            None => Ok(None),
         })
     }
 }
@@ -426,5 +454,28 @@ mod tests {
         let beyond_ids = read - 4 * d.len();
         assert!(beyond_ids < 2000 + 10 * 57 + 210 * 9, "read {beyond_ids} bytes beyond the ids");
         assert!(read * 10 < bytes.len(), "read {read} of {} bytes", bytes.len());
+    }
+
+    #[test]
+    fn a_dataset_decoded_column_by_column_is_the_one_encoded() {
+        for discrete in [false, true] {
+            let d = episodes_of_growing_length(30, discrete);
+            let bytes = encode_canonical(&d);
+            let prefix: [u8; CANONICAL_PREFIX_BYTES] = bytes[..8].try_into().unwrap();
+            let header_len = canonical_header_len(prefix).unwrap();
+            let header =
+                CanonicalHeader::parse(&bytes[8..8 + header_len], bytes.len() as u64).unwrap();
+            let mut largest = 0;
+            let decoded = header
+                .decode_by_column(|r| {
+                    largest = largest.max(r.end - r.start);
+                    Ok(bytes[r.start as usize..r.end as usize].to_vec())
+                })
+                .unwrap();
+            assert_eq!(decoded, d);
+            assert_eq!(decoded, decode_canonical(&bytes).unwrap());
+            // One observation column at a time, never the file.
+            assert!(largest as usize <= d.len() * 5 * 4, "{largest}");
+        }
     }
 }

@@ -323,26 +323,95 @@ impl Store {
             .dataset(id)
             .await?
             .ok_or_else(|| StoreError::NotFound { kind: "dataset", id: id.to_owned() })?;
-        let (bytes, place) = match self.backend {
+        self.verify_canonical(id, &record).await?;
+        let header = self.canonical_header(id, record.canonical_bytes).await?;
+        // Column by column on a blocking thread: memory holds the decoded dataset and one
+        // column's bytes, never the whole file beside it.
+        let (store, owned_id, runtime) =
+            (self.clone(), id.to_owned(), tokio::runtime::Handle::current());
+        let decoded = tokio::task::spawn_blocking(move || {
+            let mut failed = None;
+            let decoded = header.decode_by_column(|range| {
+                runtime.block_on(store.read_canonical_range(&owned_id, range)).map_err(|e| {
+                    let message = e.to_string();
+                    failed = Some(e);
+                    data::ParseError::corrupt_canonical(message)
+                })
+            });
+            match (decoded, failed) {
+                (_, Some(read_error)) => Err(read_error),
+                (decoded, None) => {
+                    decoded.map_err(|e| StoreError::Corrupt(owned_id, e.to_string()))
+                }
+            }
+        });
+        decoded.await.map_err(std::io::Error::other)?
+    }
+
+    /// Checks that the stored file is the one uploaded (its length and SHA-256), reading it in
+    /// pieces: a file or chunks changed since upload are `Corrupt`.
+    async fn verify_canonical(&self, id: &str, record: &DatasetRecord) -> Result<(), StoreError> {
+        let mut hasher = Sha256::new();
+        let mut length = 0u64;
+        let place = match self.backend {
             Backend::Sqlite => {
                 let path = self.canonical_path(id);
-                (self.read_canonical_file(id, &path).await?, path.display().to_string())
+                let hashing = path.clone();
+                let hashed = tokio::task::spawn_blocking(move || {
+                    use std::io::Read;
+                    let mut file = std::fs::File::open(&hashing)?;
+                    let mut piece = vec![0; CHUNK_BYTES];
+                    loop {
+                        let n = file.read(&mut piece)?;
+                        if n == 0 {
+                            return Ok::<_, std::io::Error>((hasher, length));
+                        }
+                        hasher.update(&piece[..n]);
+                        length += n as u64;
+                    }
+                });
+                match hashed.await.map_err(std::io::Error::other)? {
+                    Ok(done) => (hasher, length) = done,
+                    Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+                        return Err(self.missing_file(id, &path).await);
+                    }
+                    Err(e) => return Err(e.into()),
+                }
+                path.display().to_string()
             }
             Backend::Postgres => {
-                (self.read_chunks(id, record.canonical_bytes).await?, "its stored chunks".into())
+                let mut chunks = sqlx::query_scalar::<_, Vec<u8>>(
+                    "SELECT data FROM dataset_chunks WHERE dataset_id = $1 ORDER BY seq",
+                )
+                .bind(id)
+                .fetch(self.pool());
+                while let Some(chunk) = chunks.try_next().await? {
+                    hasher.update(&chunk);
+                    length += chunk.len() as u64;
+                }
+                "its stored chunks".to_owned()
             }
         };
-        let id = id.to_owned();
-        tokio::task::spawn_blocking(move || {
-            if bytes.len() as u64 != record.canonical_bytes
-                || sha256_hex(&bytes) != record.canonical_sha256
-            {
-                return Err(StoreError::Corrupt(id, format!("{place} changed since upload")));
+        let sha256 = format!("{:x}", hasher.finalize());
+        if length != record.canonical_bytes || sha256 != record.canonical_sha256 {
+            return Err(StoreError::Corrupt(
+                id.to_owned(),
+                format!("{place} changed since upload"),
+            ));
+        }
+        Ok(())
+    }
+
+    /// A dataset's file not found: deleted between reading its row and its file (as if never
+    /// found), or, under a row that is still there, damage.
+    async fn missing_file(&self, id: &str, path: &Path) -> StoreError {
+        match self.dataset(id).await {
+            Ok(None) => StoreError::NotFound { kind: "dataset", id: id.to_owned() },
+            Ok(Some(_)) => {
+                StoreError::Corrupt(id.to_owned(), format!("{} is missing", path.display()))
             }
-            data::decode_canonical(&bytes).map_err(|e| StoreError::Corrupt(id, e.to_string()))
-        })
-        .await
-        .map_err(std::io::Error::other)?
+            Err(e) => e,
+        }
     }
 
     /// A preview of a stored dataset's first `rows` transitions and `episodes` episodes, read
@@ -361,15 +430,7 @@ impl Store {
             .await?
             .ok_or_else(|| StoreError::NotFound { kind: "dataset", id: id.to_owned() })?;
         let corrupt = |e: data::ParseError| StoreError::Corrupt(id.to_owned(), e.to_string());
-        let prefix_len = data::CANONICAL_PREFIX_BYTES as u64;
-        let prefix = self.read_canonical_range(id, 0..prefix_len).await?;
-        let prefix = prefix.try_into().map_err(|_| {
-            StoreError::Corrupt(id.to_owned(), "shorter than its header's length".into())
-        })?;
-        let header_len = data::canonical_header_len(prefix).map_err(corrupt)? as u64;
-        let header = self.read_canonical_range(id, prefix_len..prefix_len + header_len).await?;
-        let header =
-            data::CanonicalHeader::parse(&header, record.canonical_bytes).map_err(corrupt)?;
+        let header = self.canonical_header(id, record.canonical_bytes).await?;
         let ids = match header.prefix_range("episode_ids", header.rows()) {
             Some(range) => self.read_canonical_range(id, range).await?,
             None => Vec::new(),
@@ -382,6 +443,23 @@ impl Store {
         let ids = &ids[..(summarised * 4).min(ids.len())];
         let columns = header.decode_episode_columns(ids, &columns).map_err(corrupt)?;
         Ok(data::preview_parts(&head, rows, &columns, episodes))
+    }
+
+    /// The header of a dataset's canonical file (where each column lies), read alone.
+    async fn canonical_header(
+        &self,
+        id: &str,
+        file_len: u64,
+    ) -> Result<data::CanonicalHeader, StoreError> {
+        let corrupt = |e: data::ParseError| StoreError::Corrupt(id.to_owned(), e.to_string());
+        let prefix_len = data::CANONICAL_PREFIX_BYTES as u64;
+        let prefix = self.read_canonical_range(id, 0..prefix_len).await?;
+        let prefix = prefix.try_into().map_err(|_| {
+            StoreError::Corrupt(id.to_owned(), "shorter than its header's length".into())
+        })?;
+        let header_len = data::canonical_header_len(prefix).map_err(corrupt)? as u64;
+        let header = self.read_canonical_range(id, prefix_len..prefix_len + header_len).await?;
+        data::CanonicalHeader::parse(&header, file_len).map_err(corrupt)
     }
 
     async fn read_ranges(
@@ -441,42 +519,6 @@ impl Store {
                 Ok(bytes)
             }
         }
-    }
-
-    async fn read_canonical_file(&self, id: &str, path: &Path) -> Result<Vec<u8>, StoreError> {
-        let read_path = path.to_path_buf();
-        let read = tokio::task::spawn_blocking(move || std::fs::read(read_path))
-            .await
-            .map_err(std::io::Error::other)?;
-        match read {
-            Ok(bytes) => Ok(bytes),
-            // Deleted between reading its row and its file: as if it had never been found. A
-            // file missing under a row that is still there is damage, not a race.
-            Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
-                Err(match self.dataset(id).await? {
-                    None => StoreError::NotFound { kind: "dataset", id: id.to_owned() },
-                    Some(_) => {
-                        StoreError::Corrupt(id.to_owned(), format!("{} is missing", path.display()))
-                    }
-                })
-            }
-            Err(e) => Err(e.into()),
-        }
-    }
-
-    /// The chunks of a dataset in order, one row at a time (never more than the dataset plus
-    /// one chunk in memory).
-    async fn read_chunks(&self, id: &str, expected: u64) -> Result<Vec<u8>, StoreError> {
-        let mut bytes = Vec::with_capacity(usize::try_from(expected).unwrap_or(0));
-        let mut chunks = sqlx::query_scalar::<_, Vec<u8>>(
-            "SELECT data FROM dataset_chunks WHERE dataset_id = $1 ORDER BY seq",
-        )
-        .bind(id)
-        .fetch(self.pool());
-        while let Some(chunk) = chunks.try_next().await? {
-            bytes.extend_from_slice(&chunk);
-        }
-        Ok(bytes)
     }
 }
 
