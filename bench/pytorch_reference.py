@@ -121,7 +121,7 @@ class Bench:
         v_s, v_s2, v_0 = v[:b], v[b:2 * b], v[2 * b:]
         adv = r + GAMMA * v_s2 - v_s  # Eq. 36 (no terminal mask, as the authors)
         nu_loss = torch.logsumexp(adv, 0) - math.log(b) + (1 - GAMMA) * v_0.mean()
-        u = torch.rand(b, 1)  # shared by both point sets, as src/algo/safedice.rs
+        u = torch.rand(b, 1)  # shared by both point sets, as src/algo/safedice/draws.rs
         x_hat = torch.cat([u * s0 + (1 - u) * s, u * s2 + (1 - u) * s], 0)
         x_hat.requires_grad_(True)
         g = torch.autograd.grad(self.nu(x_hat).sum(), x_hat, create_graph=True)[0]

@@ -1,7 +1,7 @@
 //! The policy step every algorithm shares, on the fused CPU engine: the weighted negative
 //! log-likelihood `−mean_i(w_i · log π(a_i|s_i))` (losses::weighted_nll; `w = 1` is behaviour
 //! cloning, Eq. 42/43) and its gradient with respect to the policy's parameters, by hand as in
-//! [`super::safedice_fused`], instead of candle autograd. SafeDICE's policy step (Eq. 37), BC,
+//! [`super::safedice::fused`], instead of candle autograd. SafeDICE's policy step (Eq. 37), BC,
 //! both DExperts experts, DWBC's policy (Eq. 39) and PPL's (Eq. 41) run through it on a CPU.
 //!
 //! The network stays a candle [`Mlp`] (checkpoints, export and the optimiser are unchanged):

@@ -6,8 +6,9 @@
 //! result is a [`PolicyArtifact`] (safetensors weights + a JSON [`PolicySpec`]) that
 //! [`Policy::load`] turns back into a policy without the training datasets.
 //!
-//! Files: one per algorithm ([`safedice`], [`bc`], [`dwbc`], [`ppl`], [`dexperts`]), SafeDICE's
-//! fused CPU engine beside its reference ([`safedice_fused`], on [`fused_mlp`]), the shared
+//! Files: one module per algorithm ([`safedice`] and [`dwbc`] are folders: the paper's
+//! equations, the reference trainer, the fused CPU engine on [`fused_mlp`]; [`bc`], [`ppl`],
+//! [`dexperts`] one file each), the shared
 //! networks ([`mlp`]) and loss pieces ([`losses`]), policy heads and artefacts ([`policy`]), the
 //! optimiser ([`optim`]), the training tensors built from a [`Dataset`] ([`columns`]), the state
 //! every trainer shares ([`run`]), checkpoints ([`checkpoint`]), the hyperparameters with their
@@ -20,8 +21,8 @@ pub mod columns;
 pub mod dexperts;
 pub mod discriminator_stop;
 pub mod dwbc;
-pub mod dwbc_fused;
 pub mod fused_mlp;
+pub mod fused_ops;
 pub mod fused_policy;
 pub mod hyperparams;
 pub mod losses;
@@ -33,7 +34,6 @@ pub mod policy;
 pub mod ppl;
 pub mod run;
 pub mod safedice;
-pub mod safedice_fused;
 
 use std::sync::Arc;
 

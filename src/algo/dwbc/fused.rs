@@ -1,5 +1,5 @@
 //! DWBC's discriminator step (Eq. 38 with its interpolated gradient penalty) on the fused CPU
-//! engine, as [`super::safedice_fused`] does SafeDICE's: `dwbc.rs` writes the loss once as
+//! engine, as [`crate::algo::safedice::fused`] does SafeDICE's: [`super::objectives`] writes the loss once as
 //! candle tensor code (the reference, checked against this in the tests), this file computes it
 //! with a hand-derived gradient and reused buffers. The policy step is the shared
 //! [`super::fused_policy`] one.
@@ -10,10 +10,10 @@
 
 use candle_core::Result;
 
-use super::dwbc::LOGIT_CLIP;
-use super::fused_mlp::{FusedMlp, Workspace};
-use super::mlp::Mlp;
-use super::safedice_fused::{interpolate_rows, sigmoid_f32, softplus_f32, unit_penalty_and_grad};
+use super::objectives::LOGIT_CLIP;
+use crate::algo::fused_mlp::{FusedMlp, Workspace};
+use crate::algo::fused_ops::{interpolate_rows, sigmoid_f32, softplus_f32, unit_penalty_and_grad};
+use crate::algo::mlp::Mlp;
 
 /// One discriminator step's inputs: `B` rows of D^N and of D^U (`cat(s, a, log π)`), and the
 /// penalty's interpolation weights (`u·x_N + (1−u)·x_U`; None without a penalty).
@@ -107,10 +107,10 @@ mod tests {
     use rand_distr::StandardNormal;
 
     use super::*;
-    use crate::algo::dwbc::{negative_unlabeled_loss, preference_weights};
+    use crate::algo::dwbc::objectives::{negative_unlabeled_loss, preference_weights};
     use crate::algo::losses::{interpolate, unit_gradient_penalty};
 
-    /// Loss, gradient and weights against candle autograd on `dwbc.rs`'s formulation, with some
+    /// Loss, gradient and weights against candle autograd on [`super::objectives`]' formulation, with some
     /// logits outside the clip (inputs scaled up so the clip is reached).
     #[test]
     fn discriminator_step_matches_candle_autograd() {

@@ -3,44 +3,24 @@
 //! `1 − d(s, a)` (Eq. 39). Discriminator and policy are trained together, one step each per
 //! iteration, as in DWBC.
 
+pub mod fused;
+pub mod objectives;
+
 use candle_core::Tensor;
 
-use super::columns::uniform_column;
-use super::dwbc_fused::{DwbcDiscBatch, FusedDwbcDisc};
-use super::fused_policy::{fused_policy_update, host, host_scalar, FusedPolicyStep, LossName};
-use super::hyperparams::{AlgorithmConfig, DwbcConfig};
-use super::losses::{
-    interpolate, neg_log_one_minus_sigmoid, neg_log_sigmoid, unit_gradient_penalty, weighted_nll,
+use crate::algo::columns::uniform_column;
+use crate::algo::fused_policy::{
+    fused_policy_update, host, host_scalar, FusedPolicyStep, LossName,
 };
-use super::mlp::Mlp;
-use super::optim::Adam;
-use super::policy::{Decoder, PolicyArtifact, PolicyNet};
-use super::run::RunData;
-use super::{Progress, ResolvedConfig, TrainError, Trainer, TrainingData};
-
-/// `d` is kept in [0.1, 0.9] (its logit in ±ln 9): Eq. 38's third term, `−η E_N[−log(1 − d)]`,
-/// is unbounded below otherwise (together with the first it is linear in the logit).
-pub const LOGIT_CLIP: f64 = 2.197_224_577_336_219_6; // ln 9
-
-/// Eq. 38: `η E_N[−log d] + E_U[−log(1 − d)] − η E_N[−log(1 − d)]` on clipped logits.
-pub fn negative_unlabeled_loss(
-    logits_n: &Tensor,
-    logits_u: &Tensor,
-    eta: f64,
-) -> candle_core::Result<Tensor> {
-    let (x_n, x_u) =
-        (logits_n.clamp(-LOGIT_CLIP, LOGIT_CLIP)?, logits_u.clamp(-LOGIT_CLIP, LOGIT_CLIP)?);
-    let negatives = (neg_log_sigmoid(&x_n)?.mean_all()? * eta)?;
-    let unlabeled = neg_log_one_minus_sigmoid(&x_u)?.mean_all()?;
-    let correction = (neg_log_one_minus_sigmoid(&x_n)?.mean_all()? * eta)?;
-    (negatives + unlabeled)? - correction
-}
-
-/// Eq. 39's weights `1 − d(s, a)`, detached.
-pub fn preference_weights(logits_u: &Tensor) -> candle_core::Result<Tensor> {
-    let d = candle_nn::ops::sigmoid(&logits_u.clamp(-LOGIT_CLIP, LOGIT_CLIP)?)?;
-    Ok(d.affine(-1.0, 1.0)?.detach())
-}
+use crate::algo::hyperparams::{AlgorithmConfig, DwbcConfig};
+use crate::algo::losses::{interpolate, unit_gradient_penalty, weighted_nll};
+use crate::algo::mlp::Mlp;
+use crate::algo::optim::Adam;
+use crate::algo::policy::{Decoder, PolicyArtifact, PolicyNet};
+use crate::algo::run::RunData;
+use crate::algo::{Progress, ResolvedConfig, TrainError, Trainer, TrainingData};
+use fused::{DwbcDiscBatch, FusedDwbcDisc};
+pub use objectives::{negative_unlabeled_loss, preference_weights, LOGIT_CLIP};
 
 pub struct DwbcTrainer {
     run: RunData,

@@ -1,61 +1,23 @@
-//! SafeDICE's two hot loops on the fused CPU engine ([`super::fused_mlp`]): the discriminator
-//! step (Eq. 9 with its gradient penalty) and the main step (Eq. 36 with ν's penalty, then the
-//! policy step of Eq. 37). `safedice.rs` is the reference: it writes every loss once as candle
-//! tensor code, and this file computes the same losses with hand-derived gradients (checked
-//! against candle autograd on that code in the tests) and every buffer reused between steps.
-//! docs/performance.md explains why and what it gains.
+//! SafeDICE's two hot loops on the fused CPU engine ([`crate::algo::fused_mlp`]): the
+//! discriminator step (Eq. 9 with its gradient penalty) and the main step (Eq. 36 with ν's
+//! penalty, then the policy step of Eq. 37). [`super::objectives`] is the reference: it writes
+//! every loss once as candle tensor code, and this file computes the same losses with
+//! hand-derived gradients (checked against candle autograd on that code in the tests) and every
+//! buffer reused between steps. docs/performance.md explains why and what it gains.
 //!
 //! The networks stay candle [`Mlp`]s (checkpoints, export and the optimiser are unchanged): each
-//! step copies their parameters in and hands gradients back to [`super::optim::Adam`]. The
-//! trainer's minibatches come from `safedice.rs` ([`DiscDraws`], [`MainDraws`]), so both engines
-//! consume the run's random numbers identically.
+//! step copies their parameters in and hands gradients back to [`crate::algo::optim::Adam`].
+//! The engine knows nothing of the trainer: [`super::fused_steps`] hands it the minibatch the
+//! trainer drew, so both engines consume the run's random numbers identically.
 
 use candle_core::Result;
 
-use super::fused_mlp::{FusedMlp, Workspace};
-pub use super::fused_policy::HostActions;
-use super::fused_policy::{host, host_scalar, FusedPolicyStep, OwnedActions};
-use super::losses::GRAD_NORM_EPS;
-use super::mlp::Mlp;
-use super::safedice::{
-    DiscDraws, MainDraws, SafediceTrainer, DISC_LOSS, MASK_RENORM_EPS, NU_LOSS, POLICY_LOSS,
-};
-use super::TrainError;
-
-/// `log(1 + eˣ)` without overflow (one value; the tensor form is `losses::softplus`).
-pub(super) fn softplus_f32(x: f32) -> f32 {
-    x.max(0.0) + (-x.abs()).exp().ln_1p()
-}
-
-pub(super) fn sigmoid_f32(x: f32) -> f32 {
-    1.0 / (1.0 + (-x).exp())
-}
-
-/// `u·a + (1 − u)·b` row by row (`u` one value per row).
-pub fn interpolate_rows(dst: &mut [f32], a: &[f32], b: &[f32], u: &[f32], dim: usize) {
-    let rows = dst.chunks_exact_mut(dim).zip(a.chunks_exact(dim)).zip(b.chunks_exact(dim));
-    for (((out, x), y), &t) in rows.zip(u) {
-        for ((o, &xv), &yv) in out.iter_mut().zip(x).zip(y) {
-            *o = t * xv + (1.0 - t) * yv;
-        }
-    }
-}
-
-/// `mean((‖g_r‖ − 1)²)` over the rows `g_r` (width `d`) of the penalty points' input-gradients
-/// (losses::unit_gradient_penalty), and `λ ·` its derivative with respect to `g` into `dp`.
-pub(super) fn unit_penalty_and_grad(g: &[f32], dp: &mut [f32], d: usize, lambda: f32) -> f32 {
-    let inv_rows = 1.0 / (g.len() / d) as f32;
-    let mut total = 0.0;
-    for (gr, dr) in g.chunks_exact(d).zip(dp.chunks_exact_mut(d)) {
-        let norm = (gr.iter().map(|v| v * v).sum::<f32>() + GRAD_NORM_EPS as f32).sqrt();
-        total += (norm - 1.0) * (norm - 1.0);
-        let k = lambda * inv_rows * 2.0 * (norm - 1.0) / norm;
-        for (o, &gv) in dr.iter_mut().zip(gr) {
-            *o = k * gv;
-        }
-    }
-    total * inv_rows
-}
+use super::objectives::MASK_RENORM_EPS;
+use crate::algo::fused_mlp::{FusedMlp, Workspace};
+use crate::algo::fused_ops::{interpolate_rows, sigmoid_f32, softplus_f32, unit_penalty_and_grad};
+use crate::algo::fused_policy::FusedPolicyStep;
+pub use crate::algo::fused_policy::HostActions;
+use crate::algo::mlp::Mlp;
 
 /// One discriminator step's inputs: `B` rows of D^N and of D^U (`cat(s, a)`), and the penalty's
 /// interpolation draws (None without a penalty).
@@ -262,7 +224,7 @@ impl FusedSafedice {
         outcome.nu_loss += lambda * penalty;
 
         // Eq. 37's weights w̃/mean(w̃) = B·softmax(A), masked and renormalised where rows
-        // carry no action (as losses::self_normalized_weights and safedice.rs).
+        // carry no action (as losses::self_normalized_weights and trainer.rs).
         weights.iter_mut().for_each(|w| *w *= b as f32);
         if let Some(has_action) = batch.has_action {
             for (w, &keep) in weights.iter_mut().zip(has_action) {
@@ -280,86 +242,6 @@ impl FusedSafedice {
             Some(&self.weights),
         )?;
         Ok(outcome)
-    }
-}
-
-/// The trainer's steps on this engine: the minibatch `safedice.rs` drew, copied to the host, then
-/// the same guard, optimiser step and metrics as the candle path.
-impl SafediceTrainer {
-    /// [`SafediceTrainer`]'s discriminator step (Eq. 9 + penalty) with fused gradients.
-    pub(super) fn discriminator_step_fused(
-        &mut self,
-        batch: &DiscDraws,
-        record: bool,
-    ) -> std::result::Result<Vec<(&'static str, f64)>, TrainError> {
-        let (x_n, x_u) = (host(&batch.x_n)?, host(&batch.x_u)?);
-        let penalty = match &batch.penalty {
-            Some((u1, u2, perm)) => Some((host(u1)?, host(u2)?, perm)),
-            None => None,
-        };
-        let fused = self.fused.as_mut().expect("fused path");
-        let out = fused.disc_grads(
-            &self.disc,
-            &HostDiscBatch {
-                x_n: &x_n,
-                x_u: &x_u,
-                penalty: penalty.as_ref().map(|(u1, u2, p)| (&u1[..], &u2[..], &p[..])),
-                penalty_coef: self.cfg.discriminator_gp as f32,
-            },
-        )?;
-        let value = self.run.checked(&host_scalar(out.loss)?, DISC_LOSS.0, DISC_LOSS.1)?;
-        self.disc_opt.step_with_grads(&self.disc.grads_from_fused(&fused.disc_grads)?)?;
-        self.end_discriminator_step()?;
-        if !record {
-            return Ok(Vec::new());
-        }
-        let values = [out.loss, out.classification, out.penalty, out.prob_n, out.prob_u];
-        let mut values = values.map(|v| v as f64);
-        values[0] = value;
-        Ok(self.discriminator_metrics(values))
-    }
-
-    /// [`SafediceTrainer`]'s main step (Eq. 36 + ν's penalty, Eq. 37) with fused gradients.
-    pub(super) fn main_step_fused(
-        &mut self,
-        batch: &MainDraws,
-        record: bool,
-    ) -> std::result::Result<Vec<(&'static str, f64)>, TrainError> {
-        let (s, s_next, s0) = (host(&batch.s)?, host(&batch.s_next)?, host(&batch.s0)?);
-        let (reward, discount) = (host(&batch.reward)?, host(&batch.discount)?);
-        let u = batch.penalty_u.as_ref().map(host).transpose()?;
-        let policy_obs = host(&batch.policy_obs)?;
-        let actions = OwnedActions::from_column(&batch.actions)?;
-        let fused = self.fused.as_mut().expect("fused path");
-        let out = fused.main_grads(
-            &self.nu,
-            self.policy.mlp(),
-            &HostMainBatch {
-                s: &s,
-                s_next: &s_next,
-                s0: &s0,
-                reward: &reward,
-                discount: &discount,
-                gamma: self.cfg.gamma as f32,
-                penalty: u.as_deref().map(|u| (u, self.cfg.nu_gp as f32)),
-                policy_obs: &policy_obs,
-                actions: actions.view(),
-                has_action: batch.has_action.as_deref(),
-            },
-        )?;
-        let nu_value = self.run.checked(&host_scalar(out.nu_loss)?, NU_LOSS.0, NU_LOSS.1)?;
-        let pi_value =
-            self.run.checked(&host_scalar(out.policy_loss)?, POLICY_LOSS.0, POLICY_LOSS.1)?;
-        self.nu_opt.step_with_grads(&self.nu.grads_from_fused(&fused.nu_grads)?)?;
-        let policy_grads = self.policy.mlp().grads_from_fused(&fused.policy.grads)?;
-        self.policy_opt.step_with_grads(&policy_grads)?;
-        self.run.step += 1;
-        if !record {
-            return Ok(Vec::new());
-        }
-        let (w, adv) = (fused.weights.clone(), fused.advantages.clone());
-        let values = [nu_value, out.nu_penalty as f64, pi_value, out.nu_initial_mean as f64];
-        Ok(self.main_metrics(values, &w, &adv))
     }
 }
 

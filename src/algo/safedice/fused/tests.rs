@@ -1,5 +1,5 @@
 //! The fused engine against the reference: losses, weights and gradients of both hot loops
-//! against candle autograd on `safedice.rs`'s formulation (to 1e-5), the penalty's
+//! against candle autograd on [`super::super::objectives`]' formulation (to 1e-5), the penalty's
 //! second-order gradient against finite differences, and the whole trainer on its fused path
 //! against its candle path, step by step.
 
@@ -148,7 +148,7 @@ fn check_main_step(space: ActionSpace, masked_rows: bool) {
         )
         .unwrap();
 
-    // The candle formulation of safedice.rs's main step.
+    // The candle formulation of the trainer's main step (trainer.rs).
     let (ts, tn, t0) = (tensor(&s, B), tensor(&s_next, B), tensor(&s0, B));
     let values =
         nu.forward(&Tensor::cat(&[&ts, &tn, &t0], 0).unwrap()).unwrap().squeeze(1).unwrap();

@@ -1,0 +1,37 @@
+//! SafeDICE (Jang et al., NeurIPS 2023), Algorithm 1 of the paper, top to bottom:
+//!
+//! 1. pretrain the discriminator `c(s, a)` on D^N against D^U (Eq. 9), then freeze it;
+//! 2. set α to alpha-hat, the minimum of Eq. 15 over every sample of D^U;
+//! 3. compute the reward of Eq. 10 for every row of D^U once (the discriminator is frozen);
+//! 4. each iteration, update ν by Eq. 36 and the policy by the weighted BC of Eq. 37, both on the
+//!    same minibatch and with the pre-update ν.
+//!
+//! Where the paper is silent we follow the authors' code: the discriminator's interpolated
+//! gradient penalty, ν's zero-centred one, the clipping margins of alpha-hat. Our additions are
+//! options ([`TerminalHandling`](crate::algo::TerminalHandling), reward standardisation, the
+//! alpha-hat quantile diagnostic) with the faithful behaviour available through the presets.
+//! docs/algorithm.md lists every choice and where it departs from the paper.
+//!
+//! Files, from the paper down to the machine:
+//! - [`objectives`]: the equations (9, 10, 15, 36, 37), each written once;
+//! - [`draws`]: the flow table of step 3 and the minibatches both phases draw;
+//! - [`trainer`]: Algorithm 1 as a [`crate::algo::Trainer`], the reference in candle autograd;
+//! - [`fused`]: the same two hot loops with hand-derived gradients on the CPU engine, and
+//!   [`fused_steps`], which runs the trainer's steps on it;
+//! - [`ablation`]: the benchmark's replacements for alpha-hat and the discriminator.
+
+pub mod ablation;
+pub mod draws;
+pub mod fused;
+mod fused_steps;
+pub mod objectives;
+pub mod trainer;
+
+#[cfg(test)]
+mod tests;
+
+pub use ablation::{oracle_logits, SafediceOverrides, ORACLE_PROB_FLOOR};
+pub use objectives::{
+    alpha_hat_from_logits, discriminator_loss, nu_loss, policy_loss, reward_from_logit, AlphaHat,
+};
+pub use trainer::SafediceTrainer;

@@ -1,0 +1,158 @@
+//! The paper's equations for SafeDICE, each once, as candle tensor code (the losses) or plain
+//! arithmetic (alpha-hat and the reward): Eq. 9 (discriminator), Eq. 10 (reward from the
+//! discriminator), Eq. 15 (alpha-hat), Eq. 36 (ν) and Eq. 37 (policy). The reference trainer
+//! ([`super::trainer`]) differentiates the losses with candle autograd; the fused engine
+//! ([`super::fused`]) is checked against them in its tests.
+
+use candle_core::Tensor;
+
+use crate::algo::losses::{neg_log_one_minus_sigmoid, neg_log_sigmoid, weighted_nll};
+
+/// Alpha-hat's margin below the minimum and its cap, as in the authors' code.
+pub(crate) const ALPHA_MARGIN: f64 = 1e-5;
+/// Added to the mean of the masked policy weights before dividing by it (a batch of
+/// absorbing-state rows only has no weight left to renormalise); shared with the fused engine.
+pub(crate) const MASK_RENORM_EPS: f64 = 1e-12;
+/// Floor of `1 − α e^c` inside Eq. 10's log; reached only with the quantile diagnostic.
+const REWARD_LOG_FLOOR: f64 = 1e-8;
+/// Names and hints of the non-finite guard, shared by the candle and the fused paths.
+pub(crate) const DISC_LOSS: (&str, &str) =
+    ("the discriminator loss (Eq. 9)", "Try a lower lr_discriminator.");
+pub(crate) const NU_LOSS: (&str, &str) = (
+    "the nu loss (Eq. 36)",
+    "Episodes that end in terminal states make Eq. 36 unbounded below: try terminal_handling \"reset\", standardize_reward true, or a lower lr_nu (the authors' code uses 1e-4).",
+);
+pub(crate) const POLICY_LOSS: (&str, &str) = (
+    "the policy loss (Eq. 37)",
+    "Try a lower lr_actor, or check the weight statistics (ess_fraction) for degeneracy.",
+);
+
+/// Eq. 9's loss for a batch of discriminator logits: `−mean log σ(c_N) − mean log(1 − σ(c_U))`
+/// (σ(c) is the probability that (s, a) is non-preferred).
+pub fn discriminator_loss(logits_n: &Tensor, logits_u: &Tensor) -> candle_core::Result<Tensor> {
+    neg_log_sigmoid(logits_n)?.mean_all()? + neg_log_one_minus_sigmoid(logits_u)?.mean_all()?
+}
+
+/// Eq. 36: `log E_{D^U}[exp A] + (1 − γ) E_{p0}[ν(s0)]`, with `A = r + γ' ν(s') − ν(s)` already
+/// formed (γ' per row, see [`TerminalHandling`]). The log-mean-exp is computed stably.
+pub fn nu_loss(
+    advantages: &Tensor,
+    nu_initial: &Tensor,
+    gamma: f64,
+) -> candle_core::Result<Tensor> {
+    let b = advantages.dim(0)? as f64;
+    let log_mean_exp = (advantages.log_sum_exp(0)? - b.ln())?;
+    log_mean_exp + (nu_initial.mean_all()? * (1.0 - gamma))?
+}
+
+/// Eq. 37: `−mean(w̃ log π) / mean(w̃)` with self-normalised, detached weights (optionally
+/// masked: absorbing-state rows have no action).
+pub fn policy_loss(log_prob: &Tensor, weights: &Tensor) -> candle_core::Result<Tensor> {
+    weighted_nll(log_prob, weights)
+}
+
+/// Eq. 10 written with the discriminator logit `c` (σ(c) = c* of the paper):
+/// `log((1 − (1+α)σ) / ((1−α)(1−σ))) = log(1 − α e^c) − log(1 − α)`, exact and free of the
+/// cancellations of the sigmoid form. Returns the reward and whether `1 − α e^c` had to be
+/// floored (impossible with the paper's alpha-hat, which makes it positive on all of D^U).
+pub fn reward_from_logit(c: f64, alpha: f64) -> (f64, bool) {
+    let inside = 1.0 - alpha * c.exp();
+    let clipped = inside < REWARD_LOG_FLOOR;
+    ((inside.max(REWARD_LOG_FLOOR)).ln() - (1.0 - alpha).ln(), clipped)
+}
+
+/// alpha-hat (Eq. 15, Algorithm 1 step 2) and where it came from.
+#[derive(Clone, Debug, PartialEq)]
+pub struct AlphaHat {
+    /// The α used: the statistic below minus 1e-5, kept in [0, 1 − 1e-5].
+    pub value: f64,
+    /// `min over D^U of (1/c(s,a) − 1) = min e^{−logit}` (the paper's statistic).
+    pub min_ratio: f64,
+    /// Row of D^U (and its episode id) where that minimum is reached.
+    pub argmin_row: usize,
+    pub argmin_episode: u32,
+    /// The 1% quantile of the same ratio: a diagnostic only, NOT the paper. Far above
+    /// `min_ratio` means one rare sample sets alpha-hat.
+    pub quantile_01: f64,
+}
+
+/// alpha-hat from the discriminator logits of every row of D^U. `quantile = 0` is the paper's
+/// minimum; `quantile > 0` replaces it by that quantile (diagnostic option, not the paper).
+pub fn alpha_hat_from_logits(logits: &[f32], episode_ids: &[u32], quantile: f64) -> AlphaHat {
+    assert!(!logits.is_empty(), "D^U is never empty");
+    let (argmin_row, max_logit) = logits
+        .iter()
+        .enumerate()
+        .fold((0, f32::NEG_INFINITY), |best, (i, &c)| if c > best.1 { (i, c) } else { best });
+    let mut ratios: Vec<f64> = logits.iter().map(|&c| (-(c as f64)).exp()).collect();
+    ratios.sort_by(f64::total_cmp);
+    let at =
+        |q: f64| ratios[((q * (ratios.len() - 1) as f64).round() as usize).min(ratios.len() - 1)];
+    let min_ratio = (-(max_logit as f64)).exp();
+    let statistic = if quantile > 0.0 { at(quantile) } else { min_ratio };
+    AlphaHat {
+        value: (statistic - ALPHA_MARGIN).clamp(0.0, 1.0 - ALPHA_MARGIN),
+        min_ratio,
+        argmin_row,
+        argmin_episode: episode_ids[argmin_row],
+        quantile_01: at(0.01),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// With the optimal discriminator c* = d^N/(d^U + d^N), i.e. logit log(d^N/d^U), alpha-hat
+    /// is min d^U/d^N (Eq. 15) minus the margin, found at the row that attains it.
+    #[test]
+    fn alpha_hat_of_a_known_discriminator() {
+        let d_u = [0.30f64, 0.25, 0.15, 0.30];
+        let d_n = [0.05f64, 0.10, 0.60, 0.25];
+        let logits: Vec<f32> = d_u.iter().zip(&d_n).map(|(u, n)| (n / u).ln() as f32).collect();
+        let a = alpha_hat_from_logits(&logits, &[4, 4, 9, 9], 0.0);
+        assert!((a.min_ratio - 0.25).abs() < 1e-6, "{a:?}");
+        assert!((a.value - (0.25 - ALPHA_MARGIN)).abs() < 1e-6);
+        assert_eq!((a.argmin_row, a.argmin_episode), (2, 9));
+        // Eq. 10 is then finite on every row (Appendix A.3) and most negative at the argmin.
+        let rewards: Vec<f64> = logits
+            .iter()
+            .map(|&c| reward_from_logit(c as f64, a.value))
+            .map(|(r, clipped)| {
+                assert!(!clipped);
+                r
+            })
+            .collect();
+        assert!(rewards.iter().all(|r| r.is_finite()));
+        let worst =
+            rewards
+                .iter()
+                .enumerate()
+                .fold((0, f64::INFINITY), |b, (i, &r)| if r < b.1 { (i, r) } else { b });
+        assert_eq!(worst.0, 2);
+    }
+
+    /// Eq. 10 in its logit form equals the paper's sigmoid form.
+    #[test]
+    fn reward_logit_form_equals_eq_10() {
+        for (c, alpha) in [(-2.0f64, 0.3), (0.5, 0.1), (1.2, 0.2), (-0.3, 0.6)] {
+            let sigma = 1.0 / (1.0 + (-c).exp());
+            let paper = ((1.0 - (1.0 + alpha) * sigma) / ((1.0 - alpha) * (1.0 - sigma))).ln();
+            let (ours, clipped) = reward_from_logit(c, alpha);
+            assert!(!clipped);
+            assert!((ours - paper).abs() < 1e-10, "c={c}: {ours} vs {paper}");
+        }
+        assert!(reward_from_logit(3.0, 0.5).1, "1 − α e^c < 0 is floored and reported");
+    }
+
+    #[test]
+    fn nu_loss_is_log_mean_exp_plus_initial_term() {
+        let dev = candle_core::Device::Cpu;
+        let a = Tensor::new(&[0.5f32, -1.0, 2.0, 100.0], &dev).unwrap();
+        let nu0 = Tensor::new(&[1.0f32, 3.0], &dev).unwrap();
+        let got = crate::algo::losses::scalar(&nu_loss(&a, &nu0, 0.99).unwrap()).unwrap();
+        let lme = 100.0 + ((0.5f64 - 100.0).exp() + (-101f64).exp() + (-98f64).exp() + 1.0).ln()
+            - 4f64.ln();
+        assert!((got - (lme + 0.01 * 2.0)).abs() < 1e-4, "{got} vs {}", lme + 0.02);
+    }
+}

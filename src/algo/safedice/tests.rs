@@ -1,0 +1,129 @@
+//! The reference trainer with the ablation hooks, on a task whose answer is known in closed
+//! form: the oracle discriminator gives the true α and near-zero weight on non-preferred rows,
+//! and an α override is the α the trainer uses.
+
+use super::ablation::{oracle_logits, SafediceOverrides};
+use super::trainer::SafediceTrainer;
+use crate::algo::safedice::objectives::{reward_from_logit, ALPHA_MARGIN};
+use crate::algo::{Dataset, ResolvedConfig, Trainer, TrainingData};
+
+/// A two-action task on one state: preferred episodes take action 0, non-preferred ones
+/// action 1. D^U: 6 preferred + 4 non-preferred episodes of 4 steps (α = 0.4 of the
+/// transitions); D^N: 3 non-preferred episodes. Returns the data and D^U's true flags.
+fn one_state_task() -> (TrainingData, Vec<bool>) {
+    use crate::data::{ActionSpace, Actions, DatasetParts};
+    let episodes = |kinds: &[bool]| {
+        let len = 4;
+        let n = kinds.len() * len;
+        let actions = kinds.iter().flat_map(|&np| vec![np as u32; len]).collect();
+        Dataset::new(DatasetParts {
+            obs_dim: 1,
+            action_space: ActionSpace::Discrete { n: 2 },
+            observations: vec![0.5; n],
+            actions: Actions::Discrete(actions),
+            next_observations: vec![0.5; n],
+            terminals: vec![false; n],
+            episode_ids: (0..n).map(|i| (i / len) as u32).collect(),
+            rewards: None,
+            costs: None,
+        })
+        .unwrap()
+    };
+    let kinds = [false, true, false, false, true, false, true, false, false, true];
+    let flags = kinds.iter().flat_map(|&np| [np; 4]).collect();
+    let data = TrainingData {
+        unlabeled: std::sync::Arc::new(episodes(&kinds)),
+        non_preferred: Some(std::sync::Arc::new(episodes(&[true; 3]))),
+    };
+    (data, flags)
+}
+
+fn tiny_config() -> ResolvedConfig {
+    crate::algo::resolve_config(
+        crate::algo::Algorithm::Safedice,
+        &serde_json::json!({
+            "seed": 3, "batch_size": 8, "hidden_sizes": [8, 8], "iterations": 3,
+            "discriminator_iterations": 2, "standardize_reward": false,
+        }),
+    )
+    .unwrap()
+}
+
+/// Steps through the discriminator phase; returns the scalars of the step that ended it.
+fn finish_phase(t: &mut SafediceTrainer) -> Vec<(&'static str, f64)> {
+    let mut last = Vec::new();
+    while t.progress().phase == "discriminator" {
+        last = t.step(true).unwrap();
+    }
+    last
+}
+
+fn metric(scalars: &[(&'static str, f64)], name: &str) -> f64 {
+    scalars.iter().find(|(n, _)| *n == name).map(|&(_, v)| v).unwrap_or(f64::NAN)
+}
+
+/// Oracle logits make Eq. 15 return the true share (minus its margin), and the weights of
+/// Eq. 12 on non-preferred rows are the closed form: every row has the same state, so ν
+/// cancels and `w_np / w_p = exp(r_np − r_p)` ≈ 1e-5/α, i.e. practically 0.
+#[test]
+fn oracle_logits_give_the_true_alpha_and_near_zero_weight_on_non_preferred_rows() {
+    let (data, flags) = one_state_task();
+    let overrides =
+        SafediceOverrides { unlabeled_logits: Some(oracle_logits(&flags)), alpha: None };
+    let mut t = SafediceTrainer::with_overrides(&tiny_config(), &data, overrides).unwrap();
+    assert!(t.unlabeled_weights().unwrap().is_none(), "no weights before the main phase");
+    let scalars = finish_phase(&mut t);
+    let alpha = 0.4 - ALPHA_MARGIN;
+    assert!((metric(&scalars, "alpha_hat") - alpha).abs() < 1e-6, "{scalars:?}");
+    assert_eq!(metric(&scalars, "reward_clipped_rows"), 0.0);
+    assert_eq!(metric(&scalars, "discriminator_outputs_given"), 1.0);
+    for _ in 0..3 {
+        t.step(false).unwrap();
+    }
+    let w = t.unlabeled_weights().unwrap().unwrap();
+    assert!((w.iter().sum::<f64>() / w.len() as f64 - 1.0).abs() < 1e-9, "mean 1");
+    // The α the trainer used (Eq. 15 on f32 logits): `1 − α̂ e^c` ≈ 2.5e-5 on non-preferred
+    // rows is sensitive to its last digits.
+    let used = t.alpha_hat().unwrap();
+    let logits = oracle_logits(&flags);
+    let reward = |row: usize| reward_from_logit(logits[row] as f64, used).0;
+    let (np, p) = (flags.iter().position(|&f| f).unwrap(), flags.iter().position(|&f| !f).unwrap());
+    let expected = (reward(np) - reward(p)).exp();
+    assert!(expected < 1e-4, "{expected}");
+    assert!(((w[np] / w[p]) / expected - 1.0).abs() < 1e-3, "{} vs {expected}", w[np] / w[p]);
+    let share: f64 = w.iter().zip(&flags).filter(|(_, &f)| f).map(|(w, _)| w).sum::<f64>()
+        / w.iter().sum::<f64>();
+    assert!(share < 1e-4, "weight share on non-preferred rows {share}");
+}
+
+/// An α override is the α the trainer uses: the recorded `alpha_hat` (at the end of the
+/// discriminator phase and in every main step) and [`Trainer::alpha_hat`], with Eq. 15's own
+/// value kept as `alpha_hat_eq15`.
+#[test]
+fn alpha_override_is_the_alpha_the_trainer_uses() {
+    let (data, _) = one_state_task();
+    let overrides = SafediceOverrides { alpha: Some(0.4), unlabeled_logits: None };
+    let mut t = SafediceTrainer::with_overrides(&tiny_config(), &data, overrides).unwrap();
+    let scalars = finish_phase(&mut t);
+    assert_eq!(metric(&scalars, "alpha_hat"), 0.4);
+    assert!(metric(&scalars, "alpha_hat_eq15").is_finite(), "{scalars:?}");
+    assert_eq!(t.alpha_hat(), Some(0.4));
+    let main = t.step(true).unwrap();
+    assert_eq!(metric(&main, "alpha_hat"), 0.4);
+    // The trained discriminator is untouched: the same seed without overrides trains the
+    // same one (the overrides act after it).
+    let mut plain = SafediceTrainer::new(&tiny_config(), &data).unwrap();
+    finish_phase(&mut plain);
+    assert_eq!(
+        plain.discriminator_logits_unlabeled().unwrap(),
+        t.discriminator_logits_unlabeled().unwrap()
+    );
+    assert_eq!(
+        t.discriminator_logits(&data.unlabeled).unwrap(),
+        t.discriminator_logits_unlabeled().unwrap()
+    );
+    let bad = SafediceOverrides { alpha: Some(1.0), unlabeled_logits: None };
+    assert!(SafediceTrainer::with_overrides(&tiny_config(), &data, bad).is_err());
+    let bad = SafediceOverrides { alpha: None, unlabeled_logits: Some(vec![0.0; 3]) };
+    assert!(SafediceTrainer::with_overrides(&tiny_config(), &data, bad).is_err());
+}
