@@ -4,7 +4,8 @@
 //! (`support::jobs`), and nothing process-wide: each test runs its own server on its own port and
 //! data directory, and what measures memory or is killed runs in a child process.
 //!
-//! `tests/http_postgres` runs the same files on the PostgreSQL store.
+//! Every test runs on both stores: on SQLite in this process, then on PostgreSQL in a child
+//! process of this binary that `on_postgres` starts (`SAFEDICE_TEST_DATABASE` picks one store).
 
 /// The store every test server of this binary uses (`SAFEDICE_TEST_DATABASE` overrides it).
 const TEST_DATABASE: &str = "sqlite";
@@ -33,6 +34,7 @@ mod hardening;
 mod jobs;
 mod lifecycle;
 mod models;
+mod on_postgres;
 mod openapi;
 mod ops;
 mod resources;

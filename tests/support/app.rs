@@ -2,9 +2,10 @@
 //! `safedice serve`) on a free loopback port with a fresh temp data directory, and talks HTTP
 //! to it. Reusable by every resource's tests: `TestApp::spawn().await`, then `app.get(path)`.
 //!
-//! The store is SQLite in the data directory (`tests/http`), or a fresh database of its own in
-//! the test process's PostgreSQL cluster (`tests/http_postgres`, `super::postgres`): the binary's
-//! `TEST_DATABASE`, overridden by `SAFEDICE_TEST_DATABASE=sqlite|postgres`.
+//! The store is SQLite in the data directory, or a fresh database of its own in the test
+//! process's PostgreSQL cluster (`super::postgres`): the binary's `TEST_DATABASE`, overridden by
+//! `SAFEDICE_TEST_DATABASE=sqlite|postgres` (which is how `tests/http/on_postgres.rs` runs the
+//! HTTP tests again on PostgreSQL).
 
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};

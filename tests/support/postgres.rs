@@ -35,21 +35,26 @@ static CLUSTER: OnceLock<Option<Cluster>> = OnceLock::new();
 /// PostgreSQL is not installed and not required.
 pub fn cluster() -> Option<&'static Cluster> {
     CLUSTER
-        .get_or_init(|| match bin_dir() {
-            Some(bin) => Some(Cluster::start(&bin)),
-            None if required() => panic!(
-                "SAFEDICE_REQUIRE_POSTGRES is set but PostgreSQL's binaries (initdb, pg_ctl) \
-                 were not found; install Debian's postgresql package or set SAFEDICE_PG_BIN"
-            ),
-            None => {
-                eprintln!(
-                    "\n*** SKIPPING PostgreSQL tests: initdb/pg_ctl not found (install \
-                     Debian's postgresql package, or set SAFEDICE_PG_BIN) ***\n"
-                );
-                None
-            }
-        })
+        .get_or_init(|| if available() { bin_dir().map(|bin| Cluster::start(&bin)) } else { None })
         .as_ref()
+}
+
+/// Whether PostgreSQL's binaries are here. Without them: a panic where they are required, else
+/// false after a loud message that the PostgreSQL tests are skipped.
+pub fn available() -> bool {
+    if bin_dir().is_some() {
+        return true;
+    }
+    assert!(
+        !required(),
+        "SAFEDICE_REQUIRE_POSTGRES is set but PostgreSQL's binaries (initdb, pg_ctl) were not \
+         found; install Debian's postgresql package or set SAFEDICE_PG_BIN"
+    );
+    eprintln!(
+        "\n*** SKIPPING PostgreSQL tests: initdb/pg_ctl not found (install Debian's postgresql \
+         package, or set SAFEDICE_PG_BIN) ***\n"
+    );
+    false
 }
 
 /// A cluster of the caller's own, for a test that stops and starts the server (the shared one

@@ -1,7 +1,7 @@
-//! Parser / canonical-form throughput and peak memory on a Walker-sized dataset (not run by
-//! default; timings depend on the machine and its load):
+//! Parser / canonical-form throughput and peak memory on a Walker-sized dataset: a benchmark
+//! that prints its numbers (timings depend on the machine and its load), not a test:
 //!
-//! `cargo test --release --test data_throughput -- --ignored --nocapture --test-threads 1`
+//! `cargo run --release --example data_throughput`
 //!
 //! Peak RSS is read from /proc/self/status (VmHWM) after resetting it through
 //! /proc/self/clear_refs, so each figure is the peak while that one parse ran (Linux only).
@@ -55,14 +55,12 @@ fn peak_rss_mib() -> f64 {
     kib / 1024.0
 }
 
-#[test]
-#[ignore = "benchmark: run explicitly, see the module docs"]
-fn parse_throughput_and_peak_memory() {
+fn main() {
     let dir = tempfile::tempdir().unwrap();
     let d = walker_sized();
     let column_mib =
         (d.observations().len() * 2 + d.len() * (ACT_DIM + 4)) as f64 * 4.0 / 1048576.0;
-    eprintln!("{} transitions, obs {OBS_DIM}, act {ACT_DIM}: columns {column_mib:.1} MiB", d.len());
+    println!("{} transitions, obs {OBS_DIM}, act {ACT_DIM}: columns {column_mib:.1} MiB", d.len());
     let writers: [(&str, Writer); 3] =
         [("d.jsonl", write_jsonl), ("d.csv", write_csv), ("d.npz", write_npz)];
     for (name, write) in writers {
@@ -79,7 +77,7 @@ fn parse_throughput_and_peak_memory() {
         let peak = peak_rss_mib() - base;
         assert_eq!(parsed, d);
         drop(parsed);
-        eprintln!(
+        println!(
             "{name:8} {mib:7.1} MiB  write {write_s:6.2}s  parse {parse_s:6.2}s \
              ({:6.1} MiB/s)  parse peak RSS above baseline {peak:6.1} MiB",
             mib / parse_s
@@ -93,7 +91,7 @@ fn parse_throughput_and_peak_memory() {
     let decode_s = t.elapsed().as_secs_f64();
     assert_eq!(back, d);
     let mib = bytes.len() as f64 / 1048576.0;
-    eprintln!(
+    println!(
         "canonical {mib:6.1} MiB  encode {encode_s:.3}s ({:.0} MiB/s)  decode {decode_s:.3}s \
          ({:.0} MiB/s)",
         mib / encode_s,
