@@ -47,16 +47,9 @@ impl ScatterPoint {
 }
 
 /// The accent colour of each algorithm, the same everywhere: benchmark plots, and the dashboard,
-/// which reads it from `GET /v1/algorithms`.
+/// which reads it from `GET /v1/algorithms` (both from the algorithm table).
 pub fn algorithm_color(algorithm: crate::algo::Algorithm) -> &'static str {
-    use crate::algo::Algorithm;
-    match algorithm {
-        Algorithm::Safedice => "#2563eb",
-        Algorithm::Bc => "#6b7280",
-        Algorithm::Dwbc => "#d97706",
-        Algorithm::Ppl => "#059669",
-        Algorithm::Dexperts => "#7c3aed",
-    }
+    algorithm.spec().color
 }
 
 /// A scatter plot of labelled points.

@@ -3,7 +3,8 @@
 use std::path::PathBuf;
 
 use clap::{Args, Parser, Subcommand, ValueEnum};
-use safedice::bench::speed::{self, Engine, SpeedAlgorithm, SpeedConfig};
+use safedice::algo::Algorithm;
+use safedice::bench::speed::{self, Engine, SpeedConfig};
 use safedice::config::{ServeConfig, WorkerConfig};
 use safedice::server::{self, Server};
 
@@ -181,8 +182,15 @@ struct SpeedArgs {
     #[arg(long, value_enum, default_value_t = Engine::Fused)]
     engine: Engine,
     /// Whose steps to time: SafeDICE's two hot loops, or a baseline's policy-learning step.
-    #[arg(long, value_enum, default_value_t = SpeedAlgorithm::Safedice)]
-    algorithm: SpeedAlgorithm,
+    #[arg(long, default_value = "safedice", value_parser = algorithm_name())]
+    algorithm: Algorithm,
+}
+
+/// `--algorithm`: the algorithm table's names, listed in `--help`.
+fn algorithm_name() -> impl clap::builder::TypedValueParser<Value = Algorithm> {
+    use clap::builder::{PossibleValuesParser, TypedValueParser};
+    PossibleValuesParser::new(Algorithm::names())
+        .map(|name| Algorithm::from_name(&name).expect("one of the listed names"))
 }
 
 fn main() -> anyhow::Result<()> {
@@ -210,7 +218,7 @@ fn main() -> anyhow::Result<()> {
                 threads: a.threads,
                 seed: a.seed,
                 engine: a.engine,
-                algorithm: a.algorithm.into(),
+                algorithm: a.algorithm,
             };
             let results = speed::run(&cfg)?;
             print!("{}", speed::report(&cfg, &results));

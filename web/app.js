@@ -205,23 +205,12 @@ async function showPreview(slot, dataset) {
 
 // ---------- jobs ----------
 
-// The main knobs of the job form. Placeholders show the chosen algorithm's and preset's values
-// (from the server's table); an empty field is not sent, so the preset decides its value.
-const KNOBS = [
-  { key: 'iterations', label: 'Iterations', type: 'int' },
-  { key: 'seed', label: 'Seed', type: 'int' },
-  { key: 'batch_size', label: 'Batch size', type: 'int' },
-  { key: 'hidden_sizes', label: 'Hidden sizes', type: 'list' },
-  { key: 'lr_actor', label: 'Actor learning rate', type: 'float' },
-  // Resolved as a share of the iterations unless set (pretrainingShare), so the preset's number
-  // would mislead: the placeholder names the rule.
-  { key: 'discriminator_iterations', label: 'Discriminator iterations', type: 'int', pretraining: true },
-  { key: 'reward_model_iterations', label: 'Reward-model iterations', type: 'int', pretraining: true },
-  { key: 'gamma', label: 'Discount γ', type: 'float' },
-  { key: 'eta', label: 'η (DWBC)', type: 'float' },
-  { key: 'alpha', label: 'α (DExperts)', type: 'float' },
-];
-const PRETRAINING_NAMES = { discriminator_iterations: 'discriminator pretraining', reward_model_iterations: 'reward-model pretraining' };
+// The main knobs of the job form, from the server's algorithm table: each algorithm's (common
+// ones first), each key once. Placeholders show the chosen algorithm's and preset's values; an
+// empty field is not sent, so the preset decides its value. A pretraining knob's value follows
+// the iterations unless set (pretrainingShare), so its placeholder names the rule instead.
+const KNOBS = [...new Map(ALGORITHM_TABLE.flatMap((a) => a.knobs).map((k) => [k.key, k])).values()];
+const PRETRAINING_NAMES = Object.fromEntries(KNOBS.filter((k) => k.pretraining).map((k) => [k.key, k.pretraining]));
 
 /** The resolved configuration of `preset` for `algorithm` (every knob with its value). */
 function presetConfig(algorithm, preset) {

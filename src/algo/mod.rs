@@ -32,6 +32,7 @@ pub mod onnx;
 pub mod optim;
 pub mod policy;
 pub mod ppl;
+pub mod registry;
 pub mod run;
 pub mod safedice;
 
@@ -41,6 +42,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::data::{ActionSpace, Dataset};
 use memory::DataShape;
+use registry::AlgorithmSpec;
 
 pub use hyperparams::{
     config_keys, resolve_config, HyperparamError, Preset, ResolvedConfig, TerminalHandling,
@@ -62,30 +64,33 @@ impl Algorithm {
     pub const ALL: [Algorithm; 5] =
         [Algorithm::Safedice, Algorithm::Bc, Algorithm::Dwbc, Algorithm::Ppl, Algorithm::Dexperts];
 
+    /// Its entry in the algorithm table ([`registry::SPECS`]).
+    pub fn spec(self) -> &'static AlgorithmSpec {
+        &registry::SPECS[self as usize]
+    }
+
     /// Whether a run needs the labeled non-preferred dataset D^N (every algorithm but BC).
     pub fn needs_non_preferred(self) -> bool {
-        !matches!(self, Algorithm::Bc)
+        self.spec().needs_non_preferred
     }
 
     pub fn as_str(self) -> &'static str {
-        match self {
-            Algorithm::Safedice => "safedice",
-            Algorithm::Bc => "bc",
-            Algorithm::Dwbc => "dwbc",
-            Algorithm::Ppl => "ppl",
-            Algorithm::Dexperts => "dexperts",
-        }
+        self.spec().name
+    }
+
+    /// The algorithm of an API name (`safedice`, `bc`, ...).
+    pub fn from_name(name: &str) -> Option<Algorithm> {
+        Algorithm::ALL.into_iter().find(|a| a.as_str() == name)
+    }
+
+    /// Every API name, in the table's order.
+    pub fn names() -> [&'static str; 5] {
+        Algorithm::ALL.map(Algorithm::as_str)
     }
 
     /// The name as the paper writes it.
     pub fn display_name(self) -> &'static str {
-        match self {
-            Algorithm::Safedice => "SafeDICE",
-            Algorithm::Bc => "BC",
-            Algorithm::Dwbc => "DWBC",
-            Algorithm::Ppl => "PPL",
-            Algorithm::Dexperts => "DExperts",
-        }
+        self.spec().label
     }
 }
 
@@ -211,13 +216,7 @@ pub fn build_trainer(
     if let Some(bytes) = checkpoint {
         return resume(config, data, bytes);
     }
-    Ok(match config.algorithm() {
-        Algorithm::Safedice => Box::new(safedice::SafediceTrainer::new(config, data)?),
-        Algorithm::Bc => Box::new(bc::BcTrainer::new(config, data)?),
-        Algorithm::Dwbc => Box::new(dwbc::DwbcTrainer::new(config, data)?),
-        Algorithm::Ppl => Box::new(ppl::PplTrainer::new(config, data)?),
-        Algorithm::Dexperts => Box::new(dexperts::DexpertsTrainer::new(config, data)?),
-    })
+    (config.algorithm().spec().build)(config, data)
 }
 
 fn resume(
@@ -225,13 +224,7 @@ fn resume(
     data: &TrainingData,
     bytes: &[u8],
 ) -> Result<Box<dyn Trainer>, TrainError> {
-    Ok(match config.algorithm() {
-        Algorithm::Safedice => Box::new(safedice::SafediceTrainer::resume(config, data, bytes)?),
-        Algorithm::Bc => Box::new(bc::BcTrainer::resume(config, data, bytes)?),
-        Algorithm::Dwbc => Box::new(dwbc::DwbcTrainer::resume(config, data, bytes)?),
-        Algorithm::Ppl => Box::new(ppl::PplTrainer::resume(config, data, bytes)?),
-        Algorithm::Dexperts => Box::new(dexperts::DexpertsTrainer::resume(config, data, bytes)?),
-    })
+    (config.algorithm().spec().resume)(config, data, bytes)
 }
 
 /// The device training runs on: the CPU, or the first CUDA GPU when built with `cuda`.

@@ -432,8 +432,8 @@ impl BenchConfig {
 }
 
 fn parse_algorithm(name: &str) -> Result<Algorithm, String> {
-    serde_json::from_value(serde_json::Value::String(name.to_string())).map_err(|_| {
-        format!("unknown algorithm `{name}` (known: safedice, bc, dwbc, ppl, dexperts)")
+    Algorithm::from_name(name).ok_or_else(|| {
+        format!("unknown algorithm `{name}` (known: {})", Algorithm::names().join(", "))
     })
 }
 

@@ -41,28 +41,6 @@ pub enum Engine {
     Candle,
 }
 
-/// Algorithms `safedice speed` can time, as `--algorithm` names them.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
-pub enum SpeedAlgorithm {
-    Safedice,
-    Bc,
-    Dwbc,
-    Ppl,
-    Dexperts,
-}
-
-impl From<SpeedAlgorithm> for Algorithm {
-    fn from(a: SpeedAlgorithm) -> Algorithm {
-        match a {
-            SpeedAlgorithm::Safedice => Algorithm::Safedice,
-            SpeedAlgorithm::Bc => Algorithm::Bc,
-            SpeedAlgorithm::Dwbc => Algorithm::Dwbc,
-            SpeedAlgorithm::Ppl => Algorithm::Ppl,
-            SpeedAlgorithm::Dexperts => Algorithm::Dexperts,
-        }
-    }
-}
-
 #[derive(Clone, Debug)]
 pub struct SpeedConfig {
     pub obs_dim: usize,

@@ -8,6 +8,7 @@ use utoipa_axum::routes;
 
 use super::extract::Json;
 use super::AppState;
+use crate::algo::registry::Knob;
 use crate::algo::{self, Algorithm, Preset};
 
 /// An algorithm and its presets.
@@ -22,6 +23,9 @@ pub struct AlgorithmInfo {
     pub color: &'static str,
     /// Whether a job needs a labeled non-preferred dataset.
     pub needs_non_preferred: bool,
+    /// The configuration keys a job form offers as fields, in order: the common ones, then the
+    /// algorithm's own.
+    pub knobs: Vec<Knob>,
     /// Each preset (`service`, `paper`, `authors-code`) with every knob's value: what a job's
     /// `config` resolves to when it names only the preset.
     pub presets: Vec<PresetConfig>,
@@ -59,9 +63,10 @@ pub fn algorithm_list() -> AlgorithmList {
         .into_iter()
         .map(|algorithm| AlgorithmInfo {
             name: algorithm,
-            label: algorithm.display_name(),
-            color: crate::charts::algorithm_color(algorithm),
-            needs_non_preferred: algorithm.needs_non_preferred(),
+            label: algorithm.spec().label,
+            color: algorithm.spec().color,
+            needs_non_preferred: algorithm.spec().needs_non_preferred,
+            knobs: algorithm.spec().knobs(),
             presets: Preset::ALL
                 .into_iter()
                 .map(|preset| preset_config(algorithm, preset))

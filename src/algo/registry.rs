@@ -1,0 +1,177 @@
+//! One spec per algorithm: what the rest of the service knows about it, in one place. The API
+//! name and the paper's label, its accent colour, whether it needs D^N, the knobs the
+//! dashboard's job form offers, and how to start or resume a run. `/v1/algorithms` (and through
+//! it the OpenAPI example, the dashboard's form and colours) and [`super::build_trainer`] read
+//! this table; nothing outside `algo/` matches on an algorithm to learn these.
+//!
+//! To add an algorithm: its module beside the others (a [`Trainer`]), its variant of
+//! [`Algorithm`] and of [`AlgorithmConfig`](super::hyperparams::AlgorithmConfig) with its
+//! presets and checks in `hyperparams.rs`, its memory term in `memory.rs`, and its entry in
+//! [`SPECS`] below (docs/architecture.md, "Recipes").
+
+use serde::Serialize;
+
+use super::{
+    bc, dexperts, dwbc, ppl, safedice, Algorithm, ResolvedConfig, TrainError, Trainer, TrainingData,
+};
+
+/// Starts a run of one algorithm.
+pub type Build = fn(&ResolvedConfig, &TrainingData) -> Result<Box<dyn Trainer>, TrainError>;
+/// Resumes a run of one algorithm from the bytes of its [`Trainer::checkpoint`].
+pub type Resume = fn(&ResolvedConfig, &TrainingData, &[u8]) -> Result<Box<dyn Trainer>, TrainError>;
+
+/// Everything about one algorithm that is not its training code or its configuration.
+pub struct AlgorithmSpec {
+    pub algorithm: Algorithm,
+    /// The API's name (`algorithm` of a job).
+    pub name: &'static str,
+    /// The name as the paper writes it.
+    pub label: &'static str,
+    /// Its accent colour in charts and the dashboard (CSS hex).
+    pub color: &'static str,
+    /// Whether a run needs the labeled non-preferred dataset D^N.
+    pub needs_non_preferred: bool,
+    /// The job form's knobs of its own, after [`COMMON_KNOBS`].
+    pub own_knobs: &'static [Knob],
+    pub build: Build,
+    pub resume: Resume,
+}
+
+/// A configuration key the dashboard's job form offers as a field.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, utoipa::ToSchema)]
+pub struct Knob {
+    /// The configuration key.
+    #[schema(example = "iterations")]
+    pub key: &'static str,
+    #[schema(example = "Iterations")]
+    pub label: &'static str,
+    /// How the field's text is read.
+    #[serde(rename = "type")]
+    pub kind: KnobKind,
+    /// For the length of a pretraining phase: the phase's name. Its value follows the
+    /// iterations unless set, so a form shows the rule rather than the preset's number.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    #[schema(example = json!(null))]
+    pub pretraining: Option<&'static str>,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, utoipa::ToSchema)]
+#[serde(rename_all = "lowercase")]
+pub enum KnobKind {
+    Int,
+    Float,
+    /// Comma-separated integers (`hidden_sizes`).
+    List,
+}
+
+const fn knob(key: &'static str, label: &'static str, kind: KnobKind) -> Knob {
+    Knob { key, label, kind, pretraining: None }
+}
+
+/// The knobs every algorithm has.
+pub const COMMON_KNOBS: [Knob; 5] = [
+    knob("iterations", "Iterations", KnobKind::Int),
+    knob("seed", "Seed", KnobKind::Int),
+    knob("batch_size", "Batch size", KnobKind::Int),
+    knob("hidden_sizes", "Hidden sizes", KnobKind::List),
+    knob("lr_actor", "Actor learning rate", KnobKind::Float),
+];
+
+/// The table, in [`Algorithm::ALL`]'s order (a test holds them together).
+pub const SPECS: [AlgorithmSpec; 5] = [
+    AlgorithmSpec {
+        algorithm: Algorithm::Safedice,
+        name: "safedice",
+        label: "SafeDICE",
+        color: "#2563eb",
+        needs_non_preferred: true,
+        own_knobs: &[
+            Knob {
+                pretraining: Some("discriminator pretraining"),
+                ..knob("discriminator_iterations", "Discriminator iterations", KnobKind::Int)
+            },
+            knob("gamma", "Discount γ", KnobKind::Float),
+        ],
+        build: |c, d| Ok(Box::new(safedice::SafediceTrainer::new(c, d)?)),
+        resume: |c, d, b| Ok(Box::new(safedice::SafediceTrainer::resume(c, d, b)?)),
+    },
+    AlgorithmSpec {
+        algorithm: Algorithm::Bc,
+        name: "bc",
+        label: "BC",
+        color: "#6b7280",
+        needs_non_preferred: false,
+        own_knobs: &[],
+        build: |c, d| Ok(Box::new(bc::BcTrainer::new(c, d)?)),
+        resume: |c, d, b| Ok(Box::new(bc::BcTrainer::resume(c, d, b)?)),
+    },
+    AlgorithmSpec {
+        algorithm: Algorithm::Dwbc,
+        name: "dwbc",
+        label: "DWBC",
+        color: "#d97706",
+        needs_non_preferred: true,
+        own_knobs: &[knob("eta", "η (DWBC)", KnobKind::Float)],
+        build: |c, d| Ok(Box::new(dwbc::DwbcTrainer::new(c, d)?)),
+        resume: |c, d, b| Ok(Box::new(dwbc::DwbcTrainer::resume(c, d, b)?)),
+    },
+    AlgorithmSpec {
+        algorithm: Algorithm::Ppl,
+        name: "ppl",
+        label: "PPL",
+        color: "#059669",
+        needs_non_preferred: true,
+        own_knobs: &[Knob {
+            pretraining: Some("reward-model pretraining"),
+            ..knob("reward_model_iterations", "Reward-model iterations", KnobKind::Int)
+        }],
+        build: |c, d| Ok(Box::new(ppl::PplTrainer::new(c, d)?)),
+        resume: |c, d, b| Ok(Box::new(ppl::PplTrainer::resume(c, d, b)?)),
+    },
+    AlgorithmSpec {
+        algorithm: Algorithm::Dexperts,
+        name: "dexperts",
+        label: "DExperts",
+        color: "#7c3aed",
+        needs_non_preferred: true,
+        own_knobs: &[knob("alpha", "α (DExperts)", KnobKind::Float)],
+        build: |c, d| Ok(Box::new(dexperts::DexpertsTrainer::new(c, d)?)),
+        resume: |c, d, b| Ok(Box::new(dexperts::DexpertsTrainer::resume(c, d, b)?)),
+    },
+];
+
+impl AlgorithmSpec {
+    /// The job form's knobs: the common ones, then its own.
+    pub fn knobs(&self) -> Vec<Knob> {
+        COMMON_KNOBS.iter().chain(self.own_knobs).copied().collect()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::algo::resolve_config;
+
+    #[test]
+    fn the_table_follows_the_enum_and_its_serde_names() {
+        for (spec, algorithm) in SPECS.iter().zip(Algorithm::ALL) {
+            assert_eq!(spec.algorithm, algorithm);
+            assert_eq!(serde_json::to_value(algorithm).unwrap(), spec.name);
+        }
+    }
+
+    /// Every knob a form offers is a key of the algorithm's resolved configuration, and every
+    /// pretraining knob is the one phase-length key the configuration has.
+    #[test]
+    fn every_knob_is_a_key_of_the_configuration() {
+        for spec in &SPECS {
+            let resolved = resolve_config(spec.algorithm, &serde_json::json!({})).unwrap();
+            let config = serde_json::to_value(&resolved).unwrap();
+            for knob in spec.knobs() {
+                assert!(config.get(knob.key).is_some(), "{}: {}", spec.name, knob.key);
+            }
+            let pretraining = spec.own_knobs.iter().filter(|k| k.pretraining.is_some()).count();
+            assert_eq!(pretraining, usize::from(resolved.pretraining_steps() > 0), "{}", spec.name);
+        }
+    }
+}
