@@ -10,6 +10,8 @@ Workloads (docs/performance.md defines them; src/bench/speed.rs times them in th
                  lambda * mean((|grad_x c(x_hat)| - 1)^2) on 2B interpolates (double backprop),
                  Adam step.
 Usage: python bench/pytorch_reference.py --obs-dim 17 --act-dim 6 --batch 512 --iters 200 --threads 1
+       (--device cuda: the same steps on a GPU; losses stay on the device and each timed run ends
+       with a synchronize, so the rate is the GPU's, not one host round trip per step)
 """
 import argparse
 import math
@@ -92,9 +94,12 @@ class Bench:
         self.x_n = torch.cat([torch.randn(n_n, a.obs_dim, generator=g), nact], 1)
         hidden = [a.hidden] * 2
         self.policy_out = a.discrete if self.discrete else 2 * a.act_dim
-        self.nu = mlp(a.obs_dim, hidden, 1, False)
-        self.pi = mlp(a.obs_dim, hidden, self.policy_out, True)
-        self.disc = mlp(a.obs_dim + act_in, hidden, 1, False)
+        self.dev = torch.device(a.device)
+        for name in ["s", "s2", "s0", "r", "act", "x_u", "x_n"] + (["act_idx"] if self.discrete else []):
+            setattr(self, name, getattr(self, name).to(self.dev))
+        self.nu = mlp(a.obs_dim, hidden, 1, False).to(self.dev)
+        self.pi = mlp(a.obs_dim, hidden, self.policy_out, True).to(self.dev)
+        self.disc = mlp(a.obs_dim + act_in, hidden, 1, False).to(self.dev)
         self.opt_nu = torch.optim.Adam(self.nu.parameters(), lr=1e-4)
         self.opt_pi = torch.optim.Adam(self.pi.parameters(), lr=1e-5)
         self.opt_d = torch.optim.Adam(self.disc.parameters(), lr=1e-4)
@@ -114,14 +119,14 @@ class Bench:
 
     def main_iteration(self):
         b = self.a.batch
-        idx = torch.randint(0, self.s.shape[0], (b,))
-        idx0 = torch.randint(0, self.s0.shape[0], (b,))
+        idx = torch.randint(0, self.s.shape[0], (b,), device=self.dev)
+        idx0 = torch.randint(0, self.s0.shape[0], (b,), device=self.dev)
         s, s2, s0, r = self.s[idx], self.s2[idx], self.s0[idx0], self.r[idx]
         v = self.nu(torch.cat([s, s2, s0], 0)).squeeze(1)
         v_s, v_s2, v_0 = v[:b], v[b:2 * b], v[2 * b:]
         adv = r + GAMMA * v_s2 - v_s  # Eq. 36 (no terminal mask, as the authors)
         nu_loss = torch.logsumexp(adv, 0) - math.log(b) + (1 - GAMMA) * v_0.mean()
-        u = torch.rand(b, 1)  # shared by both point sets, as src/algo/safedice/draws.rs
+        u = torch.rand(b, 1, device=self.dev)  # shared by both point sets, as src/algo/safedice/draws.rs
         x_hat = torch.cat([u * s0 + (1 - u) * s, u * s2 + (1 - u) * s], 0)
         x_hat.requires_grad_(True)
         g = torch.autograd.grad(self.nu(x_hat).sum(), x_hat, create_graph=True)[0]
@@ -133,16 +138,16 @@ class Bench:
         (nu_loss + pi_loss).backward()
         self.opt_nu.step()
         self.opt_pi.step()
-        return nu_loss.item(), pi_loss.item()
+        return nu_loss.detach(), pi_loss.detach()
 
     def disc_step(self):
         b = self.a.batch
-        xn = self.x_n[torch.randint(0, self.x_n.shape[0], (b,))]
-        xu = self.x_u[torch.randint(0, self.x_u.shape[0], (b,))]
+        xn = self.x_n[torch.randint(0, self.x_n.shape[0], (b,), device=self.dev)]
+        xu = self.x_u[torch.randint(0, self.x_u.shape[0], (b,), device=self.dev)]
         c = self.disc(torch.cat([xn, xu], 0)).squeeze(1)
         loss = F.softplus(-c[:b]).mean() + F.softplus(c[b:]).mean()  # Eq. 9
-        u = torch.rand(2 * b, 1)
-        x_hat = u * torch.cat([xn, xu[torch.randperm(b)]], 0) + (1 - u) * torch.cat([xu, xu], 0)
+        u = torch.rand(2 * b, 1, device=self.dev)
+        x_hat = u * torch.cat([xn, xu[torch.randperm(b, device=self.dev)]], 0) + (1 - u) * torch.cat([xu, xu], 0)
         x_hat.requires_grad_(True)
         g = torch.autograd.grad(self.disc(x_hat).sum(), x_hat, create_graph=True)[0]
         norm = torch.sqrt((g * g).sum(1) + NORM_EPS)
@@ -150,17 +155,19 @@ class Bench:
         self.opt_d.zero_grad(set_to_none=True)
         loss.backward()
         self.opt_d.step()
-        return loss.item()
+        return loss.detach()
 
 
-def time_it(fn, iters, warmup, repeats):
+def time_it(fn, iters, warmup, repeats, sync):
     for _ in range(warmup):
         fn()
+    sync()
     rates, cpu_rates = [], []
     for _ in range(repeats):
         t, c = time.perf_counter(), time.process_time()
         for _ in range(iters):
             fn()
+        sync()
         rates.append(iters / (time.perf_counter() - t))
         cpu_rates.append(iters / max(time.process_time() - c, 0.01))
     return statistics.median(rates), rates, statistics.median(cpu_rates)
@@ -177,17 +184,20 @@ def main():
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--device", default="cpu", help="cpu, or cuda for a GPU")
     a = p.parse_args()
     torch.set_num_threads(a.threads)
     torch.manual_seed(a.seed)
     bench = Bench(a)
     main_flops, disc_flops = bench.flops
-    print(f"pytorch {torch.__version__}, threads {torch.get_num_threads()}, batch {a.batch}, "
+    sync = torch.cuda.synchronize if bench.dev.type == "cuda" else (lambda: None)
+    where = torch.cuda.get_device_name(bench.dev) if bench.dev.type == "cuda" else "cpu"
+    print(f"pytorch {torch.__version__}, {where}, threads {torch.get_num_threads()}, batch {a.batch}, "
           f"hidden [{a.hidden}, {a.hidden}], obs {a.obs_dim}, "
           + (f"discrete {a.discrete}" if a.discrete else f"act {a.act_dim}"))
     for name, fn, flops, unit in [("main loop", bench.main_iteration, main_flops, "iterations/s"),
                                   ("discriminator", bench.disc_step, disc_flops, "steps/s")]:
-        med, rates, cpu = time_it(fn, a.iters, warmup=max(5, a.iters // 10), repeats=a.repeats)
+        med, rates, cpu = time_it(fn, a.iters, warmup=max(5, a.iters // 10), repeats=a.repeats, sync=sync)
         print(f"{name:14} {med:8.1f} {unit:13} (runs {', '.join(f'{x:.1f}' for x in rates)}; "
               f"per CPU-second {cpu:.1f})  "
               f"{flops / 1e6:7.1f} MFLOP each  {med * flops / 1e9:6.1f} GFLOP/s")
