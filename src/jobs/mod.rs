@@ -22,6 +22,7 @@ pub mod evaluations;
 pub mod experiments;
 pub mod fleet;
 pub mod submit;
+mod training;
 mod worker;
 
 use std::collections::HashMap;
