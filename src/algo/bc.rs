@@ -5,7 +5,7 @@ use candle_core::Tensor;
 use super::columns::ActionColumn;
 use super::fused_policy::{fused_policy_step, fused_policy_update, FusedPolicyStep, LossName};
 use super::optim::Adam;
-use super::policy::{Decoder, PolicyArtifact, PolicyNet};
+use super::policy::{PolicyArtifact, PolicyNet};
 use super::run::RunData;
 use super::{Progress, ResolvedConfig, TrainError, Trainer, TrainingData};
 
@@ -89,12 +89,8 @@ impl Trainer for BcTrainer {
         self.run.checkpoint(&[("policy", &self.opt)])
     }
 
-    fn alpha_hat(&self) -> Option<f64> {
-        None
-    }
-
     fn export_policy(&self) -> Result<PolicyArtifact, TrainError> {
-        PolicyArtifact::new(self.run.policy_spec(Decoder::Single), &[&self.policy])
+        self.run.single_policy_artifact(&self.policy)
     }
 
     fn use_candle_autograd(&mut self) {

@@ -206,17 +206,13 @@ impl Trainer for DexpertsTrainer {
         self.run.checkpoint(&optimizers)
     }
 
-    fn alpha_hat(&self) -> Option<f64> {
-        None
-    }
-
     fn export_policy(&self) -> Result<PolicyArtifact, TrainError> {
         match &self.expert_n {
             Some((expert_n, _)) => PolicyArtifact::new(
                 self.run.policy_spec(Decoder::Dexperts { alpha: self.cfg.alpha }),
                 &[&self.policy, expert_n],
             ),
-            None => PolicyArtifact::new(self.run.policy_spec(Decoder::Single), &[&self.policy]),
+            None => self.run.single_policy_artifact(&self.policy),
         }
     }
 

@@ -146,7 +146,9 @@ pub trait Trainer: Send {
     /// Everything needed to continue this exact run: weights, optimiser state, step, RNG state.
     fn checkpoint(&self) -> Result<Vec<u8>, TrainError>;
     /// SafeDICE's alpha-hat once computed; None otherwise.
-    fn alpha_hat(&self) -> Option<f64>;
+    fn alpha_hat(&self) -> Option<f64> {
+        None
+    }
     /// The current policy as an artefact.
     fn export_policy(&self) -> Result<PolicyArtifact, TrainError>;
     /// Run every step on candle autograd even on the CPU, instead of the fused engine (the

@@ -12,7 +12,7 @@ use super::hyperparams::{AlgorithmConfig, PplConfig, PplWeight};
 use super::losses::{softplus, weighted_nll};
 use super::mlp::Mlp;
 use super::optim::Adam;
-use super::policy::{Decoder, PolicyArtifact, PolicyNet};
+use super::policy::{PolicyArtifact, PolicyNet};
 use super::run::RunData;
 use super::{Progress, ResolvedConfig, TrainError, Trainer, TrainingData};
 
@@ -185,12 +185,8 @@ impl Trainer for PplTrainer {
         self.run.checkpoint(&[("reward_model", &self.reward_opt), ("policy", &self.policy_opt)])
     }
 
-    fn alpha_hat(&self) -> Option<f64> {
-        None
-    }
-
     fn export_policy(&self) -> Result<PolicyArtifact, TrainError> {
-        PolicyArtifact::new(self.run.policy_spec(Decoder::Single), &[&self.policy])
+        self.run.single_policy_artifact(&self.policy)
     }
 
     fn use_candle_autograd(&mut self) {

@@ -9,7 +9,7 @@ use super::checkpoint::{self, Restored};
 use super::columns::{fingerprint, Columns, ObsNormalizer};
 use super::mlp::Mlp;
 use super::optim::Adam;
-use super::policy::{Decoder, PolicyNet, PolicySpec, POLICY_FORMAT_VERSION};
+use super::policy::{Decoder, PolicyArtifact, PolicyNet, PolicySpec, POLICY_FORMAT_VERSION};
 use super::{device, ResolvedConfig, TrainError, TrainingData};
 use crate::data::ActionSpace;
 
@@ -123,6 +123,11 @@ impl RunData {
             observation_normalization: self.normalizer.clone(),
             decoder,
         }
+    }
+
+    /// The artefact of a run that trains one policy network.
+    pub fn single_policy_artifact(&self, policy: &PolicyNet) -> Result<PolicyArtifact, TrainError> {
+        PolicyArtifact::new(self.policy_spec(Decoder::Single), &[policy])
     }
 
     pub fn checkpoint(&self, optimizers: &[(&str, &Adam)]) -> Result<Vec<u8>, TrainError> {

@@ -263,20 +263,9 @@ impl Store {
         &self,
         page: &PageQuery,
     ) -> Result<(Vec<DatasetRecord>, u64), StoreError> {
-        let rows: Vec<DatasetRow> = sqlx::query_as(&format!(
-            "SELECT {COLUMNS} FROM datasets WHERE {} ORDER BY created_at DESC, id DESC \
-             LIMIT $1 OFFSET $2",
-            Listing::Datasets.after(3)
-        ))
-        .bind(i64::from(page.limit))
-        .bind(page.offset as i64)
-        .bind(page.after.as_deref())
-        .fetch_all(self.pool())
-        .await?;
-        let (total,): (i64,) =
-            sqlx::query_as("SELECT COUNT(*) FROM datasets").fetch_one(self.pool()).await?;
+        let (rows, total) = Listing::Datasets.page::<DatasetRow>(self, COLUMNS, page).await?;
         let records = rows.into_iter().map(DatasetRecord::try_from).collect::<Result<_, _>>()?;
-        Ok((records, total as u64))
+        Ok((records, total))
     }
 
     pub(super) async fn dataset_ids(&self) -> Result<Vec<String>, sqlx::Error> {

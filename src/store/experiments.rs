@@ -82,20 +82,11 @@ impl Store {
         &self,
         page: &PageQuery,
     ) -> Result<(Vec<ExperimentRecord>, u64), StoreError> {
-        let rows: Vec<ExperimentRow> = sqlx::query_as(&format!(
-            "SELECT id, name, spec, created_at FROM experiments WHERE {} \
-             ORDER BY created_at DESC, id DESC LIMIT $1 OFFSET $2",
-            Listing::Experiments.after(3)
-        ))
-        .bind(i64::from(page.limit))
-        .bind(page.offset as i64)
-        .bind(page.after.as_deref())
-        .fetch_all(self.pool())
-        .await?;
-        let total: i64 =
-            sqlx::query_scalar("SELECT COUNT(*) FROM experiments").fetch_one(self.pool()).await?;
+        let (rows, total) = Listing::Experiments
+            .page::<ExperimentRow>(self, "id, name, spec, created_at", page)
+            .await?;
         let records = rows.into_iter().map(TryInto::try_into).collect::<Result<_, _>>()?;
-        Ok((records, total as u64))
+        Ok((records, total))
     }
 
     /// How many of an experiment's jobs are in each status (statuses with none left out).

@@ -27,6 +27,7 @@ pub mod evaluations;
 pub mod experiments;
 pub mod jobs;
 pub mod leases;
+mod listing;
 pub mod logs;
 pub mod model_aliases;
 pub mod models;
@@ -45,64 +46,13 @@ use sqlx::{Any, AnyPool, Connection, Transaction};
 
 pub use datasets::{DatasetRecord, DeleteOutcome, NewDataset};
 pub use leases::Lease;
+pub use listing::{Listing, PageQuery};
 
 pub use storage::StorageProblem;
 
 const DATABASE_FILE: &str = "safedice.sqlite";
 const DATASETS_DIR: &str = "datasets";
 const TMP_DIR: &str = "tmp";
-
-/// Which page of a list (newest first: `created_at DESC, id DESC`): `limit` rows after
-/// skipping `offset`, or after the row `after` (keyset paging: pages do not shift when rows are
-/// added meanwhile).
-#[derive(Clone, Debug, Default, PartialEq, Eq)]
-pub struct PageQuery {
-    pub limit: u32,
-    pub offset: u64,
-    pub after: Option<String>,
-}
-
-/// The tables the API lists.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Listing {
-    Datasets,
-    Jobs,
-    Policies,
-    Evaluations,
-    Models,
-    Experiments,
-}
-
-impl Listing {
-    fn table(self) -> &'static str {
-        match self {
-            Listing::Datasets => "datasets",
-            Listing::Jobs => "jobs",
-            Listing::Policies => "policies",
-            Listing::Evaluations => "evaluations",
-            Listing::Models => "models",
-            Listing::Experiments => "experiments",
-        }
-    }
-
-    /// The column that names a row (models are named, everything else has an id).
-    fn key(self) -> &'static str {
-        match self {
-            Listing::Models => "name",
-            _ => "id",
-        }
-    }
-
-    /// The keyset condition with the anchor id bound at `$n`: rows listed after the anchor.
-    fn after(self, n: usize) -> String {
-        format!(
-            "(${n} IS NULL OR (created_at, {key}) < \
-             (SELECT created_at, {key} FROM {} WHERE {key} = ${n}))",
-            self.table(),
-            key = self.key()
-        )
-    }
-}
 
 /// How long a request waits for a free pooled connection before it is answered 503.
 const ACQUIRE_TIMEOUT: Duration = Duration::from_secs(10);

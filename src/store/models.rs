@@ -183,23 +183,12 @@ impl Store {
         &self,
         page: &PageQuery,
     ) -> Result<(Vec<ModelRecord>, u64), StoreError> {
-        let rows: Vec<ModelRow> = sqlx::query_as(&format!(
-            "SELECT {MODEL_COLUMNS} FROM models WHERE {} \
-             ORDER BY created_at DESC, name DESC LIMIT $1 OFFSET $2",
-            Listing::Models.after(3)
-        ))
-        .bind(i64::from(page.limit))
-        .bind(page.offset as i64)
-        .bind(page.after.as_deref())
-        .fetch_all(self.pool())
-        .await?;
-        let total: i64 =
-            sqlx::query_scalar("SELECT COUNT(*) FROM models").fetch_one(self.pool()).await?;
+        let (rows, total) = Listing::Models.page::<ModelRow>(self, MODEL_COLUMNS, page).await?;
         let mut records = Vec::with_capacity(rows.len());
         for row in rows {
             records.push(self.model_record(row).await?);
         }
-        Ok((records, total as u64))
+        Ok((records, total))
     }
 
     /// Changes a model's description and/or tags.

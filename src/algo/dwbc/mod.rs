@@ -16,7 +16,7 @@ use crate::algo::hyperparams::{AlgorithmConfig, DwbcConfig};
 use crate::algo::losses::{interpolate, unit_gradient_penalty, weighted_nll};
 use crate::algo::mlp::Mlp;
 use crate::algo::optim::Adam;
-use crate::algo::policy::{Decoder, PolicyArtifact, PolicyNet};
+use crate::algo::policy::{PolicyArtifact, PolicyNet};
 use crate::algo::run::RunData;
 use crate::algo::{Progress, ResolvedConfig, TrainError, Trainer, TrainingData};
 use fused::{DwbcDiscBatch, FusedDwbcDisc};
@@ -189,12 +189,8 @@ impl Trainer for DwbcTrainer {
         self.run.checkpoint(&[("discriminator", &self.disc_opt), ("policy", &self.policy_opt)])
     }
 
-    fn alpha_hat(&self) -> Option<f64> {
-        None
-    }
-
     fn export_policy(&self) -> Result<PolicyArtifact, TrainError> {
-        PolicyArtifact::new(self.run.policy_spec(Decoder::Single), &[&self.policy])
+        self.run.single_policy_artifact(&self.policy)
     }
 
     fn use_candle_autograd(&mut self) {

@@ -25,7 +25,7 @@ use crate::algo::losses::{
 };
 use crate::algo::mlp::Mlp;
 use crate::algo::optim::Adam;
-use crate::algo::policy::{Decoder, PolicyArtifact, PolicyNet};
+use crate::algo::policy::{PolicyArtifact, PolicyNet};
 use crate::algo::run::RunData;
 use crate::algo::{Progress, ResolvedConfig, TerminalHandling, TrainError, Trainer, TrainingData};
 use crate::data::Dataset;
@@ -638,7 +638,7 @@ impl Trainer for SafediceTrainer {
     }
 
     fn export_policy(&self) -> Result<PolicyArtifact, TrainError> {
-        PolicyArtifact::new(self.run.policy_spec(Decoder::Single), &[&self.policy])
+        self.run.single_policy_artifact(&self.policy)
     }
 
     fn use_candle_autograd(&mut self) {
