@@ -23,7 +23,7 @@ use super::extract::{Json, Path as UrlPath, Query};
 use super::pagination::{Page, PageParams};
 use super::{ApiError, AppState};
 use crate::data::{self, ActionSpace, DatasetStats, Format};
-use crate::domain::DatasetRole;
+use crate::domain::{DatasetId, DatasetRole};
 use crate::store::{DatasetRecord, DeleteOutcome, Listing, NewDataset};
 
 /// Room for the multipart framing and the `name`/`description` fields on top of the file.
@@ -402,7 +402,7 @@ async fn list_datasets(
 )]
 async fn get_dataset(
     State(state): State<AppState>,
-    UrlPath(id): UrlPath<String>,
+    UrlPath(id): UrlPath<DatasetId>,
 ) -> Result<Json<DatasetResource>, ApiError> {
     let record =
         state.store.dataset(&id).await?.ok_or_else(|| ApiError::not_found("dataset", &id))?;
@@ -435,7 +435,7 @@ pub struct PreviewParams {
     ))]
 async fn preview_dataset(
     State(state): State<AppState>,
-    UrlPath(id): UrlPath<String>,
+    UrlPath(id): UrlPath<DatasetId>,
     Query(params): Query<PreviewParams>,
 ) -> Result<Json<data::DatasetPreview>, ApiError> {
     let (rows, episodes) = (params.rows.unwrap_or(10), params.episodes.unwrap_or(20));
@@ -463,7 +463,7 @@ async fn preview_dataset(
     ))]
 async fn download_dataset(
     State(state): State<AppState>,
-    UrlPath(id): UrlPath<String>,
+    UrlPath(id): UrlPath<DatasetId>,
 ) -> Result<Response, ApiError> {
     let permit = super::heavy_read_permit(&state)?;
     let dataset = state.store.load_dataset(&id).await?;
@@ -502,7 +502,7 @@ async fn download_dataset(
 )]
 async fn delete_dataset(
     State(state): State<AppState>,
-    UrlPath(id): UrlPath<String>,
+    UrlPath(id): UrlPath<DatasetId>,
 ) -> Result<StatusCode, ApiError> {
     match state.store.delete_dataset(&id).await? {
         DeleteOutcome::Deleted => Ok(StatusCode::NO_CONTENT),

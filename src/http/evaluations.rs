@@ -16,6 +16,7 @@ use super::extract::{Json, Path, Query};
 use super::pagination::{Page, PageParams};
 use super::{ApiError, AppState};
 use crate::domain::evaluation::ExternalEvaluation;
+use crate::domain::PolicyId;
 use crate::domain::{
     rfc3339, EvalSpec, EvaluationId, EvaluationRecord, EvaluationSource, EvaluationStatus,
 };
@@ -115,7 +116,7 @@ pub fn router() -> OpenApiRouter<AppState> {
     ))]
 async fn evaluate_policy(
     State(state): State<AppState>,
-    Path(policy_id): Path<String>,
+    Path(policy_id): Path<PolicyId>,
     Json(spec): Json<EvalSpec>,
 ) -> Result<impl IntoResponse, ApiError> {
     let policy = state.store.policy(&policy_id).await?;
@@ -124,7 +125,7 @@ async fn evaluate_policy(
         .map_err(|e| ApiError::unprocessable("invalid_evaluation", format!("env: {e}")))?;
     let env = spec.env.clone();
     let id = EvaluationId::generate();
-    let new = NewEvaluation { id, policy_id: policy_id.into(), spec, report: None };
+    let new = NewEvaluation { id, policy_id, spec, report: None };
     let evaluation = state.store.insert_evaluation(&new).await?;
     state.jobs.evaluator().wake();
     let id = &evaluation.id;
@@ -150,13 +151,13 @@ async fn evaluate_policy(
     ))]
 async fn record_evaluation(
     State(state): State<AppState>,
-    Path(policy_id): Path<String>,
+    Path(policy_id): Path<PolicyId>,
     Json(recorded): Json<ExternalEvaluation>,
 ) -> Result<impl IntoResponse, ApiError> {
     let (spec, report) =
         recorded.into_report().map_err(|e| ApiError::unprocessable("invalid_evaluation", e))?;
     let id = EvaluationId::generate();
-    let new = NewEvaluation { id, policy_id: policy_id.into(), spec, report: Some(report) };
+    let new = NewEvaluation { id, policy_id, spec, report: Some(report) };
     let evaluation = state.store.insert_evaluation(&new).await?;
     let id = &evaluation.id;
     tracing::info!(evaluation_id = %id, policy_id = %evaluation.policy_id, "external evaluation recorded");
@@ -187,7 +188,7 @@ async fn list_evaluations(
     responses((status = 200, body = Evaluation), (status = 404, body = ErrorBody)))]
 async fn get_evaluation(
     State(state): State<AppState>,
-    Path(id): Path<String>,
+    Path(id): Path<EvaluationId>,
 ) -> Result<Json<Evaluation>, ApiError> {
     Ok(Json(state.store.evaluation(&id).await?.into()))
 }
@@ -203,7 +204,7 @@ async fn get_evaluation(
     ))]
 async fn delete_evaluation(
     State(state): State<AppState>,
-    Path(id): Path<String>,
+    Path(id): Path<EvaluationId>,
 ) -> Result<StatusCode, ApiError> {
     match state.store.delete_evaluation(&id).await? {
         DeleteOutcome::Deleted => Ok(StatusCode::NO_CONTENT),

@@ -251,14 +251,13 @@ async fn cancel_experiment(
 ) -> Result<Json<Experiment>, ApiError> {
     let record = state.store.experiment(&id).await?;
     for job in state.store.experiment_jobs(&id).await? {
-        let job_id = job.id.to_string();
-        match state.store.request_cancel(&job_id).await? {
+        match state.store.request_cancel(&job.id).await? {
             CancelOutcome::Cancelled => {
                 let status = JobStatus::Cancelled;
                 let event = JobEvent::Status { job_id: job.id.clone(), status };
                 state.jobs.publish_api_change(event);
             }
-            CancelOutcome::Requested => state.jobs.cancel_running(&job_id),
+            CancelOutcome::Requested => state.jobs.cancel_running(&job.id),
             CancelOutcome::AlreadyFinished(_) => {}
         }
     }

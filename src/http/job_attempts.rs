@@ -11,6 +11,7 @@ use utoipa_axum::routes;
 use super::error::ErrorBody;
 use super::extract::{Json, Path};
 use super::{ApiError, AppState};
+use crate::domain::JobId;
 use crate::domain::{rfc3339, AttemptOutcome, JobAttempt};
 
 /// One claim of a job by a worker.
@@ -67,7 +68,7 @@ pub fn router() -> OpenApiRouter<AppState> {
     responses((status = 200, body = JobAttempts), (status = 404, body = ErrorBody)))]
 async fn job_attempts(
     State(state): State<AppState>,
-    Path(id): Path<String>,
+    Path(id): Path<JobId>,
 ) -> Result<Json<JobAttempts>, ApiError> {
     let job = state.store.job(&id).await?;
     let attempts = state.store.job_attempts(&id).await?;

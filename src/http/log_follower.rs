@@ -14,7 +14,7 @@ use futures::Stream;
 use tokio::sync::broadcast;
 use tokio::time::Instant;
 
-use crate::domain::JobStatus;
+use crate::domain::{JobId, JobStatus};
 use crate::jobs::JobEvent;
 use crate::store::logs::LogRow;
 use crate::store::{Store, StoreError};
@@ -30,7 +30,7 @@ const QUIET_CHECK: Duration = Duration::from_secs(5);
 struct Follower {
     store: Store,
     events: broadcast::Receiver<JobEvent>,
-    id: String,
+    id: JobId,
     /// The last line sent (its `seq`).
     after: i64,
     pending: VecDeque<LogRow>,
@@ -46,7 +46,7 @@ struct Follower {
 pub(super) fn follow(
     store: Store,
     events: broadcast::Receiver<JobEvent>,
-    id: String,
+    id: JobId,
     after: i64,
 ) -> impl Stream<Item = LogRow> + Send + 'static {
     let follower = Follower {
@@ -105,7 +105,7 @@ impl Follower {
             tokio::select! {
                 () = &mut quiet => break false,
                 received = self.events.recv() => match received {
-                    Ok(event) if event.job_id().as_str() == self.id => {
+                    Ok(event) if *event.job_id() == self.id => {
                         break matches!(event, JobEvent::Progress { .. });
                     }
                     Ok(_) => continue,

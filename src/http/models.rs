@@ -18,7 +18,7 @@ use crate::domain::model::{
     self, AliasMove, AliasRecord, AliasTarget, Canary, ModelRecord, ModelVersionRecord, MoveNote,
     BASIS_POINTS, MAX_ACTOR_CHARS, MAX_DESCRIPTION_CHARS,
 };
-use crate::domain::rfc3339;
+use crate::domain::{rfc3339, PolicyId};
 use crate::store::models::{NewModel, NewVersion};
 use crate::store::{Listing, StoreError};
 
@@ -469,7 +469,7 @@ async fn create_version(
         let message = format!("policy_id: no policy {:?}", request.policy_id);
         ApiError::unprocessable("unknown_policy", message)
     };
-    match state.store.policy(&request.policy_id).await {
+    match state.store.policy(&PolicyId::from(request.policy_id.as_str())).await {
         Err(StoreError::NotFound { .. }) => return Err(unknown_policy()),
         found => drop(found?),
     }

@@ -15,7 +15,7 @@ use super::pagination::{Page, PageParams};
 use super::{ApiError, AppState, OCTET_STREAM};
 use crate::algo::Algorithm;
 use crate::data::Actions;
-use crate::domain::{rfc3339, PolicyRecord};
+use crate::domain::{rfc3339, PolicyId, PolicyRecord};
 use crate::store::{DeleteOutcome, Listing};
 
 /// Header of `GET /v1/policies/{id}/weights` carrying the policy's spec (JSON), which
@@ -155,7 +155,7 @@ async fn list_policies(
     ))]
 async fn delete_policy(
     State(state): State<AppState>,
-    Path(id): Path<String>,
+    Path(id): Path<PolicyId>,
 ) -> Result<StatusCode, ApiError> {
     match state.store.delete_policy(&id).await? {
         DeleteOutcome::Deleted => {
@@ -187,7 +187,7 @@ async fn delete_policy(
     responses((status = 200, body = PolicyResource), (status = 404, body = ErrorBody)))]
 async fn get_policy(
     State(state): State<AppState>,
-    Path(id): Path<String>,
+    Path(id): Path<PolicyId>,
 ) -> Result<Json<PolicyResource>, ApiError> {
     Ok(Json(state.store.policy(&id).await?.into()))
 }
@@ -208,7 +208,7 @@ async fn get_policy(
     ))]
 async fn policy_weights(
     State(state): State<AppState>,
-    Path(id): Path<String>,
+    Path(id): Path<PolicyId>,
 ) -> Result<Response, ApiError> {
     let permit = super::heavy_read_permit(&state)?;
     // The spec from the policy's row; the weights (the large part) are read once, by the file.
@@ -255,7 +255,7 @@ pub enum ExportFormat {
     ))]
 async fn export_policy(
     State(state): State<AppState>,
-    Path(id): Path<String>,
+    Path(id): Path<PolicyId>,
     Query(query): Query<ExportQuery>,
 ) -> Result<Response, ApiError> {
     let ExportFormat::Onnx = query.format.unwrap_or(ExportFormat::Onnx);
@@ -276,7 +276,7 @@ async fn export_policy(
     ))]
 async fn act(
     State(state): State<AppState>,
-    Path(id): Path<String>,
+    Path(id): Path<PolicyId>,
     Json(request): Json<ActRequest>,
 ) -> Result<Json<ActResponse>, ApiError> {
     let policy = state.policies.get(&id).await?;

@@ -259,7 +259,7 @@ async fn in_training(
     store: &Store,
     job: &JobRecord,
 ) -> Result<(Option<String>, BTreeMap<String, f64>), StoreError> {
-    let last = store.last_metric_values(job.id.as_str()).await?;
+    let last = store.last_metric_values(&job.id).await?;
     let metrics = named(last.iter().map(|(n, v)| (n.as_str(), *v)).collect());
     let from = (!metrics.is_empty()).then(|| "in-training eval".to_owned());
     Ok((from, metrics))

@@ -34,8 +34,8 @@ use tokio::sync::{broadcast, Notify};
 use tokio::task::JoinHandle;
 use tokio_util::sync::CancellationToken;
 
+use crate::domain::{DatasetId, JobId, JobStatus};
 pub use crate::domain::{EvalOptions, EvalSpec, JobProgress, RunnerOptions};
-use crate::domain::{JobId, JobStatus};
 use crate::store::Store;
 pub use evaluations::{evaluate_policy, Evaluator};
 pub use fleet::WorkerOptions;
@@ -346,8 +346,8 @@ async fn back_off(shutdown: &CancellationToken) {
 /// Loads a job's datasets from the store.
 pub async fn load_training_data(
     store: &Store,
-    unlabeled: &str,
-    non_preferred: Option<&str>,
+    unlabeled: &DatasetId,
+    non_preferred: Option<&DatasetId>,
 ) -> Result<crate::algo::TrainingData, crate::store::StoreError> {
     let unlabeled = Arc::new(store.load_dataset(unlabeled).await?);
     let non_preferred = match non_preferred {

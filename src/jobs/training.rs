@@ -252,7 +252,7 @@ impl TrainingRun {
         let data = super::load_training_data(
             &store,
             &self.job.unlabeled_dataset,
-            self.job.non_preferred_dataset.as_deref(),
+            self.job.non_preferred_dataset.as_ref(),
         )
         .await?;
         let checkpoint = store.checkpoint(&self.job.id).await?;

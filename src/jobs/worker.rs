@@ -173,7 +173,7 @@ async fn store_policy(
     // In first: the policy's final metrics are the last values stored.
     store.insert_metrics(lease, &metrics).await?;
     let last: serde_json::Map<String, serde_json::Value> = store
-        .last_metric_values(&lease.id)
+        .last_metric_values(&lease.job_id())
         .await?
         .into_iter()
         .map(|(name, value)| (name, value.into()))
@@ -192,7 +192,7 @@ async fn store_policy(
         alpha_hat,
     };
     log.write(LogLevel::Info, &format!("succeeded at step {step}: policy {policy_id}")).await;
-    if let Some(register) = store.job(&lease.id).await?.register {
+    if let Some(register) = store.job(&lease.job_id()).await?.register {
         let alias = register.alias.as_deref().map(|a| format!(", alias {a} moved to it"));
         let message = format!(
             "registering the policy as the next version of model {}{}",

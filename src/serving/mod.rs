@@ -9,6 +9,7 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, RwLock, RwLockWriteGuard};
 
 use crate::algo::Policy;
+use crate::domain::PolicyId;
 use crate::store::{Store, StoreError};
 
 /// Why a policy could not be served.
@@ -100,7 +101,7 @@ impl PolicyCache {
             slots.loading.entry(id.to_owned()).or_default().loads += 1;
             LoadTicket { cache: self, id }
         };
-        let (spec, weights) = self.store.policy_artifact(id).await?;
+        let (spec, weights) = self.store.policy_artifact(&PolicyId::from(id)).await?;
         let bytes = weights.len() as u64;
         let unreadable =
             |message: String| PolicyLoadError::Unreadable { id: id.to_owned(), message };
@@ -141,8 +142,9 @@ impl PolicyCache {
 /// give the same file.
 pub async fn portable_weights(store: &Store, id: &str) -> Result<Vec<u8>, PolicyLoadError> {
     let unreadable = |message: String| PolicyLoadError::Unreadable { id: id.to_owned(), message };
-    let (_, weights) = store.policy_artifact(id).await?;
-    let record = store.policy(id).await?;
+    let policy_id = PolicyId::from(id);
+    let (_, weights) = store.policy_artifact(&policy_id).await?;
+    let record = store.policy(&policy_id).await?;
     let job = store.job(&record.job_id).await?;
     let training = serde_json::json!({
         "config": job.config,

@@ -73,7 +73,8 @@ impl Store {
     }
 
     /// A job's attempts, oldest first.
-    pub async fn job_attempts(&self, id: &str) -> Result<Vec<JobAttempt>, StoreError> {
+    pub async fn job_attempts(&self, id: &JobId) -> Result<Vec<JobAttempt>, StoreError> {
+        let id = id.as_str();
         let rows: Vec<AttemptRow> = sqlx::query_as(
             "SELECT attempt, worker, started_at, ended_at, outcome, message FROM job_attempts \
              WHERE job_id = $1 ORDER BY claim",

@@ -11,7 +11,7 @@ use sqlx::{Any, Transaction};
 
 use super::{now, parse_time, Backend, Listing, PageQuery, Store, StoreError};
 use crate::data::{self, ActionSpace, Dataset, DatasetStats, Format};
-use crate::domain::DatasetRole;
+use crate::domain::{DatasetId, DatasetRole};
 
 const CANONICAL_EXTENSION: &str = "canonical";
 const COLUMNS: &str = "id, name, description, format, transitions, episodes, obs_dim, \
@@ -216,7 +216,7 @@ impl Store {
                 tx.commit().await?;
             }
         }
-        self.dataset(&id)
+        self.dataset(&DatasetId::from(id.as_str()))
             .await?
             .ok_or_else(|| StoreError::NotFound { kind: "dataset", id: id.clone() })
     }
@@ -249,7 +249,8 @@ impl Store {
     }
 
     /// One dataset's description.
-    pub async fn dataset(&self, id: &str) -> Result<Option<DatasetRecord>, StoreError> {
+    pub async fn dataset(&self, id: &DatasetId) -> Result<Option<DatasetRecord>, StoreError> {
+        let id = id.as_str();
         let row: Option<DatasetRow> =
             sqlx::query_as(&format!("SELECT {COLUMNS} FROM datasets WHERE id = $1"))
                 .bind(id)
@@ -277,7 +278,8 @@ impl Store {
     /// either commits first and is seen here, or sees the dataset gone (see
     /// [`Store::insert_job`]); and the answer describes the state the delete saw, not one read
     /// after it.
-    pub async fn delete_dataset(&self, id: &str) -> Result<DeleteOutcome, StoreError> {
+    pub async fn delete_dataset(&self, id: &DatasetId) -> Result<DeleteOutcome, StoreError> {
+        let id = id.as_str();
         let Some((mut tx, _)) = self.begin_delete("datasets", "id", id).await? else {
             return Ok(DeleteOutcome::NotFound);
         };
@@ -307,11 +309,12 @@ impl Store {
 
     /// Loads a stored dataset for training, checking its bytes against the hash recorded at
     /// upload time.
-    pub async fn load_dataset(&self, id: &str) -> Result<Dataset, StoreError> {
+    pub async fn load_dataset(&self, id: &DatasetId) -> Result<Dataset, StoreError> {
         let record = self
             .dataset(id)
             .await?
-            .ok_or_else(|| StoreError::NotFound { kind: "dataset", id: id.to_owned() })?;
+            .ok_or_else(|| StoreError::NotFound { kind: "dataset", id: id.to_string() })?;
+        let id = id.as_str();
         self.verify_canonical(id, &record).await?;
         let header = self.canonical_header(id, record.canonical_bytes).await?;
         // Column by column on a blocking thread: memory holds the decoded dataset and one
@@ -394,7 +397,7 @@ impl Store {
     /// A dataset's file not found: deleted between reading its row and its file (as if never
     /// found), or, under a row that is still there, damage.
     async fn missing_file(&self, id: &str, path: &Path) -> StoreError {
-        match self.dataset(id).await {
+        match self.dataset(&DatasetId::from(id)).await {
             Ok(None) => StoreError::NotFound { kind: "dataset", id: id.to_owned() },
             Ok(Some(_)) => {
                 StoreError::Corrupt(id.to_owned(), format!("{} is missing", path.display()))
@@ -410,14 +413,15 @@ impl Store {
     /// whole file's checksum is left to full loads.
     pub async fn preview_dataset(
         &self,
-        id: &str,
+        id: &DatasetId,
         rows: usize,
         episodes: usize,
     ) -> Result<data::DatasetPreview, StoreError> {
         let record = self
             .dataset(id)
             .await?
-            .ok_or_else(|| StoreError::NotFound { kind: "dataset", id: id.to_owned() })?;
+            .ok_or_else(|| StoreError::NotFound { kind: "dataset", id: id.to_string() })?;
+        let id = id.as_str();
         let corrupt = |e: data::ParseError| StoreError::Corrupt(id.to_owned(), e.to_string());
         let header = self.canonical_header(id, record.canonical_bytes).await?;
         let ids = match header.prefix_range("episode_ids", header.rows()) {
@@ -572,6 +576,9 @@ mod tests {
     async fn a_missing_file_under_an_existing_row_is_corrupt() {
         let (_dir, store, id) = store_with_a_dataset().await;
         std::fs::remove_file(store.canonical_path(&id)).unwrap();
-        assert!(matches!(store.load_dataset(&id).await, Err(StoreError::Corrupt(..))));
+        assert!(matches!(
+            store.load_dataset(&DatasetId::from(id.as_str())).await,
+            Err(StoreError::Corrupt(..))
+        ));
     }
 }

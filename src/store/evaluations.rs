@@ -188,7 +188,8 @@ impl Store {
         row.try_into()
     }
 
-    pub async fn evaluation(&self, id: &str) -> Result<EvaluationRecord, StoreError> {
+    pub async fn evaluation(&self, id: &EvaluationId) -> Result<EvaluationRecord, StoreError> {
+        let id = id.as_str();
         let row: EvaluationRow =
             sqlx::query_as(&format!("SELECT {EVALUATION_COLUMNS} FROM evaluations WHERE id = $1"))
                 .bind(id)
@@ -199,7 +200,8 @@ impl Store {
     }
 
     /// Deletes a finished evaluation (`InUse` names it while it is queued or running).
-    pub async fn delete_evaluation(&self, id: &str) -> Result<DeleteOutcome, StoreError> {
+    pub async fn delete_evaluation(&self, id: &EvaluationId) -> Result<DeleteOutcome, StoreError> {
+        let id = id.as_str();
         let Some((mut tx, status)) = self.begin_delete("evaluations", "status", id).await? else {
             return Ok(DeleteOutcome::NotFound);
         };
@@ -255,7 +257,7 @@ impl Store {
         let claimed = claim.run(self, worker, lease_duration).await?;
         match claimed {
             Some((id, token)) => {
-                let record = self.evaluation(&id).await?;
+                let record = self.evaluation(&EvaluationId::from(id.as_str())).await?;
                 Ok(Some((record, Lease::new(id, token))))
             }
             None => Ok(None),

@@ -3,7 +3,7 @@
 use super::jobs::{DeleteJobOutcome, NewJob};
 use super::{parse_time, Listing, PageQuery, Store, StoreError};
 use crate::domain::experiment::{ExperimentRecord, ExperimentSpec};
-use crate::domain::{JobRecord, JobStatus};
+use crate::domain::{JobId, JobRecord, JobStatus};
 
 #[derive(sqlx::FromRow)]
 struct ExperimentRow {
@@ -112,12 +112,15 @@ impl Store {
 
     /// The jobs of an experiment, in the order they were queued (arm by arm, seed by seed).
     pub async fn experiment_jobs(&self, id: &str) -> Result<Vec<JobRecord>, StoreError> {
-        let ids: Vec<String> = sqlx::query_scalar(
+        let ids: Vec<JobId> = sqlx::query_scalar::<_, String>(
             "SELECT id FROM jobs WHERE experiment_id = $1 ORDER BY created_at, name, id",
         )
         .bind(id)
         .fetch_all(self.pool())
-        .await?;
+        .await?
+        .into_iter()
+        .map(JobId::from)
+        .collect();
         let mut jobs = Vec::with_capacity(ids.len());
         for job in ids {
             jobs.push(self.job(&job).await?);
@@ -145,7 +148,7 @@ impl Store {
         }
         let (mut policies, mut deleted) = (Vec::new(), Vec::new());
         for job in &jobs {
-            match self.delete_job(job.id.as_str()).await? {
+            match self.delete_job(&job.id).await? {
                 DeleteJobOutcome::Deleted { policy } => {
                     policies.extend(policy);
                     deleted.push(job.id.to_string());

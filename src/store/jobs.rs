@@ -300,7 +300,8 @@ impl Store {
         Ok(())
     }
 
-    pub async fn job(&self, id: &str) -> Result<JobRecord, StoreError> {
+    pub async fn job(&self, id: &JobId) -> Result<JobRecord, StoreError> {
+        let id = id.as_str();
         let row: JobRow =
             sqlx::query_as(&format!("SELECT {} FROM jobs WHERE id = $1", self.job_columns()))
                 .bind(id)
@@ -311,7 +312,8 @@ impl Store {
     }
 
     /// A job's status alone (what a cancel waits on).
-    pub async fn job_status(&self, id: &str) -> Result<JobStatus, StoreError> {
+    pub async fn job_status(&self, id: &JobId) -> Result<JobStatus, StoreError> {
+        let id = id.as_str();
         let status: String = sqlx::query_scalar("SELECT status FROM jobs WHERE id = $1")
             .bind(id)
             .fetch_optional(self.pool())
@@ -363,13 +365,13 @@ impl Store {
     /// Replaces a job's name, tags and notes (any status: the runner never reads them).
     pub async fn update_job_labels(
         &self,
-        id: &str,
+        id: &JobId,
         labels: &JobLabels,
     ) -> Result<JobRecord, StoreError> {
         let updated = sqlx::query(
             "UPDATE jobs SET name = $2, tags = $3, notes = $4, updated_at = $5 WHERE id = $1",
         )
-        .bind(id)
+        .bind(id.as_str())
         .bind(labels.name.as_deref())
         .bind(to_json(&labels.tags))
         .bind(labels.notes.as_deref())
@@ -377,7 +379,7 @@ impl Store {
         .execute(self.pool())
         .await?;
         if updated.rows_affected() == 0 {
-            return Err(StoreError::NotFound { kind: "job", id: id.to_owned() });
+            return Err(StoreError::NotFound { kind: "job", id: id.to_string() });
         }
         self.job(id).await
     }
@@ -386,7 +388,8 @@ impl Store {
     /// policy's evaluations — unless the job is queued or running, or an evaluation of its
     /// policy is. One write transaction with the job's row locked, so a worker cannot claim it
     /// in between.
-    pub async fn delete_job(&self, id: &str) -> Result<DeleteJobOutcome, StoreError> {
+    pub async fn delete_job(&self, id: &JobId) -> Result<DeleteJobOutcome, StoreError> {
+        let id = id.as_str();
         let Some((mut tx, status)) = self.begin_delete("jobs", "status", id).await? else {
             return Ok(DeleteJobOutcome::NotFound);
         };
@@ -431,7 +434,8 @@ impl Store {
     }
 
     /// The metrics a job recorded, by name, with their point counts and step range.
-    pub async fn metric_names(&self, id: &str) -> Result<Vec<MetricSummary>, StoreError> {
+    pub async fn metric_names(&self, id: &JobId) -> Result<Vec<MetricSummary>, StoreError> {
+        let id = id.as_str();
         Ok(sqlx::query_as(
             "SELECT name, COUNT(*) AS points, MIN(step) AS first_step, MAX(step) AS last_step \
              FROM job_metrics WHERE job_id = $1 GROUP BY name ORDER BY name",
@@ -474,7 +478,7 @@ impl Store {
         let claimed = claim.run(self, worker, lease_duration).await?;
         let Some((id, token)) = claimed else { return Ok(None) };
         let lease = Lease::new(id, token);
-        let job = self.job(&lease.id).await;
+        let job = self.job(&lease.job_id()).await;
         if let Ok(job) = &job {
             self.start_attempt(&lease, worker, job.attempt).await?;
         }
@@ -580,7 +584,8 @@ impl Store {
     }
 
     /// The job's last checkpoint: (step, bytes).
-    pub async fn checkpoint(&self, id: &str) -> Result<Option<(u64, Vec<u8>)>, StoreError> {
+    pub async fn checkpoint(&self, id: &JobId) -> Result<Option<(u64, Vec<u8>)>, StoreError> {
+        let id = id.as_str();
         let row: Option<(i64, Vec<u8>)> =
             sqlx::query_as("SELECT step, data FROM job_checkpoints WHERE job_id = $1")
                 .bind(id)
@@ -626,7 +631,8 @@ impl Store {
     }
 
     /// The last recorded value of each metric of a job.
-    pub async fn last_metric_values(&self, id: &str) -> Result<Vec<(String, f64)>, StoreError> {
+    pub async fn last_metric_values(&self, id: &JobId) -> Result<Vec<(String, f64)>, StoreError> {
+        let id = id.as_str();
         let rows = sqlx::query_as(
             "SELECT name, value FROM job_metrics AS m WHERE job_id = $1 \
                AND step = (SELECT MAX(step) FROM job_metrics WHERE job_id = $1 AND name = m.name) \
@@ -748,7 +754,8 @@ impl Store {
 
     /// Cancels a queued job at once, or flags a running one for its worker. The status read and
     /// the update are one write transaction (the row locked), so a claim cannot slip in between.
-    pub async fn request_cancel(&self, id: &str) -> Result<CancelOutcome, StoreError> {
+    pub async fn request_cancel(&self, id: &JobId) -> Result<CancelOutcome, StoreError> {
+        let id = id.as_str();
         let now = self.db_now().await?;
         let mut tx = self.begin_write().await?;
         let status: String = sqlx::query_scalar(&format!(

@@ -15,7 +15,7 @@ use sqlx::{Any, Transaction};
 
 use super::{now, Store, StoreError};
 use crate::domain::attempt::MemorySample;
-use crate::domain::JobStatus;
+use crate::domain::{JobId, JobStatus};
 
 /// A worker's claim on one running job or evaluation.
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -29,6 +29,11 @@ pub struct Lease {
 impl Lease {
     pub fn new(id: impl Into<String>, token: i64) -> Self {
         Lease { id: id.into(), token }
+    }
+
+    /// The id as a job's (a lease on the jobs table).
+    pub fn job_id(&self) -> JobId {
+        JobId::from(self.id.as_str())
     }
 }
 

@@ -4,7 +4,7 @@ use sqlx::{Any, Transaction};
 
 use super::datasets::DeleteOutcome;
 use super::{parse_time, Listing, PageQuery, Store, StoreError};
-use crate::domain::PolicyRecord;
+use crate::domain::{PolicyId, PolicyRecord};
 
 /// A policy row as the database returns it (everything but the weights); [`PolicyRecord`] is its typed
 /// form.
@@ -95,7 +95,8 @@ pub(super) async fn insert_policy(
 }
 
 impl Store {
-    pub async fn policy(&self, id: &str) -> Result<PolicyRecord, StoreError> {
+    pub async fn policy(&self, id: &PolicyId) -> Result<PolicyRecord, StoreError> {
+        let id = id.as_str();
         let row: PolicyRow =
             sqlx::query_as(&format!("SELECT {POLICY_COLUMNS} FROM policies WHERE id = $1"))
                 .bind(id)
@@ -132,7 +133,8 @@ impl Store {
     }
 
     /// The artefact of a policy: (spec JSON, safetensors weights).
-    pub async fn policy_artifact(&self, id: &str) -> Result<(String, Vec<u8>), StoreError> {
+    pub async fn policy_artifact(&self, id: &PolicyId) -> Result<(String, Vec<u8>), StoreError> {
+        let id = id.as_str();
         sqlx::query_as("SELECT spec, weights FROM policies WHERE id = $1")
             .bind(id)
             .fetch_optional(self.pool())
@@ -142,7 +144,8 @@ impl Store {
 
     /// Deletes a policy and its finished evaluations, unless a model version points at it or an
     /// evaluation of it is queued or running; its job stays, without a policy.
-    pub async fn delete_policy(&self, id: &str) -> Result<DeleteOutcome, StoreError> {
+    pub async fn delete_policy(&self, id: &PolicyId) -> Result<DeleteOutcome, StoreError> {
+        let id = id.as_str();
         let Some((mut tx, _)) = self.begin_delete("policies", "id", id).await? else {
             return Ok(DeleteOutcome::NotFound);
         };

@@ -616,7 +616,7 @@ async fn a_transaction_left_open_by_a_stalled_worker_does_not_block_the_takeover
     let late =
         sqlx::query("UPDATE jobs SET step = 99 WHERE id = $1").bind(id).execute(&mut *open).await;
     assert!(late.is_err() || open.commit().await.is_err(), "the stalled transaction still commits");
-    assert_eq!(taker.job(id).await.unwrap().step, 0);
+    assert_eq!(taker.job(&taken.id).await.unwrap().step, 0);
 }
 
 /// Serving by name across processes: a worker registers each job's policy as the next version

@@ -8,6 +8,7 @@ use utoipa::{IntoParams, ToSchema};
 use utoipa_axum::router::OpenApiRouter;
 use utoipa_axum::routes;
 
+use crate::domain::JobId;
 use crate::http::error::ErrorBody;
 use crate::http::extract::{Json, Path, Query};
 use crate::http::{ApiError, AppState};
@@ -68,7 +69,7 @@ const MAX_POINTS_LIMIT: usize = 10_000;
     ))]
 async fn job_metrics(
     State(state): State<AppState>,
-    Path(id): Path<String>,
+    Path(id): Path<JobId>,
     Query(params): Query<MetricsParams>,
 ) -> Result<Json<JobMetrics>, ApiError> {
     let max_points = params.max_points.unwrap_or(DEFAULT_MAX_POINTS);
@@ -82,7 +83,7 @@ async fn job_metrics(
     state.store.job(&id).await?;
     let rows = state.store.job_metrics(&id, names.as_deref()).await?;
     let (rows, downsampled) = downsample(rows, max_points);
-    Ok(Json(JobMetrics { job_id: id, downsampled, rows }))
+    Ok(Json(JobMetrics { job_id: id.into_string(), downsampled, rows }))
 }
 
 fn metric_names_param(names: Option<&str>) -> Option<Vec<String>> {
@@ -110,7 +111,7 @@ pub struct CsvParams {
     ))]
 async fn job_metrics_csv(
     State(state): State<AppState>,
-    Path(id): Path<String>,
+    Path(id): Path<JobId>,
     Query(params): Query<CsvParams>,
 ) -> Result<impl IntoResponse, ApiError> {
     let names = metric_names_param(params.names.as_deref());
@@ -140,7 +141,7 @@ pub struct MetricName {
     responses((status = 200, body = Vec<MetricName>), (status = 404, body = ErrorBody)))]
 async fn job_metric_names(
     State(state): State<AppState>,
-    Path(id): Path<String>,
+    Path(id): Path<JobId>,
 ) -> Result<Json<Vec<MetricName>>, ApiError> {
     state.store.job(&id).await?;
     let names = state.store.metric_names(&id).await?;

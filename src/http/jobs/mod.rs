@@ -23,6 +23,7 @@ use super::{ApiError, AppState};
 use crate::algo::Algorithm;
 use crate::domain::labels::TagSchema;
 use crate::domain::model::Registration;
+use crate::domain::JobId;
 use crate::domain::{
     rfc3339, EvalOptions, JobLabels, JobProgress, JobRecord, JobStatus, RunnerOptions,
 };
@@ -302,7 +303,7 @@ async fn list_jobs(
     responses((status = 200, body = Job), (status = 404, body = ErrorBody)))]
 async fn get_job(
     State(state): State<AppState>,
-    Path(id): Path<String>,
+    Path(id): Path<JobId>,
 ) -> Result<Json<Job>, ApiError> {
     Ok(Json(state.store.job(&id).await?.into()))
 }
@@ -318,7 +319,7 @@ async fn get_job(
     ))]
 async fn update_job(
     State(state): State<AppState>,
-    Path(id): Path<String>,
+    Path(id): Path<JobId>,
     Json(patch): Json<UpdateJob>,
 ) -> Result<Json<Job>, ApiError> {
     let job = state.store.job(&id).await?;
@@ -345,14 +346,14 @@ async fn update_job(
     ))]
 async fn delete_job(
     State(state): State<AppState>,
-    Path(id): Path<String>,
+    Path(id): Path<JobId>,
 ) -> Result<StatusCode, ApiError> {
     match state.store.delete_job(&id).await? {
         DeleteJobOutcome::Deleted { policy } => {
             if let Some(policy) = policy {
                 state.policies.forget(&policy);
             }
-            state.jobs.publish_api_change(JobEvent::Deleted { job_id: id.clone().into() });
+            state.jobs.publish_api_change(JobEvent::Deleted { job_id: id.clone() });
             tracing::info!(job_id = %id, "job deleted");
             Ok(StatusCode::NO_CONTENT)
         }
@@ -391,12 +392,12 @@ async fn delete_job(
     ))]
 async fn cancel_job(
     State(state): State<AppState>,
-    Path(id): Path<String>,
+    Path(id): Path<JobId>,
 ) -> Result<Json<Job>, ApiError> {
     match state.store.request_cancel(&id).await? {
         CancelOutcome::Cancelled => {
             let status = JobStatus::Cancelled;
-            state.jobs.publish_api_change(JobEvent::Status { job_id: id.clone().into(), status });
+            state.jobs.publish_api_change(JobEvent::Status { job_id: id.clone(), status });
             tracing::info!(job_id = %id, "queued job cancelled");
         }
         CancelOutcome::Requested => {
@@ -413,7 +414,7 @@ async fn cancel_job(
     Ok(Json(state.store.job(&id).await?.into()))
 }
 
-async fn wait_until_stopped(store: &Store, id: &str) -> Result<(), StoreError> {
+async fn wait_until_stopped(store: &Store, id: &JobId) -> Result<(), StoreError> {
     let deadline = tokio::time::Instant::now() + CANCEL_WAIT;
     while tokio::time::Instant::now() < deadline {
         if store.job_status(id).await? != JobStatus::Running {

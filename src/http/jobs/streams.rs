@@ -15,6 +15,7 @@ use utoipa_axum::router::OpenApiRouter;
 use utoipa_axum::routes;
 
 use super::Job;
+use crate::domain::JobId;
 use crate::domain::JobProgress;
 use crate::http::error::ErrorBody;
 use crate::http::extract::{Json, Path, Query};
@@ -88,7 +89,7 @@ const LOG_LIMIT: u32 = 1000;
     ))]
 async fn job_log(
     State(state): State<AppState>,
-    Path(id): Path<String>,
+    Path(id): Path<JobId>,
     Query(params): Query<LogParams>,
     headers: axum::http::HeaderMap,
 ) -> Result<axum::response::Response, ApiError> {
@@ -132,7 +133,7 @@ async fn job_log(
     ))]
 async fn job_events(
     State(state): State<AppState>,
-    Path(id): Path<String>,
+    Path(id): Path<JobId>,
 ) -> Result<Sse<impl Stream<Item = Result<Event, Infallible>>>, ApiError> {
     let permit = stream_permit(&state)?;
     // Subscribe before reading the job, so no change between the two is missed.
@@ -179,7 +180,7 @@ const STREAM_CHECK: Duration = Duration::from_secs(5);
 async fn next_event(
     receiver: &mut broadcast::Receiver<JobEvent>,
     store: &Store,
-    id: &str,
+    id: &JobId,
 ) -> Option<Update> {
     loop {
         let Ok(received) = tokio::time::timeout(STREAM_CHECK, receiver.recv()).await else {
@@ -189,7 +190,7 @@ async fn next_event(
             }
         };
         match received {
-            Ok(event) if event.job_id().as_str() != id => continue,
+            Ok(event) if event.job_id() != id => continue,
             Ok(JobEvent::Progress { progress, .. }) => return Some(Update::Progress(progress)),
             Ok(JobEvent::Deleted { .. }) => return Some(Update::Deleted),
             Ok(JobEvent::Status { .. }) => match store.job(id).await {
