@@ -28,6 +28,12 @@ impl EvaluationStatus {
         EvaluationStatus::Failed,
     ];
 
+    /// The status as an SQL string literal (`'queued'`), for the store's SQL text: so the store
+    /// spells no status by hand, and the schema's CHECK constraint pins the same words.
+    pub fn sql(self) -> String {
+        format!("'{}'", self.as_str())
+    }
+
     /// The status as stored and shown.
     pub fn as_str(self) -> &'static str {
         match self {

@@ -29,6 +29,12 @@ impl JobStatus {
         JobStatus::Cancelled,
     ];
 
+    /// The status as an SQL string literal (`'queued'`), for the store's SQL text: so the store
+    /// spells no status by hand, and the schema's CHECK constraint pins the same words.
+    pub fn sql(self) -> String {
+        format!("'{}'", self.as_str())
+    }
+
     /// The status as stored and shown (`queued`, ...).
     pub fn as_str(self) -> &'static str {
         match self {

@@ -11,7 +11,7 @@ use sqlx::{Any, Transaction};
 
 use super::{now, parse_time, Backend, Listing, PageQuery, Store, StoreError};
 use crate::data::{self, ActionSpace, Dataset, DatasetStats, Format};
-use crate::domain::{DatasetId, DatasetRole};
+use crate::domain::{DatasetId, DatasetRole, JobStatus};
 
 const CANONICAL_EXTENSION: &str = "canonical";
 const COLUMNS: &str = "id, name, description, format, transitions, episodes, obs_dim, \
@@ -283,10 +283,12 @@ impl Store {
         let Some((mut tx, _)) = self.begin_delete("datasets", "id", id).await? else {
             return Ok(DeleteOutcome::NotFound);
         };
-        let jobs: Vec<String> = sqlx::query_scalar(
-            "SELECT id FROM jobs WHERE status IN ('queued', 'running') \
+        let jobs: Vec<String> = sqlx::query_scalar(&format!(
+            "SELECT id FROM jobs WHERE status IN ({}, {}) \
              AND (unlabeled_dataset_id = $1 OR non_preferred_dataset_id = $1) ORDER BY id",
-        )
+            JobStatus::Queued.sql(),
+            JobStatus::Running.sql()
+        ))
         .bind(id)
         .fetch_all(&mut *tx)
         .await?;

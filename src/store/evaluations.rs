@@ -268,10 +268,11 @@ impl Store {
     pub async fn requeue_evaluation(&self, lease: &Lease) -> Result<(), StoreError> {
         let mut tx = self.begin_write().await?;
         leases::hold(&mut tx, LeaseTable::Evaluations, lease).await?;
-        sqlx::query(
-            "UPDATE evaluations SET status = 'queued', started_at = NULL, lease_expires_ms = 0 \
+        sqlx::query(&format!(
+            "UPDATE evaluations SET status = {}, started_at = NULL, lease_expires_ms = 0 \
              WHERE id = $1",
-        )
+            EvaluationStatus::Queued.sql()
+        ))
         .bind(&lease.id)
         .execute(&mut *tx)
         .await?;

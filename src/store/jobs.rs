@@ -17,7 +17,8 @@ use super::{
 use crate::algo::ResolvedConfig;
 use crate::domain::model::{MoveNote, Registration};
 use crate::domain::{
-    AttemptOutcome, DatasetId, EvalOptions, JobId, JobLabels, JobRecord, JobStatus, RunnerOptions,
+    AttemptOutcome, DatasetId, EvalOptions, EvaluationStatus, JobId, JobLabels, JobRecord,
+    JobStatus, RunnerOptions,
 };
 
 /// A job row as the database returns it; [`JobRecord`] is its typed form.
@@ -216,10 +217,10 @@ impl Store {
     /// The columns of a [`JobRow`]: the stored ones and two the database's clock decides (a
     /// retry not yet due, a lease that expired with no worker having taken the job over yet).
     fn job_columns(&self) -> String {
-        let now_ms = self.backend.now_ms();
+        let (now_ms, running) = (self.backend.now_ms(), JobStatus::Running.sql());
         format!(
             "{JOB_COLUMNS}, CASE WHEN scheduled_ms > {now_ms} THEN scheduled_ms END AS retry_at_ms, \
-             CASE WHEN status = 'running' AND lease_expires_ms < {now_ms} THEN lease_expires_ms \
+             CASE WHEN status = {running} AND lease_expires_ms < {now_ms} THEN lease_expires_ms \
              END AS lease_expired_at_ms"
         )
     }
@@ -397,10 +398,12 @@ impl Store {
         if !status.is_final() {
             return Ok(DeleteJobOutcome::Active(status));
         }
-        let busy: Vec<String> = sqlx::query_scalar(
+        let busy: Vec<String> = sqlx::query_scalar(&format!(
             "SELECT e.id FROM evaluations e JOIN policies p ON p.id = e.policy_id \
-             WHERE p.job_id = $1 AND e.status IN ('queued', 'running') ORDER BY e.id",
-        )
+             WHERE p.job_id = $1 AND e.status IN ({}, {}) ORDER BY e.id",
+            EvaluationStatus::Queued.sql(),
+            EvaluationStatus::Running.sql()
+        ))
         .bind(id)
         .fetch_all(&mut *tx)
         .await?;
@@ -500,10 +503,11 @@ impl Store {
         let mut tx = self.begin_write().await?;
         leases::hold(&mut tx, LeaseTable::Jobs, lease).await?;
         // Not the job's fault: the attempt is given back.
-        sqlx::query(
-            "UPDATE jobs SET status = 'queued', updated_at = $1, iterations_per_second = NULL, \
+        sqlx::query(&format!(
+            "UPDATE jobs SET status = {}, updated_at = $1, iterations_per_second = NULL, \
                  lease_expires_ms = 0, attempt = attempt - 1 WHERE id = $2",
-        )
+            JobStatus::Queued.sql()
+        ))
         .bind(self.db_now().await?)
         .bind(&lease.id)
         .execute(&mut *tx)
@@ -519,13 +523,14 @@ impl Store {
         lease: &Lease,
         progress: &ProgressUpdate<'_>,
     ) -> Result<bool, StoreError> {
-        let cancel: Option<i64> = sqlx::query_scalar(
+        let cancel: Option<i64> = sqlx::query_scalar(&format!(
             "UPDATE jobs SET step = $1, phase = $2, \
                  iterations_per_second = CAST($3 AS DOUBLE PRECISION), \
                  alpha_hat = COALESCE(CAST($4 AS DOUBLE PRECISION), alpha_hat), updated_at = $5 \
-             WHERE id = $6 AND lease_token = $7 AND status = 'running' \
+             WHERE id = $6 AND lease_token = $7 AND status = {} \
              RETURNING cancel_requested",
-        )
+            JobStatus::Running.sql()
+        ))
         .bind(progress.step as i64)
         .bind(progress.phase)
         .bind(optional_real(progress.iterations_per_second))
@@ -664,13 +669,14 @@ impl Store {
             insert_training_evaluation(&mut tx, policy.id, evaluation, &now()).await?;
         }
         let registered = self.register_policy(&mut tx, &lease.id, policy.id).await?;
-        sqlx::query(
-            "UPDATE jobs SET status = 'succeeded', policy_id = $1, step = $2, \
+        sqlx::query(&format!(
+            "UPDATE jobs SET status = {}, policy_id = $1, step = $2, \
                  alpha_hat = COALESCE(CAST($3 AS DOUBLE PRECISION), alpha_hat), \
                  iterations_per_second = NULL, \
                  updated_at = $4, finished_at = $4 \
              WHERE id = $5",
-        )
+            JobStatus::Succeeded.sql()
+        ))
         .bind(policy.id)
         .bind(step as i64)
         .bind(optional_real(policy.alpha_hat))
@@ -768,10 +774,11 @@ impl Store {
         .ok_or_else(|| StoreError::NotFound { kind: "job", id: id.to_owned() })?;
         let outcome = match parse_status(id, &status)? {
             JobStatus::Queued => {
-                sqlx::query(
-                    "UPDATE jobs SET status = 'cancelled', cancel_requested = 1, updated_at = $1, \
+                sqlx::query(&format!(
+                    "UPDATE jobs SET status = {}, cancel_requested = 1, updated_at = $1, \
                          finished_at = $1 WHERE id = $2",
-                )
+                    JobStatus::Cancelled.sql()
+                ))
                 .bind(&now)
                 .bind(id)
                 .execute(&mut *tx)

@@ -75,8 +75,9 @@ pub(super) async fn hold(
 ) -> Result<(), StoreError> {
     let held = sqlx::query(&format!(
         "UPDATE {} SET lease_token = lease_token WHERE id = $1 AND lease_token = $2 \
-         AND status = 'running'",
-        table.as_str()
+         AND status = {}",
+        table.as_str(),
+        JobStatus::Running.sql()
     ))
     .bind(&lease.id)
     .bind(lease.token)
@@ -121,17 +122,15 @@ impl Claim {
         lease: Duration,
     ) -> Result<Option<(String, i64)>, sqlx::Error> {
         let (table, now_ms) = (self.table.as_str(), store.backend.now_ms());
+        let (queued, running) = (JobStatus::Queued.sql(), JobStatus::Running.sql());
         let claimable = match self.claimable {
             Claimable::QueuedOrExpired => format!(
-                "(status = 'queued' OR (status = 'running' AND lease_expires_ms < {now_ms}))"
+                "(status = {queued} OR (status = {running} AND lease_expires_ms < {now_ms}))"
             ),
-            Claimable::QueuedAndDue => {
-                let queued = JobStatus::Queued.as_str();
-                format!("(status = '{queued}' AND scheduled_ms <= {now_ms})")
-            }
+            Claimable::QueuedAndDue => format!("(status = {queued} AND scheduled_ms <= {now_ms})"),
         };
         sqlx::query_as(&format!(
-            "UPDATE {table} SET status = 'running', {}, lease_owner = $2, \
+            "UPDATE {table} SET status = {running}, {}, lease_owner = $2, \
                  lease_token = lease_token + 1, lease_expires_ms = {now_ms} + $3 \
              WHERE id = (SELECT id FROM {table} WHERE {claimable} \
                          ORDER BY {} LIMIT 1{}) \
@@ -159,9 +158,10 @@ impl Store {
     ) -> Result<(), StoreError> {
         let renewed = sqlx::query(&format!(
             "UPDATE {} SET lease_expires_ms = {} + $1 \
-             WHERE id = $2 AND lease_token = $3 AND status = 'running'",
+             WHERE id = $2 AND lease_token = $3 AND status = {}",
             table.as_str(),
-            self.backend.now_ms()
+            self.backend.now_ms(),
+            JobStatus::Running.sql()
         ))
         .bind(millis(duration))
         .bind(&lease.id)
@@ -244,7 +244,8 @@ impl Store {
 
     pub async fn lease_stats(&self) -> Result<LeaseStats, StoreError> {
         let expired_jobs: i64 = sqlx::query_scalar(&format!(
-            "SELECT COUNT(*) FROM jobs WHERE status = 'running' AND lease_expires_ms < {}",
+            "SELECT COUNT(*) FROM jobs WHERE status = {} AND lease_expires_ms < {}",
+            JobStatus::Running.sql(),
             self.backend.now_ms()
         ))
         .fetch_one(self.pool())
@@ -253,10 +254,11 @@ impl Store {
             sqlx::query_scalar("SELECT CAST(SUM(lease_takeovers) AS BIGINT) FROM jobs")
                 .fetch_one(self.pool())
                 .await?;
-        let running_by_worker = sqlx::query_as(
-            "SELECT COALESCE(lease_owner, ''), COUNT(*) FROM jobs WHERE status = 'running' \
+        let running_by_worker = sqlx::query_as(&format!(
+            "SELECT COALESCE(lease_owner, ''), COUNT(*) FROM jobs WHERE status = {} \
              GROUP BY lease_owner ORDER BY 1",
-        )
+            JobStatus::Running.sql()
+        ))
         .fetch_all(self.pool())
         .await?;
         Ok(LeaseStats { expired_jobs, takeovers: takeovers.unwrap_or(0), running_by_worker })

@@ -4,7 +4,7 @@ use sqlx::{Any, Transaction};
 
 use super::datasets::DeleteOutcome;
 use super::{parse_time, Listing, PageQuery, Store, StoreError};
-use crate::domain::{PolicyId, PolicyRecord};
+use crate::domain::{EvaluationStatus, PolicyId, PolicyRecord};
 
 /// A policy row as the database returns it (everything but the weights); [`PolicyRecord`] is its typed
 /// form.
@@ -153,10 +153,11 @@ impl Store {
         if !versions.is_empty() {
             return Ok(DeleteOutcome::Registered(versions));
         }
-        let busy: Vec<String> = sqlx::query_scalar(
-            "SELECT id FROM evaluations WHERE policy_id = $1 AND status IN ('queued', 'running') \
-             ORDER BY id",
-        )
+        let busy: Vec<String> = sqlx::query_scalar(&format!(
+            "SELECT id FROM evaluations WHERE policy_id = $1 AND status IN ({}, {}) ORDER BY id",
+            EvaluationStatus::Queued.sql(),
+            EvaluationStatus::Running.sql()
+        ))
         .bind(id)
         .fetch_all(&mut *tx)
         .await?;
