@@ -49,6 +49,8 @@ def _fmt(mean, se, digits=1):
 
 
 def _seconds(job):
+    if "started_at" not in job and "seconds" in job:  # a run restored from results.json
+        return job["seconds"]
     try:
         a = dt.datetime.fromisoformat(job["started_at"].replace("Z", "+00:00"))
         b = dt.datetime.fromisoformat(job["finished_at"].replace("Z", "+00:00"))

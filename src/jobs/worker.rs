@@ -172,27 +172,19 @@ async fn store_policy(
 ) -> anyhow::Result<()> {
     // In first: the policy's final metrics are the last values stored.
     store.insert_metrics(lease, &metrics).await?;
-    let last: serde_json::Map<String, serde_json::Value> = store
-        .last_metric_values(&lease.job_id())
-        .await?
-        .into_iter()
-        .map(|(name, value)| (name, value.into()))
-        .collect();
+    let job_id = lease.job_id();
+    let last = store.last_metric_values(&job_id).await?;
     let TrainedPolicy { artifact, alpha_hat, step, evaluation } = trained;
     let policy_id = PolicyId::generate();
     let policy = NewPolicy {
         id: &policy_id,
-        job_id: &lease.id,
-        algorithm: artifact.spec.algorithm.as_str(),
-        obs_dim: artifact.spec.obs_dim,
-        action_space: &serde_json::to_string(&artifact.spec.action_space)?,
-        spec: &serde_json::to_string(&artifact.spec)?,
-        weights: &artifact.weights,
-        final_metrics: &serde_json::Value::Object(last).to_string(),
+        job_id: &job_id,
+        artifact: &artifact,
+        final_metrics: &last,
         alpha_hat,
     };
     log.write(LogLevel::Info, &format!("succeeded at step {step}: policy {policy_id}")).await;
-    if let Some(register) = store.job(&lease.job_id()).await?.register {
+    if let Some(register) = store.job(&job_id).await?.register {
         let alias = register.alias.as_deref().map(|a| format!(", alias {a} moved to it"));
         let message = format!(
             "registering the policy as the next version of model {}{}",

@@ -677,7 +677,7 @@ impl Store {
              WHERE id = $5",
             JobStatus::Succeeded.sql()
         ))
-        .bind(policy.id)
+        .bind(policy.id.as_str())
         .bind(step as i64)
         .bind(optional_real(policy.alpha_hat))
         .bind(self.db_now().await?)

@@ -4,7 +4,8 @@ use sqlx::{Any, Transaction};
 
 use super::datasets::DeleteOutcome;
 use super::{parse_time, Listing, PageQuery, Store, StoreError};
-use crate::domain::{EvaluationStatus, PolicyId, PolicyRecord};
+use crate::algo::PolicyArtifact;
+use crate::domain::{EvaluationStatus, JobId, PolicyId, PolicyRecord};
 
 /// A policy row as the database returns it (everything but the weights); [`PolicyRecord`] is its typed
 /// form.
@@ -55,14 +56,12 @@ impl TryFrom<PolicyRow> for PolicyRecord {
 /// What a succeeded job stores.
 #[derive(Clone, Debug)]
 pub struct NewPolicy<'a> {
-    pub id: &'a str,
-    pub job_id: &'a str,
-    pub algorithm: &'a str,
-    pub obs_dim: usize,
-    pub action_space: &'a str,
-    pub spec: &'a str,
-    pub weights: &'a [u8],
-    pub final_metrics: &'a str,
+    pub id: &'a PolicyId,
+    pub job_id: &'a JobId,
+    /// The spec (algorithm, spaces, decoder) and the weights.
+    pub artifact: &'a PolicyArtifact,
+    /// The last stored value of each of the job's metrics.
+    pub final_metrics: &'a [(String, f64)],
     pub alpha_hat: Option<f64>,
 }
 
@@ -70,23 +69,31 @@ const POLICY_COLUMNS: &str =
     "id, job_id, algorithm, obs_dim, action_space, spec, final_metrics, alpha_hat, created_at, \
      (SELECT name FROM jobs WHERE jobs.id = policies.job_id) AS job_name";
 
+/// JSON text of plain data with string keys, which serde_json cannot fail on.
+fn json_text(value: &impl serde::Serialize) -> String {
+    serde_json::to_string(value).expect("plain data serialises to JSON")
+}
+
 /// Inserts a policy inside the caller's transaction (the job's completion).
 pub(super) async fn insert_policy(
     tx: &mut Transaction<'_, Any>,
     policy: &NewPolicy<'_>,
 ) -> Result<(), sqlx::Error> {
+    let spec = &policy.artifact.spec;
+    let final_metrics: serde_json::Map<String, serde_json::Value> =
+        policy.final_metrics.iter().map(|(name, value)| (name.clone(), (*value).into())).collect();
     sqlx::query(
         "INSERT INTO policies (id, job_id, algorithm, obs_dim, action_space, spec, weights, \
              final_metrics, alpha_hat, created_at) VALUES ($1, $2, $3, $4, $5, $6, $7, $8, CAST($9 AS DOUBLE PRECISION), $10)",
     )
-    .bind(policy.id)
-    .bind(policy.job_id)
-    .bind(policy.algorithm)
-    .bind(policy.obs_dim as i64)
-    .bind(policy.action_space)
-    .bind(policy.spec)
-    .bind(policy.weights)
-    .bind(policy.final_metrics)
+    .bind(policy.id.as_str())
+    .bind(policy.job_id.as_str())
+    .bind(spec.algorithm.as_str())
+    .bind(spec.obs_dim as i64)
+    .bind(json_text(&spec.action_space))
+    .bind(json_text(spec))
+    .bind(&policy.artifact.weights[..])
+    .bind(json_text(&final_metrics))
     .bind(super::optional_real(policy.alpha_hat))
     .bind(super::now())
     .execute(&mut **tx)
