@@ -204,9 +204,12 @@ impl IntoResponse for ApiError {
             // so that an error answer stays small whatever the request held.
             other => crate::text::bounded_message(other.to_string()),
         };
-        let body = ErrorBody { error: ErrorDetail { code: self.code().to_owned(), message } };
+        let body = ErrorBody {
+            error: ErrorDetail { code: self.code().to_owned(), message: message.clone() },
+        };
         let mut response = (status, axum::Json(body)).into_response();
         response.extensions_mut().insert(ErrorCode(self.code()));
+        response.extensions_mut().insert(ErrorMessage(message));
         let headers = response.headers_mut();
         match status {
             // Closed after the answer: a client without a valid token cannot hold a connection
@@ -228,6 +231,11 @@ impl IntoResponse for ApiError {
 /// The code of an error answer, kept on the response for the middleware after the handler.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct ErrorCode(pub &'static str);
+
+/// The message of an error answer, kept on the response so that `/v2` can answer it in the
+/// Open Inference Protocol's shape without reading the `/v1` body back.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct ErrorMessage(pub String);
 
 /// No pooled database connection in time reads as `database_busy`, but it is also what a
 /// database that is down looks like (the pool keeps retrying to connect until its deadline).

@@ -11,10 +11,11 @@ use axum::body::{Body, Bytes};
 use axum::extract::{FromRequest, Request};
 use axum::http::{header, HeaderName, HeaderValue, StatusCode};
 use axum::middleware::Next;
-use axum::response::{IntoResponse, Response};
+use axum::response::Response;
 use serde::{Deserialize, Serialize};
 use utoipa::ToSchema;
 
+use super::super::error::ErrorMessage;
 use super::super::extract::{deserialize_body, parse_strict};
 use super::super::ApiError;
 
@@ -112,16 +113,13 @@ pub async fn v2_error_shape(request: Request, next: Next) -> Response {
     if !is_v2 || !(response.status().is_client_error() || response.status().is_server_error()) {
         return response;
     }
-    let (mut parts, body) = response.into_parts();
-    // Error bodies are a few hundred bytes; 64 KiB bounds the read.
-    let Ok(bytes) = axum::body::to_bytes(body, 64 << 10).await else {
-        return (parts.status, axum::Json(V2Error { error: parts.status.to_string() }))
-            .into_response();
+    let (mut parts, _) = response.into_parts();
+    // Every error of ours is an ApiError, which leaves its message on the response; anything
+    // else (none is known) answers its status line.
+    let message = match parts.extensions.get::<ErrorMessage>() {
+        Some(ErrorMessage(message)) => message.clone(),
+        None => parts.status.to_string(),
     };
-    let message = serde_json::from_slice::<serde_json::Value>(&bytes)
-        .ok()
-        .and_then(|v| v["error"]["message"].as_str().map(str::to_owned))
-        .unwrap_or_else(|| String::from_utf8_lossy(&bytes).into_owned());
     parts.headers.remove(header::CONTENT_LENGTH);
     let body = serde_json::to_vec(&V2Error { error: message }).expect("a string serialises");
     parts.headers.insert(header::CONTENT_TYPE, HeaderValue::from_static("application/json"));
