@@ -338,7 +338,7 @@ fn status_literals(root: &Path, crates: &Crates, report: &mut Report) -> Result<
                         "status-literal",
                         format!(
                             "job-status '{word}' written by hand in {text}: use the enum of \
-                             {enum_file} (`.as_str()`, bound as a parameter in SQL){over}"
+                             {enum_file} (`.as_str()` bound as a parameter, or `.sql()` in SQL text){over}"
                         ),
                     );
                 }
