@@ -258,7 +258,7 @@ async fn claim_latencies(
     for _ in 0..jobs {
         let job = NewJob {
             id: JobId::generate(),
-            unlabeled_dataset: record.id.clone().into(),
+            unlabeled_dataset: record.id.clone(),
             non_preferred_dataset: None,
             config: ResolvedConfig::preset(Algorithm::Bc, Preset::Service),
             runner: RunnerOptions::default(),

@@ -1,9 +1,10 @@
 //! The service's vocabulary, shared by every layer that stores, runs or serves work: typed ids,
-//! the lifecycles of jobs and evaluations, and the records the store hands out (jobs,
+//! the lifecycles of jobs and evaluations, and the records the store hands out (datasets, jobs,
 //! evaluations, policies). No SQL, no HTTP:
 //! the store turns rows into these types once, and everything above works with them.
 
 pub mod attempt;
+pub mod dataset;
 pub mod evaluation;
 pub mod experiment;
 pub mod ids;
@@ -15,6 +16,7 @@ pub mod policy;
 pub mod progress;
 
 pub use attempt::{AttemptOutcome, JobAttempt, RetryBackoff};
+pub use dataset::DatasetRecord;
 pub use evaluation::{EvaluationRecord, EvaluationSource, EvaluationStatus};
 pub use ids::{DatasetId, EvaluationId, JobId, PolicyId};
 pub use job::{JobRecord, JobStatus};

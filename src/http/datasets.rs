@@ -23,8 +23,9 @@ use super::extract::{Json, Path as UrlPath, Query};
 use super::pagination::{Page, PageParams};
 use super::{ApiError, AppState};
 use crate::data::{self, ActionSpace, DatasetStats, Format};
+use crate::domain::DatasetRecord;
 use crate::domain::{DatasetId, DatasetRole};
-use crate::store::{DatasetRecord, DeleteOutcome, Listing, NewDataset};
+use crate::store::{DeleteOutcome, Listing, NewDataset};
 
 /// Room for the multipart framing and the `name`/`description` fields on top of the file.
 const FORM_OVERHEAD_BYTES: u64 = 64 * 1024;
@@ -65,7 +66,7 @@ pub struct DatasetResource {
 impl From<DatasetRecord> for DatasetResource {
     fn from(r: DatasetRecord) -> Self {
         DatasetResource {
-            id: r.id,
+            id: r.id.into_string(),
             name: r.name,
             description: r.description,
             role: r.role,

@@ -6,11 +6,12 @@ use crate::algo::memory::{estimate_job_memory, DataShape};
 use crate::algo::{self, Algorithm};
 use crate::domain::attempt::MOST_ATTEMPTS;
 use crate::domain::model::Registration;
+use crate::domain::DatasetRecord;
 use crate::domain::{
     DatasetId, DatasetRole, EvalOptions, JobId, JobLabels, JobRecord, RunnerOptions,
 };
 use crate::store::jobs::NewJob;
-use crate::store::{DatasetRecord, Store, StoreError};
+use crate::store::{Store, StoreError};
 
 /// What a client asks for: the algorithm, its datasets, and the raw `config`, `runner` and
 /// `eval` objects (validated here, with messages that name the key).

@@ -4,14 +4,13 @@
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
-use chrono::{DateTime, Utc};
 use futures::TryStreamExt;
 use sha2::{Digest, Sha256};
 use sqlx::{Any, Transaction};
 
 use super::{now, parse_time, Backend, Listing, PageQuery, Store, StoreError};
 use crate::data::{self, ActionSpace, Dataset, DatasetStats, Format};
-use crate::domain::{DatasetId, DatasetRole, JobStatus};
+use crate::domain::{DatasetId, DatasetRecord, DatasetRole, JobStatus};
 
 const CANONICAL_EXTENSION: &str = "canonical";
 const COLUMNS: &str = "id, name, description, format, transitions, episodes, obs_dim, \
@@ -62,26 +61,6 @@ impl NewDataset {
     }
 }
 
-/// A stored dataset's description.
-#[derive(Debug, Clone, PartialEq)]
-pub struct DatasetRecord {
-    pub id: String,
-    pub name: String,
-    pub description: Option<String>,
-    pub role: Option<DatasetRole>,
-    pub format: Format,
-    pub transitions: u64,
-    pub episodes: u64,
-    pub obs_dim: u64,
-    pub action_space: ActionSpace,
-    pub stats: DatasetStats,
-    pub sha256: String,
-    pub bytes: u64,
-    pub created_at: DateTime<Utc>,
-    canonical_sha256: String,
-    canonical_bytes: u64,
-}
-
 #[derive(sqlx::FromRow)]
 struct DatasetRow {
     id: String,
@@ -123,7 +102,7 @@ impl TryFrom<DatasetRow> for DatasetRecord {
             None => None,
         };
         Ok(DatasetRecord {
-            id: row.id,
+            id: DatasetId::from(row.id),
             name: row.name,
             description: row.description,
             role,

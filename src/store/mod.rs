@@ -44,7 +44,7 @@ use sqlx::any::{AnyConnectOptions, AnyPoolOptions};
 use sqlx::sqlite::SqliteConnectOptions;
 use sqlx::{Any, AnyPool, Connection, Transaction};
 
-pub use datasets::{DatasetRecord, DeleteOutcome, NewDataset};
+pub use datasets::{DeleteOutcome, NewDataset};
 pub use leases::Lease;
 pub use listing::{Listing, PageQuery};
 

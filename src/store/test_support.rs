@@ -21,5 +21,5 @@ pub(super) async fn store_with_a_dataset() -> (tempfile::TempDir, Store, String)
     .unwrap();
     let new = NewDataset::describe(&dataset, Format::Jsonl, "d".into(), None, "0".into(), 1);
     let record = store.create_dataset(new, data::encode_canonical(&dataset)).await.unwrap();
-    (dir, store, record.id)
+    (dir, store, record.id.into_string())
 }
