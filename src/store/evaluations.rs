@@ -80,6 +80,24 @@ pub struct NewEvaluation {
 const EVALUATION_COLUMNS: &str = "id, policy_id, env, episodes, seed, deterministic, status, \
      source, report, error, training_step, created_at, started_at, finished_at";
 
+/// The ids of the queued or running evaluations among `evaluations e` joined and filtered by
+/// `joined_where` (whose `$1` is `id`), inside the caller's transaction: what keeps a policy,
+/// or the job that made it, from being deleted.
+pub(super) async fn unfinished_evaluations(
+    tx: &mut Transaction<'_, Any>,
+    joined_where: &str,
+    id: &str,
+) -> Result<Vec<String>, sqlx::Error> {
+    sqlx::query_scalar(&format!(
+        "SELECT e.id FROM evaluations e {joined_where} AND e.status IN ({}, {}) ORDER BY e.id",
+        EvaluationStatus::Queued.sql(),
+        EvaluationStatus::Running.sql()
+    ))
+    .bind(id)
+    .fetch_all(&mut **tx)
+    .await
+}
+
 /// Records the evaluation a job's worker ran at the end of training as a succeeded built-in
 /// evaluation of the job's new policy, inside the job's completion (so the policy never exists
 /// without it).

@@ -17,8 +17,7 @@ use super::{
 use crate::algo::ResolvedConfig;
 use crate::domain::model::{MoveNote, Registration};
 use crate::domain::{
-    AttemptOutcome, DatasetId, EvalOptions, EvaluationStatus, JobId, JobLabels, JobRecord,
-    JobStatus, RunnerOptions,
+    AttemptOutcome, DatasetId, EvalOptions, JobId, JobLabels, JobRecord, JobStatus, RunnerOptions,
 };
 
 /// A job row as the database returns it; [`JobRecord`] is its typed form.
@@ -398,14 +397,11 @@ impl Store {
         if !status.is_final() {
             return Ok(DeleteJobOutcome::Active(status));
         }
-        let busy: Vec<String> = sqlx::query_scalar(&format!(
-            "SELECT e.id FROM evaluations e JOIN policies p ON p.id = e.policy_id \
-             WHERE p.job_id = $1 AND e.status IN ({}, {}) ORDER BY e.id",
-            EvaluationStatus::Queued.sql(),
-            EvaluationStatus::Running.sql()
-        ))
-        .bind(id)
-        .fetch_all(&mut *tx)
+        let busy = super::evaluations::unfinished_evaluations(
+            &mut tx,
+            "JOIN policies p ON p.id = e.policy_id WHERE p.job_id = $1",
+            id,
+        )
         .await?;
         if !busy.is_empty() {
             return Ok(DeleteJobOutcome::PolicyInUse(busy));

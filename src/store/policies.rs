@@ -5,7 +5,7 @@ use sqlx::{Any, Transaction};
 use super::datasets::DeleteOutcome;
 use super::{parse_time, Listing, PageQuery, Store, StoreError};
 use crate::algo::PolicyArtifact;
-use crate::domain::{EvaluationStatus, JobId, PolicyId, PolicyRecord};
+use crate::domain::{JobId, PolicyId, PolicyRecord};
 
 /// A policy row as the database returns it (everything but the weights); [`PolicyRecord`] is its typed
 /// form.
@@ -160,14 +160,9 @@ impl Store {
         if !versions.is_empty() {
             return Ok(DeleteOutcome::Registered(versions));
         }
-        let busy: Vec<String> = sqlx::query_scalar(&format!(
-            "SELECT id FROM evaluations WHERE policy_id = $1 AND status IN ({}, {}) ORDER BY id",
-            EvaluationStatus::Queued.sql(),
-            EvaluationStatus::Running.sql()
-        ))
-        .bind(id)
-        .fetch_all(&mut *tx)
-        .await?;
+        let busy =
+            super::evaluations::unfinished_evaluations(&mut tx, "WHERE e.policy_id = $1", id)
+                .await?;
         if !busy.is_empty() {
             return Ok(DeleteOutcome::InUse(busy));
         }
