@@ -5,6 +5,7 @@
 use serde::{Deserialize, Serialize};
 use utoipa::ToSchema;
 
+use super::ExperimentId;
 use crate::algo::Algorithm;
 
 /// Most jobs one experiment may queue (arms × seeds).
@@ -47,14 +48,14 @@ pub struct ExperimentSpec {
 /// A stored experiment.
 #[derive(Clone, Debug, PartialEq)]
 pub struct ExperimentRecord {
-    pub id: String,
+    pub id: ExperimentId,
     pub name: Option<String>,
     pub spec: ExperimentSpec,
     pub created_at: chrono::DateTime<chrono::Utc>,
 }
 
 /// The tag every job of an experiment carries (`GET /v1/jobs?tag=` finds them).
-pub fn experiment_tag(id: &str) -> String {
+pub fn experiment_tag(id: &ExperimentId) -> String {
     format!("experiment={id}")
 }
 

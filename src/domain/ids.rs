@@ -84,6 +84,10 @@ id_type!(
     /// A policy evaluation.
     EvaluationId
 );
+id_type!(
+    /// An experiment (a grid of jobs over algorithms and seeds).
+    ExperimentId
+);
 
 #[cfg(test)]
 mod tests {

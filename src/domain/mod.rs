@@ -1,6 +1,6 @@
 //! The service's vocabulary, shared by every layer that stores, runs or serves work: typed ids,
 //! the lifecycles of jobs and evaluations, and the records the store hands out (datasets, jobs,
-//! evaluations, policies). No SQL, no HTTP:
+//! evaluations, policies, metrics, log lines, workers). No SQL, no HTTP:
 //! the store turns rows into these types once, and everything above works with them.
 
 pub mod attempt;
@@ -14,16 +14,18 @@ pub mod model;
 pub mod options;
 pub mod policy;
 pub mod progress;
+pub mod telemetry;
 
 pub use attempt::{AttemptOutcome, JobAttempt, RetryBackoff};
 pub use dataset::DatasetRecord;
 pub use evaluation::{EvaluationRecord, EvaluationSource, EvaluationStatus};
-pub use ids::{DatasetId, EvaluationId, JobId, PolicyId};
+pub use ids::{DatasetId, EvaluationId, ExperimentId, JobId, PolicyId};
 pub use job::{JobRecord, JobStatus};
 pub use labels::JobLabels;
 pub use options::{EvalOptions, EvalSpec, RunnerOptions};
 pub use policy::PolicyRecord;
 pub use progress::JobProgress;
+pub use telemetry::{LogLevel, LogRecord, MetricRecord, WorkerRecord};
 
 /// What a dataset is for, as its uploader said.
 #[derive(

@@ -17,7 +17,7 @@ use super::{ApiError, AppState};
 use crate::algo::Algorithm;
 use crate::domain::experiment::{Arm, ExperimentRecord};
 use crate::domain::labels::TagSchema;
-use crate::domain::{rfc3339, JobStatus};
+use crate::domain::{rfc3339, ExperimentId, JobStatus};
 use crate::jobs::experiments::{self, ArmResult, ExperimentRequest, JobResult};
 use crate::jobs::{JobEvent, SubmitLimits};
 use crate::store::experiments::DeleteExperimentOutcome;
@@ -139,7 +139,7 @@ async fn resource(state: &AppState, record: ExperimentRecord) -> Result<Experime
     let (jobs, results) = experiments::results(&state.store, &record).await?;
     let spec = record.spec;
     Ok(Experiment {
-        id: record.id,
+        id: record.id.into_string(),
         name: record.name,
         unlabeled_dataset: spec.unlabeled_dataset,
         non_preferred_dataset: spec.non_preferred_dataset,
@@ -222,7 +222,7 @@ async fn list_experiments(
             seeds: r.spec.seeds,
             created_at: rfc3339(&r.created_at),
             name: r.name,
-            id: r.id,
+            id: r.id.into_string(),
             progress,
         });
     }
@@ -235,7 +235,7 @@ async fn list_experiments(
     responses((status = 200, body = Experiment), (status = 404, body = ErrorBody)))]
 async fn get_experiment(
     State(state): State<AppState>,
-    Path(id): Path<String>,
+    Path(id): Path<ExperimentId>,
 ) -> Result<Json<Experiment>, ApiError> {
     let record = state.store.experiment(&id).await?;
     Ok(Json(resource(&state, record).await?))
@@ -247,7 +247,7 @@ async fn get_experiment(
     responses((status = 200, body = Experiment), (status = 404, body = ErrorBody)))]
 async fn cancel_experiment(
     State(state): State<AppState>,
-    Path(id): Path<String>,
+    Path(id): Path<ExperimentId>,
 ) -> Result<Json<Experiment>, ApiError> {
     let record = state.store.experiment(&id).await?;
     for job in state.store.experiment_jobs(&id).await? {
@@ -275,7 +275,7 @@ async fn cancel_experiment(
          body = ErrorBody)))]
 async fn delete_experiment(
     State(state): State<AppState>,
-    Path(id): Path<String>,
+    Path(id): Path<ExperimentId>,
 ) -> Result<StatusCode, ApiError> {
     match state.store.delete_experiment(&id).await? {
         DeleteExperimentOutcome::Deleted { policies, jobs } => {
@@ -308,7 +308,7 @@ async fn delete_experiment(
         content_type = "text/csv", body = String), (status = 404, body = ErrorBody)))]
 async fn experiment_csv(
     State(state): State<AppState>,
-    Path(id): Path<String>,
+    Path(id): Path<ExperimentId>,
 ) -> Result<Response, ApiError> {
     let record = state.store.experiment(&id).await?;
     let experiment = resource(&state, record).await?;

@@ -14,9 +14,8 @@ use futures::Stream;
 use tokio::sync::broadcast;
 use tokio::time::Instant;
 
-use crate::domain::{JobId, JobStatus};
+use crate::domain::{JobId, JobStatus, LogRecord};
 use crate::jobs::JobEvent;
-use crate::store::logs::LogRow;
 use crate::store::{Store, StoreError};
 
 /// Lines read at once.
@@ -33,7 +32,7 @@ struct Follower {
     id: JobId,
     /// The last line sent (its `seq`).
     after: i64,
-    pending: VecDeque<LogRow>,
+    pending: VecDeque<LogRecord>,
     /// The job has ended (or is gone): once the lines written before that are sent, so is the
     /// stream.
     ended: bool,
@@ -48,7 +47,7 @@ pub(super) fn follow(
     events: broadcast::Receiver<JobEvent>,
     id: JobId,
     after: i64,
-) -> impl Stream<Item = LogRow> + Send + 'static {
+) -> impl Stream<Item = LogRecord> + Send + 'static {
     let follower = Follower {
         store,
         events,
@@ -60,7 +59,7 @@ pub(super) fn follow(
     };
     futures::stream::unfold(follower, |mut follower| async move {
         let row = follower.next_line().await?;
-        follower.after = row.seq;
+        follower.after = row.seq as i64;
         Some((row, follower))
     })
 }
@@ -68,7 +67,7 @@ pub(super) fn follow(
 impl Follower {
     /// The next line to send; None once the job has ended and every line was sent (or the
     /// store cannot be read).
-    async fn next_line(&mut self) -> Option<LogRow> {
+    async fn next_line(&mut self) -> Option<LogRecord> {
         loop {
             if let Some(row) = self.pending.pop_front() {
                 return Some(row);

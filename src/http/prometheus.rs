@@ -100,7 +100,7 @@ impl FleetMetrics {
         self.heartbeat_age.clear();
         for worker in &workers {
             let label = WorkerLabel { worker: worker.id.clone() };
-            self.heartbeat_age.get_or_create(&label).set(worker.heartbeat_age_ms as f64 / 1000.0);
+            self.heartbeat_age.get_or_create(&label).set(worker.heartbeat_age.as_secs_f64());
         }
         let leases = store.lease_stats().await?;
         self.running.clear();

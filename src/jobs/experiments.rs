@@ -12,7 +12,7 @@ use super::submit::{prepare, JobRequest, SubmitError, SubmitLimits};
 use crate::domain::experiment::{
     experiment_tag, job_config, Arm, ExperimentRecord, ExperimentSpec, Summary, MAX_GRID, MAX_SEEDS,
 };
-use crate::domain::{JobLabels, JobRecord, JobStatus};
+use crate::domain::{ExperimentId, JobLabels, JobRecord, JobStatus};
 use crate::store::{PageQuery, Store, StoreError};
 
 /// What a client asks for.
@@ -92,7 +92,7 @@ pub async fn submit_experiment(
 ) -> Result<ExperimentRecord, SubmitError> {
     let seeds = seeds_of(&request)?;
     check_arms(&request.arms, seeds.len())?;
-    let id = uuid::Uuid::new_v4().to_string();
+    let id = ExperimentId::generate();
     let mut tags = request.tags.clone();
     tags.push(experiment_tag(&id));
     let title = request.name.clone().unwrap_or_else(|| format!("experiment {}", &id[..8]));

@@ -18,11 +18,12 @@ use tokio_util::sync::CancellationToken;
 use super::{EvalOptions, JobEvent, JobProgress, JobRunner, RunnerOptions};
 use crate::algo::{self, Policy, Progress, Trainer};
 use crate::domain::JobRecord;
+use crate::domain::LogLevel;
+use crate::domain::MetricRecord;
 use crate::store::evaluations::TrainingEvaluation;
-use crate::store::jobs::{MetricRow, ProgressUpdate};
-use crate::store::logs::LogLevel;
+use crate::store::jobs::ProgressUpdate;
 use crate::store::storage::{is_io_storage_full, is_storage_full};
-use crate::store::{is_busy, now, Lease, Store, StoreError};
+use crate::store::{is_busy, Lease, Store, StoreError};
 
 /// How often a running job's progress is written and published (and pending metrics flushed).
 const PROGRESS_INTERVAL: Duration = Duration::from_millis(500);
@@ -204,7 +205,7 @@ pub(super) struct TrainingRun {
     lease: Lease,
     cancel: Arc<AtomicBool>,
     /// Metrics recorded since the last write.
-    pending: Vec<MetricRow>,
+    pending: Vec<MetricRecord>,
     log: JobLog,
     /// The phase last written to the log.
     logged_phase: Option<&'static str>,
@@ -236,7 +237,7 @@ impl TrainingRun {
 
     /// Trains until the run ends; hands back how, with the metrics recorded since the last
     /// write (stored with the job's end).
-    pub(super) async fn drive(mut self) -> (anyhow::Result<Outcome>, Vec<MetricRow>) {
+    pub(super) async fn drive(mut self) -> (anyhow::Result<Outcome>, Vec<MetricRecord>) {
         let outcome = self.run().await;
         (outcome, std::mem::take(&mut self.pending))
     }
@@ -414,14 +415,9 @@ impl TrainingRun {
         if scalars.is_empty() {
             return;
         }
-        let time = now();
+        let time = chrono::Utc::now();
         self.pending.extend(scalars.iter().filter(|(_, v)| v.is_finite()).map(|(name, value)| {
-            MetricRow {
-                name: (*name).to_owned(),
-                step: step as i64,
-                value: *value,
-                time: time.clone(),
-            }
+            MetricRecord { name: (*name).to_owned(), step, value: *value, time }
         }));
     }
 

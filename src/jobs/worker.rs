@@ -5,10 +5,10 @@ use std::sync::atomic::Ordering;
 use super::fleet::LeaseKeeper;
 use super::training::{JobLog, Outcome, TrainedPolicy, TrainingRun};
 use super::{JobEvent, JobRunner};
+use crate::domain::LogLevel;
+use crate::domain::MetricRecord;
 use crate::domain::{JobRecord, JobStatus, PolicyId};
-use crate::store::jobs::MetricRow;
 use crate::store::leases::LeaseTable;
-use crate::store::logs::LogLevel;
 use crate::store::policies::NewPolicy;
 use crate::store::{Lease, Store, StoreError};
 
@@ -123,7 +123,7 @@ async fn write_end(
     log: &JobLog,
     lease: &Lease,
     mut outcome: Outcome,
-    mut metrics: Vec<MetricRow>,
+    mut metrics: Vec<MetricRecord>,
 ) -> Ended {
     let store = runner.store();
     loop {
@@ -168,7 +168,7 @@ async fn store_policy(
     log: &JobLog,
     lease: &Lease,
     trained: TrainedPolicy,
-    metrics: Vec<MetricRow>,
+    metrics: Vec<MetricRecord>,
 ) -> anyhow::Result<()> {
     // In first: the policy's final metrics are the last values stored.
     store.insert_metrics(lease, &metrics).await?;

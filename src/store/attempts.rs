@@ -15,8 +15,8 @@ use super::leases::Lease;
 use super::logs::insert_log_line;
 use super::{now, parse_optional_time, parse_time, Store, StoreError};
 use crate::domain::attempt::{crash_message, gave_up_message, MemorySample};
+use crate::domain::LogLevel;
 use crate::domain::{AttemptOutcome, JobAttempt, JobId, JobStatus, RetryBackoff};
-use crate::store::logs::LogLevel;
 
 /// A job whose worker's lease expired, as the reaper found and left it.
 #[derive(Clone, Debug, PartialEq)]

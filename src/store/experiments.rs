@@ -3,7 +3,7 @@
 use super::jobs::{DeleteJobOutcome, NewJob};
 use super::{parse_time, Listing, PageQuery, Store, StoreError};
 use crate::domain::experiment::{ExperimentRecord, ExperimentSpec};
-use crate::domain::{JobId, JobRecord, JobStatus};
+use crate::domain::{ExperimentId, JobId, JobRecord, JobStatus};
 
 #[derive(sqlx::FromRow)]
 struct ExperimentRow {
@@ -22,7 +22,7 @@ impl TryFrom<ExperimentRow> for ExperimentRecord {
             .map_err(|e| StoreError::Corrupt(owner.clone(), format!("stored spec: {e}")))?;
         Ok(ExperimentRecord {
             created_at: parse_time(&owner, &row.created_at)?,
-            id: row.id,
+            id: ExperimentId::from(row.id),
             name: row.name,
             spec,
         })
@@ -51,10 +51,10 @@ impl Store {
         jobs: &[(NewJob, String)],
     ) -> Result<(), StoreError> {
         let spec = serde_json::to_string(&experiment.spec)
-            .map_err(|e| StoreError::Corrupt(experiment.id.clone(), e.to_string()))?;
+            .map_err(|e| StoreError::Corrupt(experiment.id.to_string(), e.to_string()))?;
         let mut tx = self.begin_write().await?;
         sqlx::query("INSERT INTO experiments (id, name, spec, created_at) VALUES ($1, $2, $3, $4)")
-            .bind(&experiment.id)
+            .bind(experiment.id.as_str())
             .bind(experiment.name.as_deref())
             .bind(spec)
             .bind(crate::domain::rfc3339(&experiment.created_at))
@@ -67,13 +67,13 @@ impl Store {
         Ok(())
     }
 
-    pub async fn experiment(&self, id: &str) -> Result<ExperimentRecord, StoreError> {
+    pub async fn experiment(&self, id: &ExperimentId) -> Result<ExperimentRecord, StoreError> {
         let row: ExperimentRow =
             sqlx::query_as("SELECT id, name, spec, created_at FROM experiments WHERE id = $1")
-                .bind(id)
+                .bind(id.as_str())
                 .fetch_optional(self.pool())
                 .await?
-                .ok_or_else(|| StoreError::NotFound { kind: "experiment", id: id.to_owned() })?;
+                .ok_or_else(|| StoreError::NotFound { kind: "experiment", id: id.to_string() })?;
         row.try_into()
     }
 
@@ -92,12 +92,12 @@ impl Store {
     /// How many of an experiment's jobs are in each status (statuses with none left out).
     pub async fn experiment_status_counts(
         &self,
-        id: &str,
+        id: &ExperimentId,
     ) -> Result<Vec<(JobStatus, u64)>, StoreError> {
         let rows: Vec<(String, i64)> = sqlx::query_as(
             "SELECT status, COUNT(*) FROM jobs WHERE experiment_id = $1 GROUP BY status",
         )
-        .bind(id)
+        .bind(id.as_str())
         .fetch_all(self.pool())
         .await?;
         rows.into_iter()
@@ -111,11 +111,11 @@ impl Store {
     }
 
     /// The jobs of an experiment, in the order they were queued (arm by arm, seed by seed).
-    pub async fn experiment_jobs(&self, id: &str) -> Result<Vec<JobRecord>, StoreError> {
+    pub async fn experiment_jobs(&self, id: &ExperimentId) -> Result<Vec<JobRecord>, StoreError> {
         let ids: Vec<JobId> = sqlx::query_scalar::<_, String>(
             "SELECT id FROM jobs WHERE experiment_id = $1 ORDER BY created_at, name, id",
         )
-        .bind(id)
+        .bind(id.as_str())
         .fetch_all(self.pool())
         .await?
         .into_iter()
@@ -132,7 +132,10 @@ impl Store {
     /// /v1/jobs/{id}` would: metrics, logs, policy and its evaluations). A job whose policy a
     /// model version points at stops the delete there (409 `policy_in_use`, the experiment and
     /// its remaining jobs stay).
-    pub async fn delete_experiment(&self, id: &str) -> Result<DeleteExperimentOutcome, StoreError> {
+    pub async fn delete_experiment(
+        &self,
+        id: &ExperimentId,
+    ) -> Result<DeleteExperimentOutcome, StoreError> {
         let jobs = match self.experiment(id).await {
             Ok(_) => self.experiment_jobs(id).await?,
             Err(StoreError::NotFound { .. }) => return Ok(DeleteExperimentOutcome::NotFound),
@@ -170,7 +173,10 @@ impl Store {
                 }
             }
         }
-        sqlx::query("DELETE FROM experiments WHERE id = $1").bind(id).execute(self.pool()).await?;
+        sqlx::query("DELETE FROM experiments WHERE id = $1")
+            .bind(id.as_str())
+            .execute(self.pool())
+            .await?;
         Ok(DeleteExperimentOutcome::Deleted { policies, jobs: deleted })
     }
 }

@@ -17,7 +17,8 @@ use super::{
 use crate::algo::ResolvedConfig;
 use crate::domain::model::{MoveNote, Registration};
 use crate::domain::{
-    AttemptOutcome, DatasetId, EvalOptions, JobId, JobLabels, JobRecord, JobStatus, RunnerOptions,
+    rfc3339, AttemptOutcome, DatasetId, EvalOptions, JobId, JobLabels, JobRecord, JobStatus,
+    MetricRecord, RunnerOptions,
 };
 
 /// A job row as the database returns it; [`JobRecord`] is its typed form.
@@ -172,13 +173,25 @@ pub enum DeleteJobOutcome {
     PolicyRegistered(Vec<String>),
 }
 
-/// One recorded scalar of a training step.
-#[derive(Clone, Debug, PartialEq, sqlx::FromRow)]
-pub struct MetricRow {
-    pub name: String,
-    pub step: i64,
-    pub value: f64,
-    pub time: String,
+/// A metric sample as stored (its time as text).
+#[derive(sqlx::FromRow)]
+struct MetricRow {
+    name: String,
+    step: i64,
+    value: f64,
+    time: String,
+}
+
+impl MetricRow {
+    fn into_record(self, job: &JobId) -> Result<MetricRecord, StoreError> {
+        let owner = format!("job {job} metric {} at step {}", self.name, self.step);
+        Ok(MetricRecord {
+            time: parse_time(&owner, &self.time)?,
+            name: self.name,
+            step: self.step as u64,
+            value: self.value,
+        })
+    }
 }
 
 /// A running job's progress as the worker reports it.
@@ -545,7 +558,7 @@ impl Store {
     pub async fn insert_metrics(
         &self,
         lease: &Lease,
-        rows: &[MetricRow],
+        rows: &[MetricRecord],
     ) -> Result<(), StoreError> {
         if rows.is_empty() {
             return Ok(());
@@ -564,7 +577,7 @@ impl Store {
         lease: &Lease,
         step: u64,
         data: &[u8],
-        pending_metrics: &[MetricRow],
+        pending_metrics: &[MetricRecord],
     ) -> Result<(), StoreError> {
         let mut tx = self.begin_write().await?;
         leases::hold(&mut tx, LeaseTable::Jobs, lease).await?;
@@ -612,9 +625,9 @@ impl Store {
     /// Every metric row of a job (only `names` when given), ordered by name then step.
     pub async fn job_metrics(
         &self,
-        id: &str,
+        id: &JobId,
         names: Option<&[String]>,
-    ) -> Result<Vec<MetricRow>, StoreError> {
+    ) -> Result<Vec<MetricRecord>, StoreError> {
         let filter = match names {
             Some([]) => return Ok(Vec::new()),
             Some(names) => format!(" AND name IN ({})", placeholders(2, names.len())),
@@ -624,11 +637,12 @@ impl Store {
             "SELECT name, step, value, time FROM job_metrics WHERE job_id = $1{filter} \
              ORDER BY name, step"
         );
-        let mut query = sqlx::query_as(&sql).bind(id);
+        let mut query = sqlx::query_as(&sql).bind(id.as_str());
         for name in names.unwrap_or_default() {
             query = query.bind(name);
         }
-        Ok(query.fetch_all(self.pool()).await?)
+        let rows: Vec<MetricRow> = query.fetch_all(self.pool()).await?;
+        rows.into_iter().map(|row| row.into_record(id)).collect()
     }
 
     /// The last recorded value of each metric of a job.
@@ -652,7 +666,7 @@ impl Store {
     pub async fn finish_job_succeeded(
         &self,
         lease: &Lease,
-        pending_metrics: &[MetricRow],
+        pending_metrics: &[MetricRecord],
         policy: &NewPolicy<'_>,
         step: u64,
         evaluation: Option<&TrainingEvaluation>,
@@ -728,7 +742,7 @@ impl Store {
         lease: &Lease,
         status: JobStatus,
         error: Option<&str>,
-        pending_metrics: &[MetricRow],
+        pending_metrics: &[MetricRecord],
     ) -> Result<(), StoreError> {
         debug_assert!(matches!(status, JobStatus::Failed | JobStatus::Cancelled));
         let mut tx = self.begin_write().await?;
@@ -820,7 +834,7 @@ async fn delete_checkpoint(tx: &mut Transaction<'_, Any>, id: &str) -> Result<()
 async fn insert_metric_rows(
     tx: &mut Transaction<'_, Any>,
     id: &str,
-    rows: &[MetricRow],
+    rows: &[MetricRecord],
 ) -> Result<(), sqlx::Error> {
     // SQLite's bound-parameter limit is 32766, PostgreSQL's 65535; 5 per row.
     for chunk in rows.chunks(4000) {
@@ -835,9 +849,9 @@ async fn insert_metric_rows(
             insert = insert
                 .bind(id)
                 .bind(&metric.name)
-                .bind(metric.step)
+                .bind(metric.step as i64)
                 .bind(metric.value)
-                .bind(&metric.time);
+                .bind(rfc3339(&metric.time));
         }
         insert.execute(&mut **tx).await?;
     }

@@ -13,9 +13,9 @@ use std::time::Duration;
 
 use sqlx::{Any, Transaction};
 
-use super::{now, Store, StoreError};
+use super::{now, parse_time, Store, StoreError};
 use crate::domain::attempt::MemorySample;
-use crate::domain::{JobId, JobStatus};
+use crate::domain::{JobId, JobStatus, WorkerRecord};
 
 /// A worker's claim on one running job or evaluation.
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -37,16 +37,34 @@ impl Lease {
     }
 }
 
-/// A worker's row in the registry.
-#[derive(Clone, Debug, PartialEq, sqlx::FromRow)]
-pub struct WorkerRow {
-    pub id: String,
-    pub host: String,
-    pub pid: i64,
-    pub concurrency: i64,
-    pub started_at: String,
+/// A worker's row in the registry, as stored.
+#[derive(sqlx::FromRow)]
+struct WorkerRow {
+    id: String,
+    host: String,
+    pid: i64,
+    concurrency: i64,
+    started_at: String,
     /// Milliseconds since its last heartbeat, on the database's clock.
-    pub heartbeat_age_ms: i64,
+    heartbeat_age_ms: i64,
+}
+
+impl WorkerRow {
+    fn into_record(self) -> Result<WorkerRecord, StoreError> {
+        let owner = format!("worker {}", self.id);
+        let count = |what: &str, n: i64| {
+            u32::try_from(n).map_err(|_| StoreError::Corrupt(owner.clone(), format!("{what} {n}")))
+        };
+        Ok(WorkerRecord {
+            pid: count("pid", self.pid)?,
+            concurrency: count("concurrency", self.concurrency)?,
+            started_at: parse_time(&owner, &self.started_at)?,
+            // A heartbeat from a clock a little ahead of the database's is not in the future.
+            heartbeat_age: Duration::from_millis(self.heartbeat_age_ms.max(0) as u64),
+            host: self.host,
+            id: self.id,
+        })
+    }
 }
 
 /// Lease counts for /metrics.
@@ -230,8 +248,8 @@ impl Store {
     }
 
     /// The registered workers, by id.
-    pub async fn workers(&self) -> Result<Vec<WorkerRow>, StoreError> {
-        let rows = sqlx::query_as(&format!(
+    pub async fn workers(&self) -> Result<Vec<WorkerRecord>, StoreError> {
+        let rows: Vec<WorkerRow> = sqlx::query_as(&format!(
             "SELECT id, host, pid, concurrency, started_at, \
                  {} - heartbeat_ms AS heartbeat_age_ms \
              FROM workers ORDER BY id",
@@ -239,7 +257,7 @@ impl Store {
         ))
         .fetch_all(self.pool())
         .await?;
-        Ok(rows)
+        rows.into_iter().map(WorkerRow::into_record).collect()
     }
 
     pub async fn lease_stats(&self) -> Result<LeaseStats, StoreError> {
@@ -295,8 +313,9 @@ pub fn host_name() -> String {
 mod tests {
     use super::*;
     use crate::algo::{Algorithm, Preset, ResolvedConfig};
+    use crate::domain::MetricRecord;
     use crate::domain::{JobId, JobStatus, RetryBackoff, RunnerOptions};
-    use crate::store::jobs::{MetricRow, NewJob, ProgressUpdate};
+    use crate::store::jobs::{NewJob, ProgressUpdate};
     use crate::store::test_support::store_with_a_dataset;
 
     async fn store_with_a_queued_job() -> (tempfile::TempDir, Store, JobId) {
@@ -317,8 +336,8 @@ mod tests {
         (dir, store, id)
     }
 
-    fn metric(step: i64) -> MetricRow {
-        MetricRow { name: "loss".into(), step, value: 1.0, time: now() }
+    fn metric(step: u64) -> MetricRecord {
+        MetricRecord { name: "loss".into(), step, value: 1.0, time: chrono::Utc::now() }
     }
 
     /// The fencing rule on its own: once a second worker claimed the job after the first one's

@@ -3,34 +3,33 @@
 use sqlx::{Any, Transaction};
 
 use super::leases::{self, Lease, LeaseTable};
-use super::{now, Store, StoreError};
+use super::{now, parse_time, Store, StoreError};
+use crate::domain::{JobId, LogLevel, LogRecord};
 
-/// How bad a log line is.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum LogLevel {
-    Info,
-    Warn,
-    Error,
+/// A log line as stored (time and level as text).
+#[derive(sqlx::FromRow)]
+struct LogRow {
+    seq: i64,
+    time: String,
+    level: String,
+    worker: String,
+    message: String,
 }
 
-impl LogLevel {
-    pub fn as_str(self) -> &'static str {
-        match self {
-            LogLevel::Info => "info",
-            LogLevel::Warn => "warn",
-            LogLevel::Error => "error",
-        }
+impl LogRow {
+    fn into_record(self, job: &str) -> Result<LogRecord, StoreError> {
+        let owner = format!("job {job} log line {}", self.seq);
+        let level = LogLevel::parse(&self.level).ok_or_else(|| {
+            StoreError::Corrupt(owner.clone(), format!("log level {:?}", self.level))
+        })?;
+        Ok(LogRecord {
+            seq: self.seq as u64,
+            time: parse_time(&owner, &self.time)?,
+            level,
+            worker: self.worker,
+            message: self.message,
+        })
     }
-}
-
-/// A stored log line.
-#[derive(Clone, Debug, PartialEq, sqlx::FromRow)]
-pub struct LogRow {
-    pub seq: i64,
-    pub time: String,
-    pub level: String,
-    pub worker: String,
-    pub message: String,
 }
 
 impl Store {
@@ -54,19 +53,20 @@ impl Store {
     /// Up to `limit` lines of a job's log after line `after`, in order.
     pub async fn job_log(
         &self,
-        id: &str,
+        id: &JobId,
         after: i64,
         limit: u32,
-    ) -> Result<Vec<LogRow>, StoreError> {
-        Ok(sqlx::query_as(
+    ) -> Result<Vec<LogRecord>, StoreError> {
+        let rows: Vec<LogRow> = sqlx::query_as(
             "SELECT seq, time, level, worker, message FROM job_logs \
              WHERE job_id = $1 AND seq > $2 ORDER BY seq LIMIT $3",
         )
-        .bind(id)
+        .bind(id.as_str())
         .bind(after)
         .bind(i64::from(limit))
         .fetch_all(self.pool())
-        .await?)
+        .await?;
+        rows.into_iter().map(|row| row.into_record(id)).collect()
     }
 }
 

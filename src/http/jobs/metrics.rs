@@ -8,12 +8,11 @@ use utoipa::{IntoParams, ToSchema};
 use utoipa_axum::router::OpenApiRouter;
 use utoipa_axum::routes;
 
-use crate::domain::JobId;
+use crate::domain::{rfc3339, JobId, MetricRecord};
 use crate::http::error::ErrorBody;
 use crate::http::extract::{Json, Path, Query};
 use crate::http::{ApiError, AppState};
 use crate::lttb::lttb_indices;
-use crate::store::jobs::MetricRow;
 
 pub(super) fn router() -> OpenApiRouter<AppState> {
     OpenApiRouter::new()
@@ -120,7 +119,7 @@ async fn job_metrics_csv(
     let mut csv = String::from("name,step,value,time\n");
     for row in &rows {
         // Metric names are identifiers (letters, digits, `_`, `/`): no quoting needed.
-        csv.push_str(&format!("{},{},{},{}\n", row.name, row.step, row.value, row.time));
+        csv.push_str(&format!("{},{},{},{}\n", row.name, row.step, row.value, rfc3339(&row.time)));
     }
     crate::http::attachment(&format!("job-{id}-metrics.csv"), "text/csv; charset=utf-8", csv)
 }
@@ -161,7 +160,7 @@ async fn job_metric_names(
 /// Per metric (rows come ordered by name, then step): at most `max_points` points, chosen by
 /// LTTB ([`crate::lttb`]): real rows with their own step and time, the first and the last
 /// exactly, and the points that shape the curve (spikes included).
-fn downsample(rows: Vec<MetricRow>, max_points: usize) -> (Vec<MetricPoint>, bool) {
+fn downsample(rows: Vec<MetricRecord>, max_points: usize) -> (Vec<MetricPoint>, bool) {
     let mut out = Vec::with_capacity(rows.len().min(max_points * 16));
     let mut downsampled = false;
     for series in rows.chunk_by(|a, b| a.name == b.name) {
@@ -179,12 +178,12 @@ fn downsample(rows: Vec<MetricRow>, max_points: usize) -> (Vec<MetricPoint>, boo
     (out, downsampled)
 }
 
-fn point(row: &MetricRow) -> MetricPoint {
+fn point(row: &MetricRecord) -> MetricPoint {
     MetricPoint {
         name: row.name.clone(),
-        step: row.step as u64,
+        step: row.step,
         value: row.value,
-        time: row.time.clone(),
+        time: rfc3339(&row.time),
     }
 }
 
@@ -192,15 +191,20 @@ fn point(row: &MetricRow) -> MetricPoint {
 mod tests {
     use super::*;
 
-    fn series(name: &str, values: &[f64]) -> Vec<MetricRow> {
+    /// Second `i` of the series.
+    fn time(i: usize) -> chrono::DateTime<chrono::Utc> {
+        chrono::DateTime::UNIX_EPOCH + chrono::Duration::seconds(i as i64)
+    }
+
+    fn series(name: &str, values: &[f64]) -> Vec<MetricRecord> {
         values
             .iter()
             .enumerate()
-            .map(|(i, &value)| MetricRow {
+            .map(|(i, &value)| MetricRecord {
                 name: name.into(),
-                step: (i as i64 + 1) * 10,
+                step: (i as u64 + 1) * 10,
                 value,
-                time: format!("t{i}"),
+                time: time(i),
             })
             .collect()
     }
@@ -226,11 +230,11 @@ mod tests {
         let a: Vec<&MetricPoint> = out.iter().filter(|p| p.name == "a").collect();
         assert_eq!(a.len(), 20);
         for p in &a {
-            let row = rows.iter().find(|r| r.name == "a" && r.step as u64 == p.step).unwrap();
-            assert_eq!((p.value, &p.time), (row.value, &row.time));
+            let row = rows.iter().find(|r| r.name == "a" && r.step == p.step).unwrap();
+            assert_eq!((p.value, &p.time), (row.value, &rfc3339(&row.time)));
         }
         assert_eq!((a[0].step, a[19].step), (10, 10_000));
-        assert!(a.iter().any(|p| p.value == 40.0 && p.time == "t617"));
+        assert!(a.iter().any(|p| p.value == 40.0 && p.time == rfc3339(&time(617))));
         assert_eq!(out.iter().filter(|p| p.name == "b").count(), 2);
     }
 }

@@ -15,13 +15,11 @@ use utoipa_axum::router::OpenApiRouter;
 use utoipa_axum::routes;
 
 use super::Job;
-use crate::domain::JobId;
-use crate::domain::JobProgress;
+use crate::domain::{rfc3339, JobId, JobProgress, LogRecord};
 use crate::http::error::ErrorBody;
 use crate::http::extract::{Json, Path, Query};
 use crate::http::{ApiError, AppState};
 use crate::jobs::JobEvent;
-use crate::store::logs::LogRow;
 use crate::store::{Store, StoreError};
 
 pub(super) fn router() -> OpenApiRouter<AppState> {
@@ -58,14 +56,14 @@ pub struct LogLine {
     pub message: String,
 }
 
-impl From<LogRow> for LogLine {
-    fn from(row: LogRow) -> Self {
+impl From<LogRecord> for LogLine {
+    fn from(record: LogRecord) -> Self {
         LogLine {
-            seq: row.seq as u64,
-            time: row.time,
-            level: row.level,
-            worker: row.worker,
-            message: row.message,
+            seq: record.seq,
+            time: rfc3339(&record.time),
+            level: record.level.as_str().to_owned(),
+            worker: record.worker,
+            message: record.message,
         }
     }
 }
