@@ -3,7 +3,9 @@
 # release build, on a BC policy of the paper's size (256-256) trained on point-goal data:
 # POST /v1/policies/{id}/act, and /v2/models/{id}/infer in JSON and in binary tensor data; the
 # same policy by model name (POST /v1/models/pilot@production/act, /v2/models/pilot@production).
-# wrk shares the machine's cores with the server.
+# wrk shares the machine's cores with the server. Then full batches: 16,384 observations a
+# request (the largest the routes take) to /act and /v2 JSON, one request at a time, where
+# reading the JSON body is a large part of the time.
 #
 #   cargo build --release --bin safedice && bench/act_latency.sh [target/release/safedice] [seconds]
 set -euo pipefail
@@ -67,3 +69,30 @@ for run in act:/v1/policies/$POLICY/act v2_json:/v2/models/$POLICY/infer v2_bina
   errors=$(echo "$out" | awk '/Non-2xx/ {print $NF}')
   echo "| $name ${path%/*} | $rps | $p50 | $p99 | ${errors:-0} |"
 done
+
+echo
+echo "| route, 16,384 observations a request | median ms | min ms | requests |"
+echo "|---|---|---|---|"
+python3 - "$API" "$POLICY" "$OBS_DIM" <<'PY'
+import http.client, json, statistics, sys, time, urllib.parse
+api, policy, dim = sys.argv[1], sys.argv[2], int(sys.argv[3])
+rows = [[0.01 * ((i * 7 + j) % 97) for j in range(dim)] for i in range(16384)]
+bodies = {
+    "act": (f"/v1/policies/{policy}/act", json.dumps({"observations": rows})),
+    "v2_json": (f"/v2/models/{policy}/infer", json.dumps({"inputs": [
+        {"name": "observations", "datatype": "FP32", "shape": [len(rows), dim], "data": rows}]})),
+}
+url = urllib.parse.urlparse(api)
+conn = http.client.HTTPConnection(url.hostname, url.port)
+for name, (path, body) in bodies.items():
+    times = []
+    for i in range(22):
+        start = time.perf_counter()
+        conn.request("POST", path, body, {"Content-Type": "application/json"})
+        response = conn.getresponse()
+        response.read()
+        assert response.status == 200, (name, response.status)
+        if i >= 2:  # two to warm up
+            times.append(1000 * (time.perf_counter() - start))
+    print(f"| {name} | {statistics.median(times):.1f} | {min(times):.1f} | {len(times)} |")
+PY

@@ -8,6 +8,7 @@ pub mod dataset;
 pub mod evaluation;
 pub mod experiment;
 pub mod ids;
+pub mod integral;
 pub mod job;
 pub mod labels;
 pub mod model;
@@ -58,7 +59,7 @@ pub const MAX_SEED: u64 = i64::MAX as u64;
 
 /// Deserializes a seed, refusing one above [`MAX_SEED`] with a message that says why.
 pub fn deserialize_seed<'de, D: serde::Deserializer<'de>>(d: D) -> Result<u64, D::Error> {
-    let seed = <u64 as serde::Deserialize>::deserialize(d)?;
+    let seed = integral::unsigned(d)?;
     if seed > MAX_SEED {
         return Err(serde::de::Error::custom(format!(
             "seed {seed} is above {MAX_SEED}, the largest 64-bit signed integer (seeds are int64)"

@@ -46,6 +46,57 @@ impl<T: DeserializeOwned, S: Send + Sync> FromRequest<S> for AnyContentTypeJson<
     }
 }
 
+/// A JSON object body read straight into `T`, with no `serde_json::Value` tree in between: for
+/// the action routes (`/act`, `/v2/…/infer`), whose bodies carry up to 16,384 rows of numbers.
+/// axum's extractor does the reading (content type, body limit, 400 for a syntax error, 422
+/// naming the path of a value that does not fit); [`Object`] refuses any body but an object.
+///
+/// [`Json`]'s two rules on the tree are the type's to keep here: a derived struct refuses a
+/// repeated field itself (keys it ignores cannot change the answer), and integer fields take
+/// integral floats through [`crate::domain::integral`].
+#[derive(Debug, Clone, Copy, Default)]
+pub struct StraightJson<T>(pub T);
+
+impl<T: DeserializeOwned, S: Send + Sync> FromRequest<S> for StraightJson<T> {
+    type Rejection = ApiError;
+
+    async fn from_request(request: Request, state: &S) -> Result<Self, ApiError> {
+        let axum::Json(Object(value)) =
+            axum::Json::<Object<T>>::from_request(request, state).await?;
+        Ok(StraightJson(value))
+    }
+}
+
+/// [`StraightJson`]'s reading of JSON text that came without a content type to check (the
+/// binary tensor data extension's JSON header).
+pub(super) fn deserialize_straight<T: DeserializeOwned>(bytes: &[u8]) -> Result<T, ApiError> {
+    let axum::Json(Object(value)) = axum::Json::<Object<T>>::from_bytes(bytes)?;
+    Ok(value)
+}
+
+/// `T` from a JSON object only: serde would otherwise fill a struct from an array by position.
+struct Object<T>(T);
+
+impl<'de, T: Deserialize<'de>> Deserialize<'de> for Object<T> {
+    fn deserialize<D: Deserializer<'de>>(deserializer: D) -> Result<Self, D::Error> {
+        struct ObjectVisitor<T>(std::marker::PhantomData<T>);
+
+        impl<'de, T: Deserialize<'de>> Visitor<'de> for ObjectVisitor<T> {
+            type Value = T;
+
+            fn expecting(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+                f.write_str("an object (the request body must be a JSON object)")
+            }
+
+            fn visit_map<A: MapAccess<'de>>(self, map: A) -> Result<T, A::Error> {
+                T::deserialize(serde::de::value::MapAccessDeserializer::new(map))
+            }
+        }
+
+        deserializer.deserialize_map(ObjectVisitor(std::marker::PhantomData)).map(Object)
+    }
+}
+
 /// JSON text as a value with no repeated keys (400 for a syntax error, 422 for a repeat).
 pub(super) fn parse_strict(bytes: &[u8]) -> Result<serde_json::Value, ApiError> {
     serde_json::from_slice::<StrictValue>(bytes).map(|StrictValue(value)| value).map_err(|e| {
@@ -231,5 +282,66 @@ mod strict_tests {
         let positional = deserialize_body::<Patch>(serde_json::json!([null, null])).unwrap_err();
         assert_eq!(positional.code(), "invalid_body");
         assert!(deserialize_body::<Patch>(serde_json::json!({"name": "x"})).is_ok());
+    }
+}
+
+#[cfg(test)]
+mod straight_tests {
+    use super::*;
+    use crate::http::inference::InferRequest;
+    use crate::http::serving::ActRequest;
+
+    fn refusal<T: DeserializeOwned>(text: &str) -> (StatusCode, String) {
+        match deserialize_straight::<T>(text.as_bytes()) {
+            Ok(_) => panic!("{text} was read"),
+            Err(e) => (e.status(), e.to_string()),
+        }
+    }
+
+    #[test]
+    fn action_bodies_read_like_every_other_body() {
+        let act: ActRequest = deserialize_straight(
+            br#"{"observations": [[1, 2.5], [-3e0, 4]], "deterministic": false, "seed": 7.0}"#,
+        )
+        .unwrap();
+        assert_eq!(act.observations, vec![vec![1.0, 2.5], vec![-3.0, 4.0]]);
+        assert_eq!((act.deterministic, act.seed), (false, Some(7)));
+        let infer: InferRequest = deserialize_straight(
+            br#"{"inputs": [{"name": "observations", "datatype": "FP32", "shape": [2.0, 2],
+                 "data": [[1, 2], [3, 4.5]], "parameters": {"binary_data_size": 16.0}}]}"#,
+        )
+        .unwrap();
+        let input = &infer.inputs[0];
+        assert_eq!(input.shape, vec![2, 2]);
+        assert_eq!(input.data.as_ref().unwrap().0, vec![1.0, 2.0, 3.0, 4.5]);
+        assert_eq!(input.parameters.binary_data_size, Some(16));
+    }
+
+    #[test]
+    fn action_bodies_are_refused_with_the_status_and_path_of_every_other_body() {
+        let unprocessable = StatusCode::UNPROCESSABLE_ENTITY;
+        for (text, status, says) in [
+            ("{", StatusCode::BAD_REQUEST, "parse the request body as JSON"),
+            (r#"{"observations": [[1]]} x"#, StatusCode::BAD_REQUEST, "trailing characters"),
+            ("[[[1]], false]", unprocessable, "JSON object"),
+            (r#"{"observations": [[1, "x"]]}"#, unprocessable, "observations[0][1]"),
+            (r#"{"observations": [[1]], "observations": [[2]]}"#, unprocessable, "duplicate"),
+            (r#"{"observations": [[1]], "seed": 0.5}"#, unprocessable, "seed"),
+        ] {
+            assert_eq!(refusal::<ActRequest>(text).0, status, "{text}");
+            assert!(
+                refusal::<ActRequest>(text).1.contains(says),
+                "{text}: {:?}",
+                refusal::<ActRequest>(text)
+            );
+        }
+        let (status, message) = refusal::<InferRequest>(
+            r#"{"inputs": [{"name": "o", "datatype": "FP32", "shape": [1, 1], "data": [["x"]]}]}"#,
+        );
+        assert_eq!(status, unprocessable);
+        assert!(
+            message.contains("inputs[0].data") && message.contains("numbers only"),
+            "{message}"
+        );
     }
 }

@@ -27,6 +27,7 @@ pub mod openapi;
 pub mod pagination;
 pub mod policies;
 pub mod prometheus;
+pub mod serving;
 pub mod ui;
 
 use std::sync::Arc;

@@ -13,9 +13,9 @@ use utoipa_axum::router::OpenApiRouter;
 use utoipa_axum::routes;
 
 use super::error::ErrorBody;
-use super::extract::{Json, Path};
+use super::extract::{Json, Path, StraightJson};
 use super::model_names::{reference, request_key, tag_version};
-use super::policies::{act_on, ActRequest, ActResponse};
+use super::serving::{act_on, ActRequest, ActResponse, ACTION_BODY_LIMIT};
 use super::{ApiError, AppState};
 use crate::domain::model::ModelRef;
 
@@ -23,7 +23,7 @@ pub fn router() -> OpenApiRouter<AppState> {
     OpenApiRouter::new()
         .routes(routes!(act_by_name))
         .routes(routes!(act_by_version))
-        .layer(axum::extract::DefaultBodyLimit::max(super::inference::ACTION_BODY_LIMIT))
+        .layer(axum::extract::DefaultBodyLimit::max(ACTION_BODY_LIMIT))
 }
 
 /// Actions from a named model: `name` serves its latest version, `name@alias` the alias's
@@ -45,7 +45,7 @@ async fn act_by_name(
     State(state): State<AppState>,
     Path(name): Path<String>,
     headers: HeaderMap,
-    Json(request): Json<ActRequest>,
+    StraightJson(request): StraightJson<ActRequest>,
 ) -> Result<Response, ApiError> {
     let reference = reference(&name, None)?;
     act(&state, &reference, request_key(&headers), request).await
@@ -70,7 +70,7 @@ struct VersionPath {
 async fn act_by_version(
     State(state): State<AppState>,
     Path(path): Path<VersionPath>,
-    Json(request): Json<ActRequest>,
+    StraightJson(request): StraightJson<ActRequest>,
 ) -> Result<Response, ApiError> {
     let reference = reference(&path.name, Some(&path.version))?;
     act(&state, &reference, None, request).await

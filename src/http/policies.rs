@@ -9,12 +9,11 @@ use utoipa_axum::router::OpenApiRouter;
 use utoipa_axum::routes;
 
 use super::error::ErrorBody;
-use super::extract::{Json, Path, Query};
-use super::inference::{self, Observations};
+use super::extract::{Json, Path, Query, StraightJson};
 use super::pagination::{Page, PageParams};
+use super::serving::{act_on, ActRequest, ActResponse, ACTION_BODY_LIMIT};
 use super::{ApiError, AppState, OCTET_STREAM};
 use crate::algo::Algorithm;
-use crate::data::Actions;
 use crate::domain::{rfc3339, PolicyId, PolicyRecord};
 use crate::store::{DeleteOutcome, Listing};
 
@@ -76,44 +75,6 @@ pub struct PolicyFilter {
     pub job_id: Option<String>,
 }
 
-/// `POST /v1/policies/{id}/act` body.
-#[derive(Debug, Deserialize, ToSchema)]
-#[serde(deny_unknown_fields)]
-pub struct ActRequest {
-    /// A batch of observations (1 to 16384 rows of `obs_dim` finite numbers each), in the
-    /// dataset's original units. The body may be up to 16 MiB (other JSON bodies: 2 MB).
-    #[schema(min_items = 1, max_items = 16384)]
-    pub observations: Vec<Vec<f64>>,
-    /// true (default): tanh of the Gaussian mean / argmax. false: sample.
-    #[serde(default = "yes")]
-    pub deterministic: bool,
-    /// Seed for sampling (`deterministic: false`); the same seed gives the same actions. At
-    /// most 2^63 - 1.
-    #[serde(default, deserialize_with = "crate::domain::deserialize_optional_seed")]
-    #[schema(maximum = 9223372036854775807_u64)]
-    pub seed: Option<u64>,
-}
-
-fn yes() -> bool {
-    true
-}
-
-/// One action per observation.
-#[derive(Debug, Serialize, ToSchema)]
-#[serde(untagged)]
-pub enum ActionList {
-    /// Continuous spaces: a list of floats inside the action box per observation.
-    Continuous(Vec<Vec<f32>>),
-    /// Discrete spaces: an action index per observation.
-    Discrete(Vec<u32>),
-}
-
-/// Actions for the observations, in order.
-#[derive(Debug, Serialize, ToSchema)]
-pub struct ActResponse {
-    pub actions: ActionList,
-}
-
 pub fn router() -> OpenApiRouter<AppState> {
     OpenApiRouter::new()
         .routes(routes!(list_policies))
@@ -123,7 +84,7 @@ pub fn router() -> OpenApiRouter<AppState> {
         .merge(
             OpenApiRouter::new()
                 .routes(routes!(act))
-                .layer(axum::extract::DefaultBodyLimit::max(inference::ACTION_BODY_LIMIT)),
+                .layer(axum::extract::DefaultBodyLimit::max(ACTION_BODY_LIMIT)),
         )
 }
 
@@ -277,26 +238,8 @@ async fn export_policy(
 async fn act(
     State(state): State<AppState>,
     Path(id): Path<PolicyId>,
-    Json(request): Json<ActRequest>,
+    StraightJson(request): StraightJson<ActRequest>,
 ) -> Result<Json<ActResponse>, ApiError> {
     let policy = state.policies.get(&id).await?;
     Ok(Json(act_on(policy, request).await?))
-}
-
-/// `/act` on a loaded policy (by id here, by model name in [`super::model_serving`]).
-pub(crate) async fn act_on(
-    policy: std::sync::Arc<crate::algo::Policy>,
-    request: ActRequest,
-) -> Result<ActResponse, ApiError> {
-    let spec = policy.spec();
-    let observations = Observations::from_rows(&request.observations, spec.obs_dim)?;
-    let width = spec.action_space.width();
-    let actions = inference::act(policy, observations, request.deterministic, request.seed).await?;
-    let actions = match actions {
-        Actions::Continuous(values) => {
-            ActionList::Continuous(values.chunks(width).map(<[f32]>::to_vec).collect())
-        }
-        Actions::Discrete(indices) => ActionList::Discrete(indices),
-    };
-    Ok(ActResponse { actions })
 }

@@ -564,6 +564,12 @@ async fn positional_arrays_and_repeated_keys_are_refused_and_change_nothing() {
             "[[[0.0]], true, 5]",
             "must be a JSON object",
         ),
+        (
+            reqwest::Method::POST,
+            "/v1/policies/p/act".to_owned(),
+            r#"{"observations": [[0.0]], "observations": [[1.0]]}"#,
+            "duplicate field `observations`",
+        ),
     ];
     for (method, path, text, expected) in refused {
         let response = send(method, path, text).await.unwrap();

@@ -16,7 +16,7 @@ use serde::{Deserialize, Serialize};
 use utoipa::ToSchema;
 
 use super::super::error::ErrorMessage;
-use super::super::extract::{deserialize_body, parse_strict};
+use super::super::extract::deserialize_straight;
 use super::super::ApiError;
 
 /// Says how long the JSON header at the start of a body is.
@@ -52,8 +52,7 @@ impl<T: serde::de::DeserializeOwned, S: Send + Sync> FromRequest<S> for InferBod
                 )))
             }
         };
-        let value = parse_strict(&json)?;
-        Ok(InferBody { request: deserialize_body(value)?, binary: body })
+        Ok(InferBody { request: deserialize_straight(&json)?, binary: body })
     }
 }
 

@@ -22,8 +22,6 @@ use std::sync::Arc;
 
 use axum::extract::State;
 use axum::http::HeaderMap;
-use rand::SeedableRng;
-use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 use utoipa::ToSchema;
 use utoipa_axum::router::OpenApiRouter;
@@ -34,6 +32,7 @@ use binary::{InferBody, V2Error};
 
 use super::extract::{Json, Path};
 use super::model_names;
+use super::serving::{act, Observations, ACTION_BODY_LIMIT};
 use super::{ApiError, AppState};
 use crate::algo::Policy;
 use crate::data::{ActionSpace, Actions};
@@ -45,105 +44,6 @@ const INPUT_NAME: &str = "observations";
 const OUTPUT_NAME: &str = "actions";
 /// A policy never changes once trained: every model has this one version.
 const MODEL_VERSION: &str = "1";
-
-/// Largest batch one request may send.
-pub const MAX_BATCH_ROWS: usize = 16_384;
-/// Largest request body of the action routes (`/act`, `/v2/…/infer`): a full batch of 16,384
-/// observations as JSON needs far more than the 2 MB every other JSON body may have (about 12
-/// bytes per value: 16,384 rows of 80 values), and as binary tensor data up to 256 values per
-/// row. A larger body is refused with 413 before it is read.
-pub const ACTION_BODY_LIMIT: usize = 16 << 20;
-/// Batches up to this many rows run on the request's task (a few microseconds of matrix
-/// products); larger ones move to a blocking thread so they cannot stall other requests.
-const INLINE_ROWS: usize = 64;
-
-/// Validated observations: `rows × obs_dim`, row-major, all finite.
-pub struct Observations {
-    pub values: Vec<f32>,
-    pub rows: usize,
-}
-
-impl Observations {
-    /// From `/act`'s list of rows.
-    pub fn from_rows(rows: &[Vec<f64>], obs_dim: usize) -> Result<Self, ApiError> {
-        check_batch_size(rows.len())?;
-        let mut values = Vec::with_capacity(rows.len() * obs_dim);
-        for (i, row) in rows.iter().enumerate() {
-            if row.len() != obs_dim {
-                return Err(invalid(format!(
-                    "observations[{i}] has {} values; this policy takes {obs_dim} per observation",
-                    row.len()
-                )));
-            }
-            for (j, &v) in row.iter().enumerate() {
-                values.push(finite(v, || format!("observations[{i}][{j}]"))?);
-            }
-        }
-        Ok(Observations { values, rows: rows.len() })
-    }
-
-    /// From a flat row-major buffer of `rows × obs_dim` values.
-    fn from_flat(flat: &[f64], rows: usize, obs_dim: usize) -> Result<Self, ApiError> {
-        check_batch_size(rows)?;
-        let values = flat
-            .iter()
-            .enumerate()
-            .map(|(k, &v)| finite(v, || format!("data[{}][{}]", k / obs_dim, k % obs_dim)))
-            .collect::<Result<_, _>>()?;
-        Ok(Observations { values, rows })
-    }
-}
-
-fn check_batch_size(rows: usize) -> Result<(), ApiError> {
-    if rows == 0 {
-        return Err(invalid("the batch is empty: send at least one observation".into()));
-    }
-    if rows > MAX_BATCH_ROWS {
-        return Err(ApiError::unprocessable(
-            "batch_too_large",
-            format!("{rows} observations in one request; at most {MAX_BATCH_ROWS}"),
-        ));
-    }
-    Ok(())
-}
-
-fn finite(v: f64, at: impl FnOnce() -> String) -> Result<f32, ApiError> {
-    let x = v as f32;
-    if x.is_finite() {
-        Ok(x)
-    } else {
-        Err(invalid(format!("{} is {v}, which is not a finite 32-bit float", at())))
-    }
-}
-
-fn invalid(message: String) -> ApiError {
-    ApiError::unprocessable("invalid_observations", message)
-}
-
-/// Runs the policy on validated observations: deterministic (tanh of the mean / argmax), or
-/// sampled with `seed` (reproducible) or fresh entropy.
-pub async fn act(
-    policy: Arc<Policy>,
-    observations: Observations,
-    deterministic: bool,
-    seed: Option<u64>,
-) -> Result<Actions, ApiError> {
-    let mut rng = match seed {
-        Some(seed) => ChaCha8Rng::seed_from_u64(seed),
-        None if deterministic => ChaCha8Rng::seed_from_u64(0),
-        None => ChaCha8Rng::from_os_rng(),
-    };
-    let mut run = move || {
-        policy
-            .act(&observations.values, deterministic, &mut rng)
-            .map_err(|e| ApiError::Internal(anyhow::anyhow!("policy inference failed: {e}")))
-    };
-    if observations.rows <= INLINE_ROWS {
-        run()
-    } else {
-        tokio::task::spawn_blocking(run).await?
-    }
-}
 
 pub fn router() -> OpenApiRouter<AppState> {
     let infer = OpenApiRouter::new()
@@ -391,13 +291,14 @@ async fn ready_of(
 pub struct InferInput {
     pub name: String,
     /// `[B, obs_dim]`.
+    #[serde(deserialize_with = "crate::domain::integral::signed_list")]
     pub shape: Vec<i64>,
     /// Must be `FP32`.
     pub datatype: String,
     /// Row-major values, flat or nested; absent when the values come as binary tensor data.
     #[schema(value_type = Option<Vec<f32>>)]
     #[serde(default)]
-    pub data: Option<serde_json::Value>,
+    pub data: Option<TensorData>,
     #[serde(default)]
     pub parameters: TensorParameters,
 }
@@ -405,7 +306,11 @@ pub struct InferInput {
 /// Binary tensor data extension: the tensor's bytes follow the JSON header.
 #[derive(Debug, Default, Serialize, Deserialize, ToSchema)]
 pub struct TensorParameters {
-    #[serde(skip_serializing_if = "Option::is_none")]
+    #[serde(
+        default,
+        skip_serializing_if = "Option::is_none",
+        deserialize_with = "crate::domain::integral::optional_unsigned"
+    )]
     pub binary_data_size: Option<u64>,
 }
 
@@ -551,12 +456,10 @@ async fn infer_with(
             let flat: Vec<f64> = values.into_iter().map(f64::from).collect();
             Observations::from_flat(&flat, rows, obs_dim)?
         }
-        (None, Some(data)) => {
+        (None, Some(TensorData(flat))) => {
             // Sized by the data that came, never by the shape the client declared.
-            let mut flat = Vec::new();
-            flatten_numbers(data, &mut flat)?;
             check_count(flat.len(), rows, obs_dim, &input.shape)?;
-            Observations::from_flat(&flat, rows, obs_dim)?
+            Observations::from_flat(flat, rows, obs_dim)?
         }
         (None, None) => {
             return Err(bad_input(format!(
@@ -670,17 +573,55 @@ fn bad_input(message: String) -> ApiError {
     ApiError::unprocessable("invalid_input", message)
 }
 
-/// Appends the numbers of a (possibly nested) JSON array in row-major order.
-fn flatten_numbers(value: &serde_json::Value, out: &mut Vec<f64>) -> Result<(), ApiError> {
-    match value {
-        serde_json::Value::Array(items) => items.iter().try_for_each(|v| flatten_numbers(v, out)),
-        serde_json::Value::Number(n) => {
-            out.push(n.as_f64().unwrap_or(f64::NAN));
-            Ok(())
-        }
-        other => Err(ApiError::unprocessable(
-            "invalid_observations",
-            format!("input data must hold numbers only, found {other}"),
-        )),
+/// An input's `data`: numbers, flat or nested in arrays, in row-major order, read straight from
+/// the request text into one flat list.
+#[derive(Debug, Default)]
+pub struct TensorData(pub Vec<f64>);
+
+impl<'de> Deserialize<'de> for TensorData {
+    fn deserialize<D: serde::Deserializer<'de>>(deserializer: D) -> Result<Self, D::Error> {
+        let mut values = Vec::new();
+        deserializer.deserialize_any(Flatten(&mut values))?;
+        Ok(TensorData(values))
+    }
+}
+
+/// Appends a number, or the numbers of a (nested) array in order, to the list it holds.
+struct Flatten<'a>(&'a mut Vec<f64>);
+
+impl<'de> serde::de::DeserializeSeed<'de> for Flatten<'_> {
+    type Value = ();
+
+    fn deserialize<D: serde::Deserializer<'de>>(self, deserializer: D) -> Result<(), D::Error> {
+        deserializer.deserialize_any(self)
+    }
+}
+
+impl<'de> serde::de::Visitor<'de> for Flatten<'_> {
+    type Value = ();
+
+    fn expecting(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+        f.write_str("numbers only (flat, or nested in arrays)")
+    }
+
+    fn visit_f64<E>(self, v: f64) -> Result<(), E> {
+        self.0.push(v);
+        Ok(())
+    }
+
+    fn visit_i64<E>(self, v: i64) -> Result<(), E> {
+        self.0.push(v as f64);
+        Ok(())
+    }
+
+    fn visit_u64<E>(self, v: u64) -> Result<(), E> {
+        self.0.push(v as f64);
+        Ok(())
+    }
+
+    fn visit_seq<A: serde::de::SeqAccess<'de>>(self, mut seq: A) -> Result<(), A::Error> {
+        let values = self.0;
+        while seq.next_element_seed(Flatten(&mut *values))?.is_some() {}
+        Ok(())
     }
 }
