@@ -29,23 +29,6 @@ impl<T: DeserializeOwned, S: Send + Sync> FromRequest<S> for Json<T> {
     }
 }
 
-/// A JSON request body whatever content type the client declares, or none: the Open Inference
-/// Protocol's HTTP binding does not require `application/json`, and stock clients leave it out.
-/// Otherwise read exactly like [`Json`] (body limit, 400 for a syntax error, 422 naming the path
-/// of a value that does not fit).
-#[derive(Debug, Clone, Copy, Default)]
-pub struct AnyContentTypeJson<T>(pub T);
-
-impl<T: DeserializeOwned, S: Send + Sync> FromRequest<S> for AnyContentTypeJson<T> {
-    type Rejection = ApiError;
-
-    async fn from_request(request: Request, state: &S) -> Result<Self, ApiError> {
-        let bytes = axum::body::Bytes::from_request(request, state).await?;
-        let value = parse_strict(&bytes)?;
-        deserialize_body(value).map(AnyContentTypeJson)
-    }
-}
-
 /// A JSON object body read straight into `T`, with no `serde_json::Value` tree in between: for
 /// the action routes (`/act`, `/v2/…/infer`), whose bodies carry up to 16,384 rows of numbers.
 /// axum's extractor does the reading (content type, body limit, 400 for a syntax error, 422
@@ -97,21 +80,10 @@ impl<'de, T: Deserialize<'de>> Deserialize<'de> for Object<T> {
     }
 }
 
-/// JSON text as a value with no repeated keys (400 for a syntax error, 422 for a repeat).
-pub(super) fn parse_strict(bytes: &[u8]) -> Result<serde_json::Value, ApiError> {
-    serde_json::from_slice::<StrictValue>(bytes).map(|StrictValue(value)| value).map_err(|e| {
-        let status =
-            if e.is_data() { StatusCode::UNPROCESSABLE_ENTITY } else { StatusCode::BAD_REQUEST };
-        ApiError::rejected(status, format!("Failed to parse the request body as JSON: {e}"))
-    })
-}
-
 /// A parsed JSON body as `T`, integral floats taken as integers. Every body is an object: serde
 /// would otherwise fill a struct from an array by position (`[null, null]` as a PATCH clearing
 /// the first two fields), which no client means.
-pub(super) fn deserialize_body<T: DeserializeOwned>(
-    mut value: serde_json::Value,
-) -> Result<T, ApiError> {
+fn deserialize_body<T: DeserializeOwned>(mut value: serde_json::Value) -> Result<T, ApiError> {
     if !value.is_object() {
         return Err(ApiError::Rejected {
             status: StatusCode::UNPROCESSABLE_ENTITY,
@@ -256,6 +228,13 @@ impl<'de> Visitor<'de> for StrictVisitor {
 #[cfg(test)]
 mod strict_tests {
     use super::*;
+
+    /// JSON text as [`Json`] reads it before the type: a value with no repeated keys.
+    fn parse_strict(bytes: &[u8]) -> Result<serde_json::Value, ApiError> {
+        axum::Json::<StrictValue>::from_bytes(bytes)
+            .map(|axum::Json(StrictValue(value))| value)
+            .map_err(ApiError::from)
+    }
 
     #[test]
     fn repeated_keys_are_refused_at_any_depth_and_everything_else_reads_as_serde_json() {
