@@ -65,6 +65,31 @@ pub enum TerminalHandling {
     Absorbing,
 }
 
+/// How alpha-hat (Eq. 15) is estimated.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum AlphaEstimator {
+    /// The paper: the minimum of `1/c − 1` over every row of D^U (or the `alpha_hat_quantile`
+    /// diagnostic). One row with a large logit sets it.
+    Min,
+    /// Best Bin Estimation on held-out episodes (`algo::safedice::mixture`): the ratio of D^U's
+    /// to D^N's share above the score threshold that minimises its upper confidence bound.
+    Bbe,
+}
+
+/// What Eq. 10 does on rows where it is undefined (`1 − α e^c ≤ 0`: the discriminator says the
+/// row is more non-preferred than α allows, i.e. `d^P = 0` there).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum UndefinedReward {
+    /// Floor `1 − α e^c` at 1e-8 (a reward of about −18 that standardisation can shrink).
+    Floor,
+    /// Keep the reward at −∞: such rows get no weight in Eq. 37 and none in Eq. 36's sum
+    /// (their reward is set 30 below the lowest defined one, `e^{−30}` of a weight), and the
+    /// standardisation is taken over the defined rows only.
+    Exclude,
+}
+
 /// How PPL turns its learned reward `R_θ(s, a)` into behaviour-cloning weights.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
@@ -125,6 +150,29 @@ pub struct SafediceConfig {
     /// `discriminator_iterations` is then the most it trains. Off: the paper's fixed step count.
     #[serde(default)]
     pub discriminator_early_stopping: bool,
+    /// How alpha-hat is estimated (`min`: the paper's Eq. 15; `bbe`: Best Bin Estimation on
+    /// held-out episodes).
+    #[serde(default = "AlphaEstimator::paper")]
+    pub alpha_hat_estimator: AlphaEstimator,
+    /// Eq. 10 where it is undefined (`floor` as before, `exclude`: weight 0).
+    #[serde(default = "UndefinedReward::paper")]
+    pub undefined_reward: UndefinedReward,
+    /// With `bbe`: when the held-out data cannot tell D^N from D^U (the AUC's interval covers
+    /// 0.5, or alpha-hat's covers 1), train with uniform weights, i.e. BC, and say so.
+    #[serde(default)]
+    pub uniform_fallback: bool,
+}
+
+impl AlphaEstimator {
+    fn paper() -> Self {
+        AlphaEstimator::Min
+    }
+}
+
+impl UndefinedReward {
+    fn paper() -> Self {
+        UndefinedReward::Floor
+    }
 }
 
 /// DWBC's knobs (Eq. 38, 39).
@@ -288,6 +336,7 @@ impl ResolvedConfig {
                 in_range("gamma", s.gamma, 0.0, 0.9999)?;
                 in_range("alpha_hat_quantile", s.alpha_hat_quantile, 0.0, 0.5)?;
                 in_range("ess_warning_fraction", s.ess_warning_fraction, 0.0, 1.0)?;
+                check_alpha_estimator(s)?;
             }
             AlgorithmConfig::Bc(_) => {}
             AlgorithmConfig::Dwbc(d) => {
@@ -324,6 +373,9 @@ impl SafediceConfig {
             alpha_hat_quantile: 0.0,
             ess_warning_fraction: 0.01,
             discriminator_early_stopping: false,
+            alpha_hat_estimator: AlphaEstimator::Min,
+            undefined_reward: UndefinedReward::Floor,
+            uniform_fallback: false,
         }
     }
 
@@ -406,9 +458,30 @@ impl SafediceConfig {
             terminal_handling: TerminalHandling::Reset,
             standardize_reward: true,
             discriminator_early_stopping: true,
+            alpha_hat_estimator: AlphaEstimator::Bbe,
+            undefined_reward: UndefinedReward::Exclude,
+            uniform_fallback: true,
             ..Self::authors_code()
         }
     }
+}
+
+/// The quantile diagnostic belongs to the paper's minimum, and the fallback needs the held-out
+/// statistics that only `bbe` computes.
+fn check_alpha_estimator(s: &SafediceConfig) -> Result<(), HyperparamError> {
+    if s.alpha_hat_estimator == AlphaEstimator::Bbe && s.alpha_hat_quantile > 0.0 {
+        return Err(HyperparamError::new(
+            "alpha_hat_quantile",
+            "config.alpha_hat_quantile: applies to alpha_hat_estimator \"min\" only; set it to 0 or choose \"min\"",
+        ));
+    }
+    if s.uniform_fallback && s.alpha_hat_estimator != AlphaEstimator::Bbe {
+        return Err(HyperparamError::new(
+            "uniform_fallback",
+            "config.uniform_fallback: needs alpha_hat_estimator \"bbe\" (its held-out statistics decide it)",
+        ));
+    }
+    Ok(())
 }
 
 fn in_range(key: &str, value: f64, low: f64, high: f64) -> Result<(), HyperparamError> {

@@ -45,7 +45,8 @@ use memory::DataShape;
 use registry::AlgorithmSpec;
 
 pub use hyperparams::{
-    config_keys, resolve_config, HyperparamError, Preset, ResolvedConfig, TerminalHandling,
+    config_keys, resolve_config, AlphaEstimator, HyperparamError, Preset, ResolvedConfig,
+    TerminalHandling, UndefinedReward,
 };
 pub use policy::{portable_file, Policy, PolicyArtifact, PolicySpec, PortableMetadata};
 

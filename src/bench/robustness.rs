@@ -124,6 +124,11 @@ pub struct TaskScore {
     pub worse_than_bc: bool,
     pub alpha_hat: Option<f64>,
     pub auc_heldout: Option<f64>,
+    /// alpha-hat's confidence interval, averaged over seeds (the `bbe` estimator), the true
+    /// non-preferred share of D^U's episodes, and the seeds whose weighting fell back to uniform.
+    pub alpha_hat_interval: Option<(f64, f64)>,
+    pub true_share: f64,
+    pub uniform_seeds: usize,
 }
 
 /// A row's scores over the tasks of one split.
@@ -181,10 +186,42 @@ pub fn score(results: &BenchResults, summary: &Summary, specs: &[TaskSpec]) -> V
                 worse_than_bc: worse,
                 alpha_hat: r.alpha_hat.map(|a| a.mean),
                 auc_heldout: r.discriminator_auc_heldout.map(|a| a.mean),
+                alpha_hat_interval: alpha_interval(results, &spec.id, &r.label),
+                true_share: spec.mixture_share(),
+                uniform_seeds: uniform_seeds(results, &spec.id, &r.label),
             });
         }
     }
     scores
+}
+
+/// The SafeDICE runs of one task and row.
+fn alpha_runs<'a>(
+    results: &'a BenchResults,
+    task: &'a str,
+    label: &'a str,
+) -> impl Iterator<Item = &'a crate::bench::runner::AlphaDiagnostics> {
+    results
+        .runs
+        .iter()
+        .filter(move |r| r.env == task && r.label() == label)
+        .filter_map(|r| r.alpha.as_ref())
+}
+
+/// alpha-hat's interval averaged over a row's seeds, where the estimator reports one.
+fn alpha_interval(results: &BenchResults, task: &str, label: &str) -> Option<(f64, f64)> {
+    let bounds: Vec<(f64, f64)> = alpha_runs(results, task, label)
+        .map(|a| (a.alpha_hat_lower, a.alpha_hat_upper))
+        .filter(|(l, u)| l.is_finite() && u.is_finite())
+        .collect();
+    let n = bounds.len() as f64;
+    (n > 0.0).then(|| {
+        (bounds.iter().map(|b| b.0).sum::<f64>() / n, bounds.iter().map(|b| b.1).sum::<f64>() / n)
+    })
+}
+
+fn uniform_seeds(results: &BenchResults, task: &str, label: &str) -> usize {
+    alpha_runs(results, task, label).filter(|a| a.weighting_uniform == 1.0).count()
 }
 
 /// Linear-interpolated quantile of sorted values (numpy's default).
@@ -397,12 +434,19 @@ fn markdown(
         );
     }
     let _ = writeln!(md, "\n## Scores per task\n");
-    let _ = writeln!(md, "| task | row | cost | normalized return | cost / BC | return / BC | captured | worse than BC | alpha-hat | AUC held-out |");
-    let _ = writeln!(md, "|---|---|---|---|---|---|---|---|---|---|");
+    let _ = writeln!(md, "| task | row | cost | normalized return | cost / BC | return / BC | captured | worse than BC | alpha-hat [interval] (true share) | AUC held-out | uniform seeds |");
+    let _ = writeln!(md, "|---|---|---|---|---|---|---|---|---|---|---|");
     for s in scores {
+        let alpha = match (s.alpha_hat, s.alpha_hat_interval) {
+            (Some(a), Some((l, u))) => format!("{a:.3} [{l:.2}, {u:.2}] ({:.2})", s.true_share),
+            (Some(a), None) => format!("{a:.3} ({:.2})", s.true_share),
+            _ => "–".to_string(),
+        };
+        let uniform =
+            if s.alpha_hat.is_some() { s.uniform_seeds.to_string() } else { "–".into() };
         let _ = writeln!(
             md,
-            "| {} | {} | {:.2} | {:.1} | {} | {} | {} | {} | {} | {} |",
+            "| {} | {} | {:.2} | {:.1} | {} | {} | {} | {} | {} | {} | {} |",
             s.task,
             s.row,
             s.cost,
@@ -411,8 +455,9 @@ fn markdown(
             fmt(Some(s.return_ratio), 2),
             fmt(s.captured, 2),
             if s.worse_than_bc { "yes" } else { "no" },
-            fmt(s.alpha_hat, 3),
-            fmt(s.auc_heldout, 3)
+            alpha,
+            fmt(s.auc_heldout, 3),
+            uniform
         );
     }
     md

@@ -73,8 +73,15 @@ pub struct AlphaDiagnostics {
     /// the recorded policy steps, and at the last one.
     pub ess_fraction_mean: f64,
     pub ess_fraction_last: f64,
-    /// Rows of D^U whose Eq. 10 reward had to be floored (0 with the paper's alpha-hat).
+    /// Rows of D^U whose Eq. 10 reward is undefined (floored or excluded; 0 with the paper's
+    /// alpha-hat).
     pub reward_clipped_rows: f64,
+    /// With the `bbe` estimator (NaN otherwise): alpha-hat's confidence interval, the
+    /// discriminator's held-out AUC, and whether the weighting fell back to uniform (1).
+    pub alpha_hat_lower: f64,
+    pub alpha_hat_upper: f64,
+    pub heldout_auc: f64,
+    pub weighting_uniform: f64,
 }
 
 /// One trained and evaluated policy.
@@ -572,6 +579,10 @@ impl Recorder {
             ess_fraction_mean: if self.ess.is_empty() { f64::NAN } else { mean },
             ess_fraction_last: self.ess.last().copied().unwrap_or(f64::NAN),
             reward_clipped_rows: self.get("reward_clipped_rows"),
+            alpha_hat_lower: self.get("alpha_hat_lower"),
+            alpha_hat_upper: self.get("alpha_hat_upper"),
+            heldout_auc: self.get("discriminator_heldout_auc"),
+            weighting_uniform: self.get("weighting_uniform"),
         }
     }
 }

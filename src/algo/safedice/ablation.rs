@@ -44,7 +44,7 @@ pub struct SafediceOverrides {
     /// value is therefore the share of D^U's **transitions** (not episodes) that are
     /// non-preferred. Rows where `1 − α e^c` falls below the floor are floored and counted
     /// (`reward_clipped_rows`), as with the quantile diagnostic. The recorded `alpha_hat` is
-    /// this value; `alpha_hat_eq15` records what Eq. 15 gave.
+    /// this value; `alpha_hat_estimated` records what Eq. 15 gave.
     pub alpha: Option<f64>,
     /// Discriminator logits for every row of D^U in place of the trained discriminator's
     /// (e.g. [`oracle_logits`]); Eq. 15 (unless `alpha` is set) and Eq. 10 read these.

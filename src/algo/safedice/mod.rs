@@ -24,6 +24,7 @@ pub mod ablation;
 pub mod draws;
 pub mod fused;
 mod fused_steps;
+pub mod mixture;
 pub mod objectives;
 pub mod trainer;
 

@@ -6,6 +6,7 @@
 
 use candle_core::Tensor;
 
+use crate::algo::hyperparams::UndefinedReward;
 use crate::algo::losses::{neg_log_one_minus_sigmoid, neg_log_sigmoid, weighted_nll};
 
 /// Alpha-hat's margin below the minimum and its cap, as in the authors' code.
@@ -59,6 +60,56 @@ pub fn reward_from_logit(c: f64, alpha: f64) -> (f64, bool) {
     let inside = 1.0 - alpha * c.exp();
     let clipped = inside < REWARD_LOG_FLOOR;
     ((inside.max(REWARD_LOG_FLOOR)).ln() - (1.0 - alpha).ln(), clipped)
+}
+
+/// Eq. 10 on every row of D^U, with the option's treatment of undefined rows and the optional
+/// standardisation.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Eq10Rewards {
+    pub rewards: Vec<f64>,
+    /// Mean and standard deviation of the raw reward over the rows it is defined on (all rows,
+    /// floored, with [`UndefinedReward::Floor`]).
+    pub mean: f64,
+    pub std: f64,
+    /// Rows where `1 − α e^c` fell below the floor: floored, or excluded.
+    pub undefined_rows: usize,
+}
+
+/// How far below the lowest defined reward an excluded row's reward is set: its weight in Eq. 37
+/// and its term in Eq. 36's sum are then `e^{−30}` (about 1e-13) of the lowest defined row's,
+/// which is the −∞ of Eq. 10 as far as a float sum can tell, without an infinity in the engines.
+pub const EXCLUDED_REWARD_GAP: f64 = 30.0;
+
+/// Eq. 10 for every logit of D^U at `alpha`; with [`UndefinedReward::Exclude`] the rows where
+/// Eq. 10 is −∞ stay out of the standardisation and sit [`EXCLUDED_REWARD_GAP`] below the
+/// lowest defined reward.
+pub fn eq10_rewards(
+    logits: &[f32],
+    alpha: f64,
+    undefined: UndefinedReward,
+    standardize: bool,
+) -> Eq10Rewards {
+    let raw: Vec<(f64, bool)> =
+        logits.iter().map(|&c| reward_from_logit(c as f64, alpha)).collect();
+    let undefined_rows = raw.iter().filter(|r| r.1).count();
+    let exclude = undefined == UndefinedReward::Exclude;
+    let defined: Vec<f64> = raw.iter().filter(|r| !(exclude && r.1)).map(|r| r.0).collect();
+    let (mean, std) = mean_std(&defined);
+    let scale = |r: f64| if standardize { (r - mean) / (std + 1e-8) } else { r };
+    let lowest = defined.iter().map(|&r| scale(r)).fold(f64::INFINITY, f64::min);
+    let excluded = if lowest.is_finite() { lowest - EXCLUDED_REWARD_GAP } else { 0.0 };
+    let rewards = raw
+        .iter()
+        .map(|&(r, was_undefined)| if exclude && was_undefined { excluded } else { scale(r) })
+        .collect();
+    Eq10Rewards { rewards, mean, std, undefined_rows }
+}
+
+fn mean_std(values: &[f64]) -> (f64, f64) {
+    let n = values.len().max(1) as f64;
+    let mean = values.iter().sum::<f64>() / n;
+    let var = values.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / n;
+    (mean, var.sqrt())
 }
 
 /// alpha-hat (Eq. 15, Algorithm 1 step 2) and where it came from.
@@ -143,6 +194,26 @@ mod tests {
             assert!((ours - paper).abs() < 1e-10, "c={c}: {ours} vs {paper}");
         }
         assert!(reward_from_logit(3.0, 0.5).1, "1 − α e^c < 0 is floored and reported");
+    }
+
+    /// Undefined rows: floored, they join the statistics (the old behaviour); excluded, they
+    /// sit 30 below the lowest defined reward and the standardisation ignores them.
+    #[test]
+    fn eq10_rewards_floor_or_exclude_undefined_rows() {
+        let alpha = 0.5f64;
+        // e^c = 1/α on the last row: 1 − α e^c = 0, Eq. 10 is −∞ there.
+        let logits = [0.0f32, -1.0, (1.0 / alpha).ln() as f32 + 0.1];
+        let floored = eq10_rewards(&logits, alpha, UndefinedReward::Floor, false);
+        assert_eq!(floored.undefined_rows, 1);
+        assert!((floored.rewards[2] - (1e-8f64.ln() - 0.5f64.ln())).abs() < 1e-9);
+        let excluded = eq10_rewards(&logits, alpha, UndefinedReward::Exclude, true);
+        assert_eq!(excluded.undefined_rows, 1);
+        let defined = [reward_from_logit(0.0, alpha).0, reward_from_logit(-1.0, alpha).0];
+        let mean = (defined[0] + defined[1]) / 2.0;
+        assert!((excluded.mean - mean).abs() < 1e-12);
+        let (r0, r1) = (excluded.rewards[0], excluded.rewards[1]);
+        assert!((r0 + r1).abs() < 1e-9 && (r0.abs() - 1.0).abs() < 1e-6, "{excluded:?}");
+        assert!((excluded.rewards[2] - (r0.min(r1) - EXCLUDED_REWARD_GAP)).abs() < 1e-9);
     }
 
     #[test]

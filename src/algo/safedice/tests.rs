@@ -98,7 +98,7 @@ fn oracle_logits_give_the_true_alpha_and_near_zero_weight_on_non_preferred_rows(
 
 /// An α override is the α the trainer uses: the recorded `alpha_hat` (at the end of the
 /// discriminator phase and in every main step) and [`Trainer::alpha_hat`], with Eq. 15's own
-/// value kept as `alpha_hat_eq15`.
+/// value kept as `alpha_hat_estimated`.
 #[test]
 fn alpha_override_is_the_alpha_the_trainer_uses() {
     let (data, _) = one_state_task();
@@ -106,7 +106,7 @@ fn alpha_override_is_the_alpha_the_trainer_uses() {
     let mut t = SafediceTrainer::with_overrides(&tiny_config(), &data, overrides).unwrap();
     let scalars = finish_phase(&mut t);
     assert_eq!(metric(&scalars, "alpha_hat"), 0.4);
-    assert!(metric(&scalars, "alpha_hat_eq15").is_finite(), "{scalars:?}");
+    assert!(metric(&scalars, "alpha_hat_estimated").is_finite(), "{scalars:?}");
     assert_eq!(t.alpha_hat(), Some(0.4));
     let main = t.step(true).unwrap();
     assert_eq!(metric(&main, "alpha_hat"), 0.4);
@@ -126,4 +126,119 @@ fn alpha_override_is_the_alpha_the_trainer_uses() {
     assert!(SafediceTrainer::with_overrides(&tiny_config(), &data, bad).is_err());
     let bad = SafediceOverrides { alpha: None, unlabeled_logits: Some(vec![0.0; 3]) };
     assert!(SafediceTrainer::with_overrides(&tiny_config(), &data, bad).is_err());
+}
+
+/// `count` episodes of 10 steps on 1-D states `t/10`, two actions; `non_preferred(episode)`
+/// says whether an episode takes action 1 always (the unsafe kind) or acts at random with a
+/// state-dependent probability (the other kind), from a stream seeded by `seed`.
+fn two_action_episodes(count: usize, seed: u64, non_preferred: impl Fn(usize) -> bool) -> Dataset {
+    use crate::data::{ActionSpace, Actions, DatasetParts};
+    use rand::{Rng, SeedableRng};
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+    let len = 10;
+    let n = count * len;
+    let observations: Vec<f32> = (0..n).map(|i| (i % len) as f32 / len as f32).collect();
+    let actions = observations
+        .iter()
+        .enumerate()
+        .map(|(i, &s)| {
+            let random = u32::from(rng.random::<f32>() < 0.3 + 0.4 * s);
+            if non_preferred(i / len) {
+                1
+            } else {
+                random
+            }
+        })
+        .collect();
+    Dataset::new(DatasetParts {
+        obs_dim: 1,
+        action_space: ActionSpace::Discrete { n: 2 },
+        next_observations: observations.iter().map(|s| s + 0.1).collect(),
+        observations,
+        actions: Actions::Discrete(actions),
+        terminals: (0..n).map(|i| i % len == len - 1).collect(),
+        episode_ids: (0..n).map(|i| (i / len) as u32).collect(),
+        rewards: None,
+        costs: None,
+    })
+    .unwrap()
+}
+
+/// D^N drawn from the very process that makes D^U: no discriminator can tell the sets apart,
+/// so the mixture is not identifiable.
+fn inseparable_task() -> TrainingData {
+    TrainingData {
+        unlabeled: std::sync::Arc::new(two_action_episodes(30, 1, |_| false)),
+        non_preferred: Some(std::sync::Arc::new(two_action_episodes(10, 2, |_| false))),
+    }
+}
+
+fn run_to_end(mut t: Box<dyn Trainer>) -> (Box<dyn Trainer>, Vec<(&'static str, f64)>) {
+    let mut seen = Vec::new();
+    while !t.is_finished() {
+        seen.extend(t.step(true).unwrap());
+    }
+    (t, seen)
+}
+
+/// When the held-out data cannot tell D^N from D^U, the service defaults fall back to uniform
+/// weights: the metrics say so, and the policy is BC's with the same seed and shared config,
+/// bit for bit, also when the run is resumed in the middle of its BC phase.
+#[test]
+fn inseparable_data_fall_back_to_bc_exactly() {
+    let data = inseparable_task();
+    let common = serde_json::json!({
+        "seed": 5, "batch_size": 16, "hidden_sizes": [8, 8], "iterations": 40, "lr_actor": 1e-4,
+    });
+    let mut safedice_json = common.clone();
+    safedice_json["discriminator_iterations"] = 200.into();
+    let resolve =
+        |algorithm, json: &serde_json::Value| crate::algo::resolve_config(algorithm, json).unwrap();
+    let safedice = resolve(crate::algo::Algorithm::Safedice, &safedice_json);
+    let bc = resolve(crate::algo::Algorithm::Bc, &common);
+    let (trained, seen) = run_to_end(crate::algo::build_trainer(&safedice, &data, None).unwrap());
+    assert_eq!(metric(&seen, "weighting_uniform"), 1.0, "{seen:?}");
+    let auc_lower = metric(&seen, "discriminator_heldout_auc_lower");
+    assert!(metric(&seen, "alpha_hat_upper") >= 1.0 || auc_lower <= 0.5, "{seen:?}");
+    let (bc_trained, _) = run_to_end(crate::algo::build_trainer(&bc, &data, None).unwrap());
+    let weights = |t: &dyn Trainer| t.export_policy().unwrap().weights;
+    assert_eq!(weights(trained.as_ref()), weights(bc_trained.as_ref()), "not BC's policy");
+
+    // Stopped 10 steps into the fallback and resumed from its checkpoint: the same policy.
+    let mut partial = crate::algo::build_trainer(&safedice, &data, None).unwrap();
+    for _ in 0..210 {
+        partial.step(false).unwrap();
+    }
+    let bytes = partial.checkpoint().unwrap();
+    let resumed = crate::algo::build_trainer(&safedice, &data, Some(&bytes)).unwrap();
+    let (resumed, _) = run_to_end(resumed);
+    assert_eq!(weights(resumed.as_ref()), weights(bc_trained.as_ref()), "resume");
+}
+
+/// Separable data (unsafe episodes always take action 1; 40% of D^U's episodes) keep
+/// SafeDICE's weighting, with alpha-hat's interval, around the true share, and the held-out AUC
+/// reported.
+#[test]
+fn separable_data_keep_the_weighting_and_report_the_interval() {
+    let data = TrainingData {
+        unlabeled: std::sync::Arc::new(two_action_episodes(60, 1, |e| e % 5 < 2)),
+        non_preferred: Some(std::sync::Arc::new(two_action_episodes(15, 2, |_| true))),
+    };
+    let config = crate::algo::resolve_config(
+        crate::algo::Algorithm::Safedice,
+        &serde_json::json!({
+            "seed": 3, "batch_size": 32, "hidden_sizes": [16, 16], "iterations": 3,
+            "discriminator_iterations": 400, "lr_discriminator": 3e-3,
+        }),
+    )
+    .unwrap();
+    let mut t = SafediceTrainer::new(&config, &data).unwrap();
+    let scalars = finish_phase(&mut t);
+    assert_eq!(metric(&scalars, "weighting_uniform"), 0.0, "{scalars:?}");
+    let alpha = metric(&scalars, "alpha_hat");
+    let (lower, upper) = (metric(&scalars, "alpha_hat_lower"), metric(&scalars, "alpha_hat_upper"));
+    assert!(lower <= alpha + 1e-5 && alpha <= upper && upper < 1.0, "{scalars:?}");
+    assert!(lower <= 0.4 && 0.4 <= upper, "true share 0.4 outside the interval: {scalars:?}");
+    assert!(metric(&scalars, "discriminator_heldout_auc_lower") > 0.5, "{scalars:?}");
+    assert!(t.uniform_weighting_reason().is_none());
 }

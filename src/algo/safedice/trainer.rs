@@ -6,19 +6,22 @@
 
 use candle_core::Tensor;
 use rand::seq::SliceRandom;
-use rand::Rng;
+use rand::{Rng, SeedableRng};
 
 use super::ablation::SafediceOverrides;
 use super::draws::{DiscDraws, FlowColumns, MainDraws};
 use super::fused::FusedSafedice;
+use super::mixture::{best_bin_estimate, roc_auc, Auc, MixtureEstimate};
 use super::objectives::{
-    alpha_hat_from_logits, discriminator_loss, nu_loss, policy_loss, reward_from_logit, AlphaHat,
+    alpha_hat_from_logits, discriminator_loss, eq10_rewards, nu_loss, policy_loss, AlphaHat,
     ALPHA_MARGIN, DISC_LOSS, MASK_RENORM_EPS, NU_LOSS, POLICY_LOSS,
 };
+use crate::algo::bc::bc_loss;
 use crate::algo::checkpoint::Extra;
 use crate::algo::columns::{uniform_column, Columns};
 use crate::algo::discriminator_stop::{classification_loss, Decision, EarlyStop, Holdout};
-use crate::algo::hyperparams::{AlgorithmConfig, SafediceConfig};
+use crate::algo::fused_policy::{fused_policy_step, fused_policy_update, FusedPolicyStep};
+use crate::algo::hyperparams::{AlgorithmConfig, AlphaEstimator, SafediceConfig};
 use crate::algo::losses::{
     ess_fraction, interpolate, scalar, self_normalized_weights, unit_gradient_penalty,
     zero_gradient_penalty,
@@ -52,14 +55,27 @@ pub struct SafediceTrainer {
     pub(super) fused: Option<FusedSafedice>,
     /// Ablation replacements of alpha-hat and the discriminator's outputs (none by default).
     overrides: SafediceOverrides,
-    /// With `discriminator_early_stopping`: the held-out rows and the stopping rule.
+    /// With `discriminator_early_stopping` or the `bbe` estimator: the held-out rows (and the
+    /// stopping rule).
     disc_stop: Option<DiscValidation>,
+    /// Set when the weighting falls back to uniform (`uniform_fallback`): the main loop is BC.
+    uniform: Option<UniformWeights>,
 }
 
-/// Early stopping of the discriminator on held-out rows ([`crate::algo::discriminator_stop`]).
+/// The main loop with uniform weights: BC's step, since the held-out data cannot tell D^N from
+/// D^U (`uniform_fallback`).
+struct UniformWeights {
+    reason: String,
+    fused: Option<FusedPolicyStep>,
+}
+
+/// Held-out rows of D^N and D^U: for early stopping of the discriminator
+/// ([`crate::algo::discriminator_stop`]) and for the `bbe` estimator of alpha-hat.
 struct DiscValidation {
     n: Holdout,
     u: Holdout,
+    /// Whether the stopping rule runs (`discriminator_early_stopping`).
+    early_stopping: bool,
     rule: EarlyStop,
     /// The discriminator's weights at the best held-out loss so far, by variable name.
     best: std::collections::HashMap<String, Tensor>,
@@ -69,16 +85,17 @@ struct DiscValidation {
 impl DiscValidation {
     /// Held-out rows of D^N and D^U chosen from the run's seed (a stream of its own, so the
     /// training draws are those of a run without early stopping); None when a set is a single row.
-    fn new(run: &RunData, budget: u64) -> Option<DiscValidation> {
+    fn new(run: &RunData, budget: u64, early_stopping: bool) -> Option<DiscValidation> {
         let seed = run.config.seed();
         let n = Holdout::split(&run.non_preferred().episode_ids, seed ^ 0x5afe_d1ce_0000_0001)?;
         let u = Holdout::split(&run.u.episode_ids, seed ^ 0x5afe_d1ce_0000_0002)?;
         let best = std::collections::HashMap::new();
-        Some(DiscValidation { n, u, rule: EarlyStop::new(budget), best, last_loss: f64::NAN })
+        let rule = EarlyStop::new(budget);
+        Some(DiscValidation { n, u, early_stopping, rule, best, last_loss: f64::NAN })
     }
 
     fn stopped(&self) -> bool {
-        self.rule.stopped_at.is_some()
+        self.early_stopping && self.rule.stopped_at.is_some()
     }
 }
 
@@ -131,10 +148,12 @@ impl SafediceTrainer {
         let disc = run.new_critic("discriminator", run.state_action_dim())?;
         let nu = run.new_critic("nu", nu_input)?;
         let policy = run.new_policy("policy")?;
-        let disc_stop = if cfg.discriminator_early_stopping {
-            let validation = DiscValidation::new(&run, cfg.discriminator_iterations);
+        let bbe = cfg.alpha_hat_estimator == AlphaEstimator::Bbe;
+        let disc_stop = if cfg.discriminator_early_stopping || bbe {
+            let early = cfg.discriminator_early_stopping;
+            let validation = DiscValidation::new(&run, cfg.discriminator_iterations, early);
             if validation.is_none() {
-                tracing::warn!("discriminator early stopping needs two rows in D^N and in D^U; training the full budget");
+                tracing::warn!("held-out rows need two rows in D^N and in D^U: no early stopping, and alpha-hat from the paper's minimum");
             }
             validation
         } else {
@@ -161,6 +180,7 @@ impl SafediceTrainer {
             phase_metrics: Vec::new(),
             overrides,
             disc_stop,
+            uniform: None,
         })
     }
 
@@ -351,6 +371,26 @@ impl SafediceTrainer {
                 );
             }
             self.finish_discriminator_phase()?;
+            if self.uniform.is_some() {
+                self.restart_policy_as_bc()?;
+            }
+        }
+        Ok(())
+    }
+
+    /// The uniform fallback from its first step: the policy, its optimiser and the random stream
+    /// start again exactly as a BC job of the same seed and config does (`RunData::new`, then
+    /// `new_policy`), so the policy it ends with is BC's, bit for bit. Only the live phase end
+    /// calls it; a resume restores the restarted stream and policy from the checkpoint.
+    fn restart_policy_as_bc(&mut self) -> Result<(), TrainError> {
+        self.run.rng = rand_chacha::ChaCha8Rng::seed_from_u64(self.run.config.seed());
+        self.policy = self.run.new_policy("policy")?;
+        let lr = self.run.config.common.lr_actor;
+        self.policy_opt = Adam::new(self.policy.mlp().named_vars(), lr)?;
+        if let Some(u) = self.uniform.as_mut() {
+            if u.fused.is_some() {
+                u.fused = fused_policy_step(&self.run, self.policy.mlp())?;
+            }
         }
         Ok(())
     }
@@ -359,7 +399,8 @@ impl SafediceTrainer {
     /// keeps the weights of a new best.
     fn measure_held_out(&mut self) -> Result<(), TrainError> {
         let step = self.run.step;
-        let Some(v) = self.disc_stop.as_ref().filter(|v| v.rule.measures_at(step)) else {
+        let measures = |v: &&DiscValidation| v.early_stopping && v.rule.measures_at(step);
+        let Some(v) = self.disc_stop.as_ref().filter(measures) else {
             return Ok(());
         };
         let logits_n = self.score_rows(self.run.non_preferred(), &v.n.validation)?;
@@ -395,7 +436,7 @@ impl SafediceTrainer {
             "discriminator_prob_non_preferred_on_du",
         ];
         let mut metrics: Vec<(&'static str, f64)> = names.into_iter().zip(values).collect();
-        if let Some(v) = &self.disc_stop {
+        if let Some(v) = self.disc_stop.as_ref().filter(|v| v.early_stopping) {
             metrics.push(("discriminator_heldout_loss", v.last_loss));
             metrics.push(("discriminator_best_step", v.rule.best_step as f64));
             metrics
@@ -411,26 +452,23 @@ impl SafediceTrainer {
             Some(given) => given.clone(),
             None => self.score(&self.run.u)?,
         };
-        let u = &self.run.u;
-        let mut alpha = alpha_hat_from_logits(&logits, &u.episode_ids, self.cfg.alpha_hat_quantile);
-        let eq15 = alpha.value;
+        let heldout = self.heldout_statistics()?;
+        let episode_ids = &self.run.u.episode_ids;
+        let mut alpha = alpha_hat_from_logits(&logits, episode_ids, self.cfg.alpha_hat_quantile);
+        if let Some(bin) = heldout.as_ref().map(|h| &h.alpha) {
+            alpha.value = (bin.value - ALPHA_MARGIN).clamp(0.0, 1.0 - ALPHA_MARGIN);
+        }
+        let estimated = alpha.value;
         if let Some(a) = self.overrides.alpha {
             alpha.value = a.clamp(0.0, 1.0 - ALPHA_MARGIN);
         }
-        let mut clipped = 0usize;
-        let mut rewards: Vec<f64> = logits
-            .iter()
-            .map(|&c| {
-                let (r, was_clipped) = reward_from_logit(c as f64, alpha.value);
-                clipped += was_clipped as usize;
-                r
-            })
-            .collect();
-        let (mean, std) = mean_std(&rewards);
-        if self.cfg.standardize_reward {
-            rewards.iter_mut().for_each(|r| *r = (*r - mean) / (std + 1e-8));
-        }
-        if let Some(bad) = rewards.iter().position(|r| !r.is_finite()) {
+        let eq10 = eq10_rewards(
+            &logits,
+            alpha.value,
+            self.cfg.undefined_reward,
+            self.cfg.standardize_reward,
+        );
+        if let Some(bad) = eq10.rewards.iter().position(|r| !r.is_finite()) {
             return Err(TrainError::Diverged {
                 step: self.run.step,
                 message: format!(
@@ -441,10 +479,11 @@ impl SafediceTrainer {
         }
         tracing::info!(
             alpha_hat = alpha.value,
+            estimator = ?self.cfg.alpha_hat_estimator,
             argmin_row = alpha.argmin_row,
             argmin_episode = alpha.argmin_episode,
             quantile_01 = alpha.quantile_01,
-            "SafeDICE alpha-hat (Eq. 15) computed over all of D^U"
+            "SafeDICE alpha-hat (Eq. 15)"
         );
         self.phase_metrics = vec![
             ("alpha_hat", alpha.value),
@@ -452,25 +491,120 @@ impl SafediceTrainer {
             ("alpha_hat_argmin_row", alpha.argmin_row as f64),
             ("alpha_hat_argmin_episode", alpha.argmin_episode as f64),
             ("alpha_hat_q01_diagnostic_not_paper", alpha.quantile_01),
-            ("reward_mean", mean),
-            ("reward_std", std),
-            ("reward_clipped_rows", clipped as f64),
+            ("reward_mean", eq10.mean),
+            ("reward_std", eq10.std),
+            ("reward_clipped_rows", eq10.undefined_rows as f64),
         ];
+        if let Some(h) = &heldout {
+            self.phase_metrics.extend(h.metrics());
+        }
         if self.overrides.alpha.is_some() {
-            self.phase_metrics.push(("alpha_hat_eq15", eq15));
+            self.phase_metrics.push(("alpha_hat_estimated", estimated));
         }
         if self.overrides.unlabeled_logits.is_some() {
             self.phase_metrics.push(("discriminator_outputs_given", 1.0));
         }
-        let rewards: Vec<f32> = rewards.iter().map(|&r| r as f32).collect();
-        self.flow = Some(FlowColumns::build(u, rewards, &self.cfg)?);
+        self.decide_weighting(heldout.as_ref(), eq10.undefined_rows == logits.len())?;
+        let rewards: Vec<f32> = eq10.rewards.iter().map(|&r| r as f32).collect();
+        self.flow = Some(FlowColumns::build(&self.run.u, rewards, &self.cfg)?);
         self.alpha = Some(alpha);
         Ok(())
+    }
+
+    /// With the `bbe` estimator: the frozen discriminator's scores on the held-out rows of D^N
+    /// and D^U, Best Bin Estimation of alpha-hat on them and their ROC AUC.
+    fn heldout_statistics(&self) -> Result<Option<HeldOut>, TrainError> {
+        // Given logits (the oracle ablation) are a discriminator of their own: Eq. 15 on them.
+        let given = self.overrides.unlabeled_logits.is_some();
+        if self.cfg.alpha_hat_estimator != AlphaEstimator::Bbe || given {
+            return Ok(None);
+        }
+        let Some(v) = &self.disc_stop else { return Ok(None) };
+        let scores_n = self.score_rows(self.run.non_preferred(), &v.n.validation)?;
+        let scores_u = self.score_rows(&self.run.u, &v.u.validation)?;
+        let (Some(alpha), Some(auc)) =
+            (best_bin_estimate(&scores_n, &scores_u), roc_auc(&scores_n, &scores_u))
+        else {
+            return Ok(None);
+        };
+        Ok(Some(HeldOut { alpha, auc }))
+    }
+
+    /// `uniform_fallback`: uniform weights (BC) when the held-out data cannot identify the
+    /// mixture, with the reason in the metrics and the log.
+    fn decide_weighting(
+        &mut self,
+        heldout: Option<&HeldOut>,
+        undefined_everywhere: bool,
+    ) -> Result<(), TrainError> {
+        let ablation = self.overrides.alpha.is_some() || self.overrides.unlabeled_logits.is_some();
+        if !self.cfg.uniform_fallback || ablation {
+            return Ok(());
+        }
+        let reason = match heldout {
+            None => Some("no held-out rows to estimate alpha-hat on".to_string()),
+            Some(h) => h.not_identifiable(),
+        }
+        .or_else(|| undefined_everywhere.then(|| "Eq. 10 is undefined on every row".to_string()));
+        self.phase_metrics.push(("weighting_uniform", f64::from(u8::from(reason.is_some()))));
+        let Some(reason) = reason else { return Ok(()) };
+        tracing::warn!(reason = %reason, "weighting: uniform, {reason}; SafeDICE trains as BC");
+        let fused = match self.fused {
+            Some(_) => fused_policy_step(&self.run, self.policy.mlp())?,
+            None => None,
+        };
+        self.uniform = Some(UniformWeights { reason, fused });
+        Ok(())
+    }
+
+    /// Why the weighting fell back to uniform, if it did.
+    pub fn uniform_weighting_reason(&self) -> Option<&str> {
+        self.uniform.as_ref().map(|u| u.reason.as_str())
+    }
+
+    /// The main loop's step with uniform weights: BC's loss on a batch of D^U.
+    fn uniform_step(&mut self, record: bool) -> Result<Vec<(&'static str, f64)>, TrainError> {
+        let idx = self.run.sample_u()?;
+        let obs = self.run.u.obs.index_select(&idx, 0)?;
+        let actions = self.run.u.actions.select(&idx)?;
+        let uniform = self.uniform.as_mut().expect("uniform weighting");
+        let value = match &mut uniform.fused {
+            Some(fused) => fused_policy_update(
+                fused,
+                &self.run,
+                self.policy.mlp(),
+                &mut self.policy_opt,
+                &obs,
+                &actions,
+                None,
+                POLICY_LOSS,
+            )?,
+            None => {
+                let loss = bc_loss(&self.policy, &obs, &actions)?;
+                let value = self.run.checked(&loss, POLICY_LOSS.0, POLICY_LOSS.1)?;
+                self.policy_opt.minimize(&loss)?;
+                value
+            }
+        };
+        self.run.step += 1;
+        let mut metrics = std::mem::take(&mut self.phase_metrics);
+        if record {
+            metrics.extend([
+                ("policy_loss", value),
+                ("alpha_hat", self.alpha.as_ref().map_or(f64::NAN, |a| a.value)),
+                ("ess_fraction", 1.0),
+                ("weighting_uniform", 1.0),
+            ]);
+        }
+        Ok(metrics)
     }
 
     /// Algorithm 1 steps 4-5: the ν step (Eq. 36, ν on cat(s, s', s0) in one forward) and the
     /// policy step (Eq. 37) on the same batch with the pre-update ν.
     fn main_step(&mut self, record: bool) -> Result<Vec<(&'static str, f64)>, TrainError> {
+        if self.uniform.is_some() {
+            return self.uniform_step(record);
+        }
         let batch = self.main_draws()?;
         if self.fused.is_some() {
             return self.main_step_fused(&batch, record);
@@ -587,11 +721,44 @@ fn snapshot(net: &Mlp) -> candle_core::Result<std::collections::HashMap<String, 
     net.named_vars().into_iter().map(|(name, var)| Ok((name, var.as_tensor().copy()?))).collect()
 }
 
-fn mean_std(values: &[f64]) -> (f64, f64) {
-    let n = values.len().max(1) as f64;
-    let mean = values.iter().sum::<f64>() / n;
-    let var = values.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / n;
-    (mean, var.sqrt())
+/// Held-out statistics of the frozen discriminator (the `bbe` estimator).
+struct HeldOut {
+    alpha: MixtureEstimate,
+    auc: Auc,
+}
+
+impl HeldOut {
+    /// Why D^N and D^U cannot be told apart on held-out rows, if they cannot: the AUC's interval
+    /// covers 0.5, or alpha-hat's covers 1 (every row of D^U could be non-preferred).
+    fn not_identifiable(&self) -> Option<String> {
+        let (auc, a) = (&self.auc, &self.alpha);
+        if auc.lower <= 0.5 {
+            return Some(format!(
+                "held-out AUC {:.3} [{:.3}, {:.3}] does not exclude 0.5",
+                auc.value, auc.lower, auc.upper
+            ));
+        }
+        (a.upper >= 1.0).then(|| {
+            format!(
+                "alpha-hat {:.3} [{:.3}, {:.3}] does not exclude 1 (held-out AUC {:.3})",
+                a.value, a.lower, a.upper, auc.value
+            )
+        })
+    }
+
+    fn metrics(&self) -> [(&'static str, f64); 8] {
+        let (a, auc) = (&self.alpha, &self.auc);
+        [
+            ("alpha_hat_lower", a.lower),
+            ("alpha_hat_upper", a.upper),
+            ("alpha_hat_bin_threshold", a.threshold),
+            ("alpha_hat_bin_share_dn", a.share_n),
+            ("alpha_hat_bin_share_du", a.share_u),
+            ("discriminator_heldout_auc", auc.value),
+            ("discriminator_heldout_auc_lower", auc.lower),
+            ("discriminator_heldout_auc_upper", auc.upper),
+        ]
+    }
 }
 
 impl Trainer for SafediceTrainer {
@@ -643,5 +810,8 @@ impl Trainer for SafediceTrainer {
 
     fn use_candle_autograd(&mut self) {
         self.fused = None;
+        if let Some(u) = self.uniform.as_mut() {
+            u.fused = None;
+        }
     }
 }
