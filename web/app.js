@@ -781,9 +781,19 @@ async function policyEvaluationsCard(policyId) {
     evaluationsTable(page.items));
 }
 
+/** SafeDICE's fallback (metric `weighting_uniform` = 1): the job trained as BC; the log says why. */
+function uniformWeightingNotice(series) {
+  const points = series.get('weighting_uniform');
+  if (!points || points[points.length - 1][1] !== 1) return null;
+  return h('div', { class: 'notice', id: 'weighting-uniform', role: 'status', style: 'margin-top:18px' },
+    h('strong', {}, 'Weighting: uniform. '),
+    'The held-out data could not tell the non-preferred demonstrations from the unlabeled ones (alpha-hat’s interval covers 1, or the discriminator’s held-out AUC cannot be told from 0.5), so this SafeDICE job trained as BC. The log gives the numbers.');
+}
+
 async function drawCharts(job, slots) {
   const metrics = await api(`/v1/jobs/${job.id}/metrics?max_points=${CHART_POINTS}`);
   const series = groupMetrics(metrics.rows);
+  const weighting = uniformWeightingNotice(series);
   if (job.eval) showEvaluation(job, series, slots);
   [...series.keys()].filter(isEval).forEach((n) => series.delete(n));
   // Metrics recorded once (e.g. alpha-hat diagnostics at the end of the discriminator phase)
@@ -796,7 +806,7 @@ async function drawCharts(job, slots) {
   slots.chartsNote.textContent = job.status === 'queued' ? 'The job is queued: charts appear once it starts training.'
     : 'No metrics recorded yet: the worker records them every log_every steps (runner option on the Jobs form).';
   slots.charts.show(chartSpecs(job, series));
-  slots.once.replaceChildren(once.length ? h('div', { class: 'card', id: 'single-values', style: 'margin-top:18px' },
+  slots.once.replaceChildren(weighting, once.length ? h('div', { class: 'card', id: 'single-values', style: 'margin-top:18px' },
     h('h2', {}, 'Recorded once'), tableWrap(h('table', {}, h('tbody', {}, once.map(([name, [[step, value]]]) =>
       h('tr', {}, h('td', { class: 'mono' }, name), h('td', { class: 'num' }, fmt(value)), h('td', { class: 'muted' }, `at step ${fmt(step)}`))))))) : '');
 }

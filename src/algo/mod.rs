@@ -150,6 +150,15 @@ pub trait Trainer: Send {
     fn alpha_hat(&self) -> Option<f64> {
         None
     }
+    /// How alpha-hat was estimated, in words for the job log (its interval, the held-out AUC),
+    /// once computed; None otherwise.
+    fn alpha_hat_detail(&self) -> Option<String> {
+        None
+    }
+    /// Why the run's weighting fell back to uniform (BC), if it did.
+    fn uniform_weighting_reason(&self) -> Option<String> {
+        None
+    }
     /// The current policy as an artefact.
     fn export_policy(&self) -> Result<PolicyArtifact, TrainError>;
     /// Run every step on candle autograd even on the CPU, instead of the fused engine (the

@@ -280,7 +280,7 @@ impl TrainingRun {
             let message = format!("training from scratch: {total} steps, unlabeled dataset {u}{n}");
             self.log(LogLevel::Info, message).await;
         }
-        self.report_progress(trainer.progress(), trainer.alpha_hat(), None).await?;
+        self.report_progress(trainer.progress(), AlphaNote::of(trainer.as_ref()), None).await?;
         self.train(trainer, schedule).await
     }
 
@@ -341,14 +341,14 @@ impl TrainingRun {
             if window.0.elapsed() >= PROGRESS_INTERVAL {
                 let speed = (step - window.1) as f64 / window.0.elapsed().as_secs_f64();
                 self.flush_metrics().await?;
-                let (progress, alpha) = (trainer.progress(), trainer.alpha_hat());
+                let (progress, alpha) = (trainer.progress(), AlphaNote::of(trainer.as_ref()));
                 if self.report_progress(progress, alpha, Some(speed)).await? {
                     self.cancel.store(true, Ordering::Relaxed);
                 }
                 window = (Instant::now(), step);
             }
         }
-        self.log_milestones(&trainer.progress(), trainer.alpha_hat()).await;
+        self.log_milestones(&trainer.progress(), AlphaNote::of(trainer.as_ref())).await;
         let step = trainer.progress().step;
         let (trainer, artifact) = on_blocking(trainer, |t| t.export_policy()).await?;
         let trained = TrainedPolicy {
@@ -448,15 +448,20 @@ impl TrainingRun {
         self.log.write(level, &message).await;
     }
 
-    /// Logs the start of each phase and alpha-hat (Eq. 15) once known.
-    async fn log_milestones(&mut self, p: &Progress, alpha_hat: Option<f64>) {
+    /// Logs the start of each phase, and alpha-hat (Eq. 15) with how it was estimated and the
+    /// weighting it led to, once known.
+    async fn log_milestones(&mut self, p: &Progress, alpha: AlphaNote) {
         if self.logged_phase != Some(p.phase) {
             self.logged_phase = Some(p.phase);
             self.log(LogLevel::Info, format!("phase {} from step {}", p.phase, p.step)).await;
         }
-        if let Some(alpha) = alpha_hat.filter(|_| !self.alpha_logged) {
-            self.alpha_logged = true;
-            self.log(LogLevel::Info, format!("alpha-hat (Eq. 15) = {alpha:.4}")).await;
+        let Some(value) = alpha.value.filter(|_| !self.alpha_logged) else { return };
+        self.alpha_logged = true;
+        let detail = alpha.detail.map_or(String::new(), |d| format!(" ({d})"));
+        self.log(LogLevel::Info, format!("alpha-hat (Eq. 15) = {value:.4}{detail}")).await;
+        if let Some(reason) = alpha.uniform_reason {
+            let message = format!("weighting: uniform, {reason}: the policy is trained as BC");
+            self.log(LogLevel::Warn, message).await;
         }
     }
 
@@ -464,10 +469,11 @@ impl TrainingRun {
     async fn report_progress(
         &mut self,
         p: Progress,
-        alpha_hat: Option<f64>,
+        alpha: AlphaNote,
         speed: Option<f64>,
     ) -> anyhow::Result<bool> {
-        self.log_milestones(&p, alpha_hat).await;
+        let alpha_hat = alpha.value;
+        self.log_milestones(&p, alpha).await;
         let update = ProgressUpdate {
             step: p.step,
             phase: p.phase,
@@ -519,5 +525,22 @@ mod tests {
         let corrupt = StoreError::Corrupt("d".into(), "changed on disk".into());
         assert!(!store_unavailable(&anyhow::Error::from(corrupt)));
         assert!(!store_unavailable(&anyhow::anyhow!("the evaluation at step 10 failed")));
+    }
+}
+
+/// alpha-hat as the job log tells it: the value, how it was estimated, and the weighting.
+struct AlphaNote {
+    value: Option<f64>,
+    detail: Option<String>,
+    uniform_reason: Option<String>,
+}
+
+impl AlphaNote {
+    fn of(trainer: &dyn Trainer) -> AlphaNote {
+        AlphaNote {
+            value: trainer.alpha_hat(),
+            detail: trainer.alpha_hat_detail(),
+            uniform_reason: trainer.uniform_weighting_reason(),
+        }
     }
 }

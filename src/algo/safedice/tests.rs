@@ -182,13 +182,14 @@ fn run_to_end(mut t: Box<dyn Trainer>) -> (Box<dyn Trainer>, Vec<(&'static str, 
 }
 
 /// When the held-out data cannot tell D^N from D^U, the service defaults fall back to uniform
-/// weights: the metrics say so, and the policy is BC's with the same seed and shared config,
-/// bit for bit, also when the run is resumed in the middle of its BC phase.
+/// weights: the metrics say so, and the policy is BC's with the same seed and shared config
+/// (BC's default learning rate included), bit for bit, also when the run is resumed in the
+/// middle of its BC phase.
 #[test]
 fn inseparable_data_fall_back_to_bc_exactly() {
     let data = inseparable_task();
     let common = serde_json::json!({
-        "seed": 5, "batch_size": 16, "hidden_sizes": [8, 8], "iterations": 40, "lr_actor": 1e-4,
+        "seed": 5, "batch_size": 16, "hidden_sizes": [8, 8], "iterations": 40,
     });
     let mut safedice_json = common.clone();
     safedice_json["discriminator_iterations"] = 200.into();
@@ -198,6 +199,7 @@ fn inseparable_data_fall_back_to_bc_exactly() {
     let bc = resolve(crate::algo::Algorithm::Bc, &common);
     let (trained, seen) = run_to_end(crate::algo::build_trainer(&safedice, &data, None).unwrap());
     assert_eq!(metric(&seen, "weighting_uniform"), 1.0, "{seen:?}");
+    assert!(trained.uniform_weighting_reason().is_some());
     let auc_lower = metric(&seen, "discriminator_heldout_auc_lower");
     assert!(metric(&seen, "alpha_hat_upper") >= 1.0 || auc_lower <= 0.5, "{seen:?}");
     let (bc_trained, _) = run_to_end(crate::algo::build_trainer(&bc, &data, None).unwrap());
@@ -241,4 +243,5 @@ fn separable_data_keep_the_weighting_and_report_the_interval() {
     assert!(lower <= 0.4 && 0.4 <= upper, "true share 0.4 outside the interval: {scalars:?}");
     assert!(metric(&scalars, "discriminator_heldout_auc_lower") > 0.5, "{scalars:?}");
     assert!(t.uniform_weighting_reason().is_none());
+    assert!(t.alpha_hat_detail().unwrap().starts_with("Best Bin Estimation"));
 }

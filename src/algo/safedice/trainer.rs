@@ -30,7 +30,9 @@ use crate::algo::mlp::Mlp;
 use crate::algo::optim::Adam;
 use crate::algo::policy::{PolicyArtifact, PolicyNet};
 use crate::algo::run::RunData;
-use crate::algo::{Progress, ResolvedConfig, TerminalHandling, TrainError, Trainer, TrainingData};
+use crate::algo::{
+    Algorithm, Progress, ResolvedConfig, TerminalHandling, TrainError, Trainer, TrainingData,
+};
 use crate::data::Dataset;
 
 /// Rows per forward pass when scoring all of D^U.
@@ -60,6 +62,8 @@ pub struct SafediceTrainer {
     disc_stop: Option<DiscValidation>,
     /// Set when the weighting falls back to uniform (`uniform_fallback`): the main loop is BC.
     uniform: Option<UniformWeights>,
+    /// The held-out statistics alpha-hat came from (`bbe`), once the phase is over.
+    heldout: Option<HeldOut>,
 }
 
 /// The main loop with uniform weights: BC's step, since the held-out data cannot tell D^N from
@@ -181,6 +185,7 @@ impl SafediceTrainer {
             overrides,
             disc_stop,
             uniform: None,
+            heldout: None,
         })
     }
 
@@ -191,9 +196,6 @@ impl SafediceTrainer {
     ) -> Result<SafediceTrainer, TrainError> {
         let mut t = SafediceTrainer::new(config, data)?;
         let restored = t.run.restore(bytes)?;
-        restored.restore("discriminator", &mut t.disc_opt)?;
-        restored.restore("nu", &mut t.nu_opt)?;
-        restored.restore("policy", &mut t.policy_opt)?;
         if let Some(v) = t.disc_stop.as_mut() {
             v.rule.restore(&restored.extra_scalars);
             v.best = restored.extra_tensors();
@@ -202,7 +204,13 @@ impl SafediceTrainer {
             // Deterministic from the frozen discriminator: the same alpha-hat and rewards.
             t.finish_discriminator_phase()?;
             t.phase_metrics.clear();
+            if t.uniform.is_some() {
+                t.policy_opt = Adam::new(t.policy.mlp().named_vars(), t.fallback_lr_actor())?;
+            }
         }
+        restored.restore("discriminator", &mut t.disc_opt)?;
+        restored.restore("nu", &mut t.nu_opt)?;
+        restored.restore("policy", &mut t.policy_opt)?;
         Ok(t)
     }
 
@@ -378,6 +386,19 @@ impl SafediceTrainer {
         Ok(())
     }
 
+    /// The policy's learning rate in the uniform fallback: a BC job's of the same preset, since
+    /// SafeDICE's own default is set lower for its weighted loss; an `lr_actor` the run set
+    /// itself is kept.
+    fn fallback_lr_actor(&self) -> f64 {
+        let common = &self.run.config.common;
+        let preset = |algorithm| ResolvedConfig::preset(algorithm, common.preset).common.lr_actor;
+        if common.lr_actor == preset(Algorithm::Safedice) {
+            preset(Algorithm::Bc)
+        } else {
+            common.lr_actor
+        }
+    }
+
     /// The uniform fallback from its first step: the policy, its optimiser and the random stream
     /// start again exactly as a BC job of the same seed and config does (`RunData::new`, then
     /// `new_policy`), so the policy it ends with is BC's, bit for bit. Only the live phase end
@@ -385,8 +406,7 @@ impl SafediceTrainer {
     fn restart_policy_as_bc(&mut self) -> Result<(), TrainError> {
         self.run.rng = rand_chacha::ChaCha8Rng::seed_from_u64(self.run.config.seed());
         self.policy = self.run.new_policy("policy")?;
-        let lr = self.run.config.common.lr_actor;
-        self.policy_opt = Adam::new(self.policy.mlp().named_vars(), lr)?;
+        self.policy_opt = Adam::new(self.policy.mlp().named_vars(), self.fallback_lr_actor())?;
         if let Some(u) = self.uniform.as_mut() {
             if u.fused.is_some() {
                 u.fused = fused_policy_step(&self.run, self.policy.mlp())?;
@@ -505,6 +525,7 @@ impl SafediceTrainer {
             self.phase_metrics.push(("discriminator_outputs_given", 1.0));
         }
         self.decide_weighting(heldout.as_ref(), eq10.undefined_rows == logits.len())?;
+        self.heldout = heldout;
         let rewards: Vec<f32> = eq10.rewards.iter().map(|&r| r as f32).collect();
         self.flow = Some(FlowColumns::build(&self.run.u, rewards, &self.cfg)?);
         self.alpha = Some(alpha);
@@ -557,10 +578,6 @@ impl SafediceTrainer {
         Ok(())
     }
 
-    /// Why the weighting fell back to uniform, if it did.
-    pub fn uniform_weighting_reason(&self) -> Option<&str> {
-        self.uniform.as_ref().map(|u| u.reason.as_str())
-    }
 
     /// The main loop's step with uniform weights: BC's loss on a batch of D^U.
     fn uniform_step(&mut self, record: bool) -> Result<Vec<(&'static str, f64)>, TrainError> {
@@ -802,6 +819,25 @@ impl Trainer for SafediceTrainer {
 
     fn alpha_hat(&self) -> Option<f64> {
         self.alpha.as_ref().map(|a| a.value)
+    }
+
+    fn alpha_hat_detail(&self) -> Option<String> {
+        let alpha = self.alpha.as_ref()?;
+        Some(match &self.heldout {
+            Some(HeldOut { alpha: bin, auc }) => format!(
+                "Best Bin Estimation on held-out episodes: {:.4}, 90% interval [{:.3}, {:.3}], from the {:.0}% of held-out D^N rows scoring at least {:.3} (and {:.0}% of D^U's); held-out AUC {:.3} [{:.3}, {:.3}]; the paper's minimum over D^U would be {:.4}",
+                alpha.value, bin.lower, bin.upper, 100.0 * bin.share_n, bin.threshold,
+                100.0 * bin.share_u, auc.value, auc.lower, auc.upper, alpha.min_ratio
+            ),
+            None => format!(
+                "the minimum of 1/c - 1 over D^U (the paper), at row {} of episode {}",
+                alpha.argmin_row, alpha.argmin_episode
+            ),
+        })
+    }
+
+    fn uniform_weighting_reason(&self) -> Option<String> {
+        self.uniform.as_ref().map(|u| u.reason.clone())
     }
 
     fn export_policy(&self) -> Result<PolicyArtifact, TrainError> {
