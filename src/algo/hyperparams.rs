@@ -161,6 +161,10 @@ pub struct SafediceConfig {
     /// 0.5, or alpha-hat's covers 1), train with uniform weights, i.e. BC, and say so.
     #[serde(default)]
     pub uniform_fallback: bool,
+    /// With `bbe`: recalibrate the discriminator's logit on the held-out rows (Platt scaling,
+    /// `scale · c + shift`) before Eq. 10 reads `e^c` as `d^N/d^U`.
+    #[serde(default)]
+    pub calibrate_discriminator: bool,
 }
 
 impl AlphaEstimator {
@@ -376,6 +380,7 @@ impl SafediceConfig {
             alpha_hat_estimator: AlphaEstimator::Min,
             undefined_reward: UndefinedReward::Floor,
             uniform_fallback: false,
+            calibrate_discriminator: false,
         }
     }
 
@@ -473,6 +478,12 @@ fn check_alpha_estimator(s: &SafediceConfig) -> Result<(), HyperparamError> {
         return Err(HyperparamError::new(
             "alpha_hat_quantile",
             "config.alpha_hat_quantile: applies to alpha_hat_estimator \"min\" only; set it to 0 or choose \"min\"",
+        ));
+    }
+    if s.calibrate_discriminator && s.alpha_hat_estimator != AlphaEstimator::Bbe {
+        return Err(HyperparamError::new(
+            "calibrate_discriminator",
+            "config.calibrate_discriminator: needs alpha_hat_estimator \"bbe\" (it fits on the held-out rows)",
         ));
     }
     if s.uniform_fallback && s.alpha_hat_estimator != AlphaEstimator::Bbe {

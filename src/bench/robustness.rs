@@ -136,6 +136,9 @@ pub struct TaskScore {
 pub struct RowSummary {
     pub split: Split,
     pub row: String,
+    /// `all tasks`, or `fair tasks`: those passing the fairness check, where the ceiling is one
+    /// a filter of D^U can reach.
+    pub scope: &'static str,
     pub tasks: usize,
     /// Tasks with something to capture.
     pub scored: usize,
@@ -235,7 +238,11 @@ fn quantile(sorted: &[f64], q: f64) -> f64 {
 }
 
 /// Per split and row: median, 10th percentile and worst captured share, tasks worse than BC.
-pub fn summarize_rows(scores: &[TaskScore], specs: &[TaskSpec]) -> Vec<RowSummary> {
+pub fn summarize_rows(
+    scores: &[TaskScore],
+    specs: &[TaskSpec],
+    scope: &'static str,
+) -> Vec<RowSummary> {
     let mut rows: Vec<String> = scores.iter().map(|s| s.row.clone()).collect();
     rows.dedup();
     rows.sort();
@@ -259,6 +266,7 @@ pub fn summarize_rows(scores: &[TaskScore], specs: &[TaskSpec]) -> Vec<RowSummar
             out.push(RowSummary {
                 split,
                 row: row.clone(),
+                scope,
                 tasks: mine.len(),
                 scored: values.len(),
                 captured_median: median,
@@ -291,9 +299,12 @@ pub fn run_cli(
     let results = runner::run_tasks(&config, &bench_tasks)?;
     let summary = summarize(&results);
     let scores = score(&results, &summary, &specs);
-    let rows = summarize_rows(&scores, &specs);
     let fair: Vec<TaskFairness> =
         summary.envs.iter().filter_map(|e| fairness(&results, e)).collect();
+    let mut rows = summarize_rows(&scores, &specs, "all tasks");
+    let passes = |s: &&TaskScore| fair.iter().any(|f| f.task == s.task && f.passes);
+    let fair_scores: Vec<TaskScore> = scores.iter().filter(passes).cloned().collect();
+    rows.extend(summarize_rows(&fair_scores, &specs, "fair tasks"));
     std::fs::create_dir_all(out)?;
     let json = out.join("results.json");
     let body = serde_json::json!({
@@ -312,8 +323,9 @@ fn console(rows: &[RowSummary]) -> String {
     for r in rows {
         let _ = writeln!(
             s,
-            "{:<5} {:<28} captured median {:>6.2}  p10 {:>6.2}  worst {:>6.2} ({})  worse than BC {}/{}",
+            "{:<5} {:<10} {:<28} captured median {:>6.2}  p10 {:>6.2}  worst {:>6.2} ({})  worse than BC {}/{}",
             r.split.as_str(),
+            r.scope,
             r.row,
             r.captured_median,
             r.captured_p10,
@@ -365,8 +377,9 @@ fn markdown(
         "Captured share = (cost_BC − cost) / (cost_BC − cost_BC-preferred-only), over tasks where BC-preferred-only improves on BC by more than {MIN_ACHIEVABLE} κ. Worse than BC: cost > {WORSE_COST_RATIO}x BC's + 0.01 κ, or normalized return < {WORSE_RETURN_RATIO}x BC's.\n"
     );
     let _ = writeln!(md, "## Summary\n");
-    let _ = writeln!(md, "| split | row | tasks (scored) | captured median | 10th pct | worst task | worse than BC | goal |");
-    let _ = writeln!(md, "|---|---|---|---|---|---|---|---|");
+    let _ = writeln!(md, "Rows over all tasks, then over the tasks that pass the fairness check (below): where BC on the preferred episodes alone does not reach the preferred demonstrator, the ceiling measures imitation capacity more than safety.\n");
+    let _ = writeln!(md, "| split | tasks | row | tasks (scored) | captured median | 10th pct | worst task | worse than BC | goal |");
+    let _ = writeln!(md, "|---|---|---|---|---|---|---|---|---|");
     for r in rows {
         let worst = r.worst_task.as_ref().map_or("—".into(), |(t, v)| format!("{v:.2} ({t})"));
         let worse = if r.worse_tasks.is_empty() {
@@ -376,8 +389,9 @@ fn markdown(
         };
         let _ = writeln!(
             md,
-            "| {} | {} | {} ({}) | {:.2} | {:.2} | {} | {} | {} |",
+            "| {} | {} | {} | {} ({}) | {:.2} | {:.2} | {} | {} | {} |",
             r.split.as_str(),
+            r.scope,
             r.row,
             r.tasks,
             r.scored,

@@ -25,7 +25,25 @@ pub struct TabularRow {
     pub goal_probability: f64,
     /// Share of the expected visits that fall on cost cells.
     pub cost_share_of_visits: f64,
+    /// SafeDICE: alpha-hat and its interval (the `bbe` estimator), against [`true_share`].
+    pub alpha_hat: Option<f64>,
+    pub alpha_hat_interval: Option<(f64, f64)>,
     pub visits: Vec<f64>,
+}
+
+/// A trained policy solved exactly, with the alpha-hat its run used.
+pub struct Solved {
+    pub outcome: ExactOutcome,
+    pub alpha_hat: Option<f64>,
+    pub alpha_hat_interval: Option<(f64, f64)>,
+}
+
+/// The non-preferred share of the transitions of [`data`]'s D^U: the α* alpha-hat estimates.
+pub fn true_share(seed: u64) -> anyhow::Result<f64> {
+    let g = envs::generate(&spec(seed))?;
+    let ids = &g.manifest.unlabeled_non_preferred_episode_ids;
+    let rows = g.unlabeled.episode_ids();
+    Ok(rows.iter().filter(|e| ids.contains(e)).count() as f64 / rows.len() as f64)
 }
 
 /// The rows: BC, SafeDICE (service defaults and the paper preset), PPL, DWBC at η ∈ {0.2, 0.5, 0.8}, DExperts at
@@ -57,18 +75,21 @@ pub fn rows() -> Vec<(String, Algorithm, serde_json::Value)> {
 /// The six-rooms data of the check: 100 preferred + 100 non-preferred episodes in D^U, 20
 /// labeled non-preferred ones.
 pub fn data(seed: u64) -> anyhow::Result<TrainingData> {
-    let spec = DatagenSpec {
+    let g = envs::generate(&spec(seed))?;
+    Ok(TrainingData {
+        unlabeled: Arc::new(g.unlabeled),
+        non_preferred: g.labeled_non_preferred.map(Arc::new),
+    })
+}
+
+fn spec(seed: u64) -> DatagenSpec {
+    DatagenSpec {
         env: six_rooms::NAME.into(),
         preferred: 100,
         non_preferred: 100,
         labeled: 20,
         seed,
-    };
-    let g = envs::generate(&spec)?;
-    Ok(TrainingData {
-        unlabeled: Arc::new(g.unlabeled),
-        non_preferred: g.labeled_non_preferred.map(Arc::new),
-    })
+    }
 }
 
 /// Trains `algorithm` with `extra` config on `data` and solves its policy exactly.
@@ -78,7 +99,7 @@ pub fn solve(
     data: &TrainingData,
     iterations: u64,
     seed: u64,
-) -> anyhow::Result<ExactOutcome> {
+) -> anyhow::Result<Solved> {
     let mut config = serde_json::json!({
         "seed": seed, "iterations": iterations, "batch_size": 256, "hidden_sizes": [64, 64],
     });
@@ -88,8 +109,17 @@ pub fn solve(
     let resolved =
         algo::resolve_config(algorithm, &config).map_err(|e| anyhow::anyhow!(e.message))?;
     let mut trainer = algo::build_trainer(&resolved, data, None)?;
+    let (mut lower, mut upper) = (None, None);
     while !trainer.is_finished() {
-        trainer.step(false)?;
+        // Only the step that ends a phase carries alpha-hat's interval; the rest record nothing.
+        let ends_phase = trainer.alpha_hat().is_none();
+        for (name, value) in trainer.step(ends_phase)? {
+            match name {
+                "alpha_hat_lower" => lower = Some(value),
+                "alpha_hat_upper" => upper = Some(value),
+                _ => {}
+            }
+        }
     }
     let artifact = trainer.export_policy()?;
     let policy = Policy::load(&artifact.spec, &artifact.weights)?;
@@ -100,13 +130,15 @@ pub fn solve(
     }
     let probs = policy.action_probabilities(&one_hot).expect("six-rooms is discrete");
     let width = probs.len() / n;
-    Ok(six_rooms::exact_outcome(|i| {
+    let outcome = six_rooms::exact_outcome(|i| {
         let mut p = [0.0; 4];
         for (a, slot) in p.iter_mut().enumerate().take(width) {
             *slot = f64::from(probs[i * width + a]);
         }
         p
-    }))
+    });
+    let alpha_hat_interval = lower.zip(upper);
+    Ok(Solved { outcome, alpha_hat: trainer.alpha_hat(), alpha_hat_interval })
 }
 
 /// Every row of [`rows`] on the data of `seed`.
@@ -116,7 +148,8 @@ pub fn run(iterations: u64, seed: u64) -> anyhow::Result<Vec<TabularRow>> {
     rows()
         .into_iter()
         .map(|(label, algorithm, extra)| {
-            let out = solve(algorithm, &extra, &data, iterations, seed)?;
+            let solved = solve(algorithm, &extra, &data, iterations, seed)?;
+            let out = solved.outcome;
             let total: f64 = out.visits.iter().sum();
             let on_cost: f64 =
                 out.visits.iter().zip(&costly).filter(|(_, &c)| c).map(|(v, _)| v).sum();
@@ -127,6 +160,8 @@ pub fn run(iterations: u64, seed: u64) -> anyhow::Result<Vec<TabularRow>> {
                 expected_cost: out.expected_cost,
                 goal_probability: out.goal_probability,
                 cost_share_of_visits: on_cost / total.max(1e-12),
+                alpha_hat: solved.alpha_hat,
+                alpha_hat_interval: solved.alpha_hat_interval,
                 visits: out.visits,
             })
         })
@@ -140,19 +175,31 @@ fn cost_cells() -> Vec<bool> {
 }
 
 /// The report: a table and one shaded grid per row.
-pub fn markdown(rows: &[TabularRow], command: &str, iterations: u64, seed: u64) -> String {
+pub fn markdown(
+    rows: &[TabularRow],
+    command: &str,
+    iterations: u64,
+    seed: u64,
+    true_share: f64,
+) -> String {
     let mut md = String::new();
     let _ = writeln!(md, "# Tabular check (paper Appendix G): where each algorithm's state distribution goes on six-rooms\n");
     let _ = writeln!(md, "- Command: `{command}`");
     let _ = writeln!(md, "- Data (seed {seed}): D^U = 100 preferred (top rooms) + 100 non-preferred (bottom rooms, cost 1 per step) episodes, D^N = 20 labeled non-preferred; {iterations} iterations, 64-64 networks, batch 256, service defaults otherwise");
     let _ = writeln!(md, "- Each policy is solved exactly: its action probabilities at every cell propagated through the 10% slip dynamics for the 100-step horizon\n");
-    let _ = writeln!(md, "| policy | expected cost | P(goal) | share of visits on cost cells |");
-    let _ = writeln!(md, "|---|---|---|---|");
+    let _ = writeln!(md, "- True non-preferred share of D^U's transitions (what alpha-hat estimates): {true_share:.4}\n");
+    let _ = writeln!(md, "| policy | expected cost | P(goal) | share of visits on cost cells | alpha-hat [90% interval] |");
+    let _ = writeln!(md, "|---|---|---|---|---|");
     for r in rows {
+        let alpha = match (r.alpha_hat, r.alpha_hat_interval) {
+            (Some(a), Some((l, u))) => format!("{a:.3} [{l:.3}, {u:.3}]"),
+            (Some(a), None) => format!("{a:.4} (the paper's minimum)"),
+            _ => "–".to_string(),
+        };
         let _ = writeln!(
             md,
-            "| {} | {:.2} | {:.3} | {:.3} |",
-            r.label, r.expected_cost, r.goal_probability, r.cost_share_of_visits
+            "| {} | {:.2} | {:.3} | {:.3} | {} |",
+            r.label, r.expected_cost, r.goal_probability, r.cost_share_of_visits, alpha
         );
     }
     let _ = writeln!(md, "\nExpected visits per cell, shaded ` .:-=+*#%@` from none to the most visited cell; the start is top left, the goal bottom right, the bottom-left and bottom-middle rooms cost.\n");
@@ -172,7 +219,7 @@ pub fn run_cli(
     let rows = run(iterations, seed)?;
     std::fs::create_dir_all(out)?;
     let md = out.join("tabular.md");
-    std::fs::write(&md, markdown(&rows, command, iterations, seed))?;
+    std::fs::write(&md, markdown(&rows, command, iterations, seed, true_share(seed)?))?;
     let json = out.join("tabular.json");
     std::fs::write(&json, serde_json::to_vec_pretty(&rows)?)?;
     for r in &rows {

@@ -77,26 +77,25 @@ fn ci_sized_suite_trains_scores_and_reports_every_task_deterministically() {
 }
 
 /// The paper's tabular check (Appendix G) pinned: on six-rooms, solved exactly, SafeDICE with
-/// the service defaults puts less of its state distribution in the cost rooms than BC (which
-/// follows the unlabeled mixture into them) and still reaches the goal. The paper's figure shows
-/// it avoiding them completely; ours does not (bench/robustness/tabular.md says how far).
+/// the service defaults leaves the cost rooms that BC (which follows the unlabeled mixture)
+/// enters, as the paper's figure shows, and still reaches the goal; its alpha-hat's interval
+/// holds the true non-preferred share (bench/robustness/tabular.md).
 #[test]
 fn tabular_check_safedice_avoids_the_cost_rooms_bc_enters() {
     use safedice::bench::tabular;
     let data = tabular::data(0).unwrap();
     let defaults = serde_json::json!({});
-    let bc = tabular::solve(Algorithm::Bc, &defaults, &data, 4000, 0).unwrap();
+    let bc = tabular::solve(Algorithm::Bc, &defaults, &data, 4000, 0).unwrap().outcome;
     let safedice = tabular::solve(Algorithm::Safedice, &defaults, &data, 4000, 0).unwrap();
     assert!(
         bc.expected_cost > 3.0,
         "BC follows the mixture into the cost rooms: {}",
         bc.expected_cost
     );
-    assert!(
-        safedice.expected_cost < 0.8 * bc.expected_cost,
-        "SafeDICE {} against BC {}",
-        safedice.expected_cost,
-        bc.expected_cost
-    );
-    assert!(safedice.goal_probability > 0.9, "{}", safedice.goal_probability);
+    let cost = safedice.outcome.expected_cost;
+    assert!(cost < 0.2 * bc.expected_cost, "SafeDICE {cost} against BC {}", bc.expected_cost);
+    assert!(safedice.outcome.goal_probability > 0.9, "{}", safedice.outcome.goal_probability);
+    let truth = tabular::true_share(0).unwrap();
+    let (lower, upper) = safedice.alpha_hat_interval.expect("bbe reports an interval");
+    assert!(lower <= truth && truth <= upper, "true share {truth} outside [{lower}, {upper}]");
 }

@@ -123,6 +123,46 @@ pub fn roc_auc(labeled: &[f32], mixture: &[f32]) -> Option<Auc> {
     Some(Auc { value: a, lower: (a - half).max(0.0), upper: (a + half).min(1.0) })
 }
 
+/// A logistic recalibration `c' = scale · c + shift` of a logit whose `σ(c)` should be
+/// `P(labeled | x)` with the two classes weighted equally (as the discriminator's balanced
+/// minibatches make it): fitted on held-out scores by Newton's method on the class-balanced
+/// logistic loss (Platt scaling). Returns `(scale, shift)`; `(1, 0)` when the fit does not
+/// converge or the sets are empty.
+pub fn platt_scaling(labeled: &[f32], mixture: &[f32]) -> (f64, f64) {
+    if labeled.is_empty() || mixture.is_empty() {
+        return (1.0, 0.0);
+    }
+    let rows = labeled.iter().map(|&c| (c as f64, 1.0, 0.5 / labeled.len() as f64));
+    let rows: Vec<(f64, f64, f64)> =
+        rows.chain(mixture.iter().map(|&c| (c as f64, 0.0, 0.5 / mixture.len() as f64))).collect();
+    let (mut scale, mut shift) = (1.0f64, 0.0f64);
+    for _ in 0..50 {
+        // Gradient and Hessian of the weighted loss Σ w (softplus(z) − y z), z = scale c + shift.
+        let (mut g, mut h) = ([0.0f64; 2], [[0.0f64; 2]; 2]);
+        for &(c, y, w) in &rows {
+            let p = 1.0 / (1.0 + (-(scale * c + shift)).exp());
+            let (r, v) = (w * (p - y), w * p * (1.0 - p));
+            g = [g[0] + r * c, g[1] + r];
+            h = [[h[0][0] + v * c * c, h[0][1] + v * c], [h[1][0] + v * c, h[1][1] + v]];
+        }
+        let det = h[0][0] * h[1][1] - h[0][1] * h[1][0];
+        if det.abs() < 1e-18 {
+            return (1.0, 0.0);
+        }
+        let step =
+            [(h[1][1] * g[0] - h[0][1] * g[1]) / det, (h[0][0] * g[1] - h[1][0] * g[0]) / det];
+        (scale, shift) = (scale - step[0], shift - step[1]);
+        if step[0].abs().max(step[1].abs()) < 1e-10 {
+            break;
+        }
+    }
+    if scale.is_finite() && shift.is_finite() && scale > 0.0 {
+        (scale, shift)
+    } else {
+        (1.0, 0.0)
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -215,6 +255,20 @@ mod tests {
         assert!(auc.lower < auc.value && auc.value < auc.upper);
         // Ties count half: identical scores give exactly 0.5.
         assert_eq!(roc_auc(&[1.0; 10], &[1.0; 20]).unwrap().value, 0.5);
+    }
+
+    /// Scores that are a calibrated logit shrunk by 3 and shifted by 1 are mapped back: for
+    /// shifted normals the balanced log-odds is linear, so the fit recovers it.
+    #[test]
+    fn platt_scaling_undoes_a_known_distortion() {
+        let mut rng = ChaCha8Rng::seed_from_u64(9);
+        let (l, m) = known_mixture(&mut rng, 2.0, 0.0, 20_000, 20_000);
+        // Classes N(2, 1) and N(0, 1): balanced log-odds 2x − 2. Distorted scores s = x/3 + 1.
+        let distort = |v: &[f32]| v.iter().map(|&x| x / 3.0 + 1.0).collect::<Vec<f32>>();
+        let (scale, shift) = platt_scaling(&distort(&l), &distort(&m));
+        // 2x − 2 = 2(3(s − 1)) − 2 = 6s − 8.
+        assert!((scale - 6.0).abs() < 0.2 && (shift + 8.0).abs() < 0.3, "{scale}, {shift}");
+        assert_eq!(platt_scaling(&[], &[1.0]), (1.0, 0.0));
     }
 
     #[test]

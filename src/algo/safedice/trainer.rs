@@ -11,7 +11,7 @@ use rand::{Rng, SeedableRng};
 use super::ablation::SafediceOverrides;
 use super::draws::{DiscDraws, FlowColumns, MainDraws};
 use super::fused::FusedSafedice;
-use super::mixture::{best_bin_estimate, roc_auc, Auc, MixtureEstimate};
+use super::mixture::{best_bin_estimate, platt_scaling, roc_auc, Auc, MixtureEstimate};
 use super::objectives::{
     alpha_hat_from_logits, discriminator_loss, eq10_rewards, nu_loss, policy_loss, AlphaHat,
     ALPHA_MARGIN, DISC_LOSS, MASK_RENORM_EPS, NU_LOSS, POLICY_LOSS,
@@ -468,11 +468,14 @@ impl SafediceTrainer {
 
     /// Algorithm 1 step 2 and the reward of Eq. 10 over all of D^U, with the frozen discriminator.
     fn finish_discriminator_phase(&mut self) -> Result<(), TrainError> {
-        let logits = match &self.overrides.unlabeled_logits {
+        let mut logits = match &self.overrides.unlabeled_logits {
             Some(given) => given.clone(),
             None => self.score(&self.run.u)?,
         };
         let heldout = self.heldout_statistics()?;
+        if let Some((scale, shift)) = heldout.as_ref().and_then(|h| h.calibration) {
+            logits.iter_mut().for_each(|c| *c = (scale * *c as f64 + shift) as f32);
+        }
         let episode_ids = &self.run.u.episode_ids;
         let mut alpha = alpha_hat_from_logits(&logits, episode_ids, self.cfg.alpha_hat_quantile);
         if let Some(bin) = heldout.as_ref().map(|h| &h.alpha) {
@@ -548,7 +551,9 @@ impl SafediceTrainer {
         else {
             return Ok(None);
         };
-        Ok(Some(HeldOut { alpha, auc }))
+        let calibration =
+            self.cfg.calibrate_discriminator.then(|| platt_scaling(&scores_n, &scores_u));
+        Ok(Some(HeldOut { alpha, auc, calibration }))
     }
 
     /// `uniform_fallback`: uniform weights (BC) when the held-out data cannot identify the
@@ -577,7 +582,6 @@ impl SafediceTrainer {
         self.uniform = Some(UniformWeights { reason, fused });
         Ok(())
     }
-
 
     /// The main loop's step with uniform weights: BC's loss on a batch of D^U.
     fn uniform_step(&mut self, record: bool) -> Result<Vec<(&'static str, f64)>, TrainError> {
@@ -742,6 +746,8 @@ fn snapshot(net: &Mlp) -> candle_core::Result<std::collections::HashMap<String, 
 struct HeldOut {
     alpha: MixtureEstimate,
     auc: Auc,
+    /// `calibrate_discriminator`: Eq. 10 reads `scale · c + shift` (Platt scaling on these rows).
+    calibration: Option<(f64, f64)>,
 }
 
 impl HeldOut {
@@ -763,9 +769,9 @@ impl HeldOut {
         })
     }
 
-    fn metrics(&self) -> [(&'static str, f64); 8] {
+    fn metrics(&self) -> Vec<(&'static str, f64)> {
         let (a, auc) = (&self.alpha, &self.auc);
-        [
+        let mut metrics = vec![
             ("alpha_hat_lower", a.lower),
             ("alpha_hat_upper", a.upper),
             ("alpha_hat_bin_threshold", a.threshold),
@@ -774,7 +780,14 @@ impl HeldOut {
             ("discriminator_heldout_auc", auc.value),
             ("discriminator_heldout_auc_lower", auc.lower),
             ("discriminator_heldout_auc_upper", auc.upper),
-        ]
+        ];
+        if let Some((scale, shift)) = self.calibration {
+            metrics.extend([
+                ("discriminator_calibration_scale", scale),
+                ("discriminator_calibration_shift", shift),
+            ]);
+        }
+        metrics
     }
 }
 
@@ -824,7 +837,7 @@ impl Trainer for SafediceTrainer {
     fn alpha_hat_detail(&self) -> Option<String> {
         let alpha = self.alpha.as_ref()?;
         Some(match &self.heldout {
-            Some(HeldOut { alpha: bin, auc }) => format!(
+            Some(HeldOut { alpha: bin, auc, .. }) => format!(
                 "Best Bin Estimation on held-out episodes: {:.4}, 90% interval [{:.3}, {:.3}], from the {:.0}% of held-out D^N rows scoring at least {:.3} (and {:.0}% of D^U's); held-out AUC {:.3} [{:.3}, {:.3}]; the paper's minimum over D^U would be {:.4}",
                 alpha.value, bin.lower, bin.upper, 100.0 * bin.share_n, bin.threshold,
                 100.0 * bin.share_u, auc.value, auc.lower, auc.upper, alpha.min_ratio
