@@ -466,6 +466,7 @@ impl SafediceConfig {
             alpha_hat_estimator: AlphaEstimator::Bbe,
             undefined_reward: UndefinedReward::Exclude,
             uniform_fallback: true,
+            calibrate_discriminator: true,
             ..Self::authors_code()
         }
     }

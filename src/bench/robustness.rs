@@ -26,7 +26,9 @@ pub const REFERENCE_EPISODES: usize = 200;
 /// Worse than BC: average cost above this multiple of BC's (plus 1% of κ, so a BC cost of 0
 /// leaves room for noise) ...
 pub const WORSE_COST_RATIO: f64 = 1.05;
-/// ... or normalized return below this multiple of BC's.
+/// ... or normalized return below this multiple of the lower of BC's and BC-preferred-only's:
+/// where the preferred demonstrations themselves hold less return than BC's mixture (the
+/// non-preferred demonstrator earns more), a safe policy cannot be asked for BC's return.
 pub const WORSE_RETURN_RATIO: f64 = 0.95;
 /// The suite's fairness check: BC on the preferred episodes alone within 10 points of the
 /// preferred demonstrator's normalized return and within the larger of 10% of its cost and
@@ -122,6 +124,9 @@ pub struct TaskScore {
     /// None where BC is already within [`MIN_ACHIEVABLE`] of the ceiling.
     pub captured: Option<f64>,
     pub worse_than_bc: bool,
+    /// Normalized return below 0.95x BC's (the rule before the preferred-only ceiling's return
+    /// bounded it), reported beside `worse_than_bc`.
+    pub below_bc_return: bool,
     pub alpha_hat: Option<f64>,
     pub auc_heldout: Option<f64>,
     /// alpha-hat's confidence interval, averaged over seeds (the `bbe` estimator), the true
@@ -147,6 +152,8 @@ pub struct RowSummary {
     pub worst_task: Option<(String, f64)>,
     pub worse_than_bc: usize,
     pub worse_tasks: Vec<String>,
+    /// Tasks below 0.95x BC's own return (the rule before the ceiling bounded it).
+    pub below_bc_return: Vec<String>,
     /// The goal on the test split: worse than BC on no task, median ≥ 0.7, 10th percentile ≥ 0.3.
     pub meets_goal: bool,
 }
@@ -175,8 +182,10 @@ pub fn score(results: &BenchResults, summary: &Summary, specs: &[TaskSpec]) -> V
             let cost = r.average_cost.mean;
             let ret = r.normalized_return.mean;
             let bc_ret = bc.normalized_return.mean;
+            let attainable_ret = bc_ret.min(ceiling.normalized_return.mean);
+            let below_bc_return = bc_ret > 0.0 && ret < WORSE_RETURN_RATIO * bc_ret;
             let worse = cost > WORSE_COST_RATIO * bc.average_cost.mean + 0.01 * kappa
-                || (bc_ret > 0.0 && ret < WORSE_RETURN_RATIO * bc_ret);
+                || (attainable_ret > 0.0 && ret < WORSE_RETURN_RATIO * attainable_ret);
             scores.push(TaskScore {
                 task: spec.id.clone(),
                 row: r.label.clone(),
@@ -187,6 +196,7 @@ pub fn score(results: &BenchResults, summary: &Summary, specs: &[TaskSpec]) -> V
                 captured: (achievable > MIN_ACHIEVABLE * kappa)
                     .then(|| (bc.average_cost.mean - cost) / achievable),
                 worse_than_bc: worse,
+                below_bc_return,
                 alpha_hat: r.alpha_hat.map(|a| a.mean),
                 auc_heldout: r.discriminator_auc_heldout.map(|a| a.mean),
                 alpha_hat_interval: alpha_interval(results, &spec.id, &r.label),
@@ -275,6 +285,11 @@ pub fn summarize_rows(
                 meets_goal: worse.is_empty() && median >= 0.7 && p10 >= 0.3,
                 worse_than_bc: worse.len(),
                 worse_tasks: worse,
+                below_bc_return: mine
+                    .iter()
+                    .filter(|s| s.below_bc_return)
+                    .map(|s| s.task.clone())
+                    .collect(),
             });
         }
     }
@@ -374,7 +389,7 @@ fn markdown(
     let _ = writeln!(md, "- Wall time: {:.1} min\n", results.wall_seconds / 60.0);
     let _ = writeln!(
         md,
-        "Captured share = (cost_BC − cost) / (cost_BC − cost_BC-preferred-only), over tasks where BC-preferred-only improves on BC by more than {MIN_ACHIEVABLE} κ. Worse than BC: cost > {WORSE_COST_RATIO}x BC's + 0.01 κ, or normalized return < {WORSE_RETURN_RATIO}x BC's.\n"
+        "Captured share = (cost_BC − cost) / (cost_BC − cost_BC-preferred-only), over tasks where BC-preferred-only improves on BC by more than {MIN_ACHIEVABLE} κ. Worse than BC: cost > {WORSE_COST_RATIO}x BC's + 0.01 κ, or normalized return < {WORSE_RETURN_RATIO}x the lower of BC's and BC-preferred-only's (a safe policy is not asked for the return only the non-preferred demonstrator earns; the per-task table also marks returns below {WORSE_RETURN_RATIO}x BC's own).\n"
     );
     let _ = writeln!(md, "## Summary\n");
     let _ = writeln!(md, "Rows over all tasks, then over the tasks that pass the fairness check (below): where BC on the preferred episodes alone does not reach the preferred demonstrator, the ceiling measures imitation capacity more than safety.\n");
@@ -386,6 +401,10 @@ fn markdown(
             "0".to_string()
         } else {
             format!("{} ({})", r.worse_than_bc, r.worse_tasks.join(", "))
+        };
+        let worse = match r.below_bc_return.len() {
+            0 => worse,
+            n => format!("{worse}; {n} below 0.95x BC's return ({})", r.below_bc_return.join(", ")),
         };
         let _ = writeln!(
             md,
@@ -448,7 +467,7 @@ fn markdown(
         );
     }
     let _ = writeln!(md, "\n## Scores per task\n");
-    let _ = writeln!(md, "| task | row | cost | normalized return | cost / BC | return / BC | captured | worse than BC | alpha-hat [interval] (true share) | AUC held-out | uniform seeds |");
+    let _ = writeln!(md, "| task | row | cost | normalized return | cost / BC | return / BC | captured | worse than BC (return < 0.95x BC's) | alpha-hat [interval] (true share) | AUC held-out | uniform seeds |");
     let _ = writeln!(md, "|---|---|---|---|---|---|---|---|---|---|---|");
     for s in scores {
         let alpha = match (s.alpha_hat, s.alpha_hat_interval) {
@@ -468,7 +487,11 @@ fn markdown(
             fmt(Some(s.cost_ratio), 2),
             fmt(Some(s.return_ratio), 2),
             fmt(s.captured, 2),
-            if s.worse_than_bc { "yes" } else { "no" },
+            match (s.worse_than_bc, s.below_bc_return) {
+                (true, _) => "yes",
+                (false, true) => "no (yes)",
+                (false, false) => "no",
+            },
             alpha,
             fmt(s.auc_heldout, 3),
             uniform

@@ -53,8 +53,13 @@ pub struct CreateJob {
     /// `discriminator_iterations` (unless set: `iterations` in the `service` preset, a tenth in the
     /// others), `lr_discriminator`,
     /// `lr_nu`, `discriminator_gp`, `nu_gp`, `gamma`, `terminal_handling` (`none`, `mask`,
-    /// `reset`, `absorbing`), `standardize_reward`, `alpha_hat_quantile` (0: the paper's
-    /// minimum), `ess_warning_fraction`, `discriminator_early_stopping` (hold out a fifth of
+    /// `reset`, `absorbing`), `standardize_reward`, `alpha_hat_estimator` (`bbe`: Best Bin
+    /// Estimation on held-out episodes, the `service` default; `min`: the paper's minimum over
+    /// D^U), `alpha_hat_quantile` (`min` only; 0: the minimum itself), `undefined_reward`
+    /// (`exclude`: rows where Eq. 10 is −∞ get no weight, the `service` default; `floor`),
+    /// `uniform_fallback` (train as BC when held-out data cannot tell D^N from D^U; `bbe`
+    /// only), `calibrate_discriminator` (`bbe` only), `ess_warning_fraction`,
+    /// `discriminator_early_stopping` (hold out a fifth of
     /// the data and stop the discriminator when its held-out loss stops improving;
     /// `discriminator_iterations` is then its most). `dwbc`: `eta`, `lr_discriminator`, `discriminator_gp`.
     /// `ppl`: `reward_model_iterations`, `lr_reward_model`, `pairs_per_batch`,
