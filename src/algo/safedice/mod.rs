@@ -1,7 +1,9 @@
 //! SafeDICE (Jang et al., NeurIPS 2023), Algorithm 1 of the paper, top to bottom:
 //!
 //! 1. pretrain the discriminator `c(s, a)` on D^N against D^U (Eq. 9), then freeze it;
-//! 2. set α to alpha-hat, the minimum of Eq. 15 over every sample of D^U;
+//! 2. set α to alpha-hat, Eq. 15: the paper's minimum over every sample of D^U, or (the service
+//!    default) the mixture proportion estimated on held-out episodes ([`mixture`]), falling back
+//!    to uniform weights (BC) when the held-out data cannot tell D^N from D^U;
 //! 3. compute the reward of Eq. 10 for every row of D^U once (the discriminator is frozen);
 //! 4. each iteration, update ν by Eq. 36 and the policy by the weighted BC of Eq. 37, both on the
 //!    same minibatch and with the pre-update ν.
@@ -14,6 +16,8 @@
 //!
 //! Files, from the paper down to the machine:
 //! - [`objectives`]: the equations (9, 10, 15, 36, 37), each written once;
+//! - [`mixture`]: alpha-hat as mixture proportion estimation (Best Bin Estimation), the held-out
+//!   AUC and the discriminator's recalibration;
 //! - [`draws`]: the flow table of step 3 and the minibatches both phases draw;
 //! - [`trainer`]: Algorithm 1 as a [`crate::algo::Trainer`], the reference in candle autograd;
 //! - [`fused`]: the same two hot loops with hand-derived gradients on the CPU engine, and

@@ -473,11 +473,13 @@ impl SafediceTrainer {
             None => self.score(&self.run.u)?,
         };
         let heldout = self.heldout_statistics()?;
+        let episode_ids = &self.run.u.episode_ids;
+        let mut alpha = alpha_hat_from_logits(&logits, episode_ids, self.cfg.alpha_hat_quantile);
+        // The paper's statistic above reads the discriminator as trained; Eq. 10 reads it
+        // recalibrated.
         if let Some((scale, shift)) = heldout.as_ref().and_then(|h| h.calibration) {
             logits.iter_mut().for_each(|c| *c = (scale * *c as f64 + shift) as f32);
         }
-        let episode_ids = &self.run.u.episode_ids;
-        let mut alpha = alpha_hat_from_logits(&logits, episode_ids, self.cfg.alpha_hat_quantile);
         if let Some(bin) = heldout.as_ref().map(|h| &h.alpha) {
             alpha.value = (bin.value - ALPHA_MARGIN).clamp(0.0, 1.0 - ALPHA_MARGIN);
         }
@@ -564,7 +566,8 @@ impl SafediceTrainer {
         undefined_everywhere: bool,
     ) -> Result<(), TrainError> {
         let ablation = self.overrides.alpha.is_some() || self.overrides.unlabeled_logits.is_some();
-        if !self.cfg.uniform_fallback || ablation {
+        let bbe = self.cfg.alpha_hat_estimator == AlphaEstimator::Bbe;
+        if !self.cfg.uniform_fallback || !bbe || ablation {
             return Ok(());
         }
         let reason = match heldout {
