@@ -111,9 +111,10 @@ pub fn solve(
     let mut trainer = algo::build_trainer(&resolved, data, None)?;
     let (mut lower, mut upper) = (None, None);
     while !trainer.is_finished() {
-        // Only the step that ends a phase carries alpha-hat's interval; the rest record nothing.
-        let ends_phase = trainer.alpha_hat().is_none();
-        for (name, value) in trainer.step(ends_phase)? {
+        // Steps record until alpha-hat exists: the one that ends the discriminator phase carries
+        // its interval (recording draws no random numbers, so the run is the same).
+        let record = trainer.alpha_hat().is_none();
+        for (name, value) in trainer.step(record)? {
             match name {
                 "alpha_hat_lower" => lower = Some(value),
                 "alpha_hat_upper" => upper = Some(value),
