@@ -213,6 +213,11 @@ fn inseparable_data_fall_back_to_bc_exactly() {
     }
     let bytes = partial.checkpoint().unwrap();
     let resumed = crate::algo::build_trainer(&safedice, &data, Some(&bytes)).unwrap();
+    assert_eq!(
+        resumed.alpha_hat(),
+        trained.alpha_hat(),
+        "alpha-hat from the checkpoint's discriminator"
+    );
     let (resumed, _) = run_to_end(resumed);
     assert_eq!(weights(resumed.as_ref()), weights(bc_trained.as_ref()), "resume");
 }
@@ -244,4 +249,14 @@ fn separable_data_keep_the_weighting_and_report_the_interval() {
     assert!(metric(&scalars, "discriminator_heldout_auc_lower") > 0.5, "{scalars:?}");
     assert!(t.uniform_weighting_reason().is_none());
     assert!(t.alpha_hat_detail().unwrap().starts_with("Best Bin Estimation"));
+    // A resume after the phase reads the checkpoint's discriminator: the same alpha-hat, and
+    // the same weights at the end.
+    let bytes = t.checkpoint().unwrap();
+    let mut resumed = SafediceTrainer::resume(&config, &data, &bytes).unwrap();
+    assert_eq!(resumed.alpha_hat(), t.alpha_hat());
+    while !t.is_finished() {
+        t.step(false).unwrap();
+        resumed.step(false).unwrap();
+    }
+    assert_eq!(resumed.export_policy().unwrap().weights, t.export_policy().unwrap().weights);
 }

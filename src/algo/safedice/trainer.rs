@@ -196,6 +196,11 @@ impl SafediceTrainer {
     ) -> Result<SafediceTrainer, TrainError> {
         let mut t = SafediceTrainer::new(config, data)?;
         let restored = t.run.restore(bytes)?;
+        // The optimisers carry the parameters: restored first, so the phase end below reads
+        // the checkpoint's discriminator.
+        restored.restore("discriminator", &mut t.disc_opt)?;
+        restored.restore("nu", &mut t.nu_opt)?;
+        restored.restore("policy", &mut t.policy_opt)?;
         if let Some(v) = t.disc_stop.as_mut() {
             v.rule.restore(&restored.extra_scalars);
             v.best = restored.extra_tensors();
@@ -205,12 +210,11 @@ impl SafediceTrainer {
             t.finish_discriminator_phase()?;
             t.phase_metrics.clear();
             if t.uniform.is_some() {
+                // The fallback's optimiser has BC's learning rate; its state is the checkpoint's.
                 t.policy_opt = Adam::new(t.policy.mlp().named_vars(), t.fallback_lr_actor())?;
+                restored.restore("policy", &mut t.policy_opt)?;
             }
         }
-        restored.restore("discriminator", &mut t.disc_opt)?;
-        restored.restore("nu", &mut t.nu_opt)?;
-        restored.restore("policy", &mut t.policy_opt)?;
         Ok(t)
     }
 
