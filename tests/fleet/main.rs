@@ -33,14 +33,16 @@ use support::jobs::{
     create_job, get_json, grid_datasets, upload, wait_for_status, ENDLESS_ITERATIONS,
 };
 
-/// A job body on the gridworld data: SafeDICE with small networks, `iterations` long.
+/// A job body on the gridworld data: SafeDICE with small networks, `iterations` long. Its 50
+/// discriminator steps cannot always tell D^N from D^U, so the uniform fallback is off: every
+/// job then runs (and records) the same main loop, which the checks on metric rows rely on.
 fn job(unlabeled: &str, non_preferred: &str, iterations: u64, seed: u64) -> Value {
     json!({
         "algorithm": "safedice",
         "unlabeled_dataset": unlabeled,
         "non_preferred_dataset": non_preferred,
         "config": {"iterations": iterations, "seed": seed, "hidden_sizes": [32, 32],
-                   "batch_size": 64, "discriminator_iterations": 50},
+                   "batch_size": 64, "discriminator_iterations": 50, "uniform_fallback": false},
         "runner": {"log_every": 10, "checkpoint_every": 100},
     })
 }
