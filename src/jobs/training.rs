@@ -506,6 +506,23 @@ fn interruption(
     move || cancel.load(Ordering::Relaxed) || shutdown.is_cancelled()
 }
 
+/// alpha-hat as the job log tells it: the value, how it was estimated, and the weighting.
+struct AlphaNote {
+    value: Option<f64>,
+    detail: Option<String>,
+    uniform_reason: Option<String>,
+}
+
+impl AlphaNote {
+    fn of(trainer: &dyn Trainer) -> AlphaNote {
+        AlphaNote {
+            value: trainer.alpha_hat(),
+            detail: trainer.alpha_hat_detail(),
+            uniform_reason: trainer.uniform_weighting_reason(),
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use anyhow::Context;
@@ -525,22 +542,5 @@ mod tests {
         let corrupt = StoreError::Corrupt("d".into(), "changed on disk".into());
         assert!(!store_unavailable(&anyhow::Error::from(corrupt)));
         assert!(!store_unavailable(&anyhow::anyhow!("the evaluation at step 10 failed")));
-    }
-}
-
-/// alpha-hat as the job log tells it: the value, how it was estimated, and the weighting.
-struct AlphaNote {
-    value: Option<f64>,
-    detail: Option<String>,
-    uniform_reason: Option<String>,
-}
-
-impl AlphaNote {
-    fn of(trainer: &dyn Trainer) -> AlphaNote {
-        AlphaNote {
-            value: trainer.alpha_hat(),
-            detail: trainer.alpha_hat_detail(),
-            uniform_reason: trainer.uniform_weighting_reason(),
-        }
     }
 }
