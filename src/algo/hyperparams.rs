@@ -66,11 +66,12 @@ pub enum TerminalHandling {
 }
 
 /// How alpha-hat (Eq. 15) is estimated.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum AlphaEstimator {
     /// The paper: the minimum of `1/c − 1` over every row of D^U (or the `alpha_hat_quantile`
-    /// diagnostic). One row with a large logit sets it.
+    /// diagnostic). One row with a large logit sets it. The default of a config without it.
+    #[default]
     Min,
     /// Best Bin Estimation on held-out episodes (`algo::safedice::mixture`): the ratio of D^U's
     /// to D^N's share above the score threshold that minimises its upper confidence bound.
@@ -79,10 +80,11 @@ pub enum AlphaEstimator {
 
 /// What Eq. 10 does on rows where it is undefined (`1 − α e^c ≤ 0`: the discriminator says the
 /// row is more non-preferred than α allows, i.e. `d^P = 0` there).
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum UndefinedReward {
     /// Floor `1 − α e^c` at 1e-8 (a reward of about −18 that standardisation can shrink).
+    #[default]
     Floor,
     /// Keep the reward at −∞: such rows get no weight in Eq. 37 and none in Eq. 36's sum
     /// (their reward is set 30 below the lowest defined one, `e^{−30}` of a weight), and the
@@ -152,10 +154,10 @@ pub struct SafediceConfig {
     pub discriminator_early_stopping: bool,
     /// How alpha-hat is estimated (`min`: the paper's Eq. 15; `bbe`: Best Bin Estimation on
     /// held-out episodes).
-    #[serde(default = "AlphaEstimator::paper")]
+    #[serde(default)]
     pub alpha_hat_estimator: AlphaEstimator,
     /// Eq. 10 where it is undefined (`floor` as before, `exclude`: weight 0).
-    #[serde(default = "UndefinedReward::paper")]
+    #[serde(default)]
     pub undefined_reward: UndefinedReward,
     /// With `bbe` (nothing with `min`): when the held-out data cannot tell D^N from D^U (the
     /// AUC's interval covers 0.5, or alpha-hat's covers 1), train with uniform weights, i.e.
@@ -166,18 +168,6 @@ pub struct SafediceConfig {
     /// `scale · c + shift`) before Eq. 10 reads `e^c` as `d^N/d^U`.
     #[serde(default)]
     pub calibrate_discriminator: bool,
-}
-
-impl AlphaEstimator {
-    fn paper() -> Self {
-        AlphaEstimator::Min
-    }
-}
-
-impl UndefinedReward {
-    fn paper() -> Self {
-        UndefinedReward::Floor
-    }
 }
 
 /// DWBC's knobs (Eq. 38, 39).
@@ -459,21 +449,9 @@ impl SafediceConfig {
     /// | early stopping, raw Eq. 10 reward | 0.08 | -0.05 | -0.43 | 2 |
     /// | 10% of iterations, fixed | 0.29 | -0.02 | -0.77 | 2 |
     ///
-    /// The weighting stage was chosen the same way (bench/robustness/README.md, 2026-11-27):
-    /// alpha-hat by Best Bin Estimation on held-out episodes, the discriminator's logit
-    /// recalibrated on them, Eq. 10's undefined rows excluded, and uniform weights (BC) when the
-    /// held-out data cannot tell D^N from D^U. Captured share over all 24 tasks / over the 16
-    /// that pass the fairness check (median, p10; tasks worse than BC):
-    ///
-    /// | alpha-hat, Eq. 10 | all | fair tasks | worse |
-    /// |---|---|---|---|
-    /// | paper's minimum (previous default) | 0.48, 0.13 | 0.60, 0.30 | 1 |
-    /// | 5% quantile over D^U, excluded | 0.54, 0.13 | 0.62, 0.21 | 0 |
-    /// | BBE, floored at 1e-8 | 0.28, 0.00 | 0.32, 0.13 | 1 |
-    /// | BBE, excluded | 0.61, 0.04 | 0.74, 0.55 | 1 |
-    /// | BBE, excluded, raw reward | 0.54, 0.02 | 0.71, 0.42 | 1 |
-    /// | BBE recalibrated, excluded (chosen) | 0.65, 0.01 | 0.80, 0.51 | 0 |
-    /// | BBE recalibrated, excluded, raw reward | 0.61, 0.01 | 0.80, 0.44 | 0 |
+    /// The weighting stage (alpha-hat by BBE, recalibrated; Eq. 10's undefined rows excluded;
+    /// the uniform fallback) was chosen the same way, 2026-11-27: every candidate's numbers are
+    /// in bench/robustness/README.md and docs/algorithm.md, "How defaults are chosen".
     fn service(discriminator_iterations: u64) -> Self {
         SafediceConfig {
             discriminator_iterations,
@@ -489,9 +467,8 @@ impl SafediceConfig {
     }
 }
 
-/// The quantile diagnostic belongs to the paper's minimum. (`uniform_fallback` and
-/// `calibrate_discriminator` read `bbe`'s held-out statistics and do nothing with `min`, so
-/// that one key switches the estimator.)
+/// The quantile diagnostic belongs to the paper's minimum (`uniform_fallback` and
+/// `calibrate_discriminator` do nothing with `min`, so one key switches the estimator).
 fn check_alpha_estimator(s: &SafediceConfig) -> Result<(), HyperparamError> {
     if s.alpha_hat_estimator == AlphaEstimator::Bbe && s.alpha_hat_quantile > 0.0 {
         return Err(HyperparamError::new(

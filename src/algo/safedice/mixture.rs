@@ -163,6 +163,55 @@ pub fn platt_scaling(labeled: &[f32], mixture: &[f32]) -> (f64, f64) {
     }
 }
 
+/// Held-out statistics of the frozen discriminator (the `bbe` estimator).
+pub struct HeldOut {
+    pub alpha: MixtureEstimate,
+    pub auc: Auc,
+    /// `calibrate_discriminator`: Eq. 10 reads `scale · c + shift` (Platt scaling on these rows).
+    pub calibration: Option<(f64, f64)>,
+}
+
+impl HeldOut {
+    /// Why D^N and D^U cannot be told apart on held-out rows, if they cannot: the AUC's interval
+    /// covers 0.5, or alpha-hat's covers 1 (every row of D^U could be non-preferred).
+    pub fn not_identifiable(&self) -> Option<String> {
+        let (auc, a) = (&self.auc, &self.alpha);
+        if auc.lower <= 0.5 {
+            return Some(format!(
+                "held-out AUC {:.3} [{:.3}, {:.3}] does not exclude 0.5",
+                auc.value, auc.lower, auc.upper
+            ));
+        }
+        (a.upper >= 1.0).then(|| {
+            format!(
+                "alpha-hat {:.3} [{:.3}, {:.3}] does not exclude 1 (held-out AUC {:.3})",
+                a.value, a.lower, a.upper, auc.value
+            )
+        })
+    }
+
+    pub fn metrics(&self) -> Vec<(&'static str, f64)> {
+        let (a, auc) = (&self.alpha, &self.auc);
+        let mut metrics = vec![
+            ("alpha_hat_lower", a.lower),
+            ("alpha_hat_upper", a.upper),
+            ("alpha_hat_bin_threshold", a.threshold),
+            ("alpha_hat_bin_share_dn", a.share_n),
+            ("alpha_hat_bin_share_du", a.share_u),
+            ("discriminator_heldout_auc", auc.value),
+            ("discriminator_heldout_auc_lower", auc.lower),
+            ("discriminator_heldout_auc_upper", auc.upper),
+        ];
+        if let Some((scale, shift)) = self.calibration {
+            metrics.extend([
+                ("discriminator_calibration_scale", scale),
+                ("discriminator_calibration_shift", shift),
+            ]);
+        }
+        metrics
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

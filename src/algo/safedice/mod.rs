@@ -19,7 +19,8 @@
 //! - [`mixture`]: alpha-hat as mixture proportion estimation (Best Bin Estimation), the held-out
 //!   AUC and the discriminator's recalibration;
 //! - [`draws`]: the flow table of step 3 and the minibatches both phases draw;
-//! - [`trainer`]: Algorithm 1 as a [`crate::algo::Trainer`], the reference in candle autograd;
+//! - [`trainer`]: Algorithm 1 as a [`crate::algo::Trainer`], the reference in candle autograd,
+//!   with its steps 2-3 and the uniform fallback in `weighting`;
 //! - [`fused`]: the same two hot loops with hand-derived gradients on the CPU engine, and
 //!   [`fused_steps`], which runs the trainer's steps on it;
 //! - [`ablation`]: the benchmark's replacements for alpha-hat and the discriminator.
@@ -31,6 +32,7 @@ mod fused_steps;
 pub mod mixture;
 pub mod objectives;
 pub mod trainer;
+mod weighting;
 
 #[cfg(test)]
 mod tests;

@@ -6,21 +6,20 @@
 
 use candle_core::Tensor;
 use rand::seq::SliceRandom;
-use rand::{Rng, SeedableRng};
+use rand::Rng;
 
 use super::ablation::SafediceOverrides;
 use super::draws::{DiscDraws, FlowColumns, MainDraws};
 use super::fused::FusedSafedice;
-use super::mixture::{best_bin_estimate, platt_scaling, roc_auc, Auc, MixtureEstimate};
+use super::mixture::HeldOut;
 use super::objectives::{
-    alpha_hat_from_logits, discriminator_loss, eq10_rewards, nu_loss, policy_loss, AlphaHat,
-    ALPHA_MARGIN, DISC_LOSS, MASK_RENORM_EPS, NU_LOSS, POLICY_LOSS,
+    discriminator_loss, nu_loss, policy_loss, AlphaHat, DISC_LOSS, MASK_RENORM_EPS, NU_LOSS,
+    POLICY_LOSS,
 };
-use crate::algo::bc::bc_loss;
 use crate::algo::checkpoint::Extra;
 use crate::algo::columns::{uniform_column, Columns};
 use crate::algo::discriminator_stop::{classification_loss, Decision, EarlyStop, Holdout};
-use crate::algo::fused_policy::{fused_policy_step, fused_policy_update, FusedPolicyStep};
+use crate::algo::fused_policy::FusedPolicyStep;
 use crate::algo::hyperparams::{AlgorithmConfig, AlphaEstimator, SafediceConfig};
 use crate::algo::losses::{
     ess_fraction, interpolate, scalar, self_normalized_weights, unit_gradient_penalty,
@@ -30,9 +29,7 @@ use crate::algo::mlp::Mlp;
 use crate::algo::optim::Adam;
 use crate::algo::policy::{PolicyArtifact, PolicyNet};
 use crate::algo::run::RunData;
-use crate::algo::{
-    Algorithm, Progress, ResolvedConfig, TerminalHandling, TrainError, Trainer, TrainingData,
-};
+use crate::algo::{Progress, ResolvedConfig, TerminalHandling, TrainError, Trainer, TrainingData};
 use crate::data::Dataset;
 
 /// Rows per forward pass when scoring all of D^U.
@@ -49,35 +46,35 @@ pub struct SafediceTrainer {
     pub(super) policy: PolicyNet,
     pub(super) policy_opt: Adam,
     /// Set once the discriminator phase ends.
-    alpha: Option<AlphaHat>,
-    flow: Option<FlowColumns>,
+    pub(super) alpha: Option<AlphaHat>,
+    pub(super) flow: Option<FlowColumns>,
     /// Metrics of the alpha-hat/reward computation, reported with the step that made them.
-    phase_metrics: Vec<(&'static str, f64)>,
+    pub(super) phase_metrics: Vec<(&'static str, f64)>,
     /// The fused CPU engine for both hot loops (None on other devices: the candle path runs).
     pub(super) fused: Option<FusedSafedice>,
     /// Ablation replacements of alpha-hat and the discriminator's outputs (none by default).
-    overrides: SafediceOverrides,
+    pub(super) overrides: SafediceOverrides,
     /// With `discriminator_early_stopping` or the `bbe` estimator: the held-out rows (and the
     /// stopping rule).
-    disc_stop: Option<DiscValidation>,
+    pub(super) disc_stop: Option<DiscValidation>,
     /// Set when the weighting falls back to uniform (`uniform_fallback`): the main loop is BC.
-    uniform: Option<UniformWeights>,
+    pub(super) uniform: Option<UniformWeights>,
     /// The held-out statistics alpha-hat came from (`bbe`), once the phase is over.
-    heldout: Option<HeldOut>,
+    pub(super) heldout: Option<HeldOut>,
 }
 
 /// The main loop with uniform weights: BC's step, since the held-out data cannot tell D^N from
 /// D^U (`uniform_fallback`).
-struct UniformWeights {
-    reason: String,
-    fused: Option<FusedPolicyStep>,
+pub(super) struct UniformWeights {
+    pub(super) reason: String,
+    pub(super) fused: Option<FusedPolicyStep>,
 }
 
 /// Held-out rows of D^N and D^U: for early stopping of the discriminator
 /// ([`crate::algo::discriminator_stop`]) and for the `bbe` estimator of alpha-hat.
-struct DiscValidation {
-    n: Holdout,
-    u: Holdout,
+pub(super) struct DiscValidation {
+    pub(super) n: Holdout,
+    pub(super) u: Holdout,
     /// Whether the stopping rule runs (`discriminator_early_stopping`).
     early_stopping: bool,
     rule: EarlyStop,
@@ -230,7 +227,11 @@ impl SafediceTrainer {
 
     /// The discriminator's logits `c(s, a)` on every row of `columns`, in chunks.
     /// The discriminator's logits on `rows` of `columns`.
-    fn score_rows(&self, columns: &Columns, rows: &[u32]) -> Result<Vec<f32>, TrainError> {
+    pub(super) fn score_rows(
+        &self,
+        columns: &Columns,
+        rows: &[u32],
+    ) -> Result<Vec<f32>, TrainError> {
         let mut logits = Vec::with_capacity(rows.len());
         for chunk in rows.chunks(SCORING_CHUNK) {
             let idx = Tensor::from_slice(chunk, chunk.len(), &self.run.device)?;
@@ -240,7 +241,7 @@ impl SafediceTrainer {
         Ok(logits)
     }
 
-    fn score(&self, columns: &Columns) -> Result<Vec<f32>, TrainError> {
+    pub(super) fn score(&self, columns: &Columns) -> Result<Vec<f32>, TrainError> {
         let mut logits = Vec::with_capacity(columns.len);
         for start in (0..columns.len).step_by(SCORING_CHUNK) {
             let rows = SCORING_CHUNK.min(columns.len - start);
@@ -390,35 +391,6 @@ impl SafediceTrainer {
         Ok(())
     }
 
-    /// The policy's learning rate in the uniform fallback: a BC job's of the same preset, since
-    /// SafeDICE's own default is set lower for its weighted loss; an `lr_actor` the run set
-    /// itself is kept.
-    fn fallback_lr_actor(&self) -> f64 {
-        let common = &self.run.config.common;
-        let preset = |algorithm| ResolvedConfig::preset(algorithm, common.preset).common.lr_actor;
-        if common.lr_actor == preset(Algorithm::Safedice) {
-            preset(Algorithm::Bc)
-        } else {
-            common.lr_actor
-        }
-    }
-
-    /// The uniform fallback from its first step: the policy, its optimiser and the random stream
-    /// start again exactly as a BC job of the same seed and config does (`RunData::new`, then
-    /// `new_policy`), so the policy it ends with is BC's, bit for bit. Only the live phase end
-    /// calls it; a resume restores the restarted stream and policy from the checkpoint.
-    fn restart_policy_as_bc(&mut self) -> Result<(), TrainError> {
-        self.run.rng = rand_chacha::ChaCha8Rng::seed_from_u64(self.run.config.seed());
-        self.policy = self.run.new_policy("policy")?;
-        self.policy_opt = Adam::new(self.policy.mlp().named_vars(), self.fallback_lr_actor())?;
-        if let Some(u) = self.uniform.as_mut() {
-            if u.fused.is_some() {
-                u.fused = fused_policy_step(&self.run, self.policy.mlp())?;
-            }
-        }
-        Ok(())
-    }
-
     /// With early stopping, the held-out Eq. 9 loss after this step when the rule measures it;
     /// keeps the weights of a new best.
     fn measure_held_out(&mut self) -> Result<(), TrainError> {
@@ -468,163 +440,6 @@ impl SafediceTrainer {
         }
         metrics.append(&mut self.phase_metrics);
         metrics
-    }
-
-    /// Algorithm 1 step 2 and the reward of Eq. 10 over all of D^U, with the frozen discriminator.
-    fn finish_discriminator_phase(&mut self) -> Result<(), TrainError> {
-        let mut logits = match &self.overrides.unlabeled_logits {
-            Some(given) => given.clone(),
-            None => self.score(&self.run.u)?,
-        };
-        let heldout = self.heldout_statistics()?;
-        let episode_ids = &self.run.u.episode_ids;
-        let mut alpha = alpha_hat_from_logits(&logits, episode_ids, self.cfg.alpha_hat_quantile);
-        // The paper's statistic above reads the discriminator as trained; Eq. 10 reads it
-        // recalibrated.
-        if let Some((scale, shift)) = heldout.as_ref().and_then(|h| h.calibration) {
-            logits.iter_mut().for_each(|c| *c = (scale * *c as f64 + shift) as f32);
-        }
-        if let Some(bin) = heldout.as_ref().map(|h| &h.alpha) {
-            alpha.value = (bin.value - ALPHA_MARGIN).clamp(0.0, 1.0 - ALPHA_MARGIN);
-        }
-        let estimated = alpha.value;
-        if let Some(a) = self.overrides.alpha {
-            alpha.value = a.clamp(0.0, 1.0 - ALPHA_MARGIN);
-        }
-        let eq10 = eq10_rewards(
-            &logits,
-            alpha.value,
-            self.cfg.undefined_reward,
-            self.cfg.standardize_reward,
-        );
-        if let Some(bad) = eq10.rewards.iter().position(|r| !r.is_finite()) {
-            return Err(TrainError::Diverged {
-                step: self.run.step,
-                message: format!(
-                    "the Eq. 10 reward of D^U row {bad} is not finite (alpha-hat {})",
-                    alpha.value
-                ),
-            });
-        }
-        tracing::info!(
-            alpha_hat = alpha.value,
-            estimator = ?self.cfg.alpha_hat_estimator,
-            argmin_row = alpha.argmin_row,
-            argmin_episode = alpha.argmin_episode,
-            quantile_01 = alpha.quantile_01,
-            "SafeDICE alpha-hat (Eq. 15)"
-        );
-        self.phase_metrics = vec![
-            ("alpha_hat", alpha.value),
-            ("alpha_hat_min_ratio", alpha.min_ratio),
-            ("alpha_hat_argmin_row", alpha.argmin_row as f64),
-            ("alpha_hat_argmin_episode", alpha.argmin_episode as f64),
-            ("alpha_hat_q01_diagnostic_not_paper", alpha.quantile_01),
-            ("reward_mean", eq10.mean),
-            ("reward_std", eq10.std),
-            ("reward_clipped_rows", eq10.undefined_rows as f64),
-        ];
-        if let Some(h) = &heldout {
-            self.phase_metrics.extend(h.metrics());
-        }
-        if self.overrides.alpha.is_some() {
-            self.phase_metrics.push(("alpha_hat_estimated", estimated));
-        }
-        if self.overrides.unlabeled_logits.is_some() {
-            self.phase_metrics.push(("discriminator_outputs_given", 1.0));
-        }
-        self.decide_weighting(heldout.as_ref(), eq10.undefined_rows == logits.len())?;
-        self.heldout = heldout;
-        let rewards: Vec<f32> = eq10.rewards.iter().map(|&r| r as f32).collect();
-        self.flow = Some(FlowColumns::build(&self.run.u, rewards, &self.cfg)?);
-        self.alpha = Some(alpha);
-        Ok(())
-    }
-
-    /// With the `bbe` estimator: the frozen discriminator's scores on the held-out rows of D^N
-    /// and D^U, Best Bin Estimation of alpha-hat on them and their ROC AUC.
-    fn heldout_statistics(&self) -> Result<Option<HeldOut>, TrainError> {
-        // Given logits (the oracle ablation) are a discriminator of their own: Eq. 15 on them.
-        let given = self.overrides.unlabeled_logits.is_some();
-        if self.cfg.alpha_hat_estimator != AlphaEstimator::Bbe || given {
-            return Ok(None);
-        }
-        let Some(v) = &self.disc_stop else { return Ok(None) };
-        let scores_n = self.score_rows(self.run.non_preferred(), &v.n.validation)?;
-        let scores_u = self.score_rows(&self.run.u, &v.u.validation)?;
-        let (Some(alpha), Some(auc)) =
-            (best_bin_estimate(&scores_n, &scores_u), roc_auc(&scores_n, &scores_u))
-        else {
-            return Ok(None);
-        };
-        let calibration =
-            self.cfg.calibrate_discriminator.then(|| platt_scaling(&scores_n, &scores_u));
-        Ok(Some(HeldOut { alpha, auc, calibration }))
-    }
-
-    /// `uniform_fallback`: uniform weights (BC) when the held-out data cannot identify the
-    /// mixture, with the reason in the metrics and the log.
-    fn decide_weighting(
-        &mut self,
-        heldout: Option<&HeldOut>,
-        undefined_everywhere: bool,
-    ) -> Result<(), TrainError> {
-        let ablation = self.overrides.alpha.is_some() || self.overrides.unlabeled_logits.is_some();
-        let bbe = self.cfg.alpha_hat_estimator == AlphaEstimator::Bbe;
-        if !self.cfg.uniform_fallback || !bbe || ablation {
-            return Ok(());
-        }
-        let reason = match heldout {
-            None => Some("no held-out rows to estimate alpha-hat on".to_string()),
-            Some(h) => h.not_identifiable(),
-        }
-        .or_else(|| undefined_everywhere.then(|| "Eq. 10 is undefined on every row".to_string()));
-        self.phase_metrics.push(("weighting_uniform", f64::from(u8::from(reason.is_some()))));
-        let Some(reason) = reason else { return Ok(()) };
-        tracing::warn!(reason = %reason, "weighting: uniform, {reason}; SafeDICE trains as BC");
-        let fused = match self.fused {
-            Some(_) => fused_policy_step(&self.run, self.policy.mlp())?,
-            None => None,
-        };
-        self.uniform = Some(UniformWeights { reason, fused });
-        Ok(())
-    }
-
-    /// The main loop's step with uniform weights: BC's loss on a batch of D^U.
-    fn uniform_step(&mut self, record: bool) -> Result<Vec<(&'static str, f64)>, TrainError> {
-        let idx = self.run.sample_u()?;
-        let obs = self.run.u.obs.index_select(&idx, 0)?;
-        let actions = self.run.u.actions.select(&idx)?;
-        let uniform = self.uniform.as_mut().expect("uniform weighting");
-        let value = match &mut uniform.fused {
-            Some(fused) => fused_policy_update(
-                fused,
-                &self.run,
-                self.policy.mlp(),
-                &mut self.policy_opt,
-                &obs,
-                &actions,
-                None,
-                POLICY_LOSS,
-            )?,
-            None => {
-                let loss = bc_loss(&self.policy, &obs, &actions)?;
-                let value = self.run.checked(&loss, POLICY_LOSS.0, POLICY_LOSS.1)?;
-                self.policy_opt.minimize(&loss)?;
-                value
-            }
-        };
-        self.run.step += 1;
-        let mut metrics = std::mem::take(&mut self.phase_metrics);
-        if record {
-            metrics.extend([
-                ("policy_loss", value),
-                ("alpha_hat", self.alpha.as_ref().map_or(f64::NAN, |a| a.value)),
-                ("ess_fraction", 1.0),
-                ("weighting_uniform", 1.0),
-            ]);
-        }
-        Ok(metrics)
     }
 
     /// Algorithm 1 steps 4-5: the ν step (Eq. 36, ν on cat(s, s', s0) in one forward) and the
@@ -749,55 +564,6 @@ fn snapshot(net: &Mlp) -> candle_core::Result<std::collections::HashMap<String, 
     net.named_vars().into_iter().map(|(name, var)| Ok((name, var.as_tensor().copy()?))).collect()
 }
 
-/// Held-out statistics of the frozen discriminator (the `bbe` estimator).
-struct HeldOut {
-    alpha: MixtureEstimate,
-    auc: Auc,
-    /// `calibrate_discriminator`: Eq. 10 reads `scale · c + shift` (Platt scaling on these rows).
-    calibration: Option<(f64, f64)>,
-}
-
-impl HeldOut {
-    /// Why D^N and D^U cannot be told apart on held-out rows, if they cannot: the AUC's interval
-    /// covers 0.5, or alpha-hat's covers 1 (every row of D^U could be non-preferred).
-    fn not_identifiable(&self) -> Option<String> {
-        let (auc, a) = (&self.auc, &self.alpha);
-        if auc.lower <= 0.5 {
-            return Some(format!(
-                "held-out AUC {:.3} [{:.3}, {:.3}] does not exclude 0.5",
-                auc.value, auc.lower, auc.upper
-            ));
-        }
-        (a.upper >= 1.0).then(|| {
-            format!(
-                "alpha-hat {:.3} [{:.3}, {:.3}] does not exclude 1 (held-out AUC {:.3})",
-                a.value, a.lower, a.upper, auc.value
-            )
-        })
-    }
-
-    fn metrics(&self) -> Vec<(&'static str, f64)> {
-        let (a, auc) = (&self.alpha, &self.auc);
-        let mut metrics = vec![
-            ("alpha_hat_lower", a.lower),
-            ("alpha_hat_upper", a.upper),
-            ("alpha_hat_bin_threshold", a.threshold),
-            ("alpha_hat_bin_share_dn", a.share_n),
-            ("alpha_hat_bin_share_du", a.share_u),
-            ("discriminator_heldout_auc", auc.value),
-            ("discriminator_heldout_auc_lower", auc.lower),
-            ("discriminator_heldout_auc_upper", auc.upper),
-        ];
-        if let Some((scale, shift)) = self.calibration {
-            metrics.extend([
-                ("discriminator_calibration_scale", scale),
-                ("discriminator_calibration_shift", shift),
-            ]);
-        }
-        metrics
-    }
-}
-
 impl Trainer for SafediceTrainer {
     fn progress(&self) -> Progress {
         let phase = if self.run.step < self.cfg.discriminator_iterations {
@@ -842,18 +608,7 @@ impl Trainer for SafediceTrainer {
     }
 
     fn alpha_hat_detail(&self) -> Option<String> {
-        let alpha = self.alpha.as_ref()?;
-        Some(match &self.heldout {
-            Some(HeldOut { alpha: bin, auc, .. }) => format!(
-                "Best Bin Estimation on held-out episodes: {:.4}, 90% interval [{:.3}, {:.3}], from the {:.0}% of held-out D^N rows scoring at least {:.3} (and {:.0}% of D^U's); held-out AUC {:.3} [{:.3}, {:.3}]; the paper's minimum over D^U would be {:.4}",
-                alpha.value, bin.lower, bin.upper, 100.0 * bin.share_n, bin.threshold,
-                100.0 * bin.share_u, auc.value, auc.lower, auc.upper, alpha.min_ratio
-            ),
-            None => format!(
-                "the minimum of 1/c - 1 over D^U (the paper), at row {} of episode {}",
-                alpha.argmin_row, alpha.argmin_episode
-            ),
-        })
+        self.describe_alpha_hat()
     }
 
     fn uniform_weighting_reason(&self) -> Option<String> {

@@ -1,0 +1,224 @@
+//! Algorithm 1 steps 2-3 on the frozen discriminator, and what follows from them: alpha-hat
+//! (Eq. 15: the paper's minimum, or Best Bin Estimation on held-out episodes with the logit
+//! recalibrated, [`super::mixture`]), Eq. 10's reward on every row of D^U (its −∞ rows
+//! excluded or floored), and the uniform fallback that trains as BC when the held-out data
+//! cannot tell D^N from D^U. docs/algorithm.md, "2. alpha-hat" and "3. Reward", says why.
+
+use rand::SeedableRng;
+
+use super::draws::FlowColumns;
+use super::mixture::{best_bin_estimate, platt_scaling, roc_auc, HeldOut};
+use super::objectives::{alpha_hat_from_logits, eq10_rewards, ALPHA_MARGIN, POLICY_LOSS};
+use super::trainer::{SafediceTrainer, UniformWeights};
+use crate::algo::bc::bc_loss;
+use crate::algo::fused_policy::{fused_policy_step, fused_policy_update};
+use crate::algo::hyperparams::AlphaEstimator;
+use crate::algo::optim::Adam;
+use crate::algo::{Algorithm, ResolvedConfig, TrainError};
+
+impl SafediceTrainer {
+    /// Algorithm 1 step 2 and the reward of Eq. 10 over all of D^U, with the frozen discriminator.
+    pub(super) fn finish_discriminator_phase(&mut self) -> Result<(), TrainError> {
+        let mut logits = match &self.overrides.unlabeled_logits {
+            Some(given) => given.clone(),
+            None => self.score(&self.run.u)?,
+        };
+        let heldout = self.heldout_statistics()?;
+        let episode_ids = &self.run.u.episode_ids;
+        let mut alpha = alpha_hat_from_logits(&logits, episode_ids, self.cfg.alpha_hat_quantile);
+        // The paper's statistic above reads the discriminator as trained; Eq. 10 reads it
+        // recalibrated.
+        if let Some((scale, shift)) = heldout.as_ref().and_then(|h| h.calibration) {
+            logits.iter_mut().for_each(|c| *c = (scale * *c as f64 + shift) as f32);
+        }
+        if let Some(bin) = heldout.as_ref().map(|h| &h.alpha) {
+            alpha.value = (bin.value - ALPHA_MARGIN).clamp(0.0, 1.0 - ALPHA_MARGIN);
+        }
+        let estimated = alpha.value;
+        if let Some(a) = self.overrides.alpha {
+            alpha.value = a.clamp(0.0, 1.0 - ALPHA_MARGIN);
+        }
+        let eq10 = eq10_rewards(
+            &logits,
+            alpha.value,
+            self.cfg.undefined_reward,
+            self.cfg.standardize_reward,
+        );
+        if let Some(bad) = eq10.rewards.iter().position(|r| !r.is_finite()) {
+            return Err(TrainError::Diverged {
+                step: self.run.step,
+                message: format!(
+                    "the Eq. 10 reward of D^U row {bad} is not finite (alpha-hat {})",
+                    alpha.value
+                ),
+            });
+        }
+        tracing::info!(
+            alpha_hat = alpha.value,
+            estimator = ?self.cfg.alpha_hat_estimator,
+            argmin_row = alpha.argmin_row,
+            argmin_episode = alpha.argmin_episode,
+            quantile_01 = alpha.quantile_01,
+            "SafeDICE alpha-hat (Eq. 15)"
+        );
+        self.phase_metrics = vec![
+            ("alpha_hat", alpha.value),
+            ("alpha_hat_min_ratio", alpha.min_ratio),
+            ("alpha_hat_argmin_row", alpha.argmin_row as f64),
+            ("alpha_hat_argmin_episode", alpha.argmin_episode as f64),
+            ("alpha_hat_q01_diagnostic_not_paper", alpha.quantile_01),
+            ("reward_mean", eq10.mean),
+            ("reward_std", eq10.std),
+            ("reward_clipped_rows", eq10.undefined_rows as f64),
+        ];
+        if let Some(h) = &heldout {
+            self.phase_metrics.extend(h.metrics());
+        }
+        if self.overrides.alpha.is_some() {
+            self.phase_metrics.push(("alpha_hat_estimated", estimated));
+        }
+        if self.overrides.unlabeled_logits.is_some() {
+            self.phase_metrics.push(("discriminator_outputs_given", 1.0));
+        }
+        self.decide_weighting(heldout.as_ref(), eq10.undefined_rows == logits.len())?;
+        self.heldout = heldout;
+        let rewards: Vec<f32> = eq10.rewards.iter().map(|&r| r as f32).collect();
+        self.flow = Some(FlowColumns::build(&self.run.u, rewards, &self.cfg)?);
+        self.alpha = Some(alpha);
+        Ok(())
+    }
+
+    /// With the `bbe` estimator: the frozen discriminator's scores on the held-out rows of D^N
+    /// and D^U, Best Bin Estimation of alpha-hat on them and their ROC AUC.
+    fn heldout_statistics(&self) -> Result<Option<HeldOut>, TrainError> {
+        // Given logits (the oracle ablation) are a discriminator of their own: Eq. 15 on them.
+        let given = self.overrides.unlabeled_logits.is_some();
+        if self.cfg.alpha_hat_estimator != AlphaEstimator::Bbe || given {
+            return Ok(None);
+        }
+        let Some(v) = &self.disc_stop else { return Ok(None) };
+        let scores_n = self.score_rows(self.run.non_preferred(), &v.n.validation)?;
+        let scores_u = self.score_rows(&self.run.u, &v.u.validation)?;
+        let (Some(alpha), Some(auc)) =
+            (best_bin_estimate(&scores_n, &scores_u), roc_auc(&scores_n, &scores_u))
+        else {
+            return Ok(None);
+        };
+        let calibration =
+            self.cfg.calibrate_discriminator.then(|| platt_scaling(&scores_n, &scores_u));
+        Ok(Some(HeldOut { alpha, auc, calibration }))
+    }
+
+    /// `uniform_fallback`: uniform weights (BC) when the held-out data cannot identify the
+    /// mixture, with the reason in the metrics and the log.
+    fn decide_weighting(
+        &mut self,
+        heldout: Option<&HeldOut>,
+        undefined_everywhere: bool,
+    ) -> Result<(), TrainError> {
+        let ablation = self.overrides.alpha.is_some() || self.overrides.unlabeled_logits.is_some();
+        let bbe = self.cfg.alpha_hat_estimator == AlphaEstimator::Bbe;
+        if !self.cfg.uniform_fallback || !bbe || ablation {
+            return Ok(());
+        }
+        let reason = match heldout {
+            None => Some("no held-out rows to estimate alpha-hat on".to_string()),
+            Some(h) => h.not_identifiable(),
+        }
+        .or_else(|| undefined_everywhere.then(|| "Eq. 10 is undefined on every row".to_string()));
+        self.phase_metrics.push(("weighting_uniform", f64::from(u8::from(reason.is_some()))));
+        let Some(reason) = reason else { return Ok(()) };
+        tracing::warn!(reason = %reason, "weighting: uniform, {reason}; SafeDICE trains as BC");
+        let fused = match self.fused {
+            Some(_) => fused_policy_step(&self.run, self.policy.mlp())?,
+            None => None,
+        };
+        self.uniform = Some(UniformWeights { reason, fused });
+        Ok(())
+    }
+
+    /// The main loop's step with uniform weights: BC's loss on a batch of D^U.
+    pub(super) fn uniform_step(
+        &mut self,
+        record: bool,
+    ) -> Result<Vec<(&'static str, f64)>, TrainError> {
+        let idx = self.run.sample_u()?;
+        let obs = self.run.u.obs.index_select(&idx, 0)?;
+        let actions = self.run.u.actions.select(&idx)?;
+        let uniform = self.uniform.as_mut().expect("uniform weighting");
+        let value = match &mut uniform.fused {
+            Some(fused) => fused_policy_update(
+                fused,
+                &self.run,
+                self.policy.mlp(),
+                &mut self.policy_opt,
+                &obs,
+                &actions,
+                None,
+                POLICY_LOSS,
+            )?,
+            None => {
+                let loss = bc_loss(&self.policy, &obs, &actions)?;
+                let value = self.run.checked(&loss, POLICY_LOSS.0, POLICY_LOSS.1)?;
+                self.policy_opt.minimize(&loss)?;
+                value
+            }
+        };
+        self.run.step += 1;
+        let mut metrics = std::mem::take(&mut self.phase_metrics);
+        if record {
+            metrics.extend([
+                ("policy_loss", value),
+                ("alpha_hat", self.alpha.as_ref().map_or(f64::NAN, |a| a.value)),
+                ("ess_fraction", 1.0),
+                ("weighting_uniform", 1.0),
+            ]);
+        }
+        Ok(metrics)
+    }
+
+    /// The policy's learning rate in the uniform fallback: a BC job's of the same preset, since
+    /// SafeDICE's own default is set lower for its weighted loss; an `lr_actor` the run set
+    /// itself is kept.
+    pub(super) fn fallback_lr_actor(&self) -> f64 {
+        let common = &self.run.config.common;
+        let preset = |algorithm| ResolvedConfig::preset(algorithm, common.preset).common.lr_actor;
+        if common.lr_actor == preset(Algorithm::Safedice) {
+            preset(Algorithm::Bc)
+        } else {
+            common.lr_actor
+        }
+    }
+
+    /// The uniform fallback from its first step: the policy, its optimiser and the random stream
+    /// start again exactly as a BC job of the same seed and config does (`RunData::new`, then
+    /// `new_policy`), so the policy it ends with is BC's, bit for bit. Only the live phase end
+    /// calls it; a resume restores the restarted stream and policy from the checkpoint.
+    pub(super) fn restart_policy_as_bc(&mut self) -> Result<(), TrainError> {
+        self.run.rng = rand_chacha::ChaCha8Rng::seed_from_u64(self.run.config.seed());
+        self.policy = self.run.new_policy("policy")?;
+        self.policy_opt = Adam::new(self.policy.mlp().named_vars(), self.fallback_lr_actor())?;
+        if let Some(u) = self.uniform.as_mut() {
+            if u.fused.is_some() {
+                u.fused = fused_policy_step(&self.run, self.policy.mlp())?;
+            }
+        }
+        Ok(())
+    }
+
+    /// How alpha-hat was estimated, in words for the job log ([`Trainer::alpha_hat_detail`]).
+    pub(super) fn describe_alpha_hat(&self) -> Option<String> {
+        let alpha = self.alpha.as_ref()?;
+        Some(match &self.heldout {
+            Some(HeldOut { alpha: bin, auc, .. }) => format!(
+                "Best Bin Estimation on held-out episodes: {:.4}, 90% interval [{:.3}, {:.3}], from the {:.0}% of held-out D^N rows scoring at least {:.3} (and {:.0}% of D^U's); held-out AUC {:.3} [{:.3}, {:.3}]; the paper's minimum over D^U would be {:.4}",
+                alpha.value, bin.lower, bin.upper, 100.0 * bin.share_n, bin.threshold,
+                100.0 * bin.share_u, auc.value, auc.lower, auc.upper, alpha.min_ratio
+            ),
+            None => format!(
+                "the minimum of 1/c - 1 over D^U (the paper), at row {} of episode {}",
+                alpha.argmin_row, alpha.argmin_episode
+            ),
+        })
+    }
+}
