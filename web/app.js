@@ -806,7 +806,7 @@ async function drawCharts(job, slots) {
   slots.chartsNote.textContent = job.status === 'queued' ? 'The job is queued: charts appear once it starts training.'
     : 'No metrics recorded yet: the worker records them every log_every steps (runner option on the Jobs form).';
   slots.charts.show(chartSpecs(job, series));
-  slots.once.replaceChildren(weighting, once.length ? h('div', { class: 'card', id: 'single-values', style: 'margin-top:18px' },
+  slots.once.replaceChildren(weighting || '', once.length ? h('div', { class: 'card', id: 'single-values', style: 'margin-top:18px' },
     h('h2', {}, 'Recorded once'), tableWrap(h('table', {}, h('tbody', {}, once.map(([name, [[step, value]]]) =>
       h('tr', {}, h('td', { class: 'mono' }, name), h('td', { class: 'num' }, fmt(value)), h('td', { class: 'muted' }, `at step ${fmt(step)}`))))))) : '');
 }
