@@ -170,10 +170,11 @@ struct SpeedArgs {
     /// Timed repeats; the median is reported.
     #[arg(long, default_value_t = 3)]
     repeats: usize,
-    /// Compute threads (GEMM; candle's pool via RAYON_NUM_THREADS). One per training job was
-    /// fastest on a shared machine.
-    #[arg(long, default_value_t = 1)]
-    threads: usize,
+    /// Threads of the job (its `threads`: the fused engine splits each step's rows over them),
+    /// comma-separated to measure several counts one after another and print their scaling,
+    /// e.g. `1,2`. The candle path's threads are candle's pool (RAYON_NUM_THREADS).
+    #[arg(long, value_delimiter = ',', default_value = "1")]
+    threads: Vec<usize>,
     /// Seed of the synthetic data and the networks' initialisation.
     #[arg(long, default_value_t = 0)]
     seed: u64,
@@ -204,26 +205,7 @@ fn main() -> anyhow::Result<()> {
     let cli = Cli::parse();
     match cli.command {
         Command::Datagen(args) => datagen(args),
-        Command::Speed(a) => {
-            // Before anything touches rayon's global pool (candle's CPU ops and gemm use it).
-            std::env::set_var("RAYON_NUM_THREADS", a.threads.to_string());
-            let cfg = SpeedConfig {
-                obs_dim: a.obs_dim,
-                act_dim: a.act_dim,
-                discrete: a.discrete,
-                batch: a.batch,
-                hidden: a.hidden,
-                iters: a.iters,
-                repeats: a.repeats,
-                threads: a.threads,
-                seed: a.seed,
-                engine: a.engine,
-                algorithm: a.algorithm,
-            };
-            let results = speed::run(&cfg)?;
-            print!("{}", speed::report(&cfg, &results));
-            Ok(())
-        }
+        Command::Speed(a) => speed_cli(a),
         Command::Demo(args) => safedice::demo::run_cli(&args),
         Command::Export(args) => export(args),
         Command::Bench(args) => {
@@ -238,6 +220,48 @@ fn main() -> anyhow::Result<()> {
             Ok(())
         }
     }
+}
+
+fn speed_cli(a: SpeedArgs) -> anyhow::Result<()> {
+    let most = a.threads.iter().copied().max().unwrap_or(1);
+    if a.threads.iter().any(|&t| !(1..=safedice::algo::MAX_JOB_THREADS).contains(&t)) {
+        anyhow::bail!(
+            "--threads: 1 to {} each, got {:?}",
+            safedice::algo::MAX_JOB_THREADS,
+            a.threads
+        );
+    }
+    // The candle path computes on candle's pool: set before anything touches rayon's global
+    // pool. The fused engine runs a job's own pool and keeps candle's small ops (draws, Adam)
+    // on one thread as a worker does (main above). The counts asked for run on as many
+    // threads, whatever the machine has.
+    if a.engine == Engine::Candle {
+        std::env::set_var("RAYON_NUM_THREADS", most.to_string());
+    }
+    safedice::algo::set_job_thread_cap(most);
+    let mut measured = Vec::new();
+    for &threads in &a.threads {
+        let cfg = SpeedConfig {
+            obs_dim: a.obs_dim,
+            act_dim: a.act_dim,
+            discrete: a.discrete,
+            batch: a.batch,
+            hidden: a.hidden.clone(),
+            iters: a.iters,
+            repeats: a.repeats,
+            threads,
+            seed: a.seed,
+            engine: a.engine,
+            algorithm: a.algorithm,
+        };
+        let results = speed::run(&cfg)?;
+        print!("{}", speed::report(&cfg, &results));
+        measured.push((threads, results));
+    }
+    if measured.len() > 1 {
+        print!("{}", speed::scaling_report(&measured));
+    }
+    Ok(())
 }
 
 fn worker(config: WorkerConfig) -> anyhow::Result<()> {

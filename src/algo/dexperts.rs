@@ -65,7 +65,7 @@ impl DexpertsTrainer {
         // Eq. 45 trains on a D^U batch and a D^N batch together: room for both.
         let mut fused = fused_policy_step(&run, policy.mlp())?;
         if expert_n.is_none() && fused.is_some() {
-            fused = Some(FusedPolicyStep::new(policy.mlp(), 2 * run.batch())?);
+            fused = Some(FusedPolicyStep::new(policy.mlp(), 2 * run.batch(), &run.threads)?);
         }
         Ok(DexpertsTrainer {
             fused,

@@ -28,6 +28,9 @@ use std::time::Instant;
 
 use gemm::Parallelism;
 
+mod shards;
+pub use shards::{EngineThreads, TrainingWorkspace};
+
 /// Which way a matrix operand is read: as stored (`N`) or transposed (`T`).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 enum Op {
@@ -246,7 +249,6 @@ pub struct Workspace {
     max_rows: usize,
     /// Inference ([`Workspace::for_inference`]): each layer row by row, not one GEMM.
     row_by_row: bool,
-    par: Parallelism,
     /// `acts[0]` the input, `acts[l]` layer `l`'s output (after ReLU for hidden layers).
     acts: Vec<Vec<f32>>,
     /// `deltas[l]`: gradient with respect to layer `l`'s pre-activation (index 0 unused).
@@ -257,14 +259,13 @@ pub struct Workspace {
 }
 
 impl Workspace {
-    /// `threads > 1` lets the GEMMs use rayon's pool (one thread per training job was best on
-    /// the shared 2-core machine).
-    pub fn new(shape: &MlpShape, max_rows: usize, threads: usize) -> Self {
+    /// Training buffers: every GEMM on the calling thread (a job's threads split the batch's
+    /// rows between workspaces instead: [`TrainingWorkspace`]).
+    fn new(shape: &MlpShape, max_rows: usize) -> Self {
         let widest = shape.dims.iter().copied().max().unwrap_or(0);
         Self {
             max_rows,
             row_by_row: false,
-            par: if threads > 1 { Parallelism::Rayon(threads) } else { Parallelism::None },
             acts: shape.dims.iter().map(|&d| vec![0.0; max_rows * d]).collect(),
             deltas: shape.dims.iter().map(|&d| vec![0.0; max_rows * d]).collect(),
             input_grad: vec![0.0; max_rows * shape.input()],
@@ -278,7 +279,6 @@ impl Workspace {
         Self {
             max_rows,
             row_by_row: true,
-            par: Parallelism::None,
             acts: shape.dims.iter().map(|&d| vec![0.0; max_rows * d]).collect(),
             deltas: Vec::new(),
             input_grad: Vec::new(),
@@ -329,7 +329,16 @@ impl FusedMlp {
                     accumulate,
                 );
             } else {
-                matmul(y, x, Op::N, w, Op::N, (rows, dims[l], dims[l - 1]), accumulate, ws.par);
+                matmul(
+                    y,
+                    x,
+                    Op::N,
+                    w,
+                    Op::N,
+                    (rows, dims[l], dims[l - 1]),
+                    accumulate,
+                    Parallelism::None,
+                );
             }
             if l < layers {
                 y.iter_mut().for_each(|v| *v = v.max(0.0));
@@ -354,7 +363,16 @@ impl FusedMlp {
                 }
             } else {
                 let w = self.weight(l);
-                matmul(d_in, d_out, Op::N, w, Op::T, (rows, dims[l - 1], dims[l]), false, ws.par);
+                matmul(
+                    d_in,
+                    d_out,
+                    Op::N,
+                    w,
+                    Op::T,
+                    (rows, dims[l - 1], dims[l]),
+                    false,
+                    Parallelism::None,
+                );
             }
             // ReLU mask of layer l-1's output, as a select so it vectorises (a conditional store
             // compiled to scalar branches took 38% of a main-loop iteration).
@@ -387,7 +405,7 @@ impl FusedMlp {
                 Op::N,
                 (din, dout, rows),
                 true,
-                ws.par,
+                Parallelism::None,
             );
             if self.shape.has_bias(l) {
                 add_column_sums(&mut grads[b..b + dout], &ws.deltas[l], bias_rows);
@@ -395,18 +413,18 @@ impl FusedMlp {
         }
     }
 
-    /// One training pass: forward on `loss_rows + penalty_rows` rows of the workspace input
-    /// (loss rows first), then
+    /// One training pass on one workspace: forward on `loss_rows + penalty_rows` rows of its
+    /// input (loss rows first), then
     /// - `output_grad(out, dout)`: fill `dL/d out` for the loss rows from their outputs;
     /// - `penalty(g, dp)` (only if `penalty_rows > 0`; needs a scalar output and no last bias):
     ///   given the input-gradients `g` of the penalty rows, write `dP/dg` into `dp` and return P.
     ///
     /// Accumulates `dL/dθ + dP/dθ` into `grads` and returns P (0 without penalty rows).
-    pub fn train_pass(
+    /// [`TrainingWorkspace::train_pass`] runs the same steps on a job's threads.
+    fn train_pass_on(
         &self,
         ws: &mut Workspace,
-        loss_rows: usize,
-        penalty_rows: usize,
+        (loss_rows, penalty_rows): (usize, usize),
         grads: &mut [f32],
         output_grad: impl FnOnce(&[f32], &mut [f32]),
         penalty: impl FnOnce(&[f32], &mut [f32]) -> f32,
@@ -419,36 +437,70 @@ impl FusedMlp {
             let out = &acts[self.shape.layers()][..loss_rows * out_dim];
             let dout = deltas.last_mut().expect("layers");
             output_grad(out, &mut dout[..loss_rows * out_dim]);
-            dout[loss_rows * out_dim..rows * out_dim].fill(1.0);
         }
-        if penalty_rows > 0 {
-            assert!(out_dim == 1 && !self.shape.last_bias, "penalty needs a scalar critic");
-        }
-        self.backward_deltas(ws, rows);
+        self.check_penalty_rows(penalty_rows);
+        self.backward_deltas_from(ws, (loss_rows, penalty_rows));
         let value = if penalty_rows > 0 {
-            self.penalty_second_order(ws, loss_rows, penalty_rows, penalty)
+            let d0 = self.shape.input();
+            let g = &ws.input_grad[..penalty_rows * d0];
+            penalty(g, &mut ws.acts[0][loss_rows * d0..rows * d0])
         } else {
             0.0
         };
-        self.accumulate_param_grads(ws, rows, loss_rows, grads);
+        self.finish_param_grads(ws, (loss_rows, penalty_rows), grads);
         value
     }
 
-    /// Input-gradient `g = δ_1 W_1` of the penalty rows, `G = dP/dg` from the caller, then the
-    /// `e_l` chain written over the penalty rows of `acts` (with `G` over the input rows).
-    fn penalty_second_order(
+    fn check_penalty_rows(&self, penalty_rows: usize) {
+        if penalty_rows > 0 {
+            assert!(
+                self.shape.output() == 1 && !self.shape.last_bias,
+                "penalty needs a scalar critic"
+            );
+        }
+    }
+
+    /// After the loss rows' output gradient is in place: 1 on the penalty rows' (the
+    /// input-gradient is the backward pass with upstream 1), the backward pass, and the
+    /// penalty rows' input-gradient `g` into `input_grad`.
+    fn backward_deltas_from(&self, ws: &mut Workspace, (loss_rows, penalty_rows): (usize, usize)) {
+        let rows = loss_rows + penalty_rows;
+        let out_dim = self.shape.output();
+        ws.deltas.last_mut().expect("layers")[loss_rows * out_dim..rows * out_dim].fill(1.0);
+        self.backward_deltas(ws, rows);
+        if penalty_rows > 0 {
+            self.penalty_input_grad(ws, loss_rows, penalty_rows);
+        }
+    }
+
+    /// After `dP/dg` is written over the penalty rows' inputs: the `e_l` chain, then every
+    /// parameter gradient accumulated into `grads`.
+    fn finish_param_grads(
         &self,
         ws: &mut Workspace,
-        from: usize,
-        rows: usize,
-        penalty: impl FnOnce(&[f32], &mut [f32]) -> f32,
-    ) -> f32 {
+        (loss_rows, penalty_rows): (usize, usize),
+        grads: &mut [f32],
+    ) {
+        if penalty_rows > 0 {
+            self.penalty_chain(ws, loss_rows, penalty_rows);
+        }
+        self.accumulate_param_grads(ws, loss_rows + penalty_rows, loss_rows, grads);
+    }
+
+    /// Input-gradient `g = δ_1 W_1^T` of the `rows` penalty rows starting at `from`.
+    fn penalty_input_grad(&self, ws: &mut Workspace, from: usize, rows: usize) {
         let dims = &self.shape.dims;
         let d0 = dims[0];
         let g = &mut ws.input_grad[..rows * d0];
         let delta1 = &ws.deltas[1][from * dims[1]..(from + rows) * dims[1]];
-        matmul(g, delta1, Op::N, self.weight(1), Op::T, (rows, d0, dims[1]), false, ws.par);
-        let value = penalty(g, &mut ws.acts[0][from * d0..(from + rows) * d0]);
+        let shape = (rows, d0, dims[1]);
+        matmul(g, delta1, Op::N, self.weight(1), Op::T, shape, false, Parallelism::None);
+    }
+
+    /// The `e_l` chain written over the penalty rows of `acts`, from `G = dP/dg` over their
+    /// input rows.
+    fn penalty_chain(&self, ws: &mut Workspace, from: usize, rows: usize) {
+        let dims = &self.shape.dims;
         for l in 1..self.shape.layers() {
             let (below, above) = ws.acts.split_at_mut(l);
             let e_prev = &below[l - 1][from * dims[l - 1]..(from + rows) * dims[l - 1]];
@@ -461,14 +513,13 @@ impl FusedMlp {
                 Op::N,
                 (rows, dims[l], dims[l - 1]),
                 false,
-                ws.par,
+                Parallelism::None,
             );
             let h = &mut above[0][from * dims[l]..(from + rows) * dims[l]];
             for (hv, &t) in h.iter_mut().zip(tmp.iter()) {
                 *hv = if *hv > 0.0 { t } else { 0.0 };
             }
         }
-        value
     }
 }
 
@@ -480,12 +531,20 @@ pub fn peak_gemm_gflops(threads: usize) -> f64 {
     let a: Vec<f32> = (0..n * n).map(|i| (i % 7) as f32 * 0.01).collect();
     let b: Vec<f32> = (0..n * n).map(|i| (i % 5) as f32 * 0.01).collect();
     let mut c = vec![0f32; n * n];
-    let par = if threads > 1 { Parallelism::Rayon(threads) } else { Parallelism::None };
     let flops = 2.0 * (n * n * n) as f64;
     let mut best = 0f64;
+    // Its own pool of `threads`, as a job's engine has (rayon's global pool is candle's, one
+    // thread in the service).
+    let pool = rayon::ThreadPoolBuilder::new().num_threads(threads.max(1)).build();
+    let par = if threads > 1 { Parallelism::Rayon(threads) } else { Parallelism::None };
     for _ in 0..6 {
         let t = Instant::now();
-        matmul(&mut c, &a, Op::N, &b, Op::N, (n, n, n), false, par);
+        match &pool {
+            Ok(pool) => {
+                pool.install(|| matmul(&mut c, &a, Op::N, &b, Op::N, (n, n, n), false, par))
+            }
+            Err(_) => matmul(&mut c, &a, Op::N, &b, Op::N, (n, n, n), false, par),
+        }
         best = best.max(flops / t.elapsed().as_secs_f64() / 1e9);
     }
     std::hint::black_box(&c);

@@ -6,13 +6,13 @@
 //!
 //! The network stays a candle [`Mlp`] (checkpoints, export and the optimiser are unchanged):
 //! each step copies its parameters in, and [`fused_policy_update`] hands the gradients to
-//! [`Adam::step_with_grads`]. The trainers draw their minibatches on the candle path as before,
+//! [`Adam::step_with_host_grads`]. The trainers draw their minibatches on the candle path as before,
 //! so both engines consume the run's random numbers identically.
 
 use candle_core::{Result, Tensor};
 
 use super::columns::ActionColumn;
-use super::fused_mlp::{FusedMlp, Workspace};
+use super::fused_mlp::{EngineThreads, FusedMlp, TrainingWorkspace};
 use super::mlp::Mlp;
 use super::optim::Adam;
 use super::policy::{LOG_STD_MAX, LOG_STD_MIN, MEAN_CLIP};
@@ -100,18 +100,18 @@ fn categorical_log_prob_and_grad(logits: &[f32], a: usize, grad: &mut [f32]) -> 
 /// shape (DExperts' two experts), since each step copies the parameters in.
 pub struct FusedPolicyStep {
     net: FusedMlp,
-    ws: Workspace,
+    ws: TrainingWorkspace,
     /// The last step's gradient, flat in [`FusedMlp`] order.
     pub grads: Vec<f32>,
     head_grad: Vec<f32>,
 }
 
 impl FusedPolicyStep {
-    /// Buffers for batches of up to `batch` rows; one compute thread (one per training job).
-    pub fn new(policy: &Mlp, batch: usize) -> Result<Self> {
+    /// Buffers for batches of up to `batch` rows, steps on the job's `threads`.
+    pub fn new(policy: &Mlp, batch: usize, threads: &EngineThreads) -> Result<Self> {
         let net = policy.to_fused()?;
         Ok(Self {
-            ws: Workspace::new(net.shape(), batch, 1),
+            ws: TrainingWorkspace::new(net.shape(), batch, threads),
             grads: vec![0.0; net.num_params()],
             head_grad: vec![0.0; net.shape().output()],
             net,
@@ -135,10 +135,9 @@ impl FusedPolicyStep {
         let mut loss = 0.0;
         self.ws.input_mut()[..obs.len()].copy_from_slice(obs);
         self.grads.fill(0.0);
-        self.net.train_pass(
-            &mut self.ws,
-            b,
-            0,
+        self.ws.train_pass(
+            &self.net,
+            (b, 0),
             &mut self.grads,
             |out, dout| {
                 for (i, (o, dg)) in out.chunks_exact(k).zip(dout.chunks_exact_mut(k)).enumerate() {
@@ -167,7 +166,9 @@ impl FusedPolicyStep {
 /// The fused policy step on a CPU, None elsewhere (the candle path runs there).
 pub fn fused_policy_step(run: &RunData, policy: &Mlp) -> Result<Option<FusedPolicyStep>> {
     match run.device {
-        candle_core::Device::Cpu => Ok(Some(FusedPolicyStep::new(policy, run.batch())?)),
+        candle_core::Device::Cpu => {
+            Ok(Some(FusedPolicyStep::new(policy, run.batch(), &run.threads)?))
+        }
         _ => Ok(None),
     }
 }
@@ -194,7 +195,7 @@ pub fn fused_policy_update(
     let weights = weights.map(host).transpose()?;
     let loss = fused.weighted_nll_grads(policy, &obs, &actions.view(), weights.as_deref())?;
     let value = run.checked(&host_scalar(loss)?, name.0, name.1)?;
-    opt.step_with_grads(&policy.grads_from_fused(&fused.grads)?)?;
+    opt.step_with_host_grads(&policy.fused_grad_slices(&fused.grads)?)?;
     Ok(value)
 }
 
@@ -248,16 +249,30 @@ mod tests {
                 }
             }
         };
-        let mut fused = FusedPolicyStep::new(policy.mlp(), B).unwrap();
         let host_actions = OwnedActions::from_column(&actions).unwrap();
         let w: Vec<f32> = (0..B).map(|_| rng.random_range(0.0f32..3.0)).collect();
-        for weights in [None, Some(&w[..])] {
-            let ours = fused
-                .weighted_nll_grads(policy.mlp(), &obs, &host_actions.view(), weights)
-                .unwrap();
+        // One thread, and three shards on two (16 rows do not split evenly in three).
+        for (shards, threads) in [(1, 1), (3, 2)] {
+            let threads = EngineThreads::new(shards, threads).unwrap();
+            let mut fused = FusedPolicyStep::new(policy.mlp(), B, &threads).unwrap();
+            check_step(&mut fused, &policy, (&obs, &obs_t), (&actions, &host_actions), &w);
+        }
+    }
+
+    fn check_step(
+        fused: &mut FusedPolicyStep,
+        policy: &PolicyNet,
+        (obs, obs_t): (&[f32], &Tensor),
+        (actions, host_actions): (&ActionColumn, &OwnedActions),
+        w: &[f32],
+    ) {
+        let dev = Device::Cpu;
+        for weights in [None, Some(w)] {
+            let ours =
+                fused.weighted_nll_grads(policy.mlp(), obs, &host_actions.view(), weights).unwrap();
             let ones = vec![1.0f32; B];
             let w_t = Tensor::from_slice(weights.unwrap_or(&ones), B, &dev).unwrap();
-            let loss = weighted_nll(&policy.log_prob(&obs_t, &actions).unwrap(), &w_t).unwrap();
+            let loss = weighted_nll(&policy.log_prob(obs_t, actions).unwrap(), &w_t).unwrap();
             let theirs = loss.to_scalar::<f32>().unwrap();
             assert!((ours - theirs).abs() <= 1e-5 * theirs.abs().max(1.0), "{ours} vs {theirs}");
             let store = loss.backward().unwrap();

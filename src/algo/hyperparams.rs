@@ -119,6 +119,20 @@ pub struct CommonConfig {
     /// Standardise observations with D^U's mean and std (+1e-3), as DemoDICE does. The stats
     /// travel in the policy artefact.
     pub normalize_observations: bool,
+    /// Threads of one training step: the fused engine splits every batch's rows into this many
+    /// parts and sums their gradients in a fixed order. The count is part of the arithmetic,
+    /// like the seed (the same seed gives the same weights at the same `threads`, resumed or
+    /// taken over on any machine); a worker runs the parts on at most its `--job-threads`.
+    /// Unset, a job gets the server's `--job-threads`; stored configs without it ran on one.
+    #[serde(default = "one_thread")]
+    pub threads: usize,
+}
+
+/// The most threads a job may ask for.
+pub const MAX_JOB_THREADS: usize = 64;
+
+fn one_thread() -> usize {
+    1
 }
 
 /// SafeDICE's knobs (Algorithm 1, Eq. 9, 10, 15, 36, 37).
@@ -265,6 +279,7 @@ impl ResolvedConfig {
             hidden_sizes: vec![256, 256],
             lr_actor: 3e-4,
             normalize_observations: !paper_like,
+            threads: 1,
         };
         let phase = pretraining_default(algorithm, preset, common.iterations);
         let (common, specific) = match algorithm {
@@ -321,6 +336,7 @@ impl ResolvedConfig {
             in_range("hidden_sizes", width as f64, 1.0, 4096.0)?;
         }
         learning_rate("lr_actor", c.lr_actor)?;
+        in_range("threads", c.threads as f64, 1.0, MAX_JOB_THREADS as f64)?;
         match &self.specific {
             AlgorithmConfig::Safedice(s) => {
                 in_range("discriminator_iterations", s.discriminator_iterations as f64, 1.0, 1e8)?;

@@ -210,28 +210,38 @@ impl Mlp {
         Ok(fused)
     }
 
-    /// Flat gradients in the fused layout as tensors in [`Mlp::named_vars`] order (what
-    /// [`super::optim::Adam::step_with_grads`] takes for an optimiser built from `named_vars`).
+    /// Flat gradients in the fused layout as tensors in [`Mlp::named_vars`] order.
     pub fn grads_from_fused(&self, flat: &[f32]) -> Result<Vec<Tensor>> {
+        let vars = self.named_vars();
+        self.fused_grad_slices(flat)?
+            .into_iter()
+            .zip(&vars)
+            .map(|(g, (_, var))| Tensor::from_slice(g, var.dims(), var.device()))
+            .collect()
+    }
+
+    /// Flat gradients in the fused layout cut into one slice per parameter, in
+    /// [`Mlp::named_vars`] order (what [`super::optim::Adam::step_with_host_grads`] takes for
+    /// an optimiser built from `named_vars`).
+    pub fn fused_grad_slices<'a>(&self, flat: &'a [f32]) -> Result<Vec<&'a [f32]>> {
         let mut at = 0;
         let mut named = Vec::new();
+        let mut take = |len: usize| {
+            let slice = flat.get(at..at + len);
+            at += len;
+            slice
+        };
         for (i, layer) in self.layers.iter().enumerate() {
-            let device = layer.weight.device();
-            let w_len = layer.weight.elem_count();
-            let w = Tensor::from_slice(&flat[at..at + w_len], layer.weight.dims(), device)?;
-            named.push((weight_name(&self.name, i), w));
-            at += w_len;
+            named.push((weight_name(&self.name, i), take(layer.weight.elem_count())));
             if let Some(b) = &layer.bias {
-                let bt = Tensor::from_slice(&flat[at..at + b.elem_count()], b.dims(), device)?;
-                named.push((format!("{}.{i}.bias", self.name), bt));
-                at += b.elem_count();
+                named.push((format!("{}.{i}.bias", self.name), take(b.elem_count())));
             }
         }
-        if at != flat.len() {
+        if at != flat.len() || named.iter().any(|(_, s)| s.is_none()) {
             candle_core::bail!("{} fused gradients for {} parameters", flat.len(), at);
         }
         named.sort_by(|a, b| a.0.cmp(&b.0));
-        Ok(named.into_iter().map(|(_, t)| t).collect())
+        Ok(named.into_iter().filter_map(|(_, s)| s).collect())
     }
 }
 

@@ -36,6 +36,7 @@ pub mod registry;
 pub mod run;
 pub mod safedice;
 
+use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::Arc;
 
 use serde::{Deserialize, Serialize};
@@ -46,7 +47,7 @@ use registry::AlgorithmSpec;
 
 pub use hyperparams::{
     config_keys, resolve_config, AlphaEstimator, HyperparamError, Preset, ResolvedConfig,
-    TerminalHandling, UndefinedReward,
+    TerminalHandling, UndefinedReward, MAX_JOB_THREADS,
 };
 pub use policy::{portable_file, Policy, PolicyArtifact, PolicySpec, PortableMetadata};
 
@@ -237,6 +238,29 @@ fn resume(
     bytes: &[u8],
 ) -> Result<Box<dyn Trainer>, TrainError> {
     (config.algorithm().spec().resume)(config, data, bytes)
+}
+
+/// The most threads one training job of this process computes on (`--job-threads`); 0 until
+/// set, which means the machine's cores.
+static JOB_THREAD_CAP: AtomicUsize = AtomicUsize::new(0);
+
+/// Sets [`job_thread_cap`] for every job this process trains from now on.
+pub fn set_job_thread_cap(threads: usize) {
+    JOB_THREAD_CAP.store(threads.max(1), Ordering::Relaxed);
+}
+
+/// The most threads a job of this process runs on: `--job-threads`, or the machine's cores.
+/// A job's `threads` above it runs its shards on fewer threads, with the same arithmetic.
+pub fn job_thread_cap() -> usize {
+    match JOB_THREAD_CAP.load(Ordering::Relaxed) {
+        0 => available_cores(),
+        n => n,
+    }
+}
+
+/// The cores this process may use.
+pub fn available_cores() -> usize {
+    std::thread::available_parallelism().map_or(1, |n| n.get())
 }
 
 /// The device training runs on: the CPU, or the first CUDA GPU when built with `cuda`.

@@ -7,6 +7,7 @@ use rand_chacha::ChaCha8Rng;
 
 use super::checkpoint::{self, Restored};
 use super::columns::{fingerprint, Columns, ObsNormalizer};
+use super::fused_mlp::EngineThreads;
 use super::mlp::Mlp;
 use super::optim::Adam;
 use super::policy::{Decoder, PolicyArtifact, PolicyNet, PolicySpec, POLICY_FORMAT_VERSION};
@@ -22,6 +23,8 @@ pub struct RunData {
     pub obs_dim: usize,
     pub fingerprint: String,
     pub device: Device,
+    /// The fused engine's shards (`config.threads`) and the threads that run them.
+    pub threads: EngineThreads,
     pub rng: ChaCha8Rng,
     /// Steps completed, every phase included.
     pub step: u64,
@@ -51,6 +54,9 @@ impl RunData {
             obs_dim: u.obs_dim(),
             fingerprint: digest,
             device,
+            threads: EngineThreads::new(config.common.threads, super::job_thread_cap()).map_err(
+                |e| TrainError::Other(format!("could not start the job's threads: {e}")),
+            )?,
             rng: ChaCha8Rng::seed_from_u64(config.seed()),
             step: 0,
         })

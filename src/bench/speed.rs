@@ -222,6 +222,7 @@ pub fn synthetic_trainer(
             "hidden_sizes": cfg.hidden,
             "iterations": iterations,
             "discriminator_iterations": disc_steps,
+            "threads": cfg.threads,
         }),
     )?;
     Ok(SafediceTrainer::new(&config, &synthetic_data(cfg, sizes))?)
@@ -239,6 +240,7 @@ pub fn synthetic_baseline(
         "batch_size": cfg.batch,
         "hidden_sizes": cfg.hidden,
         "iterations": iterations,
+        "threads": cfg.threads,
     });
     if cfg.algorithm == Algorithm::Ppl {
         knobs["reward_model_iterations"] = 1.into();
@@ -384,6 +386,27 @@ fn run_safedice(cfg: &SpeedConfig) -> anyhow::Result<SpeedResults> {
     // otherwise speed up the candle path's first timed steps.
     let peak_gflops = peak_gemm_gflops(cfg.threads);
     Ok(SpeedResults { workloads: vec![main, disc], peak_gflops })
+}
+
+/// Each workload's rate at every thread count measured, beside the first count's (the
+/// speed-up) and that divided by the added threads (the parallel efficiency).
+pub fn scaling_report(measured: &[(usize, SpeedResults)]) -> String {
+    let mut out = String::from("scaling (median rates):\n");
+    let Some((base_threads, base)) = measured.first() else { return out };
+    for (i, workload) in base.workloads.iter().enumerate() {
+        for (threads, results) in measured {
+            let rate = results.workloads[i].median;
+            let speedup = rate / workload.median;
+            let efficiency = speedup * *base_threads as f64 / *threads as f64;
+            out += &format!(
+                "  {:44} threads {threads:>2}  {rate:8.1} {}  {speedup:5.2}x of {base_threads} thread(s)  efficiency {:4.0}%\n",
+                workload.name,
+                workload.unit,
+                100.0 * efficiency,
+            );
+        }
+    }
+    out
 }
 
 /// The benchmark's printed report.

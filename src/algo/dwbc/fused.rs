@@ -11,7 +11,7 @@
 use candle_core::Result;
 
 use super::objectives::LOGIT_CLIP;
-use crate::algo::fused_mlp::{FusedMlp, Workspace};
+use crate::algo::fused_mlp::{EngineThreads, FusedMlp, TrainingWorkspace};
 use crate::algo::fused_ops::{interpolate_rows, sigmoid_f32, softplus_f32, unit_penalty_and_grad};
 use crate::algo::mlp::Mlp;
 
@@ -30,7 +30,7 @@ pub struct DwbcDiscBatch<'a> {
 /// A fused copy of DWBC's discriminator with its buffers.
 pub struct FusedDwbcDisc {
     net: FusedMlp,
-    ws: Workspace,
+    ws: TrainingWorkspace,
     /// The last step's gradient, flat in [`FusedMlp`] order.
     pub grads: Vec<f32>,
     /// The last step's D^U logits (before clipping), for Eq. 39's weights.
@@ -38,11 +38,11 @@ pub struct FusedDwbcDisc {
 }
 
 impl FusedDwbcDisc {
-    /// Buffers for batch size `batch`; one compute thread.
-    pub fn new(disc: &Mlp, batch: usize) -> Result<Self> {
+    /// Buffers for batch size `batch`, steps on the job's `threads`.
+    pub fn new(disc: &Mlp, batch: usize, threads: &EngineThreads) -> Result<Self> {
         let net = disc.to_fused()?;
         Ok(Self {
-            ws: Workspace::new(net.shape(), 3 * batch, 1),
+            ws: TrainingWorkspace::new(net.shape(), 3 * batch, threads),
             grads: vec![0.0; net.num_params()],
             logits_u: vec![0.0; batch],
             net,
@@ -69,10 +69,9 @@ impl FusedDwbcDisc {
         let logits_u = &mut self.logits_u;
         let mut loss = 0.0;
         self.grads.fill(0.0);
-        let penalty = self.net.train_pass(
-            &mut self.ws,
-            2 * b,
-            penalty_rows,
+        let penalty = self.ws.train_pass(
+            &self.net,
+            (2 * b, penalty_rows),
             &mut self.grads,
             |out, dout| {
                 let inv_b = 1.0 / b as f32;
@@ -114,7 +113,7 @@ mod tests {
     /// logits outside the clip (inputs scaled up so the clip is reached).
     #[test]
     fn discriminator_step_matches_candle_autograd() {
-        let (b, d, eta, lambda) = (16, 6, 0.3f32, 0.1f32);
+        let (b, d) = (16, 6);
         let mut rng = ChaCha8Rng::seed_from_u64(5);
         let disc =
             Mlp::new("discriminator", &[d, 12, 10, 1], false, &Device::Cpu, &mut rng).unwrap();
@@ -123,21 +122,39 @@ mod tests {
         };
         let (x_n, x_u) = (normals(b * d, 4.0), normals(b * d, 4.0));
         let u: Vec<f32> = normals(b, 1.0).iter().map(|v| v.abs().min(1.0)).collect();
-        let mut fused = FusedDwbcDisc::new(&disc, b).unwrap();
-        let batch =
-            DwbcDiscBatch { x_n: &x_n, x_u: &x_u, penalty: Some(&u), penalty_coef: lambda, eta };
-        let ours = fused.grads(&disc, &batch).unwrap();
+        for shards in [1, 2] {
+            let threads = EngineThreads::new(shards, shards).unwrap();
+            check_against_candle(
+                &disc,
+                FusedDwbcDisc::new(&disc, b, &threads).unwrap(),
+                &x_n,
+                &x_u,
+                &u,
+            );
+        }
+    }
+
+    fn check_against_candle(
+        disc: &Mlp,
+        mut fused: FusedDwbcDisc,
+        x_n: &[f32],
+        x_u: &[f32],
+        u: &[f32],
+    ) {
+        let (b, d, eta, lambda) = (16, 6, 0.3f32, 0.1f32);
+        let batch = DwbcDiscBatch { x_n, x_u, penalty: Some(u), penalty_coef: lambda, eta };
+        let ours = fused.grads(disc, &batch).unwrap();
 
         let t = |v: &[f32]| Tensor::from_slice(v, (b, d), &Device::Cpu).unwrap();
-        let (tn, tu) = (t(&x_n), t(&x_u));
+        let (tn, tu) = (t(x_n), t(x_u));
         let logits =
             disc.forward(&Tensor::cat(&[&tn, &tu], 0).unwrap()).unwrap().squeeze(1).unwrap();
         let (c_n, c_u) = (logits.narrow(0, 0, b).unwrap(), logits.narrow(0, b, b).unwrap());
         let clipped =
             c_u.to_vec1::<f32>().unwrap().iter().filter(|c| c.abs() > LOGIT_CLIP as f32).count();
         assert!(clipped > 0, "some logits are clipped");
-        let mix = Tensor::from_slice(&u, (b, 1), &Device::Cpu).unwrap();
-        let penalty = unit_gradient_penalty(&disc, &interpolate(&tn, &tu, &mix).unwrap()).unwrap();
+        let mix = Tensor::from_slice(u, (b, 1), &Device::Cpu).unwrap();
+        let penalty = unit_gradient_penalty(disc, &interpolate(&tn, &tu, &mix).unwrap()).unwrap();
         let loss = (negative_unlabeled_loss(&c_n, &c_u, eta as f64).unwrap()
             + (penalty * lambda as f64).unwrap())
         .unwrap();

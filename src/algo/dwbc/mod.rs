@@ -47,8 +47,8 @@ impl DwbcTrainer {
         let policy = run.new_policy("policy")?;
         let fused = match run.device {
             candle_core::Device::Cpu => Some((
-                FusedDwbcDisc::new(&disc, run.batch())?,
-                FusedPolicyStep::new(policy.mlp(), run.batch())?,
+                FusedDwbcDisc::new(&disc, run.batch(), &run.threads)?,
+                FusedPolicyStep::new(policy.mlp(), run.batch(), &run.threads)?,
             )),
             _ => None,
         };
@@ -143,7 +143,7 @@ impl DwbcTrainer {
             Some(&weights),
             POLICY_LOSS,
         )?;
-        self.disc_opt.step_with_grads(&self.disc.grads_from_fused(&disc.grads)?)?;
+        self.disc_opt.step_with_host_grads(&self.disc.fused_grad_slices(&disc.grads)?)?;
         Ok((d_value, pi_value, weight_mean))
     }
 }

@@ -13,7 +13,7 @@
 use candle_core::Result;
 
 use super::objectives::MASK_RENORM_EPS;
-use crate::algo::fused_mlp::{FusedMlp, Workspace};
+use crate::algo::fused_mlp::{EngineThreads, FusedMlp, TrainingWorkspace};
 use crate::algo::fused_ops::{interpolate_rows, sigmoid_f32, softplus_f32, unit_penalty_and_grad};
 use crate::algo::fused_policy::FusedPolicyStep;
 pub use crate::algo::fused_policy::HostActions;
@@ -75,8 +75,8 @@ pub struct MainOutcome {
 pub struct FusedSafedice {
     disc: FusedMlp,
     nu: FusedMlp,
-    ws_disc: Workspace,
-    ws_nu: Workspace,
+    ws_disc: TrainingWorkspace,
+    ws_nu: TrainingWorkspace,
     pub disc_grads: Vec<f32>,
     pub nu_grads: Vec<f32>,
     pub policy: FusedPolicyStep,
@@ -86,16 +86,21 @@ pub struct FusedSafedice {
 }
 
 impl FusedSafedice {
-    /// Buffers for batch size `batch`; one compute thread (one per training job: see
-    /// bench/README.md).
-    pub fn new(disc: &Mlp, nu: &Mlp, policy: &Mlp, batch: usize) -> Result<Self> {
+    /// Buffers for batch size `batch`, steps on the job's `threads`.
+    pub fn new(
+        disc: &Mlp,
+        nu: &Mlp,
+        policy: &Mlp,
+        batch: usize,
+        threads: &EngineThreads,
+    ) -> Result<Self> {
         let (disc, nu) = (disc.to_fused()?, nu.to_fused()?);
         Ok(Self {
-            ws_disc: Workspace::new(disc.shape(), 4 * batch, 1),
-            ws_nu: Workspace::new(nu.shape(), 5 * batch, 1),
+            ws_disc: TrainingWorkspace::new(disc.shape(), 4 * batch, threads),
+            ws_nu: TrainingWorkspace::new(nu.shape(), 5 * batch, threads),
             disc_grads: vec![0.0; disc.num_params()],
             nu_grads: vec![0.0; nu.num_params()],
-            policy: FusedPolicyStep::new(policy, batch)?,
+            policy: FusedPolicyStep::new(policy, batch, threads)?,
             advantages: vec![0.0; batch],
             weights: vec![0.0; batch],
             disc,
@@ -132,10 +137,9 @@ impl FusedSafedice {
         let mut outcome = DiscOutcome::default();
         let lambda = batch.penalty_coef;
         self.disc_grads.fill(0.0);
-        let penalty = self.disc.train_pass(
-            &mut self.ws_disc,
-            2 * b,
-            penalty_rows,
+        let penalty = self.ws_disc.train_pass(
+            &self.disc,
+            (2 * b, penalty_rows),
             &mut self.disc_grads,
             |out, dout| {
                 let inv_b = 1.0 / b as f32;
@@ -184,10 +188,9 @@ impl FusedSafedice {
         let (adv, weights) = (&mut self.advantages, &mut self.weights);
         let gamma = batch.gamma;
         self.nu_grads.fill(0.0);
-        let penalty = self.nu.train_pass(
-            &mut self.ws_nu,
-            3 * b,
-            penalty_rows,
+        let penalty = self.ws_nu.train_pass(
+            &self.nu,
+            (3 * b, penalty_rows),
             &mut self.nu_grads,
             |out, dout| {
                 // A = r + γ' ν(s') − ν(s); d/dA of log-mean-exp(A) is softmax(A).

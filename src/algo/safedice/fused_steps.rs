@@ -32,7 +32,7 @@ impl SafediceTrainer {
             },
         )?;
         let value = self.run.checked(&host_scalar(out.loss)?, DISC_LOSS.0, DISC_LOSS.1)?;
-        self.disc_opt.step_with_grads(&self.disc.grads_from_fused(&fused.disc_grads)?)?;
+        self.disc_opt.step_with_host_grads(&self.disc.fused_grad_slices(&fused.disc_grads)?)?;
         self.end_discriminator_step()?;
         if !record {
             return Ok(Vec::new());
@@ -74,9 +74,9 @@ impl SafediceTrainer {
         let nu_value = self.run.checked(&host_scalar(out.nu_loss)?, NU_LOSS.0, NU_LOSS.1)?;
         let pi_value =
             self.run.checked(&host_scalar(out.policy_loss)?, POLICY_LOSS.0, POLICY_LOSS.1)?;
-        self.nu_opt.step_with_grads(&self.nu.grads_from_fused(&fused.nu_grads)?)?;
-        let policy_grads = self.policy.mlp().grads_from_fused(&fused.policy.grads)?;
-        self.policy_opt.step_with_grads(&policy_grads)?;
+        self.nu_opt.step_with_host_grads(&self.nu.fused_grad_slices(&fused.nu_grads)?)?;
+        let policy_grads = self.policy.mlp().fused_grad_slices(&fused.policy.grads)?;
+        self.policy_opt.step_with_host_grads(&policy_grads)?;
         self.run.step += 1;
         if !record {
             return Ok(Vec::new());

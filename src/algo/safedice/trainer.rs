@@ -162,7 +162,7 @@ impl SafediceTrainer {
         };
         let fused = match run.device {
             candle_core::Device::Cpu => {
-                Some(FusedSafedice::new(&disc, &nu, policy.mlp(), run.batch())?)
+                Some(FusedSafedice::new(&disc, &nu, policy.mlp(), run.batch(), &run.threads)?)
             }
             _ => None,
         };

@@ -1,5 +1,6 @@
 //! The fused engine against the reference: losses, weights and gradients of both hot loops
-//! against candle autograd on [`super::super::objectives`]' formulation (to 1e-5), the penalty's
+//! against candle autograd on [`super::super::objectives`]' formulation (to 1e-5, on one, two
+//! and three threads: the engine's shards), the penalty's
 //! second-order gradient against finite differences, and the whole trainer on its fused path
 //! against its candle path, step by step.
 
@@ -50,8 +51,21 @@ fn assert_close(what: &str, a: f32, b: f32) {
     assert!((a - b).abs() <= 1e-5 * b.abs().max(1.0), "{what}: fused {a}, candle {b}");
 }
 
+/// A job's threads: one shard, two, and three (16 rows do not split evenly in three).
+const SHARD_COUNTS: [usize; 3] = [1, 2, 3];
+
+fn engine_threads(shards: usize) -> EngineThreads {
+    EngineThreads::new(shards, shards).unwrap()
+}
+
 #[test]
 fn discriminator_step_matches_candle_autograd() {
+    for shards in SHARD_COUNTS {
+        check_discriminator_step(shards);
+    }
+}
+
+fn check_discriminator_step(shards: usize) {
     let mut rng = ChaCha8Rng::seed_from_u64(1);
     let d = 7;
     let disc = Mlp::new("discriminator", &[d, 12, 10, 1], false, &Device::Cpu, &mut rng).unwrap();
@@ -62,7 +76,7 @@ fn discriminator_step_matches_candle_autograd() {
     let mut perm: Vec<u32> = (0..B as u32).collect();
     perm.reverse();
     let lambda = 10.0;
-    let mut fused = FusedSafedice::new(&disc, &nu, &policy, B).unwrap();
+    let mut fused = FusedSafedice::new(&disc, &nu, &policy, B, &engine_threads(shards)).unwrap();
     let out = fused
         .disc_grads(
             &disc,
@@ -99,7 +113,7 @@ fn discriminator_step_matches_candle_autograd() {
     assert_grads_match("discriminator", &disc, &fused.disc_grads, &loss.backward().unwrap());
 }
 
-fn check_main_step(space: ActionSpace, masked_rows: bool) {
+fn check_main_step(space: ActionSpace, masked_rows: bool, shards: usize) {
     let mut rng = ChaCha8Rng::seed_from_u64(2);
     let (obs, gamma, lambda) = (5, 0.99f32, 0.3f32);
     let dev = Device::Cpu;
@@ -128,7 +142,8 @@ fn check_main_step(space: ActionSpace, masked_rows: bool) {
             ActionColumn::Discrete { index: Tensor::from_slice(&index, B, &dev).unwrap() },
         ),
     };
-    let mut fused = FusedSafedice::new(&disc, &nu, policy.mlp(), B).unwrap();
+    let mut fused =
+        FusedSafedice::new(&disc, &nu, policy.mlp(), B, &engine_threads(shards)).unwrap();
     let out = fused
         .main_grads(
             &nu,
@@ -192,12 +207,16 @@ fn check_main_step(space: ActionSpace, masked_rows: bool) {
 #[test]
 fn main_step_matches_candle_autograd_continuous() {
     let space = ActionSpace::Continuous { dim: 3, low: vec![-1.0; 3], high: vec![1.0; 3] };
-    check_main_step(space, false);
+    for shards in SHARD_COUNTS {
+        check_main_step(space.clone(), false, shards);
+    }
 }
 
 #[test]
 fn main_step_matches_candle_autograd_discrete_with_actionless_rows() {
-    check_main_step(ActionSpace::Discrete { n: 4 }, true);
+    for shards in SHARD_COUNTS {
+        check_main_step(ActionSpace::Discrete { n: 4 }, true, shards);
+    }
 }
 
 /// The penalty's weight gradient (double backprop) against central finite differences of
@@ -219,7 +238,7 @@ fn discriminator_penalty_gradient_matches_finite_differences() {
         penalty: Some((&u1, &u2, &perm)),
         penalty_coef: 10.0,
     };
-    let mut fused = FusedSafedice::new(&disc, &nu, &policy, B).unwrap();
+    let mut fused = FusedSafedice::new(&disc, &nu, &policy, B, &EngineThreads::single()).unwrap();
     let loss = |fused: &mut FusedSafedice| fused.disc_grads(&disc, &batch).unwrap().loss;
     let center = loss(&mut fused);
     let analytic = disc.grads_from_fused(&fused.disc_grads).unwrap();
