@@ -157,6 +157,15 @@ pub struct ServeConfig {
     #[arg(long, env = "SAFEDICE_RETRY_BACKOFF_SECS", default_value_t = DEFAULT_RETRY_BACKOFF_SECS)]
     pub retry_backoff_secs: u64,
 
+    /// Threads one training job computes on here, and the `threads` a job gets when its config
+    /// sets none (then at most one per 128 rows of its batch). Default: the machine's cores
+    /// divided by --workers, at least 1, so jobs running side by side never oversubscribe the
+    /// cores. A job keeps the `threads` it was queued with (they are part of its arithmetic,
+    /// like its seed); a worker runs more than its own count on its own count, to the same
+    /// weights. In a fleet, give API nodes the workers' value.
+    #[arg(long, env = "SAFEDICE_JOB_THREADS", value_parser = clap::value_parser!(u16).range(1..=crate::algo::MAX_JOB_THREADS as i64))]
+    pub job_threads: Option<u16>,
+
     /// Bytes of policy weights kept loaded for /act and /v2 (least recently used dropped
     /// first, and loaded again when asked for); one policy is kept whatever its size.
     #[arg(long, env = "SAFEDICE_POLICY_CACHE_BYTES", default_value_t = DEFAULT_POLICY_CACHE_BYTES)]
@@ -200,6 +209,7 @@ impl std::fmt::Debug for ServeConfig {
             .field("lease_seconds", &self.lease_seconds)
             .field("max_attempts", &self.max_attempts)
             .field("retry_backoff_secs", &self.retry_backoff_secs)
+            .field("job_threads", &self.job_threads)
             .field("policy_cache_bytes", &self.policy_cache_bytes)
             .field("max_job_memory", &self.max_job_memory)
             .field("min_free_disk", &self.min_free_disk)
@@ -235,6 +245,11 @@ pub struct WorkerConfig {
     #[arg(long, env = "SAFEDICE_RETRY_BACKOFF_SECS", default_value_t = DEFAULT_RETRY_BACKOFF_SECS)]
     pub retry_backoff_secs: u64,
 
+    /// Threads one training job computes on (see `safedice serve --help`). Default: the
+    /// machine's cores divided by --workers, at least 1.
+    #[arg(long, env = "SAFEDICE_JOB_THREADS", value_parser = clap::value_parser!(u16).range(1..=crate::algo::MAX_JOB_THREADS as i64))]
+    pub job_threads: Option<u16>,
+
     /// Free space (bytes) the data directory needs before training paused by a full disk
     /// resumes.
     #[arg(long, env = "SAFEDICE_MIN_FREE_DISK", default_value_t = DEFAULT_MIN_FREE_DISK)]
@@ -253,6 +268,7 @@ impl std::fmt::Debug for WorkerConfig {
             .field("concurrency", &self.concurrency)
             .field("lease_seconds", &self.lease_seconds)
             .field("retry_backoff_secs", &self.retry_backoff_secs)
+            .field("job_threads", &self.job_threads)
             .field("min_free_disk", &self.min_free_disk)
             .field("log_format", &self.log_format)
             .finish()
@@ -305,10 +321,16 @@ impl ServeConfig {
             lease_seconds: DEFAULT_LEASE_SECONDS,
             max_attempts: DEFAULT_MAX_ATTEMPTS,
             retry_backoff_secs: DEFAULT_RETRY_BACKOFF_SECS,
+            job_threads: None,
             policy_cache_bytes: DEFAULT_POLICY_CACHE_BYTES,
             max_job_memory: DEFAULT_MAX_JOB_MEMORY,
             min_free_disk: DEFAULT_MIN_FREE_DISK,
         }
+    }
+
+    /// `--job-threads`, or the machine's cores shared between the workers.
+    pub fn job_threads(&self) -> usize {
+        job_threads(self.job_threads, self.workers)
     }
 
     /// Checks the combinations that would expose the API or cannot work.
@@ -405,4 +427,13 @@ mod tests {
         c.cors_origins = vec!["dash.example.com".into()];
         assert_eq!(c.validate(), Err(ConfigError::BadCorsOrigin("dash.example.com".into())));
     }
+}
+
+/// The threads one job computes on: as configured, or the cores divided by the jobs running at
+/// once (an API-only node, 0 workers, counts one), at least 1.
+pub fn job_threads(configured: Option<u16>, workers: u16) -> usize {
+    configured.map_or_else(
+        || (crate::algo::available_cores() / usize::from(workers.max(1))).max(1),
+        usize::from,
+    )
 }

@@ -57,7 +57,8 @@ impl Server {
             Duration::from_secs(config.lease_seconds),
             config.min_free_disk,
         )
-        .with_retry_backoff(RetryBackoff::new(Duration::from_secs(config.retry_backoff_secs)));
+        .with_retry_backoff(RetryBackoff::new(Duration::from_secs(config.retry_backoff_secs)))
+        .with_job_threads(config.job_threads());
         let jobs = JobRunner::new(store.clone(), options, shutdown.clone());
         jobs.start(true).await?;
         let policies = Arc::new(PolicyCache::new(store.clone(), config.policy_cache_bytes));

@@ -20,7 +20,8 @@ pub async fn run(config: WorkerConfig, shutdown: CancellationToken) -> anyhow::R
         Duration::from_secs(config.lease_seconds),
         config.min_free_disk,
     )
-    .with_retry_backoff(RetryBackoff::new(Duration::from_secs(config.retry_backoff_secs)));
+    .with_retry_backoff(RetryBackoff::new(Duration::from_secs(config.retry_backoff_secs)))
+    .with_job_threads(crate::config::job_threads(config.job_threads, config.concurrency));
     tracing::info!(
         worker_id = %options.worker_id,
         database = store.backend().as_str(),

@@ -132,6 +132,16 @@ fn workspace_floats(dims: &[u64], rows: u64) -> u64 {
     rows * (2 * dims.iter().sum::<u64>() + dims[0] + widest)
 }
 
+/// With `threads` above one, the fused engine's shards each keep a gradient of every network
+/// (`fused_mlp::shards`); their workspaces split the rows, so they add only one row per shard
+/// and the gathered rows, which the 10% added on top of the sum covers.
+fn shard_bytes(config: &ResolvedConfig, parameters: u64) -> u64 {
+    match config.common.threads as u64 {
+        0 | 1 => 0,
+        shards => shards * parameters * F32,
+    }
+}
+
 /// Floats a candle forward and backward pass over `rows` rows keeps.
 fn autograd_floats(dims: &[u64], rows: u64, per_width: u64) -> u64 {
     rows * per_width * dims.iter().sum::<u64>()
@@ -217,8 +227,9 @@ pub fn estimate_job_memory(
             (nets, F32 * step)
         }
     };
-    let networks = nets.iter().map(|(dims, last_bias)| parameters(dims, *last_bias)).sum::<u64>()
-        * BYTES_PER_PARAMETER;
+    let parameter_count =
+        nets.iter().map(|(dims, last_bias)| parameters(dims, *last_bias)).sum::<u64>();
+    let networks = parameter_count * BYTES_PER_PARAMETER + shard_bytes(config, parameter_count);
     let sum = data + networks + step + JOB_OVERHEAD;
     MemoryEstimate { total: sum + sum / 10, data, networks, step }
 }

@@ -258,6 +258,21 @@ pub fn job_thread_cap() -> usize {
     }
 }
 
+/// Multiply-adds of one step's policy forward pass per thread below which another thread
+/// costs more than it gains: a step's threads meet a dozen times (`fused_mlp::shards`), tens
+/// of microseconds each. Measured (`safedice speed --threads 1,2`, docs/performance.md,
+/// "Threads of one job"): [256, 256] at batch 128 (9M) gained 1.47x from a second thread,
+/// [64, 64] at batch 256 (1.5M) lost 0.71x.
+const MACS_PER_THREAD: usize = 4_000_000;
+
+/// The most threads a job of `config` on `obs_dim`-wide observations gains from: one per
+/// [`MACS_PER_THREAD`] multiply-adds of its batch through a network of its hidden sizes.
+pub fn worthwhile_threads(config: &ResolvedConfig, obs_dim: usize) -> usize {
+    let shape = fused_mlp::MlpShape::new(obs_dim, &config.common.hidden_sizes, 1, false);
+    let macs = shape.forward_flops_per_row() as usize / 2 * config.common.batch_size;
+    (macs / MACS_PER_THREAD).clamp(1, MAX_JOB_THREADS)
+}
+
 /// The cores this process may use.
 pub fn available_cores() -> usize {
     std::thread::available_parallelism().map_or(1, |n| n.get())

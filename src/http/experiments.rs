@@ -192,6 +192,7 @@ async fn create_experiment(
     let limits = SubmitLimits {
         max_job_memory: state.config.max_job_memory,
         default_max_attempts: state.config.max_attempts,
+        job_threads: state.config.job_threads(),
     };
     let record = experiments::submit_experiment(&state.store, request, limits).await?;
     state.jobs.wake();

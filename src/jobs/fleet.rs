@@ -31,6 +31,8 @@ pub struct WorkerOptions {
     pub min_free_disk: u64,
     /// How long a job whose worker vanished waits before its next attempt.
     pub retry_backoff: RetryBackoff,
+    /// The most threads one job computes on here (`--job-threads`).
+    pub job_threads: usize,
 }
 
 impl WorkerOptions {
@@ -38,7 +40,13 @@ impl WorkerOptions {
         let suffix = uuid::Uuid::new_v4().simple().to_string();
         let worker_id = format!("{}-{}-{}", host_name(), std::process::id(), &suffix[..6]);
         let retry_backoff = RetryBackoff::new(RetryBackoff::DEFAULT_BASE);
-        WorkerOptions { workers, lease, worker_id, min_free_disk, retry_backoff }
+        let job_threads = crate::config::job_threads(None, workers.try_into().unwrap_or(u16::MAX));
+        WorkerOptions { workers, lease, worker_id, min_free_disk, retry_backoff, job_threads }
+    }
+
+    pub fn with_job_threads(mut self, job_threads: usize) -> Self {
+        self.job_threads = job_threads.max(1);
+        self
     }
 
     pub fn with_retry_backoff(mut self, retry_backoff: RetryBackoff) -> Self {

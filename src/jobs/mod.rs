@@ -118,6 +118,8 @@ impl JobRunner {
         let workers = self.inner.options.workers;
         let mut tasks = Vec::new();
         if workers > 0 {
+            // Process-wide: every worker of this process shares the one setting.
+            crate::algo::set_job_thread_cap(self.inner.options.job_threads);
             fleet::register(self).await?;
             tasks.push(tokio::spawn(fleet::registry_heartbeat(self.clone())));
             self.inner.evaluator.start();
@@ -134,6 +136,7 @@ impl JobRunner {
         self.inner.tasks.lock().expect("runner lock").extend(tasks);
         tracing::info!(
             workers,
+            job_threads = self.inner.options.job_threads,
             worker_id = %self.inner.options.worker_id,
             lease_seconds = self.inner.options.lease.as_secs(),
             "job workers started"

@@ -56,6 +56,9 @@ pub struct SubmitLimits {
     pub max_job_memory: u64,
     /// A job's `max_attempts` when it sets none.
     pub default_max_attempts: u32,
+    /// A job's `threads` when its config sets none (`--job-threads`), fewer where its steps
+    /// are too small to gain from them ([`algo::worthwhile_threads`]).
+    pub job_threads: usize,
 }
 
 /// Validates `request` and queues it under `limits`.
@@ -94,7 +97,7 @@ pub async fn prepare(
     let invalid = SubmitError::InvalidConfig;
     let algorithm = request.algorithm;
     let raw_config = request.config.as_ref().unwrap_or(&serde_json::Value::Null);
-    let config = algo::resolve_config(algorithm, raw_config).map_err(|e| invalid(e.message))?;
+    let mut config = algo::resolve_config(algorithm, raw_config).map_err(|e| invalid(e.message))?;
     let runner = RunnerOptions::parse(request.runner.as_ref()).map_err(|e| invalid(e.0))?;
     let eval = EvalOptions::parse(request.eval.as_ref()).map_err(|e| invalid(e.0))?;
     if algorithm.needs_non_preferred() && request.non_preferred_dataset.is_none() {
@@ -105,6 +108,10 @@ pub async fn prepare(
     let unlabeled = stored_dataset(store, &request.unlabeled_dataset).await?;
     check_role(&unlabeled, DatasetRole::Unlabeled, "unlabeled_dataset")?;
     let unlabeled = shape(&unlabeled);
+    if raw_config.get("threads").is_none() {
+        let worthwhile = algo::worthwhile_threads(&config, unlabeled.obs_dim as usize);
+        config.common.threads = limits.job_threads.min(worthwhile);
+    }
     let non_preferred = match &request.non_preferred_dataset {
         Some(id) => {
             let record = stored_dataset(store, id).await?;

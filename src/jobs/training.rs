@@ -269,15 +269,18 @@ impl TrainingRun {
             Ok(trainer) => trainer,
             Err(e) => return Ok(Outcome::Failed(e.to_string())),
         };
+        let threads = threads_note(self.job.config.common.threads);
         if resumed_at > 0 {
             tracing::info!(step = resumed_at, "resuming from checkpoint");
-            self.log(LogLevel::Info, format!("resuming from the checkpoint at step {resumed_at}"))
-                .await;
+            let message = format!("resuming from the checkpoint at step {resumed_at}, {threads}");
+            self.log(LogLevel::Info, message).await;
         } else {
             let (u, n) = (&self.job.unlabeled_dataset, self.job.non_preferred_dataset.as_ref());
             let n = n.map_or(String::new(), |n| format!(", non-preferred dataset {n}"));
             let total = self.job.total_steps;
-            let message = format!("training from scratch: {total} steps, unlabeled dataset {u}{n}");
+            let message = format!(
+                "training from scratch: {total} steps, unlabeled dataset {u}{n}, {threads}"
+            );
             self.log(LogLevel::Info, message).await;
         }
         self.report_progress(trainer.progress(), AlphaNote::of(trainer.as_ref()), None).await?;
@@ -542,5 +545,15 @@ mod tests {
         let corrupt = StoreError::Corrupt("d".into(), "changed on disk".into());
         assert!(!store_unavailable(&anyhow::Error::from(corrupt)));
         assert!(!store_unavailable(&anyhow::anyhow!("the evaluation at step 10 failed")));
+    }
+}
+
+/// The job log's word on a job's `threads` and what this worker runs them on.
+fn threads_note(threads: usize) -> String {
+    let here = threads.min(algo::job_thread_cap());
+    match (threads, here) {
+        (1, _) => "1 thread".to_owned(),
+        (t, h) if t == h => format!("{t} threads"),
+        (t, h) => format!("{t} threads (run on this worker's {h}: the same weights, more slowly)"),
     }
 }

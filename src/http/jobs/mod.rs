@@ -49,7 +49,9 @@ pub struct CreateJob {
     /// every knob.
     ///
     /// Keys of every algorithm: `seed`, `iterations`, `batch_size`, `hidden_sizes`, `lr_actor`,
-    /// `normalize_observations` (the statistics travel with the policy). `safedice`:
+    /// `normalize_observations` (the statistics travel with the policy), `threads` (1 to 64:
+    /// the threads of one training step, part of the arithmetic like the seed; unset, the
+    /// server's `--job-threads`, at most one per 128 rows of the batch). `safedice`:
     /// `discriminator_iterations` (unless set: `iterations` in the `service` preset, a tenth in the
     /// others), `lr_discriminator`,
     /// `lr_nu`, `discriminator_gp`, `nu_gp`, `gamma`, `terminal_handling` (`none`, `mask`,
@@ -276,6 +278,7 @@ async fn create_job(
     let limits = SubmitLimits {
         max_job_memory: state.config.max_job_memory,
         default_max_attempts: state.config.max_attempts,
+        job_threads: state.config.job_threads(),
     };
     let job = crate::jobs::submit(&state.store, request, limits).await?;
     state.jobs.wake();
