@@ -7,6 +7,7 @@
 #
 #   BIN=target/release/safedice PY=python3 OUT=/tmp/threads bench/threads_scaling.sh
 #   THREADS=1,2 bench/threads_scaling.sh          # a 2-core machine (no GPU: that step fails)
+#   BASELINES=0 bench/threads_scaling.sh          # SafeDICE and PyTorch only
 set -u
 BIN=${BIN:-target/release/safedice}
 PY=${PY:-python3}
@@ -37,6 +38,7 @@ torch_cpu 5 1 "$MOST" 2>&1 | tee "$OUT/torch-cpu-obs5.txt"
 "$PY" bench/pytorch_reference.py --obs-dim 5 --act-dim 1 --iters 1000 --device cuda 2>&1 \
   | tee "$OUT/torch-gpu-obs5.txt"
 
+[ "${BASELINES:-1}" = 0 ] && exit 0
 for algorithm in bc dwbc ppl dexperts; do
   "$BIN" speed --algorithm "$algorithm" --threads "1,$MOST" --iterations 300 --repeats 3
 done | tee "$OUT/baselines.txt"

@@ -69,15 +69,26 @@ impl EngineThreads {
         self.pool.as_ref().map_or(1, |p| p.current_num_threads())
     }
 
-    /// `f` on every item, on the pool when there is one.
-    fn for_each<T: Send>(&self, items: &mut [T], f: impl Fn(&mut T) + Sync + Send) {
+    /// `f` run on the pool (on the calling thread without one). A whole pass runs inside one
+    /// call, so its phases hand work to threads that are already awake: entering the pool
+    /// costs a wake-up of every thread, tens of microseconds with 16 of them.
+    pub fn in_pool<R: Send>(&self, f: impl FnOnce() -> R + Send) -> R {
         match &self.pool {
-            Some(pool) => pool.install(|| items.par_iter_mut().for_each(f)),
+            Some(pool) => pool.install(f),
+            None => f(),
+        }
+    }
+
+    /// `f` on every item, in parallel when called inside [`EngineThreads::in_pool`] of a
+    /// pool (rayon's parallel iterators run on the pool of the thread that calls them).
+    pub fn for_each<T: Send>(&self, items: &mut [T], f: impl Fn(&mut T) + Sync + Send) {
+        match &self.pool {
+            Some(_) => items.par_iter_mut().for_each(f),
             None => items.iter_mut().for_each(f),
         }
     }
 
-    /// `total[i] += Σ_s parts[s][i]`, summed in shard order.
+    /// `total[i] += Σ_s parts[s][i]`, summed in shard order (inside [`EngineThreads::in_pool`]).
     fn sum_into(&self, total: &mut [f32], parts: &[&[f32]]) {
         let add = |(chunk, block): (usize, &mut [f32])| {
             let start = chunk * REDUCE_CHUNK;
@@ -87,9 +98,7 @@ impl EngineThreads {
             }
         };
         match &self.pool {
-            Some(pool) => {
-                pool.install(|| total.par_chunks_mut(REDUCE_CHUNK).enumerate().for_each(add))
-            }
+            Some(_) => total.par_chunks_mut(REDUCE_CHUNK).enumerate().for_each(add),
             None => total.chunks_mut(REDUCE_CHUNK).enumerate().for_each(add),
         }
     }
@@ -167,20 +176,27 @@ impl TrainingWorkspace {
     pub fn train_pass(
         &mut self,
         net: &FusedMlp,
+        rows: (usize, usize),
+        grads: &mut [f32],
+        output_grad: impl FnOnce(&[f32], &mut [f32]) + Send,
+        penalty: impl FnOnce(&[f32], &mut [f32]) -> f32 + Send,
+    ) -> f32 {
+        if let [one] = self.shards.as_mut_slice() {
+            return net.train_pass_on(&mut one.ws, rows, grads, output_grad, penalty);
+        }
+        let threads = self.threads.clone();
+        threads.in_pool(|| self.sharded_pass(net, rows, grads, output_grad, penalty))
+    }
+
+    /// [`TrainingWorkspace::train_pass`] with several shards, inside the pool.
+    fn sharded_pass(
+        &mut self,
+        net: &FusedMlp,
         (loss_rows, penalty_rows): (usize, usize),
         grads: &mut [f32],
         output_grad: impl FnOnce(&[f32], &mut [f32]),
         penalty: impl FnOnce(&[f32], &mut [f32]) -> f32,
     ) -> f32 {
-        if let [one] = self.shards.as_mut_slice() {
-            return net.train_pass_on(
-                &mut one.ws,
-                (loss_rows, penalty_rows),
-                grads,
-                output_grad,
-                penalty,
-            );
-        }
         net.check_penalty_rows(penalty_rows);
         self.assign_rows(loss_rows, penalty_rows);
         self.forward(net);
