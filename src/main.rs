@@ -195,10 +195,10 @@ fn algorithm_name() -> impl clap::builder::TypedValueParser<Value = Algorithm> {
 }
 
 fn main() -> anyhow::Result<()> {
-    // One compute thread per training job unless the operator says otherwise: candle's CPU ops
-    // read RAYON_NUM_THREADS on every call, and on the shared machine its 2-thread pool
-    // busy-waited against other processes (3x slower; bench/README.md "Threads"). Set before
-    // any thread exists.
+    // candle's own CPU ops on one thread unless the operator says otherwise: they read
+    // RAYON_NUM_THREADS on every call, and on the shared machine its 2-thread pool busy-waited
+    // against other processes (3x slower; docs/performance.md, "Threads of one job"). A job's
+    // compute threads are its own pool (its `threads`). Set before any thread exists.
     if std::env::var_os("RAYON_NUM_THREADS").is_none() {
         std::env::set_var("RAYON_NUM_THREADS", "1");
     }

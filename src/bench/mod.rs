@@ -485,7 +485,8 @@ fn check_out(out: &std::path::Path, force: bool) -> anyhow::Result<()> {
 /// command line recorded in results.md.
 pub fn run_cli(args: &BenchArgs, command: &str) -> anyhow::Result<()> {
     // One thread per training: candle's own pools collapse under load (docs/performance.md,
-    // "Threads"), and the benchmark already runs `threads` trainings side by side.
+    // "Threads of one job"), and the benchmark already runs `threads` trainings side by side
+    // (each at the presets' `threads`: 1).
     if std::env::var_os("RAYON_NUM_THREADS").is_none() {
         std::env::set_var("RAYON_NUM_THREADS", "1");
     }

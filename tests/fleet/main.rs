@@ -153,7 +153,9 @@ async fn twelve_jobs_each_exactly_once(fleet: &Fleet) -> BTreeMap<String, usize>
 async fn a_killed_workers_job_is_finished_by_another_with_the_same_weights() {
     let Some(mut fleet) = Fleet::start(2).await else { return };
     let (u, n) = upload_grid(&fleet).await;
-    let body = job(&u, &n, 3000, 7);
+    let mut body = job(&u, &n, 3000, 7);
+    // On two threads: the taker-over computes the job's shards as the first worker did.
+    body["config"]["threads"] = json!(2);
     let interrupted = create_job(&fleet.client, &fleet.api_url, body.clone()).await;
     let id = interrupted["id"].as_str().unwrap();
     let running = wait_for_checkpoint(&fleet, id).await;

@@ -165,6 +165,8 @@ async fn a_killed_server_resumes_the_job_from_its_checkpoint_with_identical_resu
     let mut config = small_config(ENDLESS_ITERATIONS, 5);
     // Short pretraining: the checkpoints compared below are in the policy phase.
     config["discriminator_iterations"] = json!(300);
+    // On two threads: a resume must give the uninterrupted run's bits at the job's `threads`.
+    config["threads"] = json!(2);
     let job = create_job(
         &client,
         &server.base_url,

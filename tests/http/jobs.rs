@@ -551,6 +551,39 @@ async fn bad_job_requests_get_the_exact_status_and_code_and_store_nothing() {
     .await;
 }
 
+/// A job's `threads`: as its config sets them, else the server's `--job-threads`, fewer where
+/// its steps are too small to gain from another thread; out of range refused, nothing stored.
+#[tokio::test]
+async fn a_jobs_threads_come_from_its_config_or_the_servers_job_threads() {
+    let app = TestApp::spawn_with(|c| {
+        c.job_threads = Some(3);
+        c.workers = 0;
+    })
+    .await;
+    let (u, n) = upload_grid(&app).await;
+    let body = |config: Value| {
+        json!({"algorithm": "safedice", "unlabeled_dataset": u, "non_preferred_dataset": n,
+               "config": config})
+    };
+    let large = json!({"hidden_sizes": [256, 256], "batch_size": 512});
+    let small = json!({"hidden_sizes": [32, 32], "batch_size": 64});
+    let chosen = json!({"hidden_sizes": [32, 32], "batch_size": 64, "threads": 5});
+    for (config, threads) in [(large, 3), (small, 1), (chosen, 5)] {
+        let response = app.post("/v1/jobs").json(&body(config.clone())).send().await.unwrap();
+        assert_eq!(response.status(), StatusCode::CREATED, "{config}");
+        let job: Value = response.json().await.unwrap();
+        assert_eq!(job["config"]["threads"], threads, "{config}");
+    }
+    for bad in [0, 65] {
+        let response =
+            app.post("/v1/jobs").json(&body(json!({"threads": bad}))).send().await.unwrap();
+        let message =
+            assert_error(response, StatusCode::UNPROCESSABLE_ENTITY, "invalid_config").await;
+        assert_eq!(message, format!("config.threads: must be between 1 and 64, got {bad}"));
+    }
+    assert_eq!(app.count_rows("jobs").await, 3);
+}
+
 #[tokio::test]
 async fn bad_observations_get_the_exact_status_and_code() {
     let app = TestApp::spawn().await;

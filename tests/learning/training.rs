@@ -93,6 +93,43 @@ fn same_seed_gives_bitwise_identical_weights_and_resume_continues_the_same_run()
     }
 }
 
+/// A job's `threads` are part of its arithmetic, like its seed: at 2 threads a run gives the
+/// same weights again, resumed mid-run too, and on a worker that runs them on one thread
+/// (`--job-threads 1`: its shards in turn), for every algorithm.
+#[test]
+fn two_threads_give_the_same_weights_again_resumed_and_on_one_thread() {
+    let data = point_training_data(5);
+    for algorithm in Algorithm::ALL {
+        let mut config = tiny(algorithm, 11);
+        config["threads"] = json!(2);
+        let mut reference = build(&config, algorithm, &data, None);
+        run_to_end(&mut reference);
+        let expected = weights(reference.as_ref());
+
+        let mut again = build(&config, algorithm, &data, None);
+        run_to_end(&mut again);
+        assert_eq!(weights(again.as_ref()), expected, "{algorithm}: 2 threads, other weights");
+
+        let stop = reference.progress().total - 2;
+        let mut first = build(&config, algorithm, &data, None);
+        for _ in 0..stop {
+            first.step(false).unwrap();
+        }
+        let bytes = first.checkpoint().unwrap();
+        drop(first);
+        // The cap is read when a run is built; other tests' runs only lose speed meanwhile.
+        algo::set_job_thread_cap(1);
+        let mut resumed = build(&config, algorithm, &data, Some(&bytes));
+        algo::set_job_thread_cap(algo::available_cores());
+        run_to_end(&mut resumed);
+        assert_eq!(
+            weights(resumed.as_ref()),
+            expected,
+            "{algorithm}: resumed at step {stop} on one thread, other weights"
+        );
+    }
+}
+
 #[test]
 fn exported_policies_load_and_act_in_the_dataset_units() {
     for (task, data) in datasets() {
