@@ -203,6 +203,7 @@ impl ExternalEvaluation {
             cost_threshold: (r.preferred_cost + r.non_preferred_cost) / 2.0,
         };
         let metrics = compute_metrics(&self.returns, &self.costs, &reference);
+        check_metrics_finite(&metrics)?;
         let mean_episode_length = self
             .lengths
             .as_ref()
@@ -224,6 +225,25 @@ impl ExternalEvaluation {
         };
         Ok((spec, report))
     }
+}
+
+/// Finite inputs can still give a metric beyond f64 (a deviation above 1.8e308, a return
+/// normalised by a reference near 0): refused, naming the metric and what it is computed from,
+/// rather than stored as a report no reader could decode.
+fn check_metrics_finite(metrics: &crate::envs::Metrics) -> Result<(), String> {
+    let Some((name, _)) = metrics.named_values().into_iter().find(|(_, v)| !v.is_finite()) else {
+        return Ok(());
+    };
+    let name = name.trim_start_matches("eval/");
+    let from = match name {
+        "normalized_return" => "returns and reference.preferred_return",
+        "normalized_cost" => "costs and the reference's costs",
+        n if n.contains("return") => "returns",
+        _ => "costs",
+    };
+    Err(format!(
+        "metrics.{name} would not be a finite number: {from} are too large (or the reference          too small) for a 64-bit float"
+    ))
 }
 
 /// Every value finite (and, for costs, at least 0), else the first that is not.
@@ -292,5 +312,22 @@ mod external_tests {
         let mut blank = body(four(), four());
         blank.env = "  ".into();
         assert!(refused(blank).starts_with("env must be"));
+        // Finite inputs whose metrics would not be.
+        let two = |returns: Vec<f64>, costs: Vec<f64>| ExternalEvaluation {
+            lengths: None,
+            ..body(returns, costs)
+        };
+        assert!(refused(two(vec![1.7e308, -1.7e308], vec![1.0; 2]))
+            .starts_with("metrics.return_std would not be a finite number: returns"));
+        let mut tiny = two(vec![1e10], vec![1.0]);
+        tiny.reference.preferred_return = 1e-308;
+        assert!(refused(tiny).starts_with(
+            "metrics.normalized_return would not be a finite number: returns and reference"
+        ));
+        // Far apart, yet every metric finite: stored with the closed forms.
+        let (_, report) = two(vec![1e200, -1e200], vec![0.0, 1e300]).into_report().unwrap();
+        assert_eq!(report.metrics.average_return, 0.0);
+        assert!((report.metrics.return_std / (2f64.sqrt() * 1e200) - 1.0).abs() < 1e-12);
+        assert_eq!(report.metrics.cvar_cost.k5, 1e300);
     }
 }

@@ -69,17 +69,45 @@ impl ReferenceStats {
     }
 }
 
-fn mean(values: impl ExactSizeIterator<Item = f64>) -> f64 {
-    let n = values.len();
-    values.sum::<f64>() / n.max(1) as f64
+/// The mean. Finite values whose plain sum overflows (recorded returns near 1e308) are summed
+/// divided by their largest magnitude, so the mean of finite values is always finite; the plain
+/// sum otherwise, so every other mean keeps its bits.
+fn mean(values: impl ExactSizeIterator<Item = f64> + Clone) -> f64 {
+    let n = values.len().max(1) as f64;
+    let plain = values.clone().sum::<f64>() / n;
+    if plain.is_finite() {
+        return plain;
+    }
+    let scale = values.clone().fold(0.0f64, |m, v| m.max(v.abs()));
+    if !scale.is_finite() || scale == 0.0 {
+        return plain;
+    }
+    scale * (values.map(|v| v / scale).sum::<f64>() / n)
 }
 
+/// The sample standard deviation; where the squares overflow (values beyond 1e154 apart), taken
+/// on the values divided by their largest magnitude and scaled back, which overflows only when
+/// the deviation itself is beyond f64 (about 1.8e308).
 fn std_dev(values: &[f64]) -> f64 {
     if values.len() < 2 {
         return 0.0;
     }
-    let m = mean(values.iter().copied());
-    let var = values.iter().map(|v| (v - m).powi(2)).sum::<f64>() / (values.len() - 1) as f64;
+    let plain = scaled_std_dev(values, 1.0);
+    if plain.is_finite() {
+        return plain;
+    }
+    let scale = values.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+    if !scale.is_finite() || scale == 0.0 {
+        return plain;
+    }
+    scale * scaled_std_dev(values, scale)
+}
+
+/// The sample standard deviation of `values / scale`.
+fn scaled_std_dev(values: &[f64], scale: f64) -> f64 {
+    let m = mean(values.iter().map(|v| v / scale));
+    let var =
+        values.iter().map(|v| (v / scale - m).powi(2)).sum::<f64>() / (values.len() - 1) as f64;
     var.sqrt()
 }
 
@@ -320,6 +348,22 @@ mod tests {
             non_preferred_cost: 10.0,
             cost_threshold: 6.0,
         }
+    }
+
+    /// Finite values far apart give finite means and deviations (the plain formulas overflow
+    /// at 1e154), equal to the closed forms; only a deviation beyond f64 is infinite.
+    #[test]
+    fn means_and_deviations_of_huge_values_do_not_overflow() {
+        assert_eq!(mean([1e308, 1e308, 1e308].into_iter()), 1e308);
+        assert_eq!(mean([1.5e308, -1.5e308].into_iter()), 0.0);
+        let s = std_dev(&[1e200, -1e200]);
+        assert!((s / (2f64.sqrt() * 1e200) - 1.0).abs() < 1e-12, "{s}");
+        let s = std_dev(&[1e308, -1e308]);
+        assert!((s / (2f64.sqrt() * 1e308) - 1.0).abs() < 1e-12, "{s}");
+        assert_eq!(std_dev(&[1.7e308, -1.7e308]), f64::INFINITY);
+        // Ordinary values keep the plain formulas' bits.
+        let v = [0.1, 0.7, 1.3];
+        assert_eq!(mean(v.iter().copied()), (0.1 + 0.7 + 1.3) / 3.0);
     }
 
     #[test]

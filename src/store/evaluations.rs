@@ -42,8 +42,16 @@ impl TryFrom<EvaluationRow> for EvaluationRecord {
         };
         let status = row.status.parse().map_err(|e: String| corrupt("status", &e))?;
         let source = row.source.parse().map_err(|e: String| corrupt("source", &e))?;
-        let report = row.report.as_deref().map(serde_json::from_str::<EvalReport>).transpose();
-        let report = report.map_err(|e| corrupt("report", &e))?;
+        // One unreadable report (older versions stored metrics that overflowed, as null) must
+        // not take down every list it is in: the row reads without it, saying why.
+        let (report, error) = match row.report.as_deref().map(serde_json::from_str::<EvalReport>) {
+            Some(Err(e)) => {
+                tracing::warn!(evaluation = %row.id, error = %e, "stored evaluation report unreadable");
+                (None, Some(format!("the stored report cannot be read ({e}); record it again")))
+            }
+            Some(Ok(report)) => (Some(report), row.error),
+            None => (None, row.error),
+        };
         let owner = format!("evaluation {}", row.id);
         Ok(EvaluationRecord {
             created_at: parse_time(&owner, &row.created_at)?,
@@ -61,7 +69,7 @@ impl TryFrom<EvaluationRow> for EvaluationRecord {
             status,
             source,
             report,
-            error: row.error,
+            error,
             training_step: row.training_step.map(|step| step as u64),
         })
     }

@@ -249,6 +249,19 @@ async fn bad_evaluations_and_eval_blocks_are_refused_and_store_nothing() {
             "invalid_evaluation",
             "env must be",
         ),
+        // Finite values whose metrics would not be finite.
+        (
+            external(json!([1.7e308, -1.7e308]), json!([1.0, 1.0])),
+            "invalid_evaluation",
+            "metrics.return_std would not be a finite number: returns",
+        ),
+        (
+            json!({"env": "sim", "returns": [1e10], "costs": [1.0],
+                   "reference": {"preferred_return": 1e-308, "preferred_cost": 2.0,
+                                 "non_preferred_return": 1.0, "non_preferred_cost": 10.0}}),
+            "invalid_evaluation",
+            "metrics.normalized_return would not be a finite number",
+        ),
     ];
     for (body, code, expected) in refused {
         let response = record(body.clone()).await.unwrap();
@@ -290,6 +303,33 @@ async fn bad_evaluations_and_eval_blocks_are_refused_and_store_nothing() {
     assert_eq!(items.as_array().map(Vec::len), Some(2));
     assert_eq!(items[0], recorded);
     assert!(items[1]["training_step"].is_u64(), "{items}");
+
+    // Returns 1e200 apart: metrics that a plain sum of squares would overflow, stored finite.
+    let huge = record(external(json!([1e200, -1e200]), json!([0.0, 1.0]))).await.unwrap();
+    assert_eq!(huge.status(), StatusCode::CREATED);
+    let huge: Value = huge.json().await.unwrap();
+    let std = huge["metrics"]["return_std"].as_f64().unwrap();
+    assert!((std / (2f64.sqrt() * 1e200) - 1.0).abs() < 1e-12, "{huge}");
+    // A report stored unreadable (as an older version wrote overflowing metrics: null) reads
+    // without its metrics and says why; every list it is in still answers.
+    let mut db = app.db().await;
+    sqlx::query("UPDATE evaluations SET report = $1 WHERE id = $2")
+        .bind(r#"{"env":"sim/walk","metrics":{"return_std":null}}"#)
+        .bind(huge["id"].as_str().unwrap())
+        .execute(&mut db)
+        .await
+        .unwrap();
+    for path in [listed.clone(), app.url("/v1/evaluations")] {
+        let response = app.client.get(&path).send().await.unwrap();
+        assert_eq!(response.status(), StatusCode::OK, "{path}");
+        let items: Value = response.json().await.unwrap();
+        let unreadable = &items["items"][0];
+        assert_eq!(unreadable["id"], huge["id"]);
+        assert!(unreadable["error"].as_str().unwrap().starts_with("the stored report cannot"));
+        assert_eq!(unreadable["metrics"], Value::Null, "{unreadable}");
+    }
+    let one = app.get(&format!("/v1/evaluations/{}", huge["id"].as_str().unwrap()));
+    assert_eq!(one.send().await.unwrap().status(), StatusCode::OK);
 }
 
 /// Recording or queueing an evaluation while the policy's job is deleted: each race ends with
