@@ -117,8 +117,9 @@ impl Store {
         let tags = serde_json::Value::from(model.tags.to_vec()).to_string();
         let mut tx = self.begin_write().await?;
         let inserted = sqlx::query(
-            "INSERT INTO models (name, description, tags, created_at, updated_at) \
-             VALUES ($1, $2, $3, $4, $4) ON CONFLICT (name) DO NOTHING",
+            "INSERT INTO models (name, description, tags, revision, created_at, updated_at) \
+             VALUES ($1, $2, $3, (SELECT revision + 1 FROM model_revision_floor WHERE id = 1), \
+             $4, $4) ON CONFLICT (name) DO NOTHING",
         )
         .bind(model.name)
         .bind(model.description)
@@ -251,6 +252,16 @@ impl Store {
                 message: format!("model {name} is in use: {}", uses.join("; ")),
             });
         }
+        // A model created under this name later starts above this one's revision, so every
+        // serving process sees it as newer than the table it may still hold of this one.
+        sqlx::query(
+            "UPDATE model_revision_floor SET revision = \
+             (SELECT revision FROM models WHERE name = $1) \
+             WHERE id = 1 AND revision < (SELECT revision FROM models WHERE name = $1)",
+        )
+        .bind(name)
+        .execute(&mut *tx)
+        .await?;
         for table in ["model_alias_moves", "model_aliases", "model_versions", "models"] {
             let column = if table == "models" { "name" } else { "model" };
             sqlx::query(&format!("DELETE FROM {table} WHERE {column} = $1"))
