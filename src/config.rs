@@ -330,7 +330,8 @@ impl ServeConfig {
 
     /// `--job-threads`, or the machine's cores shared between the workers.
     pub fn job_threads(&self) -> usize {
-        job_threads(self.job_threads, self.workers)
+        self.job_threads
+            .map_or_else(|| crate::algo::cores_per_job(usize::from(self.workers)), usize::from)
     }
 
     /// Checks the combinations that would expose the API or cannot work.
@@ -427,13 +428,4 @@ mod tests {
         c.cors_origins = vec!["dash.example.com".into()];
         assert_eq!(c.validate(), Err(ConfigError::BadCorsOrigin("dash.example.com".into())));
     }
-}
-
-/// The threads one job computes on: as configured, or the cores divided by the jobs running at
-/// once (an API-only node, 0 workers, counts one), at least 1.
-pub fn job_threads(configured: Option<u16>, workers: u16) -> usize {
-    configured.map_or_else(
-        || (crate::algo::available_cores() / usize::from(workers.max(1))).max(1),
-        usize::from,
-    )
 }

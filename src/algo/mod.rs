@@ -273,6 +273,12 @@ pub fn worthwhile_threads(config: &ResolvedConfig, obs_dim: usize) -> usize {
     (macs / MACS_PER_THREAD).clamp(1, MAX_JOB_THREADS)
 }
 
+/// `--job-threads`: as `configured`, or this machine's cores shared by the `workers` jobs that
+/// run at once (an API-only node, 0 workers, counts one), at least 1.
+pub fn job_threads(configured: Option<u16>, workers: usize) -> usize {
+    configured.map_or_else(|| (available_cores() / workers.max(1)).max(1), usize::from)
+}
+
 /// The cores this process may use.
 pub fn available_cores() -> usize {
     std::thread::available_parallelism().map_or(1, |n| n.get())

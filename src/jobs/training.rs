@@ -526,6 +526,16 @@ impl AlphaNote {
     }
 }
 
+/// The job log's word on a job's `threads` and what this worker runs them on.
+fn threads_note(threads: usize) -> String {
+    let here = threads.min(algo::job_thread_cap());
+    match (threads, here) {
+        (1, _) => "1 thread".to_owned(),
+        (t, h) if t == h => format!("{t} threads"),
+        (t, h) => format!("{t} threads (run on this worker's {h}: the same weights, more slowly)"),
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use anyhow::Context;
@@ -545,15 +555,5 @@ mod tests {
         let corrupt = StoreError::Corrupt("d".into(), "changed on disk".into());
         assert!(!store_unavailable(&anyhow::Error::from(corrupt)));
         assert!(!store_unavailable(&anyhow::anyhow!("the evaluation at step 10 failed")));
-    }
-}
-
-/// The job log's word on a job's `threads` and what this worker runs them on.
-fn threads_note(threads: usize) -> String {
-    let here = threads.min(algo::job_thread_cap());
-    match (threads, here) {
-        (1, _) => "1 thread".to_owned(),
-        (t, h) if t == h => format!("{t} threads"),
-        (t, h) => format!("{t} threads (run on this worker's {h}: the same weights, more slowly)"),
     }
 }

@@ -1,0 +1,79 @@
+use super::*;
+use serde_json::json;
+
+#[test]
+fn presets_resolve_and_round_trip_through_json() {
+    for algorithm in Algorithm::ALL {
+        for preset in ["service", "paper", "authors-code"] {
+            let config = resolve_config(algorithm, &json!({ "preset": preset })).unwrap();
+            let text = serde_json::to_value(&config).unwrap();
+            assert_eq!(text["algorithm"], algorithm.as_str());
+            assert_eq!(text["preset"], preset);
+            let back: ResolvedConfig = serde_json::from_value(text).unwrap();
+            assert_eq!(back, config);
+            assert_eq!(back.algorithm(), algorithm);
+        }
+    }
+}
+
+#[test]
+fn presets_carry_the_published_values() {
+    let paper = resolve_config(Algorithm::Safedice, &json!({"preset": "paper"})).unwrap();
+    let AlgorithmConfig::Safedice(s) = &paper.specific else { panic!() };
+    assert_eq!((s.lr_nu, s.lr_discriminator, paper.common.lr_actor), (3e-4, 3e-4, 3e-4));
+    assert_eq!((s.discriminator_gp, s.nu_gp), (0.1, 0.0));
+    let code = resolve_config(Algorithm::Safedice, &json!({"preset": "authors-code"})).unwrap();
+    let AlgorithmConfig::Safedice(s) = &code.specific else { panic!() };
+    assert_eq!((s.lr_nu, s.lr_discriminator, code.common.lr_actor), (1e-4, 1e-4, 1e-5));
+    assert_eq!((s.discriminator_gp, s.nu_gp, s.discriminator_iterations), (10.0, 1e-6, 100_000));
+    assert_eq!(code.total_steps(), 1_100_000);
+}
+
+#[test]
+fn overrides_apply_and_phase_lengths_follow_iterations() {
+    let c = resolve_config(
+        Algorithm::Safedice,
+        &json!({"iterations": 2000, "terminal_handling": "mask", "seed": 7}),
+    )
+    .unwrap();
+    let AlgorithmConfig::Safedice(s) = &c.specific else { panic!() };
+    assert_eq!(s.discriminator_iterations, 2000, "service: as many steps as iterations");
+    assert_eq!(s.terminal_handling, TerminalHandling::Mask);
+    assert_eq!((c.seed(), c.total_steps()), (7, 4000));
+    let paper = json!({"preset": "paper", "iterations": 2000});
+    assert_eq!(resolve_config(Algorithm::Safedice, &paper).unwrap().total_steps(), 2200);
+    let ppl = resolve_config(Algorithm::Ppl, &json!({"iterations": 2000})).unwrap();
+    assert_eq!(ppl.pretraining_steps(), 200, "PPL's reward model: a tenth");
+    let c = resolve_config(
+        Algorithm::Safedice,
+        &json!({"iterations": 2000, "discriminator_iterations": 5}),
+    )
+    .unwrap();
+    assert_eq!(c.total_steps(), 2005);
+}
+
+#[test]
+fn unknown_keys_and_bad_values_name_the_key() {
+    let e = resolve_config(Algorithm::Bc, &json!({"lr_nu": 0.1})).unwrap_err();
+    assert_eq!(e.key, "lr_nu");
+    assert!(e.message.starts_with("config.lr_nu: unknown key for algorithm bc (known: "));
+    let e = resolve_config(Algorithm::Safedice, &json!({"iterations": 0})).unwrap_err();
+    assert_eq!(e.message, "config.iterations: must be between 1 and 100000000, got 0");
+    let e = resolve_config(Algorithm::Safedice, &json!({"gamma": 1.5})).unwrap_err();
+    assert_eq!(e.key, "gamma");
+    let e = resolve_config(Algorithm::Safedice, &json!({"lr_nu": -1.0})).unwrap_err();
+    assert_eq!(e.key, "lr_nu");
+    let e = resolve_config(Algorithm::Safedice, &json!({"terminal_handling": "x"})).unwrap_err();
+    assert_eq!(e.key, "terminal_handling");
+    let e = resolve_config(Algorithm::Dwbc, &json!({"eta": "big"})).unwrap_err();
+    assert_eq!(
+        (e.key.as_str(), e.message.as_str()),
+        ("eta", "config.eta: must be a number, got \"big\"")
+    );
+    let e = resolve_config(Algorithm::Bc, &json!({"preset": "fast"})).unwrap_err();
+    assert_eq!(e.key, "preset");
+    let e = resolve_config(Algorithm::Bc, &json!({"hidden_sizes": []})).unwrap_err();
+    assert_eq!(e.key, "hidden_sizes");
+    let e = resolve_config(Algorithm::Bc, &json!([1])).unwrap_err();
+    assert_eq!(e.key, "config");
+}
