@@ -330,8 +330,7 @@ impl ServeConfig {
 
     /// `--job-threads`, or the machine's cores shared between the workers.
     pub fn job_threads(&self) -> usize {
-        self.job_threads
-            .map_or_else(|| crate::algo::cores_per_job(usize::from(self.workers)), usize::from)
+        crate::algo::job_threads(self.job_threads, usize::from(self.workers))
     }
 
     /// Checks the combinations that would expose the API or cannot work.

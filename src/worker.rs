@@ -15,17 +15,16 @@ use crate::store::Store;
 /// back to the queue.
 pub async fn run(config: WorkerConfig, shutdown: CancellationToken) -> anyhow::Result<()> {
     let store = Store::connect(&config.data_dir, config.database_url.as_deref()).await?;
-    let options =
-        WorkerOptions::new(
-            usize::from(config.concurrency),
-            Duration::from_secs(config.lease_seconds),
-            config.min_free_disk,
-        )
-        .with_retry_backoff(RetryBackoff::new(Duration::from_secs(config.retry_backoff_secs)))
-        .with_job_threads(config.job_threads.map_or_else(
-            || crate::algo::cores_per_job(usize::from(config.concurrency)),
-            usize::from,
-        ));
+    let options = WorkerOptions::new(
+        usize::from(config.concurrency),
+        Duration::from_secs(config.lease_seconds),
+        config.min_free_disk,
+    )
+    .with_retry_backoff(RetryBackoff::new(Duration::from_secs(config.retry_backoff_secs)))
+    .with_job_threads(crate::algo::job_threads(
+        config.job_threads,
+        usize::from(config.concurrency),
+    ));
     tracing::info!(
         worker_id = %options.worker_id,
         database = store.backend().as_str(),

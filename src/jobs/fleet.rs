@@ -40,7 +40,7 @@ impl WorkerOptions {
         let suffix = uuid::Uuid::new_v4().simple().to_string();
         let worker_id = format!("{}-{}-{}", host_name(), std::process::id(), &suffix[..6]);
         let retry_backoff = RetryBackoff::new(RetryBackoff::DEFAULT_BASE);
-        let job_threads = crate::algo::cores_per_job(workers);
+        let job_threads = crate::algo::job_threads(None, workers);
         WorkerOptions { workers, lease, worker_id, min_free_disk, retry_backoff, job_threads }
     }
 
