@@ -43,8 +43,10 @@ def dataset(rows, episode, seed):
     terminals = np.zeros(rows, dtype=bool)
     timeouts = np.zeros(rows, dtype=bool)
     timeouts[episode - 1::episode] = True
+    nxt = np.roll(obs, -1, axis=0)
     return {
         "observations": obs,
+        "next_observations": nxt,
         "actions": np.tanh(rng.standard_normal((rows, 6))).astype(np.float32) * 0.9,
         "rewards": rng.standard_normal(rows).astype(np.float32),
         "costs": rng.random(rows).astype(np.float32),
