@@ -128,6 +128,10 @@ pub struct CommonConfig {
     pub threads: usize,
 }
 
+/// The largest seed the API takes: seeds are described as 64-bit signed integers (`int64`), the
+/// widest integer every JSON client and schema tool agrees on.
+pub const MAX_SEED: u64 = i64::MAX as u64;
+
 /// The most threads a job may ask for.
 pub const MAX_JOB_THREADS: usize = 64;
 
@@ -337,6 +341,16 @@ impl ResolvedConfig {
         }
         learning_rate("lr_actor", c.lr_actor)?;
         in_range("threads", c.threads as f64, 1.0, MAX_JOB_THREADS as f64)?;
+        if c.seed > MAX_SEED {
+            return Err(HyperparamError::new(
+                "seed",
+                format!(
+                    "config.seed: {} is above {}, the largest 64-bit signed integer (seeds are int64)",
+                    c.seed,
+                    MAX_SEED
+                ),
+            ));
+        }
         match &self.specific {
             AlgorithmConfig::Safedice(s) => {
                 in_range("discriminator_iterations", s.discriminator_iterations as f64, 1.0, 1e8)?;

@@ -47,7 +47,7 @@ use registry::AlgorithmSpec;
 
 pub use hyperparams::{
     config_keys, resolve_config, AlphaEstimator, HyperparamError, Preset, ResolvedConfig,
-    TerminalHandling, UndefinedReward, MAX_JOB_THREADS,
+    TerminalHandling, UndefinedReward, MAX_JOB_THREADS, MAX_SEED,
 };
 pub use policy::{portable_file, Policy, PolicyArtifact, PolicySpec, PortableMetadata};
 

@@ -38,7 +38,12 @@ pub const TAG_PATTERN: &str = "^[A-Za-z0-9._:/=-]{1,64}$";
 /// A job's name, tags and notes.
 #[derive(Clone, Debug, Default, PartialEq, Eq, Serialize, Deserialize, ToSchema)]
 pub struct JobLabels {
-    /// Free text, at most 200 characters, no control characters.
+    /// Free text, at most 200 characters, no control characters (nor the invisible characters
+    /// that change the direction text is shown in).
+    #[schema(
+        max_length = 200,
+        pattern = "^[^\\x00-\\x1F\\x7F-\\x9F\\u061C\\u200E\\u200F\\u202A-\\u202E\\u2066-\\u2069]*$"
+    )]
     pub name: Option<String>,
     /// Up to 32 tags of 1-64 characters from letters, digits and `- _ . : / =`
     /// (e.g. `env=point-goal`), kept in the order given, duplicates dropped.

@@ -53,9 +53,7 @@ impl DatasetRole {
     }
 }
 
-/// The largest seed the API takes: seeds are described as 64-bit signed integers (`int64`), the
-/// widest integer every JSON client and schema tool agrees on.
-pub const MAX_SEED: u64 = i64::MAX as u64;
+pub use crate::algo::MAX_SEED;
 
 /// Deserializes a seed, refusing one above [`MAX_SEED`] with a message that says why.
 pub fn deserialize_seed<'de, D: serde::Deserializer<'de>>(d: D) -> Result<u64, D::Error> {

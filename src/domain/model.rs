@@ -42,13 +42,14 @@ pub fn check_model_name(name: &str) -> Result<(), String> {
 }
 
 /// Checks an alias's name: [`NAME_RULE`], not all digits (that reads as a version number) and
-/// not `latest` (which always means the newest version).
+/// not `latest` in any case (which always means the newest version: `LATEST` beside `latest`
+/// would read as the same word and answer another version).
 pub fn check_alias_name(alias: &str) -> Result<(), String> {
     check_name("alias", alias)?;
     if alias.chars().all(|c| c.is_ascii_digit()) {
         return Err(format!("alias {alias:?} is all digits, which reads as a version number"));
     }
-    if alias == LATEST {
+    if alias.eq_ignore_ascii_case(LATEST) {
         return Err(format!("alias `{LATEST}` is reserved: it always means the newest version"));
     }
     Ok(())
@@ -102,11 +103,11 @@ pub struct ModelRef {
 }
 
 impl ModelRef {
-    /// `name` or `name@alias` (`name@latest` is `name`).
+    /// `name` or `name@alias` (`name@latest`, in any case, is `name`).
     pub fn parse(text: &str) -> Result<ModelRef, String> {
         let (model, selector) = match text.split_once('@') {
             None => (text, Selector::Latest),
-            Some((model, LATEST)) => (model, Selector::Latest),
+            Some((model, alias)) if alias.eq_ignore_ascii_case(LATEST) => (model, Selector::Latest),
             Some((model, alias)) => {
                 check_alias_name(alias)?;
                 (model, Selector::Alias(alias.to_owned()))
@@ -281,6 +282,13 @@ mod tests {
             .contains("policy id"));
         assert!(check_alias_name("42").unwrap_err().contains("version number"));
         assert!(check_alias_name("latest").unwrap_err().contains("reserved"));
+        for other_case in ["LATEST", "Latest", "laTest"] {
+            assert!(check_alias_name(other_case).unwrap_err().contains("reserved"));
+            assert_eq!(
+                ModelRef::parse(&format!("pilot@{other_case}")).unwrap().selector,
+                Selector::Latest
+            );
+        }
         for good in ["pilot", "Pilot_2.v1", "9lives", &"a".repeat(64)] {
             check_model_name(good).unwrap();
         }

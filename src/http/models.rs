@@ -359,7 +359,8 @@ fn note(
 #[utoipa::path(post, path = "/v1/models", tag = "models", request_body = CreateModel,
     responses(
         (status = 201, body = Model, headers(("location" = String))),
-        (status = 409, description = "The name is taken (`model_exists`)", body = ErrorBody),
+        (status = 409, description = "The name is taken, or differs from a model's only by case \
+            (`model_exists`)", body = ErrorBody),
         (status = 422, description = "A name that breaks the rule (`invalid_name`, the message \
             states it), bad tags or description (`invalid_model`)", body = ErrorBody),
     ))]
@@ -599,7 +600,8 @@ fn canary_of(share: Option<CanaryShare>) -> Result<Option<Canary>, ApiError> {
     responses(
         (status = 200, body = AliasMoveResource),
         (status = 404, description = "No such model or version", body = ErrorBody),
-        (status = 409, description = "The alias is not at `expected_version` (`alias_moved`)",
+        (status = 409, description = "The alias is not at `expected_version` (`alias_moved`), \
+            or a new alias's name differs from an existing one's only by case (`alias_exists`)",
          body = ErrorBody),
         (status = 422, description = "A bad alias name (`invalid_name`), canary \
             (`invalid_canary`) or actor (`invalid_model`)", body = ErrorBody),

@@ -50,6 +50,17 @@ impl PageParams {
             ));
         }
         let after = self.page_token;
+        if let Some(token) = &after {
+            let chars = token.chars().count();
+            if !(1..=64).contains(&chars) {
+                return Err(ApiError::bad_request(
+                    "invalid_pagination",
+                    format!(
+                        "page_token must be 1 to 64 characters (a next_page_token), got {chars}"
+                    ),
+                ));
+            }
+        }
         Ok(PageRequest { limit, offset, after })
     }
 

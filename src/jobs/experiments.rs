@@ -53,6 +53,12 @@ fn seeds_of(request: &ExperimentRequest) -> Result<Vec<u64>, SubmitError> {
     if seeds.is_empty() || seeds.len() > MAX_SEEDS {
         return Err(invalid(format!("seeds: 1 to {MAX_SEEDS} seeds, got {}", seeds.len())));
     }
+    if let Some(seed) = seeds.iter().find(|&&s| s > crate::domain::MAX_SEED) {
+        return Err(invalid(format!(
+            "seeds: {seed} is above {}, the largest 64-bit signed integer (seeds are int64)",
+            crate::domain::MAX_SEED
+        )));
+    }
     if seeds.iter().collect::<BTreeSet<_>>().len() != seeds.len() {
         return Err(invalid(format!("seeds: {seeds:?} repeats a seed")));
     }

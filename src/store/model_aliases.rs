@@ -127,6 +127,32 @@ const MOVE_COLUMNS: &str = "seq, alias, from_version, from_canary_version, \
 
 /// Points `alias` at `target` (None: deletes it) inside the caller's transaction and records the
 /// move; returns the move's `seq`.
+/// A new alias whose name differs from an existing one's only by case (`Prod` beside `prod`)
+/// would read as the same alias and answer another version: refused, naming the one to move.
+async fn refuse_other_case(
+    tx: &mut Transaction<'_, Any>,
+    model: &str,
+    alias: &str,
+) -> Result<(), StoreError> {
+    let existing: Option<String> = sqlx::query_scalar(
+        "SELECT alias FROM model_aliases WHERE model = $1 AND LOWER(alias) = LOWER($2)",
+    )
+    .bind(model)
+    .bind(alias)
+    .fetch_optional(&mut **tx)
+    .await?;
+    match existing {
+        Some(existing) => Err(StoreError::Conflict {
+            code: "alias_exists",
+            message: format!(
+                "{model}@{existing} exists already, and aliases are compared without case: \
+                 move {model}@{existing} instead, or pick another name"
+            ),
+        }),
+        None => Ok(()),
+    }
+}
+
 pub(super) async fn set_alias_in(
     tx: &mut Transaction<'_, Any>,
     store: &Store,
@@ -157,6 +183,9 @@ pub(super) async fn set_alias_in(
                 ),
             });
         }
+    }
+    if target.is_some() && from.is_none() {
+        refuse_other_case(tx, model, alias).await?;
     }
     let now = super::now();
     match target {

@@ -116,6 +116,21 @@ impl Store {
         let now = self.db_now().await?;
         let tags = serde_json::Value::from(model.tags.to_vec()).to_string();
         let mut tx = self.begin_write().await?;
+        // `Pilot` beside `pilot` would read as one model and answer as two.
+        let same: Option<String> =
+            sqlx::query_scalar("SELECT name FROM models WHERE LOWER(name) = LOWER($1)")
+                .bind(model.name)
+                .fetch_optional(&mut *tx)
+                .await?;
+        if let Some(existing) = same.filter(|existing| existing != model.name) {
+            return Err(StoreError::Conflict {
+                code: "model_exists",
+                message: format!(
+                    "a model named {existing} exists already, and names are compared without \
+                     case; pick another name, or add a version to {existing}"
+                ),
+            });
+        }
         let inserted = sqlx::query(
             "INSERT INTO models (name, description, tags, revision, created_at, updated_at) \
              VALUES ($1, $2, $3, (SELECT revision + 1 FROM model_revision_floor WHERE id = 1), \

@@ -215,6 +215,7 @@ async fn a_bad_grid_is_refused_with_the_field_named_and_nothing_queued() {
     for (body, code, field) in [
         (with(&|b| b["seeds"] = json!([])), "invalid_config", "seeds"),
         (with(&|b| b["seeds"] = json!([1, 1])), "invalid_config", "repeats"),
+        (with(&|b| b["seeds"] = json!([0, 1u64 << 63])), "invalid_config", "int64"),
         (
             with(&|b| {
                 b["seeds"] = Value::Null;

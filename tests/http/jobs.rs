@@ -489,6 +489,12 @@ async fn bad_job_requests_get_the_exact_status_and_code_and_store_nothing() {
             Some("config.iterations: must be between 1 and 100000000, got 0"),
         ),
         (
+            json!({"algorithm": "bc", "unlabeled_dataset": u, "config": {"seed": 1u64 << 63}}),
+            StatusCode::UNPROCESSABLE_ENTITY,
+            "invalid_config",
+            Some("config.seed: 9223372036854775808 is above 9223372036854775807, the largest 64-bit signed integer (seeds are int64)"),
+        ),
+        (
             json!({"algorithm": "bc", "unlabeled_dataset": u, "config": {"lr_nu": 0.1}}),
             StatusCode::UNPROCESSABLE_ENTITY,
             "invalid_config",

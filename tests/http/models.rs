@@ -130,6 +130,13 @@ async fn models_are_created_listed_patched_and_deleted_under_the_name_rule() {
     assert_eq!(created["tags"], json!(["env=grid"]));
     let response = app.post("/v1/models").json(&json!({"name": "pilot"})).send().await.unwrap();
     assert_error(response, StatusCode::CONFLICT, "model_exists").await;
+    // Names are compared without case: `Pilot` would read as `pilot` and answer as another.
+    for other_case in ["Pilot", "PILOT"] {
+        let response =
+            app.post("/v1/models").json(&json!({"name": other_case})).send().await.unwrap();
+        let message = assert_error(response, StatusCode::CONFLICT, "model_exists").await;
+        assert!(message.contains("a model named pilot exists already"), "{message}");
+    }
 
     let uuid = "6f1c0d2e-0000-4000-8000-000000000000".to_owned();
     for bad in [
@@ -156,6 +163,24 @@ async fn models_are_created_listed_patched_and_deleted_under_the_name_rule() {
         .unwrap();
     assert_error(response, StatusCode::UNPROCESSABLE_ENTITY, "invalid_model").await;
     assert_eq!(app.count_rows("models").await, 1, "a refused model is not stored");
+    // `latest`, in any case, always means the newest version: no alias may take it.
+    for reserved in ["latest", "LATEST", "Latest"] {
+        let response = app
+            .request(reqwest::Method::PUT, &format!("/v1/models/pilot/aliases/{reserved}"))
+            .json(&json!({"version": 1}))
+            .send()
+            .await
+            .unwrap();
+        let message =
+            assert_error(response, StatusCode::UNPROCESSABLE_ENTITY, "invalid_name").await;
+        assert!(message.contains("reserved"), "{message}");
+    }
+    // An empty or over-long page token is a bad request, not an unknown item.
+    for token in [String::new(), "a".repeat(65)] {
+        let response = app.get(&format!("/v1/models?page_token={token}")).send().await.unwrap();
+        let message = assert_error(response, StatusCode::BAD_REQUEST, "invalid_pagination").await;
+        assert!(message.starts_with("page_token must be 1 to 64 characters"), "{message}");
+    }
 
     create_model(&app, "second").await;
     let listed = get_json(&app.client, &app.url("/v1/models?limit=1")).await;
@@ -275,6 +300,19 @@ async fn aliases_move_with_their_history_and_serve_by_name_what_the_policy_route
         act(&app, "/v1/models/pilot/versions/1/act", None).await,
         (by_first.clone(), Some("1".into()))
     );
+    // `@LATEST` is `@latest`, the newest version; `Production` beside `production` is refused.
+    assert_eq!(
+        act(&app, "/v1/models/pilot@LATEST/act", None).await,
+        (by_second.clone(), Some("2".into()))
+    );
+    let response = app
+        .request(reqwest::Method::PUT, "/v1/models/pilot/aliases/Production")
+        .json(&json!({"version": 2}))
+        .send()
+        .await
+        .unwrap();
+    let message = assert_error(response, StatusCode::CONFLICT, "alias_exists").await;
+    assert!(message.contains("move pilot@production instead"), "{message}");
 
     move_alias(
         &app,

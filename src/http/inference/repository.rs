@@ -92,7 +92,7 @@ async fn unload(
 
 /// A count and the time it took, as the statistics extension reports them.
 #[derive(Debug, Serialize, ToSchema)]
-pub struct Duration {
+pub struct InferDuration {
     pub count: u64,
     pub ns: u64,
 }
@@ -100,8 +100,8 @@ pub struct Duration {
 /// Successful and failed inferences.
 #[derive(Debug, Serialize, ToSchema)]
 pub struct InferStats {
-    pub success: Duration,
-    pub fail: Duration,
+    pub success: InferDuration,
+    pub fail: InferDuration,
 }
 
 /// One version's statistics on this node.
@@ -132,8 +132,8 @@ fn stat(name: &str, version: u32, stats: &VersionStats) -> ModelStat {
         inference_count: success,
         execution_count: success,
         inference_stats: InferStats {
-            success: Duration { count: success, ns: load(&stats.success_ns) },
-            fail: Duration { count: load(&stats.fail), ns: load(&stats.fail_ns) },
+            success: InferDuration { count: success, ns: load(&stats.success_ns) },
+            fail: InferDuration { count: load(&stats.fail), ns: load(&stats.fail_ns) },
         },
     }
 }

@@ -78,7 +78,12 @@ pub struct CreateJob {
     /// evaluation). The environment's spaces must match the datasets'.
     #[schema(value_type = Option<EvalOptions>)]
     pub eval: Option<serde_json::Value>,
-    /// A name for people, at most 200 characters (the dashboard shows it instead of the id).
+    /// A name for people, at most 200 characters without control characters (the dashboard
+    /// shows it instead of the id).
+    #[schema(
+        max_length = 200,
+        pattern = "^[^\\x00-\\x1F\\x7F-\\x9F\\u061C\\u200E\\u200F\\u202A-\\u202E\\u2066-\\u2069]*$"
+    )]
     pub name: Option<String>,
     /// Up to 32 tags of 1-64 characters from letters, digits and `- _ . : / =`, e.g.
     /// `env=point-goal`; `GET /v1/jobs?tag=` filters by one.
