@@ -184,17 +184,9 @@ async fn store_policy(
         alpha_hat,
     };
     log.write(LogLevel::Info, &format!("succeeded at step {step}: policy {policy_id}")).await;
-    if let Some(register) = store.job(&job_id).await?.register {
-        let alias = register.alias.as_deref().map(|a| format!(", alias {a} moved to it"));
-        let message = format!(
-            "registering the policy as the next version of model {}{}",
-            register.model,
-            alias.unwrap_or_default()
-        );
-        log.write(LogLevel::Info, &message).await;
-    }
-    if let Some((model, version)) =
-        store.finish_job_succeeded(lease, &[], &policy, step, evaluation.as_ref()).await?
+    if let Some((model, version)) = store
+        .finish_job_succeeded(lease, &log.worker, &[], &policy, step, evaluation.as_ref())
+        .await?
     {
         tracing::info!(%model, version, %policy_id, "policy registered as a model version");
     }

@@ -18,7 +18,7 @@ use crate::algo::ResolvedConfig;
 use crate::domain::model::{MoveNote, Registration};
 use crate::domain::{
     rfc3339, AttemptOutcome, DatasetId, EvalOptions, JobId, JobLabels, JobRecord, JobStatus,
-    MetricRecord, RunnerOptions,
+    LogLevel, MetricRecord, RunnerOptions,
 };
 
 /// A job row as the database returns it; [`JobRecord`] is its typed form.
@@ -662,10 +662,14 @@ impl Store {
     /// Completes a job: its last metrics, its policy (with the evaluation the run took at its
     /// end, if its job has an `eval` block), the model version its `register` asks for and the
     /// `succeeded` status in one transaction; the checkpoint is no longer needed.
-    /// Returns the version registered (model, number), if any.
+    /// Returns the version registered (model, number), if any; the job's log says what became
+    /// of its `register` in the same transaction (as `worker`), so it never tells of a
+    /// registration that did not commit.
+    #[allow(clippy::too_many_arguments)]
     pub async fn finish_job_succeeded(
         &self,
         lease: &Lease,
+        worker: &str,
         pending_metrics: &[MetricRecord],
         policy: &NewPolicy<'_>,
         step: u64,
@@ -678,7 +682,7 @@ impl Store {
         if let Some(evaluation) = evaluation {
             insert_training_evaluation(&mut tx, policy.id, evaluation, &now()).await?;
         }
-        let registered = self.register_policy(&mut tx, &lease.id, policy.id).await?;
+        let registered = self.register_policy(&mut tx, &lease.id, worker, policy.id).await?;
         sqlx::query(&format!(
             "UPDATE jobs SET status = {}, policy_id = $1, step = $2, \
                  alpha_hat = COALESCE(CAST($3 AS DOUBLE PRECISION), alpha_hat), \
@@ -707,6 +711,7 @@ impl Store {
         &self,
         tx: &mut Transaction<'_, Any>,
         job_id: &str,
+        worker: &str,
         policy_id: &str,
     ) -> Result<Option<(String, u32)>, StoreError> {
         let (model, alias): (Option<String>, Option<String>) =
@@ -725,14 +730,29 @@ impl Store {
             source: &source,
             alias: alias.as_deref().map(|alias| (alias, &note)),
         };
-        match super::models::register_in(tx, self, &version).await {
-            Ok(number) => Ok(Some((model, number))),
+        let (level, message, registered) = match super::models::register_in(tx, self, &version)
+            .await
+        {
+            Ok(number) => {
+                let moved = alias.as_deref().map(|a| format!(", alias {a} moved to it"));
+                let message = format!(
+                    "registered the policy as version {number} of model {model}{}",
+                    moved.unwrap_or_default()
+                );
+                (LogLevel::Info, message, Some((model, number)))
+            }
             Err(StoreError::NotFound { kind: "model", .. }) => {
                 tracing::warn!(%model, job_id, "the job's model was deleted: policy not registered");
-                Ok(None)
+                let message = format!(
+                    "model {model} was deleted before the job ended: the policy was not \
+                     registered (register it with POST /v1/models/{{name}}/versions)"
+                );
+                (LogLevel::Warn, message, None)
             }
-            Err(e) => Err(e),
-        }
+            Err(e) => return Err(e),
+        };
+        super::logs::insert_log_line(tx, job_id, worker, level, &message).await?;
+        Ok(registered)
     }
 
     /// Ends a job as `failed` (with `error`) or `cancelled`, storing its last metrics; its

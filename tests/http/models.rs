@@ -530,6 +530,16 @@ async fn a_job_registers_its_policy_as_the_next_version_when_it_succeeds() {
     let (by_name, version) = act(&app, "/v1/models/pilot@staging/act", None).await;
     assert_eq!(version.as_deref(), Some("1"));
     assert_eq!(by_name, act(&app, &format!("/v1/policies/{policy}/act"), None).await.0);
+    // The log tells of the registration once it committed, with its version.
+    let log = get_json(&app.client, &app.url(&format!("/v1/jobs/{id}/logs"))).await;
+    let lines: Vec<&str> =
+        log.as_array().unwrap().iter().filter_map(|l| l["message"].as_str()).collect();
+    assert!(
+        lines.contains(
+            &"registered the policy as version 1 of model pilot, alias staging moved to it"
+        ),
+        "{lines:?}"
+    );
 }
 
 /// The documented batch limit is reachable on every action route: 16,384 observations as JSON
