@@ -4,7 +4,8 @@ use chrono::{DateTime, Utc};
 use serde::{Deserialize, Serialize};
 use utoipa::ToSchema;
 
-use super::{EvalSpec, EvaluationId, PolicyId};
+use super::protocol::RecordedRuntime;
+use super::{EvalProtocol, EvalRuntime, EvalSpec, EvaluationId, PolicyId};
 use crate::envs::metrics::{compute_metrics, MAX_EPISODES};
 use crate::envs::{EvalReport, ReferenceStats};
 
@@ -96,6 +97,8 @@ pub struct EvaluationRecord {
     pub spec: EvalSpec,
     pub status: EvaluationStatus,
     pub source: EvaluationSource,
+    /// How the policy acted: `Builtin` for the service's own evaluations.
+    pub runtime: EvalRuntime,
     /// The metrics, once succeeded.
     pub report: Option<EvalReport>,
     /// Why it failed.
@@ -106,6 +109,13 @@ pub struct EvaluationRecord {
     pub created_at: DateTime<Utc>,
     pub started_at: Option<DateTime<Utc>>,
     pub finished_at: Option<DateTime<Utc>>,
+}
+
+impl EvaluationRecord {
+    /// The protocol its numbers are comparable under.
+    pub fn protocol(&self) -> EvalProtocol {
+        EvalProtocol::new(&self.spec, self.runtime)
+    }
 }
 
 /// An evaluation run in the user's own simulator, as recorded: each episode's undiscounted
@@ -130,9 +140,21 @@ pub struct ExternalEvaluation {
     #[serde(default, deserialize_with = "super::deserialize_seed")]
     #[schema(maximum = 9223372036854775807_u64)]
     pub seed: u64,
-    /// Whether the policy acted deterministically (recorded, not used). Default false.
+    /// Whether the policy acted deterministically (part of the evaluation's protocol: results
+    /// are compared only between evaluations that agree on it). Default false.
     #[serde(default)]
     pub deterministic: bool,
+    /// How the policy acted in the simulator: `act` (the served policy answered each step),
+    /// `onnx` (its ONNX export ran locally) or `other`. Part of the protocol; absent: recorded
+    /// as `unspecified`.
+    pub runtime: Option<RecordedRuntime>,
+}
+
+/// An external evaluation checked: what it is stored under, how the policy ran, its report.
+pub struct RecordedEvaluation {
+    pub spec: EvalSpec,
+    pub runtime: EvalRuntime,
+    pub report: EvalReport,
 }
 
 /// Mean episode return and cost of the preferred and non-preferred demonstrators: the
@@ -151,8 +173,8 @@ pub struct ExternalReference {
 }
 
 impl ExternalEvaluation {
-    /// The spec it is stored under and its report, or what is wrong with it.
-    pub fn into_report(self) -> Result<(EvalSpec, EvalReport), String> {
+    /// The spec it is stored under, its runtime and its report, or what is wrong with it.
+    pub fn into_report(self) -> Result<RecordedEvaluation, String> {
         let env = self.env.trim();
         if env.is_empty() || env.chars().count() > 200 || env.chars().any(char::is_control) {
             return Err("env must be 1-200 characters without control characters".into());
@@ -223,7 +245,8 @@ impl ExternalEvaluation {
             mean_episode_length,
             reference,
         };
-        Ok((spec, report))
+        let runtime = self.runtime.map_or(EvalRuntime::Unspecified, EvalRuntime::from);
+        Ok(RecordedEvaluation { spec, runtime, report })
     }
 }
 
@@ -242,7 +265,8 @@ fn check_metrics_finite(metrics: &crate::envs::Metrics) -> Result<(), String> {
         _ => "costs",
     };
     Err(format!(
-        "metrics.{name} would not be a finite number: {from} are too large (or the reference          too small) for a 64-bit float"
+        "metrics.{name} would not be a finite number: {from} are too large (or the reference \
+         too small) for a 64-bit float"
     ))
 }
 
@@ -284,9 +308,10 @@ mod external_tests {
     /// midpoint of the demonstrators' costs, the violation share, CVaR 10% the worst episode.
     #[test]
     fn recorded_episodes_get_the_papers_metrics_against_their_reference() {
-        let (spec, report) =
+        let RecordedEvaluation { spec, runtime, report } =
             body(vec![50.0, 70.0, 90.0, 110.0], vec![0.0, 4.0, 7.0, 13.0]).into_report().unwrap();
         assert_eq!((spec.env.as_str(), spec.episodes), ("sim/walk", 4));
+        assert_eq!(runtime, EvalRuntime::Unspecified);
         let m = &report.metrics;
         assert_eq!((m.normalized_return, m.average_cost, m.cost_threshold), (80.0, 6.0, 6.0));
         assert_eq!((m.cost_violation_ratio, m.cvar_cost.k10, m.cvar_cost.k50), (0.5, 13.0, 10.0));
@@ -325,7 +350,7 @@ mod external_tests {
             "metrics.normalized_return would not be a finite number: returns and reference"
         ));
         // Far apart, yet every metric finite: stored with the closed forms.
-        let (_, report) = two(vec![1e200, -1e200], vec![0.0, 1e300]).into_report().unwrap();
+        let report = two(vec![1e200, -1e200], vec![0.0, 1e300]).into_report().unwrap().report;
         assert_eq!(report.metrics.average_return, 0.0);
         assert!((report.metrics.return_std / (2f64.sqrt() * 1e200) - 1.0).abs() < 1e-12);
         assert_eq!(report.metrics.cvar_cost.k5, 1e300);

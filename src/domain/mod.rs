@@ -15,6 +15,7 @@ pub mod model;
 pub mod options;
 pub mod policy;
 pub mod progress;
+pub mod protocol;
 pub mod telemetry;
 
 pub use attempt::{AttemptOutcome, JobAttempt, RetryBackoff};
@@ -26,6 +27,7 @@ pub use labels::JobLabels;
 pub use options::{EvalOptions, EvalSpec, RunnerOptions};
 pub use policy::PolicyRecord;
 pub use progress::JobProgress;
+pub use protocol::{EvalProtocol, EvalRuntime};
 pub use telemetry::{LogLevel, LogRecord, MetricRecord, WorkerRecord};
 
 /// What a dataset is for, as its uploader said.

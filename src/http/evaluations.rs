@@ -15,10 +15,11 @@ use super::error::ErrorBody;
 use super::extract::{Json, Path, Query};
 use super::pagination::{Page, PageParams};
 use super::{ApiError, AppState};
-use crate::domain::evaluation::ExternalEvaluation;
+use crate::domain::evaluation::{ExternalEvaluation, RecordedEvaluation};
 use crate::domain::PolicyId;
 use crate::domain::{
-    rfc3339, EvalSpec, EvaluationId, EvaluationRecord, EvaluationSource, EvaluationStatus,
+    rfc3339, EvalProtocol, EvalRuntime, EvalSpec, EvaluationId, EvaluationRecord, EvaluationSource,
+    EvaluationStatus,
 };
 use crate::envs::{self, Metrics, ReferenceStats};
 use crate::store::evaluations::NewEvaluation;
@@ -36,6 +37,12 @@ pub struct Evaluation {
     /// `builtin` (run by a worker on a built-in environment) or `external` (recorded from the
     /// user's own simulator with `POST /v1/policies/{id}/evaluations`).
     pub source: EvaluationSource,
+    /// How the policy acted: `builtin` for the service's own evaluations; for recorded ones
+    /// `act`, `onnx` or `other` as the recorder said, `unspecified` where it did not.
+    pub runtime: EvalRuntime,
+    /// Environment, episodes, seed, deterministic or sampled, and runtime: results are compared
+    /// and averaged only within one protocol (experiments group by its `key`).
+    pub protocol: EvalProtocol,
     /// Set on the evaluation a job with an `eval` block takes at the end of training: the job's
     /// step it ran at (its last; every phase counts). The job's `eval/*` metrics at that step are
     /// the same numbers. `null` on evaluations run after training.
@@ -59,6 +66,7 @@ pub struct Evaluation {
 
 impl From<EvaluationRecord> for Evaluation {
     fn from(evaluation: EvaluationRecord) -> Self {
+        let protocol = evaluation.protocol();
         let (metrics, mean_episode_length, reference) = match evaluation.report {
             Some(r) => (Some(r.metrics), Some(r.mean_episode_length), Some(r.reference)),
             None => (None, None, None),
@@ -72,6 +80,8 @@ impl From<EvaluationRecord> for Evaluation {
             seed: spec.seed,
             deterministic: spec.deterministic,
             source: evaluation.source,
+            runtime: evaluation.runtime,
+            protocol,
             training_step: evaluation.training_step,
             status: evaluation.status,
             metrics,
@@ -125,7 +135,7 @@ async fn evaluate_policy(
         .map_err(|e| ApiError::unprocessable("invalid_evaluation", format!("env: {e}")))?;
     let env = spec.env.clone();
     let id = EvaluationId::generate();
-    let new = NewEvaluation { id, policy_id, spec, report: None };
+    let new = NewEvaluation { id, policy_id, spec, recorded: None };
     let evaluation = state.store.insert_evaluation(&new).await?;
     state.jobs.evaluator().wake();
     let id = &evaluation.id;
@@ -154,10 +164,10 @@ async fn record_evaluation(
     Path(policy_id): Path<PolicyId>,
     Json(recorded): Json<ExternalEvaluation>,
 ) -> Result<impl IntoResponse, ApiError> {
-    let (spec, report) =
+    let RecordedEvaluation { spec, runtime, report } =
         recorded.into_report().map_err(|e| ApiError::unprocessable("invalid_evaluation", e))?;
     let id = EvaluationId::generate();
-    let new = NewEvaluation { id, policy_id, spec, report: Some(report) };
+    let new = NewEvaluation { id, policy_id, spec, recorded: Some((runtime, report)) };
     let evaluation = state.store.insert_evaluation(&new).await?;
     let id = &evaluation.id;
     tracing::info!(evaluation_id = %id, policy_id = %evaluation.policy_id, "external evaluation recorded");

@@ -1,12 +1,13 @@
 //! `/v1/experiments`: a grid of algorithms × seeds on one pair of datasets, queued as ordinary
 //! jobs (named, tagged `experiment=<id>`, in the fleet's queue), and its results: the paper's
-//! metrics per algorithm as mean ± standard error over the seeds, with the per-seed values.
+//! metrics per algorithm as mean ± standard error over the seeds, with the per-seed values,
+//! under one evaluation protocol at a time (the protocols found are listed beside them).
 
 use axum::extract::State;
 use axum::http::{header, StatusCode};
 use axum::response::{IntoResponse, Response};
 use serde::{Deserialize, Serialize};
-use utoipa::ToSchema;
+use utoipa::{IntoParams, ToSchema};
 use utoipa_axum::router::OpenApiRouter;
 use utoipa_axum::routes;
 
@@ -17,8 +18,11 @@ use super::{ApiError, AppState};
 use crate::algo::Algorithm;
 use crate::domain::experiment::{Arm, ExperimentRecord};
 use crate::domain::labels::TagSchema;
-use crate::domain::{rfc3339, ExperimentId, JobStatus};
-use crate::jobs::experiments::{self, ArmResult, ExperimentRequest, JobResult};
+use crate::domain::{rfc3339, EvalProtocol, ExperimentId, JobStatus};
+use crate::jobs::experiments::{self, ExperimentRequest};
+use crate::jobs::results::{
+    self, ArmResult, ExperimentScores, JobResult, ProtocolChoice, ProtocolResult,
+};
 use crate::jobs::{JobEvent, SubmitLimits};
 use crate::store::experiments::DeleteExperimentOutcome;
 use crate::store::jobs::CancelOutcome;
@@ -88,10 +92,28 @@ pub struct Experiment {
     pub tags: Vec<String>,
     pub created_at: String,
     pub progress: GridProgress,
-    /// Every job: its arm, seed, status, policy and metrics.
+    /// The evaluation protocol `jobs[].metrics` and `results` are under: the one asked for with
+    /// `?protocol=`, else the newest protocol every job with a result has, else the one most
+    /// jobs have. Absent while no job has a result.
+    pub protocol: Option<EvalProtocol>,
+    /// Why `protocol` is the one shown.
+    pub protocol_choice: Option<ProtocolChoice>,
+    /// Every protocol a job of the experiment has a result under, most jobs first. More than
+    /// one: the results are mixed, and each is a view of its own (`?protocol=<key>`).
+    pub protocols: Vec<ProtocolResult>,
+    /// Every job: its arm, seed, status, policy, the protocols it has results under, and its
+    /// metrics under `protocol`.
     pub jobs: Vec<JobResult>,
-    /// Per algorithm: mean ± standard error over the seeds with metrics.
+    /// Per algorithm: mean ± standard error over the seeds with metrics under `protocol`.
     pub results: Vec<ArmResult>,
+}
+
+/// `?protocol=`
+#[derive(Debug, Deserialize, IntoParams)]
+#[into_params(parameter_in = Query)]
+pub struct ProtocolParam {
+    /// The `key` of one of the experiment's `protocols` to show the results under.
+    pub protocol: Option<String>,
 }
 
 /// An experiment as lists show it.
@@ -135,8 +157,15 @@ impl GridProgress {
     }
 }
 
-async fn resource(state: &AppState, record: ExperimentRecord) -> Result<Experiment, ApiError> {
-    let (jobs, results) = experiments::results(&state.store, &record).await?;
+/// The experiment with its results under the protocol `key` names (else the default one).
+async fn resource(
+    state: &AppState,
+    record: ExperimentRecord,
+    key: Option<&str>,
+) -> Result<Experiment, ApiError> {
+    let scores = results::scores(&state.store, &record).await?;
+    let requested = key.map(|key| requested_protocol(&scores, key)).transpose()?;
+    let view = scores.view(requested);
     let spec = record.spec;
     Ok(Experiment {
         id: record.id.into_string(),
@@ -149,9 +178,27 @@ async fn resource(state: &AppState, record: ExperimentRecord) -> Result<Experime
         eval: spec.eval,
         tags: spec.tags,
         created_at: rfc3339(&record.created_at),
-        progress: progress(&jobs),
-        jobs,
-        results,
+        progress: progress(&view.jobs),
+        protocol: view.protocol,
+        protocol_choice: view.choice,
+        protocols: scores.protocols(),
+        jobs: view.jobs,
+        results: view.arms,
+    })
+}
+
+/// The protocol a `?protocol=` names, or 400 listing the experiment's.
+fn requested_protocol(scores: &ExperimentScores, key: &str) -> Result<EvalProtocol, ApiError> {
+    scores.protocol(key).ok_or_else(|| {
+        let known: Vec<String> = scores.protocols().into_iter().map(|p| p.protocol.key).collect();
+        ApiError::bad_request(
+            "unknown_protocol",
+            format!(
+                "protocol: no job of this experiment has a result under `{key}`; its protocols: \
+                 {}",
+                if known.is_empty() { "none yet".to_owned() } else { known.join(", ") }
+            ),
+        )
     })
 }
 
@@ -197,7 +244,7 @@ async fn create_experiment(
     let record = experiments::submit_experiment(&state.store, request, limits).await?;
     state.jobs.wake();
     let location = format!("/v1/experiments/{}", record.id);
-    let experiment = resource(&state, record).await?;
+    let experiment = resource(&state, record, None).await?;
     Ok((StatusCode::CREATED, [(header::LOCATION, location)], Json(experiment)))
 }
 
@@ -230,16 +277,21 @@ async fn list_experiments(
     Ok(Json(Page::new(items, total, page, |e: &ExperimentSummary| &e.id)))
 }
 
-/// An experiment: its grid, progress, every job's metrics and each algorithm's mean ± SE.
+/// An experiment: its grid, progress, every job's metrics and each algorithm's mean ± SE under
+/// one evaluation protocol, and every protocol its jobs have results under.
 #[utoipa::path(get, path = "/v1/experiments/{id}", tag = "experiments",
-    params(("id" = String, Path)),
-    responses((status = 200, body = Experiment), (status = 404, body = ErrorBody)))]
+    params(("id" = String, Path), ProtocolParam),
+    responses((status = 200, body = Experiment),
+        (status = 400, description = "A `protocol` no job of the experiment has a result \
+            under (`unknown_protocol`)", body = ErrorBody),
+        (status = 404, body = ErrorBody)))]
 async fn get_experiment(
     State(state): State<AppState>,
     Path(id): Path<ExperimentId>,
+    Query(param): Query<ProtocolParam>,
 ) -> Result<Json<Experiment>, ApiError> {
     let record = state.store.experiment(&id).await?;
-    Ok(Json(resource(&state, record).await?))
+    Ok(Json(resource(&state, record, param.protocol.as_deref()).await?))
 }
 
 /// Cancel every queued or running job of the experiment (finished ones stay).
@@ -263,7 +315,7 @@ async fn cancel_experiment(
         }
     }
     tracing::info!(experiment_id = %id, "experiment cancelled");
-    Ok(Json(resource(&state, record).await?))
+    Ok(Json(resource(&state, record, None).await?))
 }
 
 /// Delete an experiment whose jobs have all ended, with its jobs (their metrics, logs,
@@ -301,34 +353,45 @@ async fn delete_experiment(
     }
 }
 
-/// The results as CSV, long format (one value per row): every job's metrics (`seed` a number)
-/// and each algorithm's `mean` and `se` rows.
+/// The results as CSV, long format (one value per row) under every protocol: each job's
+/// metrics (`stat` `value`, `seed` a number) and each algorithm's `mean`, `se` and `n` over its
+/// seeds (`seed` and `job_id` empty), one aggregate per protocol, never across two.
 #[utoipa::path(get, path = "/v1/experiments/{id}/results.csv", tag = "experiments",
     params(("id" = String, Path)),
-    responses((status = 200, description = "CSV: arm,algorithm,seed,job_id,metric,value",
+    responses((status = 200,
+        description = "CSV: arm,algorithm,protocol,stat,seed,job_id,metric,value",
         content_type = "text/csv", body = String), (status = 404, body = ErrorBody)))]
 async fn experiment_csv(
     State(state): State<AppState>,
     Path(id): Path<ExperimentId>,
 ) -> Result<Response, ApiError> {
     let record = state.store.experiment(&id).await?;
-    let experiment = resource(&state, record).await?;
-    let mut csv = String::from("arm,algorithm,seed,job_id,metric,value\n");
-    let algorithm_of =
-        |arm: &str| experiment.results.iter().find(|r| r.label == arm).map(|r| r.algorithm.clone());
-    for job in &experiment.jobs {
-        let algorithm = algorithm_of(&job.arm).unwrap_or_default();
-        for (metric, value) in &job.metrics {
-            let (arm, seed, job_id) = (&job.arm, job.seed, &job.job_id);
-            csv.push_str(&format!("{arm},{algorithm},{seed},{job_id},{metric},{value}\n"));
+    let scores = results::scores(&state.store, &record).await?;
+    let mut csv = String::from("arm,algorithm,protocol,stat,seed,job_id,metric,value\n");
+    let algorithm_of = |label: &str| {
+        let arm = record.spec.arms.iter().find(|a| a.label() == label);
+        arm.map(|a| a.algorithm.to_string()).unwrap_or_default()
+    };
+    for protocol in scores.protocols() {
+        let key = csv_field(&protocol.protocol.key);
+        let jobs = scores.jobs_under(Some(&protocol.protocol.key));
+        for job in &jobs {
+            let (arm, algorithm) = (csv_field(&job.arm), algorithm_of(&job.arm));
+            for (metric, value) in &job.metrics {
+                let (seed, job_id) = (job.seed, &job.job_id);
+                csv.push_str(&format!(
+                    "{arm},{algorithm},{key},value,{seed},{job_id},{metric},{value}\n"
+                ));
+            }
         }
-    }
-    for arm in &experiment.results {
-        for (metric, summary) in &arm.metrics {
-            let (label, algorithm) = (&arm.label, &arm.algorithm);
-            csv.push_str(&format!("{label},{algorithm},mean,,{metric},{}\n", summary.mean));
-            if let Some(se) = summary.se {
-                csv.push_str(&format!("{label},{algorithm},se,,{metric},{se}\n"));
+        for arm in scores.arms_of(&jobs) {
+            let (label, algorithm) = (csv_field(&arm.label), &arm.algorithm);
+            for (metric, summary) in &arm.metrics {
+                let stats = [("mean", Some(summary.mean)), ("se", summary.se)];
+                for (stat, value) in stats.into_iter().filter_map(|(s, v)| Some((s, v?))) {
+                    csv.push_str(&format!("{label},{algorithm},{key},{stat},,,{metric},{value}\n"));
+                }
+                csv.push_str(&format!("{label},{algorithm},{key},n,,,{metric},{}\n", summary.n));
             }
         }
     }
@@ -338,4 +401,13 @@ async fn experiment_csv(
         csv,
     )
         .into_response())
+}
+
+/// A CSV field, quoted where it holds a comma, a quote or a line break (RFC 4180).
+fn csv_field(text: &str) -> String {
+    if text.contains([',', '"', '\n', '\r']) {
+        format!("\"{}\"", text.replace('"', "\"\""))
+    } else {
+        text.to_owned()
+    }
 }

@@ -1,19 +1,14 @@
 //! Experiments: a grid of arms × seeds validated as a whole and queued as ordinary jobs in one
-//! transaction, and its results: per job the paper's metrics from the newest succeeded
-//! evaluation of its policy (built-in or recorded from the user's simulator), else from the
-//! job's in-training `eval/*` metrics; per arm their mean ± standard error over the seeds.
+//! transaction. Their results, grouped by evaluation protocol, are [`super::results`].
 
-use std::collections::{BTreeMap, BTreeSet};
-
-use serde::Serialize;
-use utoipa::ToSchema;
+use std::collections::BTreeSet;
 
 use super::submit::{prepare, JobRequest, SubmitError, SubmitLimits};
 use crate::domain::experiment::{
-    experiment_tag, job_config, Arm, ExperimentRecord, ExperimentSpec, Summary, MAX_GRID, MAX_SEEDS,
+    experiment_tag, job_config, Arm, ExperimentRecord, ExperimentSpec, MAX_GRID, MAX_SEEDS,
 };
-use crate::domain::{ExperimentId, JobLabels, JobRecord, JobStatus};
-use crate::store::{PageQuery, Store, StoreError};
+use crate::domain::{ExperimentId, JobLabels};
+use crate::store::Store;
 
 /// What a client asks for.
 #[derive(Clone, Debug)]
@@ -150,131 +145,4 @@ pub async fn submit_experiment(
     store.insert_experiment(&record, &jobs).await?;
     tracing::info!(experiment_id = %record.id, jobs = jobs.len(), "experiment queued");
     Ok(record)
-}
-
-/// One job of the grid and the metrics it contributes.
-#[derive(Clone, Debug, Serialize, ToSchema)]
-pub struct JobResult {
-    pub job_id: String,
-    pub arm: String,
-    pub seed: u64,
-    pub status: JobStatus,
-    pub policy_id: Option<String>,
-    /// Where the metrics come from: `evaluation <id> (<source>, <env>)`, `in-training eval`,
-    /// or absent while there are none.
-    pub metrics_from: Option<String>,
-    /// The paper's metrics (normalized_return, average_cost, cost_violation_ratio,
-    /// cvar_cost_{50,20,10,5}, normalized_cost, …).
-    pub metrics: BTreeMap<String, f64>,
-}
-
-/// An arm's results over its seeds.
-#[derive(Clone, Debug, Serialize, ToSchema)]
-pub struct ArmResult {
-    pub label: String,
-    pub algorithm: String,
-    pub jobs: usize,
-    pub succeeded: usize,
-    /// Per metric: mean ± standard error over the seeds that have it, and the values.
-    pub metrics: BTreeMap<String, Summary>,
-}
-
-/// Every job's metrics and every arm's aggregate.
-pub async fn results(
-    store: &Store,
-    experiment: &ExperimentRecord,
-) -> Result<(Vec<JobResult>, Vec<ArmResult>), StoreError> {
-    let jobs = store.experiment_jobs(&experiment.id).await?;
-    let mut per_job = Vec::with_capacity(jobs.len());
-    for job in jobs {
-        per_job.push(job_result(store, job).await?);
-    }
-    // Arm by arm, each in the order of the experiment's seeds.
-    let spec = &experiment.spec;
-    let position = |job: &JobResult| {
-        let arm = spec.arms.iter().position(|a| a.label() == job.arm);
-        (arm, spec.seeds.iter().position(|&s| s == job.seed))
-    };
-    per_job.sort_by_key(position);
-    let arms = experiment
-        .spec
-        .arms
-        .iter()
-        .map(|arm| {
-            let label = arm.label();
-            let mine: Vec<&JobResult> = per_job.iter().filter(|j| j.arm == label).collect();
-            let names: BTreeSet<&String> = mine.iter().flat_map(|j| j.metrics.keys()).collect();
-            let metrics = names
-                .into_iter()
-                .filter_map(|name| {
-                    let values = mine.iter().filter_map(|j| j.metrics.get(name).copied()).collect();
-                    Summary::of(values).map(|s| (name.clone(), s))
-                })
-                .collect();
-            ArmResult {
-                algorithm: arm.algorithm.to_string(),
-                jobs: mine.len(),
-                succeeded: mine.iter().filter(|j| j.status == JobStatus::Succeeded).count(),
-                label,
-                metrics,
-            }
-        })
-        .collect();
-    Ok((per_job, arms))
-}
-
-async fn job_result(store: &Store, job: JobRecord) -> Result<JobResult, StoreError> {
-    let (metrics_from, metrics) = match &job.policy_id {
-        Some(policy) => match newest_evaluation(store, policy.as_str()).await? {
-            Some(found) => (Some(found.0), found.1),
-            None => in_training(store, &job).await?,
-        },
-        None => in_training(store, &job).await?,
-    };
-    Ok(JobResult {
-        job_id: job.id.to_string(),
-        arm: job.experiment.map(|(_, arm)| arm).unwrap_or_default(),
-        seed: job.config.seed(),
-        status: job.status,
-        policy_id: job.policy_id.map(|p| p.into_string()),
-        metrics_from,
-        metrics,
-    })
-}
-
-/// The newest succeeded evaluation of a policy: (where from, metrics).
-async fn newest_evaluation(
-    store: &Store,
-    policy: &str,
-) -> Result<Option<(String, BTreeMap<String, f64>)>, StoreError> {
-    let page = PageQuery { limit: 100, offset: 0, after: None };
-    let (evaluations, _) = store.list_evaluations(Some(policy), &page).await?;
-    Ok(evaluations.into_iter().find_map(|e| {
-        let report = e.report?;
-        let source = match e.training_step {
-            Some(step) => format!("taken at training step {step}"),
-            None => e.source.as_str().to_owned(),
-        };
-        let from = format!("evaluation {} ({source}, {})", e.id, report.env);
-        Some((from, named(report.metrics.named_values().to_vec())))
-    }))
-}
-
-/// The job's last in-training `eval/*` values, if it evaluated itself.
-async fn in_training(
-    store: &Store,
-    job: &JobRecord,
-) -> Result<(Option<String>, BTreeMap<String, f64>), StoreError> {
-    let last = store.last_metric_values(&job.id).await?;
-    let metrics = named(last.iter().map(|(n, v)| (n.as_str(), *v)).collect());
-    let from = (!metrics.is_empty()).then(|| "in-training eval".to_owned());
-    Ok((from, metrics))
-}
-
-/// `eval/<name>` values under their plain names.
-fn named<S: AsRef<str>>(values: Vec<(S, f64)>) -> BTreeMap<String, f64> {
-    values
-        .into_iter()
-        .filter_map(|(name, v)| Some((name.as_ref().strip_prefix("eval/")?.to_owned(), v)))
-        .collect()
 }

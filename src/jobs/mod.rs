@@ -21,6 +21,7 @@
 pub mod evaluations;
 pub mod experiments;
 pub mod fleet;
+pub mod results;
 pub mod submit;
 mod training;
 mod worker;

@@ -9,7 +9,8 @@ use super::datasets::DeleteOutcome;
 use super::leases::{self, Lease, LeaseTable};
 use super::{now, parse_optional_time, parse_time, Listing, PageQuery, Store, StoreError};
 use crate::domain::{
-    EvalSpec, EvaluationId, EvaluationRecord, EvaluationSource, EvaluationStatus, PolicyId,
+    EvalRuntime, EvalSpec, EvaluationId, EvaluationRecord, EvaluationSource, EvaluationStatus,
+    PolicyId,
 };
 use crate::envs::EvalReport;
 
@@ -24,6 +25,8 @@ struct EvaluationRow {
     deterministic: i64,
     status: String,
     source: String,
+    /// NULL on rows older than the column: read by `source`.
+    runtime: Option<String>,
     /// JSON of `envs::EvalReport`, once succeeded.
     report: Option<String>,
     error: Option<String>,
@@ -42,6 +45,11 @@ impl TryFrom<EvaluationRow> for EvaluationRecord {
         };
         let status = row.status.parse().map_err(|e: String| corrupt("status", &e))?;
         let source = row.source.parse().map_err(|e: String| corrupt("source", &e))?;
+        let runtime = match (row.runtime.as_deref(), source) {
+            (Some(runtime), _) => runtime.parse().map_err(|e: String| corrupt("runtime", &e))?,
+            (None, EvaluationSource::Builtin) => EvalRuntime::Builtin,
+            (None, EvaluationSource::External) => EvalRuntime::Unspecified,
+        };
         // One unreadable report (older versions stored metrics that overflowed, as null) must
         // not take down every list it is in: the row reads without it, saying why.
         let (report, error) = match row.report.as_deref().map(serde_json::from_str::<EvalReport>) {
@@ -68,6 +76,7 @@ impl TryFrom<EvaluationRow> for EvaluationRecord {
             },
             status,
             source,
+            runtime,
             report,
             error,
             training_step: row.training_step.map(|step| step as u64),
@@ -81,12 +90,13 @@ pub struct NewEvaluation {
     pub id: EvaluationId,
     pub policy_id: PolicyId,
     pub spec: EvalSpec,
-    /// An external evaluation's report: recorded as `succeeded` (None: queued for a worker).
-    pub report: Option<EvalReport>,
+    /// An external evaluation's runtime and report: recorded as `succeeded` (None: queued for
+    /// a worker).
+    pub recorded: Option<(EvalRuntime, EvalReport)>,
 }
 
 const EVALUATION_COLUMNS: &str = "id, policy_id, env, episodes, seed, deterministic, status, \
-     source, report, error, training_step, created_at, started_at, finished_at";
+     source, runtime, report, error, training_step, created_at, started_at, finished_at";
 
 /// The ids of the queued or running evaluations among `evaluations e` joined and filtered by
 /// `joined_where` (whose `$1` is `id`), inside the caller's transaction: what keeps a policy,
@@ -120,8 +130,8 @@ pub(super) async fn insert_training_evaluation(
         .map_err(|e| StoreError::Corrupt("evaluation report".into(), e.to_string()))?;
     sqlx::query(
         "INSERT INTO evaluations (id, policy_id, env, episodes, seed, deterministic, status, \
-         source, report, training_step, created_at, started_at, finished_at) \
-         VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10, $11, $11, $11)",
+         source, runtime, report, training_step, created_at, started_at, finished_at) \
+         VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10, $11, $12, $12, $12)",
     )
     .bind(EvaluationId::generate().as_str())
     .bind(policy_id)
@@ -132,6 +142,7 @@ pub(super) async fn insert_training_evaluation(
     .bind(i64::from(report.deterministic))
     .bind(EvaluationStatus::Succeeded.as_str())
     .bind(EvaluationSource::Builtin.as_str())
+    .bind(EvalRuntime::Builtin.as_str())
     .bind(json)
     .bind(evaluation.step as i64)
     .bind(now)
@@ -166,12 +177,19 @@ impl Store {
         evaluation: &NewEvaluation,
     ) -> Result<EvaluationRecord, StoreError> {
         let now = now();
-        let (status, source, report, finished_at) = match &evaluation.report {
-            None => (EvaluationStatus::Queued, EvaluationSource::Builtin, None, None),
-            Some(report) => {
+        let (status, source, runtime, report, finished_at) = match &evaluation.recorded {
+            None => (
+                EvaluationStatus::Queued,
+                EvaluationSource::Builtin,
+                EvalRuntime::Builtin,
+                None,
+                None,
+            ),
+            Some((runtime, report)) => {
                 let json = serde_json::to_string(report)
                     .map_err(|e| StoreError::Corrupt("evaluation report".into(), e.to_string()))?;
-                (EvaluationStatus::Succeeded, EvaluationSource::External, Some(json), Some(&now))
+                let succeeded = EvaluationStatus::Succeeded;
+                (succeeded, EvaluationSource::External, *runtime, Some(json), Some(&now))
             }
         };
         let mut tx = self.begin_write().await?;
@@ -188,8 +206,8 @@ impl Store {
         }
         sqlx::query(
             "INSERT INTO evaluations (id, policy_id, env, episodes, seed, deterministic, status, \
-             source, report, created_at, started_at, finished_at) \
-             VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10, $11, $11)",
+             source, runtime, report, created_at, started_at, finished_at) \
+             VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10, $11, $12, $12)",
         )
         .bind(evaluation.id.as_str())
         .bind(evaluation.policy_id.as_str())
@@ -200,6 +218,7 @@ impl Store {
         .bind(i64::from(evaluation.spec.deterministic))
         .bind(status.as_str())
         .bind(source.as_str())
+        .bind(runtime.as_str())
         .bind(report)
         .bind(&now)
         .bind(finished_at)

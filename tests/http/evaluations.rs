@@ -3,7 +3,7 @@
 //! exactly the metrics of evaluating the downloaded weights locally; bad requests get their exact
 //! status and store nothing; an evaluation interrupted by a restart runs again.
 
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 use crate::support::app::{assert_error, TestApp};
 use crate::support::jobs::*;
@@ -32,20 +32,6 @@ async fn trained_bc(app: &TestApp, unlabeled: &str) -> Value {
         j["status"] == "succeeded"
     })
     .await
-}
-
-async fn wait_for_evaluation(app: &TestApp, location: &str) -> Value {
-    let started = Instant::now();
-    loop {
-        let evaluation = get_json(&app.client, &app.url(location)).await;
-        match evaluation["status"].as_str().unwrap() {
-            "succeeded" => return evaluation,
-            "failed" => panic!("evaluation failed: {evaluation}"),
-            _ => {}
-        }
-        assert!(started.elapsed() < Duration::from_secs(120), "evaluation stuck: {evaluation}");
-        tokio::time::sleep(Duration::from_millis(20)).await;
-    }
 }
 
 /// Equal up to the last bit or so: numbers cross JSON, whose parser (serde_json without
@@ -140,7 +126,7 @@ async fn jobs_record_eval_metrics_and_evaluations_match_a_local_run() {
         (queued["episodes"].as_u64(), queued["deterministic"].as_bool()),
         (Some(200), Some(false))
     );
-    let done = wait_for_evaluation(&app, &location).await;
+    let done = wait_for_evaluation(&app.client, &app.base_url, &location).await;
     let local = envs::evaluate("six-rooms", act, 200, 9, false).unwrap();
     assert_same_numbers(&done["metrics"], &serde_json::to_value(&local.metrics).unwrap());
     assert_same_numbers(&done["reference"], &serde_json::to_value(&local.reference).unwrap());
@@ -401,7 +387,7 @@ async fn an_evaluation_left_running_by_a_dead_process_runs_again_at_start() {
     .unwrap();
     drop(db);
     app.restart().await;
-    let done = wait_for_evaluation(&app, "/v1/evaluations/e1").await;
+    let done = wait_for_evaluation(&app.client, &app.base_url, "/v1/evaluations/e1").await;
     let policy = download_policy(&app, policy_id).await;
     let act = |obs: &[f32], det: bool, rng: &mut ChaCha8Rng| policy.act(obs, det, rng);
     let local = envs::evaluate("six-rooms", act, 50, 1, true).unwrap();

@@ -1,7 +1,8 @@
 //! Experiments through the real server: a grid of algorithms × seeds queued as jobs, its
-//! results equal to a hand computation from the per-seed values (mean, standard error), an
-//! on-demand evaluation taking the place of the in-training one, CSV, cancel and delete of the
-//! whole grid, and bad requests refused with the field named and nothing stored.
+//! results equal to a hand computation from the per-seed values (mean, standard error), later
+//! evaluations of one seed kept under their own protocols without moving the means, CSV, cancel
+//! and delete of the whole grid, and bad requests refused with the field named and nothing
+//! stored.
 
 use std::time::{Duration, Instant};
 
@@ -105,46 +106,99 @@ async fn a_grid_runs_as_jobs_and_reports_mean_and_standard_error_per_algorithm()
         );
     }
 
-    // An on-demand evaluation of a policy replaces that job's in-training numbers.
+    // One protocol so far: every job's evaluation at the end of training.
+    let trained = "runtime=builtin;actions=sampled;episodes=8;seed=1;env=six-rooms";
+    assert_eq!(
+        (done["protocol"]["key"].as_str(), done["protocol_choice"].as_str()),
+        (Some(trained), Some("shared_by_all"))
+    );
+    assert_eq!(done["protocols"].as_array().map(Vec::len), Some(1));
+    assert_eq!(done["protocols"][0]["jobs"], 6);
+
+    // Seed 5 of BC evaluated twice more, deterministically and in the user's own simulator: two
+    // protocols beside the first, and the means over the seeds do not move.
     let first = &done["jobs"][0];
     let policy = first["policy_id"].as_str().unwrap();
+    let queued = app
+        .post(&format!("/v1/policies/{policy}/evaluate"))
+        .json(&json!({"env": "six-rooms", "episodes": 8, "seed": 1, "deterministic": true}))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(queued.status(), StatusCode::ACCEPTED);
+    let location = queued.headers()["location"].to_str().unwrap().to_owned();
+    let deterministic = wait_for_evaluation(&app.client, &app.base_url, &location).await;
+    let deterministic_key = "runtime=builtin;actions=deterministic;episodes=8;seed=1;env=six-rooms";
+    assert_eq!(deterministic["protocol"]["key"], deterministic_key);
     let recorded = app
         .post(&format!("/v1/policies/{policy}/evaluations"))
         .json(&json!({"env": "my-sim", "returns": [1.0, 3.0], "costs": [0.0, 2.0],
+                      "runtime": "onnx", "deterministic": true,
                       "reference": {"preferred_return": 4.0, "preferred_cost": 0.0,
                                     "non_preferred_return": 4.0, "non_preferred_cost": 4.0}}))
         .send()
         .await
         .unwrap();
     assert_eq!(recorded.status(), StatusCode::CREATED);
+    let recorded: Value = recorded.json().await.unwrap();
+    let external_key = "runtime=onnx;actions=deterministic;episodes=2;seed=0;env=my-sim";
+    assert_eq!(
+        (&recorded["runtime"], &recorded["protocol"]["key"]),
+        (&json!("onnx"), &json!(external_key))
+    );
     let again = get_json(&app.client, &app.url(&format!("/v1/experiments/{id}"))).await;
+    assert_eq!(again["results"], done["results"], "a stray evaluation never moves a mean");
+    assert_eq!(again["protocol"], done["protocol"]);
+    let protocols: Vec<(&str, u64)> = again["protocols"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|p| (p["protocol"]["key"].as_str().unwrap(), p["jobs"].as_u64().unwrap()))
+        .collect();
+    assert_eq!(protocols, [(trained, 6), (external_key, 1), (deterministic_key, 1)]);
     let job = &again["jobs"][0];
+    assert_eq!(job["protocols"], json!([external_key, deterministic_key, trained]));
+    assert_eq!(job["protocol"], trained);
+
+    // Asked for, the recorded protocol: seed 5 of BC alone has numbers, and BC's mean is its.
+    let url = app.url(&format!("/v1/experiments/{id}"));
+    let response = app.client.get(&url).query(&[("protocol", external_key)]).send().await.unwrap();
+    assert_eq!(response.status(), StatusCode::OK);
+    let external: Value = response.json().await.unwrap();
+    assert_eq!(external["protocol_choice"], "requested");
+    let job = &external["jobs"][0];
     assert!(job["metrics_from"].as_str().unwrap().contains("external, my-sim"), "{job}");
     assert_eq!(
         (job["metrics"]["normalized_return"].as_f64(), job["metrics"]["average_cost"].as_f64()),
         (Some(50.0), Some(1.0))
     );
+    assert_eq!(external["jobs"][1]["metrics"], json!({}));
+    assert_eq!(external["jobs"][1]["protocol"], Value::Null);
+    let bc = &external["results"][0]["metrics"]["normalized_return"];
+    assert_eq!((bc["n"].as_u64(), bc["mean"].as_f64()), (Some(1), Some(50.0)));
+    assert_eq!(external["results"][1]["metrics"], json!({}));
+    let unknown = app.client.get(&url).query(&[("protocol", "runtime=act")]).send().await.unwrap();
+    let message = assert_error(unknown, StatusCode::BAD_REQUEST, "unknown_protocol").await;
+    assert!(message.contains(trained) && message.contains(external_key), "{message}");
 
+    // The CSV: every protocol's values and aggregates, each labelled with its protocol.
     let csv = app.get(&format!("/v1/experiments/{id}/results.csv")).send().await.unwrap();
     assert_eq!(csv.headers()["content-type"], "text/csv");
     let csv = csv.text().await.unwrap();
     let mut lines = csv.lines();
-    assert_eq!(lines.next(), Some("arm,algorithm,seed,job_id,metric,value"));
-    let mean_row = lines
-        .clone()
-        .find(|l| l.starts_with("safedice-small,safedice,mean,,normalized_return,"))
-        .unwrap();
+    assert_eq!(lines.next(), Some("arm,algorithm,protocol,stat,seed,job_id,metric,value"));
+    let mean_row = format!("safedice-small,safedice,{trained},mean,,,normalized_return,");
+    let mean_row = lines.clone().find(|l| l.starts_with(&mean_row)).unwrap();
     let mean: f64 = mean_row.rsplit(',').next().unwrap().parse().unwrap();
     let arm = &again["results"][1]["metrics"]["normalized_return"]["mean"];
     assert_eq!(mean, arm.as_f64().unwrap());
-    assert_eq!(
-        lines
-            .filter(|l| l.contains(",normalized_return,")
-                && !l.contains(",mean,")
-                && !l.contains(",se,"))
-            .count(),
-        6
-    );
+    let values = |key: &str| {
+        let prefix = format!(",{key},value,");
+        lines.clone().filter(|l| l.contains(&prefix) && l.contains(",normalized_return,")).count()
+    };
+    assert_eq!((values(trained), values(deterministic_key), values(external_key)), (6, 1, 1));
+    let n_row = format!("bc,bc,{external_key},n,,,normalized_return,1");
+    assert!(lines.clone().any(|l| l == n_row), "{csv}");
 
     let listed = get_json(&app.client, &app.url("/v1/experiments")).await;
     assert_eq!(

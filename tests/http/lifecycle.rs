@@ -266,7 +266,8 @@ async fn deletes_follow_their_rules_and_remove_everything_they_say() {
         .await
         .unwrap();
     let evaluation_id = evaluation["id"].as_str().unwrap().to_owned();
-    wait_for_evaluation(&app, &evaluation_id).await;
+    let location = format!("/v1/evaluations/{evaluation_id}");
+    wait_for_evaluation(&app.client, &app.base_url, &location).await;
 
     // An evaluation alone; then the job with its policy and the rest of its records.
     let deleted = app.delete(&format!("/v1/evaluations/{evaluation_id}")).send().await.unwrap();
@@ -395,17 +396,6 @@ async fn a_policy_deleted_while_its_first_act_loads_it_is_never_served_again() {
         "{RACES} races: first /act {first_load:?}, loaded /act {loaded:?}; racing /act \
          answered {answers:?}"
     );
-}
-
-async fn wait_for_evaluation(app: &TestApp, id: &str) -> Value {
-    for _ in 0..2400 {
-        let evaluation = get_json(&app.client, &app.url(&format!("/v1/evaluations/{id}"))).await;
-        if evaluation["status"] == "succeeded" || evaluation["status"] == "failed" {
-            return evaluation;
-        }
-        tokio::time::sleep(Duration::from_millis(50)).await;
-    }
-    panic!("evaluation {id} did not finish");
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

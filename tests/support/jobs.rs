@@ -89,6 +89,22 @@ pub async fn wait_for_status(client: &Client, base_url: &str, id: &str, status: 
         .await
 }
 
+/// Polls the evaluation at `location` (`/v1/evaluations/<id>`) until it succeeds; panics if it
+/// fails or takes over two minutes.
+pub async fn wait_for_evaluation(client: &Client, base_url: &str, location: &str) -> Value {
+    let started = Instant::now();
+    loop {
+        let evaluation = get_json(client, &format!("{base_url}{location}")).await;
+        match evaluation["status"].as_str().unwrap() {
+            "succeeded" => return evaluation,
+            "failed" => panic!("evaluation failed: {evaluation}"),
+            _ => {}
+        }
+        assert!(started.elapsed() < Duration::from_secs(120), "evaluation stuck: {evaluation}");
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+}
+
 /// Every grid cell as a one-hot observation.
 pub fn grid_observations() -> Vec<Vec<f32>> {
     (0..GRID_OBS_DIM)
