@@ -827,41 +827,43 @@ function showEvaluation(job, series, slots) {
 
 // ---------- compare ----------
 
-/** The last recorded value of every metric of a job (max_points=2 keeps the last point exactly). */
-async function finalMetrics(job) {
+/** The last recorded value of every training diagnostic of a job (max_points=2 keeps the last
+ *  point exactly); its `eval/*` values come from /v1/results, under one protocol. */
+async function finalDiagnostics(job) {
   const metrics = await api(`/v1/jobs/${job.id}/metrics?max_points=2`);
   const last = {};
-  for (const row of metrics.rows) last[row.name] = row.value;
+  for (const row of metrics.rows) if (!row.name.startsWith('eval/')) last[row.name] = row.value;
   return last;
 }
 
-/** A stored evaluation's metrics under the names a job's `eval` block records them with. */
-function evaluationValues(e) {
-  const m = e.metrics;
-  return {
-    'eval/normalized_return': m.normalized_return, 'eval/average_return': m.average_return,
-    'eval/return_std': m.return_std, 'eval/average_cost': m.average_cost, 'eval/cost_std': m.cost_std,
-    'eval/cost_violation_ratio': m.cost_violation_ratio, 'eval/cvar_cost_50': m.cvar_cost['50'],
-    'eval/cvar_cost_20': m.cvar_cost['20'], 'eval/cvar_cost_10': m.cvar_cost['10'],
-    'eval/cvar_cost_5': m.cvar_cost['5'], 'eval/normalized_cost': m.normalized_cost,
-  };
+/** The jobs' paper metrics under one evaluation protocol (the server's rule, as an experiment's
+ *  results follow it): `protocol` a key, or null for the default. A protocol none of them has
+ *  any more falls back to the default. */
+async function comparedResults(chosen, protocol) {
+  const params = { jobs: chosen.map((j) => j.id).join(','), protocol };
+  try {
+    return await api(withParams('/v1/results', params));
+  } catch (err) {
+    if (err.status !== 400 || !protocol) throw err;
+    return api(withParams('/v1/results', { jobs: params.jobs }));
+  }
 }
 
-/** Where an evaluation's episodes ran, in words. */
-function evaluationKind(e) {
-  if (e.training_step != null) return `at the end of training (step ${fmt(e.training_step)})`;
-  return e.source === 'external' ? 'in your simulator' : 'after training';
-}
-
-/** A job's numbers for Compare: the last value of every metric it recorded, with the paper's
- *  metrics from its policy's newest succeeded evaluation where it has one (run after training,
- *  recorded from your simulator, or taken at the end of training) — the rule an experiment's
- *  results follow. */
-async function comparedValues(job) {
-  const [last, evaluations] = await Promise.all([finalMetrics(job),
-    job.policy_id ? api(`/v1/evaluations?policy_id=${job.policy_id}&limit=50`) : { items: [] }]);
-  const evaluation = evaluations.items.find((e) => e.status === 'succeeded' && e.metrics) || null;
-  return { values: evaluation ? { ...last, ...evaluationValues(evaluation) } : last, evaluation };
+/** Which protocol the numbers are under, and a picker when the jobs have several. */
+function protocolPicker(results, onPick) {
+  if (!results.protocol) return null;
+  if (results.protocols.length === 1) {
+    return h('p', { class: 'hint', id: 'compare-protocol-line' }, 'Evaluation protocol: ',
+      h('span', { id: 'compare-protocol', 'data-key': results.protocol.key }, results.protocol.label), '.');
+  }
+  const evaluated = results.jobs.filter((j) => j.protocols.length).length;
+  const select = h('select', { id: 'compare-protocol', 'aria-label': 'Evaluation protocol', onchange: () => onPick(select.value) },
+    results.protocols.map((p) => h('option', { value: p.protocol.key, selected: p.protocol.key === results.protocol.key },
+      `${p.protocol.label} (${p.jobs} of ${evaluated} jobs)`)));
+  const why = results.protocol_choice === 'most_jobs' ? ' No protocol is shared by every job: shown, the one most of them have.' : '';
+  return h('div', { class: 'notice', id: 'compare-mixed' },
+    h('p', {}, `These jobs were evaluated under ${results.protocols.length} protocols; the numbers below are under one of them, never mixed.${why}`),
+    h('label', { class: 'protocol-pick' }, 'Compare under ', select));
 }
 
 // The paper's metrics, in the order the paper reports them; everything else a job records is a
@@ -880,11 +882,12 @@ function comparePage(view) {
   const output = h('div', { id: 'compare-output' });
   view.append(h('h1', {}, 'Compare finished jobs'),
     h('div', { class: 'card' }, h('h2', {}, 'Jobs'), picker, more,
-      h('p', { class: 'hint' }, 'The paper’s metrics (normalized return, average cost, violation ratio, CVaR) come first, from the newest evaluation of each job’s policy (after training, from your simulator, or at the end of training), else from its last evaluation during training; the training diagnostics are listed below them.')),
+      h('p', { class: 'hint' }, 'The paper’s metrics (normalized return, average cost, violation ratio, CVaR) come first, from the newest evaluation of each job’s policy under one evaluation protocol (environment, episodes, seed, deterministic or sampled, runtime), else from its last evaluation during training; the training diagnostics are listed below them.')),
     output);
   const cache = new Map();
   const jobs = [];
   let nextToken = null;
+  let protocol = null; // the key picked; null: the server's default
   const showDiagnostics = h('input', { type: 'checkbox', id: 'scatter-diagnostics' });
   const fromZero = h('input', { type: 'checkbox', id: 'scatter-zero', checked: true });
 
@@ -894,11 +897,13 @@ function comparePage(view) {
       output.replaceChildren(h('div', { class: 'empty' }, 'Tick two or more jobs above to compare them.'));
       return;
     }
-    const compared = await Promise.all(chosen.map(async (j) => {
-      if (!cache.has(j.id)) cache.set(j.id, await comparedValues(j));
-      return cache.get(j.id);
-    }));
-    const finals = compared.map((c) => c.values);
+    const [results, diagnosticsOf] = await Promise.all([comparedResults(chosen, protocol),
+      Promise.all(chosen.map(async (j) => {
+        if (!cache.has(j.id)) cache.set(j.id, await finalDiagnostics(j));
+        return cache.get(j.id);
+      }))]);
+    const finals = results.jobs.map((r, i) => ({ ...diagnosticsOf[i],
+      ...Object.fromEntries(Object.entries(r.metrics).map(([n, v]) => [`eval/${n}`, v])) }));
     const recorded = new Set(finals.flatMap((f) => Object.keys(f)));
     const paper = PAPER_METRICS.filter((n) => recorded.has(n));
     const diagnostics = [...recorded].filter((n) => !PAPER_METRICS.includes(n)).sort();
@@ -909,26 +914,29 @@ function comparePage(view) {
       ['α̂', chosen.map((j) => j.alpha_hat)],
       ['iterations', chosen.map((j) => j.config.iterations)],
       ['seed', chosen.map((j) => j.config.seed)],
-      ['evaluated on', compared.map(({ evaluation: e }, i) => (e ? `${e.env} · ${fmt(e.episodes)} episodes`
-        : chosen[i].eval && finals[i]['eval/normalized_return'] !== undefined ? `${chosen[i].eval.env} · ${fmt(chosen[i].eval.episodes)} episodes` : null))],
-      ['evaluation', compared.map(({ evaluation: e }, i) => (e ? evaluationKind(e)
-        : finals[i]['eval/normalized_return'] !== undefined ? 'during training' : null))],
+      ['evaluation', results.jobs.map((r) => r.metrics_from)],
     ];
-    const unevaluated = chosen.filter((j, i) => finals[i]['eval/normalized_return'] === undefined);
+    const unevaluated = chosen.filter((j, i) => !results.jobs[i].protocols.length);
+    const otherProtocol = chosen.filter((j, i) => results.jobs[i].protocols.length && !results.jobs[i].protocol);
     const table = tableWrap(h('table', { id: 'compare-table' }, h('thead', {}, head),
       h('tbody', {}, facts.map(([label, values]) => h('tr', { 'data-fact': label }, h('td', {}, label), values.map((v) => h('td', { class: 'num' }, fmt(v))))),
-        paper.length ? h('tr', { class: 'section' }, h('td', { colspan: chosen.length + 1 }, 'Paper metrics (newest evaluation)')) : null,
+        paper.length ? h('tr', { class: 'section' }, h('td', { colspan: chosen.length + 1 }, 'Paper metrics (newest evaluation under the protocol)')) : null,
         paper.map(metricRow))));
     const missing = unevaluated.length ? h('p', { class: 'hint', id: 'compare-unevaluated' },
       'No evaluation yet for ', unevaluated.map((j, i) => [i ? ', ' : '', j.policy_id
         ? h('a', { href: `#/policies/${j.policy_id}` }, jobTitle(j)) : jobTitle(j)]),
       ': evaluate a policy on its page (or record one from your simulator) to give it the paper’s metrics.') : null;
+    const notUnder = otherProtocol.length ? h('p', { class: 'hint', id: 'compare-other-protocol' },
+      'No evaluation under this protocol for ', otherProtocol.map((j, i) => [i ? ', ' : '', jobTitle(j)]),
+      ': pick another protocol above, or evaluate them under this one.') : null;
+    const picker2 = protocolPicker(results, (key) => { protocol = key; redraw(); });
     const diagnosticsTable = diagnostics.length ? h('details', { id: 'compare-diagnostics' },
       h('summary', {}, `Training diagnostics (${diagnostics.length})`),
       tableWrap(h('table', {}, h('tbody', {}, diagnostics.map(metricRow))))) : null;
     const exportCsv = h('button', { type: 'button', class: 'secondary', id: 'compare-csv', onclick: () => saveCsv([
       ['metric', ...chosen.map((j) => `${jobTitle(j)} (${j.id})`)],
       ['algorithm', ...chosen.map((j) => j.algorithm)],
+      ['protocol', ...results.jobs.map((r) => r.protocol || '')],
       ...facts.map(([label, values]) => [label, ...values]),
       ...[...paper, ...diagnostics].map((n) => [n, ...finals.map((f) => f[n])]),
     ], 'compare.csv') }, 'Export CSV');
@@ -972,7 +980,7 @@ function comparePage(view) {
     showDiagnostics.onchange = () => { fillAxes(); drawScatter(); };
     fillAxes();
     output.replaceChildren(h('div', { class: 'grid2' },
-      h('div', { class: 'card' }, h('div', { class: 'card-head' }, h('h2', {}, 'Side by side'), exportCsv), table, missing, diagnosticsTable),
+      h('div', { class: 'card' }, h('div', { class: 'card-head' }, h('h2', {}, 'Side by side'), exportCsv), picker2, table, missing, notUnder, diagnosticsTable),
       h('div', { class: 'card' }, h('h2', {}, 'Scatter'),
         h('div', { class: 'axis-pick' }, 'x', xSelect, 'y', ySelect),
         h('div', { class: 'axis-options' }, h('label', {}, fromZero, ' axes from 0'), h('label', {}, showDiagnostics, ' offer training diagnostics')),

@@ -195,9 +195,30 @@ function experimentSummary(e, actions) {
       ' page, tag filter). Delete removes the jobs, their metrics and policies, once none is queued or running.')];
 }
 
+/** Which evaluation protocol the results are under, and the others the jobs have results under
+ *  (a select when there are several: means are taken within one protocol, never across). */
+function protocolLine(e, onProtocol) {
+  if (!e.protocol) return null;
+  const withResults = e.jobs.filter((j) => j.protocols.length).length;
+  if (e.protocols.length === 1) {
+    return h('p', { class: 'hint', id: 'experiment-protocol-line' }, 'Evaluation protocol: ',
+      h('span', { id: 'experiment-protocol', 'data-key': e.protocol.key }, e.protocol.label), '.');
+  }
+  const select = h('select', { id: 'experiment-protocol', 'aria-label': 'Evaluation protocol',
+    onchange: () => onProtocol(select.value) },
+  e.protocols.map((p) => h('option', { value: p.protocol.key, selected: p.protocol.key === e.protocol.key },
+    `${p.protocol.label} (${p.jobs} of ${withResults} jobs)`)));
+  const why = e.protocol_choice === 'most_jobs'
+    ? ' No protocol is shared by every job; shown: the one most jobs have, and the means leave out the jobs without it.'
+    : '';
+  return h('div', { class: 'notice', id: 'experiment-mixed' },
+    h('p', {}, `The jobs were evaluated under ${e.protocols.length} protocols (environment, episodes, seed, deterministic or sampled actions, runtime). Means are over one protocol, never across them.${why}`),
+    h('label', { class: 'protocol-pick' }, 'Show results under ', select));
+}
+
 /** The results table: per arm the paper's metrics as mean ± SE and the seeds they are over; a
  *  toggle shows each seed's values with its job and policy. */
-function resultsTable(e, expanded, onToggle) {
+function resultsTable(e, expanded, onToggle, onProtocol) {
   const shown = EXPERIMENT_METRICS.filter((m) => m.key !== 'normalized_cost'
     || e.results.some((r) => r.metrics[m.key]));
   const jobsOf = (label) => e.jobs.filter((j) => j.arm === label).sort((a, b) => e.seeds.indexOf(a.seed) - e.seeds.indexOf(b.seed));
@@ -222,17 +243,18 @@ function resultsTable(e, expanded, onToggle) {
         j.policy_id ? [' · ', h('a', { href: `#/policies/${j.policy_id}`, class: 'policy-link', title: 'the policy' }, 'policy')] : null),
       h('td', {}, statusPill(j.status)),
       shown.map((m) => h('td', { class: 'num seed-value', 'data-metric': m.key }, fmt(j.metrics[m.key], 4))),
-      h('td', { class: 'muted' }, j.metrics_from || 'no metrics yet')));
+      h('td', { class: 'muted' }, j.metrics_from
+        || (j.protocols.length ? 'no evaluation under this protocol' : 'no metrics yet'))));
     return [armRow, seedRows];
   });
   const anyMetrics = e.jobs.some((j) => Object.keys(j.metrics).length);
-  return [h('h2', {}, 'Results per algorithm'),
+  return [h('h2', {}, 'Results per algorithm'), protocolLine(e, onProtocol),
     tableWrap(h('table', { id: 'experiment-results-table' },
       h('thead', {}, h('tr', {}, h('th', {}, 'Algorithm'), h('th', { class: 'num' }, 'Seeds'),
         shown.map((m) => h('th', { class: 'num', 'data-metric': m.key }, m.label)), h('th', {}, ''))),
       h('tbody', {}, rows))),
     h('p', { class: 'hint' }, anyMetrics
-      ? 'Mean ± standard error over the seeds (sample standard deviation / √n). Each seed’s metrics come from its policy’s newest evaluation, else from the job’s last in-training evaluation.'
+      ? 'Mean ± standard error over the seeds (sample standard deviation / √n). Each seed’s metrics come from its policy’s newest evaluation under the protocol shown, else from the job’s last in-training evaluation.'
       : 'No job has metrics yet: they come from each policy’s newest evaluation, or from the jobs’ in-training evaluation (the eval block).')];
 }
 
@@ -358,10 +380,14 @@ function experimentPage(view, id) {
   let experiment = null;
   let built = false;
   let polling = false;
+  let protocol = null; // the key the user picked; null: the server's default
 
   const drawResults = () => results.replaceChildren(...resultsTable(experiment, expanded, (label) => {
     if (expanded.has(label)) expanded.delete(label); else expanded.add(label);
     drawResults();
+  }, (key) => {
+    protocol = key;
+    load().catch((err) => notice.replaceChildren(errorBox(err)));
   }));
   const actions = {
     csv: (path) => download(path, `experiment-${id}.csv`).catch((err) => notice.replaceChildren(errorBox(err))),
@@ -388,8 +414,18 @@ function experimentPage(view, id) {
     }),
   };
 
+  const fetchExperiment = async () => {
+    try {
+      return await api(protocol ? withParams(`/v1/experiments/${id}`, { protocol }) : `/v1/experiments/${id}`);
+    } catch (err) {
+      // The picked protocol's evaluations were deleted: back to the default.
+      if (err.status !== 400 || !protocol) throw err;
+      protocol = null;
+      return api(`/v1/experiments/${id}`);
+    }
+  };
   const load = async () => {
-    const e = await api(`/v1/experiments/${id}`);
+    const e = await fetchExperiment();
     if (mine !== generation) return false;
     experiment = e;
     if (!built) {

@@ -151,6 +151,7 @@ pub struct ExternalEvaluation {
 }
 
 /// An external evaluation checked: what it is stored under, how the policy ran, its report.
+#[derive(Debug)]
 pub struct RecordedEvaluation {
     pub spec: EvalSpec,
     pub runtime: EvalRuntime,

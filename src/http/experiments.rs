@@ -14,15 +14,14 @@ use utoipa_axum::routes;
 use super::error::ErrorBody;
 use super::extract::{Json, Path, Query};
 use super::pagination::{Page, PageParams};
+use super::results::requested_protocol;
 use super::{ApiError, AppState};
 use crate::algo::Algorithm;
 use crate::domain::experiment::{Arm, ExperimentRecord};
 use crate::domain::labels::TagSchema;
 use crate::domain::{rfc3339, EvalProtocol, ExperimentId, JobStatus};
 use crate::jobs::experiments::{self, ExperimentRequest};
-use crate::jobs::results::{
-    self, ArmResult, ExperimentScores, JobResult, ProtocolChoice, ProtocolResult,
-};
+use crate::jobs::results::{self, ArmResult, JobResult, ProtocolChoice, ProtocolResult};
 use crate::jobs::{JobEvent, SubmitLimits};
 use crate::store::experiments::DeleteExperimentOutcome;
 use crate::store::jobs::CancelOutcome;
@@ -184,21 +183,6 @@ async fn resource(
         protocols: scores.protocols(),
         jobs: view.jobs,
         results: view.arms,
-    })
-}
-
-/// The protocol a `?protocol=` names, or 400 listing the experiment's.
-fn requested_protocol(scores: &ExperimentScores, key: &str) -> Result<EvalProtocol, ApiError> {
-    scores.protocol(key).ok_or_else(|| {
-        let known: Vec<String> = scores.protocols().into_iter().map(|p| p.protocol.key).collect();
-        ApiError::bad_request(
-            "unknown_protocol",
-            format!(
-                "protocol: no job of this experiment has a result under `{key}`; its protocols: \
-                 {}",
-                if known.is_empty() { "none yet".to_owned() } else { known.join(", ") }
-            ),
-        )
     })
 }
 

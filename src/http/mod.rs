@@ -27,6 +27,7 @@ pub mod openapi;
 pub mod pagination;
 pub mod policies;
 pub mod prometheus;
+pub mod results;
 pub mod serving;
 pub mod ui;
 
@@ -162,6 +163,7 @@ fn routes() -> OpenApiRouter<AppState> {
         .merge(policies::router())
         .merge(evaluations::router())
         .merge(experiments::router())
+        .merge(results::router())
         .merge(models::router())
         .merge(model_serving::router())
         .merge(inference::router())

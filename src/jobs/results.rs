@@ -6,7 +6,8 @@
 //! moves a mean.
 //!
 //! Which protocol a view shows: the one asked for, else the newest protocol every job with a
-//! result has, else (no protocol is shared) the one most jobs have, said as such.
+//! result has, else (no protocol is shared) the one most jobs have, said as such. The same rule
+//! serves an experiment's grid and any set of jobs compared side by side.
 
 use std::collections::{BTreeMap, BTreeSet};
 
@@ -94,7 +95,8 @@ struct JobScores {
     scored: Vec<Scored>,
 }
 
-/// Every job's results under every protocol.
+/// Every job's results under every protocol (with the arms they are grouped in, for an
+/// experiment).
 #[derive(Clone, Debug)]
 pub struct ExperimentScores {
     arms: Vec<Arm>,
@@ -126,6 +128,18 @@ pub async fn scores(
         (arm, spec.seeds.iter().position(|&s| s == scores.job.seed))
     });
     Ok(ExperimentScores { arms: spec.arms.clone(), jobs })
+}
+
+/// The results of the given jobs, in the order given (no arms: each job stands alone).
+pub async fn scores_of_jobs(
+    store: &Store,
+    jobs: Vec<JobRecord>,
+) -> Result<ExperimentScores, StoreError> {
+    let mut scored = Vec::with_capacity(jobs.len());
+    for job in jobs {
+        scored.push(job_scores(store, job).await?);
+    }
+    Ok(ExperimentScores { arms: Vec::new(), jobs: scored })
 }
 
 async fn job_scores(store: &Store, job: JobRecord) -> Result<JobScores, StoreError> {

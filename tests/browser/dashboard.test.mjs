@@ -655,6 +655,27 @@ test('compare shows the paper’s metrics side by side, exports them, and plots 
   const costLine = lines.find((l) => l.startsWith('eval/average_cost,'));
   assert.equal(Number(costLine.split(',')[bcColumn]), await last(created.body.id, 'eval/average_cost'));
   assert.ok(lines.some((l) => l.startsWith('alpha_hat,')));
+  const shared = 'runtime=builtin;actions=sampled;episodes=100;seed=0;env=six-rooms';
+  assert.deepEqual(lines.find((l) => l.startsWith('protocol,')).split(',').slice(1), [shared, shared]);
+
+  // The SafeDICE policy was also evaluated on 200 episodes and in a simulator (the policy test):
+  // the numbers above are under the protocol both jobs share, and the others are offered.
+  const options = await page.$$eval('#compare-protocol option', (os) => os.map((o) => [o.value, o.selected]));
+  assert.equal(options.length, 3, JSON.stringify(options));
+  assert.deepEqual(options.find(([, selected]) => selected), [shared, true]);
+  assert.match(await page.textContent('#compare-mixed'), /3 protocols/);
+  const wider = options.map(([key]) => key).find((key) => key.includes('episodes=200'));
+  await page.selectOption('#compare-protocol', wider);
+  await page.waitForSelector('#compare-other-protocol');
+  assert.match(await page.textContent('#compare-other-protocol'), /bc baseline/);
+  const under = await page.$$eval('.chart-box[data-chart="scatter"] g.point', (gs) => gs.map((g) => g.dataset.label));
+  assert.deepEqual(under, ['renamed in the browser']);
+  for (const width of [1400, 500]) {
+    await page.setViewportSize({ width, height: 900 });
+    await page.waitForTimeout(200);
+    assert.deepEqual(await layoutProblems(), [], `compare with a protocol picked at ${width}px`);
+  }
+  await page.setViewportSize({ width: 1360, height: 900 });
 });
 
 test('a model is created on the Models page, and a name that breaks the rule shows the server’s rule', async () => {
@@ -1008,11 +1029,31 @@ test('an experiment of 2 algorithms × 3 seeds is queued from the form and its p
   const anySpread = experiment.results.some((r) => r.metrics.normalized_return.se > 0 || r.metrics.average_cost.se > 0);
   if (anySpread) assert.ok(await page.$('.chart-box[data-chart="experiment-scatter"] line.error-bar'));
 
+  // One seed evaluated once more, deterministically: the page says the results are mixed, keeps
+  // the means under the protocol every seed has, and offers the other.
+  assert.equal(await page.textContent('#experiment-protocol'), 'six-rooms · 50 episodes · seed 0 · sampled · built-in');
+  const queued = await post(`/v1/policies/${experiment.jobs[0].policy_id}/evaluate`, { env: 'six-rooms', episodes: 50, deterministic: true });
+  assert.equal(queued.status, 202);
+  for (let i = 0; i < 600 && (await api(`/v1/evaluations/${queued.body.id}`)).body.status !== 'succeeded'; i++) await page.waitForTimeout(100);
+  await page.reload();
+  await page.waitForSelector('#experiment-mixed select#experiment-protocol');
+  assert.deepEqual((await api(`/v1/experiments/${id}`)).body.results, experiment.results);
+  const offered = await page.$$eval('#experiment-protocol option', (os) => os.map((o) => o.textContent));
+  assert.deepEqual(offered, ['six-rooms · 50 episodes · seed 0 · sampled · built-in (6 of 6 jobs)',
+    'six-rooms · 50 episodes · seed 0 · deterministic · built-in (1 of 6 jobs)']);
+  for (const width of [1400, 500]) {
+    await page.setViewportSize({ width, height: 900 });
+    await page.waitForTimeout(200);
+    assert.deepEqual(await layoutProblems(), [], `experiment with mixed protocols at ${width}px`);
+  }
+  await page.setViewportSize({ width: 1360, height: 900 });
+
   // The CSV of the results, one line per job and metric.
   const file = await downloaded(() => page.click('#experiment-csv'));
   const lines = file.bytes.toString().trim().split('\n');
-  assert.equal(lines[0], 'arm,algorithm,seed,job_id,metric,value');
-  assert.ok(lines.some((l) => l.startsWith(`bc,bc,0,${experiment.jobs.find((j) => j.arm === 'bc' && j.seed === 0).job_id},normalized_return,`)));
+  assert.equal(lines[0], 'arm,algorithm,protocol,stat,seed,job_id,metric,value');
+  const bcSeed0 = experiment.jobs.find((j) => j.arm === 'bc' && j.seed === 0);
+  assert.ok(lines.some((l) => l.startsWith(`bc,bc,${bcSeed0.protocol},value,0,${bcSeed0.job_id},normalized_return,`)));
 
   for (const width of [1400, 500]) {
     await page.setViewportSize({ width, height: 900 });
@@ -1109,8 +1150,7 @@ test('after demo --serve, Compare shows both policies’ paper metrics and a cos
   assert.deepEqual(rows, ['eval/normalized_return', 'eval/average_cost', 'eval/cost_violation_ratio',
     'eval/cvar_cost_50', 'eval/cvar_cost_20', 'eval/cvar_cost_10', 'eval/cvar_cost_5']);
   assert.equal(await page.$('#compare-unevaluated'), null);
-  const where = await page.$$eval('#compare-table tr[data-fact="evaluated on"] td.num', (tds) => tds.map((t) => t.textContent));
-  assert.deepEqual(where, ['six-rooms · 50 episodes', 'six-rooms · 50 episodes']);
+  assert.equal(await page.textContent('#compare-protocol'), 'six-rooms · 50 episodes · seed 0 · sampled · built-in');
   assert.equal(await page.inputValue('#scatter-x'), 'eval/average_cost');
   assert.equal(await page.inputValue('#scatter-y'), 'eval/normalized_return');
   const points = await page.$$eval('.chart-box[data-chart="scatter"] g.point', (gs) => gs.map((g) => ({ label: g.dataset.label, x: Number(g.dataset.x), y: Number(g.dataset.y) })));

@@ -216,14 +216,31 @@ def test_an_experiment_reports_mean_and_standard_error_per_algorithm(client: Cli
         eval={"env": "point-goal", "every": 60, "episodes": 10, "seed": 0},
         name="client grid",
     )
-    done = client.wait_experiment(experiment["id"], timeout=300)
+    seen = []
+    done = client.wait_experiment(experiment["id"], timeout=300, on_progress=seen.append)
     assert done["progress"]["succeeded"] == 4, done["progress"]
+    assert seen and seen[-1] == done["progress"], seen
     for arm in done["results"]:
         values = [j["metrics"]["normalized_return"] for j in done["jobs"] if j["arm"] == arm["label"]]
         summary = arm["metrics"]["normalized_return"]
         assert summary["values"] == values
         assert summary["mean"] == pytest.approx(np.mean(values))
         assert summary["se"] == pytest.approx(np.std(values, ddof=1) / np.sqrt(len(values)))
+    # One seed evaluated again over HTTP through act: a second protocol, the means unmoved.
+    first = done["jobs"][0]
+    client.record_evaluation(first["policy_id"], "my-sim", returns=[1.0, 3.0], costs=[0.0, 2.0],
+                             reference={"preferred_return": 4.0, "preferred_cost": 0.0,
+                                        "non_preferred_return": 4.0, "non_preferred_cost": 4.0},
+                             runtime="act")
+    again = client.experiment(experiment["id"])
+    assert again["results"] == done["results"]
+    keys = [p["protocol"]["key"] for p in again["protocols"]]
+    assert keys == [done["protocol"]["key"], "runtime=act;actions=sampled;episodes=2;seed=0;env=my-sim"]
+    under = client.experiment(experiment["id"], protocol=keys[1])
+    assert under["jobs"][0]["metrics"]["normalized_return"] == 50.0
+    side_by_side = client.results([j["job_id"] for j in done["jobs"]])
+    assert side_by_side["protocol"] == done["protocol"]
+    assert [j["metrics"] for j in side_by_side["jobs"]] == [j["metrics"] for j in done["jobs"]]
     assert experiment["id"] in [e["id"] for e in client.experiments()]
     client.delete_experiment(experiment["id"])
 
@@ -301,9 +318,12 @@ def test_a_policy_is_evaluated_in_gymnasium_over_http_and_locally_and_recorded(c
 
     reference = {"preferred_return": 500.0, "preferred_cost": 1.0,
                  "non_preferred_return": 300.0, "non_preferred_cost": 9.0}
-    recorded = client.evaluate(policy_id, env, episodes=4, seed=7, deterministic=True,
+    # local=True acts deterministically without being told; the record says it ran in ONNX.
+    recorded = client.evaluate(policy_id, env, episodes=4, seed=7,
                                reference=reference, cost=cart_off_centre, local=True)
     assert (recorded["source"], recorded["env"], recorded["episodes"]) == ("external", "CartPole-v1", 4)
+    assert (recorded["runtime"], recorded["deterministic"]) == ("onnx", True)
+    assert recorded["protocol"]["key"] == "runtime=onnx;actions=deterministic;episodes=4;seed=7;env=CartPole-v1
     metrics = recorded["metrics"]
     assert metrics["normalized_return"] == pytest.approx(100 * np.mean(over_http.returns) / 500.0)
     assert metrics["average_cost"] == pytest.approx(np.mean(over_http.costs))

@@ -14,7 +14,7 @@ import urllib.parse
 import urllib.request
 import uuid
 from pathlib import Path
-from typing import Any, Dict, Iterator, Mapping, Optional, Sequence, Tuple, Union
+from typing import Any, Callable, Dict, Iterator, Mapping, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
@@ -319,18 +319,42 @@ class Client:
         body.update({key: value for key, value in optional.items() if value is not None})
         return self._post_json("/v1/experiments", body)
 
-    def experiment(self, experiment_id: str) -> Json:
-        return self._get(f"/v1/experiments/{experiment_id}")
+    def experiment(self, experiment_id: str, protocol: Optional[str] = None) -> Json:
+        """An experiment with its results under one evaluation protocol: `protocol` (a key of
+        its ``protocols``), else the newest protocol every job has."""
+        query = "?" + urllib.parse.urlencode({"protocol": protocol}) if protocol else ""
+        return self._get(f"/v1/experiments/{experiment_id}{query}")
+
+    def results(self, job_ids: Sequence[str], protocol: Optional[str] = None) -> Json:
+        """Jobs' results side by side under one evaluation protocol, by the rule experiments
+        follow: ``protocol``, ``protocols`` and per job its ``metrics``."""
+        params = {"jobs": ",".join(job_ids)}
+        if protocol:
+            params["protocol"] = protocol
+        return self._get(f"/v1/results?{urllib.parse.urlencode(params)}")
 
     def experiments(self, limit: int = 50) -> list:
         return self._get(f"/v1/experiments?limit={limit}")["items"]
 
-    def wait_experiment(self, experiment_id: str, timeout: Optional[float] = None, poll: float = 1.0) -> Json:
-        """Polls until no job of the experiment is queued or running; the experiment."""
+    def wait_experiment(
+        self,
+        experiment_id: str,
+        timeout: Optional[float] = None,
+        poll: float = 1.0,
+        on_progress: Optional[Callable[[Json], None]] = None,
+    ) -> Json:
+        """Polls until no job of the experiment is queued or running; the experiment.
+        `on_progress(progress)` is called with the jobs' counts by status each time they change
+        (default: a line on stderr when it is a terminal)."""
         deadline = None if timeout is None else time.monotonic() + timeout
+        report = on_progress or (_print_progress if sys.stderr.isatty() else None)
+        last = None
         while True:
             experiment = self.experiment(experiment_id)
             progress = experiment["progress"]
+            if report is not None and progress != last:
+                report(progress)
+                last = progress
             if progress["queued"] == 0 and progress["running"] == 0:
                 return experiment
             if deadline is not None and time.monotonic() > deadline:
@@ -405,7 +429,7 @@ class Client:
         env: Any,
         episodes: int = 500,
         seed: int = 0,
-        deterministic: bool = False,
+        deterministic: Optional[bool] = None,
         *,
         reference: Optional[Mapping[str, float]] = None,
         cost: Optional[simulator.CostFn] = None,
@@ -421,12 +445,17 @@ class Client:
         `env` a gymnasium-style environment object (your simulator): rolls the policy out
         `episodes` times here (episode i reset with seed ``seed + i``), acting through ``act``
         over HTTP, or with ``local=True`` through the policy's ONNX export in onnxruntime
-        (deterministic actions only); each step's cost is ``info["cost"]`` unless `cost`
+        (deterministic actions only). `deterministic` defaults to False (sampled actions, as the
+        paper evaluates) through ``act`` and on built-in environments, True with ``local=True``.
+        Each step's cost is ``info["cost"]`` unless `cost`
         (``cost(obs, action, next_obs, info)``) says otherwise. The episodes' returns and costs
         are recorded with `reference` (the demonstrators' ``preferred_return``,
         ``preferred_cost``, ``non_preferred_return``, ``non_preferred_cost`` on that
         simulator) under `name` (default: the environment's id); returns the stored evaluation
-        (``source: external``) with the metrics the service computed."""
+        (``source: external``, ``runtime`` ``act`` or ``onnx``) with the metrics the service
+        computed."""
+        if deterministic is None:
+            deterministic = local
         if isinstance(env, str):
             body = {"env": env, "episodes": episodes, "seed": seed, "deterministic": deterministic}
             return self._post_json(f"/v1/policies/{policy_id}/evaluate", body)
@@ -440,6 +469,7 @@ class Client:
         return self.record_evaluation(
             policy_id, name or simulator.env_name(env), rollouts.returns, rollouts.costs,
             reference, lengths=rollouts.lengths, seed=seed, deterministic=deterministic,
+            runtime="onnx" if local else "act",
         )
 
     def rollout(
@@ -476,11 +506,15 @@ class Client:
         lengths: Optional[Sequence[int]] = None,
         seed: int = 0,
         deterministic: bool = False,
+        runtime: Optional[str] = None,
     ) -> Json:
         """Records an evaluation run in your own simulator: each episode's return and cost, and
         `reference` (the demonstrators' `preferred_return`, `preferred_cost`,
         `non_preferred_return`, `non_preferred_cost` on that simulator). The service computes
-        the paper's metrics and keeps them with the policy (`source: external`)."""
+        the paper's metrics and keeps them with the policy (`source: external`). `seed`,
+        `deterministic` and `runtime` (how the policy acted: ``"act"``, ``"onnx"`` or
+        ``"other"``) are the evaluation's protocol: results are compared and averaged only
+        between evaluations that share it."""
         body: Json = {
             "env": env,
             "returns": [float(r) for r in returns],
@@ -489,6 +523,8 @@ class Client:
             "seed": seed,
             "deterministic": deterministic,
         }
+        if runtime is not None:
+            body["runtime"] = runtime
         if lengths is not None:
             body["lengths"] = [int(n) for n in lengths]
         return self._post_json(f"/v1/policies/{policy_id}/evaluations", body)
@@ -647,3 +683,10 @@ def _progress_line(job: Json) -> None:
         f"\r{job['id'][:8]} [{bar}] {fraction:6.1%} {job['status']}{extra}".ljust(79)
     )
     sys.stderr.flush()
+
+
+def _print_progress(progress: Json) -> None:
+    """An experiment's progress as one line on stderr."""
+    done = progress["succeeded"] + progress["failed"] + progress["cancelled"]
+    print(f"{done} of {progress['total']} jobs finished ({progress['succeeded']} succeeded, "
+          f"{progress['running']} running, {progress['queued']} queued)", file=sys.stderr)
