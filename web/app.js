@@ -92,8 +92,11 @@ function datasetsPage(view) {
       status.replaceChildren(h('div', { class: 'muted' }, `Uploading ${file.name} (${fmtBytes(file.size)})…`));
       try {
         const dataset = await api('/v1/datasets', { method: 'POST', form });
+        const warnings = (dataset.stats && dataset.stats.warnings) || [];
         status.replaceChildren(h('div', { class: 'notice', id: 'upload-ok' },
-          `Stored “${dataset.name}” as ${roleText(dataset.role)}: ${fmt(dataset.transitions)} transitions, ${fmt(dataset.episodes)} episodes.`));
+          `Stored “${dataset.name}” as ${roleText(dataset.role)}: ${fmt(dataset.transitions)} transitions, ${fmt(dataset.episodes)} episodes.`),
+        warnings.length ? h('div', { class: 'notice warn', id: 'upload-warnings' }, h('strong', {}, 'Check: '),
+          h('ul', {}, warnings.map((w) => h('li', {}, w)))) : null);
         nameInput.value = '';
         await list.reset();
       } catch (err) {
@@ -149,7 +152,7 @@ function summaryText(summary) {
 
 function datasetsTable(items, actions) {
   if (!items.length) {
-    return h('div', { class: 'empty' }, 'No datasets yet. Drop a JSONL, CSV or NPZ file above; ',
+    return h('div', { class: 'empty' }, 'No datasets yet. Drop a JSONL, CSV, NPZ or HDF5 file above; ',
       h('code', {}, 'safedice datagen --env six-rooms --out demo'), ' writes an unlabeled and a non-preferred set to try.');
   }
   return tableWrap(h('table', { id: 'datasets-table', class: 'sticky-actions' },
@@ -159,7 +162,9 @@ function datasetsTable(items, actions) {
       h('th', { class: 'num' }, 'Return / episode'), h('th', { class: 'num' }, 'Cost / episode'),
       h('th', { class: 'num' }, 'Size'), h('th', {}, 'Uploaded'), h('th', {}, ''))),
     h('tbody', {}, items.map((d) => h('tr', { 'data-id': d.id },
-      h('td', {}, h('strong', {}, d.name), h('div', { class: 'muted mono' }, shortId(d.id))),
+      h('td', {}, h('strong', {}, d.name), h('div', { class: 'muted mono' }, shortId(d.id)),
+        d.stats && d.stats.warnings && d.stats.warnings.length
+          ? h('div', { class: 'dataset-warning', title: d.stats.warnings.join('\n') }, `⚠ ${d.stats.warnings.length} warning${d.stats.warnings.length > 1 ? 's' : ''}`) : null),
       h('td', { class: 'role' }, d.role ? h('span', { class: `role-chip role-${d.role}` }, roleText(d.role)) : h('span', { class: 'muted' }, 'not given')),
       h('td', {}, d.format),
       h('td', { class: 'num' }, fmt(d.transitions)),
@@ -861,7 +866,7 @@ function protocolPicker(results, onPick) {
     results.protocols.map((p) => h('option', { value: p.protocol.key, selected: p.protocol.key === results.protocol.key },
       `${p.protocol.label} (${p.jobs} of ${evaluated} jobs)`)));
   const why = results.protocol_choice === 'most_jobs' ? ' No protocol is shared by every job: shown, the one most of them have.' : '';
-  return h('div', { class: 'notice', id: 'compare-mixed' },
+  return h('div', { class: 'notice warn', id: 'compare-mixed' },
     h('p', {}, `These jobs were evaluated under ${results.protocols.length} protocols; the numbers below are under one of them, never mixed.${why}`),
     h('label', { class: 'protocol-pick' }, 'Compare under ', select));
 }

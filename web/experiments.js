@@ -211,7 +211,7 @@ function protocolLine(e, onProtocol) {
   const why = e.protocol_choice === 'most_jobs'
     ? ' No protocol is shared by every job; shown: the one most jobs have, and the means leave out the jobs without it.'
     : '';
-  return h('div', { class: 'notice', id: 'experiment-mixed' },
+  return h('div', { class: 'notice warn', id: 'experiment-mixed' },
     h('p', {}, `The jobs were evaluated under ${e.protocols.length} protocols (environment, episodes, seed, deterministic or sampled actions, runtime). Means are over one protocol, never across them.${why}`),
     h('label', { class: 'protocol-pick' }, 'Show results under ', select));
 }

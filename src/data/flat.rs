@@ -1,9 +1,14 @@
 //! The flat array layout of the offline-RL ecosystem (D4RL / DSRL / OmniSafe), shared by the NPZ
 //! and HDF5 readers: `observations` (N×d), `actions` (N×k floats or N integers),
-//! `next_observations` (N×d), `terminals` (N), optional `timeouts` (N), `rewards` (N),
+//! `terminals` (N), optional `next_observations` (N×d), `timeouts` (N), `rewards` (N),
 //! `costs` (N), `init_obs` (M×d). Episodes end at `terminals | timeouts` (and at the end of the
 //! file). OmniSafe's short names (`obs`, `action`, `next_obs`, `done`, `reward`, `cost`) are
 //! accepted too.
+//!
+//! Without `next_observations` (D4RL's own files, d3rlpy's layout) each transition's next
+//! observation is the next row's in its episode; the last transition of an episode that is not
+//! terminal (a timeout) has no successor in the file and is dropped, as D4RL's
+//! `qlearning_dataset` does, and the dataset says so in its warnings.
 //!
 //! Optional keys this service writes so that a round trip is exact (other tools ignore them):
 //! `episode_ids` (N integers; when present they define the episodes and every terminal/timeout
@@ -115,8 +120,10 @@ pub fn assemble(source: &mut impl ArraySource) -> Result<Dataset, ParseError> {
             "`{key}` has no rows: the file holds no transitions"
         )));
     }
-    let (key, next) = require(source, NEXT_OBSERVATIONS, "N×d next observations")?;
-    let next_observations = float_matrix_like(key, next, n, obs_dim)?;
+    let next_observations = match read_any(source, NEXT_OBSERVATIONS)? {
+        Some((key, next)) => Some(float_matrix_like(key, next, n, obs_dim)?),
+        None => None,
+    };
     let (key, actions) = require(source, ACTIONS, "N×k floats or N integers")?;
     let (actions, action_dim) = action_column(key, actions, n)?;
     let (key, terminals) = require(source, TERMINALS, "N flags")?;
@@ -135,22 +142,106 @@ pub fn assemble(source: &mut impl ArraySource) -> Result<Dataset, ParseError> {
             )));
         }
     }
-    let episode_ids = match source.read("episode_ids")? {
-        Some(ids) => given_episode_ids(ids, n, &terminals, timeouts.as_deref())?,
-        None => split_episodes(&terminals, timeouts.as_deref()),
+    let (episode_ids, ends_marked) = match source.read("episode_ids")? {
+        Some(ids) => (given_episode_ids(ids, n, &terminals, timeouts.as_deref())?, true),
+        None => {
+            let marked = terminals.iter().chain(timeouts.iter().flatten()).any(|&end| end);
+            (split_episodes(&terminals, timeouts.as_deref()), marked)
+        }
     };
     let action_space = action_space(source, &actions, action_dim)?;
-    Ok(Dataset::new(DatasetParts {
+    let derive = next_observations.is_none();
+    let parts = DatasetParts {
         obs_dim,
         action_space,
+        next_observations: next_observations.unwrap_or_default(),
         observations,
         actions,
-        next_observations,
         terminals,
         episode_ids,
         rewards,
         costs,
-    })?)
+    };
+    let mut warnings = Vec::new();
+    if !ends_marked && n > 1 {
+        warnings.push(format!(
+            "no transition is marked terminal or timeout and there are no `episode_ids`, so \
+             the {n} transitions are read as one episode; if the file holds several, mark where \
+             each ends"
+        ));
+    }
+    let parts = if derive {
+        let (parts, dropped) = derive_next_observations(parts)?;
+        warnings.push(derived_warning(n, dropped));
+        parts
+    } else {
+        parts
+    };
+    let dataset = Dataset::new(parts)?;
+    Ok(warnings.into_iter().fold(dataset, Dataset::with_warning))
+}
+
+fn derived_warning(n: usize, dropped: usize) -> String {
+    let derived = "no `next_observations`: each transition's next observation is the next row's \
+         observation in its episode (a terminal transition's is its own, never used)";
+    match dropped {
+        0 => derived.to_owned(),
+        d => format!(
+            "{derived}; {d} of the {n} transitions end an episode without being terminal (a \
+             timeout, or the end of the file), so their next observation is not in the file: \
+             they were dropped"
+        ),
+    }
+}
+
+/// Fills `next_observations` from the next row of the same episode. The last transition of an
+/// episode gets its own observation when it is terminal (its successor is never bootstrapped
+/// from), and is dropped when it is not: a timeout's successor state is not in the file, and
+/// any made-up value would be trained on. Returns the columns and how many rows were dropped.
+fn derive_next_observations(parts: DatasetParts) -> Result<(DatasetParts, usize), ParseError> {
+    let n = parts.terminals.len();
+    let d = parts.obs_dim;
+    let ids = &parts.episode_ids;
+    let ends_episode = |i: usize| i + 1 == n || ids[i + 1] != ids[i];
+    let keep: Vec<bool> = (0..n).map(|i| !ends_episode(i) || parts.terminals[i]).collect();
+    let kept = keep.iter().filter(|&&k| k).count();
+    if kept == 0 {
+        return Err(ParseError::empty(
+            "no `next_observations`, and every transition ends an episode without being \
+             terminal, so no transition's next observation is in the file",
+        ));
+    }
+    let mut next = Vec::with_capacity(kept * d);
+    for i in (0..n).filter(|&i| keep[i]) {
+        let from = if ends_episode(i) { i } else { i + 1 };
+        next.extend_from_slice(&parts.observations[from * d..(from + 1) * d]);
+    }
+    let rows = |values: Vec<f32>, width: usize| -> Vec<f32> {
+        let chunks = values.chunks_exact(width.max(1)).zip(&keep);
+        chunks.filter(|(_, &k)| k).flat_map(|(row, _)| row.iter().copied()).collect()
+    };
+    let flags =
+        |values: Vec<bool>| values.into_iter().zip(&keep).filter(|(_, &k)| k).map(|(v, _)| v);
+    let actions = match parts.actions {
+        Actions::Continuous(values) => {
+            Actions::Continuous(rows(values, parts.action_space.width()))
+        }
+        Actions::Discrete(values) => Actions::Discrete(
+            values.into_iter().zip(&keep).filter(|(_, &k)| k).map(|(v, _)| v).collect(),
+        ),
+    };
+    let episode_ids = parts.episode_ids.iter().zip(&keep).filter(|(_, &k)| k).map(|(&v, _)| v);
+    let parts = DatasetParts {
+        observations: rows(parts.observations, d),
+        next_observations: next,
+        actions,
+        terminals: flags(parts.terminals).collect(),
+        episode_ids: episode_ids.collect(),
+        rewards: parts.rewards.map(|r| rows(r, 1)),
+        costs: parts.costs.map(|c| rows(c, 1)),
+        ..parts
+    };
+    Ok((parts, n - kept))
 }
 
 /// A finite float matrix N×d (a 1-D array is N×1).

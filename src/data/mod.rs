@@ -5,7 +5,7 @@
 //! - JSONL, one transition per line ([`jsonl`] module docs),
 //! - CSV with a header ([`csv_table`] module docs),
 //! - NPZ in the D4RL/DSRL/OmniSafe flat layout ([`flat`] module docs),
-//! - HDF5 with the same keys, only when built with `--features hdf5` (links libhdf5).
+//! - HDF5 with the same keys as top-level datasets ([`hdf5`] module docs).
 //!
 //! Every rejection is a [`ParseError`] whose message names the line / row / key.
 
@@ -13,7 +13,6 @@ mod canonical;
 mod csv_table;
 mod error;
 mod flat;
-#[cfg(feature = "hdf5")]
 mod hdf5;
 mod jsonl;
 pub mod model;
@@ -39,7 +38,7 @@ pub use preview::{
     preview, preview_parts, DatasetPreview, EpisodeColumns, EpisodeSummary, TransitionRow,
 };
 pub use rows::MAX_DISCRETE_ACTIONS;
-pub use stats::{stats, DatasetStats, Summary};
+pub use stats::{disagreements, stats, DatasetStats, Summary};
 pub use writers::{write_csv, write_jsonl, write_npz};
 
 /// An upload format.
@@ -110,23 +109,9 @@ pub fn parse_file(path: &Path, file_name: &str) -> Result<(Format, Dataset), Par
         Format::Jsonl => jsonl::parse(BufReader::with_capacity(1 << 16, open()?))?,
         Format::Csv => csv_table::parse(BufReader::with_capacity(1 << 16, open()?))?,
         Format::Npz => npz::parse(path)?,
-        Format::Hdf5 => parse_hdf5(path)?,
+        Format::Hdf5 => hdf5::parse(path)?,
     };
     Ok((format, dataset))
-}
-
-#[cfg(feature = "hdf5")]
-fn parse_hdf5(path: &Path) -> Result<Dataset, ParseError> {
-    hdf5::parse(path)
-}
-
-#[cfg(not(feature = "hdf5"))]
-fn parse_hdf5(_path: &Path) -> Result<Dataset, ParseError> {
-    Err(ParseError::unsupported_format(
-        "HDF5 support is not compiled into this server; rebuild it with `cargo build --release \
-         --features hdf5` (needs libhdf5, e.g. `apt-get install libhdf5-dev`), or convert the \
-         file to NPZ with the same keys (numpy.savez(path, **{k: f[k][:] for k in f.keys()}))",
-    ))
 }
 
 /// Content decides for binary formats (magic bytes); the name decides between text formats and

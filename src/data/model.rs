@@ -109,7 +109,12 @@ pub struct DatasetParts {
 /// the columns agree (non-empty, matching lengths, finite values, contiguous episodes, actions
 /// inside the action space), so code holding a `Dataset` need not check it again.
 #[derive(Clone, Debug, PartialEq)]
-pub struct Dataset(DatasetParts);
+pub struct Dataset {
+    parts: DatasetParts,
+    /// What the parser noticed and the user should know (a missing column derived, rows
+    /// dropped, no episode ends marked); reported with the dataset, never an error.
+    warnings: Vec<String>,
+}
 
 /// Why a [`Dataset`] is internally inconsistent.
 #[derive(Debug, thiserror::Error, PartialEq)]
@@ -131,76 +136,87 @@ pub enum ModelError {
 impl Dataset {
     /// The dataset of these columns, or why they do not agree.
     pub fn new(parts: DatasetParts) -> Result<Dataset, ModelError> {
-        let dataset = Dataset(parts);
+        let dataset = Dataset { parts, warnings: Vec::new() };
         dataset.check()?;
         Ok(dataset)
     }
 
+    /// The dataset with a warning for its uploader.
+    pub fn with_warning(mut self, warning: String) -> Dataset {
+        self.warnings.push(warning);
+        self
+    }
+
+    /// What its parser noticed (see [`Dataset::with_warning`]).
+    pub fn warnings(&self) -> &[String] {
+        &self.warnings
+    }
+
     /// The columns, to be reassembled (through [`Dataset::new`] again) or consumed.
     pub fn into_parts(self) -> DatasetParts {
-        self.0
+        self.parts
     }
 
     /// Width of one observation row.
     pub fn obs_dim(&self) -> usize {
-        self.0.obs_dim
+        self.parts.obs_dim
     }
 
     pub fn action_space(&self) -> &ActionSpace {
-        &self.0.action_space
+        &self.parts.action_space
     }
 
     /// `N × obs_dim`, row-major.
     pub fn observations(&self) -> &[f32] {
-        &self.0.observations
+        &self.parts.observations
     }
 
     pub fn actions(&self) -> &Actions {
-        &self.0.actions
+        &self.parts.actions
     }
 
     /// `N × obs_dim`, row-major.
     pub fn next_observations(&self) -> &[f32] {
-        &self.0.next_observations
+        &self.parts.next_observations
     }
 
     /// True where the transition ends its episode in a terminal state (not a time-out).
     pub fn terminals(&self) -> &[bool] {
-        &self.0.terminals
+        &self.parts.terminals
     }
 
     /// Episode id of each transition; equal ids are contiguous.
     pub fn episode_ids(&self) -> &[u32] {
-        &self.0.episode_ids
+        &self.parts.episode_ids
     }
 
     /// Per-transition rewards, kept for reporting only.
     pub fn rewards(&self) -> Option<&[f32]> {
-        self.0.rewards.as_deref()
+        self.parts.rewards.as_deref()
     }
 
     /// Per-transition costs, kept for reporting only.
     pub fn costs(&self) -> Option<&[f32]> {
-        self.0.costs.as_deref()
+        self.parts.costs.as_deref()
     }
 
     /// Number of transitions.
     pub fn len(&self) -> usize {
-        self.0.terminals.len()
+        self.parts.terminals.len()
     }
 
     pub fn is_empty(&self) -> bool {
-        self.0.terminals.is_empty()
+        self.parts.terminals.is_empty()
     }
 
     /// Observation row `i`.
     pub fn obs(&self, i: usize) -> &[f32] {
-        &self.0.observations[i * self.0.obs_dim..(i + 1) * self.0.obs_dim]
+        &self.parts.observations[i * self.parts.obs_dim..(i + 1) * self.parts.obs_dim]
     }
 
     /// Next-observation row `i`.
     pub fn next_obs(&self, i: usize) -> &[f32] {
-        &self.0.next_observations[i * self.0.obs_dim..(i + 1) * self.0.obs_dim]
+        &self.parts.next_observations[i * self.parts.obs_dim..(i + 1) * self.parts.obs_dim]
     }
 
     /// Half-open index ranges of the episodes, in order.
@@ -208,7 +224,7 @@ impl Dataset {
         let mut ranges = Vec::new();
         let mut start = 0;
         for i in 1..=self.len() {
-            if i == self.len() || self.0.episode_ids[i] != self.0.episode_ids[start] {
+            if i == self.len() || self.parts.episode_ids[i] != self.parts.episode_ids[start] {
                 ranges.push(start..i);
                 start = i;
             }
@@ -239,10 +255,10 @@ impl Dataset {
                 Err(ModelError::ColumnLength { column, expected, actual })
             }
         };
-        expect("observations", n * self.0.obs_dim, self.0.observations.len())?;
-        expect("next_observations", n * self.0.obs_dim, self.0.next_observations.len())?;
-        expect("episode_ids", n, self.0.episode_ids.len())?;
-        match (&self.0.actions, &self.0.action_space) {
+        expect("observations", n * self.parts.obs_dim, self.parts.observations.len())?;
+        expect("next_observations", n * self.parts.obs_dim, self.parts.next_observations.len())?;
+        expect("episode_ids", n, self.parts.episode_ids.len())?;
+        match (&self.parts.actions, &self.parts.action_space) {
             (Actions::Continuous(a), ActionSpace::Continuous { dim, .. }) => {
                 expect("actions", n * dim, a.len())?;
                 check_finite("actions", a, *dim)?;
@@ -257,17 +273,17 @@ impl Dataset {
             }
             _ => return Err(ModelError::ActionKind),
         }
-        check_finite("observations", &self.0.observations, self.0.obs_dim)?;
-        check_finite("next_observations", &self.0.next_observations, self.0.obs_dim)?;
-        for (column, values) in [("rewards", &self.0.rewards), ("costs", &self.0.costs)] {
+        check_finite("observations", &self.parts.observations, self.parts.obs_dim)?;
+        check_finite("next_observations", &self.parts.next_observations, self.parts.obs_dim)?;
+        for (column, values) in [("rewards", &self.parts.rewards), ("costs", &self.parts.costs)] {
             if let Some(v) = values {
                 expect(column, n, v.len())?;
                 check_finite(column, v, 1)?;
             }
         }
         let mut seen = std::collections::HashSet::new();
-        for (i, &id) in self.0.episode_ids.iter().enumerate() {
-            let continues = i > 0 && self.0.episode_ids[i - 1] == id;
+        for (i, &id) in self.parts.episode_ids.iter().enumerate() {
+            let continues = i > 0 && self.parts.episode_ids[i - 1] == id;
             if !continues && !seen.insert(id) {
                 return Err(ModelError::NonContiguousEpisode { episode: id, index: i });
             }

@@ -3,7 +3,7 @@
 
 use serde::{Deserialize, Serialize};
 
-use super::model::Dataset;
+use super::model::{Actions, Dataset};
 
 /// Summary of one per-episode quantity. `std` is the population standard deviation (ddof 0).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
@@ -47,6 +47,11 @@ pub struct DatasetStats {
     pub episode_return: Option<Summary>,
     /// Sum of costs per episode; absent when the dataset has no costs.
     pub episode_cost: Option<Summary>,
+    /// What the upload's parser noticed and you should know, e.g. `next_observations` derived
+    /// from the next row and the transitions that had none dropped, no episode ends marked, or
+    /// groups of an HDF5 file not read. Empty when there is nothing to say.
+    #[serde(default)]
+    pub warnings: Vec<String>,
 }
 
 /// Computes [`DatasetStats`]; sums are accumulated in f64. An empty dataset (which no parser
@@ -74,5 +79,95 @@ pub fn stats(d: &Dataset) -> DatasetStats {
         }),
         episode_return: sums(d.rewards()),
         episode_cost: sums(d.costs()),
+        warnings: d.warnings().to_vec(),
+    }
+}
+
+/// Per-dimension (min, max, mean, std) of a row-major `rows × width` column.
+fn column_ranges(values: &[f32], width: usize) -> Vec<(f64, f64, f64, f64)> {
+    (0..width)
+        .map(|j| {
+            let column: Vec<f64> =
+                values.iter().skip(j).step_by(width).map(|&v| v as f64).collect();
+            let summary = Summary::of(&column).expect("datasets are not empty");
+            (summary.min, summary.max, summary.mean, summary.std)
+        })
+        .collect()
+}
+
+/// Where D^N does not look like the same kind of data as D^U: actions outside D^U's range (the
+/// policy acts in D^U's box) or observations on another scale (a unit or normalisation that
+/// differs between the two files). Each is a warning for the job's log, never an error: the
+/// discriminator would separate such data by its scale rather than by what was unsafe in it.
+pub fn disagreements(unlabeled: &Dataset, non_preferred: &Dataset) -> Vec<String> {
+    let mut warnings = Vec::new();
+    if let (Actions::Continuous(u), Actions::Continuous(n)) =
+        (unlabeled.actions(), non_preferred.actions())
+    {
+        let width = unlabeled.action_space().width();
+        let (u, n) = (column_ranges(u, width), column_ranges(n, width));
+        let outside = u.iter().zip(&n).enumerate().find(|(_, (u, n))| {
+            let slack = 0.1 * (u.1 - u.0).max(1e-6);
+            n.0 < u.0 - slack || n.1 > u.1 + slack
+        });
+        if let Some((j, (u, n))) = outside {
+            warnings.push(format!(
+                "D^N's actions span [{:.3}, {:.3}] in dimension {j} where D^U's span [{:.3}, \
+                 {:.3}]: the policy acts within D^U's range, so check both files use the same \
+                 action units",
+                n.0, n.1, u.0, u.1
+            ));
+        }
+    }
+    let width = unlabeled.obs_dim();
+    let u = column_ranges(unlabeled.observations(), width);
+    let n = column_ranges(non_preferred.observations(), width);
+    let off_scale = u.iter().zip(&n).enumerate().find(|(_, (u, n))| {
+        let (su, sn) = (u.3.max(1e-6), n.3.max(1e-6));
+        let ratio = sn / su;
+        (u.3 > 1e-6 || n.3 > 1e-6)
+            && (!(0.1..=10.0).contains(&ratio) || (n.2 - u.2).abs() > 10.0 * su.max(sn))
+    });
+    if let Some((j, (u, n))) = off_scale {
+        warnings.push(format!(
+            "observation {j} has mean {:.3}, std {:.3} in D^N but mean {:.3}, std {:.3} in D^U: \
+             check both files are on the same scale (the same units, the same normalisation)",
+            n.2, n.3, u.2, u.3
+        ));
+    }
+    warnings
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::data::model::{ActionSpace, DatasetParts};
+
+    fn dataset(observations: Vec<f32>, actions: Vec<f32>) -> Dataset {
+        let n = actions.len();
+        Dataset::new(DatasetParts {
+            obs_dim: 1,
+            action_space: ActionSpace::infer_continuous(&actions, 1),
+            next_observations: observations.clone(),
+            observations,
+            actions: Actions::Continuous(actions),
+            terminals: vec![false; n],
+            episode_ids: vec![0; n],
+            rewards: None,
+            costs: None,
+        })
+        .unwrap()
+    }
+
+    #[test]
+    fn data_on_another_scale_or_action_range_is_named() {
+        let u = dataset(vec![0.0, 1.0, 2.0, 3.0], vec![-1.0, -0.5, 0.5, 1.0]);
+        assert!(disagreements(&u, &dataset(vec![0.5, 1.5, 2.5], vec![-0.9, 0.0, 0.9])).is_empty());
+        let wide = disagreements(&u, &dataset(vec![0.5, 1.5, 2.5], vec![-3.0, 0.0, 3.0]));
+        assert_eq!(wide.len(), 1);
+        assert!(wide[0].starts_with("D^N's actions span [-3.000, 3.000] in dimension 0"));
+        let scaled = disagreements(&u, &dataset(vec![0.0, 100.0, 200.0], vec![-1.0, 0.0, 1.0]));
+        assert_eq!(scaled.len(), 1);
+        assert!(scaled[0].starts_with("observation 0 has mean 100.000, std 81.650 in D^N"));
     }
 }

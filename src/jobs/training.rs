@@ -256,6 +256,7 @@ impl TrainingRun {
             self.job.non_preferred_dataset.as_ref(),
         )
         .await?;
+        let inspected = (data.unlabeled.clone(), data.non_preferred.clone());
         let checkpoint = store.checkpoint(&self.job.id).await?;
         let resumed_at = checkpoint.as_ref().map_or(0, |(step, _)| *step);
         // Rows past the checkpoint are recomputed (bitwise the same) by the resumed run.
@@ -282,9 +283,34 @@ impl TrainingRun {
                 "training from scratch: {total} steps, unlabeled dataset {u}{n}, {threads}"
             );
             self.log(LogLevel::Info, message).await;
+            for warning in self.data_warnings(&inspected.0, inspected.1.as_deref()).await? {
+                self.log(LogLevel::Warn, warning).await;
+            }
         }
         self.report_progress(trainer.progress(), AlphaNote::of(trainer.as_ref()), None).await?;
         self.train(trainer, schedule).await
+    }
+
+    /// What the job's data gives reason to check, logged once when training starts: each
+    /// dataset's upload warnings, and where D^N does not look like D^U's kind of data.
+    async fn data_warnings(
+        &self,
+        unlabeled: &crate::data::Dataset,
+        non_preferred: Option<&crate::data::Dataset>,
+    ) -> anyhow::Result<Vec<String>> {
+        let store = self.runner.store();
+        let mut warnings = Vec::new();
+        let ids =
+            std::iter::once(&self.job.unlabeled_dataset).chain(&self.job.non_preferred_dataset);
+        for (role, id) in ["D^U", "D^N"].into_iter().zip(ids) {
+            // A dataset deleted since the job loaded it has nothing more to say.
+            let Some(record) = store.dataset(id).await? else { continue };
+            warnings.extend(record.stats.warnings.iter().map(|w| format!("{role} ({id}): {w}")));
+        }
+        if let Some(non_preferred) = non_preferred {
+            warnings.extend(crate::data::disagreements(unlabeled, non_preferred));
+        }
+        Ok(warnings)
     }
 
     async fn train(

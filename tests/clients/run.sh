@@ -17,10 +17,10 @@ cd "$(dirname "$0")/../.."
 BIN="${1:-target/debug/safedice}"
 VENV=.venv-clients
 
-if [ ! -x "$VENV/bin/python" ] || ! "$VENV/bin/python" -c 'import tritonclient.http, onnxruntime, gymnasium' 2>/dev/null; then
+if [ ! -x "$VENV/bin/python" ] || ! "$VENV/bin/python" -c 'import tritonclient.http, onnxruntime, gymnasium, h5py' 2>/dev/null; then
   python3 -m venv "$VENV"
   "$VENV/bin/pip" install --quiet "tritonclient[http]==2.73.0" "onnxruntime==1.23.2" "numpy==2.4.6" \
-    "pytest==8.4.2" "gymnasium==1.2.2"
+    "pytest==8.4.2" "gymnasium==1.2.2" "h5py==3.16.0"
 fi
 # The client as a user installs it, from this checkout, every run.
 "$VENV/bin/pip" install --quiet --no-deps --force-reinstall ./clients/python

@@ -291,14 +291,6 @@ fn names_that_contradict_the_content_are_rejected() {
     rejected(parse("d.h5", "{}"), "invalid_dataset", &["HDF5 signature"]);
 }
 
-#[cfg(not(feature = "hdf5"))]
-#[test]
-fn hdf5_without_the_feature_says_how_to_enable_it() {
-    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/dsrl_like.hdf5");
-    let result = parse_file(&path, "dsrl_like.hdf5");
-    rejected(result, "unsupported_format", &["--features hdf5", "libhdf5"]);
-}
-
 // ---------------------------------------------------------------- NPZ
 
 /// Builds an NPZ with arrays of any dtype, as numpy would write them.
@@ -399,10 +391,50 @@ fn npz_integer_actions_float_terminals_and_omnisafe_names() {
 
 #[test]
 fn npz_rejects_missing_keys() {
-    for key in ["observations", "next_observations", "actions", "terminals"] {
+    for key in ["observations", "actions", "terminals"] {
         let fragment = format!("missing required key `{key}`");
         rejected(npz_upload(&[key], |n| n), "invalid_dataset", &[&fragment]);
     }
+}
+
+/// Without `next_observations` each row's successor is the next row of its episode; the rows
+/// that end an episode at a timeout (3) or at the end of the file (4) have none and are dropped,
+/// the terminal one (1) keeps its own observation, and the dataset says so.
+#[test]
+fn npz_without_next_observations_derives_them_within_each_episode() {
+    let (_, d) = npz_upload(&["next_observations"], |n| n).unwrap();
+    assert_eq!(d.observations(), [0., 0., 1., 1., 2., 2.]);
+    assert_eq!(d.next_observations(), [1., 1., 1., 1., 3., 3.]);
+    assert_eq!(d.terminals(), [false, true, false]);
+    assert_eq!(d.episode_ids(), [0, 0, 1]);
+    assert_eq!(d.costs(), Some(&[0., 1., 0.][..]));
+    assert_eq!(d.actions(), &Actions::Continuous(vec![0.1, 0.2, 0.3]));
+    assert_eq!(d.warnings().len(), 1);
+    assert!(
+        d.warnings()[0].contains("2 of the 5 transitions end an episode"),
+        "{:?}",
+        d.warnings()
+    );
+
+    // Every row the last of an episode that is not terminal: nothing to derive from.
+    let only_timeouts = npz_upload(&["next_observations", "terminals", "timeouts"], |n| {
+        n.array::<bool>("terminals", &[5], &[false; 5]).array::<u8>("timeouts", &[5], &[1; 5])
+    });
+    rejected(only_timeouts, "empty_dataset", &["no transition's next observation"]);
+}
+
+/// Neither terminals nor timeouts nor episode ids mark an end: one long episode, said so.
+#[test]
+fn a_file_with_no_episode_ends_is_one_episode_with_a_warning() {
+    let (_, d) =
+        npz_upload(&["terminals", "timeouts"], |n| n.array::<bool>("terminals", &[5], &[false; 5]))
+            .unwrap();
+    assert_eq!(d.episode_ids(), [0; 5]);
+    assert!(
+        d.warnings()[0].starts_with("no transition is marked terminal or timeout"),
+        "{:?}",
+        d.warnings()
+    );
 }
 
 #[test]

@@ -373,7 +373,9 @@ proptest! {
         match result {
             Ok(parsed) => {
                 prop_assert_eq!(stats(&parsed).transitions, parsed.len());
-                prop_assert_eq!(decode_canonical(&encode_canonical(&parsed)), Ok(parsed));
+                // The canonical form keeps the columns; warnings live in the stats.
+                let decoded = decode_canonical(&encode_canonical(&parsed)).map(Dataset::into_parts);
+                prop_assert_eq!(decoded, Ok(parsed.into_parts()));
             }
             Err(e) => {
                 prop_assert!(!mutations.is_empty(), "{format:?}: a writer's file was rejected: {e}");

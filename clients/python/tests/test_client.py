@@ -245,6 +245,55 @@ def test_an_experiment_reports_mean_and_standard_error_per_algorithm(client: Cli
     client.delete_experiment(experiment["id"])
 
 
+def test_d4rl_and_dsrl_hdf5_files_upload_as_h5py_writes_them(client: Client, tmp_path: Path) -> None:
+    """HDF5 files in D4RL's layout (no next_observations, gzip chunks, infos/ and metadata/
+    groups) and DSRL's (every column) upload on the default build; the missing column is derived
+    within each episode, and what the server noticed is in the dataset's warnings."""
+    import h5py
+
+    arrays = point_goal_arrays()
+    episode_ids = arrays.pop("episode_ids")
+    ends = np.append(episode_ids[1:] != episode_ids[:-1], True)
+    arrays["timeouts"] = ends & ~arrays["terminals"].astype(bool)
+    dsrl_path, d4rl_path = tmp_path / "dsrl.hdf5", tmp_path / "d4rl.hdf5"
+    with h5py.File(dsrl_path, "w") as f:
+        for key, values in arrays.items():
+            f.create_dataset(key, data=values, compression="gzip", chunks=True)
+    with h5py.File(d4rl_path, "w") as f:
+        for key, values in arrays.items():
+            if key != "next_observations":
+                f.create_dataset(key, data=values, compression="gzip", chunks=True, shuffle=True)
+        f.create_group("infos").create_dataset("qpos", data=np.zeros((len(episode_ids), 2)))
+        f.create_group("metadata")["algorithm"] = "SAC"
+        f.attrs["env"] = "point-goal"
+
+    dsrl = client.upload_dataset(dsrl_path, name="dsrl layout")
+    from_npz = client.upload_dataset(DATA / "point-goal" / "unlabeled.npz", name="npz")
+    assert dsrl["format"] == "hdf5"
+    for key in ("transitions", "episodes", "obs_dim", "action_space"):
+        assert dsrl[key] == from_npz[key], key
+    assert dsrl["stats"]["warnings"] == []
+
+    d4rl = client.upload_dataset(d4rl_path, name="d4rl layout")
+    timed_out = int(arrays["timeouts"].sum())
+    assert d4rl["transitions"] == len(episode_ids) - timed_out
+    warnings = " ".join(d4rl["stats"]["warnings"])
+    assert f"{timed_out} of the {len(episode_ids)} transitions" in warnings, warnings
+    assert "`infos/`, `metadata/`" in warnings, warnings
+    # The derived successors are the data's own: the rows kept are those with one in the file.
+    kept = ~arrays["timeouts"]
+    path = client.download_dataset(d4rl["id"], tmp_path / "d4rl.npz")
+    with np.load(path) as npz:
+        np.testing.assert_array_equal(npz["observations"], arrays["observations"][kept])
+        terminal = arrays["terminals"][kept].astype(bool)
+        np.testing.assert_array_equal(npz["next_observations"][~terminal],
+                                      arrays["next_observations"][kept][~terminal])
+
+    # The same from a dict of arrays: next_observations may be left out there too.
+    no_next = {k: v for k, v in arrays.items() if k != "next_observations"}
+    assert client.upload_dataset(no_next, name="dict")["transitions"] == d4rl["transitions"]
+
+
 def test_a_dataset_is_previewed_and_downloads_as_the_arrays_it_was_made_of(
     client: Client, tmp_path: Path
 ) -> None:
