@@ -6,6 +6,7 @@
 # the metrics must come back finite. Needs requirements.txt only (no torch).
 #
 #   bash bench/rwrl/smoke.sh            # from the repository root
+#   SMOKE_KEEP=1 bash bench/rwrl/smoke.sh   # keep the work folder and its report
 #
 # The safedice binary: $SAFEDICE_BIN, else target/release/safedice, else `safedice` on PATH.
 # Python: $RWRL_PYTHON, else bench/rwrl/.venv (created with requirements.txt if missing).
@@ -36,8 +37,13 @@ if [[ -z "${SAFEDICE_BIN:-}" ]]; then
   fi
 fi
 
+# The work folder (data, policies, the report) is removed at exit unless SMOKE_KEEP=1.
 work="$(mktemp -d)"
-trap 'rm -rf "$work"' EXIT
+if [[ "${SMOKE_KEEP:-}" == 1 ]]; then
+  trap 'echo "smoke: kept $work"' EXIT
+else
+  trap 'rm -rf "$work"' EXIT
+fi
 export OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 MUJOCO_GL=disable
 
 # RWRL_DEMONSTRATORS: another folder of demonstrator .npz files (default: the committed ones).
@@ -65,4 +71,6 @@ assert all(j["status"] == "succeeded" for j in jobs), jobs
 assert "SafeDICE" in (work / "report/results.md").read_text()
 print(f"smoke: {len(evals)} evaluations, {len(jobs)} jobs succeeded")
 EOF
+# The report's table here, since its file goes with the work folder.
+sed -n '/^|/p' "$work/report/results.md" | head -20
 echo "smoke: passed in $(( $(date +%s) - started )) s"

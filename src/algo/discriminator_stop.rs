@@ -254,13 +254,17 @@ mod tests {
         let data = indistinguishable_task(5);
         let mut t = SafediceTrainer::new(&early_stopping_config(), &data).unwrap();
         let mut last = std::collections::BTreeMap::new();
+        let mut final_step = std::collections::BTreeMap::new();
         while t.progress().phase == "discriminator" {
-            last.extend(t.step(true).unwrap());
+            final_step = t.step(true).unwrap().into_iter().collect();
+            last.extend(final_step.clone());
         }
         assert_eq!(t.progress().step, 2000, "the phase keeps its length");
         let (best, stopped) = (last["discriminator_best_step"], last["discriminator_stopped_at"]);
         assert!(best > 0.0 && best < 1000.0, "the best held-out loss came early ({best})");
         assert!(stopped > best && stopped < 2000.0, "stopped at {stopped}, best at {best}");
+        // The phase's last step, trained or not, names the stop: the value a job's page shows.
+        assert_eq!(final_step.get("discriminator_stopped_at"), Some(&stopped));
         assert!(t.alpha_hat().is_some_and(f64::is_finite));
     }
 

@@ -93,6 +93,10 @@ pub struct BenchConfig {
     /// place of the preset's (for comparing candidate defaults across tasks of different
     /// lengths); None keeps the preset's.
     pub discriminator_share: Option<f64>,
+    /// Where each finished training's result is appended as a JSON line as it ends (so a run
+    /// cut short still leaves its data): `runs.jsonl` in the output directory.
+    #[serde(skip)]
+    pub runs_log: Option<PathBuf>,
 }
 
 /// DWBC's η and DExperts' α: the service defaults, kept fixed. The paper picked them per task
@@ -119,6 +123,7 @@ impl BenchConfig {
             paper_preset_row: false,
             preferred_only_row: false,
             discriminator_share: None,
+            runs_log: None,
         }
     }
 
@@ -503,8 +508,9 @@ pub fn run_cli(args: &BenchArgs, command: &str) -> anyhow::Result<()> {
         }
         return Ok(());
     }
+    let runs_log = Some(out.join("runs.jsonl"));
     if let Some(SuiteName::Robustness) = args.suite {
-        let config = args.to_suite_config()?;
+        let config = BenchConfig { runs_log, ..args.to_suite_config()? };
         let splits = args.split.splits();
         let written = robustness::run_cli(config, &splits, args.tasks, &out, command)?;
         for path in written {
@@ -512,7 +518,7 @@ pub fn run_cli(args: &BenchArgs, command: &str) -> anyhow::Result<()> {
         }
         return Ok(());
     }
-    let config = args.to_config()?;
+    let config = BenchConfig { runs_log, ..args.to_config()? };
     let results = run(&config)?;
     let summary = summarize(&results);
     let written = write_outputs(&results, &summary, &out, command)?;

@@ -90,6 +90,7 @@ pub fn default_config() -> BenchConfig {
         paper_preset_row: true,
         preferred_only_row: true,
         discriminator_share: None,
+        runs_log: None,
     }
 }
 

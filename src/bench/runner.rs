@@ -244,14 +244,66 @@ pub fn machine() -> String {
     )
 }
 
+/// `runs.jsonl`: one JSON line per finished training, appended as it ends, so a benchmark cut
+/// short still leaves its data (the console gets a one-line summary of each).
+struct RunsLog(Option<Mutex<std::fs::File>>);
+
+impl RunsLog {
+    fn open(path: Option<&std::path::Path>) -> RunsLog {
+        let file = path.and_then(|path| {
+            let opened = std::fs::create_dir_all(path.parent()?)
+                .and_then(|()| std::fs::OpenOptions::new().create(true).append(true).open(path));
+            opened
+                .map_err(|e| tracing::warn!(path = %path.display(), error = %e, "no runs log"))
+                .ok()
+        });
+        RunsLog(file.map(Mutex::new))
+    }
+
+    fn append(&self, run: &RunResult) {
+        use std::io::Write;
+        let Some(file) = &self.0 else { return };
+        let line = serde_json::to_string(run).unwrap_or_default();
+        let mut file = file.lock().unwrap_or_else(|p| p.into_inner());
+        if let Err(e) = writeln!(file, "{line}") {
+            tracing::warn!(error = %e, "could not append to the runs log");
+        }
+    }
+}
+
+/// The commit checked out where the benchmark runs: `git rev-parse`, else `.git/HEAD` read
+/// directly (git refuses a checkout owned by another user, as in a container), else "unknown".
 fn git_commit() -> String {
+    git_rev_parse().or_else(head_from_git_dir).unwrap_or_else(|| "unknown".to_string())
+}
+
+fn git_rev_parse() -> Option<String> {
     std::process::Command::new("git")
         .args(["rev-parse", "--short=12", "HEAD"])
         .output()
         .ok()
         .filter(|o| o.status.success())
         .map(|o| String::from_utf8_lossy(&o.stdout).trim().to_string())
-        .unwrap_or_else(|| "unknown".to_string())
+}
+
+/// HEAD from the nearest `.git` directory up from the working directory: a detached hash, or
+/// the branch's ref file, or its line in `packed-refs`.
+fn head_from_git_dir() -> Option<String> {
+    let cwd = std::env::current_dir().ok()?;
+    let git = cwd.ancestors().map(|dir| dir.join(".git")).find(|git| git.is_dir())?;
+    let head = std::fs::read_to_string(git.join("HEAD")).ok()?;
+    let hash = match head.trim().strip_prefix("ref: ") {
+        None => head.trim().to_string(),
+        Some(name) => match std::fs::read_to_string(git.join(name)) {
+            Ok(hash) => hash.trim().to_string(),
+            Err(_) => std::fs::read_to_string(git.join("packed-refs"))
+                .ok()?
+                .lines()
+                .find_map(|l| l.strip_suffix(name)?.strip_suffix(' ').map(str::to_string))?,
+        },
+    };
+    let short = hash.get(..12)?;
+    short.chars().all(|c| c.is_ascii_hexdigit()).then(|| short.to_string())
 }
 
 fn prepare(config: &BenchConfig, task: &BenchTask) -> Result<(Prepared, EnvData), BenchError> {
@@ -378,6 +430,7 @@ fn run_jobs(
 ) -> Result<Vec<RunResult>, BenchError> {
     let next = AtomicUsize::new(0);
     let done = AtomicUsize::new(0);
+    let runs_log = RunsLog::open(config.runs_log.as_deref());
     let results: Mutex<Vec<Result<RunResult, BenchError>>> = Mutex::new(Vec::new());
     let failed = std::sync::atomic::AtomicBool::new(false);
     std::thread::scope(|scope| {
@@ -390,8 +443,7 @@ fn run_jobs(
                 let job = jobs[i];
                 let result = train_and_evaluate(config, &tasks[job.env], &prepared[job.env], job);
                 if let Ok(r) = &result {
-                    // One JSON line per finished run, so a run cut short still leaves its data.
-                    tracing::info!(target: "safedice::bench::run", "{}", serde_json::to_string(r).unwrap_or_default());
+                    runs_log.append(r);
                     tracing::info!(
                         "bench: [{}/{}] {}/{}/seed {}: normalized return {:.1}, average cost {:.2} ({:.0} s, {:.1} steps/s)",
                         done.fetch_add(1, Ordering::SeqCst) + 1,
@@ -583,6 +635,23 @@ impl Recorder {
             alpha_hat_upper: self.get("alpha_hat_upper"),
             heldout_auc: self.get("discriminator_heldout_auc"),
             weighting_uniform: self.get("weighting_uniform"),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Reading `.git` directly gives what git itself says, where both can answer.
+    #[test]
+    fn the_commit_read_from_the_git_directory_is_gits_own() {
+        let in_checkout =
+            std::env::current_dir().unwrap().ancestors().any(|dir| dir.join(".git").is_dir());
+        let read = head_from_git_dir();
+        assert_eq!(read.is_some(), in_checkout, "{read:?}");
+        if let (Some(read), Some(git)) = (read, git_rev_parse()) {
+            assert_eq!(read, git);
         }
     }
 }

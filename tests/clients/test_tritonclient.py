@@ -29,6 +29,15 @@ def check_policy(client, policy, env):
     (tensor,) = metadata["inputs"]
     obs_dim = tensor["shape"][1]
     (output,) = metadata["outputs"]
+    # Triton's model configuration, as get_model_config reads it: the same tensors.
+    config = client.get_model_config(policy)
+    assert client.get_model_config(policy, model_version="1") == config
+    assert (config["name"], config["max_batch_size"]) == (policy, 0), config
+    assert [(t["name"], t["data_type"], t["dims"]) for t in config["input"]] == \
+        [(tensor["name"], "TYPE_FP32", tensor["shape"])], config
+    assert [(t["name"], t["data_type"], t["dims"]) for t in config["output"]] == \
+        [(output["name"], "TYPE_" + output["datatype"], output["shape"])], config
+    assert config["parameters"]["algorithm"]["string_value"] == metadata["parameters"]["algorithm"]
     rng = np.random.default_rng(0)
     observations = rng.uniform(-1, 1, size=(64, obs_dim)).astype(np.float32)
     expected = act(policy, observations)
@@ -71,6 +80,8 @@ def check_named_model(client, first, second):
         headers={"Content-Type": "application/json"})
     urllib.request.urlopen(request, timeout=60).read()
     assert client.get_model_metadata("pilot")["versions"] == ["1", "2"]
+    assert client.get_model_config("pilot@production")["parameters"]["version"]["string_value"] == "1"
+    assert client.get_model_config("pilot", "2")["parameters"]["version"]["string_value"] == "2
     assert client.is_model_ready("pilot@production") and client.is_model_ready("pilot", "2")
     observations = np.random.default_rng(1).uniform(-1, 1, size=(16, 21)).astype(np.float32)
     by_first, by_second = act(first, observations), act(second, observations)

@@ -117,7 +117,12 @@ async fn the_inference_token_reaches_only_action_endpoints() {
     assert_eq!(server["name"], "safedice");
     assert_eq!(
         server["extensions"],
-        serde_json::json!(["binary_tensor_data", "model_repository", "statistics"])
+        serde_json::json!([
+            "binary_tensor_data",
+            "model_repository",
+            "statistics",
+            "model_configuration"
+        ])
     );
     // A named model's action routes are an agent's; the model repository is not.
     let response =

@@ -416,9 +416,26 @@ impl SafediceTrainer {
 
     /// A step after the discriminator stopped early: nothing trains; the phase still ends at
     /// its step budget, so step counts and checkpoints are those of any other run.
+    /// Its metrics say where the rule stopped, so the phase's last recorded values (what a
+    /// job's page and the benchmarks read) name the stop rather than the last trained step's
+    /// "not stopped".
     fn idle_discriminator_step(&mut self) -> Result<Vec<(&'static str, f64)>, TrainError> {
         self.end_discriminator_step()?;
-        Ok(std::mem::take(&mut self.phase_metrics))
+        let mut metrics = self.stop_metrics();
+        metrics.append(&mut self.phase_metrics);
+        Ok(metrics)
+    }
+
+    /// The early-stopping rule's state as metrics (none without early stopping).
+    fn stop_metrics(&self) -> Vec<(&'static str, f64)> {
+        let Some(v) = self.disc_stop.as_ref().filter(|v| v.early_stopping) else {
+            return Vec::new();
+        };
+        vec![
+            ("discriminator_heldout_loss", v.last_loss),
+            ("discriminator_best_step", v.rule.best_step as f64),
+            ("discriminator_stopped_at", v.rule.stopped_at.map_or(-1.0, |s| s as f64)),
+        ]
     }
 
     /// `[loss, classification loss, penalty, mean σ(c) on D^N, mean σ(c) on D^U]` as named
@@ -432,12 +449,7 @@ impl SafediceTrainer {
             "discriminator_prob_non_preferred_on_du",
         ];
         let mut metrics: Vec<(&'static str, f64)> = names.into_iter().zip(values).collect();
-        if let Some(v) = self.disc_stop.as_ref().filter(|v| v.early_stopping) {
-            metrics.push(("discriminator_heldout_loss", v.last_loss));
-            metrics.push(("discriminator_best_step", v.rule.best_step as f64));
-            metrics
-                .push(("discriminator_stopped_at", v.rule.stopped_at.map_or(-1.0, |s| s as f64)));
-        }
+        metrics.extend(self.stop_metrics());
         metrics.append(&mut self.phase_metrics);
         metrics
     }

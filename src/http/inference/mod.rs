@@ -3,7 +3,7 @@
 //! `GET /v2` (server metadata), `GET /v2/health/live`, `GET /v2/health/ready`, and per model
 //! `GET /v2/models/{id}`, `GET …/ready`, `POST …/infer`, each also under
 //! `/v2/models/{id}/versions/{version}/`; the repository and statistics extensions
-//! ([`repository`]). Errors under `/v2` have the protocol's shape `{"error": "message"}`
+//! ([`repository`]) and Triton's model configuration ([`config`]). Errors under `/v2` have the protocol's shape `{"error": "message"}`
 //! ([`binary::v2_error_shape`]).
 //!
 //! A v2 model is a policy (its id is the model name, its one version `1`) or a named model
@@ -16,6 +16,7 @@
 //! as `/act`.
 
 pub mod binary;
+pub mod config;
 pub mod repository;
 
 use std::sync::Arc;
@@ -60,6 +61,7 @@ pub fn router() -> OpenApiRouter<AppState> {
         .routes(routes!(version_ready))
         .merge(infer)
         .merge(repository::router())
+        .merge(config::router())
 }
 
 /// KServe v2 server metadata.
@@ -67,7 +69,8 @@ pub fn router() -> OpenApiRouter<AppState> {
 pub struct ServerMetadata {
     pub name: String,
     pub version: String,
-    /// Protocol extensions served: `binary_tensor_data`, `model_repository`, `statistics`.
+    /// Protocol extensions served: `binary_tensor_data`, `model_repository`, `statistics`,
+    /// `model_configuration`.
     pub extensions: Vec<String>,
 }
 
@@ -78,7 +81,7 @@ async fn server_metadata() -> Json<ServerMetadata> {
     Json(ServerMetadata {
         name: "safedice".into(),
         version: env!("CARGO_PKG_VERSION").into(),
-        extensions: ["binary_tensor_data", "model_repository", "statistics"]
+        extensions: ["binary_tensor_data", "model_repository", "statistics", "model_configuration"]
             .map(String::from)
             .to_vec(),
     })
