@@ -112,6 +112,12 @@ pub struct ServeConfig {
     #[arg(long, env = "SAFEDICE_BODY_IDLE_TIMEOUT_SECS", default_value_t = 30, value_parser = clap::value_parser!(u64).range(1..))]
     pub body_idle_timeout_secs: u64,
 
+    /// Seconds a response may wait on a client that reads none of it (a download read a byte a
+    /// second, a stalled network) before the connection is closed: what the response held (a
+    /// --max-heavy-reads slot, its memory) goes back. 0 waits for ever.
+    #[arg(long, env = "SAFEDICE_SEND_STALL_TIMEOUT_SECS", default_value_t = 30)]
+    pub send_stall_timeout_secs: u64,
+
     /// Bytes per second a request body (an upload) must average once it has been arriving for
     /// --body-idle-timeout-secs; a slower one is abandoned with 408 `request_too_slow`, so a
     /// body trickled a byte at a time cannot hold an upload slot for ever.
@@ -201,6 +207,7 @@ impl std::fmt::Debug for ServeConfig {
             .field("max_connections_per_address", &self.max_connections_per_address)
             .field("header_timeout_secs", &self.header_timeout_secs)
             .field("body_idle_timeout_secs", &self.body_idle_timeout_secs)
+            .field("send_stall_timeout_secs", &self.send_stall_timeout_secs)
             .field("min_body_rate", &self.min_body_rate)
             .field("max_concurrent_uploads", &self.max_concurrent_uploads)
             .field("max_streams", &self.max_streams)
@@ -313,6 +320,7 @@ impl ServeConfig {
             max_connections_per_address: DEFAULT_MAX_CONNECTIONS_PER_ADDRESS,
             header_timeout_secs: 15,
             body_idle_timeout_secs: 30,
+            send_stall_timeout_secs: 30,
             min_body_rate: DEFAULT_MIN_BODY_RATE,
             max_concurrent_uploads: 8,
             max_streams: 256,

@@ -345,19 +345,25 @@ async fn wait_for_evaluation(
 }
 
 fn print_table(rows: &[DemoRow]) {
-    println!(
-        "\n{:<10} {:>14} {:>13} {:>15} {:>13} {:>10}",
+    print!("\n{}", table(rows));
+}
+
+/// The demo's results as it prints them (and as README's "Benchmark and demo" quotes them).
+pub fn table(rows: &[DemoRow]) -> String {
+    let mut text = format!(
+        "{:<10} {:>14} {:>13} {:>15} {:>13} {:>10}\n",
         "algorithm", "norm. return", "avg cost", "violation ratio", "CVaR 10%", "alpha-hat"
     );
     for DemoRow { algorithm, alpha_hat: alpha, metrics: m, .. } in rows {
-        println!(
-            "{:<10} {:>14.1} {:>13.2} {:>15.3} {:>13.2} {:>10}",
+        text.push_str(&format!(
+            "{:<10} {:>14.1} {:>13.2} {:>15.3} {:>13.2} {:>10}\n",
             algorithm.display_name(),
             m.normalized_return,
             m.average_cost,
             m.cost_violation_ratio,
             m.cvar_cost.k10,
             alpha.map_or("-".to_string(), |a| format!("{a:.4}"))
-        );
+        ));
     }
+    text
 }

@@ -52,6 +52,8 @@ impl Server {
         let config_max_connections = config.max_connections as usize;
         let per_address = config.max_connections_per_address as usize;
         let header_timeout_secs = config.header_timeout_secs;
+        let send_stall = (config.send_stall_timeout_secs > 0)
+            .then(|| Duration::from_secs(config.send_stall_timeout_secs));
         let options = WorkerOptions::new(
             usize::from(config.workers),
             Duration::from_secs(config.lease_seconds),
@@ -74,6 +76,7 @@ impl Server {
             config_max_connections,
             per_address,
             Duration::from_secs(header_timeout_secs),
+            send_stall,
         );
         tracing::info!(
             max_connections = limits.max_connections,

@@ -2,8 +2,9 @@
 //! process: a cap on open connections (below the file-descriptor limit, so the database and
 //! uploads always find descriptors), a deadline for a request's headers (slowloris; it also
 //! closes keep-alive connections left idle that long), and a deadline between two pieces of a
-//! request body (a body that trickles one byte per minute). `axum::serve` has none of these
-//! knobs, so this is its loop on `hyper-util` with them set.
+//! request body (a body that trickles one byte per minute), a deadline for a response a client
+//! stops reading ([`StallLimited`]), and a cap per client address (an IPv6 client's whole /64).
+//! `axum::serve` has none of these knobs, so this is its loop on `hyper-util` with them set.
 
 use std::io;
 use std::sync::Arc;
@@ -38,12 +39,19 @@ pub struct ConnectionLimits {
     pub max_per_address: usize,
     /// A request's headers must arrive within this (also the keep-alive idle limit).
     pub header_read_timeout: Duration,
+    /// A write the client does not take within this closes the connection (None: no limit).
+    pub send_stall_timeout: Option<Duration>,
 }
 
 impl ConnectionLimits {
     /// `configured`, lowered to what the process's open-file limit leaves after
     /// [`RESERVED_DESCRIPTORS`]. Raises the soft limit to the hard one first, as servers do.
-    pub fn new(configured: usize, per_address: usize, header_read_timeout: Duration) -> Self {
+    pub fn new(
+        configured: usize,
+        per_address: usize,
+        header_read_timeout: Duration,
+        send_stall_timeout: Option<Duration>,
+    ) -> Self {
         let descriptors = rlimit::increase_nofile_limit(u64::MAX).unwrap_or(1024);
         let affordable = descriptors.saturating_sub(RESERVED_DESCRIPTORS).max(8);
         let max_connections = configured.min(usize::try_from(affordable).unwrap_or(usize::MAX));
@@ -56,7 +64,12 @@ impl ConnectionLimits {
             );
         }
         let max_per_address = per_address.min(max_connections);
-        ConnectionLimits { max_connections, max_per_address, header_read_timeout }
+        ConnectionLimits {
+            max_connections,
+            max_per_address,
+            header_read_timeout,
+            send_stall_timeout,
+        }
     }
 }
 
@@ -115,13 +128,14 @@ pub async fn serve(
         let _ = stream.set_nodelay(true);
         let (builder, app, watcher) = (builder.clone(), app.clone(), graceful.watcher());
         let (header_timeout, shutdown) = (limits.header_read_timeout, shutdown.clone());
+        let send_stall = limits.send_stall_timeout;
         tokio::spawn(async move {
             // hyper's header deadline starts once it knows the protocol, which it learns from
             // the first bytes: a connection that sends none is bounded here.
             if first_byte(&stream, header_timeout, &shutdown).await {
                 let service = TowerToHyperService::new(app);
-                let connection =
-                    builder.serve_connection_with_upgrades(TokioIo::new(stream), service);
+                let io = TokioIo::new(StallLimited::new(stream, send_stall));
+                let connection = builder.serve_connection_with_upgrades(io, service);
                 // A client that goes away or breaks the protocol is its own problem, not an
                 // error of the service: nothing to report beyond the request's own trace.
                 if let Err(e) = watcher.watch(connection.into_owned()).await {
@@ -162,8 +176,9 @@ impl PerAddress {
         PerAddress { open: Arc::default(), max }
     }
 
-    /// A place for one more connection from `ip`, unless it holds `max` already.
+    /// A place for one more connection from `ip`, unless its client holds `max` already.
     fn take(&self, ip: std::net::IpAddr) -> Option<AddressSlot> {
+        let ip = client_of(ip);
         let mut open = self.open.lock().expect("per-address lock");
         let count = open.entry(ip).or_insert(0);
         if *count >= self.max {
@@ -189,6 +204,117 @@ impl Drop for AddressSlot {
                 open.remove(&self.ip);
             }
         }
+    }
+}
+
+/// The client an address belongs to, as the per-address cap counts: an IPv4 address (also
+/// when it arrives IPv4-mapped), or an IPv6 address's /64, which one client or site holds
+/// whole (ISPs delegate at least a /64; a host picks any address in it, one per connection if
+/// it likes).
+fn client_of(ip: std::net::IpAddr) -> std::net::IpAddr {
+    use std::net::{IpAddr, Ipv6Addr};
+    match ip {
+        IpAddr::V4(v4) => IpAddr::V4(v4),
+        IpAddr::V6(v6) => match v6.to_ipv4_mapped() {
+            Some(v4) => IpAddr::V4(v4),
+            None => {
+                let prefix = u128::from(v6) & !((1u128 << 64) - 1);
+                IpAddr::V6(Ipv6Addr::from(prefix))
+            }
+        },
+    }
+}
+
+/// A connection whose writes may wait at most `limit` on a client that reads nothing: a
+/// pending write that outlasts it fails with `TimedOut`, hyper drops the connection and with
+/// it the response (and whatever it held). hyper has read deadlines but none for writes.
+pub(crate) struct StallLimited<S> {
+    inner: S,
+    limit: Option<Duration>,
+    /// Running while a write is pending; cleared by any write that goes through.
+    stalled: Option<std::pin::Pin<Box<tokio::time::Sleep>>>,
+}
+
+impl<S> StallLimited<S> {
+    pub(crate) fn new(inner: S, limit: Option<Duration>) -> Self {
+        StallLimited { inner, limit, stalled: None }
+    }
+
+    /// `Pending` from the socket: starts the deadline, or fails once it has passed.
+    fn pending<T>(&mut self, cx: &mut std::task::Context<'_>) -> std::task::Poll<io::Result<T>> {
+        use std::task::Poll;
+        let Some(limit) = self.limit else { return Poll::Pending };
+        let sleep = self.stalled.get_or_insert_with(|| Box::pin(tokio::time::sleep(limit)));
+        match std::future::Future::poll(sleep.as_mut(), cx) {
+            Poll::Ready(()) => Poll::Ready(Err(io::Error::new(
+                io::ErrorKind::TimedOut,
+                format!("the client read nothing for {limit:?} (--send-stall-timeout-secs)"),
+            ))),
+            Poll::Pending => Poll::Pending,
+        }
+    }
+
+    fn settle<T>(
+        &mut self,
+        cx: &mut std::task::Context<'_>,
+        polled: std::task::Poll<io::Result<T>>,
+    ) -> std::task::Poll<io::Result<T>> {
+        match polled {
+            std::task::Poll::Pending => self.pending(cx),
+            ready => {
+                self.stalled = None;
+                ready
+            }
+        }
+    }
+}
+
+impl<S: tokio::io::AsyncRead + Unpin> tokio::io::AsyncRead for StallLimited<S> {
+    fn poll_read(
+        mut self: std::pin::Pin<&mut Self>,
+        cx: &mut std::task::Context<'_>,
+        buf: &mut tokio::io::ReadBuf<'_>,
+    ) -> std::task::Poll<io::Result<()>> {
+        std::pin::Pin::new(&mut self.inner).poll_read(cx, buf)
+    }
+}
+
+impl<S: tokio::io::AsyncWrite + Unpin> tokio::io::AsyncWrite for StallLimited<S> {
+    fn poll_write(
+        mut self: std::pin::Pin<&mut Self>,
+        cx: &mut std::task::Context<'_>,
+        buf: &[u8],
+    ) -> std::task::Poll<io::Result<usize>> {
+        let polled = std::pin::Pin::new(&mut self.inner).poll_write(cx, buf);
+        self.settle(cx, polled)
+    }
+
+    fn poll_write_vectored(
+        mut self: std::pin::Pin<&mut Self>,
+        cx: &mut std::task::Context<'_>,
+        bufs: &[io::IoSlice<'_>],
+    ) -> std::task::Poll<io::Result<usize>> {
+        let polled = std::pin::Pin::new(&mut self.inner).poll_write_vectored(cx, bufs);
+        self.settle(cx, polled)
+    }
+
+    fn is_write_vectored(&self) -> bool {
+        self.inner.is_write_vectored()
+    }
+
+    fn poll_flush(
+        mut self: std::pin::Pin<&mut Self>,
+        cx: &mut std::task::Context<'_>,
+    ) -> std::task::Poll<io::Result<()>> {
+        let polled = std::pin::Pin::new(&mut self.inner).poll_flush(cx);
+        self.settle(cx, polled)
+    }
+
+    fn poll_shutdown(
+        mut self: std::pin::Pin<&mut Self>,
+        cx: &mut std::task::Context<'_>,
+    ) -> std::task::Poll<io::Result<()>> {
+        std::pin::Pin::new(&mut self.inner).poll_shutdown(cx)
     }
 }
 
@@ -278,4 +404,42 @@ pub(crate) fn at_least(body: axum::body::Body, grace: Duration, min_rate: u64) -
 #[error("the request body arrived slower than {min_rate} bytes/s on average")]
 pub struct BodyTooSlow {
     pub min_rate: u64,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::net::IpAddr;
+
+    /// One client per IPv4 address (mapped or not) and per IPv6 /64.
+    #[test]
+    fn an_ipv6_client_is_its_slash_64() {
+        let client = |text: &str| client_of(text.parse::<IpAddr>().unwrap());
+        assert_eq!(client("203.0.113.7"), client("::ffff:203.0.113.7"));
+        assert_ne!(client("203.0.113.7"), client("203.0.113.8"));
+        assert_eq!(client("2001:db8:1:2:aaaa::1"), client("2001:db8:1:2:ffff:ffff:ffff:fffe"));
+        assert_eq!(client("2001:db8:1:2::9"), "2001:db8:1:2::".parse::<IpAddr>().unwrap());
+        assert_ne!(client("2001:db8:1:2::1"), client("2001:db8:1:3::1"));
+    }
+
+    /// A write the peer never takes fails after the limit, and one that goes through resets it.
+    #[tokio::test]
+    async fn a_write_that_waits_past_the_limit_fails() {
+        use tokio::io::{AsyncReadExt, AsyncWriteExt};
+        // A pipe of 64 bytes: filled, then read from (the wait ends, the limit resets), filled
+        // again, then never read.
+        let (writer, mut reader) = tokio::io::duplex(64);
+        let mut limited = StallLimited::new(writer, Some(Duration::from_millis(200)));
+        limited.write_all(&[0u8; 64]).await.unwrap();
+        let drain = tokio::spawn(async move {
+            let mut half = [0u8; 32];
+            reader.read_exact(&mut half).await.unwrap();
+            reader
+        });
+        limited.write_all(&[1u8; 32]).await.unwrap();
+        let _reader = drain.await.unwrap();
+        let error = limited.write_all(&[2u8; 1]).await.unwrap_err();
+        assert_eq!(error.kind(), io::ErrorKind::TimedOut);
+        assert!(error.to_string().contains("--send-stall-timeout-secs"), "{error}");
+    }
 }

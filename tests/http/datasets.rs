@@ -489,3 +489,54 @@ async fn heavy_reads_beyond_the_cap_get_503_until_the_file_in_flight_is_sent() {
         tokio::time::sleep(std::time::Duration::from_millis(20)).await;
     }
 }
+
+/// A download its client stops reading (a reader at a byte a second, a stalled network): after
+/// --send-stall-timeout-secs without the client taking a byte the server closes the connection,
+/// and the heavy-read slot it held serves others again; before that, they get 503.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_download_its_client_stops_reading_gives_its_slot_back() {
+    use std::io::{Read, Write};
+    let app = TestApp::spawn_with(|c| {
+        c.max_heavy_reads = 1;
+        c.send_stall_timeout_secs = 1;
+    })
+    .await;
+    let dataset = wide_dataset(100_000, 48);
+    let id = crate::support::jobs::upload(&app.client, &app.base_url, &dataset, "wide").await;
+    // A client with a small receive window that reads the status line and then nothing.
+    let socket = tokio::net::TcpSocket::new_v4().unwrap();
+    socket.set_recv_buffer_size(4096).unwrap();
+    let mut stalled = socket.connect(app.addr).await.unwrap().into_std().unwrap();
+    stalled.set_nonblocking(false).unwrap();
+    stalled.set_read_timeout(Some(std::time::Duration::from_secs(60))).unwrap();
+    let request = format!("GET /v1/datasets/{id}/download HTTP/1.1\r\nHost: x\r\n\r\n");
+    stalled.write_all(request.as_bytes()).unwrap();
+    let mut status = [0u8; 12];
+    stalled.read_exact(&mut status).unwrap();
+    assert_eq!(&status, b"HTTP/1.1 200");
+    let busy = app.get(&format!("/v1/datasets/{id}/preview")).send().await.unwrap();
+    assert_error(busy, StatusCode::SERVICE_UNAVAILABLE, "too_many_heavy_reads").await;
+    // The server gives up on the stalled client: its slot serves the next download whole.
+    let started = std::time::Instant::now();
+    loop {
+        let response = app.get(&format!("/v1/datasets/{id}/download")).send().await.unwrap();
+        if response.status() == StatusCode::OK {
+            let length: usize =
+                response.headers()["content-length"].to_str().unwrap().parse().unwrap();
+            assert_eq!(response.bytes().await.unwrap().len(), length);
+            break;
+        }
+        assert_eq!(response.status(), StatusCode::SERVICE_UNAVAILABLE);
+        assert!(started.elapsed() < std::time::Duration::from_secs(60), "the slot stayed taken");
+        tokio::time::sleep(std::time::Duration::from_millis(100)).await;
+    }
+    // The stalled connection was closed before its file was sent: reading on ends early.
+    let received = tokio::task::spawn_blocking(move || {
+        let mut rest = Vec::new();
+        let _ = stalled.read_to_end(&mut rest);
+        rest.len()
+    })
+    .await
+    .unwrap();
+    assert!(received < 38_000_000, "the stalled client got {received} bytes: the whole file");
+}

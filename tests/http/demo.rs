@@ -75,3 +75,49 @@ async fn demo_serve_keeps_the_service_and_its_data() {
     assert!(status.success(), "{status}");
     assert!(dir.path().join("data/safedice.sqlite").exists(), "the data stays");
 }
+
+/// README's demo table is what `safedice demo` (its defaults, seed 0) prints, to the printed
+/// precision give or take what another CPU's float rounding could move in 200 sampled episodes:
+/// a stale number fails here rather than misleading a reader.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_readme_quotes_the_demos_own_numbers() {
+    let readme =
+        std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/README.md")).unwrap();
+    let block = readme
+        .split("<!-- demo-table -->")
+        .nth(1)
+        .and_then(|rest| rest.split("<!-- /demo-table -->").next())
+        .expect("README has a demo table between <!-- demo-table --> markers");
+    let quoted = numbers_by_row(block);
+    let printed = numbers_by_row(&demo::table(
+        &demo::run(&DemoArgs::new("six-rooms", 10_000, 200)).await.unwrap(),
+    ));
+    assert_eq!(quoted.len(), 2, "{block}");
+    assert_eq!(
+        quoted.iter().map(|(name, _)| name).collect::<Vec<_>>(),
+        printed.iter().map(|(name, _)| name).collect::<Vec<_>>()
+    );
+    // Normalized return, average cost, violation ratio, CVaR 10%, alpha-hat.
+    let tolerance: [f64; 5] = [1.0, 0.1, 0.02, 0.5, 0.02];
+    for ((name, quoted), (_, printed)) in quoted.iter().zip(&printed) {
+        for (i, (q, p)) in quoted.iter().zip(printed).enumerate() {
+            let allowed = tolerance[i].max(0.1 * q.abs());
+            assert!(
+                (q - p).abs() <= allowed,
+                "{name}, column {i}: README {q}, demo {p}\n{printed:?}"
+            );
+        }
+    }
+}
+
+/// Each table row's algorithm and numbers (`-` skipped).
+fn numbers_by_row(text: &str) -> Vec<(String, Vec<f64>)> {
+    text.lines()
+        .filter(|line| line.starts_with("SafeDICE") || line.starts_with("BC"))
+        .map(|line| {
+            let mut fields = line.split_whitespace();
+            let name = fields.next().unwrap().to_owned();
+            (name, fields.filter_map(|f| f.parse().ok()).collect())
+        })
+        .collect()
+}
