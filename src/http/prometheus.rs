@@ -56,6 +56,7 @@ pub struct Metrics {
     fleet: FleetMetrics,
     policies_loaded: Gauge,
     policy_cache_bytes: Gauge,
+    policy_bytes_outside_cache: Gauge,
 }
 
 /// What /metrics says of the workers sharing the database.
@@ -152,6 +153,12 @@ impl Metrics {
             "Bytes of weights of the loaded policies (at most --policy-cache-bytes, or one policy)",
             policy_cache_bytes.clone(),
         );
+        let policy_bytes_outside_cache = Gauge::default();
+        registry.register(
+            "policy_bytes_outside_cache",
+            "Bytes of policies dropped from the cache that requests in flight still hold (shared, never a second copy)",
+            policy_bytes_outside_cache.clone(),
+        );
         Metrics {
             registry,
             requests,
@@ -162,6 +169,7 @@ impl Metrics {
             fleet,
             policies_loaded,
             policy_cache_bytes,
+            policy_bytes_outside_cache,
         }
     }
 
@@ -218,9 +226,11 @@ async fn metrics(State(state): State<AppState>) -> Result<Response, ApiError> {
         state.metrics.evaluations.get_or_create(&StatusLabel { status }).set(count);
     }
     state.metrics.fleet.refresh(&state.store).await?;
-    let (loaded, bytes) = state.policies.usage();
-    state.metrics.policies_loaded.set(loaded as i64);
-    state.metrics.policy_cache_bytes.set(i64::try_from(bytes).unwrap_or(i64::MAX));
+    let usage = state.policies.usage();
+    let gauge = |bytes: u64| i64::try_from(bytes).unwrap_or(i64::MAX);
+    state.metrics.policies_loaded.set(usage.loaded as i64);
+    state.metrics.policy_cache_bytes.set(gauge(usage.bytes));
+    state.metrics.policy_bytes_outside_cache.set(gauge(usage.held_outside));
     let mut body = String::new();
     prometheus_client::encoding::text::encode(&mut body, &state.metrics.registry)
         .map_err(|e| ApiError::Internal(e.into()))?;

@@ -6,7 +6,7 @@ pub mod registry;
 
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::{Arc, RwLock, RwLockWriteGuard};
+use std::sync::{Arc, RwLock, RwLockWriteGuard, Weak};
 
 use crate::algo::Policy;
 use crate::domain::PolicyId;
@@ -25,7 +25,9 @@ pub enum PolicyLoadError {
 
 /// Policies loaded once from the store and shared by every request, at most `budget` bytes of
 /// them: past it the least recently used are dropped (and loaded again if asked for), so one
-/// token that can act on every policy cannot hold them all in memory.
+/// token that can act on every policy cannot hold them all in memory. A dropped policy that a
+/// request in flight still holds is handed out again rather than loaded a second time: there is
+/// never more than one copy of a policy in the process.
 pub struct PolicyCache {
     store: Store,
     slots: RwLock<Slots>,
@@ -34,6 +36,9 @@ pub struct PolicyCache {
 /// What the cache holds, behind one lock so that a load's insert and a forget are ordered.
 struct Slots {
     loaded: Lru<Arc<Policy>>,
+    /// Every policy loaded, weakly, with its bytes: one dropped from `loaded` but still held by
+    /// a request is found here and shared, not loaded again.
+    alive: HashMap<String, (Weak<Policy>, u64)>,
     /// The loads under way, per policy. A load reads the store and decodes outside the lock, so
     /// a delete (store, then [`PolicyCache::forget`]) can land in between; the forget marks the
     /// loads it overtook, and those insert nothing and answer as if the policy were already
@@ -72,14 +77,26 @@ impl PolicyCache {
     /// A cache of at most `budget` bytes of policy weights (one policy is kept whatever its
     /// size).
     pub fn new(store: Store, budget: u64) -> Self {
-        let slots = Slots { loaded: Lru::new(budget), loading: HashMap::new() };
+        let slots =
+            Slots { loaded: Lru::new(budget), alive: HashMap::new(), loading: HashMap::new() };
         PolicyCache { store, slots: RwLock::new(slots) }
     }
 
-    /// (policies loaded, their bytes), for /metrics.
-    pub fn usage(&self) -> (usize, u64) {
+    /// For /metrics: the policies the cache holds and their bytes, and the bytes of the ones
+    /// it dropped that requests in flight still hold.
+    pub fn usage(&self) -> CacheUsage {
         let slots = self.slots.read().expect("policy cache lock");
-        (slots.loaded.len(), slots.loaded.bytes())
+        let outside = slots
+            .alive
+            .iter()
+            .filter(|(id, (policy, _))| policy.strong_count() > 0 && !slots.loaded.contains(id))
+            .map(|(_, (_, bytes))| bytes)
+            .sum();
+        CacheUsage {
+            loaded: slots.loaded.len(),
+            bytes: slots.loaded.bytes(),
+            held_outside: outside,
+        }
     }
 
     fn write(&self) -> RwLockWriteGuard<'_, Slots> {
@@ -97,6 +114,12 @@ impl PolicyCache {
             let mut slots = self.write();
             if let Some(policy) = slots.loaded.get(id) {
                 return Ok(policy.clone());
+            }
+            if let Some((policy, bytes)) =
+                slots.alive.get(id).and_then(|(w, b)| Some((w.upgrade()?, *b)))
+            {
+                // Dropped from the cache but still in use: the same copy, counted again.
+                return Ok(slots.loaded.insert_if_absent(id, bytes, || policy));
             }
             slots.loading.entry(id.to_owned()).or_default().loads += 1;
             LoadTicket { cache: self, id }
@@ -116,6 +139,8 @@ impl PolicyCache {
         }
         // Two first requests may both load it; every later one shares the first stored.
         let policy = slots.loaded.insert_if_absent(id, bytes, || Arc::new(policy));
+        slots.alive.retain(|_, (policy, _)| policy.strong_count() > 0);
+        slots.alive.insert(id.to_owned(), (Arc::downgrade(&policy), bytes));
         // The lock first: dropping the ticket takes it again. A forget from here on finds the
         // policy inserted and removes it.
         drop(slots);
@@ -130,10 +155,21 @@ impl PolicyCache {
     pub fn forget(&self, id: &str) {
         let mut slots = self.write();
         slots.loaded.remove(id);
+        slots.alive.remove(id);
         if let Some(loading) = slots.loading.get_mut(id) {
             loading.forgotten = true;
         }
     }
+}
+
+/// What [`PolicyCache::usage`] reports.
+pub struct CacheUsage {
+    /// Policies in the cache.
+    pub loaded: usize,
+    /// Their bytes of weights (at most the budget, or one policy).
+    pub bytes: u64,
+    /// Bytes of policies the cache dropped that requests in flight still hold.
+    pub held_outside: u64,
 }
 
 /// The policy's portable file: its weights with the spec and its training run (resolved
@@ -223,6 +259,10 @@ impl<V: Clone> Lru<V> {
             }
         }
         value
+    }
+
+    fn contains(&self, id: &str) -> bool {
+        self.entries.contains_key(id)
     }
 
     fn remove(&mut self, id: &str) {

@@ -2,17 +2,19 @@
 //!
 //! Each process keeps a routing table per model, built from the store ([`Store::model_routes`])
 //! and swapped whole: the policies of the latest version and of every alias (and canary) are
-//! loaded first and held by the table, and only then does the new table replace the old one.
-//! A request resolves against one table, so it never sees an alias pointing at a version whose
-//! policy is still loading, and requests in flight keep the policy they resolved (an `Arc`)
-//! while the table changes under them: moving an alias loses no request.
+//! loaded first (a policy that does not load keeps the old table serving), and only then does
+//! the new table replace the old one. Tables hold policy ids, not policies: a request takes its
+//! policy from the [`PolicyCache`] by id, so every model and alias over one policy shares one
+//! copy, counted in `--policy-cache-bytes`, and a policy evicted from the cache is loaded again
+//! when next asked for rather than pinned by a table. Requests in flight keep the policy they
+//! resolved (an `Arc`) while the table changes under them: moving an alias loses no request.
 //!
 //! The table follows the store: this process refreshes a model at once after changing it
 //! ([`ModelRegistry::refresh_model`]); changes made elsewhere (another API node, a worker
 //! registering a job's policy) arrive by PostgreSQL notification within milliseconds, and by a
 //! poll of every model's revision each [`POLL`] on either store.
 
-use std::collections::{BTreeMap, HashMap, HashSet};
+use std::collections::{BTreeMap, BTreeSet, HashMap, HashSet};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, RwLock};
 use std::time::{Duration, Instant};
@@ -67,15 +69,23 @@ pub struct Target {
     pub stats: Arc<VersionStats>,
 }
 
+/// A version in a routing table: its policy by id (the cache holds the policy).
+#[derive(Clone)]
+struct Route {
+    version: u32,
+    policy_id: PolicyId,
+    stats: Arc<VersionStats>,
+}
+
 struct AliasRoute {
-    main: Target,
-    canary: Option<(Target, u32)>,
+    main: Route,
+    canary: Option<(Route, u32)>,
 }
 
 /// One model's routing table, of one revision.
 struct Deployed {
     revision: u64,
-    latest: Option<Target>,
+    latest: Option<Route>,
     aliases: HashMap<String, AliasRoute>,
     versions: BTreeMap<u32, PolicyId>,
 }
@@ -199,7 +209,7 @@ impl ModelRegistry {
         let table = self
             .table(model)
             .ok_or_else(|| ResolveError::NotFound(format!("model {model} does not exist")))?;
-        let target = match &reference.selector {
+        let route = match &reference.selector {
             Selector::Latest => table.latest.clone().ok_or_else(|| {
                 ResolveError::NotFound(format!("model {model} has no version yet"))
             })?,
@@ -209,44 +219,29 @@ impl ModelRegistry {
                 })?;
                 pick(route, key).clone()
             }
-            Selector::Version(version) => self.version_target(model, &table, *version).await?,
+            Selector::Version(version) => {
+                let policy_id = table.versions.get(version).ok_or_else(|| {
+                    ResolveError::NotFound(format!("model {model} has no version {version}"))
+                })?;
+                self.route(model, *version, policy_id)
+            }
         };
-        Ok(Answer { model: model.clone(), target })
+        Ok(Answer { model: model.clone(), target: self.target(route).await? })
     }
 
-    /// A version by number: the loaded one if an alias or `latest` holds it, else through the
-    /// policy cache.
-    async fn version_target(
-        &self,
-        model: &str,
-        table: &Deployed,
-        version: u32,
-    ) -> Result<Target, ResolveError> {
-        let held = table.latest.iter().chain(table.aliases.values().flat_map(|route| {
-            std::iter::once(&route.main).chain(route.canary.as_ref().map(|(c, _)| c))
-        }));
-        if let Some(target) = held.into_iter().find(|t| t.version == version) {
-            return Ok(target.clone());
-        }
-        let policy_id = table.versions.get(&version).ok_or_else(|| {
-            ResolveError::NotFound(format!("model {model} has no version {version}"))
-        })?;
-        self.load(model, version, policy_id).await
-    }
-
-    async fn load(
-        &self,
-        model: &str,
-        version: u32,
-        policy_id: &PolicyId,
-    ) -> Result<Target, ResolveError> {
-        let policy = self.policies.get(policy_id.as_str()).await?;
+    /// A table's version with its policy, from the cache (loaded again if it was evicted).
+    async fn target(&self, route: Route) -> Result<Target, ResolveError> {
+        let policy = self.policies.get(route.policy_id.as_str()).await?;
         Ok(Target {
-            version,
-            policy_id: policy_id.clone(),
+            version: route.version,
+            policy_id: route.policy_id,
             policy,
-            stats: self.stats(model, version),
+            stats: route.stats,
         })
+    }
+
+    fn route(&self, model: &str, version: u32, policy_id: &PolicyId) -> Route {
+        Route { version, policy_id: policy_id.clone(), stats: self.stats(model, version) }
     }
 
     /// Reads the model from the store and, if it changed, loads the policies its new table needs
@@ -272,37 +267,41 @@ impl ModelRegistry {
         Ok(())
     }
 
+    /// The table of `routes`, once every policy it routes to has loaded (through the cache,
+    /// which keeps them as its budget allows).
     async fn build(&self, routes: &ModelRoutes) -> Result<Deployed, ResolveError> {
         let versions: BTreeMap<u32, PolicyId> = routes.versions.iter().cloned().collect();
         let model = &routes.name;
-        let latest = match versions.last_key_value() {
-            Some((&version, policy_id)) => Some(self.load(model, version, policy_id).await?),
-            None => None,
-        };
+        let latest = versions.last_key_value().map(|(&v, id)| self.route(model, v, id));
         let mut aliases = HashMap::new();
         for (alias, AliasTarget { version, canary }) in &routes.aliases {
-            let main = self.target_of(model, &versions, *version).await?;
+            let main = self.route_of(model, &versions, *version)?;
             let canary = match canary {
-                Some(c) => {
-                    Some((self.target_of(model, &versions, c.version).await?, c.basis_points))
-                }
+                Some(c) => Some((self.route_of(model, &versions, c.version)?, c.basis_points)),
                 None => None,
             };
             aliases.insert(alias.clone(), AliasRoute { main, canary });
         }
+        let routed = latest.iter().chain(aliases.values().flat_map(|route| {
+            std::iter::once(&route.main).chain(route.canary.as_ref().map(|(c, _)| c))
+        }));
+        let policies: BTreeSet<&PolicyId> = routed.map(|route| &route.policy_id).collect();
+        for policy_id in policies {
+            self.policies.get(policy_id.as_str()).await?;
+        }
         Ok(Deployed { revision: routes.revision, latest, aliases, versions })
     }
 
-    async fn target_of(
+    fn route_of(
         &self,
         model: &str,
         versions: &BTreeMap<u32, PolicyId>,
         version: u32,
-    ) -> Result<Target, ResolveError> {
+    ) -> Result<Route, ResolveError> {
         let policy_id = versions.get(&version).ok_or_else(|| {
             ResolveError::NotFound(format!("model {model} has no version {version}"))
         })?;
-        self.load(model, version, policy_id).await
+        Ok(self.route(model, version, policy_id))
     }
 
     /// Brings every table up to its model's revision in the store; drops deleted models.
@@ -410,7 +409,7 @@ impl ModelRegistry {
 
 /// The alias's version, or its canary's for `basis_points` of every 10,000 request keys (or of
 /// random draws when the client sends no key).
-fn pick<'a>(route: &'a AliasRoute, key: Option<&str>) -> &'a Target {
+fn pick<'a>(route: &'a AliasRoute, key: Option<&str>) -> &'a Route {
     let Some((canary, basis_points)) = &route.canary else { return &route.main };
     let draw = match key {
         Some(key) => (fnv1a(key.as_bytes()) % u64::from(BASIS_POINTS)) as u32,

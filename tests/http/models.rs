@@ -583,3 +583,47 @@ async fn a_full_batch_fits_every_action_route_and_one_row_more_is_refused() {
         .unwrap();
     assert_eq!(response.status(), StatusCode::PAYLOAD_TOO_LARGE);
 }
+
+/// `/metrics`'s value of a gauge.
+async fn gauge(app: &TestApp, name: &str) -> f64 {
+    let text = app.get("/metrics").send().await.unwrap().text().await.unwrap();
+    let line = text.lines().find(|l| l.starts_with(&format!("{name} "))).unwrap_or_else(|| {
+        panic!("no {name} in /metrics:\n{text}");
+    });
+    line.rsplit(' ').next().unwrap().parse().unwrap()
+}
+
+/// Named models take their policies through the policy cache: with room for one policy, six
+/// models (and aliases) over two policies all answer, the cache holds one policy, and once no
+/// request is in flight nothing else holds one (routing tables pin none; before, each table
+/// held its own policies outside the budget).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn models_share_the_policy_cache_and_hold_no_policy_outside_its_budget() {
+    let app = TestApp::spawn_with(|c| c.policy_cache_bytes = 1).await;
+    let [(_, first), (_, second)] = two_policies(&app).await;
+    let first_actions = act(&app, &format!("/v1/policies/{first}/act"), None).await.0;
+    let second_actions = act(&app, &format!("/v1/policies/{second}/act"), None).await.0;
+    for (i, policy) in [&first, &second, &first, &second, &first, &second].iter().enumerate() {
+        let name = format!("shared-{i}");
+        create_model(&app, &name).await;
+        register(&app, &name, policy).await;
+        move_alias(&app, &name, "prod", json!({"version": 1, "actor": "test"})).await;
+    }
+    for round in 0..2 {
+        for i in 0..6 {
+            let expected = if i % 2 == 0 { &first_actions } else { &second_actions };
+            for path in
+                [format!("/v1/models/shared-{i}/act"), format!("/v1/models/shared-{i}@prod/act")]
+            {
+                let (actions, version) = act(&app, &path, None).await;
+                assert_eq!(
+                    (&actions, version.as_deref()),
+                    (expected, Some("1")),
+                    "{path}, round {round}"
+                );
+            }
+        }
+    }
+    assert_eq!(gauge(&app, "safedice_policies_loaded").await, 1.0);
+    assert_eq!(gauge(&app, "safedice_policy_bytes_outside_cache").await, 0.0);
+}
