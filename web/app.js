@@ -849,7 +849,7 @@ async function comparedResults(chosen, protocol) {
   try {
     return await api(withParams('/v1/results', params));
   } catch (err) {
-    if (err.status !== 400 || !protocol) throw err;
+    if (err.status !== 404 || !protocol) throw err;
     return api(withParams('/v1/results', { jobs: params.jobs }));
   }
 }

@@ -419,7 +419,7 @@ function experimentPage(view, id) {
       return await api(protocol ? withParams(`/v1/experiments/${id}`, { protocol }) : `/v1/experiments/${id}`);
     } catch (err) {
       // The picked protocol's evaluations were deleted: back to the default.
-      if (err.status !== 400 || !protocol) throw err;
+      if (err.status !== 404 || !protocol) throw err;
       protocol = null;
       return api(`/v1/experiments/${id}`);
     }

@@ -266,9 +266,8 @@ async fn list_experiments(
 #[utoipa::path(get, path = "/v1/experiments/{id}", tag = "experiments",
     params(("id" = String, Path), ProtocolParam),
     responses((status = 200, body = Experiment),
-        (status = 400, description = "A `protocol` no job of the experiment has a result \
-            under (`unknown_protocol`)", body = ErrorBody),
-        (status = 404, body = ErrorBody)))]
+        (status = 404, description = "No such experiment, or a `protocol` no job of it has a \
+            result under (`not_found`, naming the protocols there are)", body = ErrorBody)))]
 async fn get_experiment(
     State(state): State<AppState>,
     Path(id): Path<ExperimentId>,

@@ -21,7 +21,8 @@ const MAX_COMPARED: usize = 100;
 #[derive(Debug, Deserialize, IntoParams)]
 #[into_params(parameter_in = Query)]
 pub struct ResultsQuery {
-    /// The jobs, comma-separated: 1 to 100 distinct ids.
+    /// The jobs, comma-separated: 1 to 100 ids.
+    #[param(pattern = r"^[^,\s]+(,[^,\s]+){0,99}$", max_length = 4000)]
     pub jobs: String,
     /// The `key` of one of the `protocols` to show the results under (default: the newest
     /// protocol every job with a result has, else the one most of them have).
@@ -52,10 +53,10 @@ pub fn router() -> OpenApiRouter<AppState> {
 /// `protocol` picks another.
 #[utoipa::path(get, path = "/v1/results", tag = "evaluations", params(ResultsQuery),
     responses((status = 200, body = JobResults),
-        (status = 400, description = "No job, more than 100, or one twice (`invalid_jobs`); a \
-            `protocol` none of the jobs has a result under (`unknown_protocol`)",
+        (status = 400, description = "No job id or more than 100 (`invalid_jobs`)",
             body = ErrorBody),
-        (status = 404, description = "No such job", body = ErrorBody)))]
+        (status = 404, description = "No such job, or a `protocol` none of the jobs has a \
+            result under (`not_found`, naming the protocols there are)", body = ErrorBody)))]
 async fn job_results(
     State(state): State<AppState>,
     Query(query): Query<ResultsQuery>,
@@ -91,7 +92,8 @@ fn job_ids(list: &str) -> Result<Vec<JobId>, ApiError> {
     Ok(ids.into_iter().map(JobId::from).collect())
 }
 
-/// The protocol a `?protocol=` names, or 400 listing the ones there are.
+/// The protocol a `?protocol=` names, or 404 listing the ones there are (the view it asks for
+/// does not exist, as a resource that does not).
 pub(super) fn requested_protocol(
     scores: &ExperimentScores,
     key: &str,
@@ -99,9 +101,8 @@ pub(super) fn requested_protocol(
     scores.protocol(key).ok_or_else(|| {
         let known: Vec<String> = scores.protocols().into_iter().map(|p| p.protocol.key).collect();
         let known = if known.is_empty() { "none yet".to_owned() } else { known.join(", ") };
-        ApiError::bad_request(
-            "unknown_protocol",
-            format!("protocol: no job here has a result under `{key}`; the protocols: {known}"),
-        )
+        ApiError::NotFound(format!(
+            "protocol: no job here has a result under `{key}`; the protocols: {known}"
+        ))
     })
 }

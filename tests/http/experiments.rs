@@ -178,7 +178,7 @@ async fn a_grid_runs_as_jobs_and_reports_mean_and_standard_error_per_algorithm()
     assert_eq!((bc["n"].as_u64(), bc["mean"].as_f64()), (Some(1), Some(50.0)));
     assert_eq!(external["results"][1]["metrics"], json!({}));
     let unknown = app.client.get(&url).query(&[("protocol", "runtime=act")]).send().await.unwrap();
-    let message = assert_error(unknown, StatusCode::BAD_REQUEST, "unknown_protocol").await;
+    let message = assert_error(unknown, StatusCode::NOT_FOUND, "not_found").await;
     assert!(message.contains(trained) && message.contains(external_key), "{message}");
 
     // The CSV: every protocol's values and aggregates, each labelled with its protocol.
