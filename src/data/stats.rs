@@ -95,6 +95,12 @@ fn column_ranges(values: &[f32], width: usize) -> Vec<(f64, f64, f64, f64)> {
         .collect()
 }
 
+/// Root-mean-square of the values.
+fn rms(values: &[f32]) -> f64 {
+    let sum: f64 = values.iter().map(|&v| f64::from(v) * f64::from(v)).sum();
+    (sum / values.len().max(1) as f64).sqrt()
+}
+
 /// Where D^N does not look like the same kind of data as D^U: actions outside D^U's range (the
 /// policy acts in D^U's box) or observations on another scale (a unit or normalisation that
 /// differs between the two files). Each is a warning for the job's log, never an error: the
@@ -119,20 +125,15 @@ pub fn disagreements(unlabeled: &Dataset, non_preferred: &Dataset) -> Vec<String
             ));
         }
     }
-    let width = unlabeled.obs_dim();
-    let u = column_ranges(unlabeled.observations(), width);
-    let n = column_ranges(non_preferred.observations(), width);
-    let off_scale = u.iter().zip(&n).enumerate().find(|(_, (u, n))| {
-        let (su, sn) = (u.3.max(1e-6), n.3.max(1e-6));
-        let ratio = sn / su;
-        (u.3 > 1e-6 || n.3 > 1e-6)
-            && (!(0.1..=10.0).contains(&ratio) || (n.2 - u.2).abs() > 10.0 * su.max(sn))
-    });
-    if let Some((j, (u, n))) = off_scale {
+    // The whole observation's scale, not each dimension's: a feature that one set never varies
+    // (a cell of a one-hot grid D^N never visits) is data, while a unit or a normalisation
+    // that differs between the files moves every dimension at once.
+    let (u, n) = (rms(unlabeled.observations()), rms(non_preferred.observations()));
+    if u > 0.0 && n > 0.0 && !(0.1..=10.0).contains(&(n / u)) {
         warnings.push(format!(
-            "observation {j} has mean {:.3}, std {:.3} in D^N but mean {:.3}, std {:.3} in D^U: \
+            "D^N's observations have a root-mean-square of {n:.4} where D^U's have {u:.4} ({:.1}x): \
              check both files are on the same scale (the same units, the same normalisation)",
-            n.2, n.3, u.2, u.3
+            n / u
         ));
     }
     warnings
@@ -168,6 +169,30 @@ mod tests {
         assert!(wide[0].starts_with("D^N's actions span [-3.000, 3.000] in dimension 0"));
         let scaled = disagreements(&u, &dataset(vec![0.0, 100.0, 200.0], vec![-1.0, 0.0, 1.0]));
         assert_eq!(scaled.len(), 1);
-        assert!(scaled[0].starts_with("observation 0 has mean 100.000, std 81.650 in D^N"));
+        // sqrt((0 + 1e4 + 4e4) / 3) against sqrt((0 + 1 + 4 + 9) / 4).
+        assert!(
+            scaled[0].starts_with("D^N's observations have a root-mean-square of 129.0994"),
+            "{scaled:?}"
+        );
+        // A dimension D^N never varies (a one-hot cell it never visits) is not a scale.
+        let one_hot = |cells: &[usize]| {
+            let observations = cells
+                .iter()
+                .flat_map(|&c| (0..3).map(move |j| f32::from(u8::from(j == c))))
+                .collect();
+            Dataset::new(DatasetParts {
+                obs_dim: 3,
+                action_space: ActionSpace::Discrete { n: 2 },
+                next_observations: vec![0.0; cells.len() * 3],
+                observations,
+                actions: Actions::Discrete(vec![0; cells.len()]),
+                terminals: vec![false; cells.len()],
+                episode_ids: vec![0; cells.len()],
+                rewards: None,
+                costs: None,
+            })
+            .unwrap()
+        };
+        assert!(disagreements(&one_hot(&[0, 1, 2, 1]), &one_hot(&[0, 1, 1])).is_empty());
     }
 }

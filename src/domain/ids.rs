@@ -1,9 +1,7 @@
 //! Ids of the stored resources. Each kind has its own type, so a job id cannot be passed where a
-//! dataset id is meant; new ids are minted here and nowhere else. They are version 7 UUIDs: 74
-//! random bits, so ids from different processes on one database never collide, behind a
-//! millisecond timestamp and a counter that orders the ids one process mints by when it minted
-//! them. Lists sort newest first by `created_at` (milliseconds) and then by id, so two rows
-//! created in the same millisecond still list in the order they were made.
+//! dataset id is meant; new ids are minted here and nowhere else (random UUIDs, so ids from
+//! different processes on one database never collide, and their first 8 characters, the short
+//! form the dashboard shows and `?q=` finds, tell them apart).
 
 use std::fmt;
 
@@ -16,9 +14,9 @@ macro_rules! id_type {
         pub struct $name(String);
 
         impl $name {
-            /// A new id, after every id this process minted before it.
+            /// A new random id.
             pub fn generate() -> Self {
-                $name(uuid::Uuid::now_v7().to_string())
+                $name(uuid::Uuid::new_v4().to_string())
             }
 
             pub fn as_str(&self) -> &str {
@@ -104,14 +102,5 @@ mod tests {
         assert_eq!(serde_json::to_value(&a).unwrap(), serde_json::Value::String(a.to_string()));
         let back: JobId = serde_json::from_value(serde_json::to_value(&a).unwrap()).unwrap();
         assert_eq!(back, a);
-    }
-
-    /// Lists break ties of `created_at` by id: ids minted one after another within the same
-    /// millisecond must compare in that order as the strings the database holds.
-    #[test]
-    fn ids_minted_in_turn_sort_in_that_order() {
-        let ids: Vec<String> =
-            (0..10_000).map(|_| EvaluationId::generate().into_string()).collect();
-        assert!(ids.windows(2).all(|pair| pair[0] < pair[1]));
     }
 }

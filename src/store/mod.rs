@@ -221,9 +221,21 @@ impl Store {
     }
 }
 
-/// Current time as stored: RFC 3339, UTC, milliseconds (text that sorts in time order).
+/// Current time as stored: RFC 3339, UTC, milliseconds (text that sorts in time order). Never
+/// the same twice in one process: a call in the millisecond of the last one gets the next
+/// millisecond, so rows made one after another (two evaluations recorded in a burst) list in
+/// the order they were made; lists break ties by id only between processes.
 pub fn now() -> String {
-    chrono::Utc::now().to_rfc3339_opts(chrono::SecondsFormat::Millis, true)
+    use std::sync::atomic::{AtomicI64, Ordering};
+    static LAST_MS: AtomicI64 = AtomicI64::new(i64::MIN);
+    let clock = chrono::Utc::now().timestamp_millis();
+    let previous = LAST_MS
+        .fetch_update(Ordering::SeqCst, Ordering::SeqCst, |last| Some(clock.max(last + 1)))
+        .expect("the update always succeeds");
+    let ms = clock.max(previous + 1);
+    chrono::DateTime::from_timestamp_millis(ms)
+        .unwrap_or_else(chrono::Utc::now)
+        .to_rfc3339_opts(chrono::SecondsFormat::Millis, true)
 }
 
 /// A stored time back in its typed form (RFC 3339; rows written before the store wrote
@@ -571,6 +583,15 @@ mod tests {
     use sqlx::SqliteConnection;
 
     use super::*;
+
+    /// Lists order rows by `created_at`, then by (random) id: times taken one after another,
+    /// even within one millisecond, must sort in the order they were taken.
+    #[test]
+    fn stored_times_taken_in_turn_sort_in_that_order() {
+        let times: Vec<String> = (0..5_000).map(|_| now()).collect();
+        assert!(times.windows(2).all(|pair| pair[0] < pair[1]));
+        assert!(parse_time("t", &times[0]).is_ok());
+    }
 
     #[test]
     fn database_urls_lose_their_password_in_messages() {
