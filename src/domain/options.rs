@@ -87,19 +87,21 @@ fn default_eval_episodes() -> usize {
 }
 
 /// A job's `eval` block: evaluate the policy being trained every `every` policy-learning steps
-/// and at the end, recording the paper's metrics in the job's metrics history as
-/// `eval/normalized_return`, `eval/average_cost`, `eval/cost_violation_ratio`,
-/// `eval/cvar_cost_{50,20,10,5}`, ... (pretraining phases are not evaluated: the policy does
-/// not move during them).
+/// and at the end (without `every`: only at the end), recording the paper's metrics in the
+/// job's metrics history as `eval/normalized_return`, `eval/average_cost`,
+/// `eval/cost_violation_ratio`, `eval/cvar_cost_{50,20,10,5}`, ... (pretraining phases are not
+/// evaluated: the policy does not move during them).
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize, ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct EvalOptions {
     /// A built-in environment (`GET /v1/envs`) whose spaces match the job's datasets.
     #[schema(example = "point-goal")]
     pub env: String,
-    /// Policy-learning steps between evaluations, 1 to 100,000,000.
+    /// Policy-learning steps between evaluations, 1 to 100,000,000; absent: the policy is
+    /// evaluated once, at the end of training.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     #[schema(minimum = 1, maximum = 100_000_000, example = 1000)]
-    pub every: u64,
+    pub every: Option<u64>,
     /// Episodes per evaluation, 1 to 100,000; default 500.
     #[serde(default = "default_eval_episodes")]
     #[schema(minimum = 1, maximum = 100_000, default = 500)]
@@ -141,10 +143,9 @@ impl EvalOptions {
             Some(value) => serde_json::from_value(value.clone())
                 .map_err(|e| RunnerOptionsError(format!("eval: {e}")))?,
         };
-        if !(1..=100_000_000).contains(&options.every) {
+        if let Some(every) = options.every.filter(|every| !(1..=100_000_000).contains(every)) {
             return Err(RunnerOptionsError(format!(
-                "eval.every: must be between 1 and 100000000, got {}",
-                options.every
+                "eval.every: must be between 1 and 100000000, got {every}"
             )));
         }
         options.spec().validate("eval.")?;
@@ -162,10 +163,13 @@ impl EvalOptions {
     }
 
     /// Whether to evaluate after `step_after` steps (1-based, every phase counted) of a run of
-    /// `total` steps whose first `pretraining` steps train no policy.
+    /// `total` steps whose first `pretraining` steps train no policy: every `every` policy
+    /// steps, and after the last step (the only one without `every`).
     pub fn due(&self, step_after: u64, pretraining: u64, total: u64) -> bool {
         step_after == total
-            || (step_after > pretraining && (step_after - pretraining).is_multiple_of(self.every))
+            || self.every.is_some_and(|every| {
+                step_after > pretraining && (step_after - pretraining).is_multiple_of(every)
+            })
     }
 }
 
@@ -198,7 +202,11 @@ mod tests {
         assert_eq!(EvalOptions::parse(None).unwrap(), None);
         let o =
             EvalOptions::parse(Some(&json!({"env": "six-rooms", "every": 50}))).unwrap().unwrap();
-        assert_eq!((o.episodes, o.seed, o.deterministic), (500, 0, false));
+        assert_eq!((o.every, o.episodes, o.seed, o.deterministic), (Some(50), 500, 0, false));
+        // Without `every`: only at the end, and the block says so by leaving it out.
+        let end = EvalOptions::parse(Some(&json!({"env": "six-rooms"}))).unwrap().unwrap();
+        assert_eq!(end.every, None);
+        assert!(serde_json::to_value(&end).unwrap().get("every").is_none());
         let bad = |v| EvalOptions::parse(Some(&v)).unwrap_err().0;
         assert_eq!(
             bad(json!({"env": "walker", "every": 5})),
@@ -219,7 +227,7 @@ mod tests {
     fn evaluations_follow_the_policy_phase_and_end_the_run() {
         let o = EvalOptions {
             env: "six-rooms".into(),
-            every: 10,
+            every: Some(10),
             episodes: 5,
             seed: 0,
             deterministic: false,
@@ -227,6 +235,9 @@ mod tests {
         // 15 pretraining steps, then 32 policy steps.
         let due: Vec<u64> = (1..=47).filter(|&s| o.due(s, 15, 47)).collect();
         assert_eq!(due, [25, 35, 45, 47]);
+        let at_end = EvalOptions { every: None, ..o };
+        let due: Vec<u64> = (1..=47).filter(|&s| at_end.due(s, 15, 47)).collect();
+        assert_eq!(due, [47]);
     }
 
     #[test]

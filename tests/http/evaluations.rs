@@ -159,6 +159,81 @@ async fn jobs_record_eval_metrics_and_evaluations_match_a_local_run() {
     assert_eq!(none["total"], 0);
 }
 
+/// An eval block without `every` evaluates once, after the last step: the dashboard's forms
+/// send it so when "Evaluate every" is left at "at the end". On SafeDICE, whose discriminator
+/// pretraining comes first, that step is the run's last (pretraining + iterations), and the job
+/// says how many pretraining steps its metrics' steps include.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_eval_block_without_every_evaluates_once_at_the_end() {
+    let app = TestApp::spawn().await;
+    let (u, n) = upload_six_rooms(&app.client, &app.base_url).await;
+    let job = create_job(
+        &app.client,
+        &app.base_url,
+        json!({"algorithm": "safedice", "unlabeled_dataset": u, "non_preferred_dataset": n,
+               "config": small_config(60, 1), "runner": {"log_every": 10},
+               "eval": {"env": "six-rooms", "episodes": 20}}),
+    )
+    .await;
+    // The block comes back as given, `every` left out: nothing invented a schedule.
+    assert_eq!(
+        job["eval"],
+        json!({"env": "six-rooms", "episodes": 20, "seed": 0, "deterministic": false})
+    );
+    let total = job["progress"]["total"].as_u64().unwrap();
+    let pretraining = job["pretraining_steps"].as_u64().unwrap();
+    assert!(pretraining > 0, "{job}");
+    assert_eq!(total, pretraining + 60);
+    let id = job["id"].as_str().unwrap();
+    let done = wait_for_job(&app.client, &app.base_url, id, Duration::from_secs(180), |j| {
+        j["status"] == "succeeded"
+    })
+    .await;
+
+    // One evaluation, after the last step, in the history and as the policy's evaluation.
+    let history = get_json(
+        &app.client,
+        &app.url(&format!("/v1/jobs/{id}/metrics?names=eval/average_cost,eval/normalized_return")),
+    )
+    .await;
+    let mut steps: Vec<(String, u64)> = history["rows"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|r| (r["name"].as_str().unwrap().to_owned(), r["step"].as_u64().unwrap()))
+        .collect();
+    steps.sort();
+    assert_eq!(
+        steps,
+        [("eval/average_cost".to_owned(), total), ("eval/normalized_return".to_owned(), total)]
+    );
+    let policy_id = done["policy_id"].as_str().unwrap();
+    let stored =
+        get_json(&app.client, &app.url(&format!("/v1/evaluations?policy_id={policy_id}"))).await;
+    assert_eq!(stored["total"], 1, "{stored}");
+    assert_eq!(stored["items"][0]["training_step"], json!(total));
+    assert_eq!(stored["items"][0]["episodes"], json!(20));
+
+    // A block with `every` still refuses 0, and `null` reads as absent.
+    let refused = app
+        .post("/v1/jobs")
+        .json(&json!({"algorithm": "bc", "unlabeled_dataset": u,
+                      "eval": {"env": "six-rooms", "every": 0}}))
+        .send()
+        .await
+        .unwrap();
+    assert_error(refused, StatusCode::UNPROCESSABLE_ENTITY, "invalid_config").await;
+    let null_every = create_job(
+        &app.client,
+        &app.base_url,
+        json!({"algorithm": "bc", "unlabeled_dataset": u, "config": small_config(20, 1),
+               "eval": {"env": "six-rooms", "every": null, "episodes": 5}}),
+    )
+    .await;
+    assert_eq!(null_every["eval"].get("every"), None, "{null_every}");
+    assert_eq!(null_every["pretraining_steps"], json!(0));
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn bad_evaluations_and_eval_blocks_are_refused_and_store_nothing() {
     let app = TestApp::spawn().await;

@@ -74,8 +74,8 @@ pub struct CreateJob {
     #[schema(value_type = Option<RunnerOptions>)]
     pub runner: Option<serde_json::Value>,
     /// Evaluate the policy on a built-in environment every `every` policy-learning steps and at
-    /// the end; the paper's metrics go to the metrics history as `eval/...` (absent: no
-    /// evaluation). The environment's spaces must match the datasets'.
+    /// the end (without `every`: only at the end); the paper's metrics go to the metrics history
+    /// as `eval/...` (absent: no evaluation). The environment's spaces must match the datasets'.
     #[schema(value_type = Option<EvalOptions>)]
     pub eval: Option<serde_json::Value>,
     /// A name for people, at most 200 characters without control characters (the dashboard
@@ -145,6 +145,10 @@ pub struct Job {
     /// The eval block, if the job evaluates its policy while it trains.
     pub eval: Option<EvalOptions>,
     pub progress: JobProgress,
+    /// Steps of the phase before policy learning (SafeDICE's discriminator, PPL's reward
+    /// model), counted in `progress` and in the metrics' `step`: a metric at step `s` is policy
+    /// iteration `s - pretraining_steps`. 0 for the algorithms without one.
+    pub pretraining_steps: u64,
     /// SafeDICE's alpha-hat (Eq. 15) once the discriminator phase has computed it.
     pub alpha_hat: Option<f64>,
     /// The trained policy, once the job succeeded.
@@ -191,6 +195,7 @@ impl From<JobRecord> for Job {
             config: serde_json::to_value(&job.config).unwrap_or_default(),
             runner: job.runner,
             eval: job.eval,
+            pretraining_steps: job.config.pretraining_steps(),
             progress,
             alpha_hat: job.alpha_hat,
             policy_id: job.policy_id.map(|id| id.into_string()),
