@@ -1,6 +1,7 @@
-// ceiling: the dashboard's six pages in one script, embedded as is by src/http/ui.rs, no build
+// ceiling: the datasets, jobs, job and compare pages in one script, embedded as is by src/http/ui.rs, no build
 // SafeDICE dashboard: a small vanilla-JS single-page app over the JSON API (/v1), on the
-// helpers of lib.js, the charts of charts.js and the models pages of models.js. Pages are hash
+// helpers of lib.js, the charts of charts.js and the pages of models.js, experiments.js and
+// policies.js. Pages are hash
 // routes; lists refresh by polling (EventSource cannot send the Authorization header, and
 // polling a page of jobs once a second is cheap).
 'use strict';
@@ -18,6 +19,7 @@ const routes = [
   [/^#\/jobs$/, jobsPage, 'jobs'],
   [/^#\/jobs\/([\w-]+)$/, jobPage, 'jobs'],
   [/^#\/compare$/, comparePage, 'compare'],
+  // Pages of policies.js.
   [/^#\/policies$/, policiesPage, 'policies'],
   [/^#\/policies\/([\w-]+)$/, policyPage, 'policies'],
   // Pages of models.js.
@@ -95,8 +97,8 @@ function datasetsPage(view) {
         const warnings = (dataset.stats && dataset.stats.warnings) || [];
         status.replaceChildren(h('div', { class: 'notice', id: 'upload-ok' },
           `Stored “${dataset.name}” as ${roleText(dataset.role)}: ${fmt(dataset.transitions)} transitions, ${fmt(dataset.episodes)} episodes.`),
-        warnings.length ? h('div', { class: 'notice warn', id: 'upload-warnings' }, h('strong', {}, 'Check: '),
-          h('ul', {}, warnings.map((w) => h('li', {}, w)))) : null);
+        ...(warnings.length ? [h('div', { class: 'notice warn', id: 'upload-warnings' }, h('strong', {}, 'Check: '),
+          h('ul', {}, warnings.map((w) => h('li', {}, w))))] : []));
         nameInput.value = '';
         await list.reset();
       } catch (err) {
@@ -162,7 +164,7 @@ function datasetsTable(items, actions) {
       h('th', { class: 'num' }, 'Return / episode'), h('th', { class: 'num' }, 'Cost / episode'),
       h('th', { class: 'num' }, 'Size'), h('th', {}, 'Uploaded'), h('th', {}, ''))),
     h('tbody', {}, items.map((d) => h('tr', { 'data-id': d.id },
-      h('td', {}, h('strong', {}, d.name), h('div', { class: 'muted mono' }, shortId(d.id)),
+      h('td', { class: 'dataset-name' }, h('strong', {}, d.name), h('div', { class: 'muted mono' }, shortId(d.id)),
         d.stats && d.stats.warnings && d.stats.warnings.length
           ? h('div', { class: 'dataset-warning', title: d.stats.warnings.join('\n') }, `⚠ ${d.stats.warnings.length} warning${d.stats.warnings.length > 1 ? 's' : ''}`) : null),
       h('td', { class: 'role' }, d.role ? h('span', { class: `role-chip role-${d.role}` }, roleText(d.role)) : h('span', { class: 'muted' }, 'not given')),
@@ -174,7 +176,7 @@ function datasetsTable(items, actions) {
       h('td', { class: 'num' }, summaryText(d.stats && d.stats.episode_return)),
       h('td', { class: 'num' }, summaryText(d.stats && d.stats.episode_cost)),
       h('td', { class: 'num' }, fmtBytes(d.bytes)),
-      h('td', {}, fmtTime(d.created_at)),
+      h('td', { class: 'uploaded' }, fmtTime(d.created_at)),
       h('td', { class: 'row-actions' },
         h('button', { type: 'button', class: 'secondary preview', onclick: () => actions.preview(d) }, 'Preview'),
         h('button', { type: 'button', class: 'secondary download', onclick: () => actions.download(d) }, 'Download'),
@@ -308,11 +310,11 @@ function jobForm(datasets, envs, finished, models, onCreated) {
   const preset = h('select', { name: 'preset', id: 'job-preset' },
     (ALGORITHM_TABLE[0]?.presets || []).map((p) => h('option', { value: p.name }, presetLabels[p.name] || p.name)));
   const name = h('input', { name: 'name', id: 'job-name', placeholder: 'e.g. safedice walker 256x256', maxlength: 200 });
-  const tags = h('input', { name: 'tags', id: 'job-tags', placeholder: 'comma-separated, e.g. walker, v2' });
+  const tags = h('input', { name: 'tags', id: 'job-tags', placeholder: 'e.g. walker, v2' });
   const notes = h('input', { name: 'notes', id: 'job-notes', placeholder: 'what this run tries' });
   const logEvery = h('input', { name: 'log_every', id: 'job-log_every', inputmode: 'numeric', placeholder: '100' });
   const evalEnv = h('select', { name: 'eval_env', id: 'job-eval-env' });
-  const evalEvery = h('input', { name: 'eval_every', id: 'job-eval-every', inputmode: 'numeric', placeholder: 'iterations / 10' });
+  const evalEvery = h('input', { name: 'eval_every', id: 'job-eval-every', inputmode: 'numeric', placeholder: 'at the end' });
   const evalEpisodes = h('input', { name: 'eval_episodes', id: 'job-eval-episodes', inputmode: 'numeric', placeholder: '500' });
   const estimate = h('p', { class: 'estimate', id: 'job-estimate' });
   const register = registerFields(models);
@@ -390,7 +392,7 @@ function jobForm(datasets, envs, finished, models, onCreated) {
       h('label', {}, 'Evaluation episodes', evalEpisodes),
       register.labels),
     estimate,
-    h('p', { class: 'hint' }, 'Empty fields take the preset’s value (the placeholders). SafeDICE first trains its discriminator (as many steps as the iterations in the service preset, a tenth in the others) and PPL its reward model (a tenth), unless set; those steps count in the job’s progress. With an environment, the policy is evaluated every N policy steps and at the end (the paper’s metrics, charted on the job page).'),
+    h('p', { class: 'hint' }, 'Empty fields take the preset’s value (the placeholders). SafeDICE first trains its discriminator (as many steps as the iterations in the service preset, a tenth in the others) and PPL its reward model (a tenth), unless set; those steps count in the job’s progress. With an environment, the policy is evaluated at the end of training and, if “Evaluate every” is set, every N policy steps (the paper’s metrics, charted on the job page).'),
     h('div', { class: 'form-actions' }, submit), result);
 
   form.addEventListener('submit', async (event) => {
@@ -404,9 +406,9 @@ function jobForm(datasets, envs, finished, models, onCreated) {
     if (nonPreferred.value && !nonPreferred.disabled) body.non_preferred_dataset = nonPreferred.value;
     if (logEvery.value.trim()) body.runner = { log_every: Number(logEvery.value.trim()) };
     if (evalEnv.value) {
-      const { iterations } = stepPlan(algorithm.value, config);
-      // Default: about ten evaluations over the run.
-      body.eval = { env: evalEnv.value, every: Number(evalEvery.value.trim() || Math.max(1, Math.round(iterations / 10))) };
+      // No `every`: the server evaluates once, at the end of training.
+      body.eval = { env: evalEnv.value };
+      if (evalEvery.value.trim()) body.eval.every = Number(evalEvery.value.trim());
       if (evalEpisodes.value.trim()) body.eval.episodes = Number(evalEpisodes.value.trim());
     }
     if (register.value()) body.register = register.value();
@@ -514,8 +516,13 @@ const METRIC_GROUPS = [
   { key: 'losses', title: 'Losses', y: 'loss', test: (n) => n.endsWith('_loss') },
   { key: 'alpha', title: 'α̂ (Eq. 15)', y: 'α̂', test: (n) => n === 'alpha_hat' },
   { key: 'weights', title: 'Weight statistics', y: 'value', test: (n) => /^(ess|weight|advantage|reward_(mean|std|clipped))/.test(n) },
-  { key: 'discriminator', title: 'Discriminator', y: 'value', test: (n) => n.startsWith('discriminator_') },
+  // Probabilities on their own [0, 1] axis; the early-stopping steps are said in words
+  // (earlyStopNote), and the rest of discriminator_* get a chart each.
+  { key: 'discriminator', title: 'Discriminator: P(non-preferred)', y: 'probability', range: [0, 1], test: (n) => n.startsWith('discriminator_prob_') },
 ];
+/** SafeDICE's early-stopping state, recorded as metrics: read, not charted (steps are not on the
+ *  scale of the other discriminator outputs). */
+const EARLY_STOP_METRICS = ['discriminator_best_step', 'discriminator_stopped_at'];
 
 // The evaluation charts of a job with an eval block (the paper's metrics over training steps);
 // the other eval/ metrics are listed in the latest-evaluation table. Axis titles stay
@@ -560,6 +567,7 @@ function chartSpecs(job, series) {
         title: perMetric ? `${group.title}: ${set[0]}` : group.title,
         xLabel: X_LABEL,
         yLabel: perMetric ? set[0] : group.y,
+        yRange: group.range,
         series: set.map((name, i) => ({ name, points: series.get(name), color: seriesColor(job, i) })),
       });
     }
@@ -795,6 +803,24 @@ function uniformWeightingNotice(series) {
     'The held-out data could not tell the non-preferred demonstrations from the unlabeled ones (alpha-hat’s interval covers 1, or the discriminator’s held-out AUC cannot be told from 0.5), so this SafeDICE job trained as BC. The log gives the numbers.');
 }
 
+/** Where SafeDICE's discriminator stood with early stopping, in words (its metrics
+ *  discriminator_best_step and discriminator_stopped_at, -1 while it has not stopped). */
+function earlyStopNote(job, series) {
+  const last = (n) => (series.get(n) || []).at(-1);
+  const best = last('discriminator_best_step');
+  if (!best) return null;
+  const stopped = last('discriminator_stopped_at');
+  const budget = job.pretraining_steps;
+  const done = job.progress.step >= budget;
+  const when = stopped && stopped[1] >= 0
+    ? `stopped early at discriminator step ${fmt(stopped[1])} of ${fmt(budget)}`
+    : `did not stop early${done ? ` (trained all ${fmt(budget)} steps)` : ' (so far)'}`;
+  const kept = done ? `its held-out loss was best at step ${fmt(best[1])}, whose weights it kept`
+    : `its held-out loss is best so far at step ${fmt(best[1])}`;
+  return h('p', { class: 'hint', id: 'discriminator-stopping', style: 'margin-top:12px' },
+    h('strong', {}, 'Discriminator early stopping: '), `${when}; ${kept}.`);
+}
+
 async function drawCharts(job, slots) {
   const metrics = await api(`/v1/jobs/${job.id}/metrics?max_points=${CHART_POINTS}`);
   const series = groupMetrics(metrics.rows);
@@ -803,6 +829,8 @@ async function drawCharts(job, slots) {
   [...series.keys()].filter(isEval).forEach((n) => series.delete(n));
   // Metrics recorded once (e.g. alpha-hat diagnostics at the end of the discriminator phase)
   // read better as numbers than as one-point charts.
+  const stopping = earlyStopNote(job, series);
+  EARLY_STOP_METRICS.forEach((n) => series.delete(n));
   const once = [...series.entries()].filter(([name, points]) => points.length === 1 && name !== 'alpha_hat');
   once.forEach(([name]) => series.delete(name));
   slots.chartsNote.id = 'charts-empty';
@@ -811,7 +839,7 @@ async function drawCharts(job, slots) {
   slots.chartsNote.textContent = job.status === 'queued' ? 'The job is queued: charts appear once it starts training.'
     : 'No metrics recorded yet: the worker records them every log_every steps (runner option on the Jobs form).';
   slots.charts.show(chartSpecs(job, series));
-  slots.once.replaceChildren(weighting || '', once.length ? h('div', { class: 'card', id: 'single-values', style: 'margin-top:18px' },
+  slots.once.replaceChildren(weighting || '', stopping || '', once.length ? h('div', { class: 'card', id: 'single-values', style: 'margin-top:18px' },
     h('h2', {}, 'Recorded once'), tableWrap(h('table', {}, h('tbody', {}, once.map(([name, [[step, value]]]) =>
       h('tr', {}, h('td', { class: 'mono' }, name), h('td', { class: 'num' }, fmt(value)), h('td', { class: 'muted' }, `at step ${fmt(step)}`))))))) : '');
 }
@@ -820,8 +848,9 @@ async function drawCharts(job, slots) {
 function showEvaluation(job, series, slots) {
   const e = job.eval;
   const names = [...series.keys()].filter(isEval).sort();
-  slots.evalAbout.replaceChildren(h('p', { class: 'hint' }, `${fmt(e.episodes)} episodes on ${e.env} every ${fmt(e.every)} policy steps and at the end, seed ${e.seed}, ${e.deterministic ? 'deterministic' : 'sampled'} actions.`),
-    names.length ? '' : h('div', { class: 'empty', id: 'eval-empty' }, 'No evaluation yet: the first one runs after the first evaluation interval of policy learning.'));
+  const when = e.every ? `every ${fmt(e.every)} policy steps and at the end` : 'at the end of training';
+  slots.evalAbout.replaceChildren(h('p', { class: 'hint' }, `${fmt(e.episodes)} episodes on ${e.env} ${when}, seed ${e.seed}, ${e.deterministic ? 'deterministic' : 'sampled'} actions.`),
+    names.length ? '' : h('div', { class: 'empty', id: 'eval-empty' }, e.every ? 'No evaluation yet: the first one runs after the first evaluation interval of policy learning.' : 'No evaluation yet: it runs when training ends.'));
   slots.evalCharts.show(evalChartSpecs(job, series));
   if (!names.length) { slots.evalLatest.replaceChildren(); return; }
   const lastStep = Math.max(...names.map((n) => series.get(n).at(-1)[0]));
@@ -984,9 +1013,10 @@ function comparePage(view) {
     fromZero.onchange = drawScatter;
     showDiagnostics.onchange = () => { fillAxes(); drawScatter(); };
     fillAxes();
-    output.replaceChildren(h('div', { class: 'grid2' },
-      h('div', { class: 'card' }, h('div', { class: 'card-head' }, h('h2', {}, 'Side by side'), exportCsv), picker2, table, missing, notUnder, diagnosticsTable),
-      h('div', { class: 'card' }, h('h2', {}, 'Scatter'),
+    // One card above the other: the table takes the page's width, a column per job.
+    output.replaceChildren(h('div', {},
+      h('div', { class: 'card', id: 'compare-side-by-side' }, h('div', { class: 'card-head' }, h('h2', {}, 'Side by side'), exportCsv), picker2, table, missing, notUnder, diagnosticsTable),
+      h('div', { class: 'card', id: 'compare-scatter' }, h('h2', {}, 'Scatter'),
         h('div', { class: 'axis-pick' }, 'x', xSelect, 'y', ySelect),
         h('div', { class: 'axis-options' }, h('label', {}, fromZero, ' axes from 0'), h('label', {}, showDiagnostics, ' offer training diagnostics')),
         scatter)));
@@ -1013,211 +1043,6 @@ function comparePage(view) {
   };
   more.addEventListener('click', () => loadPage().catch((err) => output.replaceChildren(errorBox(err))));
   loadPage().catch((err) => output.replaceChildren(errorBox(err)));
-}
-
-// ---------- policies ----------
-
-function policiesPage(view) {
-  const list = h('div', { id: 'policies-list' });
-  const render = (items) => {
-    if (!items.length) {
-      list.replaceChildren(h('div', { class: 'empty' }, 'No policies yet: a job that succeeds stores its policy here. ',
-        h('a', { href: '#/jobs' }, 'Queue a job.')));
-      return;
-    }
-    list.replaceChildren(tableWrap(h('table', { id: 'policies-table' },
-      h('thead', {}, h('tr', {}, h('th', {}, 'Policy'), h('th', {}, 'Algorithm'), h('th', {}, 'Job'),
-        h('th', { class: 'num' }, 'Obs dim'), h('th', {}, 'Actions'), h('th', { class: 'num' }, 'α̂'), h('th', {}, 'Created'))),
-      h('tbody', {}, items.map((p) => h('tr', { 'data-id': p.id },
-        h('td', {}, h('a', { href: `#/policies/${p.id}`, class: p.job_name ? 'policy-name' : 'mono' }, p.job_name || shortId(p.id))),
-        h('td', {}, algoBadge(p.algorithm)),
-        h('td', { class: 'mono' }, h('a', { href: `#/jobs/${p.job_id}` }, shortId(p.job_id))),
-        h('td', { class: 'num' }, fmt(p.obs_dim)),
-        h('td', {}, actionSpaceText(p.action_space)),
-        h('td', { class: 'num' }, fmt(p.alpha_hat)),
-        h('td', {}, fmtTime(p.created_at))))))));
-  };
-  const pages = pagedList({ path: '/v1/policies', size: PAGE_SIZE, id: 'policies-pager', render });
-  view.append(h('h1', {}, 'Policies'), h('div', { class: 'card' }, list, pages.nav));
-  pages.reload().catch((err) => list.replaceChildren(errorBox(err)));
-}
-
-/** Observations typed by a person: JSON ([[..], ..] or [..]) or one row per line of numbers. */
-function parseObservations(text) {
-  const trimmed = text.trim();
-  if (!trimmed) throw new Error('Paste at least one observation.');
-  if (trimmed.startsWith('[')) {
-    const parsed = JSON.parse(trimmed);
-    return Array.isArray(parsed[0]) ? parsed : [parsed];
-  }
-  return trimmed.split('\n').filter((line) => line.trim()).map((line) =>
-    line.trim().split(/[\s,;]+/).map((cell) => {
-      const v = Number(cell);
-      if (Number.isNaN(v)) throw new Error(`“${cell}” is not a number`);
-      return v;
-    }));
-}
-
-function snippets(policy) {
-  const origin = location.origin;
-  const zeros = JSON.stringify(Array(policy.obs_dim).fill(0));
-  const auth = token() ? ' \\\n  -H "Authorization: Bearer $SAFEDICE_API_TOKEN"' : '';
-  const act = `curl -s ${origin}/v1/policies/${policy.id}/act${auth} \\\n  -H 'Content-Type: application/json' \\\n  -d '{"observations": [${zeros}], "deterministic": true}'`;
-  const oip = `curl -s ${origin}/v2/models/${policy.id}/infer${auth} \\\n  -H 'Content-Type: application/json' \\\n  -d '{"inputs": [{"name": "observations", "shape": [1, ${policy.obs_dim}], "datatype": "FP32", "data": ${zeros}}]}'`;
-  return { act, oip };
-}
-
-function evaluationsTable(items) {
-  if (!items.length) return h('div', { class: 'empty', id: 'evaluations-empty' }, 'No evaluations of this policy yet.');
-  const m = (e, key) => (e.metrics ? fmt(e.metrics[key]) : '—');
-  return tableWrap(h('table', { id: 'evaluations-table' },
-    h('thead', {}, h('tr', {}, h('th', {}, 'Environment'), h('th', { class: 'num' }, 'Episodes'), h('th', { class: 'num' }, 'Seed'),
-      h('th', {}, 'Actions'), h('th', {}, 'Status'), h('th', { class: 'num' }, 'Normalized return'), h('th', { class: 'num' }, 'Average cost'),
-      h('th', { class: 'num' }, 'Violation ratio'), h('th', { class: 'num' }, 'CVaR 10%'), h('th', { class: 'num' }, 'CVaR 5%'), h('th', {}, 'Finished'))),
-    h('tbody', {}, items.map((e) => h('tr', { 'data-id': e.id, 'data-status': e.status },
-      h('td', {}, e.env, e.source === 'external' ? h('span', { class: 'tag source-external', title: 'Run in your own simulator and recorded with POST /v1/policies/{id}/evaluations' }, 'external') : null,
-        e.training_step != null ? h('span', { class: 'tag source-training', title: `Taken by the job’s worker at step ${fmt(e.training_step)}, the end of training (its eval block)` }, 'end of training') : null),
-      h('td', { class: 'num' }, fmt(e.episodes)), h('td', { class: 'num' }, String(e.seed)),
-      h('td', {}, e.deterministic ? 'deterministic' : 'sampled'),
-      h('td', {}, statusPill(e.status), e.error ? h('div', { class: 'error-message' }, e.error) : null),
-      h('td', { class: 'num eval-return' }, m(e, 'normalized_return')), h('td', { class: 'num eval-cost' }, m(e, 'average_cost')),
-      h('td', { class: 'num' }, m(e, 'cost_violation_ratio')),
-      h('td', { class: 'num' }, e.metrics ? fmt(e.metrics.cvar_cost['10']) : '—'),
-      h('td', { class: 'num' }, e.metrics ? fmt(e.metrics.cvar_cost['5']) : '—'),
-      h('td', {}, fmtTime(e.finished_at)))))));
-}
-
-/** Evaluate the policy on a built-in environment (background task) and list its evaluations. */
-function evaluationCard(policy, envs) {
-  const fitting = envs.filter((e) => envFits(e, policy.obs_dim, policy.action_space));
-  const list = h('div', { id: 'evaluations-list' });
-  const problem = h('div', {});
-  const refresh = async () => {
-    const page = await api(`/v1/evaluations?policy_id=${policy.id}&limit=50`);
-    problem.replaceChildren();
-    list.replaceChildren(evaluationsTable(page.items));
-    return page.items.some((e) => RUNNING.has(e.status));
-  };
-  // One polling loop at a time; it ends once no evaluation is queued or running.
-  let polling = false;
-  const poll = () => {
-    if (polling) return;
-    polling = true;
-    every(1000, async () => {
-      const more = await refresh();
-      polling = more;
-      return more;
-    }, (err) => problem.replaceChildren(errorBox(err)));
-  };
-  const card = h('div', { class: 'card', id: 'evaluate-card' }, h('h2', {}, 'Evaluate on a built-in environment'));
-  if (!fitting.length) {
-    card.append(h('div', { class: 'empty' }, 'No built-in environment has this policy’s observation and action spaces (see GET /v1/envs).'), list, problem);
-    poll();
-    return card;
-  }
-  const env = h('select', { id: 'eval-env' }, fitting.map((e) => h('option', { value: e.name }, e.name)));
-  const episodes = h('input', { id: 'eval-episodes', inputmode: 'numeric', placeholder: '500', size: 8 });
-  const seed = h('input', { id: 'eval-seed', inputmode: 'numeric', placeholder: '0', size: 8 });
-  const deterministic = h('input', { type: 'checkbox', id: 'eval-deterministic' });
-  const submit = h('button', { type: 'submit', id: 'eval-submit' }, 'Evaluate');
-  const form = h('form', { id: 'evaluate-form', class: 'form-actions wrap' }, h('label', {}, 'Environment ', env),
-    h('label', {}, 'Episodes ', episodes), h('label', {}, 'Seed ', seed), h('label', {}, deterministic, ' deterministic'), submit);
-  form.addEventListener('submit', async (event) => {
-    event.preventDefault();
-    const body = { env: env.value, deterministic: deterministic.checked };
-    if (episodes.value.trim()) body.episodes = Number(episodes.value.trim());
-    if (seed.value.trim()) body.seed = Number(seed.value.trim());
-    submit.disabled = true;
-    try {
-      await api(`/v1/policies/${policy.id}/evaluate`, { method: 'POST', json: body });
-      problem.replaceChildren();
-      poll();
-    } catch (err) {
-      problem.replaceChildren(errorBox(err, 'eval-error'));
-    } finally {
-      submit.disabled = false;
-    }
-  });
-  card.append(form, h('p', { class: 'hint' }, 'The paper’s metrics over the episodes (sampled actions unless deterministic): normalized return (100 = the preferred demonstrations), average cost, share of episodes over the cost threshold κ, CVaR k% cost. Same seed, same numbers.'),
-    problem, list);
-  poll();
-  return card;
-}
-
-function actCard(policy) {
-  const input = h('textarea', { id: 'act-input', spellcheck: 'false',
-    placeholder: `One observation per line (${policy.obs_dim} numbers), or JSON like [${Array(Math.min(policy.obs_dim, 4)).fill(0).join(', ')}, …]` });
-  input.value = Array(policy.obs_dim).fill(0).join(', ');
-  const deterministic = h('input', { type: 'checkbox', id: 'act-deterministic', checked: true });
-  const seed = h('input', { id: 'act-seed', placeholder: 'seed (sampling only)', inputmode: 'numeric', size: 20 });
-  const output = h('div', { id: 'act-output' });
-  const actButton = h('button', { type: 'submit', id: 'act-submit' }, 'Get actions');
-  const actForm = h('form', { class: 'card', id: 'act-form' }, h('h2', {}, 'Try it: observations → actions'), input,
-    h('div', { class: 'form-actions wrap' }, actButton, h('label', {}, deterministic, ' deterministic'), seed), output);
-  actForm.addEventListener('submit', async (event) => {
-    event.preventDefault();
-    output.replaceChildren();
-    let observations;
-    try { observations = parseObservations(input.value); } catch (e) {
-      output.replaceChildren(errorBox({ code: 'input', message: e.message }, 'act-error'));
-      return;
-    }
-    const body = { observations, deterministic: deterministic.checked };
-    if (seed.value.trim()) body.seed = Number(seed.value.trim());
-    try {
-      const result = await api(`/v1/policies/${policy.id}/act`, { method: 'POST', json: body });
-      output.replaceChildren(h('pre', { id: 'act-result' }, JSON.stringify(result.actions, null, 0).replace(/\],\[/g, '],\n[')));
-    } catch (err) {
-      output.replaceChildren(errorBox(err, 'act-error'));
-    }
-  });
-  return actForm;
-}
-
-function policyMeta(policy) {
-  const problem = h('div', {});
-  const fail = (err) => problem.replaceChildren(errorBox(err));
-  const remove = confirmButton('Delete policy', 'Really delete the policy and its evaluations?', async () => {
-    try {
-      await api(`/v1/policies/${policy.id}`, { method: 'DELETE' });
-      location.hash = '#/policies';
-    } catch (err) {
-      problem.replaceChildren(errorBox(err, 'policy-delete-error'));
-    }
-  }, { id: 'policy-delete' });
-  return h('div', { class: 'card', id: 'policy-meta' }, h('h2', {}, 'Metadata'), h('dl', { class: 'kv' },
-    h('dt', {}, 'algorithm'), h('dd', {}, algoBadge(policy.algorithm)),
-    h('dt', {}, 'id'), h('dd', { class: 'mono' }, policy.id),
-    h('dt', {}, 'trained by job'), h('dd', { class: 'mono' }, h('a', { href: `#/jobs/${policy.job_id}` }, policy.job_id)),
-    h('dt', {}, 'observation dim'), h('dd', {}, fmt(policy.obs_dim)),
-    h('dt', {}, 'action space'), h('dd', {}, actionSpaceText(policy.action_space)),
-    h('dt', {}, 'α̂'), h('dd', {}, fmt(policy.alpha_hat)),
-    h('dt', {}, 'created'), h('dd', {}, fmtTime(policy.created_at))),
-  h('div', { class: 'form-actions wrap' },
-    h('button', { type: 'button', class: 'secondary', id: 'weights-download', onclick: () => download(`/v1/policies/${policy.id}/weights`, `policy-${policy.id}.safetensors`).catch(fail) }, 'Weights (.safetensors)'),
-    h('button', { type: 'button', class: 'secondary', id: 'onnx-download', onclick: () => download(`/v1/policies/${policy.id}/export?format=onnx`, `policy-${policy.id}.onnx`).catch(fail) }, 'ONNX model'),
-    remove),
-  h('p', { class: 'hint' }, 'The safetensors file carries the spec and the training run in its metadata; the ONNX model runs in onnxruntime and other ONNX runtimes.'),
-  problem);
-}
-
-function policyPage(view, id) {
-  const slot = h('div', {});
-  view.append(h('h1', {}, 'Policy ', h('span', { class: 'mono' }, shortId(id))), slot);
-  Promise.all([api(`/v1/policies/${id}`), api('/v1/envs')]).then(([policy, envs]) => {
-    const { act, oip } = snippets(policy);
-    const finals = Object.entries(policy.final_metrics || {});
-    slot.replaceChildren(
-      h('div', { class: 'grid2' }, policyMeta(policy),
-        h('div', { class: 'card' }, h('h2', {}, 'Final training metrics'), finals.length
-          ? tableWrap(h('table', {}, h('tbody', {}, finals.map(([k, v]) => h('tr', {}, h('td', { class: 'mono' }, k), h('td', { class: 'num' }, fmt(v)))))))
-          : h('div', { class: 'empty' }, 'No metrics were recorded for this policy.'))),
-      evaluationCard(policy, envs.items),
-      actCard(policy),
-      h('div', { class: 'card' }, h('h2', {}, 'Call it from an agent'),
-        h('p', { class: 'hint' }, 'JSON API:'), h('pre', { id: 'snippet-curl' }, act),
-        h('p', { class: 'hint' }, 'Open Inference Protocol (KServe v2), for standard inference clients:'), h('pre', { id: 'snippet-oip' }, oip)));
-  }).catch((err) => slot.replaceChildren(err.status === 404 ? notFound('policy', id, '#/policies', 'policies list') : errorBox(err)));
 }
 
 // ---------- start ----------

@@ -36,12 +36,23 @@ function fitAxisLabel(label, room) {
   return `${cut.trimEnd()}…`;
 }
 
+/** An x range with room around a lone x value (one evaluation per job: uPlot would draw the
+ *  points on the frame's edge). */
+function xRange(u, min, max) {
+  if (min !== max) return [min, max];
+  const pad = Math.abs(min) * 0.1 || 1;
+  return [min - pad, max + pad];
+}
+
 function uplotOptions(spec, width, log) {
   const markers = spec.series.every((s) => s.points.length <= MARKER_LIMIT);
+  let y = log ? { distr: 3 } : {};
+  // A fixed range (e.g. probabilities on [0, 1]) unless the values leave it.
+  if (spec.yRange && !log) y = { range: (u, min, max) => [Math.min(min, spec.yRange[0]), Math.max(max, spec.yRange[1])] };
   return {
     width,
     height: CHART_HEIGHT,
-    scales: { x: { time: false }, y: log ? { distr: 3 } : {} },
+    scales: { x: { time: false, range: xRange }, y },
     axes: [
       { label: spec.xLabel, values: (u, ticks) => ticks.map((t) => fmt(t)) },
       { label: fitAxisLabel(spec.yLabel, CHART_HEIGHT - 70), size: 64, values: (u, ticks) => ticks.map((t) => fmt(t, 3)) },
@@ -50,7 +61,9 @@ function uplotOptions(spec, width, log) {
       { label: 'step', value: (u, v) => (v === null || v === undefined ? '—' : fmt(v)) },
       ...spec.series.map((s) => ({
         label: s.name, stroke: s.color, width: s.width || 1.6, spanGaps: true, dash: s.dash,
-        points: { show: !s.thin && (markers || s.points.length === 1), size: 5 },
+        // Markers on short series (a series of one point has no line to draw), never on the
+        // edges of a band.
+        points: { show: !s.band && (markers || s.points.length === 1), size: 6, width: 1, fill: s.color },
         value: (u, v) => (v === null || v === undefined ? '—' : fmt(v)),
       })),
     ],
@@ -61,9 +74,9 @@ function uplotOptions(spec, width, log) {
   };
 }
 
-/** A line chart of `spec` = {key, title, xLabel, yLabel, series: [{name, points: [[x, y]],
- *  color, width?, dash?, thin?}], bands?}: a .chart-box with the title, a log-scale switch, the plot and its legend (which
- *  shows the values under the cursor). `box.update(spec)` draws new points of the same series
+/** A line chart of `spec` = {key, title, xLabel, yLabel, yRange?, note?, series: [{name,
+ *  points: [[x, y]], color, width?, dash?, thin?, band?}], bands?}: a .chart-box with the title,
+ *  a log-scale switch, the plot and its legend (which shows the values under the cursor). `box.update(spec)` draws new points of the same series
  *  in place (keeping a zoom the user made). */
 function lineChart(spec) {
   const plot = h('div', { class: 'plot' });
@@ -89,10 +102,10 @@ function lineChart(spec) {
     record();
   };
   const syncLog = () => {
-    const positive = allPositive(current.series);
+    const positive = allPositive(current.series) && !current.yRange;
     logBox.disabled = !positive;
     if (!positive) logBox.checked = false;
-    logLabel.title = positive ? 'Logarithmic y axis' : 'A log scale needs every value positive';
+    logLabel.title = positive ? 'Logarithmic y axis' : current.yRange ? 'A fixed linear scale' : 'A log scale needs every value positive';
   };
   logBox.addEventListener('change', build);
   box.update = (next) => {
@@ -150,17 +163,43 @@ function labelWidth(text) {
   return measureContext.measureText(text).width + 2;
 }
 
+/** `text` cut to `max` characters in its middle: its start and its end stay, the end being
+ *  where names of one run differ (“… · seed 2”). */
+function cutMiddle(text, max) {
+  if (text.length <= max) return text;
+  const head = Math.ceil((max - 1) / 2);
+  return `${text.slice(0, head).trimEnd()}…${text.slice(text.length - (max - 1 - head)).trimStart()}`;
+}
+
+/** Point labels short enough to write beside a point and still told apart: labels over
+ *  `max` characters lose the parts every label starts with (an experiment's name before its
+ *  “ · ”), then their middle; where that makes two alike, each keeps its end instead. The
+ *  point's tooltip and data-label keep the whole name. */
+function shortLabels(texts, max = LABEL_MAX_CHARS) {
+  if (texts.every((t) => t.length <= max)) return texts;
+  let prefix = texts.length > 1 ? texts.reduce((a, b) => { let i = 0; while (i < a.length && a[i] === b[i]) i += 1; return a.slice(0, i); }) : '';
+  // Up to the last separator in it (“browser grid · ”), so every label keeps whole parts.
+  const end = Math.max(...[' · ', ' / ', ', ', ': ', ' — '].map((sep) => { const i = prefix.lastIndexOf(sep); return i < 0 ? 0 : i + sep.length; }));
+  prefix = prefix.slice(0, end);
+  const cut = texts.map((t) => (t.length <= max ? t
+    : cutMiddle(prefix.length > 3 ? `…${t.slice(prefix.length)}` : t, max)));
+  if (new Set(cut).size === new Set(texts).size) return cut;
+  return texts.map((t) => (t.length <= max ? t : `…${t.slice(t.length - (max - 1))}`));
+}
+
 /** Where to write each point's label ({x, y, text} in SVG units): the first of eight spots
  *  around the point whose box stays inside `frame` and overlaps no label placed before nor any
- *  point; when none is free, the spot that overlaps least. Long labels are cut with an ellipsis
- *  (the point's tooltip has the whole name). Returns {x, y, anchor, text, box} per point. */
+ *  point; when none is free, the spot that overlaps least. Long labels are shortened by
+ *  shortLabels (the point's tooltip has the whole name). Returns {x, y, anchor, text, box}
+ *  per point. */
 function placeLabels(points, frame) {
   const boxes = [];
   const dots = points.map((p) => ({ x0: p.x - 6, x1: p.x + 6, y0: p.y - 6, y1: p.y + 6 }));
   const overlap = (a, b) => Math.max(0, Math.min(a.x1, b.x1) - Math.max(a.x0, b.x0))
     * Math.max(0, Math.min(a.y1, b.y1) - Math.max(a.y0, b.y0));
+  const texts = shortLabels(points.map((p) => p.text));
   return points.map((p, i) => {
-    const text = p.text.length > LABEL_MAX_CHARS ? `${p.text.slice(0, LABEL_MAX_CHARS - 1)}…` : p.text;
+    const text = texts[i];
     const w = labelWidth(text);
     // [anchor, x offset, baseline offset]: right, left, above, below, then the diagonals.
     const spots = [['start', 9, 4], ['end', -9, 4], ['middle', 0, -10], ['middle', 0, 18],

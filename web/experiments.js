@@ -24,6 +24,17 @@ const experimentHref = (id) => `#/experiments/${id}`;
 const experimentTitle = (e) => e.name || shortId(e.id);
 const gridActive = (e) => e.progress.queued + e.progress.running > 0;
 
+/** Where a grid stands, from its progress counts: [word, status class for the pill]: running
+ *  or queued while jobs are, then finished, or how many failed or were cancelled. */
+function gridStatus(p) {
+  const finished = p.succeeded + p.failed + p.cancelled;
+  if (p.running) return [`running (${finished} of ${p.total} done)`, 'running'];
+  if (p.queued) return [finished ? `queued (${finished} of ${p.total} done)` : 'queued', 'queued'];
+  if (p.failed) return [`${p.failed} failed`, 'failed'];
+  if (p.cancelled) return [`${p.cancelled} cancelled`, 'cancelled'];
+  return ['finished', 'succeeded'];
+}
+
 /** "12.34 ± 0.56": the mean to 4 significant digits, its standard error to 2; the mean alone
  *  when there is no standard error (one seed). */
 function meanSeText(summary) {
@@ -51,10 +62,12 @@ function experimentsTable(items) {
     return h('div', { class: 'empty' }, 'No experiments yet. Create one above: every algorithm × every seed is queued as a job.');
   }
   return tableWrap(h('table', { id: 'experiments-table' },
-    h('thead', {}, h('tr', {}, h('th', {}, 'Experiment'), h('th', {}, 'Algorithms'), h('th', { class: 'num' }, 'Seeds'), h('th', {}, 'Created'))),
-    h('tbody', {}, items.map((e) => h('tr', { 'data-id': e.id },
+    h('thead', {}, h('tr', {}, h('th', {}, 'Experiment'), h('th', {}, 'Status'), h('th', {}, 'Algorithms'), h('th', { class: 'num' }, 'Seeds'), h('th', {}, 'Created'))),
+    h('tbody', {}, items.map((e) => h('tr', { 'data-id': e.id, 'data-status': gridStatus(e.progress)[1] },
       h('td', {}, h('a', { href: experimentHref(e.id), class: e.name ? 'experiment-name' : 'mono experiment-name' }, experimentTitle(e)),
         h('div', { class: 'muted mono' }, shortId(e.id))),
+      h('td', { class: 'experiment-status', title: progressText(e.progress) },
+        h('span', { class: `status status-${gridStatus(e.progress)[1]}` }, gridStatus(e.progress)[0])),
       h('td', { class: 'algorithms' }, e.algorithms.map((label) => (ALGORITHMS[label] ? algoBadge(label) : h('span', { class: 'tag' }, label)))),
       h('td', { class: 'num' }, String(e.seeds.length)),
       h('td', {}, fmtTime(e.created_at)))))));
@@ -102,9 +115,9 @@ function experimentForm(datasets, envs, onCreated) {
       h('label', {}, 'Hidden sizes', hidden),
       h('label', {}, 'Batch size', batch),
       h('label', {}, 'Evaluate on', evalEnv),
-      h('label', {}, 'Evaluate every (steps)', every),
+      h('label', {}, 'Evaluate every (policy steps)', every),
       h('label', {}, 'Evaluation episodes', episodes)),
-    h('p', { class: 'hint' }, 'Every checked algorithm is trained once per seed on the same datasets (BC never reads Dᴺ). Empty fields take each algorithm’s preset. With an environment, each job evaluates itself during training and at the end; the results are the paper’s metrics per algorithm as mean ± standard error over the seeds.'),
+    h('p', { class: 'hint' }, 'Every checked algorithm is trained once per seed on the same datasets (BC never reads Dᴺ). Empty fields take each algorithm’s preset. With an environment, each job evaluates itself at the end of training (and every N policy steps if “Evaluate every” is set); the results are the paper’s metrics per algorithm as mean ± standard error over the seeds.'),
     h('div', { class: 'form-actions' }, submit), result);
   form.addEventListener('submit', async (event) => {
     event.preventDefault();
@@ -229,7 +242,8 @@ function resultsTable(e, expanded, onToggle, onProtocol) {
     const toggle = h('button', { type: 'button', class: 'secondary seeds-toggle', 'aria-expanded': open ? 'true' : 'false',
       onclick: () => onToggle(r.label) }, open ? '▾ seeds' : '▸ seeds');
     const armRow = h('tr', { class: 'arm-row', 'data-label': r.label, 'data-algorithm': r.algorithm },
-      h('td', { class: 'arm' }, algoBadge(r.algorithm), r.label !== r.algorithm ? h('span', { class: 'arm-label' }, ` ${r.label}`) : null),
+      // The seeds' toggle beside the arm's name, in view however wide the table is.
+      h('td', { class: 'arm' }, algoBadge(r.algorithm), r.label !== r.algorithm ? h('span', { class: 'arm-label' }, ` ${r.label}`) : null, ' ', toggle),
       h('td', { class: 'num n-seeds', title: `${r.succeeded} of ${r.jobs} jobs succeeded` }, `${n} seed${n === 1 ? '' : 's'}`,
         r.jobs !== n ? h('span', { class: 'muted' }, ` of ${r.jobs}`) : null),
       shown.map((m) => {
@@ -237,7 +251,7 @@ function resultsTable(e, expanded, onToggle, onProtocol) {
         return h('td', { class: 'num mean-se', 'data-metric': m.key, title: summary ? `n = ${summary.n}` : null },
           meanSeText(summary), summary && summary.n !== n ? h('span', { class: 'muted' }, ` (n=${summary.n})`) : null);
       }),
-      h('td', {}, toggle));
+      h('td', {}));
     const seedRows = jobsOf(r.label).map((j) => h('tr', { class: 'seed-row', 'data-arm': r.label, 'data-seed': j.seed, hidden: !open },
       h('td', {}, `seed ${j.seed} `, h('a', { href: `#/jobs/${j.job_id}`, class: 'job-link mono', title: 'the job' }, shortId(j.job_id)),
         j.policy_id ? [' · ', h('a', { href: `#/policies/${j.policy_id}`, class: 'policy-link', title: 'the policy' }, 'policy')] : null),
@@ -251,7 +265,7 @@ function resultsTable(e, expanded, onToggle, onProtocol) {
   return [h('h2', {}, 'Results per algorithm'), protocolLine(e, onProtocol),
     tableWrap(h('table', { id: 'experiment-results-table' },
       h('thead', {}, h('tr', {}, h('th', {}, 'Algorithm'), h('th', { class: 'num' }, 'Seeds'),
-        shown.map((m) => h('th', { class: 'num', 'data-metric': m.key }, m.label)), h('th', {}, ''))),
+        shown.map((m) => h('th', { class: 'num', 'data-metric': m.key }, m.label)), h('th', {}, 'Metrics from'))),
       h('tbody', {}, rows))),
     h('p', { class: 'hint' }, anyMetrics
       ? 'Mean ± standard error over the seeds (sample standard deviation / √n). Each seed’s metrics come from its policy’s newest evaluation under the protocol shown, else from the job’s last in-training evaluation.'
@@ -296,17 +310,30 @@ function curveSpec(e, metric, perJob, mode) {
     }
     series.push({ name: label, points: mean, color, width: 2 });
     if (upper.length) {
-      series.push({ name: `${label} +SE`, points: upper, color, width: 0.5, thin: true });
-      series.push({ name: `${label} −SE`, points: lower, color, width: 0.5, thin: true });
+      series.push({ name: `${label} +SE`, points: upper, color, width: 0.5, thin: true, band: true });
+      series.push({ name: `${label} −SE`, points: lower, color, width: 0.5, thin: true, band: true });
       bands.push({ series: [series.length - 1, series.length], fill: `${color}33` });
     }
   }
+  // Steps are policy iterations (each job's pretraining subtracted), so arms line up whatever
+  // their pretraining; a metric of the pretraining phase sits at 0 and below.
+  const beforePolicy = series.some((sr) => sr.points.some((p) => p[0] <= 0));
   return { key: 'experiment-curves', title: mode === 'seeds' ? `${metric}, each seed` : `${metric}, mean ± SE over seeds`,
-    xLabel: 'training step (all phases)', yLabel: metric, series, bands: bands.length ? bands : undefined };
+    xLabel: beforePolicy ? 'policy iteration (≤ 0: pretraining)' : 'policy iteration', yLabel: metric,
+    series, bands: bands.length ? bands : undefined };
 }
 
-/** The curves card: a metric picker (default eval/normalized_return when recorded, else a
- *  loss), mean ± SE or per-seed lines; `refresh(experiment)` reads the histories again. */
+/** The metric the curves open on: one every algorithm of the grid has recorded (a
+ *  SafeDICE-only diagnostic would leave the others out), the paper's first. */
+function defaultCurveMetric(names, shared) {
+  const pick = (list) => ['eval/normalized_return', 'eval/average_cost'].find((n) => list.includes(n))
+    || list.find((n) => n.endsWith('_loss')) || list[0];
+  return pick(shared) || pick(names) || '';
+}
+
+/** The curves card: a metric picker (by default one every algorithm has: defaultCurveMetric,
+ *  until the user picks one), mean ± SE or per-seed lines, over policy iterations;
+ *  `refresh(experiment)` reads the histories again. */
 function curvesCard() {
   const metric = h('select', { id: 'curve-metric' });
   const mode = h('select', { id: 'curve-mode' }, h('option', { value: 'mean' }, 'mean ± SE'), h('option', { value: 'seeds' }, 'each seed'));
@@ -316,13 +343,23 @@ function curvesCard() {
     h('div', { class: 'axis-pick' }, 'metric', metric, mode), note, slot);
   let experiment = null;
   let names = [];
+  let listed = ''; // the names (and those every algorithm has) the picker offers
+  let picked = false; // the user chose the metric: keep it
   let box = null;
   let drawn = '';
+  const pretraining = new Map(); // job id → its pretraining steps (GET /v1/jobs/{id})
+  const pretrainingOf = async (id) => {
+    if (!pretraining.has(id)) pretraining.set(id, (await api(`/v1/jobs/${id}`)).pretraining_steps || 0);
+    return pretraining.get(id);
+  };
   const draw = async () => {
     if (!experiment || !metric.value) return;
     const started = experiment.jobs.filter((j) => j.status !== 'queued');
-    const perJob = await Promise.all(started.map((job) => api(withParams(`/v1/jobs/${job.job_id}/metrics`,
-      { names: metric.value, max_points: CURVE_POINTS })).then((m) => ({ job, points: m.rows.map((r) => [r.step, r.value]) }))));
+    const perJob = await Promise.all(started.map(async (job) => {
+      const [m, before] = await Promise.all([api(withParams(`/v1/jobs/${job.job_id}/metrics`,
+        { names: metric.value, max_points: CURVE_POINTS })), pretrainingOf(job.job_id)]);
+      return { job, points: m.rows.map((r) => [r.step - before, r.value]) };
+    }));
     const spec = curveSpec(experiment, metric.value, perJob, mode.value);
     note.textContent = spec.series.length ? '' : `No job has recorded ${metric.value} yet.`;
     const key = `${metric.value}|${mode.value}`;
@@ -333,19 +370,25 @@ function curvesCard() {
     slot.replaceChildren(box);
   };
   const redraw = () => draw().catch((err) => { note.replaceChildren(errorBox(err)); });
-  metric.addEventListener('change', redraw);
+  metric.addEventListener('change', () => { picked = true; redraw(); });
   mode.addEventListener('change', redraw);
   const refresh = async (e) => {
     experiment = e;
-    const lists = await Promise.all(e.jobs.filter((j) => j.status !== 'queued')
-      .map((j) => api(`/v1/jobs/${j.job_id}/metrics/names`)));
+    const started = e.jobs.filter((j) => j.status !== 'queued');
+    const lists = await Promise.all(started.map((j) => api(`/v1/jobs/${j.job_id}/metrics/names`)));
     const found = [...new Set(lists.flat().map((m) => m.name))].sort((a, b) => (a.startsWith('eval/') === b.startsWith('eval/') ? a.localeCompare(b) : a.startsWith('eval/') ? -1 : 1));
-    if (found.join() !== names.join()) {
-      const chosen = metric.value;
+    // The metrics every algorithm of the grid has recorded (in one of its jobs at least).
+    const perArm = new Map();
+    started.forEach((j, i) => perArm.set(j.arm, new Set([...(perArm.get(j.arm) || []), ...lists[i].map((m) => m.name)])));
+    const shared = found.filter((n) => [...perArm.values()].every((set) => set.has(n)));
+    const key = `${found.join()}|${shared.join()}`;
+    if (key !== listed) {
       names = found;
-      metric.replaceChildren(...names.map((n) => h('option', { value: n }, n)));
-      metric.value = names.includes(chosen) ? chosen
-        : names.find((n) => n === 'eval/normalized_return') || names.find((n) => n.endsWith('_loss')) || names[0] || '';
+      listed = key;
+      const chosen = metric.value;
+      metric.replaceChildren(...names.map((n) => h('option', { value: n },
+        shared.includes(n) || perArm.size < 2 ? n : `${n} (not every algorithm)`)));
+      metric.value = picked && names.includes(chosen) ? chosen : defaultCurveMetric(names, shared);
     }
     if (!names.length) { note.textContent = 'No metrics recorded yet.'; return; }
     await draw();

@@ -69,8 +69,19 @@ const algoLabel = (algorithm) => (ALGORITHMS[algorithm] || { label: algorithm })
 const algoBadge = (algorithm) => h('span', { class: `badge algo-${algorithm}` }, algoLabel(algorithm));
 const statusPill = (status) => h('span', { class: `status status-${status}` }, status);
 const tagChips = (tags) => (tags || []).map((t) => h('span', { class: 'tag', 'data-tag': t }, t));
-/** A table that scrolls sideways inside its card instead of widening the page. */
-const tableWrap = (table) => h('div', { class: 'table-wrap' }, table);
+/** A table that scrolls sideways inside its card instead of widening the page. A table of rows
+ *  with actions (class sticky-actions) keeps them in view: sticky at its right edge in a wide
+ *  window, and in a narrow one each row is a card of “header: value” lines (style.css), for
+ *  which each cell gets its column's header as data-label. */
+function tableWrap(table) {
+  if (table.classList.contains('sticky-actions')) {
+    const headers = [...table.querySelectorAll('thead th')].map((th) => th.textContent);
+    for (const row of table.querySelectorAll('tbody tr')) {
+      [...row.children].forEach((cell, i) => { if (headers[i]) cell.dataset.label = headers[i]; });
+    }
+  }
+  return h('div', { class: 'table-wrap' }, table);
+}
 
 function progressBar(job, wide = false) {
   const pct = Math.round((job.progress.fraction || 0) * 1000) / 10;

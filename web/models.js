@@ -94,10 +94,12 @@ function actionDialog() {
   const title = h('h2', { id: 'dialog-title' });
   const fields = h('div', { id: 'dialog-fields' });
   const question = h('p', { id: 'dialog-question', class: 'dialog-question' });
+  const reason = h('input', { id: 'dialog-reason', maxlength: 200, autocomplete: 'off', placeholder: 'e.g. v2 passed the cost check' });
+  const reasonLabel = h('label', { class: 'dialog-reason' }, 'Reason (kept in the alias history)', reason);
   const problem = h('div', { id: 'dialog-error' });
   const confirm = h('button', { type: 'submit', id: 'dialog-confirm' }, 'Confirm');
   const cancel = h('button', { type: 'button', class: 'secondary', id: 'dialog-cancel' }, 'Cancel');
-  const form = h('form', { method: 'dialog' }, title, fields, question, problem, h('div', { class: 'form-actions' }, confirm, cancel));
+  const form = h('form', { method: 'dialog' }, title, fields, reasonLabel, question, problem, h('div', { class: 'form-actions' }, confirm, cancel));
   const dialog = h('dialog', { id: 'model-dialog', class: 'modal' }, form);
   let action = null;
   cancel.addEventListener('click', () => dialog.close('cancel'));
@@ -123,13 +125,18 @@ function actionDialog() {
   const show = (spec) => {
     title.textContent = spec.title;
     fields.replaceChildren(...(spec.fields || []));
+    // Alias moves take a reason; other actions (an experiment's cancel) have none to give.
+    reasonLabel.hidden = !spec.reason;
+    reason.value = '';
     problem.replaceChildren();
     confirm.textContent = spec.confirmLabel || 'Confirm';
     action = spec.action;
     ask(spec.question, true);
     if (!dialog.open) dialog.showModal();
   };
-  return { element: dialog, show, ask };
+  /** The reason typed, else the move's own description (`fallback`). */
+  const reasonOr = (fallback) => reason.value.trim() || fallback;
+  return { element: dialog, show, ask, reasonOr };
 }
 
 function modelMeta(model, onDeleted) {
@@ -157,44 +164,75 @@ function modelMeta(model, onDeleted) {
     problem);
 }
 
-function aliasesCard(model, onRollback, onRemove) {
+function aliasesCard(model, actions) {
   const body = model.aliases.length
-    ? tableWrap(h('table', { id: 'aliases-table' },
+    ? tableWrap(h('table', { id: 'aliases-table', class: 'sticky-actions' },
       h('thead', {}, h('tr', {}, h('th', {}, 'Alias'), h('th', {}, 'Version'), h('th', {}, 'Canary'), h('th', {}, 'Moved'), h('th', {}, ''))),
       h('tbody', {}, model.aliases.map((a) => h('tr', { 'data-alias': a.alias },
         h('td', { class: 'alias' }, h('strong', {}, a.alias)),
         h('td', { class: 'version' }, vText(a.version)),
-        h('td', { class: 'canary' }, a.canary ? canaryText(a.canary) : h('span', { class: 'muted' }, 'none')),
-        h('td', {}, fmtTime(a.updated_at)),
+        h('td', { class: 'canary' }, h('span', { class: 'canary-text' }, a.canary ? canaryText(a.canary) : h('span', { class: 'muted' }, 'none')),
+          h('span', { class: 'row-actions canary-actions' },
+            h('button', { type: 'button', class: 'secondary canary-set', onclick: () => actions.canary(a) }, a.canary ? 'Change…' : 'Set…'),
+            a.canary ? h('button', { type: 'button', class: 'secondary canary-clear', onclick: () => actions.clearCanary(a) }, 'End') : null)),
+        h('td', { class: 'moved' }, fmtTime(a.updated_at)),
         h('td', { class: 'row-actions' },
-          h('button', { type: 'button', class: 'secondary rollback', onclick: () => onRollback(a) }, 'Roll back'),
-          h('button', { type: 'button', class: 'danger remove-alias', onclick: () => onRemove(a) }, 'Remove')))))))
+          h('button', { type: 'button', class: 'secondary rollback', onclick: () => actions.rollback(a) }, 'Roll back'),
+          h('button', { type: 'button', class: 'danger remove-alias', onclick: () => actions.remove(a) }, 'Remove')))))))
     : h('div', { class: 'empty', id: 'aliases-empty' }, 'No aliases yet: promote a version below to create one (e.g. production).');
   return h('div', { class: 'card', id: 'aliases-card' }, h('h2', {}, 'Aliases'), body,
-    h('p', { class: 'hint' }, 'Roll back points an alias where it pointed before its latest move (see the history below). Agents calling a removed alias get 404.'));
+    h('p', { class: 'hint' }, 'A canary sends a share of an alias’s requests to another version (the same requests every time when clients send x-safedice-request-key). Roll back points an alias where it pointed before its latest move (see the history below). Agents calling a removed alias get 404.'));
 }
 
-function versionsCard(model, versions, onPromote) {
+/** What `GET /v1/results` says of the versions' jobs: per job id its result, and the protocol
+ *  the numbers are under (the Compare page's rule); null when it could not be read. */
+async function versionResults(versions) {
+  const ids = [...new Set(versions.items.map((v) => v.job_id))].slice(0, 100);
+  if (!ids.length) return null;
+  const results = await api(withParams('/v1/results', { jobs: ids.join(',') }));
+  return { protocol: results.protocol, protocols: results.protocols, byJob: new Map(results.jobs.map((r) => [r.job_id, r])) };
+}
+
+/** “job 0190abcd” for a job's registration (the whole source in its title), else the source. */
+function sourceText(source) {
+  const match = /^job ([\w-]+)$/.exec(source);
+  return match ? `job ${shortId(match[1])}` : source;
+}
+
+function versionsCard(model, versions, results, onPromote) {
   const pointing = (version) => model.aliases.filter((a) => a.version === version);
+  const metric = (v, key) => {
+    const r = results && results.byJob.get(v.job_id);
+    const value = r && r.metrics ? r.metrics[key] : undefined;
+    const why = !r ? null : value !== undefined ? r.metrics_from
+      : r.protocols.length ? 'evaluated under another protocol only' : 'not evaluated yet';
+    return h('td', { class: `num metric-${key}`, title: why }, value === undefined ? '—' : fmt(value));
+  };
   const body = versions.items.length
     ? tableWrap(h('table', { id: 'versions-table', class: 'sticky-actions' },
-      h('thead', {}, h('tr', {}, h('th', {}, 'Version'), h('th', {}, 'Aliases'), h('th', {}, 'Policy'), h('th', {}, 'Job'),
-        h('th', {}, 'Source'), h('th', {}, 'Description'), h('th', {}, 'Registered'), h('th', {}, ''))),
+      h('thead', {}, h('tr', {}, h('th', {}, 'Version'), h('th', {}, 'Aliases'), h('th', { class: 'num' }, 'Return'), h('th', { class: 'num' }, 'Cost'),
+        h('th', {}, 'Policy'), h('th', {}, 'Job'), h('th', {}, 'Source'), h('th', {}, 'Description'), h('th', {}, 'Registered'), h('th', {}, ''))),
       h('tbody', {}, versions.items.map((v) => h('tr', { 'data-version': v.version },
         h('td', { class: 'version' }, h('strong', {}, vText(v.version))),
         h('td', { class: 'aliases' }, pointing(v.version).map((a) => h('span', { class: 'tag alias-tag' }, a.alias))),
+        metric(v, 'normalized_return'),
+        metric(v, 'average_cost'),
         h('td', { class: 'mono' }, h('a', { href: `#/policies/${v.policy_id}`, class: 'policy-link', title: 'the policy: evaluations, actions, downloads' }, shortId(v.policy_id))),
-        h('td', { class: 'mono' }, h('a', { href: `#/jobs/${v.job_id}`, class: 'job-link', title: 'the job: training and evaluation metrics' }, shortId(v.job_id))),
-        h('td', { class: 'source' }, v.source),
-        h('td', {}, v.description || h('span', { class: 'muted' }, '—')),
-        h('td', {}, fmtTime(v.created_at)),
+        h('td', { class: 'mono' }, h('a', { href: `#/jobs/${v.job_id}`, class: 'job-link', title: v.job_name ? `${v.job_name}: training and evaluation metrics` : 'the job: training and evaluation metrics' }, v.job_name || shortId(v.job_id))),
+        h('td', { class: 'source', title: v.source }, sourceText(v.source)),
+        h('td', { class: 'description' }, v.description || h('span', { class: 'muted' }, '—')),
+        h('td', { class: 'registered' }, fmtTime(v.created_at)),
         h('td', { class: 'row-actions' },
           h('button', { type: 'button', class: 'promote', onclick: () => onPromote(v) }, 'Promote to…')))))))
-    : h('div', { class: 'empty', id: 'versions-empty' }, 'No versions yet. A job with “Register as a version of model” set registers its policy when it succeeds; ',
-      h('code', {}, `POST /v1/models/${model.name}/versions {"policy_id": …}`), ' registers one already trained.');
+    : h('div', { class: 'empty', id: 'versions-empty' }, 'No versions yet. A job with “Register as a version of model” set registers its policy when it succeeds, and a policy’s page registers one already trained (or ',
+      h('code', {}, `POST /v1/models/${model.name}/versions {"policy_id": …}`), ').');
   const more = versions.total > versions.items.length
     ? h('p', { class: 'hint' }, `The newest ${versions.items.length} of ${versions.total} versions.`) : null;
-  return h('div', { class: 'card', id: 'versions-card' }, h('h2', {}, 'Versions'), body, more);
+  const under = results && results.protocol ? h('p', { class: 'hint', id: 'versions-protocol' },
+    'Return (normalized, 100 = the preferred demonstrations) and cost (per episode): each version’s policy’s newest evaluation under ',
+    h('span', { class: 'protocol-label' }, results.protocol.label),
+    results.protocols.length > 1 ? ` (the versions were evaluated under ${results.protocols.length} protocols; Compare shows the others)` : '', '.') : null;
+  return h('div', { class: 'card', id: 'versions-card' }, h('h2', {}, 'Versions'), body, under, more);
 }
 
 function historyText(move) {
@@ -229,17 +267,20 @@ function modelPage(view, name) {
   let model;
 
   const moved = (move) => {
-    notice.replaceChildren(h('div', { class: 'notice', id: 'model-moved' },
-      move.from_version === null || move.from_version === undefined
-        ? `${move.alias} now points at ${vText(move.to_version)}.`
-        : `${move.alias} now points at ${vText(move.to_version)} (was ${vText(move.from_version)}).`));
+    let text = `${move.alias} now points at ${vText(move.to_version)} (was ${vText(move.from_version)}).`;
+    if (move.from_version === null || move.from_version === undefined) text = `${move.alias} now points at ${vText(move.to_version)}.`;
+    else if (move.from_version === move.to_version) {
+      text = `${move.alias} stays at ${vText(move.to_version)}, ${move.canary ? `with ${vText(move.canary.version)} taking ${pctText(move.canary.weight)} of its requests` : 'with no canary'}.`;
+    }
+    notice.replaceChildren(h('div', { class: 'notice', id: 'model-moved' }, text));
     // The move is done: a failure to redraw shows on the page, not as the move's error.
     return load().catch((err) => slot.replaceChildren(errorBox(err)));
   };
 
-  const setAlias = async (alias, version, reason, canary) => {
-    const body = { version, actor: DASHBOARD_ACTOR, reason };
+  const setAlias = async (alias, version, reason, canary, expected) => {
+    const body = { version, actor: DASHBOARD_ACTOR, reason: dialog.reasonOr(reason) };
     if (canary) body.canary = canary;
+    if (expected !== null && expected !== undefined) body.expected_version = expected;
     const move = await api(`${modelPath(name)}/aliases/${encodeURIComponent(alias)}`, { method: 'PUT', json: body });
     await moved(move);
   };
@@ -284,11 +325,12 @@ function modelPage(view, name) {
         h('p', { class: 'hint' }, `Alias names follow the model name rule (${MODEL_NAME_RULE}); not all digits, not “latest”.`)],
       question: '',
       confirmLabel: 'Promote',
+      reason: true,
       action: async () => {
         const alias = aliasName();
         const asked = existing.find((a) => a.alias === alias);
         await unmoved(alias, asked ? asked.version : null);
-        await setAlias(alias, version.version, `promoted ${vText(version.version)} from the dashboard`);
+        await setAlias(alias, version.version, `promoted ${vText(version.version)} from the dashboard`, null, asked ? asked.version : null);
       },
     });
     ask();
@@ -313,9 +355,10 @@ function modelPage(view, name) {
         fields: [h('p', { class: 'hint' }, `Its latest move (seq ${latest.seq}, by ${latest.actor}, ${fmtTime(latest.moved_at)}) was ${historyText(latest)}.`)],
         question: `Roll ${alias.alias} back from ${vText(now)} to ${vText(target)}${canary ? `, with ${canaryText(canary)} as before` : ''}?`,
         confirmLabel: 'Roll back',
+        reason: true,
         action: async () => {
           await unmoved(alias.alias, now);
-          await setAlias(alias.alias, target, `rolled back from ${vText(now)} to ${vText(target)}`, canary);
+          await setAlias(alias.alias, target, `rolled back from ${vText(now)} to ${vText(target)}`, canary, now);
         },
       });
     } catch (err) {
@@ -330,23 +373,79 @@ function modelPage(view, name) {
       fields: [h('p', { class: 'hint' }, `Agents calling ${name}@${alias.alias} get 404 from then on; the move is kept in the history.`)],
       question: `Remove the alias ${alias.alias} (now at ${vText(alias.version)})?`,
       confirmLabel: 'Remove',
+      reason: true,
       action: async () => {
         await api(withParams(`${modelPath(name)}/aliases/${encodeURIComponent(alias.alias)}`,
-          { actor: DASHBOARD_ACTOR, reason: 'removed from the dashboard' }), { method: 'DELETE' });
+          { actor: DASHBOARD_ACTOR, reason: dialog.reasonOr('removed from the dashboard'), expected_version: alias.version }), { method: 'DELETE' });
         notice.replaceChildren(h('div', { class: 'notice', id: 'model-moved' }, `Removed ${alias.alias} (it pointed at ${vText(alias.version)}).`));
         await load().catch((err) => slot.replaceChildren(errorBox(err)));
       },
     });
   };
 
+  // A canary: another version answers a share of the alias's requests (PUT with `canary`),
+  // set or changed here, ended by onClearCanary (PUT without it).
+  const onCanary = (alias) => {
+    notice.replaceChildren();
+    const others = versionList.items.filter((v) => v.version !== alias.version);
+    if (!others.length) {
+      notice.replaceChildren(errorBox({ message: `${name} has no version other than ${vText(alias.version)} to send a share of ${alias.alias}’s requests to.` }, 'canary-error'));
+      return;
+    }
+    const version = h('select', { id: 'canary-version' }, others.map((v) => h('option', { value: v.version }, vText(v.version))));
+    const share = h('input', { id: 'canary-share', inputmode: 'decimal', placeholder: 'e.g. 10', autocomplete: 'off' });
+    if (alias.canary) { version.value = String(alias.canary.version); share.value = String(Number((alias.canary.weight * 100).toPrecision(6))); }
+    const percent = () => Number(share.value.trim());
+    const ask = () => {
+      const p = percent();
+      if (!share.value.trim() || !(p >= 0.01 && p <= 99.99)) dialog.ask('Give the canary’s share of the requests, 0.01 to 99.99 %.', false);
+      else dialog.ask(`Send ${pctText(p / 100)} of ${alias.alias}’s requests to v${version.value} (${vText(alias.version)} answers the rest)?`, true);
+    };
+    version.addEventListener('change', ask);
+    share.addEventListener('input', ask);
+    dialog.show({
+      title: `Canary for ${alias.alias}`,
+      fields: [h('div', { class: 'form-grid' }, h('label', {}, 'Canary version', version), h('label', {}, 'Share of requests (%)', share))],
+      question: '',
+      confirmLabel: 'Set canary',
+      reason: true,
+      action: async () => {
+        await unmoved(alias.alias, alias.version);
+        const canary = { version: Number(version.value), weight: Number((percent() / 100).toFixed(4)) };
+        await setAlias(alias.alias, alias.version, `canary ${vText(canary.version)} at ${pctText(canary.weight)}`, canary, alias.version);
+      },
+    });
+    ask();
+  };
+  const onClearCanary = (alias) => {
+    notice.replaceChildren();
+    dialog.show({
+      title: `End ${alias.alias}’s canary`,
+      fields: [],
+      question: `End the canary of ${alias.alias} (${canaryText(alias.canary)})? ${vText(alias.version)} answers every request.`,
+      confirmLabel: 'End canary',
+      reason: true,
+      action: async () => {
+        await unmoved(alias.alias, alias.version);
+        await setAlias(alias.alias, alias.version, `canary ${vText(alias.canary.version)} ended`, null, alias.version);
+      },
+    });
+  };
+
+  let versionList = { items: [], total: 0 };
   const load = async () => {
     const [m, versions, history] = await Promise.all([api(modelPath(name)),
       api(withParams(`${modelPath(name)}/versions`, { limit: 500 })), api(withParams(`${modelPath(name)}/history`, { limit: 200 }))]);
+    // The versions' numbers are a convenience: the page works without them.
+    const results = await versionResults(versions).catch(() => null);
     if (mine !== generation) return;
     model = m;
+    versionList = versions;
+    // The aliases take the page's width: each row has its canary and its actions.
     slot.replaceChildren(
-      h('div', { class: 'grid2' }, modelMeta(model, () => { location.hash = '#/models'; }), aliasesCard(model, onRollback, onRemove)),
-      versionsCard(model, versions, onPromote),
+      modelMeta(model, () => { location.hash = '#/models'; }),
+      aliasesCard(model, { rollback: onRollback, remove: onRemove, canary: onCanary, clearCanary: onClearCanary }),
+      versionsCard(model, versions, results, onPromote),
       historyCard(history));
   };
   load().catch((err) => slot.replaceChildren(err.status === 404
@@ -375,4 +474,45 @@ function registerFields(models) {
       return register;
     },
   };
+}
+
+// ---------- the policy page's registration ----------
+
+/** The policy page's “Register as a model version”: a model, a description and optionally an
+ *  alias to move to the new version (POST /v1/models/{name}/versions, actor `dashboard`). */
+function registerPolicyCard(policy, models) {
+  const card = h('div', { class: 'card', id: 'register-card' }, h('h2', {}, 'Register as a model version'));
+  if (!models.length) {
+    card.append(h('div', { class: 'empty', id: 'register-empty' }, 'No models yet: ', h('a', { href: '#/models' }, 'create one'),
+      ', then register this policy as its next version here.'));
+    return card;
+  }
+  const model = h('select', { id: 'register-model' },
+    models.map((m) => h('option', { value: m.name }, m.latest_version ? `${m.name} (latest ${vText(m.latest_version)})` : m.name)));
+  const description = h('input', { id: 'register-description', placeholder: 'what this version is', maxlength: 10000 });
+  const alias = h('input', { id: 'register-alias', placeholder: 'optional, e.g. staging', spellcheck: 'false', autocomplete: 'off' });
+  const submit = h('button', { type: 'submit', id: 'register-submit' }, 'Register');
+  const result = h('div', { id: 'register-result' });
+  const form = h('form', { id: 'register-form', autocomplete: 'off' },
+    h('div', { class: 'form-grid' }, h('label', {}, 'Model', model), h('label', {}, 'Description', description), h('label', {}, 'and point alias', alias)),
+    h('div', { class: 'form-actions' }, submit), result);
+  form.addEventListener('submit', async (event) => {
+    event.preventDefault();
+    result.replaceChildren();
+    const body = { policy_id: policy.id, description: description.value.trim(), actor: DASHBOARD_ACTOR };
+    if (alias.value.trim()) body.alias = alias.value.trim();
+    submit.disabled = true;
+    try {
+      const version = await api(`${modelPath(model.value)}/versions`, { method: 'POST', json: body });
+      result.replaceChildren(h('div', { class: 'notice', id: 'register-ok' }, `Registered as ${vText(version.version)} of `,
+        h('a', { href: modelHref(version.model) }, version.model), body.alias ? `; ${body.alias} points at it.` : '.'));
+      form.reset();
+    } catch (err) {
+      result.replaceChildren(errorBox(err, 'register-error'));
+    } finally {
+      submit.disabled = false;
+    }
+  });
+  card.append(h('p', { class: 'hint' }, 'The policy becomes the model’s next version; agents reach it as the model’s latest, or through the alias.'), form);
+  return card;
 }

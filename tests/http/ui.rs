@@ -32,6 +32,7 @@ async fn the_dashboard_and_its_assets_are_served_without_a_token() {
         ("/ui/charts.js", "text/javascript; charset=utf-8", "function lineChart("),
         ("/ui/models.js", "text/javascript; charset=utf-8", "function modelsPage("),
         ("/ui/experiments.js", "text/javascript; charset=utf-8", "function experimentsPage("),
+        ("/ui/policies.js", "text/javascript; charset=utf-8", "function policyPage("),
         ("/ui/vendor/uPlot.iife.min.js", "text/javascript; charset=utf-8", "uPlot (v1.6.32)"),
         ("/ui/vendor/uPlot.LICENSE", "text/plain; charset=utf-8", "MIT License"),
     ] {
