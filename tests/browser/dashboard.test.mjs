@@ -89,13 +89,59 @@ async function downloaded(trigger) {
   return { name: file.suggestedFilename(), bytes: readFileSync(path) };
 }
 
-/** Problems of the current page's layout: anything wider than the window, and inputs whose
- *  placeholder does not fit (measured in the input's own font). */
+/** Problems of the current page's layout: anything wider than the window; inputs whose
+ *  placeholder does not fit (measured in the input's own font); controls (buttons, fields,
+ *  links styled as buttons) not wholly in view without scrolling sideways, or covered by
+ *  something else; table cells lying under a sticky actions cell; anything cut by a box that
+ *  hides its overflow (not one that scrolls). */
 async function layoutProblems() {
   return page.evaluate(() => {
     const problems = [];
     const root = document.documentElement;
     if (root.scrollWidth > window.innerWidth + 1) problems.push(`page ${root.scrollWidth}px wide in a ${window.innerWidth}px window`);
+    const name = (el) => `${el.tagName.toLowerCase()}${el.id ? `#${el.id}` : ''}${el.className && typeof el.className === 'string' ? `.${el.className.trim().split(/\s+/).join('.')}` : ''} “${(el.textContent || el.value || el.placeholder || '').trim().slice(0, 30)}”`;
+    const clippers = (el) => {
+      const boxes = [];
+      for (let a = el.parentElement; a && a !== document.body; a = a.parentElement) {
+        const style = getComputedStyle(a);
+        if (style.overflowX !== 'visible' || style.overflowY !== 'visible') boxes.push({ el: a, r: a.getBoundingClientRect(), scrolls: /auto|scroll/.test(style.overflowX) });
+      }
+      return boxes;
+    };
+    const x0 = window.scrollX; const y0 = window.scrollY;
+    for (const el of document.querySelectorAll('button, select, input:not([type="hidden"]), textarea, a.button-link')) {
+      if (!el.offsetParent || el.closest('dialog:not([open])')) continue;
+      let r = el.getBoundingClientRect();
+      if (!r.width) continue;
+      const clips = clippers(el);
+      if (r.left < -0.5 || r.right > window.innerWidth + 0.5 || clips.some((c) => r.left < c.r.left - 0.5 || r.right > c.r.right + 0.5)) {
+        problems.push(`${name(el)} is cut or out of view sideways (${Math.round(r.left)}-${Math.round(r.right)} in ${window.innerWidth}px)`);
+        continue;
+      }
+      // In a box that scrolls vertically and out of its view: nothing to see on the page now.
+      if (clips.some((c) => r.top < c.r.top - 0.5 || r.bottom > c.r.bottom + 0.5)) continue;
+      window.scrollTo(x0, Math.max(0, window.scrollY + r.top - window.innerHeight / 2));
+      r = el.getBoundingClientRect();
+      const hit = document.elementFromPoint(r.left + r.width / 2, r.top + r.height / 2);
+      if (hit && hit !== el && !el.contains(hit) && !hit.contains(el) && hit.control !== el) problems.push(`${name(el)} is covered by ${name(hit)}`);
+    }
+    window.scrollTo(x0, y0);
+    for (const cell of document.querySelectorAll('td, th')) {
+      if (!cell.offsetParent || getComputedStyle(cell).position !== 'sticky') continue;
+      const s = cell.getBoundingClientRect();
+      const under = [...cell.parentElement.children].filter((other) => {
+        const r = other.getBoundingClientRect();
+        return other !== cell && r.width > 0 && r.right > s.left + 0.5 && r.left < s.right - 0.5;
+      });
+      if (under.length) problems.push(`${name(under[0])} lies under the sticky cell ${name(cell)} in #${cell.closest('table').id}`);
+    }
+    for (const el of document.querySelectorAll('th, td, label, p, h1, h2, dd, dt, a, strong, span')) {
+      if (!el.offsetParent || el.closest('svg, .u-wrap, .u-legend, dialog:not([open])')) continue;
+      const r = el.getBoundingClientRect();
+      if (!r.width) continue;
+      const cut = clippers(el).find((c) => !c.scrolls && (r.left < c.r.left - 1 || r.right > c.r.right + 1));
+      if (cut) problems.push(`${name(el)} is cut by ${name(cut.el)} (overflow hidden)`);
+    }
     const ctx = document.createElement('canvas').getContext('2d');
     for (const input of document.querySelectorAll('input[placeholder], textarea[placeholder]')) {
       if (!input.offsetParent || input.tagName === 'TEXTAREA') continue;
@@ -116,7 +162,8 @@ async function labelProblems(selector) {
     const problems = [];
     for (const svg of document.querySelectorAll(sel)) {
       const frame = svg.getBoundingClientRect();
-      const boxes = [...svg.querySelectorAll('text')].map((t) => ({ text: t.textContent, label: t.classList.contains('point-label'), r: t.getBoundingClientRect() }));
+      const boxes = [...svg.querySelectorAll('text')].map((t) => ({ text: t.textContent, label: t.classList.contains('point-label'),
+        own: t.closest('g.point')?.dataset.label, r: t.getBoundingClientRect() }));
       const dots = [...svg.querySelectorAll('g.point')].map((g) => ({ label: g.dataset.label, r: g.querySelector('circle').getBoundingClientRect() }));
       const meet = (a, b) => a.left < b.right - 0.5 && b.left < a.right - 0.5 && a.top < b.bottom - 0.5 && b.top < a.bottom - 0.5;
       for (const b of boxes) {
@@ -124,7 +171,18 @@ async function labelProblems(selector) {
       }
       const labels = boxes.filter((b) => b.label);
       labels.forEach((a, i) => labels.slice(i + 1).forEach((b) => { if (meet(a.r, b.r)) problems.push(`“${a.text}” overlaps “${b.text}”`); }));
-      for (const l of labels) for (const d of dots) if (!d.label.startsWith(l.text.replace(/…$/, '')) && meet(l.r, d.r)) problems.push(`“${l.text}” covers the point of ${d.label}`);
+      for (const l of labels) for (const d of dots) if (d.label !== l.own && meet(l.r, d.r)) problems.push(`“${l.text}” covers the point of ${d.label}`);
+      // Shortened labels stay told apart, and each is made of pieces of its own point's name.
+      const texts = labels.map((l) => l.text);
+      if (new Set(texts).size !== new Set(labels.map((l) => l.own)).size) problems.push(`labels not told apart: ${JSON.stringify(texts)}`);
+      for (const l of labels) {
+        let at = 0;
+        for (const piece of l.text.split('…').map((p) => p.trim()).filter(Boolean)) {
+          const found = l.own.indexOf(piece, at);
+          if (found < 0) { problems.push(`“${l.text}” is not a shortening of “${l.own}”`); break; }
+          at = found + piece.length;
+        }
+      }
     }
     return problems;
   }, selector);
@@ -457,6 +515,20 @@ test('the job page charts the training metrics in the browser, with values on ho
     const hasNonPositive = chart.drawn.some((values) => values.some((v) => v <= 0));
     if (hasNonPositive) assert.equal(await page.$eval(`.chart-box[data-chart="${chart.key}"] .log-scale`, (c) => c.disabled), true, chart.key);
   }
+  // The discriminator's outputs are probabilities, on their own [0, 1] axis; its early-stopping
+  // steps are no point on that axis but a sentence (the -1 of "not stopped" in words).
+  const discriminator = charted.find((c) => c.key === 'discriminator');
+  assert.ok(discriminator, JSON.stringify(charted.map((c) => c.key)));
+  assert.ok(discriminator.series.every(([n]) => n.startsWith('discriminator_prob_')), JSON.stringify(discriminator.series));
+  assert.deepEqual(await page.$eval('.chart-box[data-chart="discriminator"]', (b) => [b.uplot.scales.y.min, b.uplot.scales.y.max]), [0, 1]);
+  const chartedNames = charted.flatMap((c) => c.series.map(([n]) => n));
+  assert.ok(!chartedNames.includes('discriminator_best_step') && !chartedNames.includes('discriminator_stopped_at'), JSON.stringify(chartedNames));
+  const stoppedAt = pointsOf('discriminator_stopped_at').at(-1).value;
+  const bestStep = pointsOf('discriminator_best_step').at(-1).value;
+  const stopping = await page.textContent('#discriminator-stopping');
+  assert.match(stopping, stoppedAt < 0 ? /did not stop early \(trained all [\d,]+ steps\)/ : new RegExp(`stopped early at discriminator step ${stoppedAt.toLocaleString('en-US')} of`));
+  assert.match(stopping, new RegExp(`best at step ${bestStep.toLocaleString('en-US')}, whose weights it kept`));
+  assert.doesNotMatch(stopping, /-1/);
   const alpha = charted.find((c) => c.key === 'alpha');
   assert.ok(alpha.series[0][1] >= 1);
   assert.match(await page.textContent('#job-config'), new RegExp(`iterations\\s*${ITERATIONS}`));
@@ -550,6 +622,15 @@ test('the policy page turns pasted observations into the same actions as the API
   assert.equal(await listed.textContent(), job.name);
   await page.goto(`${base}/#/policies/${job.policy_id}`);
   await page.waitForSelector('#act-form');
+  // Its title names it by its job; its final metrics say the early-stopping codes in words.
+  assert.equal(await page.textContent('#policy-title'), `${job.name} ${job.policy_id.slice(0, 8)}`);
+  const policy = (await api(`/v1/policies/${job.policy_id}`)).body;
+  const stoppedAt = policy.final_metrics.discriminator_stopped_at;
+  assert.equal(typeof stoppedAt, 'number', JSON.stringify(policy.final_metrics));
+  assert.equal(await page.textContent('#final-metrics tr[data-metric="discriminator_stopped_at"] td.num'),
+    stoppedAt < 0 ? 'did not stop early' : `stopped early at step ${stoppedAt.toLocaleString('en-US')}`);
+  assert.equal(await page.textContent('#final-metrics tr[data-metric="discriminator_best_step"] td.num'),
+    `step ${policy.final_metrics.discriminator_best_step.toLocaleString('en-US')}`);
   const obsDim = state.unlabeled.obs_dim;
   const observations = [Array.from({ length: obsDim }, (_, i) => (i % 3) * 0.1), Array(obsDim).fill(0.5)];
   await page.fill('#act-input', observations.map((o) => o.join(', ')).join('\n'));
@@ -814,7 +895,11 @@ test('the job form registers the job’s policy as the next version of a model, 
   await page.fill('#job-iterations', '300');
   await page.fill('#job-hidden_sizes', '32, 32');
   await page.fill('#job-batch_size', '64');
-  await page.selectOption('#job-eval-env', '');
+  // "Evaluate every" left at its placeholder: one evaluation, at the end of training.
+  assert.equal(await page.getAttribute('#job-eval-every', 'placeholder'), 'at the end');
+  await page.selectOption('#job-eval-env', 'six-rooms');
+  await page.fill('#job-eval-every', '');
+  await page.fill('#job-eval-episodes', '20');
   await page.selectOption('#job-register-model', 'pilot');
   await page.fill('#job-register-alias', 'staging');
   await page.click('#job-submit');
@@ -823,8 +908,11 @@ test('the job form registers the job’s policy as the next version of a model, 
   const job = (await api(`/v1/jobs/${id}`)).body;
   assert.equal(job.name, 'registered bc');
   assert.deepEqual(job.register, { model: 'pilot', alias: 'staging' });
+  assert.deepEqual(job.eval, { env: 'six-rooms', episodes: 20, seed: 0, deterministic: false });
   const done = await finished(id);
   assert.equal(done.status, 'succeeded');
+  const evaluated = (await api(`/v1/jobs/${id}/metrics?names=eval/average_cost`)).body.rows;
+  assert.deepEqual(evaluated.map((r) => r.step), [done.progress.total]);
 
   const model = (await api('/v1/models/pilot')).body;
   assert.equal(model.latest_version, 3);
@@ -835,7 +923,9 @@ test('the job form registers the job’s policy as the next version of a model, 
   await page.goto(`${base}/#/models/pilot`);
   const row = '#versions-table tr[data-version="3"]';
   await page.waitForSelector(row);
-  assert.equal(await page.textContent(`${row} .source`), v3.source);
+  assert.equal(await page.textContent(`${row} .source`), `job ${id.slice(0, 8)}`);
+  assert.equal(await page.getAttribute(`${row} .source`, 'title'), v3.source);
+  assert.equal(v3.source, `job ${id}`);
   assert.equal(await page.getAttribute(`${row} .job-link`, 'href'), `#/jobs/${id}`);
   assert.equal(await page.textContent('#aliases-table tr[data-alias="staging"] .version'), 'v3');
 
@@ -864,6 +954,89 @@ test('the job form registers the job’s policy as the next version of a model, 
   await page.waitForSelector('#aliases-table tr[data-alias="production"] .version:has-text("v2")');
   await page.click('#dialog-cancel');
   await page.waitForSelector('#model-dialog', { state: 'hidden' });
+});
+
+test('the policy page registers its policy as a version; the model page shows each version’s numbers and sets and ends a canary, each move with its reason', async () => {
+  await page.setViewportSize({ width: 1400, height: 900 });
+  await page.goto(`${base}/#/policies/${state.policy}`);
+  await page.waitForSelector('#register-form');
+  assert.deepEqual(await page.$$eval('#register-model option', (os) => os.map((o) => o.value)), ['pilot']);
+  await page.fill('#register-description', 'safedice again, from its page');
+  await page.fill('#register-alias', 'candidate');
+  await page.click('#register-submit');
+  assert.equal(await (await page.waitForSelector('#register-ok')).textContent(), 'Registered as v4 of pilot; candidate points at it.');
+  const model = (await api('/v1/models/pilot')).body;
+  assert.equal(model.latest_version, 4);
+  const v4 = (await api('/v1/models/pilot/versions/4')).body;
+  assert.deepEqual([v4.policy_id, v4.description], [state.policy, 'safedice again, from its page']);
+  assert.deepEqual(model.aliases.map((a) => [a.alias, a.version]).sort(), [['candidate', 4], ['production', 2]]);
+  assert.equal((await api('/v1/models/pilot/history?alias=candidate')).body.items[0].actor, 'dashboard');
+
+  // Beside each version, its job's return and cost as /v1/results gives them (Compare's rule).
+  await page.click('#register-ok a');
+  await page.waitForSelector('#versions-table tr[data-version="4"]');
+  const versions = (await api('/v1/models/pilot/versions')).body.items;
+  const results = (await api(`/v1/results?jobs=${[...new Set(versions.map((v) => v.job_id))].join(',')}`)).body;
+  assert.equal(await page.textContent('#versions-protocol .protocol-label'), results.protocol.label);
+  let withNumbers = 0;
+  for (const v of versions) {
+    const { metrics } = results.jobs.find((j) => j.job_id === v.job_id);
+    for (const key of ['normalized_return', 'average_cost']) {
+      const shown = await page.textContent(`#versions-table tr[data-version="${v.version}"] td.metric-${key}`);
+      if (metrics[key] === undefined) assert.equal(shown, '—', `v${v.version} ${key}`);
+      else assert.ok(closeToShown(shown, metrics[key], 4), `v${v.version} ${key}: shown ${shown}, API ${metrics[key]}`);
+    }
+    if (metrics.normalized_return !== undefined) withNumbers += 1;
+  }
+  assert.ok(withNumbers >= 1, JSON.stringify(results.jobs));
+
+  // A canary on production: v4 takes 10 % of its requests, with the reason typed.
+  const production = '#aliases-table tr[data-alias="production"]';
+  await page.click(`${production} button.canary-set`);
+  await page.waitForSelector('#model-dialog[open]');
+  await page.selectOption('#canary-version', '4');
+  await page.fill('#canary-share', '10');
+  assert.equal(await page.textContent('#dialog-question'), 'Send 10% of production’s requests to v4 (v2 answers the rest)?');
+  await page.fill('#dialog-reason', 'ten percent trial of v4');
+  await page.click('#dialog-confirm');
+  await page.waitForSelector(`${production} .canary-text:has-text("v4 takes 10%")`);
+  const productionNow = async () => (await api('/v1/models/pilot')).body.aliases.find((a) => a.alias === 'production');
+  const lastMove = async () => (await api('/v1/models/pilot/history?alias=production')).body.items[0];
+  const withCanary = await productionNow();
+  assert.deepEqual([withCanary.version, withCanary.canary], [2, { version: 4, weight: 0.1 }]);
+  assert.equal(await page.textContent('#model-moved'), 'production stays at v2, with v4 taking 10% of its requests.');
+  let move = await lastMove();
+  assert.deepEqual([move.to_version, move.canary, move.actor, move.reason], [2, { version: 4, weight: 0.1 }, 'dashboard', 'ten percent trial of v4']);
+  await page.waitForSelector(`#history-table tr[data-seq="${move.seq}"]`);
+  assert.equal(await page.textContent(`#history-table tr[data-seq="${move.seq}"] .reason`), 'ten percent trial of v4');
+  // With the canary's buttons too, nothing is cut or overlaps, at both widths.
+  for (const width of [1400, 500]) {
+    await page.setViewportSize({ width, height: 900 });
+    await page.waitForTimeout(200);
+    assert.deepEqual(await layoutProblems(), [], `model page with a canary at ${width}px`);
+    await screenshot(`model-canary-${width}`);
+  }
+  await page.setViewportSize({ width: 1400, height: 900 });
+
+  // Ended without a reason typed: the move says what it did.
+  await page.click(`${production} button.canary-clear`);
+  await page.waitForSelector('#model-dialog[open]');
+  assert.equal(await page.textContent('#dialog-question'), 'End the canary of production (v4 takes 10%)? v2 answers every request.');
+  await page.click('#dialog-confirm');
+  await page.waitForSelector(`${production} .canary-text:has-text("none")`);
+  assert.equal((await productionNow()).canary ?? null, null);
+  move = await lastMove();
+  assert.deepEqual([move.to_version, move.canary ?? null, move.reason], [2, null, 'canary v4 ended']);
+
+  // A promotion with its reason.
+  await page.click('#versions-table tr[data-version="4"] button.promote');
+  await page.waitForSelector('#model-dialog[open]');
+  await page.selectOption('#promote-alias', 'production');
+  await page.fill('#dialog-reason', 'v4 passed review');
+  await page.click('#dialog-confirm');
+  await page.waitForSelector(`${production} .version:has-text("v4")`);
+  move = await lastMove();
+  assert.deepEqual([move.from_version, move.to_version, move.reason], [2, 4, 'v4 passed review']);
 });
 
 /** Rows of `table` whose last cell (Cancel, Delete, Promote…) is not wholly inside the window. */
@@ -946,7 +1119,8 @@ test('an experiment of 2 algorithms × 3 seeds is queued from the form and its p
   await page.fill('#exp-hidden-sizes', '32, 32');
   await page.fill('#exp-batch-size', '64');
   assert.equal(await page.inputValue('#exp-eval-env'), 'six-rooms');
-  await page.fill('#exp-eval-every', '100');
+  // "Evaluate every" left at its placeholder: each job evaluates once, at the end.
+  assert.equal(await page.getAttribute('#exp-eval-every', 'placeholder'), 'at the end');
   await page.fill('#exp-eval-episodes', '50');
   await page.click('#exp-submit');
   await page.waitForSelector('#experiment-created');
@@ -958,9 +1132,11 @@ test('an experiment of 2 algorithms × 3 seeds is queued from the form and its p
   assert.deepEqual(created.seeds, [0, 1, 2]);
   assert.deepEqual(created.algorithms.map((a) => a.algorithm).sort(), ['bc', 'safedice']);
   assert.deepEqual(created.config, { iterations: 300, hidden_sizes: [32, 32], batch_size: 64 });
-  assert.equal(created.eval.env, 'six-rooms');
+  assert.deepEqual(created.eval, { env: 'six-rooms', episodes: 50 });
   assert.equal(created.progress.total, 6);
   await page.waitForSelector(`#experiments-table tr[data-id="${id}"]`);
+  // The list says where each grid stands, from its progress counts.
+  assert.match(await page.textContent(`#experiments-table tr[data-id="${id}"] .experiment-status`), /^(queued|running \(\d of 6 done\))$/);
 
   // Its page follows the grid to the end.
   await page.click(`#experiment-created a[href="#/experiments/${id}"]`);
@@ -1002,16 +1178,44 @@ test('an experiment of 2 algorithms × 3 seeds is queued from the form and its p
     }
   }
 
-  // The curves: eval/normalized_return by default, one mean line per algorithm (with its band).
+  // Each job evaluated once, after its last step (SafeDICE's comes after its discriminator's).
+  for (const job of experiment.jobs) {
+    const [resource, rows] = await Promise.all([api(`/v1/jobs/${job.job_id}`), api(`/v1/jobs/${job.job_id}/metrics?names=eval/normalized_return`)]);
+    assert.deepEqual(rows.body.rows.map((r) => r.step), [resource.body.progress.total]);
+    assert.equal(resource.body.progress.total, resource.body.pretraining_steps + 300);
+  }
+
+  // The curves: eval/normalized_return by default (a metric every algorithm has), one mean line
+  // per algorithm (with its band), over policy iterations: both algorithms' evaluations at 300,
+  // though SafeDICE's were recorded at step 600 of its run (its discriminator came first).
   await page.waitForSelector('.chart-box[data-chart="experiment-curves"] .u-over');
   assert.equal(await page.inputValue('#curve-metric'), 'eval/normalized_return');
-  const curveNames = JSON.parse(await page.getAttribute('.chart-box[data-chart="experiment-curves"]', 'data-series')).map(([name]) => name);
+  const curves = '.chart-box[data-chart="experiment-curves"]';
+  const curveNames = JSON.parse(await page.getAttribute(curves, 'data-series')).map(([name]) => name);
   assert.deepEqual(curveNames.filter((n) => !/SE$/.test(n)).sort(), [...labels].sort());
+  assert.deepEqual(await page.$eval(curves, (b) => [...b.uplot.data[0]]), [300]);
+  assert.equal(await page.$eval(curves, (b) => b.uplot.axes[0].label), 'policy iteration');
+  /** Pixels of each colour the curves' canvas has drawn (what the user sees, not the options). */
+  const drawn = (colors) => page.$eval(`${curves} canvas`, (canvas, hexes) => {
+    const { data } = canvas.getContext('2d').getImageData(0, 0, canvas.width, canvas.height);
+    const rgb = hexes.map((hx) => [1, 3, 5].map((i) => parseInt(hx.slice(i, i + 2), 16)));
+    const counts = hexes.map(() => 0);
+    for (let i = 0; i < data.length; i += 4) {
+      rgb.forEach((c, k) => { if (data[i + 3] > 200 && c.every((v, j) => Math.abs(v - data[i + j]) <= 10)) counts[k] += 1; });
+    }
+    return counts;
+  }, colors);
+  const algorithmColors = Object.fromEntries((await api('/v1/algorithms')).body.items.map((a) => [a.name, a.color]));
+  const armColors = experiment.algorithms.map((a) => algorithmColors[a.algorithm]);
+  assert.ok((await drawn(armColors)).every((n) => n > 0), `mean curves drawn: ${await drawn(armColors)}`);
   await page.selectOption('#curve-mode', 'seeds');
   await page.waitForFunction(() => {
     const box = document.querySelector('.chart-box[data-chart="experiment-curves"]');
     return box && box.dataset.series && JSON.parse(box.dataset.series).length === 6;
   });
+  await page.waitForTimeout(200);
+  // One point per seed: each is drawn as a marker, not an empty chart of one-point lines.
+  assert.ok((await drawn(armColors)).every((n) => n > 0), `each seed drawn: ${await drawn(armColors)}`);
   await page.selectOption('#curve-mode', 'mean');
   await page.waitForFunction(() => {
     const box = document.querySelector('.chart-box[data-chart="experiment-curves"]');
@@ -1064,6 +1268,7 @@ test('an experiment of 2 algorithms × 3 seeds is queued from the form and its p
   }
   await page.goto(`${base}/#/experiments`);
   await page.waitForSelector('#experiments-table');
+  assert.equal(await page.textContent(`#experiments-table tr[data-id="${id}"] .experiment-status`), 'finished');
   assert.deepEqual(await layoutProblems(), [], 'experiments list at 500px');
   await screenshot('experiments-500');
   await page.setViewportSize({ width: 1360, height: 900 });
@@ -1088,12 +1293,75 @@ test('an experiment is cancelled and deleted through the page’s dialog; deleti
   await page.waitForSelector('#experiment-cancelled');
   await page.waitForSelector('#experiment-progress[data-active="false"]');
   assert.match(await page.textContent('#experiment-progress'), /1 cancelled/);
+  await page.goto(`${base}/#/experiments`);
+  assert.equal(await (await page.waitForSelector(`#experiments-table tr[data-id="${id}"] .experiment-status`)).textContent(), '1 cancelled');
+  await page.goto(`${base}/#/experiments/${id}`);
+  await page.waitForSelector('#experiment-delete');
   await page.click('#experiment-delete');
   await page.click('#dialog-confirm');
   await page.waitForFunction(() => location.hash === '#/experiments');
   assert.equal((await api(`/v1/experiments/${id}`)).status, 404);
   await page.waitForSelector(`#experiments-table tr[data-id="${state.experiment}"]`);
   assert.equal(await page.$(`#experiments-table tr[data-id="${id}"]`), null);
+});
+
+test('Compare with four jobs keeps every column within reach and its scatter labels told apart, at 1400 and 500 px', async () => {
+  for (const width of [1400, 500]) {
+    await page.setViewportSize({ width, height: 900 });
+    await page.goto(`${base}/#/compare`);
+    // The four newest finished jobs are ticked: the experiment's, "browser grid · <arm> · seed <s>".
+    await page.waitForFunction(() => document.querySelectorAll('#compare-table thead th').length === 5);
+    const headers = await page.$$eval('#compare-table thead th.num', (ths) => ths.map((t) => t.textContent));
+    assert.ok(headers.every((t) => t.includes('browser grid · ')), JSON.stringify(headers));
+    await page.waitForTimeout(300);
+    assert.deepEqual(await layoutProblems(), [], `compare with 4 jobs at ${width}px`);
+    // Every column can be brought into view: scrolled to its end, the table shows its last
+    // column whole (a table cut by its card would not).
+    const beyond = await page.$eval('#compare-table', (table) => {
+      const wrap = table.closest('.table-wrap');
+      wrap.scrollLeft = wrap.scrollWidth;
+      const frame = wrap.getBoundingClientRect();
+      const out = [...table.querySelectorAll('thead th')].filter((c) => c.getBoundingClientRect().right > Math.min(frame.right, window.innerWidth) + 0.5)
+        .map((c) => c.textContent);
+      wrap.scrollLeft = 0;
+      return out;
+    });
+    assert.deepEqual(beyond, [], `columns out of reach at ${width}px`);
+    // In a wide window the four columns are all in view, none behind a sideways scroll.
+    if (width === 1400) assert.ok(await page.$eval('#compare-table', (t) => t.closest('.table-wrap').scrollWidth <= t.closest('.table-wrap').clientWidth + 1), 'the table fits at 1400px');
+    const labels = await page.$$eval('.chart-box[data-chart="scatter"] text.point-label', (ts) => ts.map((t) => t.textContent));
+    assert.equal(labels.length, 4);
+    assert.equal(new Set(labels).size, 4, JSON.stringify(labels));
+    assert.deepEqual(await labelProblems('.chart-box[data-chart="scatter"] svg'), [], `compare's scatter at ${width}px`);
+    await screenshot(`compare-4-${width}`);
+  }
+  await page.setViewportSize({ width: 1360, height: 900 });
+});
+
+test('every page, the model and experiment pages included, keeps its layout and its chart labels at 1400 and 500 px', async () => {
+  // A dataset named as D4RL and DSRL name theirs, long and without spaces.
+  const form = new FormData();
+  form.append('file', new Blob([readFileSync(join(work, 'demo', 'unlabeled.jsonl'))]), 'unlabeled.jsonl');
+  form.append('name', 'OfflinePointGoal1Gymnasium-v0-medium-replay-from-dsrl');
+  assert.equal((await api('/v1/datasets', { method: 'POST', body: form })).status, 201);
+  const pages = [['#/datasets', '#datasets-table'], ['#/jobs', '#jobs-table'], [`#/jobs/${state.job.id}`, '#charts .u-over'],
+    ['#/compare', '#compare-table'], ['#/experiments', '#experiments-table'],
+    [`#/experiments/${state.experiment}`, '.chart-box[data-chart="experiment-curves"] .u-over'], ['#/policies', '#policies-table'],
+    [`#/policies/${state.policy}`, '#act-form'], ['#/models', '#models-table'], ['#/models/pilot', '#history-table']];
+  for (const width of [1400, 500]) {
+    await page.setViewportSize({ width, height: 900 });
+    for (const [hash, ready] of pages) {
+      await page.goto(`${base}/${hash}`);
+      await page.waitForSelector(ready);
+      await page.waitForTimeout(300); // charts take their width on the next frame
+      assert.deepEqual(await layoutProblems(), [], `${hash} at ${width}px`);
+      assert.deepEqual(await labelProblems('svg.scatter'), [], `${hash}'s chart labels at ${width}px`);
+    }
+    await page.goto(`${base}/#/models/pilot`);
+    await page.waitForSelector('#history-table');
+    await screenshot(`model-${width}`);
+  }
+  await page.setViewportSize({ width: 1360, height: 900 });
 });
 
 test('with an API token the pages say so once, then work once the token is saved', async () => {
