@@ -81,7 +81,7 @@ def check_named_model(client, first, second):
     urllib.request.urlopen(request, timeout=60).read()
     assert client.get_model_metadata("pilot")["versions"] == ["1", "2"]
     assert client.get_model_config("pilot@production")["parameters"]["version"]["string_value"] == "1"
-    assert client.get_model_config("pilot", "2")["parameters"]["version"]["string_value"] == "2
+    assert client.get_model_config("pilot", "2")["parameters"]["version"]["string_value"] == "2"
     assert client.is_model_ready("pilot@production") and client.is_model_ready("pilot", "2")
     observations = np.random.default_rng(1).uniform(-1, 1, size=(16, 21)).astype(np.float32)
     by_first, by_second = act(first, observations), act(second, observations)

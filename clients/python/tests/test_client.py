@@ -372,7 +372,7 @@ def test_a_policy_is_evaluated_in_gymnasium_over_http_and_locally_and_recorded(c
                                reference=reference, cost=cart_off_centre, local=True)
     assert (recorded["source"], recorded["env"], recorded["episodes"]) == ("external", "CartPole-v1", 4)
     assert (recorded["runtime"], recorded["deterministic"]) == ("onnx", True)
-    assert recorded["protocol"]["key"] == "runtime=onnx;actions=deterministic;episodes=4;seed=7;env=CartPole-v1
+    assert recorded["protocol"]["key"] == "runtime=onnx;actions=deterministic;episodes=4;seed=7;env=CartPole-v1"
     metrics = recorded["metrics"]
     assert metrics["normalized_return"] == pytest.approx(100 * np.mean(over_http.returns) / 500.0)
     assert metrics["average_cost"] == pytest.approx(np.mean(over_http.costs))
