@@ -200,6 +200,21 @@ async fn a_grid_runs_as_jobs_and_reports_mean_and_standard_error_per_algorithm()
     let n_row = format!("bc,bc,{external_key},n,,,normalized_return,1");
     assert!(lines.clone().any(|l| l == n_row), "{csv}");
 
+    // Any jobs side by side by the same rule: the grid's first job twice and its second.
+    let (a, b) = (first["job_id"].as_str().unwrap(), again["jobs"][1]["job_id"].as_str().unwrap());
+    let side = get_json(&app.client, &app.url(&format!("/v1/results?jobs={a},{b},{a}"))).await;
+    assert_eq!(side["protocol"]["key"], trained);
+    let metrics: Vec<&Value> =
+        side["jobs"].as_array().unwrap().iter().map(|j| &j["metrics"]).collect();
+    assert_eq!(
+        metrics,
+        [&again["jobs"][0]["metrics"], &again["jobs"][1]["metrics"], &again["jobs"][0]["metrics"]]
+    );
+    let empty = app.get("/v1/results?jobs=,").send().await.unwrap();
+    assert_error(empty, StatusCode::BAD_REQUEST, "invalid_jobs").await;
+    let missing = app.get(&format!("/v1/results?jobs={a},no-such-job")).send().await.unwrap();
+    assert_error(missing, StatusCode::NOT_FOUND, "not_found").await;
+
     let listed = get_json(&app.client, &app.url("/v1/experiments")).await;
     assert_eq!(
         (listed["total"].as_u64(), listed["items"][0]["id"].as_str()),
