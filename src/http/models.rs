@@ -195,7 +195,8 @@ impl From<ModelVersionRecord> for ModelVersion {
 pub struct SetAlias {
     /// The version the alias answers from.
     pub version: u32,
-    /// Another version answering a share of the requests (absent: none).
+    /// Another version answering a share of the requests (absent, or the alias's own version:
+    /// none).
     pub canary: Option<CanaryShare>,
     /// Who moves it, for the history (default `api`), at most 200 characters.
     #[schema(
@@ -613,16 +614,13 @@ async fn set_alias(
 ) -> Result<Json<AliasMoveResource>, ApiError> {
     model_name(&path.name)?;
     model::check_alias_name(&path.alias).map_err(invalid_name)?;
-    let target = AliasTarget { version: request.version, canary: canary_of(request.canary)? };
+    // A canary of the alias's own version splits nothing: it is no canary (the schema cannot
+    // say "another version", so it is not refused).
+    let canary = canary_of(request.canary)?.filter(|c| c.version != request.version);
+    let target = AliasTarget { version: request.version, canary };
     let note = note(request.actor, request.reason, request.expected_version)?;
     // Versions that do not exist are 404 before anything else is said of them.
     preload(&state, &path.name, &target).await?;
-    if target.canary.is_some_and(|c| c.version == target.version) {
-        return Err(ApiError::unprocessable(
-            "invalid_canary",
-            "canary.version is the alias's own version; name another version",
-        ));
-    }
     let moved = state.store.set_alias(&path.name, &path.alias, &target, &note).await?;
     refresh(&state, &path.name).await;
     let from = moved.from.as_ref().map(|t| t.version);

@@ -415,11 +415,6 @@ async fn aliases_move_with_their_history_and_serve_by_name_what_the_policy_route
             json!({"version": 1, "canary": {"version": 2, "weight": 1.5}}),
             "invalid_canary",
         ),
-        (
-            "canary",
-            json!({"version": 1, "canary": {"version": 1, "weight": 0.5}}),
-            "invalid_canary",
-        ),
     ] {
         let response = app
             .request(reqwest::Method::PUT, &format!("/v1/models/pilot/aliases/{alias}"))
@@ -437,6 +432,17 @@ async fn aliases_move_with_their_history_and_serve_by_name_what_the_policy_route
         .unwrap();
     assert_error(response, StatusCode::NOT_FOUND, "not_found").await;
     assert_eq!(app.count_rows("model_alias_moves").await, 3);
+    // A canary of the alias's own version splits nothing: the alias points there, no canary.
+    let same = move_alias(
+        &app,
+        "pilot",
+        "same",
+        json!({"version": 1, "canary": {"version": 1, "weight": 0.5}, "actor": "alice"}),
+    )
+    .await;
+    assert_eq!((&same["to_version"], &same["canary"]), (&json!(1), &Value::Null), "{same}");
+    let deleted = app.delete("/v1/models/pilot/aliases/same?actor=alice").send().await.unwrap();
+    assert_eq!(deleted.status(), StatusCode::NO_CONTENT);
 
     // In use: the model while an alias points into it, the version an alias points at.
     let response = app.delete("/v1/models/pilot").send().await.unwrap();
