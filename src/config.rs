@@ -125,8 +125,7 @@ pub struct ServeConfig {
     pub min_body_rate: u64,
 
     /// Dataset uploads received at once; one more is answered 503 `too_many_uploads` with
-    /// Retry-After. One client (an IP address, an IPv6 /64) holds at most half of them (503
-    /// `too_many_uploads_from_client`).
+    /// Retry-After.
     #[arg(long, env = "SAFEDICE_MAX_CONCURRENT_UPLOADS", default_value_t = 8, value_parser = clap::value_parser!(u16).range(1..))]
     pub max_concurrent_uploads: u16,
 

@@ -133,15 +133,6 @@ pub async fn serve(
             // hyper's header deadline starts once it knows the protocol, which it learns from
             // the first bytes: a connection that sends none is bounded here.
             if first_byte(&stream, header_timeout, &shutdown).await {
-                // Every request knows its client, for the per-client shares of scarce slots.
-                let client = ClientAddress(client_of(peer.ip()));
-                let app = tower::ServiceExt::map_request(
-                    app,
-                    move |mut request: axum::extract::Request<hyper::body::Incoming>| {
-                        request.extensions_mut().insert(client);
-                        request
-                    },
-                );
                 let service = TowerToHyperService::new(app);
                 let io = TokioIo::new(StallLimited::new(stream, send_stall));
                 let connection = builder.serve_connection_with_upgrades(io, service);
@@ -231,59 +222,6 @@ fn client_of(ip: std::net::IpAddr) -> std::net::IpAddr {
                 IpAddr::V6(Ipv6Addr::from(prefix))
             }
         },
-    }
-}
-
-/// The client a request came from ([`client_of`] its address), in the request's extensions.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
-pub struct ClientAddress(pub std::net::IpAddr);
-
-/// At most `cap` of a scarce kind of slot per client, so one client (trickling uploads at just
-/// above --min-body-rate) cannot hold them all; a [`ClientShare`] gives its place back when
-/// dropped.
-pub struct ClientShares {
-    held: Arc<std::sync::Mutex<std::collections::HashMap<std::net::IpAddr, usize>>>,
-    cap: usize,
-}
-
-impl ClientShares {
-    /// Half of `slots` per client, at least one.
-    pub fn half_of(slots: usize) -> Self {
-        ClientShares { held: Arc::default(), cap: (slots / 2).max(1) }
-    }
-
-    /// The most one client may hold.
-    pub fn cap(&self) -> usize {
-        self.cap
-    }
-
-    /// A place for `client`, unless it holds its share already.
-    pub fn take(&self, client: ClientAddress) -> Option<ClientShare> {
-        let mut held = self.held.lock().expect("client shares lock");
-        let count = held.entry(client.0).or_insert(0);
-        if *count >= self.cap {
-            return None;
-        }
-        *count += 1;
-        Some(ClientShare { held: self.held.clone(), ip: client.0 })
-    }
-}
-
-/// One client's place in [`ClientShares`].
-pub struct ClientShare {
-    held: Arc<std::sync::Mutex<std::collections::HashMap<std::net::IpAddr, usize>>>,
-    ip: std::net::IpAddr,
-}
-
-impl Drop for ClientShare {
-    fn drop(&mut self) {
-        let mut held = self.held.lock().expect("client shares lock");
-        if let Some(count) = held.get_mut(&self.ip) {
-            *count -= 1;
-            if *count == 0 {
-                held.remove(&self.ip);
-            }
-        }
     }
 }
 
@@ -472,21 +410,6 @@ pub struct BodyTooSlow {
 mod tests {
     use super::*;
     use std::net::IpAddr;
-
-    #[test]
-    fn a_client_holds_at_most_its_share_and_gives_it_back() {
-        let shares = ClientShares::half_of(8);
-        let (a, b) = (
-            ClientAddress("10.0.0.1".parse().unwrap()),
-            ClientAddress("10.0.0.2".parse().unwrap()),
-        );
-        let held: Vec<ClientShare> = (0..4).map(|_| shares.take(a).unwrap()).collect();
-        assert!(shares.take(a).is_none());
-        assert!(shares.take(b).is_some());
-        drop(held);
-        assert!(shares.take(a).is_some());
-        assert_eq!(ClientShares::half_of(1).cap(), 1);
-    }
 
     /// One client per IPv4 address (mapped or not) and per IPv6 /64.
     #[test]

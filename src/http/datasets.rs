@@ -160,13 +160,12 @@ pub fn upload_router() -> OpenApiRouter<AppState> {
         (status = 408, description = "The body paused longer than --body-idle-timeout-secs (`request_timeout`) or arrived slower than --min-body-rate on average (`request_too_slow`); nothing was stored", body = ErrorBody),
         (status = 413, description = "The file exceeds --max-upload-bytes (`payload_too_large`); a declared Content-Length over the limit is answered before the body is read", body = ErrorBody),
         (status = 422, description = "The file is not a valid dataset (`invalid_dataset`, `unknown_format`, `empty_dataset`, `unsupported_format`) or the name/description is invalid (`invalid_name`, `invalid_description`); the message names the line, row or key", body = ErrorBody),
-        (status = 503, description = "--max-concurrent-uploads uploads are in flight (`too_many_uploads`), or this client's half of them (`too_many_uploads_from_client`); retry after `Retry-After` seconds", body = ErrorBody),
+        (status = 503, description = "--max-concurrent-uploads uploads are in flight (`too_many_uploads`); retry after `Retry-After` seconds", body = ErrorBody),
         (status = 507, description = "The server's disk is full (`insufficient_storage`); nothing was stored", body = ErrorBody),
     )
 )]
 async fn upload_dataset(
     State(state): State<AppState>,
-    client: Option<axum::Extension<super::connections::ClientAddress>>,
     headers: HeaderMap,
     multipart: Result<Multipart, MultipartRejection>,
 ) -> Result<Response, ApiError> {
@@ -188,22 +187,6 @@ async fn upload_dataset(
                 state.config.max_concurrent_uploads
             ),
         ));
-    };
-    // And at most half of them per client, so one client's slow uploads leave room for others.
-    let _share = match client {
-        None => None,
-        Some(axum::Extension(client)) => {
-            Some(state.upload_shares.take(client).ok_or_else(|| {
-                ApiError::unavailable(
-                    "too_many_uploads_from_client",
-                    format!(
-                    "this client sends {} uploads already, the most one client may while others \
-                     wait (half of --max-concurrent-uploads); retry when one has finished",
-                    state.upload_shares.cap()
-                ),
-                )
-            })?)
-        }
     };
     let upload = match receive_form(&mut multipart, &state.store.tmp_dir(), limit).await {
         Err(too_large @ ApiError::PayloadTooLarge { .. }) => {

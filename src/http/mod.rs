@@ -95,8 +95,6 @@ pub struct Services {
     pub models: Arc<ModelRegistry>,
     /// One permit per upload being received (`--max-concurrent-uploads`).
     pub uploads: Arc<tokio::sync::Semaphore>,
-    /// Half of those per client at most.
-    pub upload_shares: Arc<connections::ClientShares>,
     /// One permit per open event stream (`--max-streams`).
     pub streams: Arc<tokio::sync::Semaphore>,
     /// One permit per heavy read being built or sent (`--max-heavy-reads`).
@@ -123,9 +121,6 @@ impl AppState {
             policies: serving.policies,
             models: serving.models,
             uploads: Arc::new(uploads),
-            upload_shares: Arc::new(connections::ClientShares::half_of(usize::from(
-                config.max_concurrent_uploads,
-            ))),
             streams: Arc::new(streams),
             heavy_reads: Arc::new(heavy_reads),
             shutdown,
