@@ -1,16 +1,20 @@
 //! DExperts (paper Appendix C.4). Discrete actions: π^U and π^N are behaviour-cloned on D^U and
 //! D^N (Eq. 42, 43) and combined at decoding time, `π = π^U − α π^N` (Eq. 44, see
 //! [`super::policy::Decoder::Dexperts`]). Continuous actions: one policy trained with
-//! `−E_U[log π] + α E_N[log π]` (Eq. 45).
+//! `−E_U[log π] + α E_N[log π]` (Eq. 45), or with the D^N term bounded
+//! ([`NonPreferredTerm::Kernel`]).
 
 use candle_core::Tensor;
 
 use super::bc::bc_loss;
 use super::columns::ActionColumn;
-use super::fused_policy::{fused_policy_step, fused_policy_update, FusedPolicyStep, LossName};
-use super::hyperparams::{AlgorithmConfig, DexpertsConfig};
+use super::fused_policy::{
+    fused_policy_step, fused_policy_update, host, host_scalar, FusedPolicyStep, LossName,
+    OwnedActions,
+};
+use super::hyperparams::{AlgorithmConfig, DexpertsConfig, NonPreferredTerm};
 use super::optim::Adam;
-use super::policy::{Decoder, PolicyArtifact, PolicyNet};
+use super::policy::{gaussian_kernel, Decoder, PolicyArtifact, PolicyNet};
 use super::run::RunData;
 use super::{Progress, ResolvedConfig, TrainError, Trainer, TrainingData};
 use crate::data::ActionSpace;
@@ -22,6 +26,28 @@ pub fn contrastive_bc_loss(
     alpha: f64,
 ) -> candle_core::Result<candle_core::Tensor> {
     log_prob_u.mean_all()?.neg()? + (log_prob_n.mean_all()? * alpha)?
+}
+
+/// Eq. 45 with its D^N term bounded: `−E_{D^U}[log π] + α E_{D^N}[k]`, `k` the D^N action's
+/// Gaussian kernel under the policy ([`gaussian_kernel`], in (0, 1]). Eq. 45's term rewards
+/// making D^N's actions unlikely without limit, and its push on the mean grows with the
+/// distance, so the policy leaves D^U's actions too (the degeneration the paper reports for
+/// DExperts); the kernel's push fades once a D^N action is a few standard deviations from the
+/// policy's mean. The term moves the mean only: the spread is read as a constant there (it
+/// stays D^U's to fit), since narrowing it lowers `k` as surely as moving away and would be
+/// the cheaper way.
+pub fn bounded_contrastive_loss(
+    policy: &PolicyNet,
+    (obs_u, act_u): (&Tensor, &ActionColumn),
+    (obs_n, act_n): (&Tensor, &ActionColumn),
+    alpha: f64,
+) -> candle_core::Result<Tensor> {
+    let ActionColumn::Continuous { pretanh, .. } = act_n else {
+        candle_core::bail!("the bounded DExperts term needs continuous actions")
+    };
+    let (mean, log_std) = policy.gaussian(obs_n)?;
+    let kernel = gaussian_kernel(&mean, &log_std.detach(), pretanh)?;
+    policy.log_prob(obs_u, act_u)?.mean_all()?.neg()? + (kernel.mean_all()? * alpha)?
 }
 
 pub struct DexpertsTrainer {
@@ -38,9 +64,12 @@ pub struct DexpertsTrainer {
 
 const LOSS_U: LossName = ("the pi^U BC loss (Eq. 42)", "Try a lower lr_actor.");
 const LOSS_N: LossName = ("the pi^N BC loss (Eq. 43)", "Try a lower lr_actor.");
+const LOSS_BOUNDED: LossName =
+    ("the DExperts loss with its D^N term bounded", "Try a lower lr_actor.");
 const LOSS_CONTRASTIVE: LossName = (
     "the DExperts loss (Eq. 45)",
-    "Its α term rewards making D^N actions unlikely without bound: try a smaller alpha.",
+    "Its α term rewards making D^N actions unlikely without bound: try a smaller alpha, or \
+     non_preferred_term: kernel.",
 );
 
 impl DexpertsTrainer {
@@ -132,9 +161,8 @@ impl DexpertsTrainer {
         Ok(vec![("policy_loss", value_u), ("policy_n_loss", value_n)])
     }
 
-    /// Eq. 45 on one policy. On the fused engine it is one weighted NLL over the D^U batch and
-    /// the D^N batch stacked (2B rows): weights 2 on D^U rows and −2α on D^N rows make
-    /// `−(1/2B) Σ w log π` equal `−E_U[log π] + α E_N[log π]`.
+    /// Eq. 45 on one policy, its D^N term as written or bounded. On the fused engine it is
+    /// one pass over the D^U batch and the D^N batch stacked (2B rows).
     fn contrastive_step(
         &mut self,
         obs_u: &Tensor,
@@ -142,40 +170,74 @@ impl DexpertsTrainer {
         obs_n: &Tensor,
         act_n: &ActionColumn,
     ) -> Result<Vec<(&'static str, f64)>, TrainError> {
-        let value = match &mut self.fused {
-            Some(fused) => {
-                let b = obs_u.dim(0)?;
+        let alpha = self.cfg.alpha;
+        let (run, policy, opt) = (&self.run, &self.policy, &mut self.policy_opt);
+        let value = match (&mut self.fused, self.cfg.non_preferred_term) {
+            (Some(fused), term) => {
                 let obs = Tensor::cat(&[obs_u, obs_n], 0)?;
                 let actions = ActionColumn::cat(act_u, act_n)?;
-                let mut w = vec![2.0f32; b];
-                w.extend(std::iter::repeat_n(-2.0 * self.cfg.alpha as f32, obs_n.dim(0)?));
-                let w = Tensor::from_vec(w, obs.dim(0)?, obs.device())?;
-                let (run, policy) = (&self.run, self.policy.mlp());
-                let opt = &mut self.policy_opt;
-                fused_policy_update(
-                    fused,
-                    run,
-                    policy,
-                    opt,
-                    &obs,
-                    &actions,
-                    Some(&w),
-                    LOSS_CONTRASTIVE,
-                )?
+                match term {
+                    NonPreferredTerm::LogLikelihood => {
+                        eq45_fused(fused, run, policy, opt, (&obs, &actions), alpha)?
+                    }
+                    NonPreferredTerm::Kernel => {
+                        let (obs_host, actions) =
+                            (host(&obs)?, OwnedActions::from_column(&actions)?);
+                        let (mlp, u_rows) = (policy.mlp(), obs_u.dim(0)?);
+                        let loss = fused.bounded_contrastive_grads(
+                            mlp,
+                            &obs_host,
+                            &actions.view(),
+                            u_rows,
+                            alpha as f32,
+                        )?;
+                        let (name, hint) = LOSS_BOUNDED;
+                        let value = run.checked(&host_scalar(loss)?, name, hint)?;
+                        opt.step_with_host_grads(&mlp.fused_grad_slices(&fused.grads)?)?;
+                        value
+                    }
+                }
             }
-            None => {
-                let loss = contrastive_bc_loss(
-                    &self.policy.log_prob(obs_u, act_u)?,
-                    &self.policy.log_prob(obs_n, act_n)?,
-                    self.cfg.alpha,
-                )?;
-                let value = self.run.checked(&loss, LOSS_CONTRASTIVE.0, LOSS_CONTRASTIVE.1)?;
-                self.policy_opt.minimize(&loss)?;
+            (None, term) => {
+                let (loss, (name, hint)) = match term {
+                    NonPreferredTerm::LogLikelihood => (
+                        contrastive_bc_loss(
+                            &policy.log_prob(obs_u, act_u)?,
+                            &policy.log_prob(obs_n, act_n)?,
+                            alpha,
+                        )?,
+                        LOSS_CONTRASTIVE,
+                    ),
+                    NonPreferredTerm::Kernel => (
+                        bounded_contrastive_loss(policy, (obs_u, act_u), (obs_n, act_n), alpha)?,
+                        LOSS_BOUNDED,
+                    ),
+                };
+                let value = run.checked(&loss, name, hint)?;
+                opt.minimize(&loss)?;
                 value
             }
         };
         Ok(vec![("policy_loss", value)])
     }
+}
+
+/// Eq. 45 on the fused engine as one weighted NLL over the D^U batch and the D^N batch
+/// stacked (2B rows): weights 2 on D^U rows and −2α on D^N rows make `−(1/2B) Σ w log π`
+/// equal `−E_U[log π] + α E_N[log π]`.
+fn eq45_fused(
+    fused: &mut FusedPolicyStep,
+    run: &RunData,
+    policy: &PolicyNet,
+    opt: &mut Adam,
+    (obs, actions): (&Tensor, &ActionColumn),
+    alpha: f64,
+) -> Result<f64, TrainError> {
+    let b = obs.dim(0)? / 2;
+    let mut w = vec![2.0f32; b];
+    w.extend(std::iter::repeat_n(-2.0 * alpha as f32, obs.dim(0)? - b));
+    let w = Tensor::from_vec(w, obs.dim(0)?, obs.device())?;
+    fused_policy_update(fused, run, policy.mlp(), opt, obs, actions, Some(&w), LOSS_CONTRASTIVE)
 }
 
 impl Trainer for DexpertsTrainer {

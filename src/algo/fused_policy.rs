@@ -103,7 +103,6 @@ pub struct FusedPolicyStep {
     ws: TrainingWorkspace,
     /// The last step's gradient, flat in [`FusedMlp`] order.
     pub grads: Vec<f32>,
-    head_grad: Vec<f32>,
 }
 
 impl FusedPolicyStep {
@@ -113,7 +112,6 @@ impl FusedPolicyStep {
         Ok(Self {
             ws: TrainingWorkspace::new(net.shape(), batch, threads),
             grads: vec![0.0; net.num_params()],
-            head_grad: vec![0.0; net.shape().output()],
             net,
         })
     }
@@ -128,10 +126,60 @@ impl FusedPolicyStep {
         actions: &HostActions,
         weights: Option<&[f32]>,
     ) -> Result<f32> {
+        self.mean_row_loss_grads(policy, obs, |i, b, out, grad| {
+            let logp = log_prob_and_grad(out, actions, i, grad);
+            let scale = weights.map_or(1.0, |w| w[i]) / b;
+            for g in grad.iter_mut() {
+                *g *= -scale;
+            }
+            -(scale * logp)
+        })
+    }
+
+    /// Eq. 45 with its D^N term bounded, over `obs` = the D^U batch's `u_rows` rows then the
+    /// D^N batch's: `mean_U(−log π) + α · mean_N(k)`, where `k` is the D^N action's Gaussian
+    /// kernel under the policy ([`gaussian_kernel_and_grad`], in (0, 1]). Both halves have the
+    /// same size, so each row's share of the mean over all rows is doubled. Continuous
+    /// actions only (discrete DExperts decodes with Eq. 44 instead).
+    pub fn bounded_contrastive_grads(
+        &mut self,
+        policy: &Mlp,
+        obs: &[f32],
+        actions: &HostActions,
+        u_rows: usize,
+        alpha: f32,
+    ) -> Result<f32> {
+        let HostActions::Continuous { pretanh, .. } = actions else {
+            candle_core::bail!("the bounded DExperts term needs continuous actions")
+        };
+        self.mean_row_loss_grads(policy, obs, |i, b, out, grad| {
+            let d = out.len() / 2;
+            let (value, scale) = match i < u_rows {
+                true => (-log_prob_and_grad(out, actions, i, grad), -2.0 / b),
+                false => {
+                    let a_n = &pretanh[i * d..(i + 1) * d];
+                    (alpha * gaussian_kernel_and_grad(out, a_n, grad), 2.0 * alpha / b)
+                }
+            };
+            for g in grad.iter_mut() {
+                *g *= scale;
+            }
+            2.0 * value / b
+        })
+    }
+
+    /// `Σ_i loss_i / B` over the `B` rows of `obs`, with `row_loss(i, B, head_i, grad)` giving
+    /// row i's share of it and writing that share's gradient with respect to the head into
+    /// `grad`; the gradient with respect to the parameters goes to [`Self::grads`].
+    fn mean_row_loss_grads(
+        &mut self,
+        policy: &Mlp,
+        obs: &[f32],
+        row_loss: impl Fn(usize, f32, &[f32], &mut [f32]) -> f32 + Sync,
+    ) -> Result<f32> {
         policy.copy_into_fused(&mut self.net)?;
         let b = obs.len() / self.net.shape().input();
-        let head_grad = &mut self.head_grad;
-        let k = head_grad.len();
+        let k = self.net.shape().output();
         let mut loss = 0.0;
         self.ws.input_mut()[..obs.len()].copy_from_slice(obs);
         self.grads.fill(0.0);
@@ -141,26 +189,55 @@ impl FusedPolicyStep {
             &mut self.grads,
             |out, dout| {
                 for (i, (o, dg)) in out.chunks_exact(k).zip(dout.chunks_exact_mut(k)).enumerate() {
-                    let logp = match actions {
-                        HostActions::Continuous { pretanh, log_jacobian } => {
-                            let a = &pretanh[i * k / 2..(i + 1) * k / 2];
-                            tanh_gaussian_log_prob_and_grad(o, a, log_jacobian[i], head_grad)
-                        }
-                        HostActions::Discrete { index } => {
-                            categorical_log_prob_and_grad(o, index[i] as usize, head_grad)
-                        }
-                    };
-                    let scale = weights.map_or(1.0, |w| w[i]) / b as f32;
-                    loss -= scale * logp;
-                    for (x, &h) in dg.iter_mut().zip(head_grad.iter()) {
-                        *x = -scale * h;
-                    }
+                    loss += row_loss(i, b as f32, o, dg);
                 }
             },
             |_, _| 0.0,
         );
         Ok(loss)
     }
+}
+
+/// `log π(a_i|s_i)` of row i's dataset action from the raw head, its gradient in `grad`.
+fn log_prob_and_grad(out: &[f32], actions: &HostActions, i: usize, grad: &mut [f32]) -> f32 {
+    match actions {
+        HostActions::Continuous { pretanh, log_jacobian } => {
+            let d = out.len() / 2;
+            tanh_gaussian_log_prob_and_grad(
+                out,
+                &pretanh[i * d..(i + 1) * d],
+                log_jacobian[i],
+                grad,
+            )
+        }
+        HostActions::Discrete { index } => {
+            categorical_log_prob_and_grad(out, index[i] as usize, grad)
+        }
+    }
+}
+
+/// The pre-tanh Gaussian's kernel at a dataset action, `k = exp(−½ Σ_j z_j²)` with
+/// `z = (u − mean) / std` (see `policy::gaussian_kernel`): the action's density relative to the
+/// policy's mode, in (0, 1]. Its gradient with respect to the raw head goes to `grad`:
+/// `k · z / std` for the mean (zero outside the clip) and none for log_std, which the kernel
+/// reads as a constant (see `dexperts::bounded_contrastive_loss`).
+fn gaussian_kernel_and_grad(out: &[f32], pretanh: &[f32], grad: &mut [f32]) -> f32 {
+    let d = pretanh.len();
+    let (mean_clip, ls_min, ls_max) = (MEAN_CLIP as f32, LOG_STD_MIN as f32, LOG_STD_MAX as f32);
+    let mut half_sq = 0.0;
+    for j in 0..d {
+        let (m_raw, s_raw) = (out[j], out[d + j]);
+        let inv_std = (-s_raw.clamp(ls_min, ls_max)).exp();
+        let z = (pretanh[j] - m_raw.clamp(-mean_clip, mean_clip)) * inv_std;
+        half_sq += 0.5 * z * z;
+        grad[j] = if m_raw.abs() <= mean_clip { z * inv_std } else { 0.0 };
+        grad[d + j] = 0.0;
+    }
+    let kernel = (-half_sq).exp();
+    for g in grad.iter_mut() {
+        *g *= kernel;
+    }
+    kernel
 }
 
 /// The fused policy step on a CPU, None elsewhere (the candle path runs there).
@@ -273,19 +350,84 @@ mod tests {
             let ones = vec![1.0f32; B];
             let w_t = Tensor::from_slice(weights.unwrap_or(&ones), B, &dev).unwrap();
             let loss = weighted_nll(&policy.log_prob(obs_t, actions).unwrap(), &w_t).unwrap();
-            let theirs = loss.to_scalar::<f32>().unwrap();
-            assert!((ours - theirs).abs() <= 1e-5 * theirs.abs().max(1.0), "{ours} vs {theirs}");
-            let store = loss.backward().unwrap();
-            let grads = policy.mlp().grads_from_fused(&fused.grads).unwrap();
-            for ((name, var), g) in policy.mlp().named_vars().iter().zip(grads) {
-                let ours = g.flatten_all().unwrap().to_vec1::<f32>().unwrap();
-                let theirs = store.get(var.as_tensor()).unwrap();
-                let theirs = theirs.flatten_all().unwrap().to_vec1::<f32>().unwrap();
-                let scale = theirs.iter().fold(1e-3f32, |m, v| m.max(v.abs()));
-                for (i, (a, b)) in ours.iter().zip(&theirs).enumerate() {
-                    assert!((a - b).abs() <= 1e-5 * scale, "{name}[{i}]: fused {a}, candle {b}");
-                }
+            assert_same_step(fused, policy, ours, &loss);
+        }
+    }
+
+    /// The fused step's loss and gradients against candle autograd's, to 1e-5 of the largest.
+    fn assert_same_step(fused: &FusedPolicyStep, policy: &PolicyNet, ours: f32, loss: &Tensor) {
+        let theirs = loss.to_scalar::<f32>().unwrap();
+        assert!((ours - theirs).abs() <= 1e-5 * theirs.abs().max(1.0), "{ours} vs {theirs}");
+        let store = loss.backward().unwrap();
+        let grads = policy.mlp().grads_from_fused(&fused.grads).unwrap();
+        for ((name, var), g) in policy.mlp().named_vars().iter().zip(grads) {
+            let ours = g.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+            let theirs = store.get(var.as_tensor()).unwrap();
+            let theirs = theirs.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+            let scale = theirs.iter().fold(1e-3f32, |m, v| m.max(v.abs()));
+            for (i, (a, b)) in ours.iter().zip(&theirs).enumerate() {
+                assert!((a - b).abs() <= 1e-5 * scale, "{name}[{i}]: fused {a}, candle {b}");
             }
+        }
+    }
+
+    /// DExperts' bounded Eq. 45 (D^U rows then D^N rows) on the fused engine against
+    /// `dexperts::bounded_contrastive_loss` on candle autograd, on one thread and on shards.
+    #[test]
+    fn bounded_contrastive_matches_candle_autograd() {
+        use crate::algo::dexperts::bounded_contrastive_loss;
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        let (obs_dim, dim, dev) = (5, 3, Device::Cpu);
+        let space = ActionSpace::Continuous { dim, low: vec![-1.0; dim], high: vec![1.0; dim] };
+        let policy = PolicyNet::new("policy", obs_dim, &[12, 10], &space, &dev, &mut rng).unwrap();
+        let obs = normals(&mut rng, B * obs_dim);
+        let pretanh = normals(&mut rng, B * dim);
+        let log_jacobian = normals(&mut rng, B);
+        let half = |v: &[f32], width: usize, part: usize| {
+            let rows = &v[part * B / 2 * width..(part + 1) * B / 2 * width];
+            let shape: &[usize] = if width == 1 { &[B / 2] } else { &[B / 2, width] };
+            Tensor::from_slice(rows, shape, &dev).unwrap()
+        };
+        let column = |part| ActionColumn::Continuous {
+            pretanh: half(&pretanh, dim, part),
+            log_jacobian: half(&log_jacobian, 1, part),
+        };
+        let (u, n) = ((half(&obs, obs_dim, 0), column(0)), (half(&obs, obs_dim, 1), column(1)));
+        let actions = HostActions::Continuous { pretanh: &pretanh, log_jacobian: &log_jacobian };
+        for (shards, threads) in [(1, 1), (3, 2)] {
+            let threads = EngineThreads::new(shards, threads).unwrap();
+            let mut fused = FusedPolicyStep::new(policy.mlp(), B, &threads).unwrap();
+            let ours =
+                fused.bounded_contrastive_grads(policy.mlp(), &obs, &actions, B / 2, 0.7).unwrap();
+            let loss = bounded_contrastive_loss(&policy, (&u.0, &u.1), (&n.0, &n.1), 0.7).unwrap();
+            assert_same_step(&fused, &policy, ours, &loss);
+        }
+    }
+
+    /// The kernel is the Gaussian density's ratio to its value at the mean, and its gradient
+    /// with respect to the mean matches central finite differences.
+    #[test]
+    fn gaussian_kernel_is_the_density_ratio_and_its_gradient_matches_differences() {
+        let (out, a) = ([0.3f32, -0.2, -0.4, 0.1], [0.9f32, -1.1]);
+        let mut grad = [0.0f32; 4];
+        let k = gaussian_kernel_and_grad(&out, &a, &mut grad);
+        let density = |x: f32, m: f32, log_std: f32| {
+            let s = log_std.exp();
+            (-0.5 * ((x - m) / s).powi(2)).exp() / s
+        };
+        let ratio = density(0.9, 0.3, -0.4) / density(0.3, 0.3, -0.4) * density(-1.1, -0.2, 0.1)
+            / density(-0.2, -0.2, 0.1);
+        assert!((k - ratio).abs() < 1e-6, "{k} vs {ratio}");
+        assert_eq!(&grad[2..], &[0.0, 0.0], "log_std is read as a constant");
+        for j in 0..2 {
+            let (mut up, mut down) = (out, out);
+            up[j] += 1e-3;
+            down[j] -= 1e-3;
+            let mut scratch = [0.0f32; 4];
+            let fd = (gaussian_kernel_and_grad(&up, &a, &mut scratch)
+                - gaussian_kernel_and_grad(&down, &a, &mut scratch))
+                / 2e-3;
+            assert!((fd - grad[j]).abs() < 1e-3, "head[{j}]: {} vs {fd}", grad[j]);
         }
     }
 
@@ -314,5 +456,19 @@ mod tests {
                 assert_engines_agree(&format!("{algorithm} {discrete:?}"), make, 7);
             }
         }
+    }
+
+    /// DExperts with Eq. 45's D^N term as written (the paper's presets; the service preset's
+    /// bounded term is in the test above) on both engines.
+    #[test]
+    fn dexperts_eq45_as_written_agrees_on_both_engines() {
+        use crate::algo::Algorithm;
+        use crate::bench::speed::engines::{assert_engines_agree, tiny};
+        use crate::bench::speed::synthetic_baseline_with;
+        let cfg = tiny(Algorithm::Dexperts, None);
+        let as_written = serde_json::json!({"non_preferred_term": "log_likelihood"});
+        let as_written = as_written.as_object().unwrap();
+        let make = || synthetic_baseline_with(&cfg, (400, 200), 8, as_written).unwrap();
+        assert_engines_agree("dexperts, Eq. 45 as written", make, 7);
     }
 }

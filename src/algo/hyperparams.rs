@@ -92,6 +92,21 @@ pub enum UndefinedReward {
     Exclude,
 }
 
+/// What DExperts' continuous objective (Eq. 45) does with D^N's actions.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum NonPreferredTerm {
+    /// `α E_N[log π(a|s)]`, Eq. 45 as written: unbounded below, so minimising it can push D^N's
+    /// actions' likelihood down without end, dragging the policy off D^U's actions too. The
+    /// default of a config without it.
+    #[default]
+    LogLikelihood,
+    /// `α E_N[k(a|s)]`, with `k = exp(−½ Σ_j z_j²)` the D^N action's Gaussian kernel under the
+    /// policy (its density relative to the policy's mode, in (0, 1]), moving the mean only:
+    /// the push fades once a D^N action is a few standard deviations from the mean.
+    Kernel,
+}
+
 /// How PPL turns its learned reward `R_θ(s, a)` into behaviour-cloning weights.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
@@ -217,6 +232,10 @@ pub struct PplConfig {
 pub struct DexpertsConfig {
     /// α of Eq. 44/45: how strongly the non-preferred expert is subtracted.
     pub alpha: f64,
+    /// Continuous actions: Eq. 45's D^N term as written or bounded (discrete actions decode
+    /// with Eq. 44 and ignore it).
+    #[serde(default)]
+    pub non_preferred_term: NonPreferredTerm,
 }
 
 /// BC has no knobs of its own.
@@ -320,7 +339,14 @@ impl ResolvedConfig {
                 }),
             ),
             Algorithm::Dexperts => {
-                (common, AlgorithmConfig::Dexperts(DexpertsConfig { alpha: 0.2 }))
+                let non_preferred_term = match preset {
+                    Preset::Service => NonPreferredTerm::Kernel,
+                    Preset::Paper | Preset::AuthorsCode => NonPreferredTerm::LogLikelihood,
+                };
+                (
+                    common,
+                    AlgorithmConfig::Dexperts(DexpertsConfig { alpha: 0.2, non_preferred_term }),
+                )
             }
         };
         ResolvedConfig { common, specific }

@@ -46,8 +46,8 @@ use memory::DataShape;
 use registry::AlgorithmSpec;
 
 pub use hyperparams::{
-    config_keys, resolve_config, AlphaEstimator, HyperparamError, Preset, ResolvedConfig,
-    TerminalHandling, UndefinedReward, MAX_JOB_THREADS, MAX_SEED,
+    config_keys, resolve_config, AlphaEstimator, HyperparamError, NonPreferredTerm, Preset,
+    ResolvedConfig, TerminalHandling, UndefinedReward, MAX_JOB_THREADS, MAX_SEED,
 };
 pub use policy::{portable_file, Policy, PolicyArtifact, PolicySpec, PortableMetadata};
 

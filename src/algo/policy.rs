@@ -96,6 +96,14 @@ pub fn tanh_gaussian_log_prob(
     log_normal.sum(D::Minus1)? - log_jacobian
 }
 
+/// The pre-tanh Gaussian's kernel at dataset actions, `exp(−½ Σ_j z_j²)` with
+/// `z = (u − mean) / std` per row: the action's density relative to the policy's mode
+/// (the normalising constant and tanh's Jacobian cancel in that ratio), in (0, 1].
+pub fn gaussian_kernel(mean: &Tensor, log_std: &Tensor, pretanh: &Tensor) -> Result<Tensor> {
+    let z = ((pretanh - mean)? / log_std.exp()?)?;
+    (z.sqr()?.sum(D::Minus1)? * -0.5)?.exp()
+}
+
 /// `log softmax(logits)[a]` per row.
 pub fn categorical_log_prob(logits: &Tensor, index: &Tensor) -> Result<Tensor> {
     let log_p = candle_nn::ops::log_softmax(logits, D::Minus1)?;

@@ -235,6 +235,16 @@ pub fn synthetic_baseline(
     sizes: (usize, usize),
     iterations: usize,
 ) -> anyhow::Result<Box<dyn Trainer>> {
+    synthetic_baseline_with(cfg, sizes, iterations, &serde_json::Map::new())
+}
+
+/// [`synthetic_baseline`] with further knobs set (`overrides` win).
+pub fn synthetic_baseline_with(
+    cfg: &SpeedConfig,
+    sizes: (usize, usize),
+    iterations: usize,
+    overrides: &serde_json::Map<String, serde_json::Value>,
+) -> anyhow::Result<Box<dyn Trainer>> {
     let mut knobs = serde_json::json!({
         "seed": cfg.seed,
         "batch_size": cfg.batch,
@@ -244,6 +254,9 @@ pub fn synthetic_baseline(
     });
     if cfg.algorithm == Algorithm::Ppl {
         knobs["reward_model_iterations"] = 1.into();
+    }
+    for (key, value) in overrides {
+        knobs[key] = value.clone();
     }
     let config = resolve_config(cfg.algorithm, &knobs)?;
     Ok(build_trainer(&config, &synthetic_data(cfg, sizes), None)?)

@@ -77,3 +77,25 @@ fn unknown_keys_and_bad_values_name_the_key() {
     let e = resolve_config(Algorithm::Bc, &json!([1])).unwrap_err();
     assert_eq!(e.key, "config");
 }
+
+/// DExperts' Eq. 45 term: bounded in the service preset, as written in the paper's presets and
+/// in a stored config from before the knob (which trained with Eq. 45 as written).
+#[test]
+fn dexperts_bounds_eq45_only_in_the_service_preset() {
+    let term = |preset: &str| {
+        let config = resolve_config(Algorithm::Dexperts, &json!({ "preset": preset })).unwrap();
+        let AlgorithmConfig::Dexperts(d) = config.specific else { panic!() };
+        (d.alpha, d.non_preferred_term)
+    };
+    assert_eq!(term("service"), (0.2, NonPreferredTerm::Kernel));
+    assert_eq!(term("paper"), (0.2, NonPreferredTerm::LogLikelihood));
+    assert_eq!(term("authors-code"), (0.2, NonPreferredTerm::LogLikelihood));
+    let config = resolve_config(Algorithm::Dexperts, &json!({})).unwrap();
+    let mut stored = serde_json::to_value(&config).unwrap();
+    stored.as_object_mut().unwrap().remove("non_preferred_term");
+    let old: ResolvedConfig = serde_json::from_value(stored).unwrap();
+    let AlgorithmConfig::Dexperts(d) = old.specific else { panic!() };
+    assert_eq!(d.non_preferred_term, NonPreferredTerm::LogLikelihood);
+    let err = resolve_config(Algorithm::Dexperts, &json!({"non_preferred_term": "hinge"}));
+    assert!(err.is_err(), "an unknown term is refused");
+}

@@ -65,8 +65,9 @@ pub struct CreateJob {
     /// the data and stop the discriminator when its held-out loss stops improving;
     /// `discriminator_iterations` is then its most). `dwbc`: `eta`, `lr_discriminator`, `discriminator_gp`.
     /// `ppl`: `reward_model_iterations`, `lr_reward_model`, `pairs_per_batch`,
-    /// `segment_length`, `ppl_weight` (`raw`, `sigmoid`). `dexperts`: `alpha`. `bc`: no further
-    /// keys.
+    /// `segment_length`, `ppl_weight` (`raw`, `sigmoid`). `dexperts`: `alpha`,
+    /// `non_preferred_term` (continuous actions: `kernel`, Eq. 45's D^N term bounded, the
+    /// `service` default; `log_likelihood`, Eq. 45 as written). `bc`: no further keys.
     #[schema(value_type = Object, example = json!({"preset": "service", "iterations": 20000, "seed": 0}))]
     pub config: Option<serde_json::Value>,
     /// Job-runner options (how often metrics and checkpoints are stored), beside the algorithm's
