@@ -154,7 +154,7 @@ impl ApiError {
     }
 
     /// The database cannot be reached: the request was fine and is worth repeating.
-    fn database_unavailable() -> Self {
+    pub(super) fn database_unavailable() -> Self {
         ApiError::unavailable(
             "database_unavailable",
             "the database cannot be reached (its connection was lost, or it is restarting); \
@@ -236,24 +236,6 @@ pub struct ErrorCode(pub &'static str);
 /// Open Inference Protocol's shape without reading the `/v1` body back.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct ErrorMessage(pub String);
-
-/// No pooled database connection in time reads as `database_busy`, but it is also what a
-/// database that is down looks like (the pool keeps retrying to connect until its deadline).
-/// After such an answer, one fresh connection attempt tells the two apart, and an outage is
-/// answered `database_unavailable`, which tells an operator where to look.
-pub async fn name_database_outages(
-    axum::extract::State(state): axum::extract::State<super::AppState>,
-    request: axum::extract::Request,
-    next: axum::middleware::Next,
-) -> Response {
-    let response = next.run(request).await;
-    let busy = response.extensions().get::<ErrorCode>() == Some(&ErrorCode("database_busy"));
-    if busy && !state.store.database_reachable().await {
-        tracing::warn!("the database cannot be reached; answering 503 database_unavailable");
-        return ApiError::database_unavailable().into_response();
-    }
-    response
-}
 
 impl From<crate::store::StoreError> for ApiError {
     fn from(e: crate::store::StoreError) -> Self {

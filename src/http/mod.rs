@@ -24,6 +24,7 @@ pub mod model_names;
 pub mod model_serving;
 pub mod models;
 pub mod openapi;
+pub mod outage;
 pub mod pagination;
 pub mod policies;
 pub mod prometheus;
@@ -99,6 +100,8 @@ pub struct Services {
     pub streams: Arc<tokio::sync::Semaphore>,
     /// One permit per heavy read being built or sent (`--max-heavy-reads`).
     pub heavy_reads: Arc<tokio::sync::Semaphore>,
+    /// Whether the database is known to be down (requests then answer fast).
+    pub outage: Arc<outage::OutageWatch>,
 }
 
 impl AppState {
@@ -123,6 +126,7 @@ impl AppState {
             uploads: Arc::new(uploads),
             streams: Arc::new(streams),
             heavy_reads: Arc::new(heavy_reads),
+            outage: Arc::default(),
             shutdown,
             config: Arc::new(config),
             store,
@@ -204,7 +208,7 @@ pub fn app(state: AppState) -> anyhow::Result<Router> {
         .fallback(error::route_not_found)
         .method_not_allowed_fallback(error::method_not_allowed)
         .layer(middleware::from_fn_with_state(state.clone(), auth::require_token))
-        .layer(middleware::from_fn_with_state(state.clone(), error::name_database_outages))
+        .layer(middleware::from_fn_with_state(state.clone(), outage::name_database_outages))
         .layer(middleware::from_fn(inference::binary::v2_error_shape))
         .layer(middleware::from_fn_with_state(state.clone(), prometheus::track))
         .layer(middleware::from_fn_with_state(body_idle, body_idle_timeout))

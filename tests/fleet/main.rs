@@ -341,7 +341,8 @@ async fn connections_cut_by_the_database_mid_run_lose_nothing_and_write_nothing_
 
 /// PostgreSQL stopped for 20 s while two jobs train on two workers (its own cluster, so the
 /// tests beside it keep theirs): meanwhile the API node answers 503 `database_unavailable`
-/// (not `database_busy`); once it is back the processes reconnect by themselves (none is
+/// (not `database_busy`), after the first such answer from the outage it then knows of, and
+/// `/healthz` still answers; once it is back the processes reconnect by themselves (none is
 /// restarted) and each job ends `succeeded` once, with the weights and the metric rows (each
 /// step once) of an uninterrupted run of the same job.
 #[tokio::test]
@@ -370,6 +371,20 @@ async fn postgres_stopped_for_twenty_seconds_mid_training_loses_and_duplicates_n
     assert_eq!(response.status(), StatusCode::SERVICE_UNAVAILABLE);
     let body: Value = response.json().await.unwrap();
     assert_eq!(body["error"]["code"], "database_unavailable", "{body}");
+    // The outage is now known: the next requests are answered from it (without each waiting
+    // for a pooled connection), and a route that needs no database still answers.
+    let known = Instant::now();
+    for _ in 0..3 {
+        let response = fleet.client.get(&url).send().await.unwrap();
+        assert_eq!(response.status(), StatusCode::SERVICE_UNAVAILABLE);
+        let body: Value = response.json().await.unwrap();
+        assert_eq!(body["error"]["code"], "database_unavailable", "{body}");
+        let message = body["error"]["message"].as_str().unwrap();
+        assert!(message.contains("found down"), "answered from the known outage: {message}");
+    }
+    eprintln!("first answer after {:?}, the next three in {:?}", known - stopped, known.elapsed());
+    let health = fleet.client.get(format!("{}/healthz", fleet.api_url)).send().await.unwrap();
+    assert_eq!(health.status(), StatusCode::OK, "no database needed");
     tokio::time::sleep(Duration::from_secs(20).saturating_sub(stopped.elapsed())).await;
     cluster.start_again();
     eprintln!("PostgreSQL was down for {:?}", stopped.elapsed());
