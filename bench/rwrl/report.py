@@ -29,7 +29,13 @@ PAPER_RESULTS = {
         "safedice": (99.67, 0.13, 68.90, 0.83, 0.00, 0.00, 124.54, 2.56),
     },
 }
-LABELS = {"safedice": "SafeDICE", "bc": "BC", "dwbc": "DWBC", "ppl": "PPL", "dexperts": "DExperts"}
+
+
+def _algorithms(run: dict, names) -> list:
+    """(name, label) of the run's algorithms in the service's order, as `train` recorded them from
+    GET /v1/algorithms; a run recorded before that keeps its algorithms' own names."""
+    recorded = [(a["name"], a["label"]) for a in run.get("algorithms") or [] if a["name"] in names]
+    return recorded + [(n, n) for n in sorted(names) if n not in dict(recorded)]
 
 
 def _load(path: Path):
@@ -105,6 +111,7 @@ def build(work: Path, demos: Path, mode: str = "onnx") -> dict:
                 run["jobs"] = [{k: j.get(k) for k in ("algorithm", "seed", "job_id", "policy_id", "status", "config",
                                                       "alpha_hat")} | {"seconds": _seconds(j)} for j in r_jobs["jobs"]]
                 run["datasets"] = r_jobs.get("datasets")
+                run["algorithms"] = r_jobs.get("algorithms")
             entry["runs"][run_dir.name] = run
         out["envs"][env] = entry
     return out
@@ -161,14 +168,12 @@ def markdown(res: dict, mode: str) -> str:
                 lines += ["", f"Policies through the service, {eps} episodes each, {how}:", "",
                           "| algorithm | seeds | normalized return | average cost | cost-violation ratio | CVaR 10% cost | "
                           "paper: return / cost / violation / CVaR 10% |", "|---|---|---|---|---|---|---|"]
-                for algo in ("bc", "safedice", "dwbc", "ppl", "dexperts"):
-                    s_ = summ.get(algo)
-                    if not s_:
-                        continue
+                for algo, label in _algorithms(run, summ):
+                    s_ = summ[algo]
                     m = s_["metrics"]
                     p = PAPER_RESULTS[env].get(algo)
                     ptxt = (f"{p[0]:.1f} / {p[2]:.1f} / {p[4]:.2f} / {p[6]:.1f}" if p else "—")
-                    lines.append(f"| {LABELS.get(algo, algo)} | {len(s_['seeds'])} | "
+                    lines.append(f"| {label} | {len(s_['seeds'])} | "
                                  f"{_fmt(m['normalized_return']['mean'], m['normalized_return']['se'])} | "
                                  f"{_fmt(m['average_cost']['mean'], m['average_cost']['se'])} | "
                                  f"{_fmt(m['cost_violation_ratio']['mean'], m['cost_violation_ratio']['se'], 2)} | "
@@ -182,10 +187,11 @@ def markdown(res: dict, mode: str) -> str:
                                   f"(issue goal ≤ 0.6x at ≥ 0.95x: {goal})."]
             if run.get("jobs"):
                 lines += ["", "| job | seed | config sent | status | alpha-hat | train time |", "|---|---|---|---|---|---|"]
+                labels = dict(_algorithms(run, {j["algorithm"] for j in run["jobs"]}))
                 for j in run["jobs"]:
                     secs = f"{j['seconds'] / 60:.1f} min" if j.get("seconds") else "—"
                     ah = f"{j['alpha_hat']:.3f}" if isinstance(j.get("alpha_hat"), (int, float)) else "—"
-                    lines.append(f"| {LABELS.get(j['algorithm'], j['algorithm'])} | {j['seed']} | "
+                    lines.append(f"| {labels[j['algorithm']]} | {j['seed']} | "
                                  f"`{json.dumps(j['config'])}` | {j['status']} | {ah} | {secs} |")
         lines.append("")
     return "\n".join(lines)

@@ -237,6 +237,15 @@ def cmd_train(args) -> None:
             record["jobs"] = []
             record_path.write_text(json.dumps(record, indent=1) + "\n")
             print(f"uploaded D^U {u['id']} ({u['transitions']} transitions) and D^N {n['id']}", flush=True)
+        # What each algorithm is called and whether it trains on D^N: the service's registry, recorded
+        # for the report, so nothing here names an algorithm.
+        catalogue = {a["name"]: a for a in client.algorithms()}
+        unknown = [a for a in args.algorithms if a not in catalogue]
+        if unknown:
+            sys.exit(f"unknown algorithm(s) {', '.join(unknown)}; the service trains {', '.join(catalogue)}")
+        record["algorithms"] = [{k: a[k] for k in ("name", "label", "needs_non_preferred")}
+                                for a in catalogue.values()]
+        record_path.write_text(json.dumps(record, indent=1) + "\n")
         # Cancelled or failed jobs are queued again.
         record["jobs"] = [j for j in record["jobs"] if j.get("status") not in ("cancelled", "failed")]
         done = {(j["algorithm"], j["seed"]) for j in record["jobs"]}
@@ -249,7 +258,8 @@ def cmd_train(args) -> None:
                     config["iterations"] = args.iterations
                 if args.discriminator_iterations and algo == "safedice":
                     config["discriminator_iterations"] = args.discriminator_iterations
-                job = client.submit_job(ds["unlabeled"], ds["non_preferred"] if algo != "bc" else None,
+                non_preferred = ds["non_preferred"] if catalogue[algo]["needs_non_preferred"] else None
+                job = client.submit_job(ds["unlabeled"], non_preferred,
                                         algorithm=algo, config=config,
                                         name=f"rwrl {args.env} {algo} seed {seed}",
                                         tags=["bench=rwrl", f"env=rwrl-{args.env}", f"algorithm={algo}"])
