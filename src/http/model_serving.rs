@@ -82,7 +82,7 @@ async fn act(
     key: Option<&str>,
     request: ActRequest,
 ) -> Result<Response, ApiError> {
-    let answer = state.models.resolve(reference, key).await?;
+    let answer = state.serving.models.resolve(reference, key).await?;
     let started = Instant::now();
     let result = act_on(answer.target.policy.clone(), request).await;
     answer.target.stats.record(result.is_ok(), started.elapsed());

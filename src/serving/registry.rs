@@ -384,6 +384,12 @@ impl ModelRegistry {
         Ok(())
     }
 
+    /// Whether `name` is a stored model (not found otherwise), loaded here or not.
+    pub async fn check_exists(&self, name: &str) -> Result<(), ResolveError> {
+        self.store.model(name).await?;
+        Ok(())
+    }
+
     /// The version numbers of a loaded model, in order.
     pub fn versions(&self, model: &str) -> Vec<u32> {
         self.table(model).map(|t| t.versions.keys().copied().collect()).unwrap_or_default()
