@@ -49,8 +49,8 @@ def datasets(env):
     return _DATASETS[env]
 
 
-def train(env, algorithm):
-    """Trains a small policy with `algorithm` on `env`'s data; its id."""
+def train(env, algorithm, seed=None):
+    """Trains a small policy with `algorithm` on `env`'s data (with `seed`, if given); its id."""
     unlabeled, non_preferred = datasets(env)
     job = {
         "algorithm": algorithm,
@@ -58,6 +58,8 @@ def train(env, algorithm):
         "non_preferred_dataset": non_preferred,
         "config": {"iterations": 300, "hidden_sizes": [32, 32], "batch_size": 64},
     }
+    if seed is not None:
+        job["config"]["seed"] = seed
     job_id = call("POST", "/v1/jobs", json.dumps(job).encode())["id"]
     deadline = time.time() + 300
     while True:
