@@ -67,12 +67,7 @@ pub async fn infer(
                 InputData::Missing("has neither `contents` nor an entry in raw_input_contents")
             }
         };
-        inputs.push(Input {
-            name: &input.name,
-            datatype: &input.datatype,
-            shape: &input.shape,
-            data,
-        });
+        inputs.push(Input::new(&input.name, &input.datatype, &input.shape, data));
     }
     let observations = protocol::observations(inputs, served.policy.spec().obs_dim)?;
     let parameters = &request.parameters;

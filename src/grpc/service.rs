@@ -372,10 +372,7 @@ impl GrpcInferenceService for Inference {
     ) -> Result<Response<RepositoryModelLoadResponse>, Status> {
         let (metadata, _, message) = request.into_parts();
         self.call("RepositoryModelLoad", &metadata, Requirement::Api, async {
-            let name = message.model_name;
-            protocol::reference(&name, None).map_err(status)?;
-            self.state.serving.models.load_model(&name).await.map_err(status)?;
-            tracing::info!(model = %name, "model loaded on request (gRPC)");
+            protocol::load(&self.state.serving, &message.model_name).await.map_err(status)?;
             Ok(RepositoryModelLoadResponse {})
         })
         .await
@@ -387,10 +384,7 @@ impl GrpcInferenceService for Inference {
     ) -> Result<Response<RepositoryModelUnloadResponse>, Status> {
         let (metadata, _, message) = request.into_parts();
         self.call("RepositoryModelUnload", &metadata, Requirement::Api, async {
-            let name = message.model_name;
-            protocol::reference(&name, None).map_err(status)?;
-            self.state.serving.models.unload_model(&name).await.map_err(status)?;
-            tracing::info!(model = %name, "model unloaded on request (gRPC)");
+            protocol::unload(&self.state.serving, &message.model_name).await.map_err(status)?;
             Ok(RepositoryModelUnloadResponse {})
         })
         .await

@@ -168,6 +168,12 @@ pub struct Input<'a> {
     pub data: InputData<'a>,
 }
 
+impl<'a> Input<'a> {
+    pub fn new(name: &'a str, datatype: &'a str, shape: &'a [i64], data: InputData<'a>) -> Self {
+        Input { name, datatype, shape, data }
+    }
+}
+
 /// The observations of a request's inputs: exactly one, named `observations`, FP32, shaped
 /// `[B, obs_dim]`, with as many values as its shape says.
 pub fn observations(inputs: Vec<Input<'_>>, obs_dim: usize) -> Result<Observations, ServeError> {
@@ -329,4 +335,20 @@ pub async fn statistics(
     serving.models.check_exists(model).await?;
     let stats = serving.models.model_stats(model);
     Ok(stats.iter().map(|(version, stats)| Statistics::read(model, *version, stats)).collect())
+}
+
+/// Loads a named model on this process (again after an unload) and returns once it is ready.
+pub async fn load(serving: &Serving, name: &str) -> Result<(), ServeError> {
+    reference(name, None)?;
+    serving.models.load_model(name).await?;
+    tracing::info!(model = %name, "model loaded on request");
+    Ok(())
+}
+
+/// Stops serving a named model on this process (other processes of a fleet keep serving it).
+pub async fn unload(serving: &Serving, name: &str) -> Result<(), ServeError> {
+    reference(name, None)?;
+    serving.models.unload_model(name).await?;
+    tracing::info!(model = %name, "model unloaded on request");
+    Ok(())
 }

@@ -17,6 +17,19 @@ ADDRESS, WORKDIR = sys.argv[1], sys.argv[2]
 BASE = f"http://{ADDRESS}"
 
 
+def wait_until(ready, what, seconds=60):
+    """Polls `ready()` until it answers true (an exception: not yet) for at most `seconds`."""
+    deadline = time.time() + seconds
+    while True:
+        try:
+            if ready():
+                return
+        except Exception:  # still starting
+            pass
+        assert time.time() < deadline, f"{what} did not come up"
+        time.sleep(0.1)
+
+
 def call(method, path, body=None, content_type="application/json"):
     request = urllib.request.Request(BASE + path, data=body, method=method)
     if body is not None:

@@ -17,7 +17,6 @@ import socket
 import subprocess
 import sys
 import tempfile
-import time
 import urllib.request
 
 import grpc
@@ -26,7 +25,7 @@ import tritonclient.grpc as grpcclient
 from tritonclient.grpc import service_pb2, service_pb2_grpc
 from tritonclient.utils import InferenceServerException
 
-from common import act, call, train
+from common import act, call, train, wait_until
 
 ADDRESS, WORKDIR, BINARY, GRPC_ADDRESS = sys.argv[1:5]
 
@@ -186,15 +185,7 @@ def check_tokens():
         try:
             client = grpcclient.InferenceServerClient(url=f"127.0.0.1:{grpc_port}")
             agent = {"authorization": "Bearer agent-secret"}
-            deadline = time.time() + 60
-            while True:
-                try:
-                    if client.is_server_live(headers=agent):
-                        break
-                except InferenceServerException:
-                    pass
-                assert time.time() < deadline, "the server with tokens did not come up"
-                time.sleep(0.1)
+            wait_until(lambda: client.is_server_live(headers=agent), "the server with tokens")
             for headers, code in [(None, "StatusCode.UNAUTHENTICATED"),
                                   ({"authorization": "Bearer wrong"}, "StatusCode.UNAUTHENTICATED")]:
                 try:
@@ -221,15 +212,7 @@ def check_tokens():
 def main():
     client = grpcclient.InferenceServerClient(url=GRPC_ADDRESS)
     stub = service_pb2_grpc.GRPCInferenceServiceStub(grpc.insecure_channel(GRPC_ADDRESS))
-    deadline = time.time() + 60
-    while True:
-        try:
-            if client.is_server_live():
-                break
-        except InferenceServerException:  # the server is still starting
-            pass
-        assert time.time() < deadline, "the gRPC listener did not come up"
-        time.sleep(0.1)
+    wait_until(client.is_server_live, "the gRPC listener")
     assert client.is_server_ready()
     server = client.get_server_metadata(as_json=True)
     assert server["name"] == "safedice" and "statistics" in server["extensions"], server

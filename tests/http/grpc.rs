@@ -182,23 +182,13 @@ async fn grpc_answers_the_inference_protocol_with_the_actions_rest_gives() {
         app.get("/v2/models/pilot@production").send().await.unwrap().json().await.unwrap();
     assert_eq!(metadata.versions, ["1"]);
     assert_eq!(metadata.platform, rest["platform"]);
-    let (input, output) = (&metadata.inputs[0], &metadata.outputs[0]);
-    assert_eq!(
-        json!([input.name, input.datatype, input.shape]),
-        json!([
-            rest["inputs"][0]["name"],
-            rest["inputs"][0]["datatype"],
-            rest["inputs"][0]["shape"]
-        ])
-    );
-    assert_eq!(
-        json!([output.name, output.datatype, output.shape]),
-        json!([
-            rest["outputs"][0]["name"],
-            rest["outputs"][0]["datatype"],
-            rest["outputs"][0]["shape"]
-        ])
-    );
+    let tensors = |list: &[model_metadata_response::TensorMetadata]| -> Value {
+        list.iter()
+            .map(|t| json!({"name": t.name, "datatype": t.datatype, "shape": t.shape}))
+            .collect()
+    };
+    assert_eq!(tensors(&metadata.inputs), rest["inputs"]);
+    assert_eq!(tensors(&metadata.outputs), rest["outputs"]);
     let config = client
         .model_config(ModelConfigRequest { name: policy.clone(), version: "1".into() })
         .await
@@ -234,6 +224,12 @@ async fn grpc_answers_the_inference_protocol_with_the_actions_rest_gives() {
     short.raw_input_contents[0] = short.raw_input_contents[0].slice(4..);
     let refused = client.model_infer(short).await.unwrap_err();
     assert_eq!(refused.code(), Code::InvalidArgument, "{refused:?}");
+
+    // Over REST's action body limit: refused from its length prefix.
+    let mut huge = request(&policy, true);
+    huge.raw_input_contents[0] = vec![0u8; (16 << 20) + 1].into();
+    let refused = client.model_infer(huge).await.unwrap_err();
+    assert_eq!(refused.code(), Code::OutOfRange, "{refused:?}");
 
     // A stream: one response per request, in order; a failing request answers its error in
     // the stream, which goes on.

@@ -398,12 +398,7 @@ async fn infer_with(
                 InputData::Missing("has neither `data` nor `parameters.binary_data_size`")
             }
         };
-        inputs.push(Input {
-            name: &input.name,
-            datatype: &input.datatype,
-            shape: &input.shape,
-            data,
-        });
+        inputs.push(Input::new(&input.name, &input.datatype, &input.shape, data));
     }
     let observations = protocol::observations(inputs, served.policy.spec().obs_dim)?;
     if !binary.is_empty() {

@@ -15,9 +15,10 @@ use utoipa_axum::routes;
 
 use super::binary::V2Error;
 use crate::http::extract::Path;
-use crate::http::model_names::reference;
 use crate::http::{ApiError, AppState};
-use crate::serving::inference::{statistics, Statistics};
+use crate::serving::inference::{
+    load as load_model, statistics, unload as unload_model, Statistics,
+};
 
 pub fn router() -> OpenApiRouter<AppState> {
     OpenApiRouter::new()
@@ -68,9 +69,7 @@ async fn load(
     State(state): State<AppState>,
     Path(name): Path<String>,
 ) -> Result<axum::Json<serde_json::Value>, ApiError> {
-    reference(&name, None)?;
-    state.serving.models.load_model(&name).await?;
-    tracing::info!(model = %name, "model loaded on request");
+    load_model(&state.serving, &name).await?;
     Ok(axum::Json(serde_json::json!({})))
 }
 
@@ -82,9 +81,7 @@ async fn unload(
     State(state): State<AppState>,
     Path(name): Path<String>,
 ) -> Result<axum::Json<serde_json::Value>, ApiError> {
-    reference(&name, None)?;
-    state.serving.models.unload_model(&name).await?;
-    tracing::info!(model = %name, "model unloaded on request");
+    unload_model(&state.serving, &name).await?;
     Ok(axum::Json(serde_json::json!({})))
 }
 
