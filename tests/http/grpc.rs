@@ -334,6 +334,22 @@ async fn grpc_takes_rest_s_tokens_from_the_authorization_metadata() {
     assert_eq!(refused.code(), Code::Unauthenticated);
 }
 
+/// A graceful stop does not wait on an agent's open stream: the stream ends at the shutdown, the
+/// server stops well within its grace period.
+#[tokio::test]
+async fn a_graceful_stop_ends_open_streams() {
+    let mut app = spawn(|_| {}).await;
+    let mut client = connect(&app).await;
+    let (_sender, receiver) = tokio::sync::mpsc::channel::<ModelInferRequest>(1);
+    let outgoing =
+        futures::stream::unfold(receiver, |mut r| async { r.recv().await.map(|m| (m, r)) });
+    let mut answers = client.model_stream_infer(outgoing).await.expect("stream opens").into_inner();
+    let started = std::time::Instant::now();
+    let ((), ended) = tokio::join!(app.stop(), answers.message());
+    assert!(matches!(ended, Ok(None)), "{ended:?}");
+    assert!(started.elapsed() < std::time::Duration::from_secs(10), "{:?}", started.elapsed());
+}
+
 /// `message` with `authorization: Bearer <token>` when a token is given.
 fn with<T>(token: Option<&str>, message: T) -> tonic::Request<T> {
     let mut request = tonic::Request::new(message);
