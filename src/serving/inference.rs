@@ -14,7 +14,6 @@
 
 use std::future::Future;
 use std::sync::Arc;
-use std::time::Instant;
 
 use super::act::{act, Observations, ServeError};
 use super::registry::{Answer, VersionStats};
@@ -131,12 +130,10 @@ impl Served {
     /// Runs `work` for this model and counts it, success or failure and its time, in the
     /// answering version's statistics (named models only).
     pub async fn timed<T, E>(&self, work: impl Future<Output = Result<T, E>>) -> Result<T, E> {
-        let started = Instant::now();
-        let result = work.await;
-        if let Some((answer, _)) = &self.answer {
-            answer.target.stats.record(result.is_ok(), started.elapsed());
+        match &self.answer {
+            Some((answer, _)) => answer.timed(work).await,
+            None => work.await,
         }
-        result
     }
 }
 
