@@ -120,6 +120,22 @@ async fn timed<F: std::future::Future<Output = anyhow::Result<()>>>(
     Ok(latencies)
 }
 
+/// Times `requests` JSON posts of `body` to `url`.
+async fn rest(
+    client: &reqwest::Client,
+    requests: usize,
+    url: String,
+    body: &Value,
+) -> anyhow::Result<Vec<Duration>> {
+    let body = serde_json::to_vec(body)?;
+    timed(requests, || {
+        let request = client.post(&url).header("content-type", "application/json");
+        let sent = request.body(body.clone()).send();
+        async move { sent.await?.error_for_status()?.bytes().await.map(drop).map_err(Into::into) }
+    })
+    .await
+}
+
 #[tokio::main]
 async fn main() -> anyhow::Result<()> {
     let mut args = std::env::args().skip(1);
@@ -156,25 +172,14 @@ async fn main() -> anyhow::Result<()> {
     let observation: Vec<f32> = (0..OBS_DIM).map(|i| i as f32 / OBS_DIM as f32).collect();
     println!("one observation per request, {requests} requests, one connection each");
 
-    let act = serde_json::to_vec(&json!({"observations": [observation]}))?;
-    let act_url = format!("{url}/v1/policies/{policy}/act");
-    let latencies = timed(requests, || {
-        let request = client.post(&act_url).header("content-type", "application/json");
-        let sent = request.body(act.clone()).send();
-        async move { sent.await?.error_for_status()?.bytes().await.map(drop).map_err(Into::into) }
-    })
-    .await?;
+    let act = json!({"observations": [observation]});
+    let latencies =
+        rest(&client, requests, format!("{url}/v1/policies/{policy}/act"), &act).await?;
     report("REST /v1/policies/{id}/act", latencies);
-
-    let infer = serde_json::to_vec(&json!({"inputs": [{"name": "observations",
-        "shape": [1, OBS_DIM], "datatype": "FP32", "data": observation}]}))?;
-    let infer_url = format!("{url}/v2/models/{policy}/infer");
-    let latencies = timed(requests, || {
-        let request = client.post(&infer_url).header("content-type", "application/json");
-        let sent = request.body(infer.clone()).send();
-        async move { sent.await?.error_for_status()?.bytes().await.map(drop).map_err(Into::into) }
-    })
-    .await?;
+    let infer = json!({"inputs": [{"name": "observations", "shape": [1, OBS_DIM],
+                                   "datatype": "FP32", "data": observation}]});
+    let latencies =
+        rest(&client, requests, format!("{url}/v2/models/{policy}/infer"), &infer).await?;
     report("REST /v2/models/{id}/infer (JSON)", latencies);
 
     let channel = tonic::transport::Endpoint::from_shared(format!("http://127.0.0.1:{grpc_port}"))?
