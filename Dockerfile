@@ -3,7 +3,8 @@
 #   docker build -t safedice .
 #   docker run -p 8080:8080 -v safedice-data:/data -e SAFEDICE_API_TOKEN=change-me safedice
 # The container listens on 0.0.0.0, so the server refuses to start without SAFEDICE_API_TOKEN
-# (or SAFEDICE_INSECURE_PUBLIC=true).
+# (or SAFEDICE_INSECURE_PUBLIC=true). The gRPC service (docs/grpc.md) is off until asked for:
+#   docker run -p 8080:8080 -p 8081:8081 -e SAFEDICE_GRPC_BIND=0.0.0.0:8081 ... safedice
 
 FROM rust:1.95-bookworm AS build
 WORKDIR /src
@@ -29,6 +30,8 @@ ENV SAFEDICE_BIND=0.0.0.0:8080 \
     SAFEDICE_LOG_FORMAT=json
 VOLUME ["/data"]
 EXPOSE 8080
+# The gRPC service's conventional port, when SAFEDICE_GRPC_BIND=0.0.0.0:8081 turns it on.
+EXPOSE 8081
 # tini forwards SIGTERM to the server (graceful shutdown) and reaps children.
 ENTRYPOINT ["/usr/bin/tini", "--", "safedice"]
 CMD ["serve"]

@@ -51,6 +51,14 @@ pub struct ServeConfig {
     #[arg(long, env = "SAFEDICE_BIND", default_value = DEFAULT_BIND)]
     pub bind: SocketAddr,
 
+    /// Address of the Open Inference Protocol's gRPC service (IP:port; port 0 picks a free
+    /// one), beside the HTTP API on --bind: Triton's inference.GRPCInferenceService, as
+    /// tritonclient.grpc calls it, with the models, tokens (metadata `authorization: Bearer
+    /// <token>`) and limits of /v2. Off when unset. A non-loopback address needs --api-token, as
+    /// --bind does.
+    #[arg(long, env = "SAFEDICE_GRPC_BIND")]
+    pub grpc_bind: Option<SocketAddr>,
+
     /// Directory for the SQLite database and the stored datasets (with --database-url: only
     /// uploads in flight); created on first start.
     #[arg(long, env = "SAFEDICE_DATA_DIR", default_value = DEFAULT_DATA_DIR)]
@@ -195,6 +203,7 @@ impl std::fmt::Debug for ServeConfig {
         let redacted = |token: &Option<String>| token.as_ref().map(|_| "<redacted>");
         f.debug_struct("ServeConfig")
             .field("bind", &self.bind)
+            .field("grpc_bind", &self.grpc_bind)
             .field("data_dir", &self.data_dir)
             .field("database_url", &self.database_url.as_deref().map(crate::store::redact_url))
             .field("api_token", &redacted(&self.api_token))
@@ -308,6 +317,7 @@ impl ServeConfig {
     pub fn new(data_dir: impl Into<PathBuf>) -> Self {
         ServeConfig {
             bind: DEFAULT_BIND.parse().expect("default bind address parses"),
+            grpc_bind: None,
             data_dir: data_dir.into(),
             database_url: None,
             api_token: None,
@@ -355,8 +365,10 @@ impl ServeConfig {
         if self.inference_token.is_some() && self.api_token.is_none() {
             return Err(ConfigError::InferenceTokenWithoutApiToken);
         }
-        if !self.bind.ip().is_loopback() && self.api_token.is_none() && !self.insecure_public {
-            return Err(ConfigError::PublicWithoutToken(self.bind));
+        for bind in std::iter::once(self.bind).chain(self.grpc_bind) {
+            if !bind.ip().is_loopback() && self.api_token.is_none() && !self.insecure_public {
+                return Err(ConfigError::PublicWithoutToken(bind));
+            }
         }
         self.cors_origin_values()?;
         Ok(())
@@ -400,6 +412,14 @@ mod tests {
         assert_eq!(with_token.validate(), Ok(()));
         let opted_out = ServeConfig { insecure_public: true, ..public };
         assert_eq!(opted_out.validate(), Ok(()));
+        // The gRPC listener by the same rule.
+        let grpc = ServeConfig {
+            grpc_bind: Some("0.0.0.0:8081".parse().unwrap()),
+            ..config("127.0.0.1:0")
+        };
+        assert_eq!(grpc.validate(), Err(ConfigError::PublicWithoutToken(grpc.grpc_bind.unwrap())));
+        let grpc_with_token = ServeConfig { api_token: Some("s3cret".into()), ..grpc };
+        assert_eq!(grpc_with_token.validate(), Ok(()));
     }
 
     #[test]

@@ -9,10 +9,12 @@
 //! - [`envs`]: built-in benchmark environments, demonstrators and evaluation metrics.
 //! - [`demo`]: `safedice demo`, the whole service driven over HTTP in one command.
 //! - [`bench`]: `safedice bench`, the paper's comparison on the built-in environments.
-//! - [`serving`]: trained policies kept loaded for serving actions.
+//! - [`serving`]: trained policies kept loaded for serving actions, and the act path every
+//!   transport shares.
 //! - [`store`]: all SQL and artefact storage.
 //! - [`jobs`]: the training queue and worker pool.
 //! - [`http`]: the HTTP API, one module per resource, and the dashboard at `/`.
+//! - [`grpc`]: the Open Inference Protocol over gRPC (`serve --grpc-bind`).
 //! - [`charts`]: server-side SVG charts for the dashboard.
 //! - [`text`]: bounded messages (errors that quote client input stay short).
 
@@ -24,6 +26,7 @@ pub mod data;
 pub mod demo;
 pub mod domain;
 pub mod envs;
+pub mod grpc;
 pub mod http;
 pub mod jobs;
 pub mod logging;

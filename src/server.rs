@@ -1,4 +1,5 @@
-//! Starting and stopping the HTTP service: open the store, bind, serve until shut down.
+//! Starting and stopping the service: open the store, bind the HTTP listener (and the gRPC one
+//! with --grpc-bind), serve until shut down.
 
 use std::net::SocketAddr;
 use std::sync::Arc;
@@ -23,8 +24,10 @@ pub const SHUTDOWN_GRACE: Duration = Duration::from_secs(30);
 /// A running server.
 pub struct Server {
     local_addr: SocketAddr,
+    grpc_addr: Option<SocketAddr>,
     shutdown: CancellationToken,
     task: JoinHandle<std::io::Result<()>>,
+    grpc_task: Option<JoinHandle<std::io::Result<()>>>,
     store: Store,
     jobs: JobRunner,
 }
@@ -40,10 +43,20 @@ impl Server {
             .await
             .with_context(|| format!("cannot listen on {}", config.bind))?;
         let local_addr = listener.local_addr()?;
+        let grpc_listener = match config.grpc_bind {
+            Some(bind) => Some(
+                tokio::net::TcpListener::bind(bind)
+                    .await
+                    .with_context(|| format!("cannot listen on {bind} (--grpc-bind)"))?,
+            ),
+            None => None,
+        };
+        let grpc_addr = grpc_listener.as_ref().map(|l| l.local_addr()).transpose()?;
         let shutdown = CancellationToken::new();
         let auth = if config.api_token.is_some() { "bearer token" } else { "none (loopback)" };
         tracing::info!(
             %local_addr,
+            grpc = grpc_addr.map(|a| a.to_string()).unwrap_or_else(|| "off".into()),
             data_dir = %config.data_dir.display(),
             database = store.backend().as_str(),
             auth,
@@ -83,14 +96,25 @@ impl Server {
             per_address = limits.max_per_address,
             "connection limits"
         );
+        // The gRPC service on its own listener, under the same connection limits (its own count
+        // of them).
+        let grpc_task = grpc_listener.map(|grpc_listener| {
+            let app = crate::grpc::app(state.clone());
+            tokio::spawn(connections::serve(grpc_listener, app, limits, shutdown.clone()))
+        });
         let app = http::app(state)?;
         let task = tokio::spawn(connections::serve(listener, app, limits, shutdown.clone()));
-        Ok(Server { local_addr, shutdown, task, store, jobs })
+        Ok(Server { local_addr, grpc_addr, shutdown, task, grpc_task, store, jobs })
     }
 
     /// The bound address (the actual port when the configuration asked for port 0).
     pub fn local_addr(&self) -> SocketAddr {
         self.local_addr
+    }
+
+    /// The gRPC listener's address (`--grpc-bind`; None when off).
+    pub fn grpc_addr(&self) -> Option<SocketAddr> {
+        self.grpc_addr
     }
 
     /// Cancelling this token starts a graceful shutdown.
@@ -108,21 +132,34 @@ impl Server {
     /// Serves until the shutdown token is cancelled, then finishes like [`Server::stop`].
     pub async fn wait(mut self) -> anyhow::Result<()> {
         self.shutdown.cancelled().await;
-        let served = match tokio::time::timeout(SHUTDOWN_GRACE, &mut self.task).await {
-            Ok(joined) => joined.context("the server task failed")?.context("serving failed"),
-            Err(_) => {
-                tracing::warn!(
-                    "in-flight requests still running after the grace period; dropping them"
-                );
-                self.task.abort();
-                Ok(())
-            }
+        let deadline = tokio::time::Instant::now() + SHUTDOWN_GRACE;
+        let served = finish(&mut self.task, deadline).await;
+        let grpc_served = match &mut self.grpc_task {
+            Some(task) => finish(task, deadline).await,
+            None => Ok(()),
         };
         // Workers checkpoint their jobs and hand them back to the queue before the store closes.
         self.jobs.stopped().await;
         self.store.close().await;
         tracing::info!("safedice stopped");
-        served
+        served.and(grpc_served)
+    }
+}
+
+/// Waits for a listener's task to finish its connections until `deadline`, then drops them.
+async fn finish(
+    task: &mut JoinHandle<std::io::Result<()>>,
+    deadline: tokio::time::Instant,
+) -> anyhow::Result<()> {
+    match tokio::time::timeout_at(deadline, &mut *task).await {
+        Ok(joined) => joined.context("the server task failed")?.context("serving failed"),
+        Err(_) => {
+            tracing::warn!(
+                "in-flight requests still running after the grace period; dropping them"
+            );
+            task.abort();
+            Ok(())
+        }
     }
 }
 

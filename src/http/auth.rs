@@ -2,7 +2,8 @@
 //! optional inference token only the action endpoints (`POST /v1/policies/{id}/act` and the
 //! `/v2` Open Inference Protocol routes), so a deployed agent's credential cannot read or delete
 //! data. `/`, `/healthz`, `/readyz` and `/metrics` stay open. Without an API token nothing is
-//! checked (the server then only listens on loopback, see [`crate::config`]).
+//! checked (the server then only listens on loopback, see [`crate::config`]). The gRPC service
+//! (`crate::grpc`) checks its `authorization` metadata with the same [`Tokens::authorize`].
 
 use axum::extract::{Request, State};
 use axum::http::{header, Method};
@@ -64,6 +65,39 @@ impl Tokens {
     }
 }
 
+/// Why a token does not let a request through; each transport words it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Refusal {
+    /// No bearer token came.
+    Missing,
+    /// The token is neither the API token nor the inference token.
+    Invalid,
+    /// The inference token, on what needs the API token.
+    InferenceOnly,
+}
+
+impl Tokens {
+    /// Whether a request bearing `presented` may call what needs `required`. Without an API
+    /// token every request may.
+    pub fn authorize(&self, presented: Option<&str>, required: Requirement) -> Result<(), Refusal> {
+        if self.api.is_none() || required == Requirement::Open {
+            return Ok(());
+        }
+        let presented = presented.ok_or(Refusal::Missing)?;
+        match (self.identify(presented), required) {
+            (None, _) => Err(Refusal::Invalid),
+            (Some(Caller::Inference), Requirement::Api) => Err(Refusal::InferenceOnly),
+            (Some(_), _) => Ok(()),
+        }
+    }
+}
+
+/// The token of an `Authorization` value `Bearer <token>` (the scheme in any case).
+pub fn bearer(value: &str) -> Option<&str> {
+    let (scheme, token) = value.split_once(' ')?;
+    scheme.eq_ignore_ascii_case("bearer").then(|| token.trim())
+}
+
 /// The requirement of a route, from its method and path.
 pub fn requirement(method: &Method, path: &str) -> Requirement {
     let segments: Vec<&str> = path.trim_start_matches('/').split('/').collect();
@@ -79,9 +113,7 @@ pub fn requirement(method: &Method, path: &str) -> Requirement {
 }
 
 fn bearer_token(request: &Request) -> Option<&str> {
-    let value = request.headers().get(header::AUTHORIZATION)?.to_str().ok()?;
-    let (scheme, token) = value.split_once(' ')?;
-    scheme.eq_ignore_ascii_case("bearer").then(|| token.trim())
+    bearer(request.headers().get(header::AUTHORIZATION)?.to_str().ok()?)
 }
 
 /// Middleware: lets the request through when its token allows the route.
@@ -94,22 +126,19 @@ pub async fn require_token(
         return Ok(next.run(request).await);
     }
     let required = requirement(request.method(), request.uri().path());
-    if required == Requirement::Open {
-        return Ok(next.run(request).await);
-    }
-    let Some(presented) = bearer_token(&request) else {
-        return Err(ApiError::Unauthorized(
+    match state.tokens.authorize(bearer_token(&request), required) {
+        Ok(()) => Ok(next.run(request).await),
+        Err(Refusal::Missing) => Err(ApiError::Unauthorized(
             "this route needs a bearer token: send `Authorization: Bearer <token>`",
-        ));
-    };
-    match (state.tokens.identify(presented), required) {
-        (None, _) => Err(ApiError::Unauthorized("the bearer token is not valid for this server")),
-        (Some(Caller::Inference), Requirement::Api) => Err(ApiError::Forbidden(
+        )),
+        Err(Refusal::Invalid) => {
+            Err(ApiError::Unauthorized("the bearer token is not valid for this server"))
+        }
+        Err(Refusal::InferenceOnly) => Err(ApiError::Forbidden(
             "the inference token may only call the action endpoints \
              (POST /v1/policies/{id}/act, POST /v1/models/{name}/act, /v2/... but \
              /v2/repository); use the API token",
         )),
-        (Some(_), _) => Ok(next.run(request).await),
     }
 }
 

@@ -285,6 +285,17 @@ impl From<crate::serving::registry::ResolveError> for ApiError {
     }
 }
 
+impl From<crate::serving::act::ServeError> for ApiError {
+    fn from(e: crate::serving::act::ServeError) -> Self {
+        use crate::serving::act::ServeError;
+        match e {
+            ServeError::Invalid { code, message } => ApiError::Unprocessable { code, message },
+            ServeError::Resolve(e) => e.into(),
+            ServeError::Internal(cause) => ApiError::Internal(cause),
+        }
+    }
+}
+
 impl From<crate::serving::PolicyLoadError> for ApiError {
     fn from(e: crate::serving::PolicyLoadError) -> Self {
         match e {

@@ -316,7 +316,7 @@ async fn delete_experiment(
     match state.store.delete_experiment(&id).await? {
         DeleteExperimentOutcome::Deleted { policies, jobs } => {
             for policy in &policies {
-                state.policies.forget(policy);
+                state.serving.policies.forget(policy);
             }
             for job in jobs {
                 state.jobs.publish_api_change(JobEvent::Deleted { job_id: job.into() });

@@ -51,8 +51,7 @@ use utoipa_axum::router::OpenApiRouter;
 
 use crate::config::ServeConfig;
 use crate::jobs::JobRunner;
-use crate::serving::registry::ModelRegistry;
-use crate::serving::PolicyCache;
+pub use crate::serving::Serving;
 use crate::store::Store;
 pub use error::ApiError;
 
@@ -90,10 +89,9 @@ pub struct Services {
     pub shutdown: CancellationToken,
     /// The training worker pool.
     pub jobs: JobRunner,
-    /// Trained policies loaded for inference.
-    pub policies: Arc<PolicyCache>,
-    /// Named models: which policy answers `name`, `name@alias` or a version.
-    pub models: Arc<ModelRegistry>,
+    /// Trained policies loaded for inference (`serving.policies`) and the named models
+    /// (`serving.models`: which policy answers `name`, `name@alias` or a version).
+    pub serving: Serving,
     /// One permit per upload being received (`--max-concurrent-uploads`).
     pub uploads: Arc<tokio::sync::Semaphore>,
     /// One permit per open event stream (`--max-streams`).
@@ -121,8 +119,7 @@ impl AppState {
             metrics: Arc::new(prometheus::Metrics::new()),
             tokens: Arc::new(tokens),
             jobs,
-            policies: serving.policies,
-            models: serving.models,
+            serving,
             uploads: Arc::new(uploads),
             streams: Arc::new(streams),
             heavy_reads: Arc::new(heavy_reads),
@@ -132,12 +129,6 @@ impl AppState {
             store,
         }))
     }
-}
-
-/// What serves trained policies: the policy cache and the named models' routing tables.
-pub struct Serving {
-    pub policies: Arc<PolicyCache>,
-    pub models: Arc<ModelRegistry>,
 }
 
 /// A 5xx answer in the log: 503 is load shed on purpose (uploads slots taken, a busy or

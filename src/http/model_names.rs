@@ -18,11 +18,7 @@ pub const REQUEST_KEY_HEADER: HeaderName = HeaderName::from_static("x-safedice-r
 
 /// A model reference from a path: a name that breaks the rules names no model (404).
 pub(crate) fn reference(name: &str, version: Option<&str>) -> Result<ModelRef, ApiError> {
-    match version {
-        None => ModelRef::parse(name),
-        Some(version) => ModelRef::with_version(name, version),
-    }
-    .map_err(|rule| ApiError::NotFound(format!("model {name:?} does not exist ({rule})")))
+    Ok(crate::serving::inference::reference(name, version)?)
 }
 
 /// The request key header, if the client sent one.

@@ -4,8 +4,6 @@
 //! (`x-safedice-model-version`); a client's `x-safedice-request-key` sends the same key to the
 //! same side of a canary every time, on every node.
 
-use std::time::Instant;
-
 use axum::extract::State;
 use axum::http::HeaderMap;
 use axum::response::{IntoResponse, Response};
@@ -82,11 +80,9 @@ async fn act(
     key: Option<&str>,
     request: ActRequest,
 ) -> Result<Response, ApiError> {
-    let answer = state.models.resolve(reference, key).await?;
-    let started = Instant::now();
-    let result = act_on(answer.target.policy.clone(), request).await;
-    answer.target.stats.record(result.is_ok(), started.elapsed());
-    let mut response = Json(result?).into_response();
+    let answer = state.serving.models.resolve(reference, key).await?;
+    let actions = answer.timed(act_on(answer.target.policy.clone(), request)).await?;
+    let mut response = Json(actions).into_response();
     tag_version(&mut response, &answer);
     Ok(response)
 }

@@ -478,7 +478,7 @@ async fn create_version(
     if let Some(alias) = &request.alias {
         model::check_alias_name(alias).map_err(invalid_name)?;
         // The alias must not resolve to a policy that cannot load: load it first.
-        state.policies.get(&request.policy_id).await?;
+        state.serving.policies.get(&request.policy_id).await?;
     }
     let note = note(request.actor, Some("registered with the alias".into()), None)?;
     let version = NewVersion {
@@ -633,7 +633,7 @@ async fn set_alias(
 async fn preload(state: &AppState, model: &str, target: &AliasTarget) -> Result<(), ApiError> {
     for version in std::iter::once(target.version).chain(target.canary.map(|c| c.version)) {
         let record = state.store.model_version(model, version).await?;
-        state.policies.get(record.policy_id.as_str()).await?;
+        state.serving.policies.get(record.policy_id.as_str()).await?;
     }
     Ok(())
 }
@@ -683,7 +683,7 @@ async fn model_history(
 /// This server serves the change at once (the others of a fleet follow by notification or
 /// poll). A failure to load leaves the previous table serving and is retried by the poll.
 async fn refresh(state: &AppState, model: &str) {
-    if let Err(e) = state.models.refresh_model(model).await {
+    if let Err(e) = state.serving.models.refresh_model(model).await {
         tracing::error!(%model, error = %e, "cannot load the model's new versions yet; the previous ones keep serving");
     }
 }

@@ -120,7 +120,7 @@ async fn delete_policy(
 ) -> Result<StatusCode, ApiError> {
     match state.store.delete_policy(&id).await? {
         DeleteOutcome::Deleted => {
-            state.policies.forget(&id);
+            state.serving.policies.forget(&id);
             Ok(StatusCode::NO_CONTENT)
         }
         DeleteOutcome::NotFound => Err(ApiError::not_found("policy", &id)),
@@ -240,6 +240,6 @@ async fn act(
     Path(id): Path<PolicyId>,
     StraightJson(request): StraightJson<ActRequest>,
 ) -> Result<Json<ActResponse>, ApiError> {
-    let policy = state.policies.get(&id).await?;
+    let policy = state.serving.policies.get(&id).await?;
     Ok(Json(act_on(policy, request).await?))
 }

@@ -1,4 +1,5 @@
-//! `GET /metrics`: request counts and latency histograms by method, route template and status,
+//! `GET /metrics`: request counts and latency histograms by method, route template and status
+//! (and for the gRPC service, by RPC and status code),
 //! plus the training queue, the evaluations by status, and the fleet (workers, their heartbeats
 //! and running jobs, leases expired and taken over), read from the database at scrape time: any
 //! API node reports the whole fleet. OpenMetrics text (the Prometheus exposition format Prometheus scrapes natively).
@@ -31,6 +32,16 @@ struct RequestLabels {
     status: u16,
 }
 
+/// A gRPC call (or one message of a stream) of the Open Inference Protocol service.
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+struct GrpcLabels {
+    /// The RPC's name (`ModelInfer`, `ModelStreamInfer`...).
+    method: &'static str,
+    /// The gRPC status code's name (`OK`, `NOT_FOUND`...); for a stream message, the code its
+    /// error would have had as a call.
+    code: &'static str,
+}
+
 #[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
 struct StatusLabel {
     status: &'static str,
@@ -50,6 +61,8 @@ pub struct Metrics {
     registry: Registry,
     requests: Family<RequestLabels, Counter>,
     latency: HistogramFamily,
+    grpc_requests: Family<GrpcLabels, Counter>,
+    grpc_latency: Family<GrpcLabels, Histogram, fn() -> Histogram>,
     queue_depth: Gauge,
     jobs: Family<StatusLabel, Gauge>,
     evaluations: Family<StatusLabel, Gauge>,
@@ -124,6 +137,19 @@ impl Metrics {
         let mut registry = Registry::with_prefix("safedice");
         let requests = Family::<RequestLabels, Counter>::default();
         let latency: HistogramFamily = Family::new_with_constructor(latency_histogram);
+        let grpc_requests = Family::<GrpcLabels, Counter>::default();
+        let grpc_latency: Family<GrpcLabels, Histogram, fn() -> Histogram> =
+            Family::new_with_constructor(latency_histogram);
+        registry.register(
+            "grpc_requests",
+            "gRPC calls answered, and messages of inference streams",
+            grpc_requests.clone(),
+        );
+        registry.register(
+            "grpc_request_duration_seconds",
+            "Time from a gRPC call (or stream message) to its answer",
+            grpc_latency.clone(),
+        );
         let queue_depth = Gauge::default();
         let jobs = Family::<StatusLabel, Gauge>::default();
         registry.register("http_requests", "HTTP requests answered", requests.clone());
@@ -163,6 +189,8 @@ impl Metrics {
             registry,
             requests,
             latency,
+            grpc_requests,
+            grpc_latency,
             queue_depth,
             jobs,
             evaluations,
@@ -176,6 +204,13 @@ impl Metrics {
     fn observe(&self, labels: RequestLabels, seconds: f64) {
         self.latency.get_or_create(&labels).observe(seconds);
         self.requests.get_or_create(&labels).inc();
+    }
+
+    /// Counts and times a gRPC call (or a message of a stream) by its method and status code.
+    pub fn observe_grpc(&self, method: &'static str, code: &'static str, seconds: f64) {
+        let labels = GrpcLabels { method, code };
+        self.grpc_latency.get_or_create(&labels).observe(seconds);
+        self.grpc_requests.get_or_create(&labels).inc();
     }
 }
 
@@ -226,7 +261,7 @@ async fn metrics(State(state): State<AppState>) -> Result<Response, ApiError> {
         state.metrics.evaluations.get_or_create(&StatusLabel { status }).set(count);
     }
     state.metrics.fleet.refresh(&state.store).await?;
-    let usage = state.policies.usage();
+    let usage = state.serving.policies.usage();
     let gauge = |bytes: u64| i64::try_from(bytes).unwrap_or(i64::MAX);
     state.metrics.policies_loaded.set(usage.loaded as i64);
     state.metrics.policy_cache_bytes.set(gauge(usage.bytes));

@@ -1,116 +1,14 @@
-//! Actions from a loaded policy, whichever route asks: `/v1/policies/{id}/act`,
-//! `/v1/models/{name}/act` and the KServe v2 `infer` routes all validate observations into
-//! [`Observations`] and run them through [`act`] here; `/act`'s body and answer live here too.
+//! `/act`'s body and answer, whichever route asks (`/v1/policies/{id}/act`,
+//! `/v1/models/{name}/act`): the observations are validated and run by the act path every
+//! transport shares ([`crate::serving::act`]).
 
-use std::sync::Arc;
-
-use rand::SeedableRng;
-use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 use utoipa::ToSchema;
 
 use super::ApiError;
-use crate::algo::Policy;
 use crate::data::Actions;
-
-/// Largest batch one request may send.
-pub const MAX_BATCH_ROWS: usize = 16_384;
-/// Largest request body of the action routes (`/act`, `/v2/…/infer`): a full batch of 16,384
-/// observations as JSON needs far more than the 2 MB every other JSON body may have (about 12
-/// bytes per value: 16,384 rows of 80 values), and as binary tensor data up to 256 values per
-/// row. A larger body is refused with 413 before it is read.
-pub const ACTION_BODY_LIMIT: usize = 16 << 20;
-/// Batches up to this many rows run on the request's task (a few microseconds of matrix
-/// products); larger ones move to a blocking thread so they cannot stall other requests.
-const INLINE_ROWS: usize = 64;
-
-/// Validated observations: `rows × obs_dim`, row-major, all finite.
-pub struct Observations {
-    pub values: Vec<f32>,
-    pub rows: usize,
-}
-
-impl Observations {
-    /// From `/act`'s list of rows.
-    pub fn from_rows(rows: &[Vec<f64>], obs_dim: usize) -> Result<Self, ApiError> {
-        check_batch_size(rows.len())?;
-        let mut values = Vec::with_capacity(rows.len() * obs_dim);
-        for (i, row) in rows.iter().enumerate() {
-            if row.len() != obs_dim {
-                return Err(invalid(format!(
-                    "observations[{i}] has {} values; this policy takes {obs_dim} per observation",
-                    row.len()
-                )));
-            }
-            for (j, &v) in row.iter().enumerate() {
-                values.push(finite(v, || format!("observations[{i}][{j}]"))?);
-            }
-        }
-        Ok(Observations { values, rows: rows.len() })
-    }
-
-    /// From a flat row-major buffer of `rows × obs_dim` values.
-    pub(super) fn from_flat(flat: &[f64], rows: usize, obs_dim: usize) -> Result<Self, ApiError> {
-        check_batch_size(rows)?;
-        let values = flat
-            .iter()
-            .enumerate()
-            .map(|(k, &v)| finite(v, || format!("data[{}][{}]", k / obs_dim, k % obs_dim)))
-            .collect::<Result<_, _>>()?;
-        Ok(Observations { values, rows })
-    }
-}
-
-fn check_batch_size(rows: usize) -> Result<(), ApiError> {
-    if rows == 0 {
-        return Err(invalid("the batch is empty: send at least one observation".into()));
-    }
-    if rows > MAX_BATCH_ROWS {
-        return Err(ApiError::unprocessable(
-            "batch_too_large",
-            format!("{rows} observations in one request; at most {MAX_BATCH_ROWS}"),
-        ));
-    }
-    Ok(())
-}
-
-fn finite(v: f64, at: impl FnOnce() -> String) -> Result<f32, ApiError> {
-    let x = v as f32;
-    if x.is_finite() {
-        Ok(x)
-    } else {
-        Err(invalid(format!("{} is {v}, which is not a finite 32-bit float", at())))
-    }
-}
-
-fn invalid(message: String) -> ApiError {
-    ApiError::unprocessable("invalid_observations", message)
-}
-
-/// Runs the policy on validated observations: deterministic (tanh of the mean / argmax), or
-/// sampled with `seed` (reproducible) or fresh entropy.
-pub async fn act(
-    policy: Arc<Policy>,
-    observations: Observations,
-    deterministic: bool,
-    seed: Option<u64>,
-) -> Result<Actions, ApiError> {
-    let mut rng = match seed {
-        Some(seed) => ChaCha8Rng::seed_from_u64(seed),
-        None if deterministic => ChaCha8Rng::seed_from_u64(0),
-        None => ChaCha8Rng::from_os_rng(),
-    };
-    let mut run = move || {
-        policy
-            .act(&observations.values, deterministic, &mut rng)
-            .map_err(|e| ApiError::Internal(anyhow::anyhow!("policy inference failed: {e}")))
-    };
-    if observations.rows <= INLINE_ROWS {
-        run()
-    } else {
-        tokio::task::spawn_blocking(run).await?
-    }
-}
+pub use crate::serving::act::ACTION_BODY_LIMIT;
+use crate::serving::act::{act, Observations};
 
 /// `POST /v1/policies/{id}/act` body.
 #[derive(Debug, Deserialize, ToSchema)]

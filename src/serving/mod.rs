@@ -1,7 +1,11 @@
-//! Trained policies kept loaded for serving actions (`/act` and the KServe v2 routes): each is
-//! read from the store and decoded once, then shared by every request. [`registry`] resolves
-//! named models (`name`, `name@alias`, a version) to them.
+//! Trained policies kept loaded for serving actions (`/act`, the KServe v2 routes, gRPC): each
+//! is read from the store and decoded once, then shared by every request. [`registry`] resolves
+//! named models (`name`, `name@alias`, a version) to them; [`act`] is the act path every
+//! transport shares, [`inference`] the Open Inference Protocol's decisions, whichever transport
+//! carries it.
 
+pub mod act;
+pub mod inference;
 pub mod registry;
 
 use std::collections::HashMap;
@@ -11,6 +15,13 @@ use std::sync::{Arc, RwLock, RwLockWriteGuard, Weak};
 use crate::algo::Policy;
 use crate::domain::PolicyId;
 use crate::store::{Store, StoreError};
+
+/// What serves trained policies: the policy cache and the named models' routing tables.
+#[derive(Clone)]
+pub struct Serving {
+    pub policies: Arc<PolicyCache>,
+    pub models: Arc<registry::ModelRegistry>,
+}
 
 /// Why a policy could not be served.
 #[derive(Debug, thiserror::Error)]

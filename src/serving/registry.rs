@@ -96,6 +96,20 @@ pub struct Answer {
     pub target: Target,
 }
 
+impl Answer {
+    /// Runs `work` for this version and counts it, success or failure and its time, in the
+    /// version's statistics (what the statistics extension reports, whichever route or RPC).
+    pub async fn timed<T, E>(
+        &self,
+        work: impl std::future::Future<Output = Result<T, E>>,
+    ) -> Result<T, E> {
+        let started = Instant::now();
+        let result = work.await;
+        self.target.stats.record(result.is_ok(), started.elapsed());
+        result
+    }
+}
+
 /// Why a name resolves to nothing.
 #[derive(Debug, thiserror::Error)]
 pub enum ResolveError {
@@ -381,6 +395,12 @@ impl ModelRegistry {
         self.store.model(name).await?;
         self.unloaded.lock().expect("unloaded lock").insert(name.to_owned());
         self.tables.write().expect("model tables lock").remove(name);
+        Ok(())
+    }
+
+    /// Whether `name` is a stored model (not found otherwise), loaded here or not.
+    pub async fn check_exists(&self, name: &str) -> Result<(), ResolveError> {
+        self.store.model(name).await?;
         Ok(())
     }
 

@@ -17,6 +17,19 @@ ADDRESS, WORKDIR = sys.argv[1], sys.argv[2]
 BASE = f"http://{ADDRESS}"
 
 
+def wait_until(ready, what, seconds=60):
+    """Polls `ready()` until it answers true (an exception: not yet) for at most `seconds`."""
+    deadline = time.time() + seconds
+    while True:
+        try:
+            if ready():
+                return
+        except Exception:  # still starting
+            pass
+        assert time.time() < deadline, f"{what} did not come up"
+        time.sleep(0.1)
+
+
 def call(method, path, body=None, content_type="application/json"):
     request = urllib.request.Request(BASE + path, data=body, method=method)
     if body is not None:
@@ -49,8 +62,8 @@ def datasets(env):
     return _DATASETS[env]
 
 
-def train(env, algorithm):
-    """Trains a small policy with `algorithm` on `env`'s data; its id."""
+def train(env, algorithm, seed=None):
+    """Trains a small policy with `algorithm` on `env`'s data (with `seed`, if given); its id."""
     unlabeled, non_preferred = datasets(env)
     job = {
         "algorithm": algorithm,
@@ -58,6 +71,8 @@ def train(env, algorithm):
         "non_preferred_dataset": non_preferred,
         "config": {"iterations": 300, "hidden_sizes": [32, 32], "batch_size": 64},
     }
+    if seed is not None:
+        job["config"]["seed"] = seed
     job_id = call("POST", "/v1/jobs", json.dumps(job).encode())["id"]
     deadline = time.time() + 300
     while True:

@@ -7,7 +7,6 @@ mismatch.
 """
 
 import sys
-import time
 import urllib.request
 
 import numpy as np
@@ -16,7 +15,7 @@ from tritonclient.utils import InferenceServerException
 
 import json
 
-from common import act, call, train
+from common import act, call, train, wait_until
 
 ADDRESS = sys.argv[1]
 
@@ -134,16 +133,8 @@ def check_errors(client, policy):
 
 
 def main():
-    deadline = time.time() + 60
     client = httpclient.InferenceServerClient(url=ADDRESS)
-    while True:
-        try:
-            if client.is_server_live():
-                break
-        except Exception:  # the server is still starting
-            pass
-        assert time.time() < deadline, "the server did not come up"
-        time.sleep(0.1)
+    wait_until(client.is_server_live, "the server")
     assert client.is_server_ready()
     server = client.get_server_metadata()
     assert server["name"] == "safedice" and "binary_tensor_data" in server["extensions"], server

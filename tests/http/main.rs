@@ -30,6 +30,7 @@ mod demo;
 mod envs;
 mod evaluations;
 mod experiments;
+mod grpc;
 mod hardening;
 mod jobs;
 mod lifecycle;

@@ -21,6 +21,8 @@ pub struct TestApp {
     /// `http://127.0.0.1:PORT`; changes on [`TestApp::restart`].
     pub base_url: String,
     pub addr: SocketAddr,
+    /// The gRPC listener's address, when the configuration sets `grpc_bind`.
+    pub grpc_addr: Option<SocketAddr>,
     pub client: reqwest::Client,
     /// The configuration it runs with (port 0; edit it and restart to change settings).
     pub config: ServeConfig,
@@ -46,6 +48,7 @@ impl TestApp {
         TestApp {
             base_url: format!("http://{addr}"),
             addr,
+            grpc_addr: server.grpc_addr(),
             client: reqwest::Client::new(),
             config,
             data_dir,
@@ -128,6 +131,7 @@ impl TestApp {
         self.stop().await;
         let server = Server::start(self.config.clone()).await.expect("server restarts");
         self.addr = server.local_addr();
+        self.grpc_addr = server.grpc_addr();
         self.base_url = format!("http://{}", self.addr);
         self.server = Some(server);
     }

@@ -74,17 +74,6 @@ pub fn take(binary: &mut Bytes, size: u64, input: &str) -> Result<Bytes, ApiErro
     }
 }
 
-/// Little-endian FP32 values.
-pub fn f32_values(bytes: &[u8], input: &str) -> Result<Vec<f32>, ApiError> {
-    if !bytes.len().is_multiple_of(4) {
-        return Err(ApiError::unprocessable(
-            "invalid_input",
-            format!("input `{input}` has {} bytes of FP32 data, not a multiple of 4", bytes.len()),
-        ));
-    }
-    Ok(bytes.chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect())
-}
-
 /// A response of a JSON header followed by the outputs' bytes.
 pub fn response(header_json: Vec<u8>, data: &[u8]) -> Response {
     let length = header_json.len();

@@ -13,9 +13,10 @@ use utoipa_axum::router::OpenApiRouter;
 use utoipa_axum::routes;
 
 use super::binary::V2Error;
-use super::{output_layout, served, ModelVersion, INPUT_NAME, OUTPUT_NAME};
+use super::{served, ModelVersion};
 use crate::http::extract::{Json, Path};
 use crate::http::{ApiError, AppState};
+use crate::serving::inference::{Tensor, PLATFORM};
 
 pub fn router() -> OpenApiRouter<AppState> {
     OpenApiRouter::new().routes(routes!(model_config)).routes(routes!(version_config))
@@ -80,28 +81,23 @@ async fn config_of(
     id: String,
     version: Option<String>,
 ) -> Result<Json<ModelConfig>, ApiError> {
-    let served = served(state, id, version, None).await?;
-    let spec = served.policy.spec();
-    let (datatype, dims) = output_layout(&spec.action_space);
+    let model = served(state, id, version, None).await?.describe();
+    let tensor = |t: Tensor| ConfigTensor {
+        name: t.name.into(),
+        data_type: format!("TYPE_{}", t.datatype),
+        dims: t.shape,
+    };
     let parameter = |value: String| ConfigParameter { string_value: value };
     Ok(Json(ModelConfig {
-        name: served.name,
-        platform: "safedice".into(),
-        backend: "safedice".into(),
+        name: model.name,
+        platform: PLATFORM.into(),
+        backend: PLATFORM.into(),
         max_batch_size: 0,
-        input: vec![ConfigTensor {
-            name: INPUT_NAME.into(),
-            data_type: "TYPE_FP32".into(),
-            dims: vec![-1, spec.obs_dim as i64],
-        }],
-        output: vec![ConfigTensor {
-            name: OUTPUT_NAME.into(),
-            data_type: format!("TYPE_{datatype}"),
-            dims,
-        }],
+        input: vec![tensor(model.input)],
+        output: vec![tensor(model.output)],
         parameters: BTreeMap::from([
-            ("algorithm".to_owned(), parameter(spec.algorithm.to_string())),
-            ("version".to_owned(), parameter(served.version)),
+            ("algorithm".to_owned(), parameter(model.algorithm)),
+            ("version".to_owned(), parameter(model.version)),
         ]),
     }))
 }

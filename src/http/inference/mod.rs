@@ -19,8 +19,6 @@ pub mod binary;
 pub mod config;
 pub mod repository;
 
-use std::sync::Arc;
-
 use axum::extract::State;
 use axum::http::HeaderMap;
 use serde::{Deserialize, Serialize};
@@ -33,18 +31,10 @@ use binary::{InferBody, V2Error};
 
 use super::extract::{Json, Path};
 use super::model_names;
-use super::serving::{act, Observations, ACTION_BODY_LIMIT};
+use super::serving::ACTION_BODY_LIMIT;
 use super::{ApiError, AppState};
-use crate::algo::Policy;
-use crate::data::{ActionSpace, Actions};
-use crate::serving::registry::Answer;
-
-/// The name of a model's one input tensor (KServe v2 metadata and `infer`).
-const INPUT_NAME: &str = "observations";
-/// The name of its one output tensor.
-const OUTPUT_NAME: &str = "actions";
-/// A policy never changes once trained: every model has this one version.
-const MODEL_VERSION: &str = "1";
+use crate::data::Actions;
+use crate::serving::inference::{self as protocol, ActOptions, Input, InputData, Served};
 
 pub fn router() -> OpenApiRouter<AppState> {
     let infer = OpenApiRouter::new()
@@ -81,9 +71,7 @@ async fn server_metadata() -> Json<ServerMetadata> {
     Json(ServerMetadata {
         name: "safedice".into(),
         version: env!("CARGO_PKG_VERSION").into(),
-        extensions: ["binary_tensor_data", "model_repository", "statistics", "model_configuration"]
-            .map(String::from)
-            .to_vec(),
+        extensions: protocol::EXTENSIONS.map(String::from).to_vec(),
     })
 }
 
@@ -94,43 +82,14 @@ struct ModelVersion {
     version: String,
 }
 
-/// What a v2 model name resolves to: a policy by its id (one version, `1`), or a named model
-/// (`name`: its latest version, `name@alias`, or a version by number).
-struct Served {
-    /// The name as requested.
-    name: String,
-    /// The version that answers.
-    version: String,
-    policy: Arc<Policy>,
-    /// For a named model: the version chosen, its statistics and the model's versions.
-    answer: Option<(Answer, Vec<u32>)>,
-}
-
+/// What a v2 model name resolves to ([`protocol::served`]).
 async fn served(
     state: &AppState,
     name: String,
     version: Option<String>,
     key: Option<&str>,
 ) -> Result<Served, ApiError> {
-    if uuid::Uuid::try_parse(&name).is_ok() {
-        if let Some(version) = version.filter(|v| v != MODEL_VERSION) {
-            return Err(ApiError::not_found(
-                "model version",
-                &format!("{version} of model {name} (its only version is {MODEL_VERSION})"),
-            ));
-        }
-        let policy = state.policies.get(&name).await?;
-        return Ok(Served { name, version: MODEL_VERSION.into(), policy, answer: None });
-    }
-    let reference = model_names::reference(&name, version.as_deref())?;
-    let answer = state.models.resolve(&reference, key).await?;
-    let versions = state.models.versions(&reference.model);
-    Ok(Served {
-        name,
-        version: answer.target.version.to_string(),
-        policy: answer.target.policy.clone(),
-        answer: Some((answer, versions)),
-    })
+    Ok(protocol::served(&state.serving, name, version, key).await?)
 }
 
 /// KServe v2 liveness / readiness answer.
@@ -191,13 +150,6 @@ pub struct ModelMetadata {
     pub outputs: Vec<TensorMetadata>,
 }
 
-fn output_layout(space: &ActionSpace) -> (&'static str, Vec<i64>) {
-    match space {
-        ActionSpace::Continuous { dim, .. } => ("FP32", vec![-1, *dim as i64]),
-        ActionSpace::Discrete { .. } => ("INT64", vec![-1]),
-    }
-}
-
 /// KServe v2 model metadata of a policy.
 #[utoipa::path(get, path = "/v2/models/{id}", tag = "inference", params(("id" = String, Path)),
     responses((status = 200, body = ModelMetadata), (status = 404, body = V2Error)))]
@@ -224,30 +176,21 @@ async fn metadata_of(
     id: String,
     version: Option<String>,
 ) -> Result<Json<ModelMetadata>, ApiError> {
-    let served = served(state, id, version, None).await?;
-    let versions = match &served.answer {
-        Some((_, versions)) => versions.iter().map(u32::to_string).collect(),
-        None => vec![MODEL_VERSION.into()],
+    let model = served(state, id, version, None).await?.describe();
+    let tensor = |t: protocol::Tensor| TensorMetadata {
+        name: t.name.into(),
+        datatype: t.datatype.into(),
+        shape: t.shape,
     };
-    let spec = served.policy.spec();
-    let (datatype, shape) = output_layout(&spec.action_space);
     Ok(Json(ModelMetadata {
-        name: served.name,
-        versions,
+        name: model.name,
+        versions: model.versions,
         // The runtime, as other servers name theirs (`onnxruntime_onnx`, `pytorch_libtorch`);
         // the algorithm is in `parameters`.
-        platform: "safedice".into(),
-        parameters: ModelParameters { algorithm: spec.algorithm.to_string() },
-        inputs: vec![TensorMetadata {
-            name: INPUT_NAME.into(),
-            datatype: "FP32".into(),
-            shape: vec![-1, spec.obs_dim as i64],
-        }],
-        outputs: vec![TensorMetadata {
-            name: OUTPUT_NAME.into(),
-            datatype: datatype.into(),
-            shape,
-        }],
+        platform: protocol::PLATFORM.into(),
+        parameters: ModelParameters { algorithm: model.algorithm },
+        inputs: vec![tensor(model.input)],
+        outputs: vec![tensor(model.output)],
     }))
 }
 
@@ -427,50 +370,37 @@ async fn version_infer(
 /// Runs the inference, counting it in the version's statistics (named models) and naming the
 /// version that answered in the `x-safedice-model-version` header.
 async fn infer_timed(served: Served, body: InferBody<InferRequest>) -> Result<Response, ApiError> {
-    let started = std::time::Instant::now();
-    let policy = served.policy.clone();
-    let result = infer_with(policy, served.name, served.version, body).await;
+    let result = served.timed(infer_with(&served, body)).await;
     let Some((answer, _)) = &served.answer else { return result };
-    answer.target.stats.record(result.is_ok(), started.elapsed());
     let mut response = result?;
     model_names::tag_version(&mut response, answer);
     Ok(response)
 }
 
 async fn infer_with(
-    policy: Arc<Policy>,
-    name: String,
-    version: String,
+    served: &Served,
     InferBody { request, mut binary }: InferBody<InferRequest>,
 ) -> Result<Response, ApiError> {
-    let obs_dim = policy.spec().obs_dim;
-    let [input] = &request.inputs[..] else {
-        return Err(bad_input(format!(
-            "expected exactly one input tensor, got {}",
-            request.inputs.len()
-        )));
-    };
-    let rows = check_input(input, obs_dim)?;
-    let observations = match (input.parameters.binary_data_size, &input.data) {
-        (Some(size), _) => {
-            let values =
-                binary::f32_values(&binary::take(&mut binary, size, &input.name)?, &input.name)?;
-            check_count(values.len(), rows, obs_dim, &input.shape)?;
-            let flat: Vec<f64> = values.into_iter().map(f64::from).collect();
-            Observations::from_flat(&flat, rows, obs_dim)?
-        }
-        (None, Some(TensorData(flat))) => {
-            // Sized by the data that came, never by the shape the client declared.
-            check_count(flat.len(), rows, obs_dim, &input.shape)?;
-            Observations::from_flat(flat, rows, obs_dim)?
-        }
-        (None, None) => {
-            return Err(bad_input(format!(
-                "input `{}` has neither `data` nor `parameters.binary_data_size`",
-                input.name
-            )))
-        }
-    };
+    let mut inputs = Vec::with_capacity(request.inputs.len());
+    let mut raw = Vec::with_capacity(request.inputs.len());
+    // The binary data of the inputs, in input order, cut by their declared sizes.
+    for input in &request.inputs {
+        raw.push(match input.parameters.binary_data_size {
+            Some(size) => Some(binary::take(&mut binary, size, &input.name)?),
+            None => None,
+        });
+    }
+    for (input, raw) in request.inputs.iter().zip(&raw) {
+        let data = match (raw, &input.data) {
+            (Some(bytes), _) => InputData::Raw(bytes),
+            (None, Some(TensorData(flat))) => InputData::Numbers(flat),
+            (None, None) => {
+                InputData::Missing("has neither `data` nor `parameters.binary_data_size`")
+            }
+        };
+        inputs.push(Input::new(&input.name, &input.datatype, &input.shape, data));
+    }
+    let observations = protocol::observations(inputs, served.policy.spec().obs_dim)?;
     if !binary.is_empty() {
         return Err(bad_input(format!(
             "{} bytes of binary data after the inputs' declared sizes",
@@ -478,24 +408,25 @@ async fn infer_with(
         )));
     }
     let binary_output = wants_binary_output(&request)?;
-    let deterministic = request.parameters.deterministic.unwrap_or(true);
-    let actions = act(policy.clone(), observations, deterministic, request.parameters.seed).await?;
-    let (datatype, mut shape) = output_layout(&policy.spec().action_space);
-    shape[0] = rows as i64;
+    let options = ActOptions {
+        deterministic: request.parameters.deterministic.unwrap_or(true),
+        seed: request.parameters.seed,
+    };
+    let inferred = protocol::infer(served.policy.clone(), observations, options).await?;
     let mut output = InferOutput {
-        name: OUTPUT_NAME.into(),
-        shape,
-        datatype: datatype.into(),
+        name: protocol::OUTPUT_NAME.into(),
+        shape: inferred.shape,
+        datatype: inferred.datatype.into(),
         data: None,
         parameters: TensorParameters::default(),
     };
     let bytes = if binary_output {
-        let bytes = little_endian(&actions);
+        let bytes = protocol::little_endian(&inferred.actions);
         output.parameters.binary_data_size = Some(bytes.len() as u64);
         bytes
     } else {
         output.data = Some(
-            match actions {
+            match inferred.actions {
                 Actions::Continuous(values) => serde_json::to_value(values),
                 Actions::Discrete(indices) => serde_json::to_value(indices),
             }
@@ -504,8 +435,8 @@ async fn infer_with(
         Vec::new()
     };
     let response = InferResponse {
-        model_name: name,
-        model_version: version,
+        model_name: served.name.clone(),
+        model_version: served.version.clone(),
         id: request.id,
         outputs: vec![output],
     };
@@ -517,33 +448,6 @@ async fn infer_with(
     }
 }
 
-/// Checks the input's name, datatype and shape; the batch size.
-fn check_input(input: &InferInput, obs_dim: usize) -> Result<usize, ApiError> {
-    if input.name != INPUT_NAME {
-        return Err(bad_input(format!(
-            "unknown input `{}`; this model's only input is `{INPUT_NAME}` (see its metadata)",
-            input.name
-        )));
-    }
-    if input.datatype != "FP32" {
-        return Err(bad_input(format!("input datatype must be FP32, got {}", input.datatype)));
-    }
-    match input.shape[..] {
-        [rows, dim] if rows >= 0 && dim == obs_dim as i64 => Ok(rows as usize),
-        _ => Err(bad_input(format!("input shape must be [B, {obs_dim}], got {:?}", input.shape))),
-    }
-}
-
-fn check_count(values: usize, rows: usize, obs_dim: usize, shape: &[i64]) -> Result<(), ApiError> {
-    if rows.checked_mul(obs_dim) == Some(values) {
-        return Ok(());
-    }
-    Err(bad_input(format!(
-        "input data has {values} values; shape {shape:?} needs {}",
-        (rows as u128) * (obs_dim as u128)
-    )))
-}
-
 /// Whether the response carries `actions` as binary tensor data; refuses unknown outputs.
 fn wants_binary_output(request: &InferRequest) -> Result<bool, ApiError> {
     let Some(outputs) = &request.outputs else {
@@ -551,25 +455,10 @@ fn wants_binary_output(request: &InferRequest) -> Result<bool, ApiError> {
     };
     let mut binary = false;
     for output in outputs {
-        if output.name != OUTPUT_NAME {
-            return Err(bad_input(format!(
-                "unknown output `{}`; this model's only output is `{OUTPUT_NAME}`",
-                output.name
-            )));
-        }
+        protocol::check_output(&output.name)?;
         binary = output.parameters.binary_data.unwrap_or(false);
     }
     Ok(binary)
-}
-
-/// Actions as binary tensor data: FP32 or INT64, little-endian, row-major.
-fn little_endian(actions: &Actions) -> Vec<u8> {
-    match actions {
-        Actions::Continuous(values) => values.iter().flat_map(|v| v.to_le_bytes()).collect(),
-        Actions::Discrete(indices) => {
-            indices.iter().flat_map(|&i| i64::from(i).to_le_bytes()).collect()
-        }
-    }
 }
 
 fn bad_input(message: String) -> ApiError {

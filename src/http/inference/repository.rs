@@ -7,8 +7,6 @@
 //! (as on a Triton server): an unloaded model answers 404 on that node until it is loaded
 //! again, and the other nodes keep serving it. Statistics are this node's, since it started.
 
-use std::sync::atomic::Ordering;
-
 use axum::extract::State;
 use serde::Serialize;
 use utoipa::ToSchema;
@@ -17,9 +15,10 @@ use utoipa_axum::routes;
 
 use super::binary::V2Error;
 use crate::http::extract::Path;
-use crate::http::model_names::reference;
 use crate::http::{ApiError, AppState};
-use crate::serving::registry::VersionStats;
+use crate::serving::inference::{
+    load as load_model, statistics, unload as unload_model, Statistics,
+};
 
 pub fn router() -> OpenApiRouter<AppState> {
     OpenApiRouter::new()
@@ -48,7 +47,7 @@ pub struct IndexItem {
 #[utoipa::path(post, path = "/v2/repository/index", tag = "inference",
     responses((status = 200, body = Vec<IndexItem>)))]
 async fn index(State(state): State<AppState>) -> Result<axum::Json<Vec<IndexItem>>, ApiError> {
-    let entries = state.models.index().await?;
+    let entries = state.serving.models.index().await?;
     Ok(axum::Json(
         entries
             .into_iter()
@@ -70,9 +69,7 @@ async fn load(
     State(state): State<AppState>,
     Path(name): Path<String>,
 ) -> Result<axum::Json<serde_json::Value>, ApiError> {
-    reference(&name, None)?;
-    state.models.load_model(&name).await?;
-    tracing::info!(model = %name, "model loaded on request");
+    load_model(&state.serving, &name).await?;
     Ok(axum::Json(serde_json::json!({})))
 }
 
@@ -84,9 +81,7 @@ async fn unload(
     State(state): State<AppState>,
     Path(name): Path<String>,
 ) -> Result<axum::Json<serde_json::Value>, ApiError> {
-    reference(&name, None)?;
-    state.models.unload_model(&name).await?;
-    tracing::info!(model = %name, "model unloaded on request");
+    unload_model(&state.serving, &name).await?;
     Ok(axum::Json(serde_json::json!({})))
 }
 
@@ -122,18 +117,16 @@ pub struct StatsResponse {
     pub model_stats: Vec<ModelStat>,
 }
 
-fn stat(name: &str, version: u32, stats: &VersionStats) -> ModelStat {
-    let load = |v: &std::sync::atomic::AtomicU64| v.load(Ordering::Relaxed);
-    let success = load(&stats.success);
+fn stat(stats: Statistics) -> ModelStat {
     ModelStat {
-        name: name.to_owned(),
-        version: version.to_string(),
-        last_inference: load(&stats.last_inference_ms),
-        inference_count: success,
-        execution_count: success,
+        name: stats.name,
+        version: stats.version.to_string(),
+        last_inference: stats.last_inference,
+        inference_count: stats.success,
+        execution_count: stats.success,
         inference_stats: InferStats {
-            success: InferDuration { count: success, ns: load(&stats.success_ns) },
-            fail: InferDuration { count: load(&stats.fail), ns: load(&stats.fail_ns) },
+            success: InferDuration { count: stats.success, ns: stats.success_ns },
+            fail: InferDuration { count: stats.fail, ns: stats.fail_ns },
         },
     }
 }
@@ -146,14 +139,8 @@ async fn model_stats(
     State(state): State<AppState>,
     Path(name): Path<String>,
 ) -> Result<axum::Json<StatsResponse>, ApiError> {
-    let model = named(&state, &name).await?;
-    let model_stats = state
-        .models
-        .model_stats(&model)
-        .into_iter()
-        .map(|(version, stats)| stat(&model, version, &stats))
-        .collect();
-    Ok(axum::Json(StatsResponse { model_stats }))
+    let model_stats = statistics(&state.serving, &name, None).await?;
+    Ok(axum::Json(StatsResponse { model_stats: model_stats.into_iter().map(stat).collect() }))
 }
 
 /// `{name, version}` of the versioned route.
@@ -171,16 +158,6 @@ async fn version_stats(
     State(state): State<AppState>,
     Path(path): Path<VersionPath>,
 ) -> Result<axum::Json<StatsResponse>, ApiError> {
-    let reference = reference(&path.name, Some(&path.version))?;
-    let answer = state.models.resolve(&reference, None).await?;
-    let version = answer.target.version;
-    let model_stats = vec![stat(&reference.model, version, &answer.target.stats)];
-    Ok(axum::Json(StatsResponse { model_stats }))
-}
-
-/// The name of an existing named model (statistics are kept for named models only).
-async fn named(state: &AppState, name: &str) -> Result<String, ApiError> {
-    let reference = reference(name, None)?;
-    state.store.model(&reference.model).await?;
-    Ok(reference.model)
+    let model_stats = statistics(&state.serving, &path.name, Some(&path.version)).await?;
+    Ok(axum::Json(StatsResponse { model_stats: model_stats.into_iter().map(stat).collect() }))
 }

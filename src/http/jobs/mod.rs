@@ -370,7 +370,7 @@ async fn delete_job(
     match state.store.delete_job(&id).await? {
         DeleteJobOutcome::Deleted { policy } => {
             if let Some(policy) = policy {
-                state.policies.forget(&policy);
+                state.serving.policies.forget(&policy);
             }
             state.jobs.publish_api_change(JobEvent::Deleted { job_id: id.clone() });
             tracing::info!(job_id = %id, "job deleted");

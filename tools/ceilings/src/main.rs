@@ -36,16 +36,28 @@ const ALLOW_FILE: &str = "tools/ceilings/src/allow.rs";
 /// layers below it.
 const LAYERS: &[(&str, &[&str])] = &[
     ("entry points", &["server", "worker", "demo", "bench"]),
-    ("HTTP and the service's settings", &["http", "config", "logging"]),
+    (
+        "the transports (HTTP, gRPC) and the service's settings",
+        &["http", "grpc", "config", "logging"],
+    ),
     ("serving and the job queue", &["serving", "jobs"]),
     ("storage", &["store"]),
     ("domain", &["domain"]),
     ("the core, below every service layer", &["algo", "data", "envs", "charts"]),
     ("leaf utilities", &["text", "lttb"]),
 ];
-/// Crates that speak HTTP: only the layers from http/ up may use them.
-const HTTP_CRATES: &[&str] =
-    &["axum", "hyper", "hyper_util", "tower", "tower_http", "utoipa_axum", "reqwest", "http"];
+/// Crates that speak HTTP (gRPC's tonic too): only the layers from http/ up may use them.
+const HTTP_CRATES: &[&str] = &[
+    "axum",
+    "hyper",
+    "hyper_util",
+    "tower",
+    "tower_http",
+    "utoipa_axum",
+    "reqwest",
+    "http",
+    "tonic",
+];
 /// Crates that speak SQL: only the layers from store/ up may use them.
 const SQL_CRATES: &[&str] = &["sqlx"];
 

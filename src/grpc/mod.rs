@@ -1,0 +1,33 @@
+//! The Open Inference Protocol (KServe v2) over gRPC, on its own listener (`serve --grpc-bind`):
+//! Triton's `inference.GRPCInferenceService` (proto/grpc_service.proto), what NVIDIA's
+//! `tritonclient.grpc` and KServe's gRPC clients call. The same models as `/v2` (a policy id,
+//! `name`, `name@alias`, a version), the same tokens (metadata `authorization: Bearer <token>`),
+//! the same act path and statistics ([`crate::serving::inference`]), the same connection limits
+//! ([`crate::http::connections`]) and a request of at most the REST action body's size.
+//!
+//! [`service`] answers the RPCs; [`convert`] goes between protobuf and the serving core.
+//! docs/grpc.md lists what is served.
+
+mod convert;
+pub mod service;
+
+/// The messages and the service generated from proto/ at build time (also the client, for
+/// tests and embedders).
+#[allow(clippy::all, clippy::pedantic, missing_docs)]
+pub mod proto {
+    tonic::include_proto!("inference");
+}
+
+use crate::http::AppState;
+use crate::serving::act::ACTION_BODY_LIMIT;
+
+/// The gRPC service as a router for [`crate::http::connections::serve`]; paths it does not
+/// serve (other services, the protocol's RPCs left out) answer UNIMPLEMENTED.
+pub fn app(state: AppState) -> axum::Router {
+    let service = proto::grpc_inference_service_server::GrpcInferenceServiceServer::new(
+        service::Inference::new(state),
+    )
+    // As the REST action routes' body limit: a full batch of 16,384 observations fits.
+    .max_decoding_message_size(ACTION_BODY_LIMIT);
+    tonic::service::Routes::new(service).into_axum_router()
+}

@@ -1,0 +1,161 @@
+//! The act path every transport shares: observations validated into one batch
+//! ([`Observations`]), the policy run on it ([`act`]), and what can go wrong on the way
+//! ([`ServeError`], which `http/` answers as a status and a body and `grpc/` as a gRPC status).
+//! `/v1/policies/{id}/act`, `/v1/models/{name}/act`, the KServe v2 `infer` route and the gRPC
+//! `ModelInfer` and `ModelStreamInfer` all come through here.
+
+use std::sync::Arc;
+
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+
+use super::registry::ResolveError;
+use super::PolicyLoadError;
+use crate::algo::Policy;
+use crate::data::Actions;
+
+/// Largest batch one request may send.
+pub const MAX_BATCH_ROWS: usize = 16_384;
+/// Largest request of the action routes and RPCs (`/act`, `/v2/…/infer`, gRPC `ModelInfer`): a
+/// full batch of 16,384 observations as JSON needs far more than the 2 MB every other JSON body
+/// may have (about 12 bytes per value: 16,384 rows of 80 values), and as binary tensor data up
+/// to 256 values per row. A larger request is refused before it is read.
+pub const ACTION_BODY_LIMIT: usize = 16 << 20;
+/// Batches up to this many rows run on the request's task (a few microseconds of matrix
+/// products); larger ones move to a blocking thread so they cannot stall other requests.
+const INLINE_ROWS: usize = 64;
+
+/// Why a request for actions (or a model's description) was not answered.
+#[derive(Debug, thiserror::Error)]
+pub enum ServeError {
+    /// The request's content does not fit the model (REST: 422 with `code`; gRPC:
+    /// INVALID_ARGUMENT).
+    #[error("{message}")]
+    Invalid { code: &'static str, message: String },
+    /// No such model, alias, version or policy; an unloaded model (REST: 404; gRPC: NOT_FOUND).
+    #[error(transparent)]
+    Resolve(#[from] ResolveError),
+    /// Anything unexpected (REST: 500; gRPC: INTERNAL), logged by the transport.
+    #[error("internal error")]
+    Internal(#[from] anyhow::Error),
+}
+
+impl ServeError {
+    pub fn invalid(code: &'static str, message: impl Into<String>) -> Self {
+        ServeError::Invalid { code, message: message.into() }
+    }
+
+    pub fn not_found(message: impl Into<String>) -> Self {
+        ServeError::Resolve(ResolveError::NotFound(message.into()))
+    }
+}
+
+impl From<PolicyLoadError> for ServeError {
+    fn from(e: PolicyLoadError) -> Self {
+        ServeError::Resolve(ResolveError::Load(e))
+    }
+}
+
+/// Validated observations: `rows × obs_dim`, row-major, all finite.
+pub struct Observations {
+    pub values: Vec<f32>,
+    pub rows: usize,
+}
+
+impl Observations {
+    /// From `/act`'s list of rows.
+    pub fn from_rows(rows: &[Vec<f64>], obs_dim: usize) -> Result<Self, ServeError> {
+        check_batch_size(rows.len())?;
+        let mut values = Vec::with_capacity(rows.len() * obs_dim);
+        for (i, row) in rows.iter().enumerate() {
+            if row.len() != obs_dim {
+                return Err(invalid(format!(
+                    "observations[{i}] has {} values; this policy takes {obs_dim} per observation",
+                    row.len()
+                )));
+            }
+            for (j, &v) in row.iter().enumerate() {
+                values.push(finite(v, || format!("observations[{i}][{j}]"))?);
+            }
+        }
+        Ok(Observations { values, rows: rows.len() })
+    }
+
+    /// From a flat row-major buffer of `rows × obs_dim` values (JSON numbers).
+    pub fn from_flat(flat: &[f64], rows: usize, obs_dim: usize) -> Result<Self, ServeError> {
+        check_batch_size(rows)?;
+        let values = flat
+            .iter()
+            .enumerate()
+            .map(|(k, &v)| finite(v, || format!("data[{}][{}]", k / obs_dim, k % obs_dim)))
+            .collect::<Result<_, _>>()?;
+        Ok(Observations { values, rows })
+    }
+
+    /// From a flat row-major buffer of `rows × obs_dim` 32-bit floats (binary tensor data,
+    /// gRPC's `fp32_contents`), kept as they are once checked finite.
+    pub fn from_f32(values: Vec<f32>, rows: usize, obs_dim: usize) -> Result<Self, ServeError> {
+        check_batch_size(rows)?;
+        if let Some(k) = values.iter().position(|v| !v.is_finite()) {
+            let at = format!("data[{}][{}]", k / obs_dim, k % obs_dim);
+            return Err(invalid(format!(
+                "{at} is {}, which is not a finite 32-bit float",
+                values[k]
+            )));
+        }
+        Ok(Observations { values, rows })
+    }
+}
+
+fn check_batch_size(rows: usize) -> Result<(), ServeError> {
+    if rows == 0 {
+        return Err(invalid("the batch is empty: send at least one observation".into()));
+    }
+    if rows > MAX_BATCH_ROWS {
+        return Err(ServeError::invalid(
+            "batch_too_large",
+            format!("{rows} observations in one request; at most {MAX_BATCH_ROWS}"),
+        ));
+    }
+    Ok(())
+}
+
+fn finite(v: f64, at: impl FnOnce() -> String) -> Result<f32, ServeError> {
+    let x = v as f32;
+    if x.is_finite() {
+        Ok(x)
+    } else {
+        Err(invalid(format!("{} is {v}, which is not a finite 32-bit float", at())))
+    }
+}
+
+fn invalid(message: String) -> ServeError {
+    ServeError::invalid("invalid_observations", message)
+}
+
+/// Runs the policy on validated observations: deterministic (tanh of the mean / argmax), or
+/// sampled with `seed` (reproducible) or fresh entropy.
+pub async fn act(
+    policy: Arc<Policy>,
+    observations: Observations,
+    deterministic: bool,
+    seed: Option<u64>,
+) -> Result<Actions, ServeError> {
+    let mut rng = match seed {
+        Some(seed) => ChaCha8Rng::seed_from_u64(seed),
+        None if deterministic => ChaCha8Rng::seed_from_u64(0),
+        None => ChaCha8Rng::from_os_rng(),
+    };
+    let mut run = move || {
+        policy
+            .act(&observations.values, deterministic, &mut rng)
+            .map_err(|e| ServeError::Internal(anyhow::anyhow!("policy inference failed: {e}")))
+    };
+    if observations.rows <= INLINE_ROWS {
+        run()
+    } else {
+        tokio::task::spawn_blocking(run)
+            .await
+            .map_err(|e| ServeError::Internal(anyhow::anyhow!("policy inference failed: {e}")))?
+    }
+}

@@ -1,0 +1,351 @@
+//! The Open Inference Protocol (KServe v2) as every transport serves it: what a model name
+//! resolves to ([`served`]), a model's description (metadata and Triton's configuration come
+//! from [`Description`]), the one input checked into observations ([`observations`]), the
+//! actions and their layout ([`infer`]), and the statistics of named models. `http/inference/`
+//! speaks it as JSON and binary tensor data, `grpc/` as protobuf; neither decides anything this
+//! module decides.
+//!
+//! A model is a policy (its id is the model name, its one version `1`) or a named model
+//! (`name`: its latest version; `name@alias`: the alias's version, or its canary's for its
+//! share of request keys; a version by number). It takes one FP32 input `observations` of shape
+//! `[B, obs_dim]` and answers one output `actions`: FP32 `[B, action_dim]` for continuous spaces,
+//! INT64 `[B]` for discrete ones; deterministic unless the request says `deterministic: false`
+//! (with an optional `seed`), exactly as `/act`.
+
+use std::future::Future;
+use std::sync::Arc;
+
+use super::act::{act, Observations, ServeError};
+use super::registry::{Answer, VersionStats};
+use super::Serving;
+use crate::algo::Policy;
+use crate::data::{ActionSpace, Actions};
+use crate::domain::model::ModelRef;
+
+/// The name of a model's one input tensor.
+pub const INPUT_NAME: &str = "observations";
+/// The name of its one output tensor.
+pub const OUTPUT_NAME: &str = "actions";
+/// A policy never changes once trained: a policy served by id has this one version.
+pub const MODEL_VERSION: &str = "1";
+/// The protocol's extensions served, on REST and gRPC alike.
+pub const EXTENSIONS: [&str; 4] =
+    ["binary_tensor_data", "model_repository", "statistics", "model_configuration"];
+/// What every model is run by, as other servers name their runtimes (`onnxruntime_onnx`).
+pub const PLATFORM: &str = "safedice";
+
+/// A model reference from a name and an optional version: a name that breaks the rules names no
+/// model (not found).
+pub fn reference(name: &str, version: Option<&str>) -> Result<ModelRef, ServeError> {
+    match version {
+        None => ModelRef::parse(name),
+        Some(version) => ModelRef::with_version(name, version),
+    }
+    .map_err(|rule| ServeError::not_found(format!("model {name:?} does not exist ({rule})")))
+}
+
+/// What a model name resolves to.
+pub struct Served {
+    /// The name as requested.
+    pub name: String,
+    /// The version that answers.
+    pub version: String,
+    pub policy: Arc<Policy>,
+    /// For a named model: the version chosen (with its statistics) and the model's versions.
+    pub answer: Option<(Answer, Vec<u32>)>,
+}
+
+/// Resolves a model name (a policy id or a named model) and an optional version; `key` (a
+/// client's request key) picks the same side of a canary every time.
+pub async fn served(
+    serving: &Serving,
+    name: String,
+    version: Option<String>,
+    key: Option<&str>,
+) -> Result<Served, ServeError> {
+    if uuid::Uuid::try_parse(&name).is_ok() {
+        if let Some(version) = version.filter(|v| v != MODEL_VERSION) {
+            return Err(ServeError::not_found(format!(
+                "model version {version} of model {name} (its only version is {MODEL_VERSION}) \
+                 does not exist"
+            )));
+        }
+        let policy = serving.policies.get(&name).await?;
+        return Ok(Served { name, version: MODEL_VERSION.into(), policy, answer: None });
+    }
+    let reference = reference(&name, version.as_deref())?;
+    let answer = serving.models.resolve(&reference, key).await?;
+    let versions = serving.models.versions(&reference.model);
+    Ok(Served {
+        name,
+        version: answer.target.version.to_string(),
+        policy: answer.target.policy.clone(),
+        answer: Some((answer, versions)),
+    })
+}
+
+/// A tensor's name, datatype (`FP32`, `INT64`) and shape (-1: the batch dimension).
+pub struct Tensor {
+    pub name: &'static str,
+    pub datatype: &'static str,
+    pub shape: Vec<i64>,
+}
+
+/// What model metadata and model configuration say of a model.
+pub struct Description {
+    /// The name as requested.
+    pub name: String,
+    /// Every version of the model, in order.
+    pub versions: Vec<String>,
+    /// The version that answers.
+    pub version: String,
+    /// The algorithm that trained the policy.
+    pub algorithm: String,
+    pub input: Tensor,
+    pub output: Tensor,
+}
+
+impl Served {
+    pub fn describe(&self) -> Description {
+        let versions = match &self.answer {
+            Some((_, versions)) => versions.iter().map(u32::to_string).collect(),
+            None => vec![MODEL_VERSION.into()],
+        };
+        let spec = self.policy.spec();
+        let (datatype, shape) = output_layout(&spec.action_space);
+        Description {
+            name: self.name.clone(),
+            versions,
+            version: self.version.clone(),
+            algorithm: spec.algorithm.to_string(),
+            input: Tensor {
+                name: INPUT_NAME,
+                datatype: "FP32",
+                shape: vec![-1, spec.obs_dim as i64],
+            },
+            output: Tensor { name: OUTPUT_NAME, datatype, shape },
+        }
+    }
+
+    /// Runs `work` for this model and counts it, success or failure and its time, in the
+    /// answering version's statistics (named models only).
+    pub async fn timed<T, E>(&self, work: impl Future<Output = Result<T, E>>) -> Result<T, E> {
+        match &self.answer {
+            Some((answer, _)) => answer.timed(work).await,
+            None => work.await,
+        }
+    }
+}
+
+/// The output's datatype and shape (-1: the batch) for an action space.
+fn output_layout(space: &ActionSpace) -> (&'static str, Vec<i64>) {
+    match space {
+        ActionSpace::Continuous { dim, .. } => ("FP32", vec![-1, *dim as i64]),
+        ActionSpace::Discrete { .. } => ("INT64", vec![-1]),
+    }
+}
+
+/// An input tensor's values, as the transport received them.
+pub enum InputData<'a> {
+    /// JSON numbers, flat in row-major order.
+    Numbers(&'a [f64]),
+    /// 32-bit floats (gRPC's `fp32_contents`).
+    Fp32(Vec<f32>),
+    /// Little-endian FP32 bytes (binary tensor data, gRPC's `raw_input_contents`).
+    Raw(&'a [u8]),
+    /// None came; the message says what the client should have sent.
+    Missing(&'static str),
+}
+
+/// One input tensor of a request.
+pub struct Input<'a> {
+    pub name: &'a str,
+    pub datatype: &'a str,
+    pub shape: &'a [i64],
+    pub data: InputData<'a>,
+}
+
+impl<'a> Input<'a> {
+    pub fn new(name: &'a str, datatype: &'a str, shape: &'a [i64], data: InputData<'a>) -> Self {
+        Input { name, datatype, shape, data }
+    }
+}
+
+/// The observations of a request's inputs: exactly one, named `observations`, FP32, shaped
+/// `[B, obs_dim]`, with as many values as its shape says.
+pub fn observations(inputs: Vec<Input<'_>>, obs_dim: usize) -> Result<Observations, ServeError> {
+    let count = inputs.len();
+    let Ok([input]) = <[Input; 1]>::try_from(inputs) else {
+        return Err(bad_input(format!("expected exactly one input tensor, got {count}")));
+    };
+    if input.name != INPUT_NAME {
+        return Err(bad_input(format!(
+            "unknown input `{}`; this model's only input is `{INPUT_NAME}` (see its metadata)",
+            input.name
+        )));
+    }
+    if input.datatype != "FP32" {
+        return Err(bad_input(format!("input datatype must be FP32, got {}", input.datatype)));
+    }
+    let rows = match input.shape[..] {
+        [rows, dim] if rows >= 0 && dim == obs_dim as i64 => rows as usize,
+        _ => {
+            return Err(bad_input(format!(
+                "input shape must be [B, {obs_dim}], got {:?}",
+                input.shape
+            )))
+        }
+    };
+    // Sized by the data that came, never by the shape the client declared.
+    let check_count = |values: usize| {
+        if rows.checked_mul(obs_dim) == Some(values) {
+            return Ok(());
+        }
+        Err(bad_input(format!(
+            "input data has {values} values; shape {:?} needs {}",
+            input.shape,
+            (rows as u128) * (obs_dim as u128)
+        )))
+    };
+    match input.data {
+        InputData::Numbers(flat) => {
+            check_count(flat.len())?;
+            Observations::from_flat(flat, rows, obs_dim)
+        }
+        InputData::Fp32(values) => {
+            check_count(values.len())?;
+            Observations::from_f32(values, rows, obs_dim)
+        }
+        InputData::Raw(bytes) => {
+            let values = f32_values(bytes, input.name)?;
+            check_count(values.len())?;
+            Observations::from_f32(values, rows, obs_dim)
+        }
+        InputData::Missing(what) => Err(bad_input(format!("input `{}` {what}", input.name))),
+    }
+}
+
+/// Little-endian FP32 values.
+pub fn f32_values(bytes: &[u8], input: &str) -> Result<Vec<f32>, ServeError> {
+    if !bytes.len().is_multiple_of(4) {
+        return Err(bad_input(format!(
+            "input `{input}` has {} bytes of FP32 data, not a multiple of 4",
+            bytes.len()
+        )));
+    }
+    Ok(bytes.chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect())
+}
+
+/// Refuses any requested output but `actions`.
+pub fn check_output(name: &str) -> Result<(), ServeError> {
+    if name == OUTPUT_NAME {
+        return Ok(());
+    }
+    Err(bad_input(format!("unknown output `{name}`; this model's only output is `{OUTPUT_NAME}`")))
+}
+
+/// How the policy acts: deterministic by default, or sampled (reproducibly with a seed).
+#[derive(Clone, Copy, Debug)]
+pub struct ActOptions {
+    pub deterministic: bool,
+    pub seed: Option<u64>,
+}
+
+/// A request's actions and the output's layout.
+pub struct Inferred {
+    pub actions: Actions,
+    pub datatype: &'static str,
+    /// `[B, action_dim]` or `[B]`.
+    pub shape: Vec<i64>,
+}
+
+/// Runs the policy on the observations.
+pub async fn infer(
+    policy: Arc<Policy>,
+    observations: Observations,
+    options: ActOptions,
+) -> Result<Inferred, ServeError> {
+    let rows = observations.rows;
+    let (datatype, mut shape) = output_layout(&policy.spec().action_space);
+    shape[0] = rows as i64;
+    let actions = act(policy, observations, options.deterministic, options.seed).await?;
+    Ok(Inferred { actions, datatype, shape })
+}
+
+/// Actions as raw tensor data: FP32 or INT64, little-endian, row-major.
+pub fn little_endian(actions: &Actions) -> Vec<u8> {
+    match actions {
+        Actions::Continuous(values) => values.iter().flat_map(|v| v.to_le_bytes()).collect(),
+        Actions::Discrete(indices) => {
+            indices.iter().flat_map(|&i| i64::from(i).to_le_bytes()).collect()
+        }
+    }
+}
+
+fn bad_input(message: String) -> ServeError {
+    ServeError::invalid("invalid_input", message)
+}
+
+/// One version's statistics on this process, read once.
+pub struct Statistics {
+    pub name: String,
+    pub version: u32,
+    /// Milliseconds since the Unix epoch of the last request (0: none).
+    pub last_inference: u64,
+    pub success: u64,
+    pub success_ns: u64,
+    pub fail: u64,
+    pub fail_ns: u64,
+}
+
+impl Statistics {
+    fn read(name: &str, version: u32, stats: &VersionStats) -> Self {
+        use std::sync::atomic::Ordering;
+        let load = |v: &std::sync::atomic::AtomicU64| v.load(Ordering::Relaxed);
+        Statistics {
+            name: name.to_owned(),
+            version,
+            last_inference: load(&stats.last_inference_ms),
+            success: load(&stats.success),
+            success_ns: load(&stats.success_ns),
+            fail: load(&stats.fail),
+            fail_ns: load(&stats.fail_ns),
+        }
+    }
+}
+
+/// Request counts and time of a named model on this process: every version requested (no
+/// version), or the one `version` answers (a number; statistics are kept for named models
+/// only).
+pub async fn statistics(
+    serving: &Serving,
+    name: &str,
+    version: Option<&str>,
+) -> Result<Vec<Statistics>, ServeError> {
+    let reference = reference(name, version)?;
+    let model = &reference.model;
+    if version.is_some() {
+        let answer = serving.models.resolve(&reference, None).await?;
+        let version = answer.target.version;
+        return Ok(vec![Statistics::read(model, version, &answer.target.stats)]);
+    }
+    serving.models.check_exists(model).await?;
+    let stats = serving.models.model_stats(model);
+    Ok(stats.iter().map(|(version, stats)| Statistics::read(model, *version, stats)).collect())
+}
+
+/// Loads a named model on this process (again after an unload) and returns once it is ready.
+pub async fn load(serving: &Serving, name: &str) -> Result<(), ServeError> {
+    reference(name, None)?;
+    serving.models.load_model(name).await?;
+    tracing::info!(model = %name, "model loaded on request");
+    Ok(())
+}
+
+/// Stops serving a named model on this process (other processes of a fleet keep serving it).
+pub async fn unload(serving: &Serving, name: &str) -> Result<(), ServeError> {
+    reference(name, None)?;
+    serving.models.unload_model(name).await?;
+    tracing::info!(model = %name, "model unloaded on request");
+    Ok(())
+}
