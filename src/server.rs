@@ -11,7 +11,7 @@ use tokio_util::sync::CancellationToken;
 
 use crate::config::ServeConfig;
 use crate::domain::RetryBackoff;
-use crate::http::connections::{self, ConnectionLimits};
+use crate::http::connections::{self, ConnectionLimits, ConnectionSlots};
 use crate::http::{self, AppState, Serving};
 use crate::jobs::{JobRunner, WorkerOptions};
 use crate::serving::registry::ModelRegistry;
@@ -96,14 +96,16 @@ impl Server {
             per_address = limits.max_per_address,
             "connection limits"
         );
-        // The gRPC service on its own listener, under the same connection limits (its own count
-        // of them).
+        // The gRPC service on its own listener, under the same connection limits, counted
+        // together with REST's: the caps (and the open-file budget behind them) are the server's.
+        let budget = ConnectionSlots::new(&limits);
         let grpc_task = grpc_listener.map(|grpc_listener| {
-            let app = crate::grpc::app(state.clone());
-            tokio::spawn(connections::serve(grpc_listener, app, limits, shutdown.clone()))
+            let (app, budget) = (crate::grpc::app(state.clone()), budget.clone());
+            tokio::spawn(connections::serve(grpc_listener, app, limits, budget, shutdown.clone()))
         });
         let app = http::app(state)?;
-        let task = tokio::spawn(connections::serve(listener, app, limits, shutdown.clone()));
+        let task =
+            tokio::spawn(connections::serve(listener, app, limits, budget, shutdown.clone()));
         Ok(Server { local_addr, grpc_addr, shutdown, task, grpc_task, store, jobs })
     }
 

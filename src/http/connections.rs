@@ -73,41 +73,42 @@ impl ConnectionLimits {
     }
 }
 
+/// The connection slots of [`ConnectionLimits`], shared by every listener of the process (the
+/// REST and the gRPC one): the caps hold for the server, not per port.
+#[derive(Clone)]
+pub struct ConnectionSlots {
+    slots: Arc<Semaphore>,
+    addresses: PerAddress,
+}
+
+impl ConnectionSlots {
+    pub fn new(limits: &ConnectionLimits) -> Self {
+        ConnectionSlots {
+            slots: Arc::new(Semaphore::new(limits.max_connections)),
+            addresses: PerAddress::new(limits.max_per_address),
+        }
+    }
+}
+
 /// Serves `app` on `listener` until `shutdown` is cancelled, then stops accepting, asks every
 /// connection to finish its request in flight, and waits for them (the caller bounds the wait).
+/// Connections take their places from `budget`, which other listeners may share.
 pub async fn serve(
     listener: TcpListener,
     app: Router,
     limits: ConnectionLimits,
+    budget: ConnectionSlots,
     shutdown: CancellationToken,
 ) -> io::Result<()> {
-    let slots = Arc::new(Semaphore::new(limits.max_connections));
+    let ConnectionSlots { slots, addresses } = budget;
     let graceful = GracefulShutdown::new();
     let mut builder = auto::Builder::new(TokioExecutor::new());
     builder.http1().timer(TokioTimer::new()).header_read_timeout(limits.header_read_timeout);
     builder.http2().timer(TokioTimer::new());
     let shedders = Arc::new(Semaphore::new(SHED_AT_ONCE));
-    let addresses = PerAddress::new(limits.max_per_address);
     loop {
-        let slot = match slots.clone().try_acquire_owned() {
-            Ok(slot) => slot,
-            // Every slot is taken: answer 503 to the newcomer at once rather than leave it in
-            // the backlog behind clients that hold their connections open.
-            Err(_) if shedders.available_permits() > 0 => {
-                tokio::select! {
-                    accepted = listener.accept() => match accepted {
-                        Ok((stream, _)) => shed(stream, shedders.clone(), SHED_BODY),
-                        Err(e) => accept_failed(&e).await,
-                    },
-                    () = shutdown.cancelled() => break,
-                }
-                continue;
-            }
-            Err(_) => tokio::select! {
-                slot = slots.clone().acquire_owned() => slot.expect("the semaphore is never closed"),
-                () = shutdown.cancelled() => break,
-            },
-        };
+        // Accepted first, then given a slot: a listener waiting for connections holds none, so
+        // listeners that share the slots (REST and gRPC) each get all of them.
         let (stream, peer) = tokio::select! {
             accepted = listener.accept() => match accepted {
                 Ok(accepted) => accepted,
@@ -117,6 +118,21 @@ pub async fn serve(
                 }
             },
             () = shutdown.cancelled() => break,
+        };
+        let slot = match slots.clone().try_acquire_owned() {
+            Ok(slot) => slot,
+            // Every slot is taken: answer 503 to the newcomer at once rather than leave it
+            // waiting behind clients that hold their connections open.
+            Err(_) if shedders.available_permits() > 0 => {
+                shed(stream, shedders.clone(), SHED_BODY);
+                continue;
+            }
+            // Too many answers in flight already: this one waits for a slot, and newcomers
+            // wait in the listen backlog meanwhile (nothing accepts them).
+            Err(_) => tokio::select! {
+                slot = slots.clone().acquire_owned() => slot.expect("the semaphore is never closed"),
+                () = shutdown.cancelled() => break,
+            },
         };
         let Some(address_slot) = addresses.take(peer.ip()) else {
             // The global slot goes back at once; the newcomer is told why.

@@ -426,6 +426,46 @@ async fn connections_held_by_keep_alive_clients_shed_newcomers_at_once() {
     drop(holders);
 }
 
+/// REST's and gRPC's listeners share one connection budget: with REST holding every slot, a
+/// connection to the gRPC port is shed at once too, and served once a REST slot is free.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_grpc_listener_counts_against_the_same_connection_cap() {
+    let app = TestApp::spawn_with(|c| {
+        c.max_connections = 2;
+        c.grpc_bind = Some("127.0.0.1:0".parse().unwrap());
+    })
+    .await;
+    let grpc = app.grpc_addr.expect("the gRPC listener");
+    let mut holders: Vec<TcpStream> = (0..2)
+        .map(|_| {
+            let mut stream = connect(&app, b"GET /healthz HTTP/1.1\r\nHost: x\r\n\r\n");
+            let mut answer = [0u8; 12];
+            stream.read_exact(&mut answer).unwrap();
+            assert_eq!(&answer, b"HTTP/1.1 200");
+            stream
+        })
+        .collect();
+    let mut newcomer = TcpStream::connect(grpc).unwrap();
+    newcomer.set_read_timeout(Some(PATIENCE)).unwrap();
+    // A gRPC client opens with HTTP/2's preface; the shed answer waits for a request's head.
+    newcomer.write_all(b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n").unwrap();
+    let received =
+        tokio::task::spawn_blocking(move || read_until_closed(&mut newcomer)).await.unwrap();
+    assert!(received.starts_with("HTTP/1.1 503"), "shed on the gRPC port too: {received}");
+    assert!(received.contains("too_many_connections"), "{received}");
+    drop(holders.pop());
+    // The freed slot serves the gRPC port: a connection there is held open, not shed.
+    let started = Instant::now();
+    loop {
+        let stream = TcpStream::connect(grpc).unwrap();
+        std::thread::sleep(Duration::from_millis(200));
+        if !was_answered(&stream) {
+            break;
+        }
+        assert!(started.elapsed() < PATIENCE, "the freed slot never served the gRPC port");
+    }
+}
+
 /// One address holding its share of connections (`--max-connections-per-address`) gets a
 /// prompt 503 for one more, while another address is served; a slot it closes is its own again.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
