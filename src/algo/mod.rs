@@ -35,6 +35,7 @@ pub mod ppl;
 pub mod registry;
 pub mod run;
 pub mod safedice;
+pub mod safety;
 
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::Arc;

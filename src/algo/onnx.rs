@@ -7,7 +7,11 @@
 //!   (FP32 `[B, dim]`);
 //! - discrete: `argmax` of the action probabilities (softmax of the logits; DExperts' Eq. 44
 //!   scores `π^U − α π^N`), output `actions` (INT64 `[B]`), and the probabilities (scores) as
-//!   the second output `probabilities` (FP32 `[B, n]`).
+//!   the second output `probabilities` (FP32 `[B, n]`);
+//! - a SafeDICE policy's safety head ([`super::safety`]), as two more outputs of that action:
+//!   `non_preferred_log_ratio` (the discriminator on the normalised observation and the
+//!   unit-box or one-hot action, recalibrated) and `out_of_support` (the distance to the nearest
+//!   reference state over the reference distance), FP32 `[B]` each.
 //!
 //! The protobuf messages are the `onnx-protobuf` crate's; the tensors are the policy file's
 //! weights, copied as raw little-endian FP32.
@@ -24,6 +28,7 @@ use onnx_protobuf::{
 use protobuf::{EnumOrUnknown, MessageField};
 
 use super::policy::{Decoder, PolicySpec, MEAN_CLIP};
+use super::safety::{SafetySpec, DISCRIMINATOR, SCORE_NAMES as SAFETY_OUTPUTS, SUPPORT_TENSOR};
 use super::TrainError;
 use crate::data::ActionSpace;
 
@@ -84,6 +89,9 @@ pub fn export(
             let scaled = graph.node("Mul", &[&unit, &scale], vec![]);
             graph.output_node("Add", &[&scaled, &offset], "actions");
             graph.proto.output.push(value_info("actions", DataType::FLOAT, &[None, Some(*dim)]));
+            if let Some(safety) = &spec.safety {
+                graph.safety_outputs(safety, &observations, &unit)?;
+            }
         }
         (ActionSpace::Discrete { n }, decoder) => {
             let layers = spec.hidden_sizes.len() + 1;
@@ -108,6 +116,12 @@ pub fn export(
                 DataType::FLOAT,
                 &[None, Some(*n)],
             ));
+            if let Some(safety) = &spec.safety {
+                let depth = graph.int64s("one_hot_depth", &[*n as i64]);
+                let values = graph.constant("one_hot_values", &[2], &[0.0, 1.0]);
+                let one_hot = graph.node("OneHot", &["actions", &depth, &values], vec![]);
+                graph.safety_outputs(safety, &observations, &one_hot)?;
+            }
         }
     }
     let mut model = ModelProto::new();
@@ -170,17 +184,79 @@ impl Graph<'_> {
 
     /// The MLP `{net}.{i}.weight|bias`, ReLU between layers; its output's name.
     fn mlp(&mut self, net: &str, input: &str, layers: usize) -> Result<String, TrainError> {
+        self.mlp_with(net, input, layers, true)
+    }
+
+    /// [`Self::mlp`], with or without a bias on the last layer (critics have none).
+    fn mlp_with(
+        &mut self,
+        net: &str,
+        input: &str,
+        layers: usize,
+        last_bias: bool,
+    ) -> Result<String, TrainError> {
         let mut h = input.to_owned();
         for i in 0..layers {
             let weight = self.weight(&format!("{net}.{i}.weight"))?;
-            let bias = self.weight(&format!("{net}.{i}.bias"))?;
             // The layers keep their weight as `[in, out]` (y = x W + b): no transpose.
-            h = self.node("Gemm", &[&h, &weight, &bias], vec![]);
+            h = if i + 1 < layers || last_bias {
+                let bias = self.weight(&format!("{net}.{i}.bias"))?;
+                self.node("Gemm", &[&h, &weight, &bias], vec![])
+            } else {
+                self.node("MatMul", &[&h, &weight], vec![])
+            };
             if i + 1 < layers {
                 h = self.node("Relu", &[&h], vec![]);
             }
         }
         Ok(h)
+    }
+
+    /// The safety head's two outputs for the normalised `observations` and the action as the
+    /// discriminator takes it (`action_input`: unit box or one-hot), as [`super::Policy`]
+    /// computes them: the distances by differences, not by the expansion of the square, whose
+    /// cancellation would cost digits near the data.
+    fn safety_outputs(
+        &mut self,
+        safety: &SafetySpec,
+        observations: &str,
+        action_input: &str,
+    ) -> Result<(), TrainError> {
+        let input =
+            self.node("Concat", &[observations, action_input], vec![int_attribute("axis", 1)]);
+        let layers = safety.discriminator_hidden_sizes.len() + 1;
+        let logit = self.mlp_with(DISCRIMINATOR, &input, layers, false)?;
+        let scale = self.scalar("safety_logit_scale", safety.logit_scale as f32);
+        let shift = self.scalar("safety_logit_shift", safety.logit_shift as f32);
+        let scaled = self.node("Mul", &[&logit, &scale], vec![]);
+        let calibrated = self.node("Add", &[&scaled, &shift], vec![]);
+        let batch = self.int64s("safety_batch_shape", &[-1]);
+        self.output_node("Reshape", &[&calibrated, &batch], SAFETY_OUTPUTS[0]);
+        let norm = &safety.support_normalization;
+        let dim = norm.mean.len();
+        let mean = self.constant("support_mean", &[dim], &norm.mean);
+        let std = self.constant("support_std", &[dim], &norm.std);
+        let centred = self.node("Sub", &[observations, &mean], vec![]);
+        let z = self.node("Div", &[&centred, &std], vec![]);
+        let axis = self.int64s("support_unsqueeze_axis", &[1]);
+        let z = self.node("Unsqueeze", &[&z, &axis], vec![]);
+        let reference = self.weight(SUPPORT_TENSOR)?;
+        let difference = self.node("Sub", &[&z, &reference], vec![]);
+        let keep = int_attribute("keepdims", 0);
+        let squared = self.node(
+            "ReduceSumSquare",
+            &[&difference],
+            vec![keep.clone(), ints_attribute("axes", &[2])],
+        );
+        let nearest = self.node("ReduceMin", &[&squared], vec![keep, ints_attribute("axes", &[1])]);
+        let distance = self.node("Sqrt", &[&nearest], vec![]);
+        let reference_distance =
+            self.scalar("support_reference_distance", safety.support_reference_distance);
+        self.output_node("Div", &[&distance, &reference_distance], SAFETY_OUTPUTS[1]);
+        for name in SAFETY_OUTPUTS {
+            self.proto.output.push(value_info(name, DataType::FLOAT, &[None]));
+        }
+        Ok(())
     }
 
     /// A weight of the policy file as an initializer (FP32, same shape).
@@ -220,6 +296,15 @@ impl Graph<'_> {
         tensor.int64_data = values.to_vec();
         self.proto.initializer.push(tensor);
         name.to_owned()
+    }
+}
+
+fn ints_attribute(name: &str, values: &[i64]) -> AttributeProto {
+    AttributeProto {
+        name: name.into(),
+        type_: EnumOrUnknown::new(AttributeType::INTS),
+        ints: values.to_vec(),
+        ..Default::default()
     }
 }
 

@@ -12,6 +12,7 @@ use serde::{Deserialize, Serialize};
 use super::columns::{from_unit_box, ActionColumn, ObsNormalizer};
 use super::fused_mlp::{FusedMlp, Workspace};
 use super::mlp::Mlp;
+use super::safety::{SafetyHead, SafetyScores, SafetySpec};
 use super::{Algorithm, TrainError};
 use crate::data::{ActionSpace, Actions};
 
@@ -137,6 +138,11 @@ pub struct PolicySpec {
     /// Observation standardisation applied before the network, if the run used it.
     pub observation_normalization: Option<ObsNormalizer>,
     pub decoder: Decoder,
+    /// SafeDICE's safety head (the frozen discriminator and D^U's reference states), which
+    /// serving answers `safety_score` requests with; absent for other algorithms and for
+    /// policies trained before it existed.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub safety: Option<SafetySpec>,
 }
 
 pub const POLICY_FORMAT_VERSION: u32 = 1;
@@ -154,11 +160,21 @@ impl PolicyArtifact {
         spec: PolicySpec,
         nets: &[&PolicyNet],
     ) -> std::result::Result<PolicyArtifact, TrainError> {
-        let tensors: Vec<(String, Tensor)> = nets
+        PolicyArtifact::with_tensors(spec, nets, Vec::new())
+    }
+
+    /// [`Self::new`] with more tensors in the file (the safety head's).
+    pub fn with_tensors(
+        spec: PolicySpec,
+        nets: &[&PolicyNet],
+        extra: Vec<(String, Tensor)>,
+    ) -> std::result::Result<PolicyArtifact, TrainError> {
+        let mut tensors: Vec<(String, Tensor)> = nets
             .iter()
             .flat_map(|n| n.mlp.named_vars())
             .map(|(name, var)| Ok((name, var.as_tensor().to_device(&Device::Cpu)?)))
             .collect::<Result<_>>()?;
+        tensors.extend(extra);
         let weights = safetensors::serialize(tensors.iter().map(|(n, t)| (n.as_str(), t)), None)
             .map_err(|e| TrainError::Other(format!("serialising policy weights: {e}")))?;
         Ok(PolicyArtifact { spec, weights })
@@ -204,6 +220,7 @@ pub struct Policy {
     spec: PolicySpec,
     /// π (`policy.*`), then π^N (`policy_n.*`) for [`Decoder::Dexperts`].
     nets: Vec<FusedMlp>,
+    safety: Option<SafetyHead>,
 }
 
 impl Policy {
@@ -237,7 +254,13 @@ impl Policy {
                 net.mlp.to_fused()
             })
             .collect::<Result<Vec<_>>>()?;
-        Ok(Policy { spec: spec.clone(), nets })
+        let safety = match &spec.safety {
+            Some(safety) => {
+                Some(SafetyHead::load(safety, spec.obs_dim, &spec.action_space, &tensors)?)
+            }
+            None => None,
+        };
+        Ok(Policy { spec: spec.clone(), nets, safety })
     }
 
     /// A policy as the store keeps it: the spec as JSON beside the safetensors weights.
@@ -279,7 +302,7 @@ impl Policy {
     /// A policy from networks in memory (e.g. a trainer's): a copy of their current weights.
     pub fn from_nets(spec: PolicySpec, nets: &[PolicyNet]) -> Result<Policy> {
         let nets = nets.iter().map(|n| n.mlp.to_fused()).collect::<Result<_>>()?;
-        Ok(Policy { spec, nets })
+        Ok(Policy { spec: PolicySpec { safety: None, ..spec }, nets, safety: None })
     }
 
     pub fn spec(&self) -> &PolicySpec {
@@ -318,6 +341,24 @@ impl Policy {
                 Ok(Actions::Discrete(picks))
             }
         }
+    }
+
+    /// Whether the policy carries a safety head ([`Self::safety_scores`] answers).
+    pub fn has_safety_head(&self) -> bool {
+        self.safety.is_some()
+    }
+
+    /// The safety head's scores of `actions` (as [`Self::act`] returned them) at
+    /// `observations`; None when the policy has no safety head (not trained by SafeDICE).
+    pub fn safety_scores(&self, observations: &[f32], actions: &Actions) -> Option<SafetyScores> {
+        let head = self.safety.as_ref()?;
+        let dim = self.spec.obs_dim;
+        let rows = observations.len() / dim.max(1);
+        let mut obs = observations[..rows * dim].to_vec();
+        if let Some(norm) = &self.spec.observation_normalization {
+            norm.apply(&mut obs);
+        }
+        Some(head.scores(&obs, actions, &self.spec.action_space))
     }
 
     /// For a discrete policy, the distribution [`Self::act`] samples from for each row of
@@ -506,6 +547,7 @@ mod tests {
                 std: vec![2.0, 0.5, 1.0],
             }),
             decoder,
+            safety: None,
         }
     }
 
@@ -587,6 +629,7 @@ mod tests {
                 hidden_sizes: vec![16, 16],
                 observation_normalization: None,
                 decoder: Decoder::Single,
+                safety: None,
             };
             let policy = Policy::from_nets(spec, std::slice::from_ref(&net)).unwrap();
             let (want, got): (Vec<f32>, Vec<f32>) = match space {

@@ -128,6 +128,7 @@ impl RunData {
             hidden_sizes: self.hidden().to_vec(),
             observation_normalization: self.normalizer.clone(),
             decoder,
+            safety: None,
         }
     }
 

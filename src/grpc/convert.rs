@@ -13,10 +13,9 @@ use super::proto::{
     model_metadata_response, InferParameter, InferTensorContents, ModelInferRequest,
     ModelInferResponse,
 };
-use crate::data::Actions;
 use crate::http::ApiError;
 use crate::serving::act::ServeError;
-use crate::serving::inference::{self as protocol, ActOptions, Input, InputData, Served};
+use crate::serving::inference::{self as protocol, Input, InputData, OutputData, Served};
 
 /// A gRPC status for an error, by REST's rules (`ApiError`: the same messages), its HTTP status
 /// mapped as gRPC's HTTP mapping does; an internal error is logged and answered without detail.
@@ -71,46 +70,51 @@ pub async fn infer(
     }
     let observations = protocol::observations(inputs, served.policy.spec().obs_dim)?;
     let parameters = &request.parameters;
-    let options = ActOptions {
-        deterministic: boolean(parameters, "deterministic")?.unwrap_or(true),
-        seed: seed(parameters)?,
-    };
     // Raw output bytes unless the client asks otherwise: Triton's answer, and what
     // tritonclient.grpc reads.
     let mut raw_output = boolean(parameters, "binary_data_output")?.unwrap_or(true);
     for output in &request.outputs {
-        protocol::check_output(&output.name)?;
         if let Some(binary) = boolean(&output.parameters, "binary_data")? {
             raw_output = binary;
         }
     }
-    let inferred = protocol::infer(served.policy.clone(), observations, options).await?;
-    let mut output = InferOutputTensor {
-        name: protocol::OUTPUT_NAME.into(),
-        datatype: inferred.datatype.into(),
-        shape: inferred.shape,
-        ..Default::default()
-    };
+    let requested: Vec<&str> = request.outputs.iter().map(|o| o.name.as_str()).collect();
+    let policy = &served.policy;
+    let safety_score = boolean(parameters, "safety_score")?;
+    let wanted = protocol::wanted_outputs(&requested, safety_score, policy)?;
+    let deterministic = boolean(parameters, "deterministic")?.unwrap_or(true);
+    let outputs =
+        protocol::infer(policy.clone(), observations, deterministic, seed(parameters)?, &wanted)
+            .await?;
+    let mut tensors = Vec::with_capacity(outputs.len());
     let mut raw_output_contents = Vec::new();
-    if raw_output {
-        raw_output_contents.push(protocol::little_endian(&inferred.actions).into());
-    } else {
-        output.contents = Some(match inferred.actions {
-            Actions::Continuous(fp32_contents) => {
-                InferTensorContents { fp32_contents, ..Default::default() }
-            }
-            Actions::Discrete(indices) => InferTensorContents {
-                int64_contents: indices.into_iter().map(i64::from).collect(),
-                ..Default::default()
-            },
-        });
+    for output in outputs {
+        let mut tensor = InferOutputTensor {
+            name: output.name.into(),
+            datatype: output.datatype.into(),
+            shape: output.shape,
+            ..Default::default()
+        };
+        if raw_output {
+            raw_output_contents.push(output.data.little_endian().into());
+        } else {
+            tensor.contents = Some(match output.data {
+                OutputData::Fp32(fp32_contents) => {
+                    InferTensorContents { fp32_contents, ..Default::default() }
+                }
+                OutputData::Int64(int64_contents) => {
+                    InferTensorContents { int64_contents, ..Default::default() }
+                }
+            });
+        }
+        tensors.push(tensor);
     }
     Ok(ModelInferResponse {
         model_name: served.name.clone(),
         model_version: served.version.clone(),
         id: request.id,
         parameters: HashMap::new(),
-        outputs: vec![output],
+        outputs: tensors,
         raw_output_contents,
     })
 }

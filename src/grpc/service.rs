@@ -211,7 +211,7 @@ impl GrpcInferenceService for Inference {
                 versions: model.versions,
                 platform: protocol::PLATFORM.into(),
                 inputs: vec![convert::tensor_metadata(model.input)],
-                outputs: vec![convert::tensor_metadata(model.output)],
+                outputs: model.outputs.into_iter().map(convert::tensor_metadata).collect(),
             })
         })
         .await
@@ -302,11 +302,15 @@ impl GrpcInferenceService for Inference {
                     data_type: convert::config_type(model.input.datatype),
                     dims: model.input.shape,
                 }],
-                output: vec![ModelOutput {
-                    name: model.output.name.into(),
-                    data_type: convert::config_type(model.output.datatype),
-                    dims: model.output.shape,
-                }],
+                output: model
+                    .outputs
+                    .into_iter()
+                    .map(|output| ModelOutput {
+                        name: output.name.into(),
+                        data_type: convert::config_type(output.datatype),
+                        dims: output.shape,
+                    })
+                    .collect(),
                 parameters: HashMap::from([
                     ("algorithm".to_owned(), parameter(model.algorithm)),
                     ("version".to_owned(), parameter(model.version)),

@@ -8,7 +8,7 @@ use utoipa::ToSchema;
 use super::ApiError;
 use crate::data::Actions;
 pub use crate::serving::act::ACTION_BODY_LIMIT;
-use crate::serving::act::{act, Observations};
+use crate::serving::act::{act, ActOptions, Acted, Observations};
 
 /// `POST /v1/policies/{id}/act` body.
 #[derive(Debug, Deserialize, ToSchema)]
@@ -26,6 +26,10 @@ pub struct ActRequest {
     #[serde(default, deserialize_with = "crate::domain::deserialize_optional_seed")]
     #[schema(maximum = 9223372036854775807_u64)]
     pub seed: Option<u64>,
+    /// true: also the safety scores of the returned actions (`safety`). Only SafeDICE policies
+    /// carry the discriminator they come from; others answer 422 `safety_score_unavailable`.
+    #[serde(default)]
+    pub safety_score: bool,
 }
 
 fn yes() -> bool {
@@ -46,6 +50,20 @@ pub enum ActionList {
 #[derive(Debug, Serialize, ToSchema)]
 pub struct ActResponse {
     pub actions: ActionList,
+    /// With `safety_score: true`: one score of each kind per observation.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub safety: Option<SafetyScoreList>,
+}
+
+/// The safety head's scores of the returned actions (docs/safety-scores.md).
+#[derive(Debug, Serialize, ToSchema)]
+pub struct SafetyScoreList {
+    /// The discriminator's `log d^N(s,a) / d^U(s,a)` for the returned action: above 0, the pair
+    /// looks more like the non-preferred demonstrations than like the unlabeled data.
+    pub non_preferred_log_ratio: Vec<f32>,
+    /// Distance from the observation to the nearest state of the training data, over the 99th
+    /// percentile of that distance within the data: above 1, off the data's support.
+    pub out_of_support: Vec<f32>,
 }
 
 /// `/act` on a loaded policy (by id in [`super::policies`], by model name in
@@ -57,12 +75,21 @@ pub(crate) async fn act_on(
     let spec = policy.spec();
     let observations = Observations::from_rows(&request.observations, spec.obs_dim)?;
     let width = spec.action_space.width();
-    let actions = act(policy, observations, request.deterministic, request.seed).await?;
+    let options = ActOptions {
+        deterministic: request.deterministic,
+        seed: request.seed,
+        safety_score: request.safety_score,
+    };
+    let Acted { actions, safety } = act(policy, observations, options).await?;
     let actions = match actions {
         Actions::Continuous(values) => {
             ActionList::Continuous(values.chunks(width).map(<[f32]>::to_vec).collect())
         }
         Actions::Discrete(indices) => ActionList::Discrete(indices),
     };
-    Ok(ActResponse { actions })
+    let safety = safety.map(|s| SafetyScoreList {
+        non_preferred_log_ratio: s.non_preferred_log_ratio,
+        out_of_support: s.out_of_support,
+    });
+    Ok(ActResponse { actions, safety })
 }

@@ -11,6 +11,7 @@ use rand_chacha::ChaCha8Rng;
 
 use super::registry::ResolveError;
 use super::PolicyLoadError;
+use crate::algo::safety::SafetyScores;
 use crate::algo::Policy;
 use crate::data::Actions;
 
@@ -133,23 +134,47 @@ fn invalid(message: String) -> ServeError {
     ServeError::invalid("invalid_observations", message)
 }
 
+/// How the policy acts, and what it answers beside the actions.
+#[derive(Clone, Copy, Debug)]
+pub struct ActOptions {
+    /// tanh of the Gaussian mean / argmax; else a sample.
+    pub deterministic: bool,
+    /// Makes a sample reproducible.
+    pub seed: Option<u64>,
+    /// Also the safety head's scores of the returned actions ([`crate::algo::safety`]).
+    pub safety_score: bool,
+}
+
+/// The actions, and their safety scores when asked for.
+pub struct Acted {
+    pub actions: Actions,
+    pub safety: Option<SafetyScores>,
+}
+
 /// Runs the policy on validated observations: deterministic (tanh of the mean / argmax), or
 /// sampled with `seed` (reproducible) or fresh entropy.
 pub async fn act(
     policy: Arc<Policy>,
     observations: Observations,
-    deterministic: bool,
-    seed: Option<u64>,
-) -> Result<Actions, ServeError> {
-    let mut rng = match seed {
+    options: ActOptions,
+) -> Result<Acted, ServeError> {
+    if options.safety_score && !policy.has_safety_head() {
+        return Err(safety_unavailable(&policy));
+    }
+    let mut rng = match options.seed {
         Some(seed) => ChaCha8Rng::seed_from_u64(seed),
-        None if deterministic => ChaCha8Rng::seed_from_u64(0),
+        None if options.deterministic => ChaCha8Rng::seed_from_u64(0),
         None => ChaCha8Rng::from_os_rng(),
     };
     let mut run = move || {
-        policy
-            .act(&observations.values, deterministic, &mut rng)
-            .map_err(|e| ServeError::Internal(anyhow::anyhow!("policy inference failed: {e}")))
+        let actions = policy
+            .act(&observations.values, options.deterministic, &mut rng)
+            .map_err(|e| ServeError::Internal(anyhow::anyhow!("policy inference failed: {e}")))?;
+        let safety = match options.safety_score {
+            true => policy.safety_scores(&observations.values, &actions),
+            false => None,
+        };
+        Ok(Acted { actions, safety })
     };
     if observations.rows <= INLINE_ROWS {
         run()
@@ -158,4 +183,16 @@ pub async fn act(
             .await
             .map_err(|e| ServeError::Internal(anyhow::anyhow!("policy inference failed: {e}")))?
     }
+}
+
+/// The answer to a safety score the policy cannot give.
+pub fn safety_unavailable(policy: &Policy) -> ServeError {
+    ServeError::invalid(
+        "safety_score_unavailable",
+        format!(
+            "this policy was trained by {}: safety scores come from SafeDICE's discriminator, \
+             which only SafeDICE policies trained by this version or later carry",
+            policy.spec().algorithm
+        ),
+    )
 }

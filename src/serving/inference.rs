@@ -8,14 +8,16 @@
 //! A model is a policy (its id is the model name, its one version `1`) or a named model
 //! (`name`: its latest version; `name@alias`: the alias's version, or its canary's for its
 //! share of request keys; a version by number). It takes one FP32 input `observations` of shape
-//! `[B, obs_dim]` and answers one output `actions`: FP32 `[B, action_dim]` for continuous spaces,
+//! `[B, obs_dim]` and answers the output `actions`: FP32 `[B, action_dim]` for continuous spaces,
 //! INT64 `[B]` for discrete ones; deterministic unless the request says `deterministic: false`
-//! (with an optional `seed`), exactly as `/act`.
+//! (with an optional `seed`), exactly as `/act`. A SafeDICE policy also answers, when asked
+//! (parameter `safety_score`, or the outputs by name), the safety scores of those actions:
+//! `non_preferred_log_ratio` and `out_of_support`, FP32 `[B]` each ([`crate::algo::safety`]).
 
 use std::future::Future;
 use std::sync::Arc;
 
-use super::act::{act, Observations, ServeError};
+use super::act::{act, safety_unavailable, ActOptions, Observations, ServeError};
 use super::registry::{Answer, VersionStats};
 use super::Serving;
 use crate::algo::Policy;
@@ -24,8 +26,10 @@ use crate::domain::model::ModelRef;
 
 /// The name of a model's one input tensor.
 pub const INPUT_NAME: &str = "observations";
-/// The name of its one output tensor.
+/// The name of its actions' output tensor.
 pub const OUTPUT_NAME: &str = "actions";
+/// The safety head's outputs (SafeDICE policies), FP32 `[B]` each, in this order.
+pub const SAFETY_OUTPUTS: [&str; 2] = crate::algo::safety::SCORE_NAMES;
 /// A policy never changes once trained: a policy served by id has this one version.
 pub const MODEL_VERSION: &str = "1";
 /// The protocol's extensions served, on REST and gRPC alike.
@@ -102,7 +106,8 @@ pub struct Description {
     /// The algorithm that trained the policy.
     pub algorithm: String,
     pub input: Tensor,
-    pub output: Tensor,
+    /// `actions`, then the safety outputs when the policy has them.
+    pub outputs: Vec<Tensor>,
 }
 
 impl Served {
@@ -123,7 +128,9 @@ impl Served {
                 datatype: "FP32",
                 shape: vec![-1, spec.obs_dim as i64],
             },
-            output: Tensor { name: OUTPUT_NAME, datatype, shape },
+            outputs: std::iter::once(Tensor { name: OUTPUT_NAME, datatype, shape })
+                .chain(self.policy.has_safety_head().then(safety_tensors).into_iter().flatten())
+                .collect(),
         }
     }
 
@@ -135,6 +142,10 @@ impl Served {
             None => work.await,
         }
     }
+}
+
+fn safety_tensors() -> impl Iterator<Item = Tensor> {
+    SAFETY_OUTPUTS.into_iter().map(|name| Tensor { name, datatype: "FP32", shape: vec![-1] })
 }
 
 /// The output's datatype and shape (-1: the batch) for an action space.
@@ -236,50 +247,103 @@ pub fn f32_values(bytes: &[u8], input: &str) -> Result<Vec<f32>, ServeError> {
     Ok(bytes.chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect())
 }
 
-/// Refuses any requested output but `actions`.
-pub fn check_output(name: &str) -> Result<(), ServeError> {
-    if name == OUTPUT_NAME {
-        return Ok(());
+/// The outputs a request wants, in the order to answer them: those it names (each `actions` or
+/// a safety output), or else `actions`; with `safety_score` true, the safety outputs too.
+pub fn wanted_outputs(
+    requested: &[&str],
+    safety_score: Option<bool>,
+    policy: &Policy,
+) -> Result<Vec<&'static str>, ServeError> {
+    let mut wanted = Vec::with_capacity(3);
+    for &name in requested {
+        let known = std::iter::once(OUTPUT_NAME).chain(SAFETY_OUTPUTS).find(|&n| n == name);
+        let Some(known) = known else {
+            let safety = if policy.has_safety_head() {
+                format!(", {}", SAFETY_OUTPUTS.join(", "))
+            } else {
+                String::new()
+            };
+            return Err(bad_input(format!(
+                "unknown output `{name}`; this model's outputs are {OUTPUT_NAME}{safety}"
+            )));
+        };
+        if !wanted.contains(&known) {
+            wanted.push(known);
+        }
     }
-    Err(bad_input(format!("unknown output `{name}`; this model's only output is `{OUTPUT_NAME}`")))
+    if wanted.is_empty() {
+        wanted.push(OUTPUT_NAME);
+    }
+    if safety_score == Some(true) {
+        for name in SAFETY_OUTPUTS {
+            if !wanted.contains(&name) {
+                wanted.push(name);
+            }
+        }
+    }
+    if !policy.has_safety_head() && wanted.iter().any(|n| SAFETY_OUTPUTS.contains(n)) {
+        return Err(safety_unavailable(policy));
+    }
+    Ok(wanted)
 }
 
-/// How the policy acts: deterministic by default, or sampled (reproducibly with a seed).
-#[derive(Clone, Copy, Debug)]
-pub struct ActOptions {
-    pub deterministic: bool,
-    pub seed: Option<u64>,
-}
-
-/// A request's actions and the output's layout.
-pub struct Inferred {
-    pub actions: Actions,
+/// One output tensor of an answer.
+pub struct Output {
+    pub name: &'static str,
+    /// `FP32` or `INT64`.
     pub datatype: &'static str,
     /// `[B, action_dim]` or `[B]`.
     pub shape: Vec<i64>,
+    pub data: OutputData,
 }
 
-/// Runs the policy on the observations.
+/// An output's values, row-major.
+pub enum OutputData {
+    Fp32(Vec<f32>),
+    Int64(Vec<i64>),
+}
+
+impl OutputData {
+    /// As raw tensor data: little-endian.
+    pub fn little_endian(&self) -> Vec<u8> {
+        match self {
+            OutputData::Fp32(values) => values.iter().flat_map(|v| v.to_le_bytes()).collect(),
+            OutputData::Int64(values) => values.iter().flat_map(|v| v.to_le_bytes()).collect(),
+        }
+    }
+}
+
+/// Runs the policy on the observations: the `wanted` outputs (see [`wanted_outputs`]), in order.
 pub async fn infer(
     policy: Arc<Policy>,
     observations: Observations,
-    options: ActOptions,
-) -> Result<Inferred, ServeError> {
-    let rows = observations.rows;
+    deterministic: bool,
+    seed: Option<u64>,
+    wanted: &[&'static str],
+) -> Result<Vec<Output>, ServeError> {
+    let rows = observations.rows as i64;
     let (datatype, mut shape) = output_layout(&policy.spec().action_space);
-    shape[0] = rows as i64;
-    let actions = act(policy, observations, options.deterministic, options.seed).await?;
-    Ok(Inferred { actions, datatype, shape })
-}
-
-/// Actions as raw tensor data: FP32 or INT64, little-endian, row-major.
-pub fn little_endian(actions: &Actions) -> Vec<u8> {
-    match actions {
-        Actions::Continuous(values) => values.iter().flat_map(|v| v.to_le_bytes()).collect(),
+    shape[0] = rows;
+    let safety_score = wanted.iter().any(|n| SAFETY_OUTPUTS.contains(n));
+    let options = ActOptions { deterministic, seed, safety_score };
+    let acted = act(policy, observations, options).await?;
+    let mut actions = Some(match acted.actions {
+        Actions::Continuous(values) => OutputData::Fp32(values),
         Actions::Discrete(indices) => {
-            indices.iter().flat_map(|&i| i64::from(i).to_le_bytes()).collect()
+            OutputData::Int64(indices.into_iter().map(i64::from).collect())
         }
-    }
+    });
+    let mut safety = acted.safety.map(|s| [s.non_preferred_log_ratio, s.out_of_support]);
+    let outputs = wanted.iter().map(|&name| {
+        if name == OUTPUT_NAME {
+            let data = actions.take().expect("wanted once");
+            return Output { name, datatype, shape: shape.clone(), data };
+        }
+        let at = SAFETY_OUTPUTS.iter().position(|&n| n == name).expect("a safety output");
+        let values = std::mem::take(&mut safety.as_mut().expect("asked for")[at]);
+        Output { name, datatype: "FP32", shape: vec![rows], data: OutputData::Fp32(values) }
+    });
+    Ok(outputs.collect())
 }
 
 fn bad_input(message: String) -> ServeError {

@@ -92,3 +92,11 @@ def get_bytes(path):
 def act(policy, observations):
     body = json.dumps({"observations": observations.tolist()}).encode()
     return np.array(call("POST", f"/v1/policies/{policy}/act", body)["actions"])
+
+
+def safety_scores(policy, observations):
+    """/act's safety scores of its deterministic actions: (log-ratios, out-of-support)."""
+    body = json.dumps({"observations": observations.tolist(), "safety_score": True}).encode()
+    safety = call("POST", f"/v1/policies/{policy}/act", body)["safety"]
+    return (np.array(safety["non_preferred_log_ratio"], dtype=np.float32),
+            np.array(safety["out_of_support"], dtype=np.float32))

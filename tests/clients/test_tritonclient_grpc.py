@@ -5,8 +5,9 @@ policies through the REST API, then checks the calls tritonclient.grpc makes on
 inference.GRPCInferenceService: metadata, configuration, readiness, unary inference with raw
 inputs (tritonclient's own) and typed `fp32_contents` (through the package's generated stub),
 raw and typed outputs, a 1,000-message stream with one request key, a canary split by request
-key, the repository and statistics extensions, and the tokens (a second server with tokens:
-no or a wrong token is UNAUTHENTICATED). Every action is compared with
+key, the repository and statistics extensions, the tokens (a second server with tokens:
+no or a wrong token is UNAUTHENTICATED), and a SafeDICE policy's safety scores (the parameter
+`safety_score` and the outputs by name; a BC policy answers INVALID_ARGUMENT). Every action is compared with
 /v1/policies/{id}/act bit for bit. Exits non-zero on the first mismatch.
 """
 
@@ -25,7 +26,7 @@ import tritonclient.grpc as grpcclient
 from tritonclient.grpc import service_pb2, service_pb2_grpc
 from tritonclient.utils import InferenceServerException
 
-from common import act, call, train, wait_until
+from common import act, call, safety_scores, train, wait_until
 
 ADDRESS, WORKDIR, BINARY, GRPC_ADDRESS = sys.argv[1:5]
 
@@ -209,6 +210,28 @@ def check_tokens():
           "on the repository, the API token let through")
 
 
+def check_safety_scores(client, policy, bc):
+    """A SafeDICE policy's safety outputs through tritonclient.grpc equal /act's scores."""
+    names = [o["name"] for o in client.get_model_metadata(policy, as_json=True)["outputs"]]
+    assert names == ["actions", "non_preferred_log_ratio", "out_of_support"], names
+    observations = np.random.default_rng(2).uniform(-1, 1, size=(32, 21)).astype(np.float32)
+    log_ratio, support = safety_scores(policy, observations)
+    result = client.infer(policy, inputs_of(observations), parameters={"safety_score": True})
+    assert same(result.as_numpy("actions"), act(policy, observations))
+    assert same(result.as_numpy("non_preferred_log_ratio"), log_ratio)
+    assert same(result.as_numpy("out_of_support"), support)
+    outputs = [grpcclient.InferRequestedOutput("out_of_support")]
+    result = client.infer(policy, inputs_of(observations), outputs=outputs)
+    assert result.as_numpy("actions") is None and same(result.as_numpy("out_of_support"), support)
+    try:
+        client.infer(bc, inputs_of(observations), parameters={"safety_score": True})
+    except InferenceServerException as e:
+        assert e.status() == "StatusCode.INVALID_ARGUMENT" and "SafeDICE" in str(e), str(e)
+    else:
+        raise AssertionError("a BC policy answered a safety score")
+    print(f"safety scores of {policy} agree with /act bit for bit; BC's are refused")
+
+
 def main():
     client = grpcclient.InferenceServerClient(url=GRPC_ADDRESS)
     stub = service_pb2_grpc.GRPCInferenceServiceStub(grpc.insecure_channel(GRPC_ADDRESS))
@@ -220,6 +243,7 @@ def main():
     for env, policy in policies.items():
         check_policy(client, stub, policy, env)
     check_errors(client, policies["six-rooms"])
+    check_safety_scores(client, train("point-goal", "safedice"), policies["point-goal"])
     check_named_model(client, policies["point-goal"], train("point-goal", "bc", seed=1))
     check_tokens()
     client.close()

@@ -246,7 +246,7 @@ async fn safedice_and_bc_train_and_serve_identical_actions_over_act_and_v2() {
         assert_eq!(serde_json::to_value(local).unwrap(), Value::Array(actions));
 
         // The ONNX export (onnxruntime runs it in tests/clients): one input, the actions and
-        // probabilities out.
+        // probabilities out, then SafeDICE's safety scores.
         let export = format!("/v1/policies/{policy_id}/export");
         let model = app.get(&format!("{export}?format=onnx")).send().await.unwrap();
         assert_eq!(model.status(), StatusCode::OK);
@@ -257,7 +257,11 @@ async fn safedice_and_bc_train_and_serve_identical_actions_over_act_and_v2() {
             v.iter().map(|i| i.name.clone()).collect()
         };
         assert_eq!(names(&model.graph.input), ["observations"]);
-        assert_eq!(names(&model.graph.output), ["actions", "probabilities"]);
+        let mut outputs = vec!["actions", "probabilities"];
+        if job["algorithm"] == "safedice" {
+            outputs.extend(["non_preferred_log_ratio", "out_of_support"]);
+        }
+        assert_eq!(names(&model.graph.output), outputs);
         let response = app.get(&format!("{export}?format=torchscript")).send().await.unwrap();
         let message = assert_error(response, StatusCode::BAD_REQUEST, "bad_request").await;
         assert!(message.contains("onnx"), "names the formats: {message}");

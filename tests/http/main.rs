@@ -40,4 +40,5 @@ mod openapi;
 mod ops;
 mod resources;
 mod restart;
+mod safety;
 mod ui;

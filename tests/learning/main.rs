@@ -16,5 +16,6 @@ mod evaluate;
 mod gridworld;
 mod memory_estimate;
 mod pipeline;
+mod safety;
 mod suite;
 mod training;

@@ -27,8 +27,9 @@ use crate::algo::losses::{
 };
 use crate::algo::mlp::Mlp;
 use crate::algo::optim::Adam;
-use crate::algo::policy::{PolicyArtifact, PolicyNet};
+use crate::algo::policy::{Decoder, PolicyArtifact, PolicyNet};
 use crate::algo::run::RunData;
+use crate::algo::safety::{self, SafetySpec};
 use crate::algo::{Progress, ResolvedConfig, TerminalHandling, TrainError, Trainer, TrainingData};
 use crate::data::Dataset;
 
@@ -571,6 +572,23 @@ impl SafediceTrainer {
     }
 }
 
+impl SafediceTrainer {
+    /// The safety head the policy file carries: the discriminator as Eq. 10 read it
+    /// (recalibrated when the run recalibrated it) and D^U's reference states.
+    fn safety_head(&self) -> Result<(SafetySpec, Vec<(String, Tensor)>), TrainError> {
+        let heldout = self.heldout.as_ref();
+        let observations = self.run.u.obs.flatten_all()?.to_vec1::<f32>()?;
+        safety::build(
+            &self.disc,
+            self.run.hidden(),
+            heldout.and_then(|h| h.calibration),
+            heldout.map(|h| h.auc.value),
+            &observations,
+            self.run.obs_dim,
+        )
+    }
+}
+
 /// An independent copy of a network's weights, by variable name.
 fn snapshot(net: &Mlp) -> candle_core::Result<std::collections::HashMap<String, Tensor>> {
     net.named_vars().into_iter().map(|(name, var)| Ok((name, var.as_tensor().copy()?))).collect()
@@ -628,7 +646,10 @@ impl Trainer for SafediceTrainer {
     }
 
     fn export_policy(&self) -> Result<PolicyArtifact, TrainError> {
-        self.run.single_policy_artifact(&self.policy)
+        let mut spec = self.run.policy_spec(Decoder::Single);
+        let (safety, tensors) = self.safety_head()?;
+        spec.safety = Some(safety);
+        PolicyArtifact::with_tensors(spec, &[&self.policy], tensors)
     }
 
     fn use_candle_autograd(&mut self) {

@@ -1,8 +1,8 @@
 //! Triton's model configuration extension: `GET /v2/models/{name}/config` and
 //! `GET /v2/models/{name}/versions/{v}/config`, what `tritonclient`'s `get_model_config` reads.
 //! The configuration is written from the policy's spec in Triton's JSON form of its
-//! `ModelConfig`: one FP32 input `observations` `[-1, obs_dim]` and one output `actions` (FP32
-//! `[-1, action_dim]` or INT64 `[-1]`), with the batch dimension in `dims` and `max_batch_size`
+//! `ModelConfig`: one FP32 input `observations` `[-1, obs_dim]` and the output `actions` (FP32
+//! `[-1, action_dim]` or INT64 `[-1]`), then a SafeDICE policy's safety outputs, with the batch dimension in `dims` and `max_batch_size`
 //! 0 (Triton's convention for a model that takes any batch as its first dimension).
 
 use axum::extract::State;
@@ -94,7 +94,7 @@ async fn config_of(
         backend: PLATFORM.into(),
         max_batch_size: 0,
         input: vec![tensor(model.input)],
-        output: vec![tensor(model.output)],
+        output: model.outputs.into_iter().map(tensor).collect(),
         parameters: BTreeMap::from([
             ("algorithm".to_owned(), parameter(model.algorithm)),
             ("version".to_owned(), parameter(model.version)),

@@ -33,8 +33,7 @@ use super::extract::{Json, Path};
 use super::model_names;
 use super::serving::ACTION_BODY_LIMIT;
 use super::{ApiError, AppState};
-use crate::data::Actions;
-use crate::serving::inference::{self as protocol, ActOptions, Input, InputData, Served};
+use crate::serving::inference::{self as protocol, Input, InputData, OutputData, Served};
 
 pub fn router() -> OpenApiRouter<AppState> {
     let infer = OpenApiRouter::new()
@@ -190,7 +189,7 @@ async fn metadata_of(
         platform: protocol::PLATFORM.into(),
         parameters: ModelParameters { algorithm: model.algorithm },
         inputs: vec![tensor(model.input)],
-        outputs: vec![tensor(model.output)],
+        outputs: model.outputs.into_iter().map(tensor).collect(),
     }))
 }
 
@@ -286,6 +285,10 @@ pub struct InferParameters {
     pub seed: Option<u64>,
     /// Every output as binary tensor data (when `outputs` names none).
     pub binary_data_output: Option<bool>,
+    /// true: also the outputs `non_preferred_log_ratio` and `out_of_support`, the safety scores
+    /// of the returned actions (SafeDICE policies; others answer 422
+    /// `safety_score_unavailable`).
+    pub safety_score: Option<bool>,
 }
 
 /// KServe v2 inference request.
@@ -294,7 +297,8 @@ pub struct InferRequest {
     pub id: Option<String>,
     #[schema(min_items = 1)]
     pub inputs: Vec<InferInput>,
-    /// The outputs wanted (absent: all of them, which is `actions`).
+    /// The outputs wanted (absent: `actions`, with the safety outputs when
+    /// `parameters.safety_score` is true).
     pub outputs: Option<Vec<RequestedOutput>>,
     #[serde(default)]
     pub parameters: InferParameters,
@@ -407,38 +411,46 @@ async fn infer_with(
             binary.len()
         )));
     }
-    let binary_output = wants_binary_output(&request)?;
-    let options = ActOptions {
-        deterministic: request.parameters.deterministic.unwrap_or(true),
-        seed: request.parameters.seed,
-    };
-    let inferred = protocol::infer(served.policy.clone(), observations, options).await?;
-    let mut output = InferOutput {
-        name: protocol::OUTPUT_NAME.into(),
-        shape: inferred.shape,
-        datatype: inferred.datatype.into(),
-        data: None,
-        parameters: TensorParameters::default(),
-    };
-    let bytes = if binary_output {
-        let bytes = protocol::little_endian(&inferred.actions);
-        output.parameters.binary_data_size = Some(bytes.len() as u64);
-        bytes
-    } else {
-        output.data = Some(
-            match inferred.actions {
-                Actions::Continuous(values) => serde_json::to_value(values),
-                Actions::Discrete(indices) => serde_json::to_value(indices),
-            }
-            .map_err(anyhow::Error::from)?,
-        );
-        Vec::new()
-    };
+    let binary_output = wants_binary_output(&request);
+    let requested: Vec<&str> =
+        request.outputs.iter().flatten().map(|output| output.name.as_str()).collect();
+    let policy = &served.policy;
+    let wanted = protocol::wanted_outputs(&requested, request.parameters.safety_score, policy)?;
+    let outputs = protocol::infer(
+        policy.clone(),
+        observations,
+        request.parameters.deterministic.unwrap_or(true),
+        request.parameters.seed,
+        &wanted,
+    )
+    .await?;
+    let mut bytes = Vec::new();
+    let mut tensors = Vec::with_capacity(outputs.len());
+    for output in outputs {
+        let mut tensor = InferOutput {
+            name: output.name.into(),
+            shape: output.shape,
+            datatype: output.datatype.into(),
+            data: None,
+            parameters: TensorParameters::default(),
+        };
+        if binary_output {
+            let raw = output.data.little_endian();
+            tensor.parameters.binary_data_size = Some(raw.len() as u64);
+            bytes.extend(raw);
+        } else {
+            tensor.data = Some(match output.data {
+                OutputData::Fp32(values) => serde_json::json!(values),
+                OutputData::Int64(values) => serde_json::json!(values),
+            });
+        }
+        tensors.push(tensor);
+    }
     let response = InferResponse {
         model_name: served.name.clone(),
         model_version: served.version.clone(),
         id: request.id,
-        outputs: vec![output],
+        outputs: tensors,
     };
     if binary_output {
         let header = serde_json::to_vec(&response).map_err(anyhow::Error::from)?;
@@ -448,17 +460,13 @@ async fn infer_with(
     }
 }
 
-/// Whether the response carries `actions` as binary tensor data; refuses unknown outputs.
-fn wants_binary_output(request: &InferRequest) -> Result<bool, ApiError> {
+/// Whether the response carries its outputs as binary tensor data: `binary_data_output`, or
+/// what the last requested output says.
+fn wants_binary_output(request: &InferRequest) -> bool {
     let Some(outputs) = &request.outputs else {
-        return Ok(request.parameters.binary_data_output.unwrap_or(false));
+        return request.parameters.binary_data_output.unwrap_or(false);
     };
-    let mut binary = false;
-    for output in outputs {
-        protocol::check_output(&output.name)?;
-        binary = output.parameters.binary_data.unwrap_or(false);
-    }
-    Ok(binary)
+    outputs.last().and_then(|output| output.parameters.binary_data).unwrap_or(false)
 }
 
 fn bad_input(message: String) -> ApiError {
