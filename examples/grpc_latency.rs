@@ -1,18 +1,25 @@
-//! Closed-loop latency of one agent asking for one action at a time, over each transport, on
-//! one connection: REST `POST /v1/policies/{id}/act`, REST `POST /v2/models/{id}/infer` (JSON),
-//! gRPC `ModelInfer` (raw tensors, as tritonclient.grpc sends them) and gRPC `ModelStreamInfer`
-//! (one request, its answer, the next, on one stream). Each request is sent when the previous
-//! answer came back, so this measures the round trip, not the throughput under load (the
-//! open-loop comparison at fixed rates is issue 38's benchmark, not this).
+//! Latency of one action per request over each transport: REST `POST /v1/policies/{id}/act`,
+//! REST `POST /v2/models/{id}/infer` (JSON), gRPC `ModelInfer` (raw tensors, as
+//! tritonclient.grpc sends them) and gRPC `ModelStreamInfer` (one stream per agent).
+//!
+//! - **Closed loop**: one agent on one connection sends each request when the previous answer
+//!   came back: the round trip.
+//! - **Open loop** (`--rates`): requests fall due at a fixed rate, whatever the answers do, and
+//!   `--agents` agents (each with its own connection, or its own stream) take the oldest due
+//!   one when they are free, as wrk2 does; each is timed from when it was due, so a request
+//!   that waited behind a slow server is charged the wait. The load generator shares the
+//!   machine's cores with the server.
 //!
 //! ```text
 //! cargo build --release && cargo run --release --example grpc_latency -- \
-//!     [--requests 5000] [--bin target/release/safedice]
+//!     [--requests 5000] [--rates 2000,5000] [--seconds 5] [--agents 16] \
+//!     [--bin target/release/safedice]
 //! ```
 //! The server is a child process of `--bin` (`serve --grpc-bind`), with a BC policy of the
 //! default 256-256 network on a 17 → 6 synthetic dataset (MuJoCo widths).
 
 use std::process::{Child, Command, Stdio};
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context};
@@ -136,18 +143,164 @@ async fn rest(
     .await
 }
 
-#[tokio::main]
-async fn main() -> anyhow::Result<()> {
+/// The due times of requests at `rate` per second for `seconds`, kept by an OS thread (its
+/// sleeps wake within tens of microseconds; the runtime's timer rounds to milliseconds, which
+/// would be charged to the server).
+fn schedule(
+    rate: f64,
+    seconds: u64,
+) -> Arc<tokio::sync::Mutex<tokio::sync::mpsc::UnboundedReceiver<Instant>>> {
+    let (due_tx, due_rx) = tokio::sync::mpsc::unbounded_channel::<Instant>();
+    let total = (rate * seconds as f64) as u64;
+    let start = Instant::now();
+    std::thread::spawn(move || {
+        for k in 0..total {
+            let due = start + Duration::from_secs_f64(k as f64 / rate);
+            std::thread::sleep(due.saturating_duration_since(Instant::now()));
+            if due_tx.send(due).is_err() {
+                return;
+            }
+        }
+    });
+    Arc::new(tokio::sync::Mutex::new(due_rx))
+}
+
+/// An agent of the open loop: answers one request per call.
+trait Agent: Send + 'static {
+    fn call(&mut self) -> impl std::future::Future<Output = anyhow::Result<()>> + Send;
+}
+
+struct RestAgent {
+    client: reqwest::Client,
+    url: String,
+    body: bytes::Bytes,
+}
+
+impl Agent for RestAgent {
+    async fn call(&mut self) -> anyhow::Result<()> {
+        let request = self.client.post(&self.url).header("content-type", "application/json");
+        let response = request.body(self.body.clone()).send().await?.error_for_status()?;
+        response.bytes().await.map(drop).map_err(Into::into)
+    }
+}
+
+struct UnaryAgent {
+    client: GrpcInferenceServiceClient<tonic::transport::Channel>,
+    message: ModelInferRequest,
+}
+
+impl Agent for UnaryAgent {
+    async fn call(&mut self) -> anyhow::Result<()> {
+        self.client.model_infer(self.message.clone()).await.map(drop).map_err(Into::into)
+    }
+}
+
+struct StreamAgent {
+    sender: tokio::sync::mpsc::Sender<ModelInferRequest>,
+    answers: tonic::Streaming<safedice::grpc::proto::ModelStreamInferResponse>,
+    message: ModelInferRequest,
+}
+
+impl StreamAgent {
+    async fn open(
+        client: &GrpcInferenceServiceClient<tonic::transport::Channel>,
+        message: &ModelInferRequest,
+    ) -> anyhow::Result<StreamAgent> {
+        let (sender, receiver) = tokio::sync::mpsc::channel::<ModelInferRequest>(1);
+        let outgoing =
+            futures::stream::unfold(receiver, |mut r| async { r.recv().await.map(|m| (m, r)) });
+        let answers = client.clone().model_stream_infer(outgoing).await?.into_inner();
+        Ok(StreamAgent { sender, answers, message: message.clone() })
+    }
+}
+
+impl Agent for StreamAgent {
+    async fn call(&mut self) -> anyhow::Result<()> {
+        self.sender.send(self.message.clone()).await?;
+        let answer = self.answers.message().await?.context("the stream ended")?;
+        if !answer.error_message.is_empty() {
+            bail!("stream error: {}", answer.error_message);
+        }
+        Ok(())
+    }
+}
+
+/// The open loop at `rate` for `seconds` with these agents: every latency (from the due time)
+/// and the number of failed requests.
+async fn open_loop(
+    agents: Vec<impl Agent>,
+    rate: f64,
+    seconds: u64,
+) -> anyhow::Result<(Vec<Duration>, u64)> {
+    let due = schedule(rate, seconds);
+    let tasks = agents.into_iter().map(|mut agent| {
+        let due = due.clone();
+        tokio::spawn(async move {
+            let (mut latencies, mut failed) = (Vec::new(), 0u64);
+            loop {
+                let Some(at) = due.lock().await.recv().await else { break };
+                failed += u64::from(agent.call().await.is_err());
+                latencies.push(at.elapsed());
+            }
+            (latencies, failed)
+        })
+    });
+    let (mut latencies, mut failed) = (Vec::new(), 0);
+    for task in futures::future::join_all(tasks).await {
+        let (some, f) = task?;
+        latencies.extend(some);
+        failed += f;
+    }
+    Ok((latencies, failed))
+}
+
+fn report_open(name: &str, rate: f64, seconds: u64, (mut latencies, failed): (Vec<Duration>, u64)) {
+    latencies.sort_unstable();
+    let at = |q: f64| latencies[((latencies.len() - 1) as f64 * q) as usize].as_secs_f64() * 1e6;
+    println!(
+        "| {name} | {rate:.0} | {:.0} | {:.1} | {:.1} | {failed} |",
+        latencies.len() as f64 / seconds as f64,
+        at(0.5),
+        at(0.99)
+    );
+}
+
+struct Args {
+    requests: usize,
+    rates: Vec<f64>,
+    seconds: u64,
+    agents: usize,
+    bin: String,
+}
+
+fn parse_args() -> anyhow::Result<Args> {
     let mut args = std::env::args().skip(1);
-    let (mut requests, mut bin) = (5000, "target/release/safedice".to_owned());
+    let mut parsed = Args {
+        requests: 5000,
+        rates: Vec::new(),
+        seconds: 5,
+        agents: 16,
+        bin: "target/release/safedice".to_owned(),
+    };
     while let Some(flag) = args.next() {
         let value = args.next().context("a flag needs a value")?;
         match flag.as_str() {
-            "--requests" => requests = value.parse()?,
-            "--bin" => bin = value,
+            "--requests" => parsed.requests = value.parse()?,
+            "--rates" => {
+                parsed.rates = value.split(',').map(str::parse).collect::<Result<_, _>>()?
+            }
+            "--seconds" => parsed.seconds = value.parse()?,
+            "--agents" => parsed.agents = value.parse()?,
+            "--bin" => parsed.bin = value,
             other => bail!("unknown flag {other}"),
         }
     }
+    Ok(parsed)
+}
+
+#[tokio::main]
+async fn main() -> anyhow::Result<()> {
+    let Args { requests, rates, seconds, agents, bin } = parse_args()?;
     let (port, grpc_port) = (free_port()?, free_port()?);
     let data = tempfile::tempdir()?;
     let _server = Server(
@@ -223,5 +376,41 @@ async fn main() -> anyhow::Result<()> {
     })
     .await?;
     report("gRPC ModelStreamInfer (raw)", latencies);
+    if rates.is_empty() {
+        return Ok(());
+    }
+
+    let endpoint =
+        tonic::transport::Endpoint::from_shared(format!("http://127.0.0.1:{grpc_port}"))?;
+    println!("\nopen loop, {agents} agents, {seconds} s per rate (latency from the due time):\n");
+    println!("| route | rate | answered/s | p50 µs | p99 µs | failed |");
+    println!("|---|---|---|---|---|---|");
+    for &rate in &rates {
+        let act_url = format!("{url}/v1/policies/{policy}/act");
+        let body = bytes::Bytes::from(serde_json::to_vec(&act)?);
+        let rest_agents = (0..agents)
+            .map(|_| {
+                let client = reqwest::Client::builder().pool_max_idle_per_host(1).build()?;
+                anyhow::Ok(RestAgent { client, url: act_url.clone(), body: body.clone() })
+            })
+            .collect::<anyhow::Result<Vec<_>>>()?;
+        let tally = open_loop(rest_agents, rate, seconds).await?;
+        report_open("REST /act", rate, seconds, tally);
+        let mut unary = Vec::with_capacity(agents);
+        for _ in 0..agents {
+            let client = GrpcInferenceServiceClient::new(endpoint.connect().await?);
+            unary.push(UnaryAgent { client, message: message.clone() });
+        }
+        let tally = open_loop(unary, rate, seconds).await?;
+        report_open("gRPC ModelInfer", rate, seconds, tally);
+        let channel = endpoint.connect().await?;
+        let client = GrpcInferenceServiceClient::new(channel);
+        let mut streams = Vec::with_capacity(agents);
+        for _ in 0..agents {
+            streams.push(StreamAgent::open(&client, &message).await?);
+        }
+        let tally = open_loop(streams, rate, seconds).await?;
+        report_open("gRPC ModelStreamInfer", rate, seconds, tally);
+    }
     Ok(())
 }
