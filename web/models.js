@@ -199,6 +199,38 @@ function sourceText(source) {
   return match ? `job ${shortId(match[1])}` : source;
 }
 
+/** The safety scores each version of the model answered on this node since it started
+ *  (GET /v2/models/{name}/stats, `safety_scores`): the share of each score's bins as bars, the
+ *  bins past the alarm line (log-ratio at or above 0, out-of-support at or above 1) in red.
+ *  Null when no version answered any. */
+function safetyCard(stats) {
+  const served = ((stats && stats.model_stats) || []).filter((s) => s.safety_scores);
+  if (!served.length) return null;
+  const edge = (value, fallback) => (value === undefined ? fallback : String(value).replace('-', '−'));
+  const histogram = (title, score, alarmAt) => {
+    const total = score.counts.reduce((a, b) => a + b, 0);
+    const most = Math.max(1, ...score.counts);
+    return h('div', { class: 'safety-histogram', 'data-score': title },
+      h('div', { class: 'safety-title' }, h('code', {}, title), ` ${total.toLocaleString()} scored`),
+      score.counts.map((count, i) => {
+        const low = edge(score.edges[i - 1], '−∞');
+        const alarm = i > 0 && score.edges[i - 1] >= alarmAt;
+        return h('div', { class: `safety-bin${alarm ? ' safety-alarm' : ''}`, 'data-bin': i },
+          h('span', { class: 'safety-range' }, `${low} to ${edge(score.edges[i], '∞')}`),
+          h('span', { class: 'safety-track' }, h('span', { class: 'safety-bar', style: `width: ${(100 * count / most).toFixed(1)}%` })),
+          h('span', { class: 'safety-count num' }, `${count.toLocaleString()} · ${pctText(count / Math.max(1, total))}`));
+      }));
+  };
+  return h('div', { class: 'card', id: 'safety-card' }, h('h2', {}, 'Safety scores served'),
+    served.map((s) => h('div', { class: 'safety-version', 'data-version': s.version },
+      h('h3', {}, vText(s.version)),
+      h('div', { class: 'safety-pair' },
+        histogram('non_preferred_log_ratio', s.safety_scores.non_preferred_log_ratio, 0),
+        histogram('out_of_support', s.safety_scores.out_of_support, 1)))),
+    h('p', { class: 'hint' }, 'Scores this node answered to requests that asked for them (safety_score), by version, since it started. ',
+      'Red bins: actions that look at least as much like the non-preferred demonstrations as like the data (log-ratio ≥ 0), states farther from the training data than 99% of its own (out-of-support ≥ 1). See docs/safety-scores.md.'));
+}
+
 function versionsCard(model, versions, results, onPromote) {
   const pointing = (version) => model.aliases.filter((a) => a.version === version);
   const metric = (v, key) => {
@@ -438,6 +470,8 @@ function modelPage(view, name) {
       api(withParams(`${modelPath(name)}/versions`, { limit: 500 })), api(withParams(`${modelPath(name)}/history`, { limit: 200 }))]);
     // The versions' numbers are a convenience: the page works without them.
     const results = await versionResults(versions).catch(() => null);
+    // This node's serving statistics: a model no node has loaded yet has none.
+    const stats = await api(`/v2/models/${encodeURIComponent(name)}/stats`).catch(() => null);
     if (mine !== generation) return;
     model = m;
     versionList = versions;
@@ -446,6 +480,7 @@ function modelPage(view, name) {
       modelMeta(model, () => { location.hash = '#/models'; }),
       aliasesCard(model, { rollback: onRollback, remove: onRemove, canary: onCanary, clearCanary: onClearCanary }),
       versionsCard(model, versions, results, onPromote),
+      ...[safetyCard(stats)].filter(Boolean),
       historyCard(history));
   };
   load().catch((err) => slot.replaceChildren(err.status === 404

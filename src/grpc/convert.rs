@@ -84,8 +84,7 @@ pub async fn infer(
     let wanted = protocol::wanted_outputs(&requested, safety_score, policy)?;
     let deterministic = boolean(parameters, "deterministic")?.unwrap_or(true);
     let outputs =
-        protocol::infer(policy.clone(), observations, deterministic, seed(parameters)?, &wanted)
-            .await?;
+        protocol::infer(served, observations, deterministic, seed(parameters)?, &wanted).await?;
     let mut tensors = Vec::with_capacity(outputs.len());
     let mut raw_output_contents = Vec::new();
     for output in outputs {

@@ -19,6 +19,7 @@ use std::sync::Arc;
 
 use super::act::{act, safety_unavailable, ActOptions, Observations, ServeError};
 use super::registry::{Answer, VersionStats};
+use super::tally::ScoreCounts;
 use super::Serving;
 use crate::algo::Policy;
 use crate::data::{ActionSpace, Actions};
@@ -313,14 +314,16 @@ impl OutputData {
     }
 }
 
-/// Runs the policy on the observations: the `wanted` outputs (see [`wanted_outputs`]), in order.
+/// Runs the served model's policy on the observations: the `wanted` outputs (see
+/// [`wanted_outputs`]), in order; a named model's version counts the safety scores it answers.
 pub async fn infer(
-    policy: Arc<Policy>,
+    served: &Served,
     observations: Observations,
     deterministic: bool,
     seed: Option<u64>,
     wanted: &[&'static str],
 ) -> Result<Vec<Output>, ServeError> {
+    let policy = served.policy.clone();
     let rows = observations.rows as i64;
     let (datatype, mut shape) = output_layout(&policy.spec().action_space);
     shape[0] = rows;
@@ -333,6 +336,10 @@ pub async fn infer(
             OutputData::Int64(indices.into_iter().map(i64::from).collect())
         }
     });
+    if let (Some(scores), Some((answer, _))) = (&acted.safety, &served.answer) {
+        answer.target.stats.safety.record_log_ratios(&scores.non_preferred_log_ratio);
+        answer.target.stats.safety.record_support(&scores.out_of_support);
+    }
     let mut safety = acted.safety.map(|s| [s.non_preferred_log_ratio, s.out_of_support]);
     let outputs = wanted.iter().map(|&name| {
         if name == OUTPUT_NAME {
@@ -360,6 +367,8 @@ pub struct Statistics {
     pub success_ns: u64,
     pub fail: u64,
     pub fail_ns: u64,
+    /// Counts of the safety scores answered: `(non_preferred_log_ratio, out_of_support)`.
+    pub safety: (ScoreCounts, ScoreCounts),
 }
 
 impl Statistics {
@@ -374,6 +383,7 @@ impl Statistics {
             success_ns: load(&stats.success_ns),
             fail: load(&stats.fail),
             fail_ns: load(&stats.fail_ns),
+            safety: stats.safety.read(),
         }
     }
 }

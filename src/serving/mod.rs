@@ -7,6 +7,7 @@
 pub mod act;
 pub mod inference;
 pub mod registry;
+pub mod tally;
 
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicU64, Ordering};

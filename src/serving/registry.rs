@@ -46,6 +46,8 @@ pub struct VersionStats {
     pub fail_ns: AtomicU64,
     /// Milliseconds since the Unix epoch of the last request (0: none yet).
     pub last_inference_ms: AtomicU64,
+    /// The safety scores this version answered.
+    pub safety: super::tally::SafetyTally,
 }
 
 impl VersionStats {

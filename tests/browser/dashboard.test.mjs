@@ -956,7 +956,7 @@ test('the job form registers the job’s policy as the next version of a model, 
   await page.waitForSelector('#model-dialog', { state: 'hidden' });
 });
 
-test('the policy page registers its policy as a version; the model page shows each version’s numbers and sets and ends a canary, each move with its reason', async () => {
+test('the policy page registers its policy as a version; the model page shows each version’s numbers and safety scores and sets and ends a canary, each move with its reason', async () => {
   await page.setViewportSize({ width: 1400, height: 900 });
   await page.goto(`${base}/#/policies/${state.policy}`);
   await page.waitForSelector('#register-form');
@@ -1037,6 +1037,32 @@ test('the policy page registers its policy as a version; the model page shows ea
   await page.waitForSelector(`${production} .version:has-text("v4")`);
   move = await lastMove();
   assert.deepEqual([move.from_version, move.to_version, move.reason], [2, 4, 'v4 passed review']);
+
+  // Safety scores asked of production (v4, a SafeDICE policy) show on the model page, bin by
+  // bin as this node's statistics count them.
+  const { obs_dim: obsDim } = (await api(`/v1/policies/${state.policy}`)).body;
+  const observations = Array.from({ length: 5 }, (_, i) => Array.from({ length: obsDim }, (_, j) => ((i + j) % 3) - 1));
+  const scored = await post('/v1/models/pilot@production/act', { observations, safety_score: true });
+  assert.equal(scored.status, 200, JSON.stringify(scored.body));
+  assert.equal(scored.body.safety.out_of_support.length, 5);
+  await page.reload();
+  const v4Scores = '#safety-card .safety-version[data-version="4"]';
+  await page.waitForSelector(v4Scores);
+  const served = (await api('/v2/models/pilot/stats')).body.model_stats.find((s) => s.version === '4').safety_scores;
+  for (const score of ['non_preferred_log_ratio', 'out_of_support']) {
+    const shown = await page.$$eval(`${v4Scores} [data-score="${score}"] .safety-count`,
+      (els) => els.map((e) => Number(e.textContent.split(' ')[0].replace(/,/g, ''))));
+    assert.deepEqual(shown, served[score].counts, score);
+    assert.equal(served[score].counts.reduce((a, b) => a + b, 0), 5, score);
+  }
+  for (const width of [1400, 500]) {
+    await page.setViewportSize({ width, height: 900 });
+    await page.waitForTimeout(200);
+    assert.deepEqual(await layoutProblems(), [], `model page with safety scores at ${width}px`);
+    await (await page.$('#safety-card')).scrollIntoViewIfNeeded();
+    await screenshot(`model-safety-${width}`);
+  }
+  await page.setViewportSize({ width: 1400, height: 900 });
 });
 
 /** Rows of `table` whose last cell (Cancel, Delete, Promote…) is not wholly inside the window. */

@@ -1,7 +1,8 @@
 //! Safety scores through the real server: a SafeDICE policy answers them on `/act`
 //! (`safety_score: true`), on `/v2/.../infer` (parameter `safety_score`, or the outputs by name,
 //! JSON and binary) and by model name, the same numbers everywhere; its metadata lists the two
-//! outputs. A BC policy lists none and answers 422 `safety_score_unavailable` on every route.
+//! outputs, and a named model's version counts the scores it answered in its statistics. A BC
+//! policy lists none and answers 422 `safety_score_unavailable` on every route.
 
 use crate::support::app::{assert_error, assert_v2_error, TestApp};
 use crate::support::jobs::*;
@@ -143,6 +144,25 @@ async fn safedice_policies_answer_safety_scores_everywhere_and_others_say_they_c
     )
     .await;
     assert_eq!(ok_json(named).await["safety"], answer["safety"]);
+    // The version counts the scores it answered on this node, by bin: /act, then /v2, by name.
+    let body = infer_body(&observations, json!({"parameters": {"safety_score": true}}));
+    ok_json(post(&app, "/v2/models/guarded/infer", body).await).await;
+    let stats = ok_json(app.get("/v2/models/guarded/stats").send().await.unwrap()).await;
+    let scores = &stats["model_stats"][0]["safety_scores"];
+    for (name, values) in SAFETY_OUTPUTS.iter().zip([&log_ratio, &support]) {
+        let edges = floats(&scores[name]["edges"]);
+        let counts: Vec<u64> = scores[name]["counts"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|c| c.as_u64().unwrap())
+            .collect();
+        let mut expected = vec![0; edges.len() + 1];
+        for value in values {
+            expected[edges.iter().filter(|&&edge| edge <= *value).count()] += 2;
+        }
+        assert_eq!(counts, expected, "{name}: {stats}");
+    }
 
     // BC: no safety outputs, and a clear 422 wherever they are asked for.
     let metadata = ok_json(app.get(&format!("/v2/models/{bc}")).send().await.unwrap()).await;

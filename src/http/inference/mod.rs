@@ -417,7 +417,7 @@ async fn infer_with(
     let policy = &served.policy;
     let wanted = protocol::wanted_outputs(&requested, request.parameters.safety_score, policy)?;
     let outputs = protocol::infer(
-        policy.clone(),
+        served,
         observations,
         request.parameters.deterministic.unwrap_or(true),
         request.parameters.seed,

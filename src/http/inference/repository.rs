@@ -19,6 +19,7 @@ use crate::http::{ApiError, AppState};
 use crate::serving::inference::{
     load as load_model, statistics, unload as unload_model, Statistics,
 };
+use crate::serving::tally::ScoreCounts;
 
 pub fn router() -> OpenApiRouter<AppState> {
     OpenApiRouter::new()
@@ -109,6 +110,17 @@ pub struct ModelStat {
     pub inference_count: u64,
     pub execution_count: u64,
     pub inference_stats: InferStats,
+    /// This service's addition: counts of the safety scores the version answered on this node
+    /// (docs/safety-scores.md), once it answered any.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub safety_scores: Option<SafetyScoreCounts>,
+}
+
+/// Counts of each safety score in fixed bins.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct SafetyScoreCounts {
+    pub non_preferred_log_ratio: ScoreCounts,
+    pub out_of_support: ScoreCounts,
 }
 
 /// `{"model_stats": [...]}`.
@@ -128,6 +140,10 @@ fn stat(stats: Statistics) -> ModelStat {
             success: InferDuration { count: stats.success, ns: stats.success_ns },
             fail: InferDuration { count: stats.fail, ns: stats.fail_ns },
         },
+        safety_scores: (stats.safety.0.total() + stats.safety.1.total() > 0).then(|| {
+            let (non_preferred_log_ratio, out_of_support) = stats.safety;
+            SafetyScoreCounts { non_preferred_log_ratio, out_of_support }
+        }),
     }
 }
 
