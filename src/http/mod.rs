@@ -59,7 +59,7 @@ pub use error::ApiError;
 /// event streams are exempt.
 pub const REQUEST_TIMEOUT: Duration = Duration::from_secs(30);
 
-const REQUEST_ID: HeaderName = HeaderName::from_static("x-request-id");
+pub(crate) const REQUEST_ID: HeaderName = HeaderName::from_static("x-request-id");
 
 /// What every handler can reach. The services in it (store, job runner, policy cache) are built
 /// and started by [`crate::server`]; this layer only uses them.

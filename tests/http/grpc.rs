@@ -164,6 +164,15 @@ async fn grpc_answers_the_inference_protocol_with_the_actions_rest_gives() {
         }
     }
 
+    // Every call has a request id, as REST's requests do: the client's, or a new one.
+    let mut call = tonic::Request::new(ServerLiveRequest {});
+    call.metadata_mut().insert("x-request-id", "agent-7-step-42".parse().unwrap());
+    let answer = client.server_live(call).await.unwrap();
+    assert_eq!(answer.metadata().get("x-request-id").unwrap(), "agent-7-step-42");
+    let answer = client.server_live(ServerLiveRequest {}).await.unwrap();
+    let generated = answer.metadata().get("x-request-id").expect("a request id").to_str().unwrap();
+    assert!(uuid::Uuid::parse_str(generated).is_ok(), "{generated}");
+
     // Metadata, configuration, readiness, as /v2 says them.
     assert!(client.server_live(ServerLiveRequest {}).await.unwrap().into_inner().live);
     assert!(client.server_ready(ServerReadyRequest {}).await.unwrap().into_inner().ready);
