@@ -12,6 +12,8 @@ pub const DEFAULT_MAX_UPLOAD_BYTES: u64 = 1 << 30;
 pub const DEFAULT_MAX_CONNECTIONS: u32 = 1024;
 /// A quarter of the connection slots: one address cannot take them all.
 pub const DEFAULT_MAX_CONNECTIONS_PER_ADDRESS: u32 = 256;
+/// `ModelStreamInfer` streams open at once: one per agent, as many as connections by default.
+pub const DEFAULT_GRPC_MAX_STREAMS: u32 = 1024;
 /// 4 GiB: about forty times what a default job (batch 512, two layers of 256) on a
 /// 100k-transition dataset needs, so only configurations far off the defaults meet it.
 pub const DEFAULT_MAX_JOB_MEMORY: u64 = 4 << 30;
@@ -58,6 +60,12 @@ pub struct ServeConfig {
     /// --bind does.
     #[arg(long, env = "SAFEDICE_GRPC_BIND")]
     pub grpc_bind: Option<SocketAddr>,
+
+    /// gRPC `ModelStreamInfer` streams open at once on this server (one per agent; they can
+    /// share connections, up to 200 per connection); one more is refused at once with
+    /// RESOURCE_EXHAUSTED, so it can retry or fall back to unary calls.
+    #[arg(long, env = "SAFEDICE_GRPC_MAX_STREAMS", default_value_t = DEFAULT_GRPC_MAX_STREAMS, value_parser = clap::value_parser!(u32).range(1..))]
+    pub grpc_max_streams: u32,
 
     /// Directory for the SQLite database and the stored datasets (with --database-url: only
     /// uploads in flight); created on first start.
@@ -204,6 +212,7 @@ impl std::fmt::Debug for ServeConfig {
         f.debug_struct("ServeConfig")
             .field("bind", &self.bind)
             .field("grpc_bind", &self.grpc_bind)
+            .field("grpc_max_streams", &self.grpc_max_streams)
             .field("data_dir", &self.data_dir)
             .field("database_url", &self.database_url.as_deref().map(crate::store::redact_url))
             .field("api_token", &redacted(&self.api_token))
@@ -318,6 +327,7 @@ impl ServeConfig {
         ServeConfig {
             bind: DEFAULT_BIND.parse().expect("default bind address parses"),
             grpc_bind: None,
+            grpc_max_streams: DEFAULT_GRPC_MAX_STREAMS,
             data_dir: data_dir.into(),
             database_url: None,
             api_token: None,

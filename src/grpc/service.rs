@@ -4,9 +4,11 @@
 use std::collections::HashMap;
 use std::future::Future;
 use std::pin::Pin;
+use std::sync::Arc;
 use std::time::Instant;
 
 use futures::Stream;
+use tokio::sync::{OwnedSemaphorePermit, Semaphore};
 use tonic::metadata::MetadataMap;
 use tonic::{Request, Response, Status, Streaming};
 
@@ -24,11 +26,25 @@ pub const REQUEST_KEY: &str = "x-safedice-request-key";
 /// The service, on the same state as the HTTP API.
 pub struct Inference {
     state: AppState,
+    /// One permit per open `ModelStreamInfer` stream (`--grpc-max-streams`).
+    streams: Arc<Semaphore>,
 }
 
 impl Inference {
     pub fn new(state: AppState) -> Self {
-        Inference { state }
+        let streams = Arc::new(Semaphore::new(state.config.grpc_max_streams as usize));
+        Inference { state, streams }
+    }
+
+    /// A stream's permit, held until the stream ends; RESOURCE_EXHAUSTED at the cap.
+    fn stream_permit(&self) -> Result<OwnedSemaphorePermit, Status> {
+        self.streams.clone().try_acquire_owned().map_err(|_| {
+            Status::resource_exhausted(format!(
+                "{} ModelStreamInfer streams are open on this server, its cap \
+                 (--grpc-max-streams): retry when one closes, or call ModelInfer",
+                self.state.config.grpc_max_streams
+            ))
+        })
     }
 
     /// Lets the call through if its `authorization: Bearer <token>` allows `required`.
@@ -243,12 +259,25 @@ impl GrpcInferenceService for Inference {
             observe::<()>(&self.state, "ModelStreamInfer", &Err(refused.clone()), Instant::now());
             return Err(refused);
         }
+        let permit = match self.stream_permit() {
+            Ok(permit) => permit,
+            Err(refused) => {
+                observe::<()>(
+                    &self.state,
+                    "ModelStreamInfer",
+                    &Err(refused.clone()),
+                    Instant::now(),
+                );
+                return Err(refused);
+            }
+        };
         let key = request_key(&metadata);
         let state = self.state.clone();
-        let stream = futures::stream::unfold(Some(incoming), move |incoming| {
+        // The permit lives in the stream's state: it is released when the stream is dropped.
+        let stream = futures::stream::unfold(Some((incoming, permit)), move |open| {
             let (state, key) = (state.clone(), key.clone());
             async move {
-                let mut incoming = incoming?;
+                let (mut incoming, permit) = open?;
                 let received = tokio::select! {
                     received = incoming.message() => received,
                     () = state.shutdown.cancelled() => return None,
@@ -278,7 +307,7 @@ impl GrpcInferenceService for Inference {
                         }),
                     },
                 };
-                Some((Ok(response), Some(incoming)))
+                Some((Ok(response), Some((incoming, permit))))
             }
         });
         Ok(Response::new(Box::pin(stream)))

@@ -359,6 +359,51 @@ async fn a_graceful_stop_ends_open_streams() {
     assert!(started.elapsed() < std::time::Duration::from_secs(10), "{:?}", started.elapsed());
 }
 
+/// An open stream whose requests the test has yet to send: its sender and its answers.
+async fn open_stream(
+    client: &mut Client,
+) -> Result<
+    (tokio::sync::mpsc::Sender<ModelInferRequest>, tonic::Streaming<ModelStreamInferResponse>),
+    tonic::Status,
+> {
+    let (sender, receiver) = tokio::sync::mpsc::channel::<ModelInferRequest>(1);
+    let outgoing =
+        futures::stream::unfold(receiver, |mut r| async { r.recv().await.map(|m| (m, r)) });
+    Ok((sender, client.model_stream_infer(outgoing).await?.into_inner()))
+}
+
+/// `--grpc-max-streams`: one stream over the cap is refused at once with RESOURCE_EXHAUSTED
+/// while the others go on; once one closes, a new one opens.
+#[tokio::test]
+async fn streams_over_the_cap_are_refused_at_once_until_one_closes() {
+    let app = spawn(|config| config.grpc_max_streams = 2).await;
+    let mut client = connect(&app).await;
+    let first = open_stream(&mut client).await.expect("the first stream opens");
+    let mut second = open_stream(&mut client).await.expect("the second stream opens");
+    let refused = open_stream(&mut client).await.expect_err("a third is over the cap");
+    assert_eq!(refused.code(), tonic::Code::ResourceExhausted, "{refused:?}");
+    assert!(refused.message().contains("--grpc-max-streams"), "{}", refused.message());
+    // The open ones still answer.
+    let live = ModelInferRequest { model_name: "no-such-model".into(), ..Default::default() };
+    second.0.send(live).await.unwrap();
+    let answer = second.1.message().await.unwrap().expect("an answer");
+    assert!(answer.error_message.contains("does not exist"), "{answer:?}");
+    // The client closes its first stream: its permit comes back once the server sees the end.
+    drop(first);
+    let mut reopened = None;
+    for _ in 0..100 {
+        match open_stream(&mut client).await {
+            Ok(stream) => {
+                reopened = Some(stream);
+                break;
+            }
+            Err(status) => assert_eq!(status.code(), tonic::Code::ResourceExhausted),
+        }
+        tokio::time::sleep(std::time::Duration::from_millis(20)).await;
+    }
+    assert!(reopened.is_some(), "no stream opened after one closed");
+}
+
 /// `message` with `authorization: Bearer <token>` when a token is given.
 fn with<T>(token: Option<&str>, message: T) -> tonic::Request<T> {
     let mut request = tonic::Request::new(message);
