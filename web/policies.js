@@ -131,16 +131,30 @@ function evaluationCard(policy, envs) {
   return card;
 }
 
+/** One row per observation: the safety scores of its action, past the alarm line (log-ratio
+ *  at or above 0, out-of-support at or above 1) marked. */
+function safetyTable(safety) {
+  const cell = (value, alarm) => h('td', { class: `num${value >= alarm ? ' safety-alarm-cell' : ''}` }, fmt(value));
+  return tableWrap(h('table', { id: 'act-safety' },
+    h('thead', {}, h('tr', {}, h('th', { class: 'num' }, 'Row'), h('th', { class: 'num' }, 'non_preferred_log_ratio'), h('th', { class: 'num' }, 'out_of_support'))),
+    h('tbody', {}, safety.non_preferred_log_ratio.map((ratio, i) => h('tr', { 'data-row': i },
+      h('td', { class: 'num' }, String(i + 1)), cell(ratio, 0), cell(safety.out_of_support[i], 1))))));
+}
+
 function actCard(policy) {
   const input = h('textarea', { id: 'act-input', spellcheck: 'false',
     placeholder: `One observation per line (${policy.obs_dim} numbers), or JSON like [${Array(Math.min(policy.obs_dim, 4)).fill(0).join(', ')}, …]` });
   input.value = Array(policy.obs_dim).fill(0).join(', ');
   const deterministic = h('input', { type: 'checkbox', id: 'act-deterministic', checked: true });
   const seed = h('input', { id: 'act-seed', placeholder: 'seed (sampling only)', inputmode: 'numeric', size: 20 });
+  // Only SafeDICE policies carry the discriminator the safety scores come from.
+  const safety = policy.algorithm === 'safedice' ? h('input', { type: 'checkbox', id: 'act-safety' }) : null;
   const output = h('div', { id: 'act-output' });
   const actButton = h('button', { type: 'submit', id: 'act-submit' }, 'Get actions');
   const actForm = h('form', { class: 'card', id: 'act-form' }, h('h2', {}, 'Try it: observations → actions'), input,
-    h('div', { class: 'form-actions wrap' }, actButton, h('label', {}, deterministic, ' deterministic'), seed), output);
+    h('div', { class: 'form-actions wrap' }, actButton, h('label', {}, deterministic, ' deterministic'), seed,
+      safety ? h('label', { title: 'the log-ratio of the action against the non-preferred demonstrations, and how far the observation is from the training data (docs/safety-scores.md)' }, safety, ' safety scores') : null),
+    output);
   actForm.addEventListener('submit', async (event) => {
     event.preventDefault();
     output.replaceChildren();
@@ -151,9 +165,11 @@ function actCard(policy) {
     }
     const body = { observations, deterministic: deterministic.checked };
     if (seed.value.trim()) body.seed = Number(seed.value.trim());
+    if (safety && safety.checked) body.safety_score = true;
     try {
       const result = await api(`/v1/policies/${policy.id}/act`, { method: 'POST', json: body });
-      output.replaceChildren(h('pre', { id: 'act-result' }, JSON.stringify(result.actions, null, 0).replace(/\],\[/g, '],\n[')));
+      output.replaceChildren(h('pre', { id: 'act-result' }, JSON.stringify(result.actions, null, 0).replace(/\],\[/g, '],\n[')),
+        result.safety ? safetyTable(result.safety) : null);
     } catch (err) {
       output.replaceChildren(errorBox(err, 'act-error'));
     }

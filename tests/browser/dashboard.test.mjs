@@ -639,6 +639,16 @@ test('the policy page turns pasted observations into the same actions as the API
   const direct = await post(`/v1/policies/${job.policy_id}/act`, { observations, deterministic: true });
   assert.equal(direct.status, 200);
   assert.deepEqual(shown, direct.body.actions);
+  // A SafeDICE policy also answers its safety scores, one row per observation, as the API does.
+  await page.check('#act-safety');
+  await page.click('#act-submit');
+  await page.waitForSelector('#act-safety tbody tr[data-row="1"]');
+  const scored = await post(`/v1/policies/${job.policy_id}/act`, { observations, deterministic: true, safety_score: true });
+  for (const [column, score] of [[2, 'non_preferred_log_ratio'], [3, 'out_of_support']]) {
+    const cells = await page.$$eval(`#act-safety tbody td:nth-child(${column})`, (tds) => tds.map((td) => td.textContent));
+    cells.forEach((text, i) => assert.ok(closeToShown(text, scored.body.safety[score][i], 4), `${score} row ${i}: ${text}`));
+  }
+  await page.uncheck('#act-safety');
   assert.match(await page.textContent('#snippet-curl'), new RegExp(`/v1/policies/${job.policy_id}/act`));
   assert.match(await page.textContent('#snippet-oip'), new RegExp(`/v2/models/${job.policy_id}/infer`));
   // A wrong width is answered with the server's message.
