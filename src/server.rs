@@ -15,6 +15,7 @@ use crate::http::connections::{self, ConnectionLimits, ConnectionSlots};
 use crate::http::{self, AppState, Serving};
 use crate::jobs::{JobRunner, WorkerOptions};
 use crate::serving::registry::ModelRegistry;
+use crate::serving::shadow::Shadows;
 use crate::serving::PolicyCache;
 use crate::store::Store;
 
@@ -77,7 +78,9 @@ impl Server {
         let jobs = JobRunner::new(store.clone(), options, shutdown.clone());
         jobs.start(true).await?;
         let policies = Arc::new(PolicyCache::new(store.clone(), config.policy_cache_bytes));
-        let models = Arc::new(ModelRegistry::new(store.clone(), policies.clone()));
+        let shadows = Shadows::start(store.clone());
+        shadows.clone().watch(shutdown.clone());
+        let models = Arc::new(ModelRegistry::new(store.clone(), policies.clone(), shadows));
         // The named models are loaded before the server answers, as a model repository does.
         if let Err(e) = models.refresh_all().await {
             tracing::error!(error = %e, "cannot load the named models; they load on first use");

@@ -16,6 +16,7 @@ pub mod options;
 pub mod policy;
 pub mod progress;
 pub mod protocol;
+pub mod shadow;
 pub mod telemetry;
 
 pub use attempt::{AttemptOutcome, JobAttempt, RetryBackoff};

@@ -180,11 +180,29 @@ pub struct Canary {
     pub basis_points: u32,
 }
 
+/// A version run beside an alias's answer on a share of its requests and compared with it,
+/// never returned (docs/shadow.md).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, ToSchema)]
+pub struct Shadow {
+    pub version: u32,
+    /// The share of requests shadowed, in basis points (1-10,000 of every 10,000 requests).
+    pub basis_points: u32,
+}
+
 /// Where an alias points.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct AliasTarget {
     pub version: u32,
     pub canary: Option<Canary>,
+    pub shadow: Option<Shadow>,
+}
+
+impl AliasTarget {
+    /// Every version the alias needs: its own, its canary's and its shadow's.
+    pub fn versions(&self) -> impl Iterator<Item = u32> {
+        let others = [self.canary.map(|c| c.version), self.shadow.map(|s| s.version)];
+        std::iter::once(self.version).chain(others.into_iter().flatten())
+    }
 }
 
 /// An alias of a model.

@@ -22,6 +22,7 @@ pub mod jobs;
 mod log_follower;
 pub mod model_names;
 pub mod model_serving;
+pub mod model_shadows;
 pub mod models;
 pub mod openapi;
 pub mod outage;
@@ -161,6 +162,7 @@ fn routes() -> OpenApiRouter<AppState> {
         .merge(results::router())
         .merge(models::router())
         .merge(model_serving::router())
+        .merge(model_shadows::router())
         .merge(inference::router())
         .layer(middleware::from_fn(timeout));
     // Routes that legitimately take long: uploads of up to --max-upload-bytes, event streams.

@@ -81,11 +81,8 @@ async fn act(
     request: ActRequest,
 ) -> Result<Response, ApiError> {
     let answer = state.serving.models.resolve(reference, key).await?;
-    let actions = answer.timed(act_on(answer.target.policy.clone(), request)).await?;
-    if let Some(scores) = &actions.safety {
-        answer.target.stats.safety.record_log_ratios(&scores.non_preferred_log_ratio);
-        answer.target.stats.safety.record_support(&scores.out_of_support);
-    }
+    let actions =
+        answer.timed(act_on(answer.target.policy.clone(), Some(&answer), request)).await?;
     let mut response = Json(actions).into_response();
     tag_version(&mut response, &answer);
     Ok(response)

@@ -16,7 +16,7 @@ use super::{ApiError, AppState};
 use crate::domain::labels::{check_tag, TagSchema, MAX_TAGS};
 use crate::domain::model::{
     self, AliasMove, AliasRecord, AliasTarget, Canary, ModelRecord, ModelVersionRecord, MoveNote,
-    BASIS_POINTS, MAX_ACTOR_CHARS, MAX_DESCRIPTION_CHARS,
+    Shadow, BASIS_POINTS, MAX_ACTOR_CHARS, MAX_DESCRIPTION_CHARS,
 };
 use crate::domain::{rfc3339, PolicyId};
 use crate::store::models::{NewModel, NewVersion};
@@ -77,7 +77,30 @@ pub struct Alias {
     pub version: u32,
     /// Another version answering a share of the alias's requests.
     pub canary: Option<CanaryShare>,
+    /// Another version run beside the alias's answer on a share of its requests and compared
+    /// with it, never returned (`GET /v1/models/{name}/shadow`).
+    pub shadow: Option<ShadowShare>,
     pub updated_at: String,
+}
+
+/// A shadow: `version` acts on `sample` of the alias's requests off the response path, and its
+/// actions are compared with the ones returned.
+#[derive(Clone, Copy, Debug, Serialize, Deserialize, ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct ShadowShare {
+    pub version: u32,
+    /// The share of requests shadowed, 0.0001-1 (kept in steps of 0.0001).
+    #[schema(minimum = 0.0001, maximum = 1.0)]
+    pub sample: f64,
+}
+
+impl From<Shadow> for ShadowShare {
+    fn from(s: Shadow) -> Self {
+        ShadowShare {
+            version: s.version,
+            sample: f64::from(s.basis_points) / f64::from(BASIS_POINTS),
+        }
+    }
 }
 
 /// A canary: `version` answers `weight` of the requests (the same requests every time when
@@ -106,6 +129,7 @@ impl From<AliasRecord> for Alias {
             alias: a.alias,
             version: a.target.version,
             canary: a.target.canary.map(Into::into),
+            shadow: a.target.shadow.map(Into::into),
             updated_at: rfc3339(&a.updated_at),
         }
     }
@@ -198,6 +222,11 @@ pub struct SetAlias {
     /// Another version answering a share of the requests (absent, or the alias's own version:
     /// none).
     pub canary: Option<CanaryShare>,
+    /// Another version to run beside the alias's answer on a share of its requests and compare
+    /// with it (absent, or the alias's own version: none). It must take the same observations
+    /// and give the same kind of action (422 `invalid_shadow` otherwise). A move without it
+    /// ends the shadow.
+    pub shadow: Option<ShadowShare>,
     /// Who moves it, for the history (default `api`), at most 200 characters.
     #[schema(
         pattern = r"^[^\x00-\x1f\x7f-\x9f\u061c\u200e\u200f\u202a-\u202e\u2066-\u2069]*[^\s\x00-\x1f\x7f-\x9f\u061c\u200e\u200f\u202a-\u202e\u2066-\u2069][^\x00-\x1f\x7f-\x9f\u061c\u200e\u200f\u202a-\u202e\u2066-\u2069]*$",
@@ -247,6 +276,10 @@ pub struct AliasMoveResource {
     /// Where it points after (absent: it was deleted).
     pub to_version: Option<u32>,
     pub canary: Option<CanaryShare>,
+    /// The shadow it had before.
+    pub from_shadow: Option<ShadowShare>,
+    /// The shadow it has after.
+    pub shadow: Option<ShadowShare>,
     pub actor: String,
     pub reason: Option<String>,
     pub moved_at: String,
@@ -258,9 +291,11 @@ impl From<AliasMove> for AliasMoveResource {
             seq: m.seq,
             alias: m.alias,
             from_version: m.from.as_ref().map(|t| t.version),
-            from_canary: m.from.and_then(|t| t.canary).map(Into::into),
+            from_canary: m.from.as_ref().and_then(|t| t.canary).map(Into::into),
+            from_shadow: m.from.and_then(|t| t.shadow).map(Into::into),
             to_version: m.to.as_ref().map(|t| t.version),
-            canary: m.to.and_then(|t| t.canary).map(Into::into),
+            canary: m.to.as_ref().and_then(|t| t.canary).map(Into::into),
+            shadow: m.to.and_then(|t| t.shadow).map(Into::into),
             actor: m.actor,
             reason: m.reason,
             moved_at: rfc3339(&m.moved_at),
@@ -592,6 +627,21 @@ fn canary_of(share: Option<CanaryShare>) -> Result<Option<Canary>, ApiError> {
     Ok(Some(Canary { version: share.version, basis_points: basis_points as u32 }))
 }
 
+fn shadow_of(share: Option<ShadowShare>) -> Result<Option<Shadow>, ApiError> {
+    let Some(share) = share else { return Ok(None) };
+    let basis_points = (share.sample * f64::from(BASIS_POINTS)).round();
+    if !(1.0..=f64::from(BASIS_POINTS)).contains(&basis_points) {
+        return Err(ApiError::unprocessable(
+            "invalid_shadow",
+            format!(
+                "shadow.sample must be between 0.0001 and 1 (a share of the requests), got {}",
+                share.sample
+            ),
+        ));
+    }
+    Ok(Some(Shadow { version: share.version, basis_points: basis_points as u32 }))
+}
+
 /// Point an alias at a version (creating the alias), optionally with a canary version for a
 /// share of the requests. The versions' policies are loaded before the move commits, and this
 /// server answers from the new version as soon as the call returns; the other API nodes of a
@@ -605,7 +655,9 @@ fn canary_of(share: Option<CanaryShare>) -> Result<Option<Canary>, ApiError> {
             or a new alias's name differs from an existing one's only by case (`alias_exists`)",
          body = ErrorBody),
         (status = 422, description = "A bad alias name (`invalid_name`), canary \
-            (`invalid_canary`) or actor (`invalid_model`)", body = ErrorBody),
+            (`invalid_canary`), shadow (`invalid_shadow`: its share, or a version that takes \
+            other observations or gives another kind of action) or actor (`invalid_model`)",
+         body = ErrorBody),
     ))]
 async fn set_alias(
     State(state): State<AppState>,
@@ -617,7 +669,8 @@ async fn set_alias(
     // A canary of the alias's own version splits nothing: it is no canary (the schema cannot
     // say "another version", so it is not refused).
     let canary = canary_of(request.canary)?.filter(|c| c.version != request.version);
-    let target = AliasTarget { version: request.version, canary };
+    let shadow = shadow_of(request.shadow)?.filter(|s| s.version != request.version);
+    let target = AliasTarget { version: request.version, canary, shadow };
     let note = note(request.actor, request.reason, request.expected_version)?;
     // Versions that do not exist are 404 before anything else is said of them.
     preload(&state, &path.name, &target).await?;
@@ -629,13 +682,52 @@ async fn set_alias(
 }
 
 /// Loads the policies of the versions an alias will point at, so that a policy that cannot be
-/// served is refused before the move (and loading takes no request's time after it).
+/// served is refused before the move (and loading takes no request's time after it); a shadow
+/// must act on what the alias's version acts on.
 async fn preload(state: &AppState, model: &str, target: &AliasTarget) -> Result<(), ApiError> {
-    for version in std::iter::once(target.version).chain(target.canary.map(|c| c.version)) {
+    let mut main = None;
+    for version in target.versions() {
         let record = state.store.model_version(model, version).await?;
-        state.serving.policies.get(record.policy_id.as_str()).await?;
+        let policy = state.serving.policies.get(record.policy_id.as_str()).await?;
+        main.get_or_insert_with(|| policy.clone());
+        if target.shadow.is_some_and(|s| s.version == version) {
+            let main = main.as_ref().expect("the alias's version comes first");
+            check_shadow(main.spec(), policy.spec(), target.version, version)?;
+        }
     }
     Ok(())
+}
+
+/// A shadow is compared action for action: it must take the same observations and give the
+/// same kind of action as the version it shadows.
+fn check_shadow(
+    main: &crate::algo::PolicySpec,
+    shadow: &crate::algo::PolicySpec,
+    version: u32,
+    shadow_version: u32,
+) -> Result<(), ApiError> {
+    let (kind, shadow_kind) = (action_kind(&main.action_space), action_kind(&shadow.action_space));
+    if main.obs_dim == shadow.obs_dim && kind == shadow_kind {
+        return Ok(());
+    }
+    Err(ApiError::unprocessable(
+        "invalid_shadow",
+        format!(
+            "version {shadow_version} takes {} observation values and gives {}; version \
+             {version} takes {} and gives {}: a shadow must act on the same observations, with \
+             the same kind of action, to be compared",
+            shadow.obs_dim, shadow_kind, main.obs_dim, kind
+        ),
+    ))
+}
+
+/// The kind of action a policy gives (its box's bounds aside: actions in other units still
+/// compare).
+fn action_kind(space: &crate::data::ActionSpace) -> String {
+    match space {
+        crate::data::ActionSpace::Continuous { dim, .. } => format!("{dim}-dimensional actions"),
+        crate::data::ActionSpace::Discrete { n } => format!("one of {n} discrete actions"),
+    }
 }
 
 /// Delete an alias (recorded in the history); agents addressing it get 404 from then on.

@@ -241,5 +241,5 @@ async fn act(
     StraightJson(request): StraightJson<ActRequest>,
 ) -> Result<Json<ActResponse>, ApiError> {
     let policy = state.serving.policies.get(&id).await?;
-    Ok(Json(act_on(policy, request).await?))
+    Ok(Json(act_on(policy, None, request).await?))
 }

@@ -9,11 +9,13 @@ use std::sync::Arc;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
-use super::registry::ResolveError;
+use super::registry::{Answer, ResolveError};
+use super::shadow::Comparison;
 use super::PolicyLoadError;
 use crate::algo::safety::SafetyScores;
 use crate::algo::Policy;
 use crate::data::Actions;
+use crate::domain::shadow::ComparisonKey;
 
 /// Largest batch one request may send.
 pub const MAX_BATCH_ROWS: usize = 16_384;
@@ -183,6 +185,48 @@ pub async fn act(
             .await
             .map_err(|e| ServeError::Internal(anyhow::anyhow!("policy inference failed: {e}")))?
     }
+}
+
+/// [`act`] for a named model's answer: the answering version acts, the safety scores it answers
+/// are counted in its statistics, and when the request was drawn for the alias's shadow, the
+/// shadow gets a copy of the observations and the actions returned, to run off the response path
+/// ([`super::shadow`]). A sampled request without a seed gets one drawn here, so both versions
+/// draw the same noise.
+pub async fn act_answer(
+    answer: &Answer,
+    observations: Observations,
+    mut options: ActOptions,
+) -> Result<Acted, ServeError> {
+    let shadowed = answer.shadow.as_ref().map(|_| observations.values.clone());
+    if shadowed.is_some() && !options.deterministic && options.seed.is_none() {
+        options.seed = Some(rand::random::<u64>() >> 1);
+    }
+    let acted = act(answer.target.policy.clone(), observations, options).await?;
+    if let Some(scores) = &acted.safety {
+        answer.target.stats.safety.record_log_ratios(&scores.non_preferred_log_ratio);
+        answer.target.stats.safety.record_support(&scores.out_of_support);
+    }
+    if let (Some(draw), Some(observations)) = (&answer.shadow, shadowed) {
+        let key = ComparisonKey {
+            model: answer.model.clone(),
+            alias: draw.alias.clone(),
+            production_version: answer.target.version,
+            shadow_version: draw.version,
+        };
+        match &draw.policy {
+            Some(shadow) => draw.shadows.submit(Comparison {
+                key,
+                shadow: shadow.clone(),
+                production: answer.target.policy.clone(),
+                observations,
+                production_actions: acted.actions.clone(),
+                deterministic: options.deterministic,
+                seed: options.seed.unwrap_or(0),
+            }),
+            None => draw.shadows.skip(key),
+        }
+    }
+    Ok(acted)
 }
 
 /// The answer to a safety score the policy cannot give.

@@ -17,7 +17,7 @@
 use std::future::Future;
 use std::sync::Arc;
 
-use super::act::{act, safety_unavailable, ActOptions, Observations, ServeError};
+use super::act::{act, act_answer, safety_unavailable, ActOptions, Observations, ServeError};
 use super::registry::{Answer, VersionStats};
 use super::tally::ScoreCounts;
 use super::Serving;
@@ -329,17 +329,16 @@ pub async fn infer(
     shape[0] = rows;
     let safety_score = wanted.iter().any(|n| SAFETY_OUTPUTS.contains(n));
     let options = ActOptions { deterministic, seed, safety_score };
-    let acted = act(policy, observations, options).await?;
+    let acted = match &served.answer {
+        Some((answer, _)) => act_answer(answer, observations, options).await?,
+        None => act(policy, observations, options).await?,
+    };
     let mut actions = Some(match acted.actions {
         Actions::Continuous(values) => OutputData::Fp32(values),
         Actions::Discrete(indices) => {
             OutputData::Int64(indices.into_iter().map(i64::from).collect())
         }
     });
-    if let (Some(scores), Some((answer, _))) = (&acted.safety, &served.answer) {
-        answer.target.stats.safety.record_log_ratios(&scores.non_preferred_log_ratio);
-        answer.target.stats.safety.record_support(&scores.out_of_support);
-    }
     let mut safety = acted.safety.map(|s| [s.non_preferred_log_ratio, s.out_of_support]);
     let outputs = wanted.iter().map(|&name| {
         if name == OUTPUT_NAME {

@@ -7,6 +7,7 @@
 pub mod act;
 pub mod inference;
 pub mod registry;
+pub mod shadow;
 pub mod tally;
 
 use std::collections::HashMap;
@@ -158,6 +159,12 @@ impl PolicyCache {
         drop(slots);
         drop(ticket);
         Ok(policy)
+    }
+
+    /// The policy `id` if this process holds it now; never loads it.
+    pub fn get_loaded(&self, id: &str) -> Option<Arc<Policy>> {
+        let slots = self.slots.read().expect("policy cache lock");
+        slots.loaded.get(id).or_else(|| slots.alive.get(id).and_then(|(w, _)| w.upgrade()))
     }
 
     /// Drops a deleted policy, so this process stops serving it, and marks the loads of it

@@ -21,6 +21,7 @@ use std::time::{Duration, Instant};
 
 use tokio_util::sync::CancellationToken;
 
+use super::shadow::Shadows;
 use super::{PolicyCache, PolicyLoadError};
 use crate::algo::Policy;
 use crate::domain::model::{AliasTarget, ModelRef, ModelRoutes, Selector, BASIS_POINTS};
@@ -82,6 +83,8 @@ struct Route {
 struct AliasRoute {
     main: Route,
     canary: Option<(Route, u32)>,
+    /// The shadow's version and its share of requests, in basis points.
+    shadow: Option<(Route, u32)>,
 }
 
 /// One model's routing table, of one revision.
@@ -92,10 +95,22 @@ struct Deployed {
     versions: BTreeMap<u32, PolicyId>,
 }
 
-/// What answers a request: the model's name and the version chosen, with its policy.
+/// What answers a request: the model's name and the version chosen, with its policy; and the
+/// alias's shadow when this request was drawn for it.
 pub struct Answer {
     pub model: String,
     pub target: Target,
+    pub shadow: Option<ShadowDraw>,
+}
+
+/// A request drawn for an alias's shadow.
+pub struct ShadowDraw {
+    pub alias: String,
+    pub version: u32,
+    /// Its policy, when the cache holds it (a shadow never loads one on the request's time:
+    /// without it the comparison is skipped and counted).
+    pub policy: Option<Arc<Policy>>,
+    pub shadows: Arc<Shadows>,
 }
 
 impl Answer {
@@ -146,6 +161,7 @@ pub struct ModelRegistry {
     store: Store,
     policies: Arc<PolicyCache>,
     tables: RwLock<HashMap<String, Arc<Deployed>>>,
+    shadows: Arc<Shadows>,
     unloaded: Mutex<HashSet<String>>,
     stats: Mutex<HashMap<(String, u32), Arc<VersionStats>>>,
     /// When a request last made this process look in the store for a name it did not know.
@@ -153,11 +169,12 @@ pub struct ModelRegistry {
 }
 
 impl ModelRegistry {
-    pub fn new(store: Store, policies: Arc<PolicyCache>) -> Self {
+    pub fn new(store: Store, policies: Arc<PolicyCache>, shadows: Arc<Shadows>) -> Self {
         ModelRegistry {
             store,
             policies,
             tables: RwLock::new(HashMap::new()),
+            shadows,
             unloaded: Mutex::new(HashSet::new()),
             stats: Mutex::new(HashMap::new()),
             miss_checked: Mutex::new(HashMap::new()),
@@ -225,6 +242,7 @@ impl ModelRegistry {
         let table = self
             .table(model)
             .ok_or_else(|| ResolveError::NotFound(format!("model {model} does not exist")))?;
+        let mut shadow = None;
         let route = match &reference.selector {
             Selector::Latest => table.latest.clone().ok_or_else(|| {
                 ResolveError::NotFound(format!("model {model} has no version yet"))
@@ -233,7 +251,9 @@ impl ModelRegistry {
                 let route = table.aliases.get(alias).ok_or_else(|| {
                     ResolveError::NotFound(format!("model {model} has no alias {alias}"))
                 })?;
-                pick(route, key).clone()
+                let picked = pick(route, key).clone();
+                shadow = self.draw_shadow(alias, route, &picked);
+                picked
             }
             Selector::Version(version) => {
                 let policy_id = table.versions.get(version).ok_or_else(|| {
@@ -242,7 +262,34 @@ impl ModelRegistry {
                 self.route(model, *version, policy_id)
             }
         };
-        Ok(Answer { model: model.clone(), target: self.target(route).await? })
+        Ok(Answer { model: model.clone(), target: self.target(route).await?, shadow })
+    }
+
+    /// The alias's shadow for this request, for its share of requests (drawn at random, apart
+    /// from the canary's key) unless the shadow's version is the one answering.
+    fn draw_shadow(
+        &self,
+        alias: &str,
+        route: &AliasRoute,
+        answering: &Route,
+    ) -> Option<ShadowDraw> {
+        let (shadow, basis_points) = route.shadow.as_ref()?;
+        if shadow.version == answering.version
+            || rand::random_range(0..BASIS_POINTS) >= *basis_points
+        {
+            return None;
+        }
+        Some(ShadowDraw {
+            alias: alias.to_owned(),
+            version: shadow.version,
+            policy: self.policies.get_loaded(shadow.policy_id.as_str()),
+            shadows: self.shadows.clone(),
+        })
+    }
+
+    /// The shadows' runner of this process.
+    pub fn shadows(&self) -> &Arc<Shadows> {
+        &self.shadows
     }
 
     /// A table's version with its policy, from the cache (loaded again if it was evicted).
@@ -290,16 +337,21 @@ impl ModelRegistry {
         let model = &routes.name;
         let latest = versions.last_key_value().map(|(&v, id)| self.route(model, v, id));
         let mut aliases = HashMap::new();
-        for (alias, AliasTarget { version, canary }) in &routes.aliases {
+        for (alias, AliasTarget { version, canary, shadow }) in &routes.aliases {
             let main = self.route_of(model, &versions, *version)?;
             let canary = match canary {
                 Some(c) => Some((self.route_of(model, &versions, c.version)?, c.basis_points)),
                 None => None,
             };
-            aliases.insert(alias.clone(), AliasRoute { main, canary });
+            let shadow = match shadow {
+                Some(s) => Some((self.route_of(model, &versions, s.version)?, s.basis_points)),
+                None => None,
+            };
+            aliases.insert(alias.clone(), AliasRoute { main, canary, shadow });
         }
         let routed = latest.iter().chain(aliases.values().flat_map(|route| {
-            std::iter::once(&route.main).chain(route.canary.as_ref().map(|(c, _)| c))
+            let others = [&route.canary, &route.shadow];
+            std::iter::once(&route.main).chain(others.into_iter().flatten().map(|(r, _)| r))
         }));
         let policies: BTreeSet<&PolicyId> = routed.map(|route| &route.policy_id).collect();
         for policy_id in policies {

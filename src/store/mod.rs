@@ -32,6 +32,7 @@ pub mod logs;
 pub mod model_aliases;
 pub mod models;
 pub mod policies;
+pub mod shadows;
 pub mod storage;
 #[cfg(test)]
 mod test_support;

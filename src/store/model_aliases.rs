@@ -4,7 +4,7 @@
 use sqlx::{Any, Transaction};
 
 use super::{parse_time, Store, StoreError};
-use crate::domain::model::{AliasMove, AliasTarget, Canary, MoveNote};
+use crate::domain::model::{AliasMove, AliasTarget, Canary, MoveNote, Shadow};
 
 /// The PostgreSQL notification channel of model changes; the payload is the model's name.
 pub const MODELS_CHANNEL: &str = "safedice_models";
@@ -19,6 +19,10 @@ struct MoveRow {
     to_version: Option<i64>,
     to_canary_version: Option<i64>,
     to_canary_basis_points: Option<i64>,
+    from_shadow_version: Option<i64>,
+    from_shadow_basis_points: Option<i64>,
+    to_shadow_version: Option<i64>,
+    to_shadow_basis_points: Option<i64>,
     actor: String,
     reason: Option<String>,
     moved_at: String,
@@ -29,6 +33,7 @@ impl MoveRow {
         let to = self.to_version.map(|version| AliasTarget {
             version: version as u32,
             canary: canary(self.to_canary_version, self.to_canary_basis_points),
+            shadow: shadow(self.to_shadow_version, self.to_shadow_basis_points),
         });
         Ok(AliasMove {
             moved_at: parse_time(&format!("model {model} move {}", self.seq), &self.moved_at)?,
@@ -37,6 +42,7 @@ impl MoveRow {
             from: self.from_version.map(|version| AliasTarget {
                 version: version as u32,
                 canary: canary(self.from_canary_version, self.from_canary_basis_points),
+                shadow: shadow(self.from_shadow_version, self.from_shadow_basis_points),
             }),
             to,
             actor: self.actor,
@@ -122,8 +128,33 @@ impl Store {
 }
 
 const MOVE_COLUMNS: &str = "seq, alias, from_version, from_canary_version, \
-     from_canary_basis_points, to_version, to_canary_version, to_canary_basis_points, actor, \
-     reason, moved_at";
+     from_canary_basis_points, to_version, to_canary_version, to_canary_basis_points, \
+     from_shadow_version, from_shadow_basis_points, to_shadow_version, to_shadow_basis_points, \
+     actor, reason, moved_at";
+
+/// Where an alias points, as `model_aliases` keeps it.
+#[derive(sqlx::FromRow)]
+pub(super) struct TargetColumns {
+    pub version: i64,
+    pub canary_version: Option<i64>,
+    pub canary_basis_points: Option<i64>,
+    pub shadow_version: Option<i64>,
+    pub shadow_basis_points: Option<i64>,
+}
+
+/// The columns of [`TargetColumns`] in a `SELECT`.
+pub(super) const TARGET_COLUMNS: &str =
+    "version, canary_version, canary_basis_points, shadow_version, shadow_basis_points";
+
+impl TargetColumns {
+    pub fn target(&self) -> AliasTarget {
+        AliasTarget {
+            version: self.version as u32,
+            canary: canary(self.canary_version, self.canary_basis_points),
+            shadow: shadow(self.shadow_version, self.shadow_basis_points),
+        }
+    }
+}
 
 /// Points `alias` at `target` (None: deletes it) inside the caller's transaction and records the
 /// move; returns the move's `seq`.
@@ -162,16 +193,16 @@ pub(super) async fn set_alias_in(
     note: &MoveNote,
 ) -> Result<u64, StoreError> {
     let seq = bump(tx, model).await?;
-    let from: Option<(i64, Option<i64>, Option<i64>)> = sqlx::query_as(
-        "SELECT version, canary_version, canary_basis_points FROM model_aliases \
-         WHERE model = $1 AND alias = $2",
-    )
+    let from: Option<TargetColumns> = sqlx::query_as(&format!(
+        "SELECT {TARGET_COLUMNS} FROM model_aliases WHERE model = $1 AND alias = $2"
+    ))
     .bind(model)
     .bind(alias)
     .fetch_optional(&mut **tx)
     .await?;
+    let from = from.map(|row| row.target());
     if let Some(expected) = note.expected_version {
-        let current = from.map(|(version, _, _)| version as u32);
+        let current = from.as_ref().map(|t| t.version);
         if current != Some(expected) {
             let now =
                 current.map_or("does not exist".to_owned(), |v| format!("points at version {v}"));
@@ -190,15 +221,18 @@ pub(super) async fn set_alias_in(
     let now = super::now();
     match target {
         Some(target) => {
-            for version in std::iter::once(target.version).chain(target.canary.map(|c| c.version)) {
+            for version in target.versions() {
                 check_version(tx, model, version).await?;
             }
             sqlx::query(
                 "INSERT INTO model_aliases (model, alias, version, canary_version, \
-                     canary_basis_points, updated_at) VALUES ($1, $2, $3, $4, $5, $6) \
+                     canary_basis_points, shadow_version, shadow_basis_points, updated_at) \
+                 VALUES ($1, $2, $3, $4, $5, $6, $7, $8) \
                  ON CONFLICT (model, alias) DO UPDATE SET version = excluded.version, \
                      canary_version = excluded.canary_version, \
                      canary_basis_points = excluded.canary_basis_points, \
+                     shadow_version = excluded.shadow_version, \
+                     shadow_basis_points = excluded.shadow_basis_points, \
                      updated_at = excluded.updated_at",
             )
             .bind(model)
@@ -206,6 +240,8 @@ pub(super) async fn set_alias_in(
             .bind(i64::from(target.version))
             .bind(target.canary.map(|c| i64::from(c.version)))
             .bind(target.canary.map(|c| i64::from(c.basis_points)))
+            .bind(target.shadow.map(|c| i64::from(c.version)))
+            .bind(target.shadow.map(|c| i64::from(c.basis_points)))
             .bind(&now)
             .execute(&mut **tx)
             .await?;
@@ -224,18 +260,23 @@ pub(super) async fn set_alias_in(
     sqlx::query(
         "INSERT INTO model_alias_moves (model, seq, alias, from_version, from_canary_version, \
              from_canary_basis_points, to_version, to_canary_version, to_canary_basis_points, \
-             actor, reason, moved_at) \
-         VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10, $11, $12)",
+             from_shadow_version, from_shadow_basis_points, to_shadow_version, \
+             to_shadow_basis_points, actor, reason, moved_at) \
+         VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10, $11, $12, $13, $14, $15, $16)",
     )
     .bind(model)
     .bind(seq as i64)
     .bind(alias)
-    .bind(from.map(|(version, _, _)| version))
-    .bind(from.and_then(|(_, version, _)| version))
-    .bind(from.and_then(|(_, _, basis_points)| basis_points))
+    .bind(from.as_ref().map(|t| i64::from(t.version)))
+    .bind(from.as_ref().and_then(|t| t.canary).map(|c| i64::from(c.version)))
+    .bind(from.as_ref().and_then(|t| t.canary).map(|c| i64::from(c.basis_points)))
     .bind(target.map(|t| i64::from(t.version)))
     .bind(target.and_then(|t| t.canary).map(|c| i64::from(c.version)))
     .bind(target.and_then(|t| t.canary).map(|c| i64::from(c.basis_points)))
+    .bind(from.as_ref().and_then(|t| t.shadow).map(|c| i64::from(c.version)))
+    .bind(from.as_ref().and_then(|t| t.shadow).map(|c| i64::from(c.basis_points)))
+    .bind(target.and_then(|t| t.shadow).map(|c| i64::from(c.version)))
+    .bind(target.and_then(|t| t.shadow).map(|c| i64::from(c.basis_points)))
     .bind(&note.actor)
     .bind(note.reason.as_deref())
     .bind(&now)
@@ -261,6 +302,10 @@ async fn check_version(
 
 pub(super) fn canary(version: Option<i64>, basis_points: Option<i64>) -> Option<Canary> {
     Some(Canary { version: version? as u32, basis_points: basis_points? as u32 })
+}
+
+fn shadow(version: Option<i64>, basis_points: Option<i64>) -> Option<Shadow> {
+    Some(Shadow { version: version? as u32, basis_points: basis_points? as u32 })
 }
 
 pub(super) fn model_not_found(name: &str) -> StoreError {

@@ -8,7 +8,9 @@
 use sqlx::{Any, Transaction};
 
 pub use super::model_aliases::MODELS_CHANNEL;
-use super::model_aliases::{bump, canary, model_not_found, version_not_found};
+use super::model_aliases::{
+    bump, model_not_found, version_not_found, TargetColumns, TARGET_COLUMNS,
+};
 use super::{parse_time, Listing, PageQuery, Store, StoreError};
 use crate::domain::job::JobStatus;
 use crate::domain::model::{
@@ -53,9 +55,8 @@ const MODEL_COLUMNS: &str = "name, description, tags, created_at, updated_at, \
 #[derive(sqlx::FromRow)]
 struct AliasRow {
     alias: String,
-    version: i64,
-    canary_version: Option<i64>,
-    canary_basis_points: Option<i64>,
+    #[sqlx(flatten)]
+    target: TargetColumns,
     updated_at: String,
 }
 
@@ -81,10 +82,7 @@ const VERSIONS: &str = "model_versions JOIN policies AS p ON p.id = model_versio
 impl AliasRow {
     fn into_record(self, model: &str) -> Result<AliasRecord, StoreError> {
         Ok(AliasRecord {
-            target: AliasTarget {
-                version: self.version as u32,
-                canary: canary(self.canary_version, self.canary_basis_points),
-            },
+            target: self.target.target(),
             updated_at: parse_time(&format!("alias {model}@{}", self.alias), &self.updated_at)?,
             alias: self.alias,
         })
@@ -184,10 +182,10 @@ impl Store {
     }
 
     async fn aliases(&self, model: &str) -> Result<Vec<AliasRecord>, StoreError> {
-        let rows: Vec<AliasRow> = sqlx::query_as(
-            "SELECT alias, version, canary_version, canary_basis_points, updated_at \
-             FROM model_aliases WHERE model = $1 ORDER BY alias",
-        )
+        let rows: Vec<AliasRow> = sqlx::query_as(&format!(
+            "SELECT alias, {TARGET_COLUMNS}, updated_at FROM model_aliases WHERE model = $1 \
+             ORDER BY alias"
+        ))
         .bind(model)
         .fetch_all(self.pool())
         .await?;
@@ -277,7 +275,8 @@ impl Store {
         .bind(name)
         .execute(&mut *tx)
         .await?;
-        for table in ["model_alias_moves", "model_aliases", "model_versions", "models"] {
+        let tables = ["shadow_comparisons", "model_alias_moves", "model_aliases", "model_versions"];
+        for table in tables.into_iter().chain(["models"]) {
             let column = if table == "models" { "name" } else { "model" };
             sqlx::query(&format!("DELETE FROM {table} WHERE {column} = $1"))
                 .bind(name)
@@ -349,7 +348,7 @@ impl Store {
         bump(&mut tx, model).await?;
         let aliases: Vec<String> = sqlx::query_scalar(
             "SELECT alias FROM model_aliases WHERE model = $1 \
-             AND (version = $2 OR canary_version = $2) ORDER BY alias",
+             AND (version = $2 OR canary_version = $2 OR shadow_version = $2) ORDER BY alias",
         )
         .bind(model)
         .bind(i64::from(version))
@@ -401,10 +400,10 @@ impl Store {
         .bind(name)
         .fetch_all(&mut *tx)
         .await?;
-        let aliases: Vec<AliasRow> = sqlx::query_as(
-            "SELECT alias, version, canary_version, canary_basis_points, updated_at \
-             FROM model_aliases WHERE model = $1 ORDER BY alias",
-        )
+        let aliases: Vec<AliasRow> = sqlx::query_as(&format!(
+            "SELECT alias, {TARGET_COLUMNS}, updated_at FROM model_aliases WHERE model = $1 \
+             ORDER BY alias"
+        ))
         .bind(name)
         .fetch_all(&mut *tx)
         .await?;
@@ -413,16 +412,7 @@ impl Store {
             name: name.to_owned(),
             revision: revision as u64,
             versions: versions.into_iter().map(|(v, policy)| (v as u32, policy.into())).collect(),
-            aliases: aliases
-                .into_iter()
-                .map(|row| {
-                    let target = AliasTarget {
-                        version: row.version as u32,
-                        canary: canary(row.canary_version, row.canary_basis_points),
-                    };
-                    (row.alias, target)
-                })
-                .collect(),
+            aliases: aliases.into_iter().map(|row| (row.alias, row.target.target())).collect(),
         }))
     }
 }
@@ -496,7 +486,7 @@ pub(super) async fn register_in(
     .await?;
     let number = number as u32;
     if let Some((alias, note)) = version.alias {
-        let target = AliasTarget { version: number, canary: None };
+        let target = AliasTarget { version: number, canary: None, shadow: None };
         super::model_aliases::set_alias_in(tx, store, version.model, alias, Some(&target), note)
             .await?;
     } else {

@@ -41,4 +41,5 @@ mod ops;
 mod resources;
 mod restart;
 mod safety;
+mod shadow;
 mod ui;

@@ -1,0 +1,259 @@
+//! Shadow versions (docs/shadow.md): for a share of an alias's requests, another version acts on
+//! the same observations off the response path, and its actions are compared with the ones
+//! returned. The answer never waits for it: the request hands a copy of its observations to a
+//! bounded queue and goes on; one thread of its own runs the shadows, so they take at most one
+//! core and never a runtime worker; a full queue skips the comparison (counted) rather than
+//! growing. Counts are summed per minute here and added to the store every [`FLUSH`], where the
+//! nodes of a fleet add to the same rows.
+
+use std::collections::HashMap;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::mpsc::{sync_channel, Receiver, SyncSender, TrySendError};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use chrono::{DateTime, DurationRound, TimeDelta, Utc};
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use tokio_util::sync::CancellationToken;
+
+use crate::algo::Policy;
+use crate::data::Actions;
+use crate::domain::shadow::{ComparisonCounts, ComparisonKey};
+use crate::store::shadows::ComparisonDelta;
+use crate::store::{Store, StoreError};
+
+/// Comparisons waiting for the shadow thread; one more is skipped.
+pub const QUEUE: usize = 1024;
+/// How often this process adds its counts to the store.
+pub const FLUSH: Duration = Duration::from_secs(5);
+
+/// One request's comparison to run: the observations as production saw them, the actions it
+/// returned, and how it acted (a sampled request's seed is shared, so both versions draw the same
+/// noise and the difference is the policies').
+pub struct Comparison {
+    pub key: ComparisonKey,
+    pub shadow: Arc<Policy>,
+    pub production: Arc<Policy>,
+    pub observations: Vec<f32>,
+    pub production_actions: Actions,
+    pub deterministic: bool,
+    pub seed: u64,
+}
+
+/// Counts per comparison and minute, not yet in the store.
+type Pending = HashMap<(ComparisonKey, DateTime<Utc>), ComparisonCounts>;
+
+/// The shadow thread's queue and this process's counts.
+pub struct Shadows {
+    queue: SyncSender<Comparison>,
+    pending: Arc<Mutex<Pending>>,
+    /// Comparisons queued and not finished yet.
+    in_queue: Arc<AtomicU64>,
+    store: Store,
+}
+
+impl Shadows {
+    /// Starts the shadow thread (it ends when the last `Shadows` is dropped).
+    pub fn start(store: Store) -> Arc<Self> {
+        let (queue, received) = sync_channel(QUEUE);
+        let pending = Arc::new(Mutex::new(Pending::new()));
+        let in_queue = Arc::new(AtomicU64::new(0));
+        let (counts, queued) = (pending.clone(), in_queue.clone());
+        std::thread::Builder::new()
+            .name("safedice-shadow".into())
+            .spawn(move || run_comparisons(received, &counts, &queued))
+            .expect("cannot start the shadow thread");
+        Arc::new(Shadows { queue, pending, in_queue, store })
+    }
+
+    /// Queues a comparison; a full queue counts it as skipped.
+    pub fn submit(&self, comparison: Comparison) {
+        self.in_queue.fetch_add(1, Ordering::SeqCst);
+        if let Err(TrySendError::Full(c) | TrySendError::Disconnected(c)) =
+            self.queue.try_send(comparison)
+        {
+            self.in_queue.fetch_sub(1, Ordering::SeqCst);
+            self.skip(c.key);
+        }
+    }
+
+    /// Counts a request drawn for the shadow that could not be compared (its queue full, or its
+    /// policy not loaded on this process).
+    pub fn skip(&self, key: ComparisonKey) {
+        let counts = ComparisonCounts { requests: 1, skipped: 1, ..Default::default() };
+        add(&self.pending, key, &counts);
+    }
+
+    /// Adds this process's counts to the store; on failure they stay for the next flush.
+    pub async fn flush(&self) -> Result<(), StoreError> {
+        let taken = std::mem::take(&mut *self.pending.lock().expect("shadow counts lock"));
+        let deltas: Vec<ComparisonDelta> = taken
+            .iter()
+            .map(|((key, minute), counts)| ComparisonDelta { key, minute: *minute, counts })
+            .collect();
+        let added = self.store.add_shadow_counts(&deltas).await;
+        if added.is_err() {
+            for ((key, minute), counts) in taken {
+                add_at(&self.pending, key, minute, &counts);
+            }
+        }
+        added
+    }
+
+    /// Waits (up to `wait`) for the comparisons queued so far to finish, then flushes: what a
+    /// reader of the series asks for, so it sees every request answered before it asked.
+    pub async fn settle(&self, wait: Duration) -> Result<(), StoreError> {
+        let deadline = Instant::now() + wait;
+        while self.in_queue.load(Ordering::SeqCst) > 0 && Instant::now() < deadline {
+            tokio::time::sleep(Duration::from_millis(5)).await;
+        }
+        self.flush().await
+    }
+
+    /// Flushes every [`FLUSH`] until shutdown, then once more.
+    pub fn watch(self: Arc<Self>, shutdown: CancellationToken) {
+        tokio::spawn(async move {
+            loop {
+                let stop = tokio::select! {
+                    () = shutdown.cancelled() => true,
+                    () = tokio::time::sleep(FLUSH) => false,
+                };
+                let flushed = if stop {
+                    self.settle(Duration::from_secs(1)).await
+                } else {
+                    self.flush().await
+                };
+                if let Err(e) = flushed {
+                    tracing::warn!(error = %e, "cannot store the shadows' comparisons; kept for the next try");
+                }
+                if stop {
+                    return;
+                }
+            }
+        });
+    }
+}
+
+fn run_comparisons(received: Receiver<Comparison>, pending: &Mutex<Pending>, queued: &AtomicU64) {
+    for comparison in received {
+        let key = comparison.key.clone();
+        let counts = compare(comparison);
+        add(pending, key, &counts);
+        queued.fetch_sub(1, Ordering::SeqCst);
+    }
+}
+
+fn add(pending: &Mutex<Pending>, key: ComparisonKey, counts: &ComparisonCounts) {
+    let minute = Utc::now().duration_trunc(TimeDelta::minutes(1)).expect("a minute divides time");
+    add_at(pending, key, minute, counts);
+}
+
+fn add_at(
+    pending: &Mutex<Pending>,
+    key: ComparisonKey,
+    minute: DateTime<Utc>,
+    counts: &ComparisonCounts,
+) {
+    let mut pending = pending.lock().expect("shadow counts lock");
+    pending.entry((key, minute)).or_default().merge(counts);
+}
+
+/// Runs the shadow on the request's observations and compares its actions with production's.
+fn compare(c: Comparison) -> ComparisonCounts {
+    let started = Instant::now();
+    let mut rng = ChaCha8Rng::seed_from_u64(c.seed);
+    let mut counts = ComparisonCounts { requests: 1, ..Default::default() };
+    let acted = c.shadow.act(&c.observations, c.deterministic, &mut rng);
+    let rows = c.observations.len() / c.production.spec().obs_dim.max(1);
+    let compared = acted.ok().and_then(|shadow| {
+        let differences = differences(&c.production_actions, &shadow, rows)?;
+        Some((shadow, differences))
+    });
+    let Some((shadow_actions, differences)) = compared else {
+        counts.failed = 1;
+        counts.shadow_ns = started.elapsed().as_nanos() as u64;
+        return counts;
+    };
+    counts.merge(&differences);
+    if let Some(scores) = c.shadow.safety_scores(&c.observations, &shadow_actions) {
+        counts.shadow_log_ratio_sum = sum(&scores.non_preferred_log_ratio);
+        counts.shadow_log_ratio_n = scores.non_preferred_log_ratio.len() as u64;
+        counts.out_of_support_sum = sum(&scores.out_of_support);
+        counts.out_of_support_n = scores.out_of_support.len() as u64;
+    }
+    if let Some(scores) = c.production.safety_scores(&c.observations, &c.production_actions) {
+        counts.production_log_ratio_sum = sum(&scores.non_preferred_log_ratio);
+        counts.production_log_ratio_n = scores.non_preferred_log_ratio.len() as u64;
+    }
+    counts.shadow_ns = started.elapsed().as_nanos() as u64;
+    counts
+}
+
+fn sum(values: &[f32]) -> f64 {
+    values.iter().map(|&v| f64::from(v)).sum()
+}
+
+/// Per observation: disagreement of discrete actions; L2 and largest absolute difference of
+/// continuous ones. None when the two answers do not have the same shape.
+pub fn differences(
+    production: &Actions,
+    shadow: &Actions,
+    rows: usize,
+) -> Option<ComparisonCounts> {
+    let mut counts = ComparisonCounts { observations: rows as u64, ..Default::default() };
+    match (production, shadow) {
+        (Actions::Discrete(a), Actions::Discrete(b)) if a.len() == rows && b.len() == rows => {
+            counts.disagreements = a.iter().zip(b).filter(|(x, y)| x != y).count() as u64;
+        }
+        (Actions::Continuous(a), Actions::Continuous(b))
+            if a.len() == b.len() && rows > 0 && a.len() % rows == 0 =>
+        {
+            let width = a.len() / rows;
+            for (x, y) in a.chunks(width).zip(b.chunks(width)) {
+                let gaps = x.iter().zip(y).map(|(p, q)| f64::from(p - q).abs());
+                let (squares, largest) =
+                    gaps.fold((0.0, 0.0f64), |(s, m), gap| (s + gap * gap, m.max(gap)));
+                let l2 = f64::sqrt(squares);
+                counts.l2_sum += l2;
+                counts.l2_max = counts.l2_max.max(l2);
+                counts.max_abs_sum += largest;
+                counts.max_abs_max = counts.max_abs_max.max(largest);
+            }
+        }
+        _ => return None,
+    }
+    Some(counts)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn continuous_differences_are_l2_and_max_abs_per_observation() {
+        // Rows (3, 4) apart (L2 5, max-abs 4) and identical: sums 5 / 4, maxima 5 / 4.
+        let a = Actions::Continuous(vec![0.0, 0.0, 1.0, 1.0]);
+        let b = Actions::Continuous(vec![3.0, -4.0, 1.0, 1.0]);
+        let d = differences(&a, &b, 2).expect("same shape");
+        assert_eq!(d.observations, 2);
+        assert!((d.l2_sum - 5.0).abs() < 1e-9 && (d.l2_max - 5.0).abs() < 1e-9, "{d:?}");
+        assert!((d.max_abs_sum - 4.0).abs() < 1e-9 && (d.max_abs_max - 4.0).abs() < 1e-9);
+        assert_eq!(d.disagreements, 0);
+    }
+
+    #[test]
+    fn discrete_differences_count_disagreements() {
+        let d =
+            differences(&Actions::Discrete(vec![0, 1, 2]), &Actions::Discrete(vec![0, 2, 1]), 3)
+                .expect("same shape");
+        assert_eq!((d.observations, d.disagreements, d.l2_sum), (3, 2, 0.0));
+    }
+
+    #[test]
+    fn answers_of_another_shape_do_not_compare() {
+        let a = Actions::Continuous(vec![0.0, 0.0]);
+        assert!(differences(&a, &Actions::Discrete(vec![0, 0]), 2).is_none());
+        assert!(differences(&a, &Actions::Continuous(vec![0.0; 4]), 2).is_none());
+    }
+}
