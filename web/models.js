@@ -15,12 +15,14 @@ const modelHref = (name) => `#/models/${encodeURIComponent(name)}`;
 const modelPath = (name) => `/v1/models/${encodeURIComponent(name)}`;
 const pctText = (weight) => `${Number((weight * 100).toPrecision(4))}%`;
 const canaryText = (canary) => (canary ? `${vText(canary.version)} takes ${pctText(canary.weight)}` : null);
+const shadowText = (shadow) => (shadow ? `${vText(shadow.version)} on ${pctText(shadow.sample)}` : null);
 
 /** "production → v2" (and its canary), as the list and the model page show an alias. */
 function aliasChip(alias) {
   return h('span', { class: 'alias-chip', 'data-alias': alias.alias },
     h('strong', {}, alias.alias), ` → ${vText(alias.version)}`,
-    alias.canary ? h('span', { class: 'muted' }, ` (canary ${canaryText(alias.canary)})`) : null);
+    alias.canary ? h('span', { class: 'muted' }, ` (canary ${canaryText(alias.canary)})`) : null,
+    alias.shadow ? h('span', { class: 'muted' }, ` (shadow ${shadowText(alias.shadow)})`) : null);
 }
 
 // ---------- the list ----------
@@ -167,7 +169,7 @@ function modelMeta(model, onDeleted) {
 function aliasesCard(model, actions) {
   const body = model.aliases.length
     ? tableWrap(h('table', { id: 'aliases-table', class: 'sticky-actions' },
-      h('thead', {}, h('tr', {}, h('th', {}, 'Alias'), h('th', {}, 'Version'), h('th', {}, 'Canary'), h('th', {}, 'Moved'), h('th', {}, ''))),
+      h('thead', {}, h('tr', {}, h('th', {}, 'Alias'), h('th', {}, 'Version'), h('th', {}, 'Canary'), h('th', {}, 'Shadow'), h('th', {}, 'Moved'), h('th', {}, ''))),
       h('tbody', {}, model.aliases.map((a) => h('tr', { 'data-alias': a.alias },
         h('td', { class: 'alias' }, h('strong', {}, a.alias)),
         h('td', { class: 'version' }, vText(a.version)),
@@ -175,13 +177,71 @@ function aliasesCard(model, actions) {
           h('span', { class: 'row-actions canary-actions' },
             h('button', { type: 'button', class: 'secondary canary-set', onclick: () => actions.canary(a) }, a.canary ? 'Change…' : 'Set…'),
             a.canary ? h('button', { type: 'button', class: 'secondary canary-clear', onclick: () => actions.clearCanary(a) }, 'End') : null)),
+        h('td', { class: 'shadow' }, h('span', { class: 'shadow-text' }, a.shadow ? shadowText(a.shadow) : h('span', { class: 'muted' }, 'none')),
+          h('span', { class: 'row-actions shadow-actions' },
+            h('button', { type: 'button', class: 'secondary shadow-set', onclick: () => actions.shadow(a) }, a.shadow ? 'Change…' : 'Set…'),
+            a.shadow ? h('button', { type: 'button', class: 'secondary shadow-promote', onclick: () => actions.promoteShadow(a) }, 'Promote') : null,
+            a.shadow ? h('button', { type: 'button', class: 'secondary shadow-clear', onclick: () => actions.clearShadow(a) }, 'End') : null)),
         h('td', { class: 'moved' }, fmtTime(a.updated_at)),
         h('td', { class: 'row-actions' },
           h('button', { type: 'button', class: 'secondary rollback', onclick: () => actions.rollback(a) }, 'Roll back'),
           h('button', { type: 'button', class: 'danger remove-alias', onclick: () => actions.remove(a) }, 'Remove')))))))
     : h('div', { class: 'empty', id: 'aliases-empty' }, 'No aliases yet: promote a version below to create one (e.g. production).');
   return h('div', { class: 'card', id: 'aliases-card' }, h('h2', {}, 'Aliases'), body,
-    h('p', { class: 'hint' }, 'A canary sends a share of an alias’s requests to another version (the same requests every time when clients send x-safedice-request-key). Roll back points an alias where it pointed before its latest move (see the history below). Agents calling a removed alias get 404.'));
+    h('p', { class: 'hint' }, 'A canary sends a share of an alias’s requests to another version (the same requests every time when clients send x-safedice-request-key). ',
+      'A shadow runs another version on a share of the requests beside the answer and compares its actions, never returning them (see Shadows below); Promote points the alias at it. ',
+      'Roll back points an alias where it pointed before its latest move (see the history below). Agents calling a removed alias get 404.'));
+}
+
+/** Minutes before now of an RFC 3339 time (0 = the current minute). */
+const minutesAgo = (time, now) => Math.round((Date.parse(time) - now) / 60000);
+
+/** How a shadow compares with the versions that answered (GET /v1/models/{name}/shadow, the last
+ *  60 minutes): per series a summary and charts of the difference and of the safety scores by
+ *  minute. */
+function shadowCard(model, report, promote) {
+  const series = (report && report.series) || [];
+  if (!series.length && !model.aliases.some((a) => a.shadow)) return null;
+  const now = Date.now();
+  const num = (v, digits = 3) => (v === null || v === undefined ? '—' : fmt(v, digits));
+  const summary = (s) => {
+    const t = s.total;
+    const diff = s.actions === 'discrete'
+      ? `disagreement ${t.disagreement_rate === null || t.disagreement_rate === undefined ? '—' : pctText(t.disagreement_rate)}`
+      : `mean L2 ${num(t.mean_l2)} (max ${num(t.max_l2)}), mean max-abs ${num(t.mean_max_abs)}`;
+    const given = (v) => v !== null && v !== undefined;
+    const scores = given(t.shadow_mean_log_ratio) || given(t.production_mean_log_ratio)
+      ? `; mean log-ratio ${num(t.shadow_mean_log_ratio)} (answering ${vText(s.production_version)}: ${num(t.production_mean_log_ratio)}), out-of-support ${num(t.shadow_mean_out_of_support)}` : '';
+    return `${fmt(t.requests)} requests shadowed (${fmt(t.skipped)} skipped, ${fmt(t.failed)} failed), ${fmt(t.observations)} observations: ${diff}${scores}; ${num(t.mean_shadow_ms)} ms per request off the response path.`;
+  };
+  const charts = (s) => {
+    const points = (field) => s.points.filter((p) => p[field] !== null && p[field] !== undefined).map((p) => [minutesAgo(p.minute, now), p[field]]);
+    const key = `${s.alias}-${s.production_version}-${s.shadow_version}`;
+    const specs = [s.actions === 'discrete'
+      ? { key: `${key}-diff`, title: `Disagreement rate: ${vText(s.shadow_version)} vs ${vText(s.production_version)}`, xLabel: 'minutes ago', yLabel: 'share of observations', yRange: [0, 1],
+        series: [{ name: 'disagreement', points: points('disagreement_rate'), color: '#c0392b' }] }
+      : { key: `${key}-diff`, title: `Action difference: ${vText(s.shadow_version)} vs ${vText(s.production_version)}`, xLabel: 'minutes ago', yLabel: 'L2 distance',
+        series: [{ name: 'mean L2', points: points('mean_l2'), color: '#2e86c1' }, { name: 'max L2', points: points('max_l2'), color: '#c0392b', dash: [4, 3] }] }];
+    const scored = (p) => ['shadow_mean_log_ratio', 'production_mean_log_ratio', 'shadow_mean_out_of_support'].some((f) => p[f] !== null && p[f] !== undefined);
+    if (s.points.some(scored)) {
+      specs.push({ key: `${key}-safety`, title: 'Safety scores (means)', xLabel: 'minutes ago', yLabel: 'score',
+        series: [{ name: `log-ratio ${vText(s.shadow_version)}`, points: points('shadow_mean_log_ratio'), color: '#8e44ad' },
+          { name: `log-ratio ${vText(s.production_version)}`, points: points('production_mean_log_ratio'), color: '#7f8c8d', dash: [4, 3] },
+          { name: `out-of-support ${vText(s.shadow_version)}`, points: points('shadow_mean_out_of_support'), color: '#d68910' }] });
+    }
+    return h('div', { class: 'grid2' }, specs.map(lineChart));
+  };
+  const active = (s) => model.aliases.find((a) => a.alias === s.alias && a.shadow && a.shadow.version === s.shadow_version && a.version === s.production_version);
+  return h('div', { class: 'card', id: 'shadow-card' }, h('h2', {}, 'Shadows'),
+    series.length ? series.map((s) => {
+      const alias = active(s);
+      return h('div', { class: 'shadow-series', 'data-alias': s.alias, 'data-production': s.production_version, 'data-shadow': s.shadow_version },
+        h('h3', {}, `${s.alias}: ${vText(s.shadow_version)} shadowing ${vText(s.production_version)}`, alias ? '' : h('span', { class: 'muted' }, ' (ended)')),
+        h('p', { class: 'shadow-summary' }, summary(s)),
+        alias ? h('div', { class: 'form-actions' }, h('button', { type: 'button', class: 'shadow-promote', onclick: () => promote(alias) }, `Promote ${vText(s.shadow_version)} to ${s.alias}`)) : null,
+        charts(s));
+    }) : h('div', { class: 'empty', id: 'shadow-empty' }, 'No request has been shadowed in the last 60 minutes.'),
+    h('p', { class: 'hint' }, 'Every node of the service adds to these minutes. Discrete actions: the share of observations where the two versions chose differently; continuous: the distance between the two actions in the action’s units (sampled requests share one seed, so the noise is the same for both). See docs/shadow.md.'));
 }
 
 /** What `GET /v1/results` says of the versions' jobs: per job id its result, and the protocol
@@ -276,13 +336,14 @@ function historyText(move) {
 function historyCard(history) {
   const body = history.items.length
     ? tableWrap(h('table', { id: 'history-table' },
-      h('thead', {}, h('tr', {}, h('th', { class: 'num' }, 'Seq'), h('th', {}, 'Alias'), h('th', {}, 'Move'), h('th', {}, 'Canary'),
+      h('thead', {}, h('tr', {}, h('th', { class: 'num' }, 'Seq'), h('th', {}, 'Alias'), h('th', {}, 'Move'), h('th', {}, 'Canary'), h('th', {}, 'Shadow'),
         h('th', {}, 'Actor'), h('th', {}, 'Reason'), h('th', {}, 'When'))),
       h('tbody', {}, history.items.map((m) => h('tr', { 'data-seq': m.seq },
         h('td', { class: 'num' }, String(m.seq)),
         h('td', { class: 'alias' }, m.alias),
         h('td', { class: 'move' }, historyText(m)),
         h('td', {}, m.canary ? canaryText(m.canary) : '—'),
+        h('td', { class: 'shadow' }, m.shadow ? shadowText(m.shadow) : '—'),
         h('td', { class: 'actor' }, m.actor),
         h('td', { class: 'reason' }, m.reason || '—'),
         h('td', {}, fmtTime(m.moved_at)))))))
@@ -302,16 +363,18 @@ function modelPage(view, name) {
     let text = `${move.alias} now points at ${vText(move.to_version)} (was ${vText(move.from_version)}).`;
     if (move.from_version === null || move.from_version === undefined) text = `${move.alias} now points at ${vText(move.to_version)}.`;
     else if (move.from_version === move.to_version) {
-      text = `${move.alias} stays at ${vText(move.to_version)}, ${move.canary ? `with ${vText(move.canary.version)} taking ${pctText(move.canary.weight)} of its requests` : 'with no canary'}.`;
+      text = `${move.alias} stays at ${vText(move.to_version)}, ${move.canary ? `with ${vText(move.canary.version)} taking ${pctText(move.canary.weight)} of its requests` : 'with no canary'}${move.shadow ? `, shadowed by ${shadowText(move.shadow)}` : move.from_shadow ? '; its shadow ended' : ''}.`;
     }
     notice.replaceChildren(h('div', { class: 'notice', id: 'model-moved' }, text));
     // The move is done: a failure to redraw shows on the page, not as the move's error.
     return load().catch((err) => slot.replaceChildren(errorBox(err)));
   };
 
-  const setAlias = async (alias, version, reason, canary, expected) => {
+  // `keep`: the canary and shadow the alias keeps (a move without them ends them).
+  const setAlias = async (alias, version, reason, keep, expected) => {
     const body = { version, actor: DASHBOARD_ACTOR, reason: dialog.reasonOr(reason) };
-    if (canary) body.canary = canary;
+    if (keep && keep.canary) body.canary = keep.canary;
+    if (keep && keep.shadow) body.shadow = keep.shadow;
     if (expected !== null && expected !== undefined) body.expected_version = expected;
     const move = await api(`${modelPath(name)}/aliases/${encodeURIComponent(alias)}`, { method: 'PUT', json: body });
     await moved(move);
@@ -346,7 +409,7 @@ function modelPage(view, name) {
       const current = existing.find((a) => a.alias === alias);
       if (!alias) dialog.ask('Choose an alias or type a new one.', false);
       else if (current && current.version === version.version && !current.canary) dialog.ask(`${alias} already points at ${vText(version.version)}.`, false);
-      else if (current) dialog.ask(`Point ${alias} from ${vText(current.version)} to ${vText(version.version)}?${current.canary ? ` Its canary (${canaryText(current.canary)}) ends.` : ''}`, true);
+      else if (current) dialog.ask(`Point ${alias} from ${vText(current.version)} to ${vText(version.version)}?${current.canary ? ` Its canary (${canaryText(current.canary)}) ends.` : ''}${current.shadow ? ` Its shadow (${shadowText(current.shadow)}) ends.` : ''}`, true);
       else dialog.ask(`Point the new alias ${alias} at ${vText(version.version)}?`, true);
     };
     choice.addEventListener('change', ask);
@@ -362,7 +425,7 @@ function modelPage(view, name) {
         const alias = aliasName();
         const asked = existing.find((a) => a.alias === alias);
         await unmoved(alias, asked ? asked.version : null);
-        await setAlias(alias, version.version, `promoted ${vText(version.version)} from the dashboard`, null, asked ? asked.version : null);
+        await setAlias(alias, version.version, `promoted ${vText(version.version)} from the dashboard`, {}, asked ? asked.version : null);
       },
     });
     ask();
@@ -385,12 +448,12 @@ function modelPage(view, name) {
       dialog.show({
         title: `Roll back ${alias.alias}`,
         fields: [h('p', { class: 'hint' }, `Its latest move (seq ${latest.seq}, by ${latest.actor}, ${fmtTime(latest.moved_at)}) was ${historyText(latest)}.`)],
-        question: `Roll ${alias.alias} back from ${vText(now)} to ${vText(target)}${canary ? `, with ${canaryText(canary)} as before` : ''}?`,
+        question: `Roll ${alias.alias} back from ${vText(now)} to ${vText(target)}${canary ? `, with ${canaryText(canary)} as before` : ''}?${alias.shadow ? ` Its shadow (${shadowText(alias.shadow)}) ends.` : ''}`,
         confirmLabel: 'Roll back',
         reason: true,
         action: async () => {
           await unmoved(alias.alias, now);
-          await setAlias(alias.alias, target, `rolled back from ${vText(now)} to ${vText(target)}`, canary, now);
+          await setAlias(alias.alias, target, `rolled back from ${vText(now)} to ${vText(target)}`, { canary }, now);
         },
       });
     } catch (err) {
@@ -444,7 +507,7 @@ function modelPage(view, name) {
       action: async () => {
         await unmoved(alias.alias, alias.version);
         const canary = { version: Number(version.value), weight: Number((percent() / 100).toFixed(4)) };
-        await setAlias(alias.alias, alias.version, `canary ${vText(canary.version)} at ${pctText(canary.weight)}`, canary, alias.version);
+        await setAlias(alias.alias, alias.version, `canary ${vText(canary.version)} at ${pctText(canary.weight)}`, { canary, shadow: alias.shadow }, alias.version);
       },
     });
     ask();
@@ -459,7 +522,72 @@ function modelPage(view, name) {
       reason: true,
       action: async () => {
         await unmoved(alias.alias, alias.version);
-        await setAlias(alias.alias, alias.version, `canary ${vText(alias.canary.version)} ended`, null, alias.version);
+        await setAlias(alias.alias, alias.version, `canary ${vText(alias.canary.version)} ended`, { shadow: alias.shadow }, alias.version);
+      },
+    });
+  };
+
+  // A shadow: another version runs on a share of the alias's requests and is compared with the
+  // answer (PUT with `shadow`); promoted (the alias moves to it) or ended (PUT without it).
+  const onShadow = (alias) => {
+    notice.replaceChildren();
+    const others = versionList.items.filter((v) => v.version !== alias.version);
+    if (!others.length) {
+      notice.replaceChildren(errorBox({ message: `${name} has no version other than ${vText(alias.version)} to run beside ${alias.alias}.` }, 'shadow-error'));
+      return;
+    }
+    const version = h('select', { id: 'shadow-version' }, others.map((v) => h('option', { value: v.version }, vText(v.version))));
+    const share = h('input', { id: 'shadow-share', inputmode: 'decimal', placeholder: 'e.g. 100', autocomplete: 'off' });
+    share.value = alias.shadow ? String(Number((alias.shadow.sample * 100).toPrecision(6))) : '100';
+    if (alias.shadow) version.value = String(alias.shadow.version);
+    const percent = () => Number(share.value.trim());
+    const ask = () => {
+      const p = percent();
+      if (!share.value.trim() || !(p >= 0.01 && p <= 100)) dialog.ask('Give the share of requests to shadow, 0.01 to 100 %.', false);
+      else dialog.ask(`Run v${version.value} beside ${vText(alias.version)} on ${pctText(p / 100)} of ${alias.alias}’s requests and compare? Its actions are never returned.`, true);
+    };
+    version.addEventListener('change', ask);
+    share.addEventListener('input', ask);
+    dialog.show({
+      title: `Shadow for ${alias.alias}`,
+      fields: [h('div', { class: 'form-grid' }, h('label', {}, 'Shadow version', version), h('label', {}, 'Share of requests (%)', share))],
+      question: '',
+      confirmLabel: 'Set shadow',
+      reason: true,
+      action: async () => {
+        await unmoved(alias.alias, alias.version);
+        const shadow = { version: Number(version.value), sample: Number((percent() / 100).toFixed(4)) };
+        await setAlias(alias.alias, alias.version, `shadow ${vText(shadow.version)} on ${pctText(shadow.sample)}`, { canary: alias.canary, shadow }, alias.version);
+      },
+    });
+    ask();
+  };
+  const onClearShadow = (alias) => {
+    notice.replaceChildren();
+    dialog.show({
+      title: `End ${alias.alias}’s shadow`,
+      fields: [],
+      question: `End the shadow of ${alias.alias} (${shadowText(alias.shadow)})? Its comparisons stay in the series.`,
+      confirmLabel: 'End shadow',
+      reason: true,
+      action: async () => {
+        await unmoved(alias.alias, alias.version);
+        await setAlias(alias.alias, alias.version, `shadow ${vText(alias.shadow.version)} ended`, { canary: alias.canary }, alias.version);
+      },
+    });
+  };
+  const onPromoteShadow = (alias) => {
+    notice.replaceChildren();
+    const target = alias.shadow.version;
+    dialog.show({
+      title: `Promote ${alias.alias}’s shadow`,
+      fields: [],
+      question: `Point ${alias.alias} from ${vText(alias.version)} to its shadow ${vText(target)}?${alias.canary ? ` Its canary (${canaryText(alias.canary)}) ends.` : ''} The shadow ends: ${vText(target)} answers every request.`,
+      confirmLabel: 'Promote',
+      reason: true,
+      action: async () => {
+        await unmoved(alias.alias, alias.version);
+        await setAlias(alias.alias, target, `promoted shadow ${vText(target)} from the dashboard`, {}, alias.version);
       },
     });
   };
@@ -472,13 +600,16 @@ function modelPage(view, name) {
     const results = await versionResults(versions).catch(() => null);
     // This node's serving statistics: a model no node has loaded yet has none.
     const stats = await api(`/v2/models/${encodeURIComponent(name)}/stats`).catch(() => null);
+    const shadows = await api(`${modelPath(name)}/shadow`).catch(() => null);
     if (mine !== generation) return;
     model = m;
     versionList = versions;
     // The aliases take the page's width: each row has its canary and its actions.
     slot.replaceChildren(
       modelMeta(model, () => { location.hash = '#/models'; }),
-      aliasesCard(model, { rollback: onRollback, remove: onRemove, canary: onCanary, clearCanary: onClearCanary }),
+      aliasesCard(model, { rollback: onRollback, remove: onRemove, canary: onCanary, clearCanary: onClearCanary,
+        shadow: onShadow, clearShadow: onClearShadow, promoteShadow: onPromoteShadow }),
+      ...[shadowCard(model, shadows, onPromoteShadow)].filter(Boolean),
       versionsCard(model, versions, results, onPromote),
       ...[safetyCard(stats)].filter(Boolean),
       historyCard(history));

@@ -1075,6 +1075,68 @@ test('the policy page registers its policy as a version; the model page shows ea
   await page.setViewportSize({ width: 1400, height: 900 });
 });
 
+test('a shadow is set on an alias from the model page, its comparison shows as the API reports it, and it is promoted', async () => {
+  await page.setViewportSize({ width: 1400, height: 900 });
+  await page.goto(`${base}/#/models/pilot`);
+  const production = '#aliases-table tr[data-alias="production"]';
+  await page.waitForSelector(`${production} button.shadow-set`);
+  assert.equal(await page.textContent(`${production} .version`), 'v4');
+  await page.click(`${production} button.shadow-set`);
+  await page.waitForSelector('#model-dialog[open]');
+  await page.selectOption('#shadow-version', '2');
+  await page.fill('#shadow-share', '100');
+  assert.equal(await page.textContent('#dialog-question'), 'Run v2 beside v4 on 100% of production’s requests and compare? Its actions are never returned.');
+  await page.click('#dialog-confirm');
+  await page.waitForSelector(`${production} .shadow-text:has-text("v2 on 100%")`);
+  assert.equal(await page.textContent('#model-moved'), 'production stays at v4, with no canary, shadowed by v2 on 100%.');
+  const alias = (await api('/v1/models/pilot')).body.aliases.find((a) => a.alias === 'production');
+  assert.deepEqual([alias.version, alias.shadow], [4, { version: 2, sample: 1 }]);
+  const move = (await api('/v1/models/pilot/history?alias=production')).body.items[0];
+  assert.deepEqual([move.shadow, move.reason], [{ version: 2, sample: 1 }, 'shadow v2 on 100%']);
+
+  // Agents' requests: every one answered by v4, and compared with v2 off the response path.
+  const { obs_dim: obsDim } = (await api(`/v1/policies/${state.policy}`)).body;
+  const observations = Array.from({ length: 5 }, (_, i) => Array.from({ length: obsDim }, (_, j) => ((i + 2 * j) % 3) - 1));
+  for (let i = 0; i < 8; i += 1) {
+    const acted = await post('/v1/models/pilot@production/act', { observations });
+    assert.equal(acted.status, 200, JSON.stringify(acted.body));
+  }
+  const report = (await api('/v1/models/pilot/shadow')).body;
+  const compared = report.series.find((s) => s.alias === 'production' && s.production_version === 4 && s.shadow_version === 2);
+  assert.ok(compared, JSON.stringify(report));
+  assert.deepEqual([compared.actions, compared.total.requests, compared.total.observations], ['discrete', 8, 40]);
+  await page.reload();
+  const series = '#shadow-card .shadow-series[data-alias="production"][data-production="4"][data-shadow="2"]';
+  await page.waitForSelector(`${series} .chart-box[data-chart="production-4-2-diff"] .u-over`);
+  const rate = `${Number((compared.total.disagreement_rate * 100).toPrecision(4))}%`;
+  const summary = await page.textContent(`${series} .shadow-summary`);
+  assert.ok(summary.startsWith(`8 requests shadowed (0 skipped, 0 failed), 40 observations: disagreement ${rate}`), summary);
+  // v4 is a SafeDICE policy: its log-ratios are charted beside the comparison.
+  assert.ok(compared.total.production_mean_log_ratio !== null, JSON.stringify(compared.total));
+  await page.waitForSelector(`${series} .chart-box[data-chart="production-4-2-safety"]`);
+  assert.equal(await page.textContent(`#history-table tr[data-seq="${move.seq}"] .shadow`), 'v2 on 100%');
+  for (const width of [1400, 500]) {
+    await page.setViewportSize({ width, height: 900 });
+    await page.waitForTimeout(200);
+    assert.deepEqual(await layoutProblems(), [], `model page with a shadow at ${width}px`);
+    await (await page.$('#shadow-card')).scrollIntoViewIfNeeded();
+    await screenshot(`model-shadow-${width}`);
+  }
+  await page.setViewportSize({ width: 1400, height: 900 });
+
+  // Promoted from the comparison: the alias moves to the shadow's version, and the shadow ends.
+  await page.click(`${series} button.shadow-promote`);
+  await page.waitForSelector('#model-dialog[open]');
+  assert.equal(await page.textContent('#dialog-question'), 'Point production from v4 to its shadow v2? The shadow ends: v2 answers every request.');
+  await page.click('#dialog-confirm');
+  await page.waitForSelector(`${production} .version:has-text("v2")`);
+  const promoted = (await api('/v1/models/pilot')).body.aliases.find((a) => a.alias === 'production');
+  assert.deepEqual([promoted.version, promoted.shadow ?? null], [2, null]);
+  const last = (await api('/v1/models/pilot/history?alias=production')).body.items[0];
+  assert.deepEqual([last.from_version, last.to_version, last.from_shadow, last.reason], [4, 2, { version: 2, sample: 1 }, 'promoted shadow v2 from the dashboard']);
+  await page.waitForSelector(`${series} h3:has-text("(ended)")`);
+});
+
 /** Rows of `table` whose last cell (Cancel, Delete, Promote…) is not wholly inside the window. */
 async function actionsOutOfView(table) {
   return page.$$eval(`${table} tbody tr`, (rows) => rows.map((row) => row.lastElementChild.getBoundingClientRect())
