@@ -10,9 +10,14 @@
 //!   that waited behind a slow server is charged the wait. The load generator shares the
 //!   machine's cores with the server.
 //!
+//! - **A shadow's cost** (`--shadow SAMPLE` with `--rates`): REST `/act` by alias in the open
+//!   loop, without a shadow and then with a shadow version on SAMPLE of the requests
+//!   (docs/shadow.md), each rate both ways; and what the shadow's series counted (compared,
+//!   skipped, its time per request).
+//!
 //! ```text
 //! cargo build --release && cargo run --release --example grpc_latency -- \
-//!     [--requests 5000] [--rates 2000,5000] [--seconds 5] [--agents 16] \
+//!     [--requests 5000] [--rates 2000,5000] [--seconds 5] [--agents 16] [--shadow 1.0] \
 //!     [--bin target/release/safedice]
 //! ```
 //! The server is a child process of `--bin` (`serve --grpc-bind`), with a BC policy of the
@@ -76,7 +81,7 @@ fn dataset() -> Dataset {
 }
 
 /// Uploads the dataset, trains a BC policy; its id.
-async fn policy(client: &reqwest::Client, url: &str) -> anyhow::Result<String> {
+async fn policy(client: &reqwest::Client, url: &str, seed: u64) -> anyhow::Result<String> {
     let dir = tempfile::tempdir()?;
     let file = dir.path().join("synthetic.npz");
     safedice::data::write_npz(&dataset(), &file)?;
@@ -85,7 +90,7 @@ async fn policy(client: &reqwest::Client, url: &str) -> anyhow::Result<String> {
     let dataset: Value =
         client.post(format!("{url}/v1/datasets")).multipart(form).send().await?.json().await?;
     let body = json!({"algorithm": "bc", "unlabeled_dataset": dataset["id"],
-                      "config": {"iterations": 200, "seed": 0}});
+                      "config": {"iterations": 200, "seed": seed}});
     let job: Value = client.post(format!("{url}/v1/jobs")).json(&body).send().await?.json().await?;
     let job_url = format!("{url}/v1/jobs/{}", job["id"].as_str().context("job id")?);
     loop {
@@ -270,6 +275,7 @@ struct Args {
     rates: Vec<f64>,
     seconds: u64,
     agents: usize,
+    shadow: Option<f64>,
     bin: String,
 }
 
@@ -280,6 +286,7 @@ fn parse_args() -> anyhow::Result<Args> {
         rates: Vec::new(),
         seconds: 5,
         agents: 16,
+        shadow: None,
         bin: "target/release/safedice".to_owned(),
     };
     while let Some(flag) = args.next() {
@@ -291,6 +298,7 @@ fn parse_args() -> anyhow::Result<Args> {
             }
             "--seconds" => parsed.seconds = value.parse()?,
             "--agents" => parsed.agents = value.parse()?,
+            "--shadow" => parsed.shadow = Some(value.parse()?),
             "--bin" => parsed.bin = value,
             other => bail!("unknown flag {other}"),
         }
@@ -300,7 +308,7 @@ fn parse_args() -> anyhow::Result<Args> {
 
 #[tokio::main]
 async fn main() -> anyhow::Result<()> {
-    let Args { requests, rates, seconds, agents, bin } = parse_args()?;
+    let Args { requests, rates, seconds, agents, shadow, bin } = parse_args()?;
     let (port, grpc_port) = (free_port()?, free_port()?);
     let data = tempfile::tempdir()?;
     let _server = Server(
@@ -321,8 +329,12 @@ async fn main() -> anyhow::Result<()> {
         }
         tokio::time::sleep(Duration::from_millis(50)).await;
     }
-    let policy = policy(&client, &url).await?;
+    let policy = policy(&client, &url, 0).await?;
     let observation: Vec<f32> = (0..OBS_DIM).map(|i| i as f32 / OBS_DIM as f32).collect();
+    if let Some(sample) = shadow {
+        let act = json!({"observations": [observation]});
+        return shadow_cost(&client, &url, &policy, sample, &act, (&rates, seconds, agents)).await;
+    }
     println!("one observation per request, {requests} requests, one connection each");
 
     let act = json!({"observations": [observation]});
@@ -411,6 +423,72 @@ async fn main() -> anyhow::Result<()> {
         }
         let tally = open_loop(streams, rate, seconds).await?;
         report_open("gRPC ModelStreamInfer", rate, seconds, tally);
+    }
+    Ok(())
+}
+
+/// REST `/act` by alias in the open loop at each rate, without and with a shadow on `sample` of
+/// the requests; then what the shadow's series counted.
+async fn shadow_cost(
+    client: &reqwest::Client,
+    url: &str,
+    production: &str,
+    sample: f64,
+    act: &Value,
+    (rates, seconds, agents): (&[f64], u64, usize),
+) -> anyhow::Result<()> {
+    let candidate = policy(client, url, 1).await?;
+    client.post(format!("{url}/v1/models")).json(&json!({"name": "bench"})).send().await?;
+    for id in [production, candidate.as_str()] {
+        let registered = json!({"policy_id": id});
+        client.post(format!("{url}/v1/models/bench/versions")).json(&registered).send().await?;
+    }
+    let alias = format!("{url}/v1/models/bench/aliases/production");
+    let move_to = |body: Value| {
+        let request = client.put(&alias).json(&body).send();
+        async move { anyhow::Ok(request.await?.error_for_status().map(drop)?) }
+    };
+    let act_url = format!("{url}/v1/models/bench@production/act");
+    let body = bytes::Bytes::from(serde_json::to_vec(act)?);
+    println!("\nopen loop, {agents} agents, {seconds} s per rate, REST /act by alias:\n");
+    println!("| route | rate | answered/s | p50 µs | p99 µs | failed |");
+    println!("|---|---|---|---|---|---|");
+    for &rate in rates {
+        for with_shadow in [false, true] {
+            let target = match with_shadow {
+                true => json!({"version": 1, "shadow": {"version": 2, "sample": sample}}),
+                false => json!({"version": 1}),
+            };
+            move_to(target).await?;
+            let rest_agents = (0..agents)
+                .map(|_| {
+                    let client = reqwest::Client::builder().pool_max_idle_per_host(1).build()?;
+                    anyhow::Ok(RestAgent { client, url: act_url.clone(), body: body.clone() })
+                })
+                .collect::<anyhow::Result<Vec<_>>>()?;
+            let tally = open_loop(rest_agents, rate, seconds).await?;
+            let name = match with_shadow {
+                true => format!("REST /act, shadow on {}%", sample * 100.0),
+                false => "REST /act, no shadow".to_owned(),
+            };
+            report_open(&name, rate, seconds, tally);
+        }
+    }
+    let report: Value =
+        client.get(format!("{url}/v1/models/bench/shadow")).send().await?.json().await?;
+    for series in report["series"].as_array().context("series")? {
+        let total = &series["total"];
+        println!(
+            "\nshadow v{} beside v{}: {} requests drawn, {} skipped, {} failed; {:.4} ms per \
+             request on the shadow thread; mean L2 {:.4}",
+            series["shadow_version"],
+            series["production_version"],
+            total["requests"],
+            total["skipped"],
+            total["failed"],
+            total["mean_shadow_ms"].as_f64().unwrap_or(f64::NAN),
+            total["mean_l2"].as_f64().unwrap_or(f64::NAN),
+        );
     }
     Ok(())
 }

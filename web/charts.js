@@ -58,7 +58,7 @@ function uplotOptions(spec, width, log) {
       { label: fitAxisLabel(spec.yLabel, CHART_HEIGHT - 70), size: 64, values: (u, ticks) => ticks.map((t) => fmt(t, 3)) },
     ],
     series: [
-      { label: 'step', value: (u, v) => (v === null || v === undefined ? '—' : fmt(v)) },
+      { label: spec.xName || 'step', value: (u, v) => (v === null || v === undefined ? '—' : fmt(v)) },
       ...spec.series.map((s) => ({
         label: s.name, stroke: s.color, width: s.width || 1.6, spanGaps: true, dash: s.dash,
         // Markers on short series (a series of one point has no line to draw), never on the
@@ -74,7 +74,8 @@ function uplotOptions(spec, width, log) {
   };
 }
 
-/** A line chart of `spec` = {key, title, xLabel, yLabel, yRange?, note?, series: [{name,
+/** A line chart of `spec` = {key, title, xLabel, xName? (the legend's name of x, default
+ *  `step`), yLabel, yRange?, note?, series: [{name,
  *  points: [[x, y]], color, width?, dash?, thin?, band?}], bands?}: a .chart-box with the title,
  *  a log-scale switch, the plot and its legend (which shows the values under the cursor). `box.update(spec)` draws new points of the same series
  *  in place (keeping a zoom the user made). */

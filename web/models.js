@@ -193,8 +193,8 @@ function aliasesCard(model, actions) {
       'Roll back points an alias where it pointed before its latest move (see the history below). Agents calling a removed alias get 404.'));
 }
 
-/** Minutes before now of an RFC 3339 time (0 = the current minute). */
-const minutesAgo = (time, now) => Math.round((Date.parse(time) - now) / 60000);
+/** Minutes from now to an RFC 3339 time (negative: before now), to a tenth. */
+const minutesAgo = (time, now) => Math.round((Date.parse(time) - now) / 6000) / 10;
 
 /** How a shadow compares with the versions that answered (GET /v1/models/{name}/shadow, the last
  *  60 minutes): per series a summary and charts of the difference and of the safety scores by
@@ -218,13 +218,13 @@ function shadowCard(model, report, promote) {
     const points = (field) => s.points.filter((p) => p[field] !== null && p[field] !== undefined).map((p) => [minutesAgo(p.minute, now), p[field]]);
     const key = `${s.alias}-${s.production_version}-${s.shadow_version}`;
     const specs = [s.actions === 'discrete'
-      ? { key: `${key}-diff`, title: `Disagreement rate: ${vText(s.shadow_version)} vs ${vText(s.production_version)}`, xLabel: 'minutes ago', yLabel: 'share of observations', yRange: [0, 1],
+      ? { key: `${key}-diff`, title: `Disagreement rate: ${vText(s.shadow_version)} vs ${vText(s.production_version)}`, xLabel: 'minutes from now', xName: 'minute', yLabel: 'share of observations', yRange: [0, 1],
         series: [{ name: 'disagreement', points: points('disagreement_rate'), color: '#c0392b' }] }
-      : { key: `${key}-diff`, title: `Action difference: ${vText(s.shadow_version)} vs ${vText(s.production_version)}`, xLabel: 'minutes ago', yLabel: 'L2 distance',
+      : { key: `${key}-diff`, title: `Action difference: ${vText(s.shadow_version)} vs ${vText(s.production_version)}`, xLabel: 'minutes from now', xName: 'minute', yLabel: 'L2 distance',
         series: [{ name: 'mean L2', points: points('mean_l2'), color: '#2e86c1' }, { name: 'max L2', points: points('max_l2'), color: '#c0392b', dash: [4, 3] }] }];
     const scored = (p) => ['shadow_mean_log_ratio', 'production_mean_log_ratio', 'shadow_mean_out_of_support'].some((f) => p[f] !== null && p[f] !== undefined);
     if (s.points.some(scored)) {
-      specs.push({ key: `${key}-safety`, title: 'Safety scores (means)', xLabel: 'minutes ago', yLabel: 'score',
+      specs.push({ key: `${key}-safety`, title: 'Safety scores (means)', xLabel: 'minutes from now', xName: 'minute', yLabel: 'score',
         series: [{ name: `log-ratio ${vText(s.shadow_version)}`, points: points('shadow_mean_log_ratio'), color: '#8e44ad' },
           { name: `log-ratio ${vText(s.production_version)}`, points: points('production_mean_log_ratio'), color: '#7f8c8d', dash: [4, 3] },
           { name: `out-of-support ${vText(s.shadow_version)}`, points: points('shadow_mean_out_of_support'), color: '#d68910' }] });

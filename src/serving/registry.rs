@@ -1,9 +1,9 @@
 //! Serving by name: which policy answers `name`, `name@alias` or a version of a named model.
 //!
 //! Each process keeps a routing table per model, built from the store ([`Store::model_routes`])
-//! and swapped whole: the policies of the latest version and of every alias (and canary) are
-//! loaded first (a policy that does not load keeps the old table serving), and only then does
-//! the new table replace the old one. Tables hold policy ids, not policies: a request takes its
+//! and swapped whole: the policies of the latest version and of every alias (its canary and
+//! shadow too) are loaded first (a policy that does not load keeps the old table serving), and
+//! only then does the new table replace the old one. Tables hold policy ids, not policies: a request takes its
 //! policy from the [`PolicyCache`] by id, so every model and alias over one policy shares one
 //! copy, counted in `--policy-cache-bytes`, and a policy evicted from the cache is loaded again
 //! when next asked for rather than pinned by a table. Requests in flight keep the policy they
