@@ -689,3 +689,59 @@ async fn an_alias_moved_on_one_api_node_is_served_by_the_other() {
         tokio::time::sleep(Duration::from_millis(5)).await;
     }
 }
+
+/// A shadow's series is the fleet's: a shadow set on one API node reaches the other, both
+/// compare the requests they answer, and either node's read counts every request of both (each
+/// node adds its counts to the same rows of the store).
+#[tokio::test]
+async fn a_shadows_series_adds_up_the_requests_of_every_api_node() {
+    let Some(mut fleet) = Fleet::start(1).await else { return };
+    let (u, n) = upload_grid(&fleet).await;
+    let api = fleet.api_url.clone();
+    let created = fleet.client.post(format!("{api}/v1/models")).json(&json!({"name": "pilot"}));
+    assert_eq!(created.send().await.unwrap().status(), StatusCode::CREATED);
+    for seed in [1, 2] {
+        let mut body = job(&u, &n, 200, seed);
+        body["register"] = json!({"model": "pilot"});
+        let queued = create_job(&fleet.client, &api, body).await;
+        wait_for_status(&fleet.client, &api, queued["id"].as_str().unwrap(), "succeeded").await;
+    }
+    let other = fleet.start_api_node().await;
+    let shadowed = json!({"version": 1, "shadow": {"version": 2, "sample": 1.0}});
+    let moved = fleet.client.put(format!("{api}/v1/models/pilot/aliases/production"));
+    assert_eq!(moved.json(&shadowed).send().await.unwrap().status(), StatusCode::OK);
+    let observations = json!({"observations": support::jobs::grid_observations()});
+    let act_on = |url: &str| {
+        let request = fleet.client.post(format!("{url}/v1/models/pilot@production/act"));
+        let request = request.json(&observations).send();
+        async move { assert_eq!(request.await.unwrap().status(), StatusCode::OK) }
+    };
+    let shadowed_requests = |url: &str| {
+        let read = fleet.client.get(format!("{url}/v1/models/pilot/shadow")).send();
+        async move {
+            let report: Value = read.await.unwrap().json().await.unwrap();
+            let series = report["series"].as_array().unwrap().clone();
+            series.iter().map(|s| s["total"]["requests"].as_u64().unwrap()).sum::<u64>()
+        }
+    };
+    // The other node shadows once it has followed the move (a notification away).
+    let started = Instant::now();
+    while shadowed_requests(&other).await == 0 {
+        assert!(started.elapsed() < Duration::from_secs(10), "the other node never shadowed");
+        act_on(&other).await;
+    }
+    let before = shadowed_requests(&api).await;
+    for _ in 0..5 {
+        act_on(&api).await;
+    }
+    for _ in 0..7 {
+        act_on(&other).await;
+    }
+    // Each read stores its own node's counts first: the other node's, then this one's.
+    shadowed_requests(&other).await;
+    assert_eq!(
+        shadowed_requests(&api).await,
+        before + 12,
+        "a node's shadowed requests are missing"
+    );
+}
