@@ -745,3 +745,104 @@ async fn a_shadows_series_adds_up_the_requests_of_every_api_node() {
         "a node's shadowed requests are missing"
     );
 }
+
+/// A model deleted and created again under its name on one API node is followed by the other
+/// after the notifications stop arriving: once with every `LISTEN` connection cut (the poll
+/// covers the gap until the listener reconnects) and once across a PostgreSQL restart. Each
+/// time the other node answers the new model's version and never the old one's within 10 s.
+#[tokio::test]
+async fn a_model_created_again_is_followed_after_a_listen_cut_and_a_restart() {
+    let Some(cluster) = support::postgres::private_cluster() else { return };
+    let mut fleet = Fleet::start_on_database(cluster.new_database().await, 1).await;
+    let (u, n) = upload_grid(&fleet).await;
+    let mut policies = Vec::new();
+    for seed in [1, 2] {
+        let queued = create_job(&fleet.client, &fleet.api_url, job(&u, &n, 200, seed)).await;
+        let id = queued["id"].as_str().unwrap();
+        let done = wait_for_status(&fleet.client, &fleet.api_url, id, "succeeded").await;
+        policies.push(done["policy_id"].as_str().unwrap().to_owned());
+    }
+    let (api, client) = (fleet.api_url.clone(), fleet.client.clone());
+    let observations = json!({"observations": support::jobs::grid_observations()});
+    let actions_of = |url: String| {
+        let request = client.post(url).json(&observations).send();
+        async move {
+            let response = request.await.unwrap();
+            let status = response.status();
+            (status, response.json::<Value>().await.unwrap()["actions"].clone())
+        }
+    };
+    let mut expected = Vec::new();
+    for policy in &policies {
+        expected.push(actions_of(format!("{api}/v1/policies/{policy}/act")).await.1);
+    }
+    assert_ne!(expected[0], expected[1], "the two policies act differently");
+    let other = fleet.start_api_node().await;
+    let recreate = |policy: String| {
+        let (client, api) = (client.clone(), api.clone());
+        async move {
+            let ok = |r: reqwest::Response| assert!(r.status().is_success(), "{}", r.status());
+            let _ = client.delete(format!("{api}/v1/models/m/aliases/prod")).send().await;
+            let _ = client.delete(format!("{api}/v1/models/m")).send().await;
+            ok(client
+                .post(format!("{api}/v1/models"))
+                .json(&json!({"name": "m"}))
+                .send()
+                .await
+                .unwrap());
+            let version = json!({"policy_id": policy});
+            let versions = format!("{api}/v1/models/m/versions");
+            ok(client.post(&versions).json(&version).send().await.unwrap());
+            ok(client
+                .put(format!("{api}/v1/models/m/aliases/prod"))
+                .json(&json!({"version": 1}))
+                .send()
+                .await
+                .unwrap());
+        }
+    };
+    let followed = |want: Value, what: &'static str| {
+        let url = format!("{other}/v1/models/m@prod/act");
+        let actions_of = &actions_of;
+        async move {
+            let started = Instant::now();
+            loop {
+                let (status, actions) = actions_of(url.clone()).await;
+                if status == StatusCode::OK && actions == want {
+                    eprintln!("{what}: the other node followed after {:?}", started.elapsed());
+                    return;
+                }
+                assert!(started.elapsed() < Duration::from_secs(10), "{what}: {status} {actions}");
+                tokio::time::sleep(Duration::from_millis(50)).await;
+            }
+        }
+    };
+    recreate(policies[0].clone()).await;
+    followed(expected[0].clone(), "first model").await;
+
+    // Every LISTEN connection cut, then the model made again with the other policy.
+    let mut conn = db(&fleet).await;
+    let cut: i64 = sqlx::query_scalar(
+        "SELECT COUNT(*) FROM (SELECT pg_terminate_backend(pid) FROM pg_stat_activity \
+         WHERE datname = current_database() AND query ILIKE 'LISTEN%') AS cut",
+    )
+    .fetch_one(&mut conn)
+    .await
+    .unwrap();
+    assert!(cut >= 2, "both API nodes listen: {cut} LISTEN connections");
+    drop(conn);
+    recreate(policies[1].clone()).await;
+    followed(expected[1].clone(), "after the LISTEN cut").await;
+
+    // PostgreSQL restarted; once it answers, the model made again once more.
+    cluster.stop();
+    tokio::time::sleep(Duration::from_secs(2)).await;
+    cluster.start_again();
+    let started = Instant::now();
+    while !client.get(format!("{api}/v1/models")).send().await.unwrap().status().is_success() {
+        assert!(started.elapsed() < Duration::from_secs(30), "the API node never reconnected");
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
+    recreate(policies[0].clone()).await;
+    followed(expected[0].clone(), "after the restart").await;
+}
