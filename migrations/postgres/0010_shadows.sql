@@ -21,7 +21,7 @@ CREATE TABLE shadow_comparisons (
     -- Requests drawn for the shadow: compared, skipped (the shadow's queue was full) or failed.
     requests                BIGINT NOT NULL,
     skipped                 BIGINT NOT NULL,
-    failed                  BIGINT NOT NULL,
+    failures                BIGINT NOT NULL,
     -- Observations compared, and the shadow's compute time in nanoseconds.
     observations            BIGINT NOT NULL,
     shadow_ns               BIGINT NOT NULL,

@@ -21,7 +21,7 @@ CREATE TABLE shadow_comparisons (
     -- Requests drawn for the shadow: compared, skipped (the shadow's queue was full) or failed.
     requests                INTEGER NOT NULL,
     skipped                 INTEGER NOT NULL,
-    failed                  INTEGER NOT NULL,
+    failures                INTEGER NOT NULL,
     -- Observations compared, and the shadow's compute time in nanoseconds.
     observations            INTEGER NOT NULL,
     shadow_ns               INTEGER NOT NULL,

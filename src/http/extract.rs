@@ -267,8 +267,8 @@ mod strict_tests {
 #[cfg(test)]
 mod straight_tests {
     use super::*;
+    use crate::http::act::ActRequest;
     use crate::http::inference::InferRequest;
-    use crate::http::serving::ActRequest;
 
     fn refusal<T: DeserializeOwned>(text: &str) -> (StatusCode, String) {
         match deserialize_straight::<T>(text.as_bytes()) {

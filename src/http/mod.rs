@@ -6,6 +6,7 @@
 //! (not on uploads and streams) → handler. Connection-level limits (count, header deadline)
 //! are in [`connections`].
 
+pub mod act;
 pub mod algorithms;
 pub mod auth;
 pub mod connections;
@@ -20,6 +21,7 @@ pub mod inference;
 pub mod job_attempts;
 pub mod jobs;
 mod log_follower;
+pub mod model_aliases;
 pub mod model_names;
 pub mod model_serving;
 pub mod model_shadows;
@@ -30,7 +32,6 @@ pub mod pagination;
 pub mod policies;
 pub mod prometheus;
 pub mod results;
-pub mod serving;
 pub mod ui;
 
 use std::sync::Arc;
@@ -161,6 +162,7 @@ fn routes() -> OpenApiRouter<AppState> {
         .merge(experiments::router())
         .merge(results::router())
         .merge(models::router())
+        .merge(model_aliases::router())
         .merge(model_serving::router())
         .merge(model_shadows::router())
         .merge(inference::router())

@@ -1,12 +1,15 @@
 //! How a request names a model and learns which version answered: the path's model reference,
 //! the client's request key, the version headers. Shared by `/v1/models/…/act`
-//! ([`super::model_serving`]) and the Open Inference Protocol routes ([`super::inference`]).
+//! ([`super::model_serving`]) and the Open Inference Protocol routes ([`super::inference`]); and
+//! what the model routes ([`super::models`], [`super::model_aliases`]) share: the checks of a
+//! name and of a move's note, and this server's refresh after a change.
 
 use axum::http::{HeaderMap, HeaderName, HeaderValue};
 use axum::response::Response;
 
-use super::ApiError;
+use super::{ApiError, AppState};
 use crate::domain::model::ModelRef;
+use crate::domain::model::{self as model, MoveNote, MAX_ACTOR_CHARS};
 use crate::serving::registry::Answer;
 
 /// The version that answered a request by model name.
@@ -32,5 +35,44 @@ pub(crate) fn tag_version(response: &mut Response, answer: &Answer) {
     headers.insert(MODEL_VERSION_HEADER, HeaderValue::from(answer.target.version));
     if let Ok(policy) = HeaderValue::from_str(answer.target.policy_id.as_str()) {
         headers.insert(POLICY_ID_HEADER, policy);
+    }
+}
+
+pub(crate) fn invalid_name(message: String) -> ApiError {
+    ApiError::unprocessable("invalid_name", message)
+}
+
+pub(crate) fn check_text(field: &str, text: &str, max: usize) -> Result<(), ApiError> {
+    model::check_text(field, text, max).map_err(|e| ApiError::unprocessable("invalid_model", e))
+}
+
+/// A model name from the path: anything else than a model's name is 404 (a name that breaks
+/// the rules cannot exist), except that `name@alias` says where to use it.
+pub(crate) fn model_name(name: &str) -> Result<(), ApiError> {
+    model::check_model_name(name)
+        .map_err(|rule| ApiError::NotFound(format!("model {name:?} does not exist ({rule})")))
+}
+
+pub(crate) fn note(
+    actor: Option<String>,
+    reason: Option<String>,
+    expected_version: Option<u32>,
+) -> Result<MoveNote, ApiError> {
+    let actor = actor.unwrap_or_else(|| "api".into());
+    check_text("actor", &actor, MAX_ACTOR_CHARS)?;
+    if actor.trim().is_empty() {
+        return Err(ApiError::unprocessable("invalid_model", "actor: must not be empty"));
+    }
+    if let Some(reason) = &reason {
+        check_text("reason", reason, MAX_ACTOR_CHARS)?;
+    }
+    Ok(MoveNote { actor, reason, expected_version })
+}
+
+/// This server serves the change at once (the others of a fleet follow by notification or
+/// poll). A failure to load leaves the previous table serving and is retried by the poll.
+pub(crate) async fn refresh(state: &AppState, model: &str) {
+    if let Err(e) = state.serving.models.refresh_model(model).await {
+        tracing::error!(%model, error = %e, "cannot load the model's new versions yet; the previous ones keep serving");
     }
 }

@@ -10,12 +10,13 @@ use axum::response::{IntoResponse, Response};
 use utoipa_axum::router::OpenApiRouter;
 use utoipa_axum::routes;
 
+use super::act::{act_on, ActRequest, ActResponse, ACTION_BODY_LIMIT};
 use super::error::ErrorBody;
 use super::extract::{Json, Path, StraightJson};
 use super::model_names::{reference, request_key, tag_version};
-use super::serving::{act_on, ActRequest, ActResponse, ACTION_BODY_LIMIT};
 use super::{ApiError, AppState};
 use crate::domain::model::ModelRef;
+use crate::serving::act::{resolve, ActTarget};
 
 pub fn router() -> OpenApiRouter<AppState> {
     OpenApiRouter::new()
@@ -80,10 +81,11 @@ async fn act(
     key: Option<&str>,
     request: ActRequest,
 ) -> Result<Response, ApiError> {
-    let answer = state.serving.models.resolve(reference, key).await?;
-    let actions =
-        answer.timed(act_on(answer.target.policy.clone(), Some(&answer), request)).await?;
+    let served = resolve(&state.serving, &ActTarget::Model(reference.clone()), key).await?;
+    let actions = served.timed(act_on(&served, request)).await?;
     let mut response = Json(actions).into_response();
-    tag_version(&mut response, &answer);
+    if let Some((answer, _)) = &served.answer {
+        tag_version(&mut response, answer);
+    }
     Ok(response)
 }

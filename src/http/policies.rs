@@ -8,13 +8,14 @@ use utoipa::{IntoParams, ToSchema};
 use utoipa_axum::router::OpenApiRouter;
 use utoipa_axum::routes;
 
+use super::act::{act_on, ActRequest, ActResponse, ACTION_BODY_LIMIT};
 use super::error::ErrorBody;
 use super::extract::{Json, Path, Query, StraightJson};
 use super::pagination::{Page, PageParams};
-use super::serving::{act_on, ActRequest, ActResponse, ACTION_BODY_LIMIT};
 use super::{ApiError, AppState, OCTET_STREAM};
 use crate::algo::Algorithm;
 use crate::domain::{rfc3339, PolicyId, PolicyRecord};
+use crate::serving::act::{resolve, ActTarget};
 use crate::store::{DeleteOutcome, Listing};
 
 /// Header of `GET /v1/policies/{id}/weights` carrying the policy's spec (JSON), which
@@ -240,6 +241,6 @@ async fn act(
     Path(id): Path<PolicyId>,
     StraightJson(request): StraightJson<ActRequest>,
 ) -> Result<Json<ActResponse>, ApiError> {
-    let policy = state.serving.policies.get(&id).await?;
-    Ok(Json(act_on(policy, None, request).await?))
+    let served = resolve(&state.serving, &ActTarget::Policy(id), None).await?;
+    Ok(Json(act_on(&served, request).await?))
 }

@@ -1,8 +1,12 @@
-//! The act path every transport shares: observations validated into one batch
-//! ([`Observations`]), the policy run on it ([`act`]), and what can go wrong on the way
+//! The act path every transport shares: what answers ([`resolve`]: a policy by id, or a named
+//! model's version through its aliases, canaries and shadows), observations validated into one
+//! batch ([`Observations`]), the policy run on it and what follows it ([`Served::act`]: a named
+//! model's statistics, safety tally and shadow), and what can go wrong on the way
 //! ([`ServeError`], which `http/` answers as a status and a body and `grpc/` as a gRPC status).
 //! `/v1/policies/{id}/act`, `/v1/models/{name}/act`, the KServe v2 `infer` route and the gRPC
-//! `ModelInfer` and `ModelStreamInfer` all come through here.
+//! `ModelInfer` and `ModelStreamInfer` all come through here: a transport resolves, decodes its
+//! body into observations with the policy's width, and calls [`Served::timed`] around
+//! [`Served::act`].
 
 use std::sync::Arc;
 
@@ -12,10 +16,13 @@ use rand_chacha::ChaCha8Rng;
 use super::registry::{Answer, ResolveError};
 use super::shadow::Comparison;
 use super::PolicyLoadError;
+use super::Serving;
 use crate::algo::safety::SafetyScores;
 use crate::algo::Policy;
 use crate::data::Actions;
+use crate::domain::model::ModelRef;
 use crate::domain::shadow::ComparisonKey;
+use crate::domain::PolicyId;
 
 /// Largest batch one request may send.
 pub const MAX_BATCH_ROWS: usize = 16_384;
@@ -184,6 +191,77 @@ pub async fn act(
         tokio::task::spawn_blocking(run)
             .await
             .map_err(|e| ServeError::Internal(anyhow::anyhow!("policy inference failed: {e}")))?
+    }
+}
+
+/// What a request for actions names.
+pub enum ActTarget {
+    /// A trained policy by its id (one version, `1`).
+    Policy(PolicyId),
+    /// A named model: its latest version, an alias's (or its canary's) or a version by number.
+    Model(ModelRef),
+}
+
+/// What answers a request: the policy, and for a named model the version chosen (with its
+/// statistics and shadow) and the model's versions.
+pub struct Served {
+    /// The name as requested (a policy id, or the model reference's name).
+    pub name: String,
+    /// The version that answers.
+    pub version: String,
+    pub policy: Arc<Policy>,
+    pub answer: Option<(Answer, Vec<u32>)>,
+}
+
+/// Resolves a target; `key` (a client's request key) picks the same side of a canary every
+/// time.
+pub async fn resolve(
+    serving: &Serving,
+    target: &ActTarget,
+    key: Option<&str>,
+) -> Result<Served, ServeError> {
+    match target {
+        ActTarget::Policy(id) => {
+            let policy = serving.policies.get(id).await?;
+            Ok(Served { name: id.to_string(), version: "1".into(), policy, answer: None })
+        }
+        ActTarget::Model(reference) => {
+            let answer = serving.models.resolve(reference, key).await?;
+            let versions = serving.models.versions(&reference.model);
+            Ok(Served {
+                name: reference.model.clone(),
+                version: answer.target.version.to_string(),
+                policy: answer.target.policy.clone(),
+                answer: Some((answer, versions)),
+            })
+        }
+    }
+}
+
+impl Served {
+    /// Runs `work` for this target and counts it, success or failure and its time, in the
+    /// answering version's statistics (named models only).
+    pub async fn timed<T, E>(
+        &self,
+        work: impl std::future::Future<Output = Result<T, E>>,
+    ) -> Result<T, E> {
+        match &self.answer {
+            Some((answer, _)) => answer.timed(work).await,
+            None => work.await,
+        }
+    }
+
+    /// The policy acts on the observations ([`act`]); for a named model, through
+    /// [`act_answer`].
+    pub async fn act(
+        &self,
+        observations: Observations,
+        options: ActOptions,
+    ) -> Result<Acted, ServeError> {
+        match &self.answer {
+            Some((answer, _)) => act_answer(answer, observations, options).await,
+            None => act(self.policy.clone(), observations, options).await,
+        }
     }
 }
 

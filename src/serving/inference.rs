@@ -14,16 +14,14 @@
 //! (parameter `safety_score`, or the outputs by name), the safety scores of those actions:
 //! `non_preferred_log_ratio` and `out_of_support`, FP32 `[B]` each ([`crate::algo::safety`]).
 
-use std::future::Future;
-use std::sync::Arc;
-
-use super::act::{act, act_answer, safety_unavailable, ActOptions, Observations, ServeError};
-use super::registry::{Answer, VersionStats};
+use super::act::{resolve, safety_unavailable, ActOptions, ActTarget, Observations, ServeError};
+use super::registry::VersionStats;
 use super::tally::ScoreCounts;
 use super::Serving;
 use crate::algo::Policy;
 use crate::data::{ActionSpace, Actions};
 use crate::domain::model::ModelRef;
+use crate::domain::PolicyId;
 
 /// The name of a model's one input tensor.
 pub const INPUT_NAME: &str = "observations";
@@ -49,16 +47,7 @@ pub fn reference(name: &str, version: Option<&str>) -> Result<ModelRef, ServeErr
     .map_err(|rule| ServeError::not_found(format!("model {name:?} does not exist ({rule})")))
 }
 
-/// What a model name resolves to.
-pub struct Served {
-    /// The name as requested.
-    pub name: String,
-    /// The version that answers.
-    pub version: String,
-    pub policy: Arc<Policy>,
-    /// For a named model: the version chosen (with its statistics) and the model's versions.
-    pub answer: Option<(Answer, Vec<u32>)>,
-}
+pub use super::act::Served;
 
 /// Resolves a model name (a policy id or a named model) and an optional version; `key` (a
 /// client's request key) picks the same side of a canary every time.
@@ -68,25 +57,21 @@ pub async fn served(
     version: Option<String>,
     key: Option<&str>,
 ) -> Result<Served, ServeError> {
-    if uuid::Uuid::try_parse(&name).is_ok() {
-        if let Some(version) = version.filter(|v| v != MODEL_VERSION) {
-            return Err(ServeError::not_found(format!(
-                "model version {version} of model {name} (its only version is {MODEL_VERSION}) \
-                 does not exist"
-            )));
+    let target = match uuid::Uuid::try_parse(&name) {
+        Ok(_) => {
+            if let Some(version) = version.filter(|v| v != MODEL_VERSION) {
+                return Err(ServeError::not_found(format!(
+                    "model version {version} of model {name} (its only version is \
+                     {MODEL_VERSION}) does not exist"
+                )));
+            }
+            ActTarget::Policy(PolicyId::from(name.as_str()))
         }
-        let policy = serving.policies.get(&name).await?;
-        return Ok(Served { name, version: MODEL_VERSION.into(), policy, answer: None });
-    }
-    let reference = reference(&name, version.as_deref())?;
-    let answer = serving.models.resolve(&reference, key).await?;
-    let versions = serving.models.versions(&reference.model);
-    Ok(Served {
-        name,
-        version: answer.target.version.to_string(),
-        policy: answer.target.policy.clone(),
-        answer: Some((answer, versions)),
-    })
+        Err(_) => ActTarget::Model(reference(&name, version.as_deref())?),
+    };
+    let mut served = resolve(serving, &target, key).await?;
+    served.name = name;
+    Ok(served)
 }
 
 /// A tensor's name, datatype (`FP32`, `INT64`) and shape (-1: the batch dimension).
@@ -132,15 +117,6 @@ impl Served {
             outputs: std::iter::once(Tensor { name: OUTPUT_NAME, datatype, shape })
                 .chain(self.policy.has_safety_head().then(safety_tensors).into_iter().flatten())
                 .collect(),
-        }
-    }
-
-    /// Runs `work` for this model and counts it, success or failure and its time, in the
-    /// answering version's statistics (named models only).
-    pub async fn timed<T, E>(&self, work: impl Future<Output = Result<T, E>>) -> Result<T, E> {
-        match &self.answer {
-            Some((answer, _)) => answer.timed(work).await,
-            None => work.await,
         }
     }
 }
@@ -329,10 +305,7 @@ pub async fn infer(
     shape[0] = rows;
     let safety_score = wanted.iter().any(|n| SAFETY_OUTPUTS.contains(n));
     let options = ActOptions { deterministic, seed, safety_score };
-    let acted = match &served.answer {
-        Some((answer, _)) => act_answer(answer, observations, options).await?,
-        None => act(policy, observations, options).await?,
-    };
+    let acted = served.act(observations, options).await?;
     let mut actions = Some(match acted.actions {
         Actions::Continuous(values) => OutputData::Fp32(values),
         Actions::Discrete(indices) => {

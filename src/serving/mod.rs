@@ -118,7 +118,8 @@ impl PolicyCache {
 
     /// The policy `id`, loading it on first use. A load that a [`PolicyCache::forget`] of the
     /// same policy overtook answers `NotFound`, like every request after the delete.
-    pub async fn get(&self, id: &str) -> Result<Arc<Policy>, PolicyLoadError> {
+    pub async fn get(&self, id: &PolicyId) -> Result<Arc<Policy>, PolicyLoadError> {
+        let id = id.as_str();
         // The common case, a loaded policy, takes the shared lock only.
         if let Some(policy) = self.slots.read().expect("policy cache lock").loaded.get(id) {
             return Ok(policy.clone());
@@ -162,7 +163,8 @@ impl PolicyCache {
     }
 
     /// The policy `id` if this process holds it now; never loads it.
-    pub fn get_loaded(&self, id: &str) -> Option<Arc<Policy>> {
+    pub fn get_loaded(&self, id: &PolicyId) -> Option<Arc<Policy>> {
+        let id = id.as_str();
         let slots = self.slots.read().expect("policy cache lock");
         slots.loaded.get(id).or_else(|| slots.alive.get(id).and_then(|(w, _)| w.upgrade()))
     }

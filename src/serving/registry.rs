@@ -282,7 +282,7 @@ impl ModelRegistry {
         Some(ShadowDraw {
             alias: alias.to_owned(),
             version: shadow.version,
-            policy: self.policies.get_loaded(shadow.policy_id.as_str()),
+            policy: self.policies.get_loaded(&shadow.policy_id),
             shadows: self.shadows.clone(),
         })
     }
@@ -294,7 +294,7 @@ impl ModelRegistry {
 
     /// A table's version with its policy, from the cache (loaded again if it was evicted).
     async fn target(&self, route: Route) -> Result<Target, ResolveError> {
-        let policy = self.policies.get(route.policy_id.as_str()).await?;
+        let policy = self.policies.get(&route.policy_id).await?;
         Ok(Target {
             version: route.version,
             policy_id: route.policy_id,
@@ -355,7 +355,7 @@ impl ModelRegistry {
         }));
         let policies: BTreeSet<&PolicyId> = routed.map(|route| &route.policy_id).collect();
         for policy_id in policies {
-            self.policies.get(policy_id.as_str()).await?;
+            self.policies.get(policy_id).await?;
         }
         Ok(Deployed { revision: routes.revision, latest, aliases, versions })
     }

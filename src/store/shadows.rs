@@ -22,7 +22,7 @@ pub struct ComparisonDelta<'a> {
 const COUNT_COLUMNS: [&str; 16] = [
     "requests",
     "skipped",
-    "failed",
+    "failures",
     "observations",
     "shadow_ns",
     "disagreements",
@@ -46,7 +46,7 @@ struct ComparisonRow {
     minute: String,
     requests: i64,
     skipped: i64,
-    failed: i64,
+    failures: i64,
     observations: i64,
     shadow_ns: i64,
     disagreements: i64,
@@ -68,7 +68,7 @@ impl ComparisonRow {
         ComparisonCounts {
             requests: n(self.requests),
             skipped: n(self.skipped),
-            failed: n(self.failed),
+            failed: n(self.failures),
             observations: n(self.observations),
             shadow_ns: n(self.shadow_ns),
             disagreements: n(self.disagreements),

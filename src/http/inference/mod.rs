@@ -29,9 +29,9 @@ use utoipa_axum::routes;
 use axum::response::{IntoResponse, Response};
 use binary::{InferBody, V2Error};
 
+use super::act::ACTION_BODY_LIMIT;
 use super::extract::{Json, Path};
 use super::model_names;
-use super::serving::ACTION_BODY_LIMIT;
 use super::{ApiError, AppState};
 use crate::serving::inference::{self as protocol, Input, InputData, OutputData, Served};
 

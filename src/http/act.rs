@@ -8,8 +8,7 @@ use utoipa::ToSchema;
 use super::ApiError;
 use crate::data::Actions;
 pub use crate::serving::act::ACTION_BODY_LIMIT;
-use crate::serving::act::{act, act_answer, ActOptions, Acted, Observations};
-use crate::serving::registry::Answer;
+use crate::serving::act::{ActOptions, Acted, Observations, Served};
 
 /// `POST /v1/policies/{id}/act` body.
 #[derive(Debug, Deserialize, ToSchema)]
@@ -67,14 +66,10 @@ pub struct SafetyScoreList {
     pub out_of_support: Vec<f32>,
 }
 
-/// `/act` on a loaded policy (by id in [`super::policies`]), or on a named model's answer (by
-/// name in [`super::model_serving`]: its statistics and shadow follow the request).
-pub(crate) async fn act_on(
-    policy: std::sync::Arc<crate::algo::Policy>,
-    answer: Option<&Answer>,
-    request: ActRequest,
-) -> Result<ActResponse, ApiError> {
-    let spec = policy.spec();
+/// `/act` on what a request resolved to (a policy by id in [`super::policies`], a named model
+/// in [`super::model_serving`], whose statistics and shadow follow the request).
+pub(crate) async fn act_on(served: &Served, request: ActRequest) -> Result<ActResponse, ApiError> {
+    let spec = served.policy.spec();
     let observations = Observations::from_rows(&request.observations, spec.obs_dim)?;
     let width = spec.action_space.width();
     let options = ActOptions {
@@ -82,10 +77,7 @@ pub(crate) async fn act_on(
         seed: request.seed,
         safety_score: request.safety_score,
     };
-    let Acted { actions, safety } = match answer {
-        Some(answer) => act_answer(answer, observations, options).await?,
-        None => act(policy, observations, options).await?,
-    };
+    let Acted { actions, safety } = served.act(observations, options).await?;
     let actions = match actions {
         Actions::Continuous(values) => {
             ActionList::Continuous(values.chunks(width).map(<[f32]>::to_vec).collect())
