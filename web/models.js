@@ -382,7 +382,8 @@ function modelPage(view, name) {
 
   // The API moves an alias whatever it points at now, so a move confirmed on a page that is out
   // of date would undo someone else's: the alias is read again first and the move is refused here
-  // if it no longer points where the question said (null: the alias did not exist).
+  // if it no longer points where the question said (null: the alias did not exist). Returns the
+  // alias as it is now, whose canary and shadow a move that keeps them sends.
   const unmoved = async (alias, asked) => {
     const now = (await api(modelPath(name))).aliases.find((a) => a.alias === alias);
     const version = now ? now.version : null;
@@ -393,6 +394,7 @@ function modelPage(view, name) {
       else if (asked === null) what = `${alias} was created meanwhile, at ${vText(version)}.`;
       throw new ApiError(0, null, `${what} Nothing was moved; the page shows the current state, check it and try again.`);
     }
+    return now || {};
   };
 
   const onPromote = (version) => {
@@ -505,9 +507,9 @@ function modelPage(view, name) {
       confirmLabel: 'Set canary',
       reason: true,
       action: async () => {
-        await unmoved(alias.alias, alias.version);
+        const current = await unmoved(alias.alias, alias.version);
         const canary = { version: Number(version.value), weight: Number((percent() / 100).toFixed(4)) };
-        await setAlias(alias.alias, alias.version, `canary ${vText(canary.version)} at ${pctText(canary.weight)}`, { canary, shadow: alias.shadow }, alias.version);
+        await setAlias(alias.alias, alias.version, `canary ${vText(canary.version)} at ${pctText(canary.weight)}`, { canary, shadow: current.shadow }, alias.version);
       },
     });
     ask();
@@ -521,8 +523,8 @@ function modelPage(view, name) {
       confirmLabel: 'End canary',
       reason: true,
       action: async () => {
-        await unmoved(alias.alias, alias.version);
-        await setAlias(alias.alias, alias.version, `canary ${vText(alias.canary.version)} ended`, { shadow: alias.shadow }, alias.version);
+        const current = await unmoved(alias.alias, alias.version);
+        await setAlias(alias.alias, alias.version, `canary ${vText(alias.canary.version)} ended`, { shadow: current.shadow }, alias.version);
       },
     });
   };
@@ -555,9 +557,9 @@ function modelPage(view, name) {
       confirmLabel: 'Set shadow',
       reason: true,
       action: async () => {
-        await unmoved(alias.alias, alias.version);
+        const current = await unmoved(alias.alias, alias.version);
         const shadow = { version: Number(version.value), sample: Number((percent() / 100).toFixed(4)) };
-        await setAlias(alias.alias, alias.version, `shadow ${vText(shadow.version)} on ${pctText(shadow.sample)}`, { canary: alias.canary, shadow }, alias.version);
+        await setAlias(alias.alias, alias.version, `shadow ${vText(shadow.version)} on ${pctText(shadow.sample)}`, { canary: current.canary, shadow }, alias.version);
       },
     });
     ask();
@@ -571,8 +573,8 @@ function modelPage(view, name) {
       confirmLabel: 'End shadow',
       reason: true,
       action: async () => {
-        await unmoved(alias.alias, alias.version);
-        await setAlias(alias.alias, alias.version, `shadow ${vText(alias.shadow.version)} ended`, { canary: alias.canary }, alias.version);
+        const current = await unmoved(alias.alias, alias.version);
+        await setAlias(alias.alias, alias.version, `shadow ${vText(alias.shadow.version)} ended`, { canary: current.canary }, alias.version);
       },
     });
   };

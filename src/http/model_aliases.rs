@@ -255,21 +255,25 @@ async fn set_alias(
 /// served is refused before the move (and loading takes no request's time after it); a shadow
 /// must act on what the alias's version acts on.
 async fn preload(state: &AppState, model: &str, target: &AliasTarget) -> Result<(), ApiError> {
-    let mut main = None;
+    let mut answering = Vec::new();
     for version in target.versions() {
         let record = state.store.model_version(model, version).await?;
         let policy = state.serving.policies.get(&record.policy_id).await?;
-        main.get_or_insert_with(|| policy.clone());
-        if target.shadow.is_some_and(|s| s.version == version) {
-            let main = main.as_ref().expect("the alias's version comes first");
-            check_shadow(main.spec(), policy.spec(), target.version, version)?;
+        match target.shadow {
+            // The shadow comes last: it is compared with whichever version answers.
+            Some(shadow) if shadow.version == version => {
+                for (answers, spec) in &answering {
+                    check_shadow(spec, policy.spec(), *answers, version)?;
+                }
+            }
+            _ => answering.push((version, policy.spec().clone())),
         }
     }
     Ok(())
 }
 
 /// A shadow is compared action for action: it must take the same observations and give the
-/// same kind of action as the version it shadows.
+/// same kind of action as each version it shadows (the alias's, and its canary's).
 fn check_shadow(
     main: &crate::algo::PolicySpec,
     shadow: &crate::algo::PolicySpec,

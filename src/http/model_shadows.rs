@@ -1,7 +1,8 @@
 //! `GET /v1/models/{name}/shadow`: how an alias's shadow compares with the versions that
 //! answered, minute by minute (docs/shadow.md). Every serving node adds its counts to the same
 //! minutes, so any node answers for the fleet; this node's own counts are stored first, so a
-//! request answered before this one is in it.
+//! request this node answered before the read is in it (other nodes' within their flush
+//! interval).
 
 use std::time::Duration;
 
@@ -39,6 +40,7 @@ pub struct ShadowParams {
     )]
     pub alias: Option<String>,
     /// The window: the last `minutes` minutes, 1-10080 (default 60).
+    #[param(minimum = 1, maximum = 10080)]
     pub minutes: Option<u32>,
 }
 

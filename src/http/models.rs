@@ -407,7 +407,8 @@ async fn get_version(
 #[utoipa::path(delete, path = "/v1/models/{name}/versions/{version}", tag = "models",
     params(("name" = String, Path), ("version" = u32, Path)),
     responses((status = 204, description = "Deleted"), (status = 404, body = ErrorBody),
-        (status = 409, description = "An alias points at it (`version_in_use`)",
+        (status = 409, description = "An alias points at it, or at it as its canary or \
+            shadow (`version_in_use`)",
          body = ErrorBody)))]
 async fn delete_version(
     State(state): State<AppState>,

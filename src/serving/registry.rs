@@ -162,6 +162,8 @@ pub struct ModelRegistry {
     policies: Arc<PolicyCache>,
     tables: RwLock<HashMap<String, Arc<Deployed>>>,
     shadows: Arc<Shadows>,
+    /// Shadow policies being loaded again in the background after the cache dropped them.
+    reloading: Arc<Mutex<HashSet<PolicyId>>>,
     unloaded: Mutex<HashSet<String>>,
     stats: Mutex<HashMap<(String, u32), Arc<VersionStats>>>,
     /// When a request last made this process look in the store for a name it did not know.
@@ -175,6 +177,7 @@ impl ModelRegistry {
             policies,
             tables: RwLock::new(HashMap::new()),
             shadows,
+            reloading: Arc::new(Mutex::new(HashSet::new())),
             unloaded: Mutex::new(HashSet::new()),
             stats: Mutex::new(HashMap::new()),
             miss_checked: Mutex::new(HashMap::new()),
@@ -279,12 +282,31 @@ impl ModelRegistry {
         {
             return None;
         }
+        let policy = self.policies.get_loaded(&shadow.policy_id);
+        if policy.is_none() {
+            self.reload_in_background(&shadow.policy_id);
+        }
         Some(ShadowDraw {
             alias: alias.to_owned(),
             version: shadow.version,
-            policy: self.policies.get_loaded(&shadow.policy_id),
+            policy,
             shadows: self.shadows.clone(),
         })
+    }
+
+    /// Loads a shadow's policy the cache dropped, off every request's time (once at a time per
+    /// policy), so the shadow's comparisons resume rather than stay skipped.
+    fn reload_in_background(&self, id: &PolicyId) {
+        if !self.reloading.lock().expect("reloading lock").insert(id.clone()) {
+            return;
+        }
+        let (policies, reloading, id) = (self.policies.clone(), self.reloading.clone(), id.clone());
+        tokio::spawn(async move {
+            if let Err(e) = policies.get(&id).await {
+                tracing::warn!(policy = %id, error = %e, "cannot load a shadow's policy again");
+            }
+            reloading.lock().expect("reloading lock").remove(&id);
+        });
     }
 
     /// The shadows' runner of this process.

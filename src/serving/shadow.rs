@@ -25,6 +25,9 @@ use crate::store::{Store, StoreError};
 
 /// Comparisons waiting for the shadow thread; one more is skipped.
 pub const QUEUE: usize = 1024;
+/// Observation values the queued comparisons may hold in all (64 MiB of f32): the queue is
+/// bounded by size as well as by count, since one request may carry 16,384 rows.
+pub const QUEUE_VALUES: u64 = 16 << 20;
 /// How often this process adds its counts to the store.
 pub const FLUSH: Duration = Duration::from_secs(5);
 
@@ -41,15 +44,33 @@ pub struct Comparison {
     pub seed: u64,
 }
 
+/// A comparison as queued: the minute its request was answered in.
+struct Queued {
+    comparison: Comparison,
+    minute: DateTime<Utc>,
+}
+
 /// Counts per comparison and minute, not yet in the store.
 type Pending = HashMap<(ComparisonKey, DateTime<Utc>), ComparisonCounts>;
 
+/// What the shadow thread shares with the requests and the flushes.
+struct Shared {
+    pending: Mutex<Pending>,
+    /// Comparisons queued so far, and finished so far (both only grow): a read waits until the
+    /// second reaches what the first was when it started.
+    submitted: AtomicU64,
+    finished: AtomicU64,
+    /// Observation values held by the queue now.
+    queued_values: AtomicU64,
+}
+
 /// The shadow thread's queue and this process's counts.
 pub struct Shadows {
-    queue: SyncSender<Comparison>,
-    pending: Arc<Mutex<Pending>>,
-    /// Comparisons queued and not finished yet.
-    in_queue: Arc<AtomicU64>,
+    queue: SyncSender<Queued>,
+    shared: Arc<Shared>,
+    /// One flush at a time: a read's flush must not find the counts taken by another flush
+    /// that has not committed them yet.
+    flushing: tokio::sync::Mutex<()>,
     store: Store,
 }
 
@@ -57,24 +78,36 @@ impl Shadows {
     /// Starts the shadow thread (it ends when the last `Shadows` is dropped).
     pub fn start(store: Store) -> Arc<Self> {
         let (queue, received) = sync_channel(QUEUE);
-        let pending = Arc::new(Mutex::new(Pending::new()));
-        let in_queue = Arc::new(AtomicU64::new(0));
-        let (counts, queued) = (pending.clone(), in_queue.clone());
+        let shared = Arc::new(Shared {
+            pending: Mutex::new(Pending::new()),
+            submitted: AtomicU64::new(0),
+            finished: AtomicU64::new(0),
+            queued_values: AtomicU64::new(0),
+        });
+        let on_thread = shared.clone();
         std::thread::Builder::new()
             .name("safedice-shadow".into())
-            .spawn(move || run_comparisons(received, &counts, &queued))
+            .spawn(move || run_comparisons(received, &on_thread))
             .expect("cannot start the shadow thread");
-        Arc::new(Shadows { queue, pending, in_queue, store })
+        Arc::new(Shadows { queue, shared, flushing: tokio::sync::Mutex::new(()), store })
     }
 
-    /// Queues a comparison; a full queue counts it as skipped.
+    /// Queues a comparison; a full queue (by count or by size) counts it as skipped.
     pub fn submit(&self, comparison: Comparison) {
-        self.in_queue.fetch_add(1, Ordering::SeqCst);
-        if let Err(TrySendError::Full(c) | TrySendError::Disconnected(c)) =
-            self.queue.try_send(comparison)
+        let values = comparison.observations.len() as u64;
+        let held = self.shared.queued_values.fetch_add(values, Ordering::SeqCst);
+        if held + values > QUEUE_VALUES && held > 0 {
+            self.shared.queued_values.fetch_sub(values, Ordering::SeqCst);
+            return self.skip(comparison.key);
+        }
+        let queued = Queued { comparison, minute: this_minute() };
+        self.shared.submitted.fetch_add(1, Ordering::SeqCst);
+        if let Err(TrySendError::Full(q) | TrySendError::Disconnected(q)) =
+            self.queue.try_send(queued)
         {
-            self.in_queue.fetch_sub(1, Ordering::SeqCst);
-            self.skip(c.key);
+            self.shared.queued_values.fetch_sub(values, Ordering::SeqCst);
+            self.shared.finished.fetch_add(1, Ordering::SeqCst);
+            self.skip(q.comparison.key);
         }
     }
 
@@ -82,30 +115,36 @@ impl Shadows {
     /// policy not loaded on this process).
     pub fn skip(&self, key: ComparisonKey) {
         let counts = ComparisonCounts { requests: 1, skipped: 1, ..Default::default() };
-        add(&self.pending, key, &counts);
+        add_at(&self.shared.pending, key, this_minute(), &counts);
     }
 
     /// Adds this process's counts to the store; on failure they stay for the next flush.
     pub async fn flush(&self) -> Result<(), StoreError> {
-        let taken = std::mem::take(&mut *self.pending.lock().expect("shadow counts lock"));
-        let deltas: Vec<ComparisonDelta> = taken
+        let _one_at_a_time = self.flushing.lock().await;
+        let taken = std::mem::take(&mut *self.shared.pending.lock().expect("shadow counts lock"));
+        let mut deltas: Vec<ComparisonDelta> = taken
             .iter()
             .map(|((key, minute), counts)| ComparisonDelta { key, minute: *minute, counts })
             .collect();
+        // Every node writes the rows in the same order, so two nodes' flushes of the same rows
+        // cannot deadlock on PostgreSQL.
+        deltas.sort_by(|a, b| (a.key, a.minute).cmp(&(b.key, b.minute)));
         let added = self.store.add_shadow_counts(&deltas).await;
         if added.is_err() {
             for ((key, minute), counts) in taken {
-                add_at(&self.pending, key, minute, &counts);
+                add_at(&self.shared.pending, key, minute, &counts);
             }
         }
         added
     }
 
-    /// Waits (up to `wait`) for the comparisons queued so far to finish, then flushes: what a
-    /// reader of the series asks for, so it sees every request answered before it asked.
+    /// Waits (up to `wait`) for the comparisons queued before it was called to finish, then
+    /// flushes: what a reader of the series asks for, so it sees every request this process
+    /// answered before it asked.
     pub async fn settle(&self, wait: Duration) -> Result<(), StoreError> {
         let deadline = Instant::now() + wait;
-        while self.in_queue.load(Ordering::SeqCst) > 0 && Instant::now() < deadline {
+        let target = self.shared.submitted.load(Ordering::SeqCst);
+        while self.shared.finished.load(Ordering::SeqCst) < target && Instant::now() < deadline {
             tokio::time::sleep(Duration::from_millis(5)).await;
         }
         self.flush().await
@@ -135,18 +174,21 @@ impl Shadows {
     }
 }
 
-fn run_comparisons(received: Receiver<Comparison>, pending: &Mutex<Pending>, queued: &AtomicU64) {
-    for comparison in received {
-        let key = comparison.key.clone();
-        let counts = compare(comparison);
-        add(pending, key, &counts);
-        queued.fetch_sub(1, Ordering::SeqCst);
-    }
+fn this_minute() -> DateTime<Utc> {
+    Utc::now().duration_trunc(TimeDelta::minutes(1)).expect("a minute divides time")
 }
 
-fn add(pending: &Mutex<Pending>, key: ComparisonKey, counts: &ComparisonCounts) {
-    let minute = Utc::now().duration_trunc(TimeDelta::minutes(1)).expect("a minute divides time");
-    add_at(pending, key, minute, counts);
+/// The shadow thread: each comparison in turn. A panic in one (a policy's bug) counts it as
+/// failed and the thread goes on.
+fn run_comparisons(received: Receiver<Queued>, shared: &Shared) {
+    for Queued { comparison, minute } in received {
+        let (key, values) = (comparison.key.clone(), comparison.observations.len() as u64);
+        let counts = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| compare(comparison)))
+            .unwrap_or_else(|_| ComparisonCounts { requests: 1, failed: 1, ..Default::default() });
+        add_at(&shared.pending, key, minute, &counts);
+        shared.queued_values.fetch_sub(values, Ordering::SeqCst);
+        shared.finished.fetch_add(1, Ordering::SeqCst);
+    }
 }
 
 fn add_at(

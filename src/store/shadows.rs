@@ -87,7 +87,8 @@ impl ComparisonRow {
 }
 
 /// The upsert of one minute: sums add, maxima keep the larger; a model deleted meanwhile gets
-/// no row (`WHERE EXISTS`), so a late flush cannot leave counts for a later model of its name.
+/// no row (`WHERE EXISTS`). (A model deleted and created again under its name within one flush
+/// interval can receive the old model's last counts.)
 fn upsert_sql() -> String {
     let sums = COUNT_COLUMNS
         .iter()

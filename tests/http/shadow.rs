@@ -223,6 +223,16 @@ async fn a_continuous_shadow_reports_the_l2_distance_and_bad_shadows_are_refused
     )
     .await;
     assert!(message.contains("version 1 takes 2 and gives 2-dimensional actions"), "{message}");
+    // Checked against the canary too: whichever answers is compared with the shadow.
+    let beside_canary = json!({"version": 1, "canary": {"version": 3, "weight": 0.5},
+                               "shadow": {"version": 2, "sample": 0.5}});
+    let message = assert_error(
+        put_alias(&app, "walker", "production", &beside_canary).await,
+        StatusCode::UNPROCESSABLE_ENTITY,
+        "invalid_shadow",
+    )
+    .await;
+    assert!(message.contains("version 3 takes 10"), "{message}");
     for sample in [0.0, 1.5, -0.1] {
         let bad = json!({"version": 1, "shadow": {"version": 2, "sample": sample}});
         let response = put_alias(&app, "walker", "production", &bad).await;
