@@ -5,7 +5,7 @@ policies through the REST API, then checks the calls tritonclient.grpc makes on
 inference.GRPCInferenceService: metadata, configuration, readiness, unary inference with raw
 inputs (tritonclient's own) and typed `fp32_contents` (through the package's generated stub),
 raw and typed outputs, a 1,000-message stream with one request key, a canary split by request
-key, the repository and statistics extensions, the tokens (a second server with tokens:
+key, a shadow version compared on a stream, the repository and statistics extensions, the tokens (a second server with tokens:
 no or a wrong token is UNAUTHENTICATED), and a SafeDICE policy's safety scores (the parameter
 `safety_score` and the outputs by name; a BC policy answers INVALID_ARGUMENT). Every action is compared with
 /v1/policies/{id}/act bit for bit. Exits non-zero on the first mismatch.
@@ -164,6 +164,29 @@ def check_named_model(client, first, second):
     counted = sum(int(s["inference_stats"]["success"].get("count", 0)) for s in stats)
     assert counted == 999 + 120, stats
     print("repository index and statistics: rover READY, 1,119 successful inferences counted")
+    check_shadow(client, observations, by_version)
+
+
+def check_shadow(client, observations, by_version):
+    """Version 2 shadowing `production` (version 1) on every request: a 100-message stream is
+    answered by version 1 alone, and the shadow's series counts the 100 requests and the L2
+    distance between the two versions' actions (docs/shadow.md)."""
+    alias("rover", {"version": 1, "shadow": {"version": 2, "sample": 1.0}})
+    answered = stream(client, "rover@production", observations, 100, "agent-9")
+    for i, (result, error) in enumerate(answered):
+        assert error is None, (i, error)
+        assert result.get_response().model_version == "1", i
+        assert same(result.as_numpy("actions"), by_version["1"]), i
+    report = call("GET", "/v1/models/rover/shadow?alias=production")
+    series = [s for s in report["series"] if (s["production_version"], s["shadow_version"]) == (1, 2)]
+    assert len(series) == 1, report
+    total = series[0]["total"]
+    assert (total["requests"], total["skipped"], total["failed"]) == (100, 0, 0), total
+    assert total["observations"] == 100 * len(observations), total
+    distances = np.linalg.norm(by_version["1"] - by_version["2"], axis=1)
+    assert abs(total["mean_l2"] - distances.mean()) < 1e-4, (total, distances)
+    print(f"shadow: 100 streamed requests answered by version 1 alone, compared with version 2: "
+          f"mean L2 {total['mean_l2']:.4f} as the two versions' own actions give")
 
 
 def free_port():
