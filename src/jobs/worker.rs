@@ -8,8 +8,8 @@ use super::{JobEvent, JobRunner};
 use crate::domain::LogLevel;
 use crate::domain::MetricRecord;
 use crate::domain::{JobRecord, JobStatus, PolicyId};
+use crate::store::jobs::SucceededRun;
 use crate::store::leases::LeaseTable;
-use crate::store::policies::NewPolicy;
 use crate::store::{Lease, Store, StoreError};
 
 /// What writing a run's end came to.
@@ -162,7 +162,8 @@ async fn write_end(
     }
 }
 
-/// Stores the trained policy with the last metrics and marks the job succeeded.
+/// Stores the last metrics and the trained policy and marks the job succeeded, in one
+/// transaction.
 async fn store_policy(
     store: &Store,
     log: &JobLog,
@@ -170,23 +171,18 @@ async fn store_policy(
     trained: TrainedPolicy,
     metrics: Vec<MetricRecord>,
 ) -> anyhow::Result<()> {
-    // In first: the policy's final metrics are the last values stored.
-    store.insert_metrics(lease, &metrics).await?;
-    let job_id = lease.job_id();
-    let last = store.last_metric_values(&job_id).await?;
     let TrainedPolicy { artifact, alpha_hat, step, evaluation } = trained;
     let policy_id = PolicyId::generate();
-    let policy = NewPolicy {
-        id: &policy_id,
-        job_id: &job_id,
+    let run = SucceededRun {
+        policy_id: &policy_id,
         artifact: &artifact,
-        final_metrics: &last,
         alpha_hat,
+        step,
+        evaluation: evaluation.as_ref(),
     };
     log.write(LogLevel::Info, &format!("succeeded at step {step}: policy {policy_id}")).await;
-    if let Some((model, version)) = store
-        .finish_job_succeeded(lease, &log.worker, &[], &policy, step, evaluation.as_ref())
-        .await?
+    if let Some((model, version)) =
+        store.finish_job_succeeded(lease, &log.worker, &metrics, &run).await?
     {
         tracing::info!(%model, version, %policy_id, "policy registered as a model version");
     }

@@ -162,7 +162,7 @@ impl Store {
         }
         let lease = Lease::new(job.id.clone(), job.lease_token);
         end_attempt(&mut tx, &lease, AttemptOutcome::Crashed, Some(crash)).await?;
-        let time = self.db_now().await?;
+        let time = self.db_now_in(&mut tx).await?;
         let give_up = job.attempt >= job.max_attempts;
         let (status, message) = if give_up {
             let history = self.crash_count(&mut tx, &job.id).await?;

@@ -511,13 +511,14 @@ impl Store {
     pub async fn release_job(&self, lease: &Lease, reason: &str) -> Result<(), StoreError> {
         let mut tx = self.begin_write().await?;
         leases::hold(&mut tx, LeaseTable::Jobs, lease).await?;
+        let now = self.db_now_in(&mut tx).await?;
         // Not the job's fault: the attempt is given back.
         sqlx::query(&format!(
             "UPDATE jobs SET status = {}, updated_at = $1, iterations_per_second = NULL, \
                  lease_expires_ms = 0, attempt = attempt - 1 WHERE id = $2",
             JobStatus::Queued.sql()
         ))
-        .bind(self.db_now().await?)
+        .bind(now)
         .bind(&lease.id)
         .execute(&mut *tx)
         .await?;
@@ -647,40 +648,39 @@ impl Store {
 
     /// The last recorded value of each metric of a job.
     pub async fn last_metric_values(&self, id: &JobId) -> Result<Vec<(String, f64)>, StoreError> {
-        let id = id.as_str();
-        let rows = sqlx::query_as(
-            "SELECT name, value FROM job_metrics AS m WHERE job_id = $1 \
-               AND step = (SELECT MAX(step) FROM job_metrics WHERE job_id = $1 AND name = m.name) \
-             ORDER BY name",
-        )
-        .bind(id)
-        .fetch_all(self.pool())
-        .await?;
-        Ok(rows)
+        Ok(sqlx::query_as(LAST_METRIC_VALUES).bind(id.as_str()).fetch_all(self.pool()).await?)
     }
 
-    /// Completes a job: its last metrics, its policy (with the evaluation the run took at its
-    /// end, if its job has an `eval` block), the model version its `register` asks for and the
-    /// `succeeded` status in one transaction; the checkpoint is no longer needed.
-    /// Returns the version registered (model, number), if any; the job's log says what became
-    /// of its `register` in the same transaction (as `worker`), so it never tells of a
-    /// registration that did not commit.
-    #[allow(clippy::too_many_arguments)]
+    /// Completes a job in one transaction: its last metrics, its policy (whose final metrics are
+    /// the last values stored, read in the same transaction; with the evaluation the run took at
+    /// its end, if its job has an `eval` block), the model version its `register` asks for and
+    /// the `succeeded` status; the checkpoint is no longer needed. Returns the version
+    /// registered (model, number), if any; the job's log says what became of its `register` in
+    /// the same transaction (as `worker`), so it never tells of a registration that did not
+    /// commit.
     pub async fn finish_job_succeeded(
         &self,
         lease: &Lease,
         worker: &str,
         pending_metrics: &[MetricRecord],
-        policy: &NewPolicy<'_>,
-        step: u64,
-        evaluation: Option<&TrainingEvaluation>,
+        run: &SucceededRun<'_>,
     ) -> Result<Option<(String, u32)>, StoreError> {
         let mut tx = self.begin_write().await?;
         leases::hold(&mut tx, LeaseTable::Jobs, lease).await?;
         insert_metric_rows(&mut tx, &lease.id, pending_metrics).await?;
-        super::policies::insert_policy(&mut tx, policy).await?;
-        if let Some(evaluation) = evaluation {
-            insert_training_evaluation(&mut tx, policy.id, evaluation, &now()).await?;
+        let job_id = lease.job_id();
+        let final_metrics = last_metric_values_in(&mut tx, job_id.as_str()).await?;
+        let policy = NewPolicy {
+            id: run.policy_id,
+            job_id: &job_id,
+            artifact: run.artifact,
+            final_metrics: &final_metrics,
+            alpha_hat: run.alpha_hat,
+        };
+        super::policies::insert_policy(&mut tx, &policy).await?;
+        let now = self.db_now_in(&mut tx).await?;
+        if let Some(evaluation) = run.evaluation {
+            insert_training_evaluation(&mut tx, policy.id, evaluation, &now).await?;
         }
         let registered = self.register_policy(&mut tx, &lease.id, worker, policy.id).await?;
         sqlx::query(&format!(
@@ -692,9 +692,9 @@ impl Store {
             JobStatus::Succeeded.sql()
         ))
         .bind(policy.id.as_str())
-        .bind(step as i64)
+        .bind(run.step as i64)
         .bind(optional_real(policy.alpha_hat))
-        .bind(self.db_now().await?)
+        .bind(&now)
         .bind(&lease.id)
         .execute(&mut *tx)
         .await?;
@@ -768,13 +768,14 @@ impl Store {
         let mut tx = self.begin_write().await?;
         leases::hold(&mut tx, LeaseTable::Jobs, lease).await?;
         insert_metric_rows(&mut tx, &lease.id, pending_metrics).await?;
+        let now = self.db_now_in(&mut tx).await?;
         sqlx::query(
             "UPDATE jobs SET status = $1, error = $2, iterations_per_second = NULL, \
                  updated_at = $3, finished_at = $3 WHERE id = $4",
         )
         .bind(status.as_str())
         .bind(error)
-        .bind(self.db_now().await?)
+        .bind(now)
         .bind(&lease.id)
         .execute(&mut *tx)
         .await?;
@@ -888,4 +889,27 @@ fn escape_like(text: &str) -> String {
         out.push(c);
     }
     out
+}
+
+/// The last stored value of each of a job's metrics, by name.
+const LAST_METRIC_VALUES: &str = "SELECT name, value FROM job_metrics AS m WHERE job_id = $1 \
+       AND step = (SELECT MAX(step) FROM job_metrics WHERE job_id = $1 AND name = m.name) \
+     ORDER BY name";
+
+/// [`Store::last_metric_values`] inside a transaction (the metrics it just inserted included).
+async fn last_metric_values_in(
+    tx: &mut Transaction<'_, Any>,
+    job_id: &str,
+) -> Result<Vec<(String, f64)>, StoreError> {
+    Ok(sqlx::query_as(LAST_METRIC_VALUES).bind(job_id).fetch_all(&mut **tx).await?)
+}
+
+/// What a succeeded run stores: its policy (the final metrics are read when it is stored), the
+/// step it ended at and the evaluation it took at its end.
+pub struct SucceededRun<'a> {
+    pub policy_id: &'a crate::domain::PolicyId,
+    pub artifact: &'a crate::algo::PolicyArtifact,
+    pub alpha_hat: Option<f64>,
+    pub step: u64,
+    pub evaluation: Option<&'a TrainingEvaluation>,
 }

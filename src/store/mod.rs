@@ -210,17 +210,26 @@ impl Store {
     pub(crate) async fn db_now(&self) -> Result<String, sqlx::Error> {
         match self.backend {
             Backend::Sqlite => Ok(now()),
-            Backend::Postgres => {
-                sqlx::query_scalar(
-                    "SELECT to_char(clock_timestamp() AT TIME ZONE 'UTC', \
-                     'YYYY-MM-DD\"T\"HH24:MI:SS.MS\"Z\"')",
-                )
-                .fetch_one(self.pool())
-                .await
-            }
+            Backend::Postgres => sqlx::query_scalar(DB_NOW).fetch_one(self.pool()).await,
+        }
+    }
+
+    /// [`Store::db_now`] read on `conn` (a transaction's): a write transaction asks the time on
+    /// its own connection rather than take a second one from the pool.
+    pub(crate) async fn db_now_in(
+        &self,
+        conn: &mut sqlx::AnyConnection,
+    ) -> Result<String, sqlx::Error> {
+        match self.backend {
+            Backend::Sqlite => Ok(now()),
+            Backend::Postgres => sqlx::query_scalar(DB_NOW).fetch_one(conn).await,
         }
     }
 }
+
+/// PostgreSQL's clock as [`now`] formats time.
+const DB_NOW: &str =
+    "SELECT to_char(clock_timestamp() AT TIME ZONE 'UTC', 'YYYY-MM-DD\"T\"HH24:MI:SS.MS\"Z\"')";
 
 /// Current time as stored: RFC 3339, UTC, milliseconds (text that sorts in time order). Never
 /// the same twice in one process: a call in the millisecond of the last one gets the next
