@@ -33,11 +33,8 @@ pub fn router() -> OpenApiRouter<AppState> {
 #[derive(Debug, Deserialize, IntoParams)]
 #[into_params(parameter_in = Query)]
 pub struct ShadowParams {
-    /// Only this alias's comparisons.
-    #[param(
-        pattern = r"^(?:[A-Za-z][A-Za-z0-9._-]*|[0-9]+[A-Za-z._-][A-Za-z0-9._-]*)$",
-        max_length = 64
-    )]
+    /// Only this alias's comparisons (a filter, as the history's: a name no alias has matches
+    /// nothing).
     pub alias: Option<String>,
     /// The window: the last `minutes` minutes, 1-10080 (default 60).
     #[param(minimum = 1, maximum = 10080)]
