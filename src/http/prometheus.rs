@@ -70,6 +70,16 @@ pub struct Metrics {
     policies_loaded: Gauge,
     policy_cache_bytes: Gauge,
     policy_bytes_outside_cache: Gauge,
+    shadow_queue: Gauge,
+    shadow_requests: Family<ShadowLabel, Counter>,
+    /// Two scrapes at once must not both add the same totals' growth to the counters.
+    shadow_sync: std::sync::Mutex<()>,
+}
+
+/// What became of a request drawn for a shadow.
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+struct ShadowLabel {
+    result: &'static str,
 }
 
 /// What /metrics says of the workers sharing the database.
@@ -185,8 +195,24 @@ impl Metrics {
             "Bytes of policies dropped from the cache that requests in flight still hold (shared, never a second copy)",
             policy_bytes_outside_cache.clone(),
         );
+        let shadow_queue = Gauge::default();
+        registry.register(
+            "shadow_queue",
+            "Shadow comparisons queued and not finished (docs/shadow.md)",
+            shadow_queue.clone(),
+        );
+        let shadow_requests = Family::<ShadowLabel, Counter>::default();
+        registry.register(
+            "shadow_requests",
+            "Requests drawn for an alias's shadow, by result: compared, skipped (queue full or \
+             policy not loaded), failed",
+            shadow_requests.clone(),
+        );
         Metrics {
             registry,
+            shadow_queue,
+            shadow_requests,
+            shadow_sync: std::sync::Mutex::new(()),
             requests,
             latency,
             grpc_requests,
@@ -266,6 +292,15 @@ async fn metrics(State(state): State<AppState>) -> Result<Response, ApiError> {
     state.metrics.policies_loaded.set(usage.loaded as i64);
     state.metrics.policy_cache_bytes.set(gauge(usage.bytes));
     state.metrics.policy_bytes_outside_cache.set(gauge(usage.held_outside));
+    let shadows = state.serving.models.shadows().usage();
+    state.metrics.shadow_queue.set(gauge(shadows.queued));
+    let _one_scrape = state.metrics.shadow_sync.lock().expect("shadow metrics lock");
+    for (result, total) in
+        [("compared", shadows.compared), ("skipped", shadows.skipped), ("failed", shadows.failed)]
+    {
+        let counter = state.metrics.shadow_requests.get_or_create(&ShadowLabel { result });
+        counter.inc_by(total.saturating_sub(counter.get()));
+    }
     let mut body = String::new();
     prometheus_client::encoding::text::encode(&mut body, &state.metrics.registry)
         .map_err(|e| ApiError::Internal(e.into()))?;

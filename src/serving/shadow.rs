@@ -62,6 +62,20 @@ struct Shared {
     finished: AtomicU64,
     /// Observation values held by the queue now.
     queued_values: AtomicU64,
+    /// Requests drawn for a shadow since the process started, by what became of them.
+    compared: AtomicU64,
+    skipped: AtomicU64,
+    failed: AtomicU64,
+}
+
+/// What `/metrics` says of this process's shadows.
+pub struct ShadowUsage {
+    /// Comparisons queued and not finished.
+    pub queued: u64,
+    /// Requests drawn for a shadow since start: compared, skipped, failed.
+    pub compared: u64,
+    pub skipped: u64,
+    pub failed: u64,
 }
 
 /// The shadow thread's queue and this process's counts.
@@ -83,6 +97,9 @@ impl Shadows {
             submitted: AtomicU64::new(0),
             finished: AtomicU64::new(0),
             queued_values: AtomicU64::new(0),
+            compared: AtomicU64::new(0),
+            skipped: AtomicU64::new(0),
+            failed: AtomicU64::new(0),
         });
         let on_thread = shared.clone();
         std::thread::Builder::new()
@@ -114,8 +131,21 @@ impl Shadows {
     /// Counts a request drawn for the shadow that could not be compared (its queue full, or its
     /// policy not loaded on this process).
     pub fn skip(&self, key: ComparisonKey) {
+        self.shared.skipped.fetch_add(1, Ordering::Relaxed);
         let counts = ComparisonCounts { requests: 1, skipped: 1, ..Default::default() };
         add_at(&self.shared.pending, key, this_minute(), &counts);
+    }
+
+    /// For `/metrics`.
+    pub fn usage(&self) -> ShadowUsage {
+        let load = |v: &AtomicU64| v.load(Ordering::Relaxed);
+        let (submitted, finished) = (load(&self.shared.submitted), load(&self.shared.finished));
+        ShadowUsage {
+            queued: submitted.saturating_sub(finished),
+            compared: load(&self.shared.compared),
+            skipped: load(&self.shared.skipped),
+            failed: load(&self.shared.failed),
+        }
     }
 
     /// Adds this process's counts to the store; on failure they stay for the next flush.
@@ -185,6 +215,8 @@ fn run_comparisons(received: Receiver<Queued>, shared: &Shared) {
         let (key, values) = (comparison.key.clone(), comparison.observations.len() as u64);
         let counts = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| compare(comparison)))
             .unwrap_or_else(|_| ComparisonCounts { requests: 1, failed: 1, ..Default::default() });
+        let outcome = if counts.failed > 0 { &shared.failed } else { &shared.compared };
+        outcome.fetch_add(1, Ordering::Relaxed);
         add_at(&shared.pending, key, minute, &counts);
         shared.queued_values.fetch_sub(values, Ordering::SeqCst);
         shared.finished.fetch_add(1, Ordering::SeqCst);

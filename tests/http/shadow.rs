@@ -135,6 +135,12 @@ async fn a_discrete_shadow_counts_exactly_the_disagreements_and_never_answers() 
     let rate = total["disagreement_rate"].as_f64().unwrap();
     assert!((rate - differing as f64 / rows as f64).abs() < 1e-12, "{rate} vs {differing}/{rows}");
     assert!(total["mean_l2"].is_null() && total["shadow_mean_log_ratio"].is_null(), "{total}");
+    let metrics = app.get("/metrics").send().await.unwrap().text().await.unwrap();
+    assert!(
+        metrics.contains("safedice_shadow_requests_total{result=\"compared\"} 21\n")
+            && metrics.contains("safedice_shadow_queue 0\n"),
+        "{metrics}"
+    );
     let points = compared["points"].as_array().unwrap();
     let summed: u64 = points.iter().map(|p| p["requests"].as_u64().unwrap()).sum();
     assert_eq!(summed, 21, "the minutes add up to the total: {points:?}");
