@@ -296,7 +296,7 @@ async fn metrics(State(state): State<AppState>) -> Result<Response, ApiError> {
     state.metrics.shadow_queue.set(gauge(shadows.queued));
     let _one_scrape = state.metrics.shadow_sync.lock().expect("shadow metrics lock");
     for (result, total) in
-        [("compared", shadows.compared), ("skipped", shadows.skipped), ("failed", shadows.failed)]
+        [("compared", shadows.compared), ("skipped", shadows.skipped), ("error", shadows.failed)]
     {
         let counter = state.metrics.shadow_requests.get_or_create(&ShadowLabel { result });
         counter.inc_by(total.saturating_sub(counter.get()));
