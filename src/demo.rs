@@ -311,7 +311,9 @@ async fn wait_for_job(client: &reqwest::Client, base: &str, id: &str) -> anyhow:
                 println!("   job {id} ({}) succeeded", job["algorithm"]);
                 return Ok(job);
             }
-            Some(JobStatus::Failed | JobStatus::Cancelled) => bail!("job {id} ended: {job}"),
+            Some(JobStatus::Failed | JobStatus::Cancelled | JobStatus::Discarded) => {
+                bail!("job {id} ended: {job}")
+            }
             _ => {}
         }
         if last_print.elapsed() > Duration::from_secs(5) {

@@ -477,7 +477,7 @@ function jobsPage(view) {
   const search = h('input', { id: 'jobs-search', type: 'search', placeholder: 'name or id prefix', size: 22 });
   const tag = h('input', { id: 'jobs-tag', placeholder: 'tag', size: 14 });
   const statusFilter = h('select', { id: 'jobs-status' }, h('option', { value: '' }, 'any status'),
-    ['queued', 'running', 'succeeded', 'failed', 'cancelled'].map((st) => h('option', { value: st }, st)));
+    JOB_STATUSES.map((st) => h('option', { value: st.name, title: st.meaning }, st.name)));
   const filters = h('form', { class: 'filters', id: 'jobs-filters' }, search, tag, statusFilter,
     h('button', { type: 'submit', class: 'secondary' }, 'Filter'));
   const path = () => withParams('/v1/jobs', { q: search.value.trim(), tag: tag.value.trim(), status: statusFilter.value });
@@ -636,6 +636,9 @@ function jobSummary(job, onCancel) {
     job.status === 'failed' ? h('div', { class: 'error-box job-error', role: 'alert' },
       h('strong', {}, 'This job failed: '), h('span', { class: 'error-message' }, job.error || 'no reason recorded'),
       h('div', { class: 'hint' }, 'The log below tells what the worker did; fix what the message names (a knob of the config or the data) and queue a new job on the Jobs page.')) : null,
+    job.status === 'discarded' ? h('div', { class: 'error-box job-error', role: 'alert' },
+      h('strong', {}, 'This job was discarded: '), h('span', { class: 'error-message' }, job.error || 'no reason recorded'),
+      h('div', { class: 'hint' }, `Its workers vanished ${job.attempt} times (killed, out of memory, the machine gone) before it ended; the training itself reported no error. The attempts below say what each worker last reported; give the workers more memory or lower batch_size or hidden_sizes, and queue it again.`)) : null,
     job.cancel_requested && job.status === 'running' ? h('div', { class: 'hint' }, 'Cancel requested; the job stops within a second.') : null,
     attemptNotice(job));
 }
@@ -900,10 +903,9 @@ function protocolPicker(results, onPick) {
     h('label', { class: 'protocol-pick' }, 'Compare under ', select));
 }
 
-// The paper's metrics, in the order the paper reports them; everything else a job records is a
-// training diagnostic.
-const PAPER_METRICS = ['eval/normalized_return', 'eval/average_cost', 'eval/cost_violation_ratio',
-  'eval/cvar_cost_50', 'eval/cvar_cost_20', 'eval/cvar_cost_10', 'eval/cvar_cost_5'];
+// The paper's metrics, in the order the paper reports them (the server's vocabulary); everything
+// else a job records is a training diagnostic.
+const PAPER_METRICS = PAPER_METRIC_INFO.map((m) => m.history_name);
 
 /** The default scatter axis: the first of `wanted` every chosen job has, else any such metric. */
 function pickAxis(names, wanted, avoid) {

@@ -8,30 +8,26 @@
 const EXPERIMENT_POLL_MS = 1500;
 /** Points per job and metric the curves ask for (the server picks them by LTTB). */
 const CURVE_POINTS = 300;
-/** The paper's metrics as an experiment reports them (`eval/` stripped), in the paper's order. */
-const EXPERIMENT_METRICS = [
-  { key: 'normalized_return', label: 'Normalized return' },
-  { key: 'average_cost', label: 'Average cost' },
-  { key: 'cost_violation_ratio', label: 'Violation ratio' },
-  { key: 'cvar_cost_50', label: 'CVaR 50%' },
-  { key: 'cvar_cost_20', label: 'CVaR 20%' },
-  { key: 'cvar_cost_10', label: 'CVaR 10%' },
-  { key: 'cvar_cost_5', label: 'CVaR 5%' },
-  { key: 'normalized_cost', label: 'Normalized cost' },
-];
+/** The paper's metrics as an experiment reports them (`eval/` stripped), in the paper's order,
+ *  then DSRL's normalized cost: the server's vocabulary ({key, label, ...}). */
+const EXPERIMENT_METRICS = [...PAPER_METRIC_INFO,
+  ...VOCABULARY.evaluation_metrics.filter((m) => m.kind === 'dsrl')];
+/** Jobs of a grid that ended, whatever the end. */
+const finishedCount = (p) => p.total - p.queued - p.running;
 
 const experimentHref = (id) => `#/experiments/${id}`;
 const experimentTitle = (e) => e.name || shortId(e.id);
 const gridActive = (e) => e.progress.queued + e.progress.running > 0;
 
 /** Where a grid stands, from its progress counts: [word, status class for the pill]: running
- *  or queued while jobs are, then finished, or how many failed or were cancelled. */
+ *  or queued while jobs are, then finished, or how many failed, were discarded or cancelled. */
 function gridStatus(p) {
-  const finished = p.succeeded + p.failed + p.cancelled;
+  const finished = finishedCount(p);
   if (p.running) return [`running (${finished} of ${p.total} done)`, 'running'];
   if (p.queued) return [finished ? `queued (${finished} of ${p.total} done)` : 'queued', 'queued'];
-  if (p.failed) return [`${p.failed} failed`, 'failed'];
-  if (p.cancelled) return [`${p.cancelled} cancelled`, 'cancelled'];
+  for (const end of ['failed', 'discarded', 'cancelled']) {
+    if (p[end]) return [`${p[end]} ${end}`, end];
+  }
   return ['finished', 'succeeded'];
 }
 
@@ -175,16 +171,16 @@ function experimentsPage(view) {
 // ---------- one experiment ----------
 
 function progressText(p) {
-  const finished = p.succeeded + p.failed + p.cancelled;
   const parts = [`${p.succeeded} succeeded`, `${p.running} running`, `${p.queued} queued`];
-  if (p.failed) parts.push(`${p.failed} failed`);
-  if (p.cancelled) parts.push(`${p.cancelled} cancelled`);
-  return `${finished} of ${p.total} jobs finished: ${parts.join(', ')}`;
+  for (const end of ['failed', 'discarded', 'cancelled']) {
+    if (p[end]) parts.push(`${p[end]} ${end}`);
+  }
+  return `${finishedCount(p)} of ${p.total} jobs finished: ${parts.join(', ')}`;
 }
 
 function experimentSummary(e, actions) {
   const p = e.progress;
-  const fraction = p.total ? (p.succeeded + p.failed + p.cancelled) / p.total : 0;
+  const fraction = p.total ? finishedCount(p) / p.total : 0;
   const csvPath = `/v1/experiments/${e.id}/results.csv`;
   const csv = h('a', { href: csvPath, id: 'experiment-csv', class: 'secondary button-link',
     onclick: (event) => { event.preventDefault(); actions.csv(csvPath); } }, 'Results (CSV)');

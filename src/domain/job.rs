@@ -7,26 +7,32 @@ use utoipa::ToSchema;
 use super::{DatasetId, EvalOptions, JobId, JobLabels, JobProgress, PolicyId, RunnerOptions};
 use crate::algo::{Algorithm, ResolvedConfig};
 
-/// A job's lifecycle: `queued` → `running` → `succeeded` | `failed` | `cancelled` (a running job
-/// goes back to `queued` when the server shuts down, and resumes from its checkpoint).
+/// A job's lifecycle: `queued` → `running` → `succeeded` | `failed` | `cancelled` | `discarded`
+/// (a running job goes back to `queued` when the server shuts down, or when its worker vanished
+/// and it has attempts left, and resumes from its checkpoint).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize, ToSchema)]
 #[serde(rename_all = "lowercase")]
 pub enum JobStatus {
     Queued,
     Running,
     Succeeded,
+    /// The training reported an error (bad data, a diverged loss, a failure of the code).
     Failed,
     Cancelled,
+    /// Its workers vanished `max_attempts` times (killed, out of memory, the machine gone) before
+    /// it ended: the job was given up, not failed by its own code.
+    Discarded,
 }
 
 impl JobStatus {
     /// Every status, in lifecycle order.
-    pub const ALL: [JobStatus; 5] = [
+    pub const ALL: [JobStatus; 6] = [
         JobStatus::Queued,
         JobStatus::Running,
         JobStatus::Succeeded,
         JobStatus::Failed,
         JobStatus::Cancelled,
+        JobStatus::Discarded,
     ];
 
     /// The status as an SQL string literal (`'queued'`), for the store's SQL text: so the store
@@ -43,12 +49,29 @@ impl JobStatus {
             JobStatus::Succeeded => "succeeded",
             JobStatus::Failed => "failed",
             JobStatus::Cancelled => "cancelled",
+            JobStatus::Discarded => "discarded",
         }
     }
 
     /// A final status: the job never runs again.
     pub fn is_final(self) -> bool {
-        matches!(self, JobStatus::Succeeded | JobStatus::Failed | JobStatus::Cancelled)
+        !matches!(self, JobStatus::Queued | JobStatus::Running)
+    }
+
+    /// What the status means, as the vocabulary serves it to clients.
+    pub fn meaning(self) -> &'static str {
+        match self {
+            JobStatus::Queued => {
+                "waiting for a worker (or for its retry time after a worker vanished)"
+            }
+            JobStatus::Running => "a worker holds its lease and trains it",
+            JobStatus::Succeeded => "trained; its policy is stored",
+            JobStatus::Failed => "the training reported an error; `error` says which",
+            JobStatus::Cancelled => "cancelled by a user before it ended",
+            JobStatus::Discarded => {
+                "given up after its workers vanished max_attempts times; `error` has the history"
+            }
+        }
     }
 }
 
@@ -136,6 +159,9 @@ mod tests {
         }
         assert!("done".parse::<JobStatus>().is_err());
         let finals: Vec<_> = JobStatus::ALL.into_iter().filter(|s| s.is_final()).collect();
-        assert_eq!(finals, [JobStatus::Succeeded, JobStatus::Failed, JobStatus::Cancelled]);
+        assert_eq!(
+            finals,
+            [JobStatus::Succeeded, JobStatus::Failed, JobStatus::Cancelled, JobStatus::Discarded]
+        );
     }
 }

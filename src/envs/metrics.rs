@@ -177,23 +177,92 @@ pub struct Metrics {
     pub cost_threshold: f64,
 }
 
+/// Where a metric comes from, which says where clients show it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, utoipa::ToSchema)]
+#[serde(rename_all = "lowercase")]
+pub enum MetricKind {
+    /// Reported in the paper's tables (section 5, Appendix E.1).
+    Paper,
+    /// DSRL's normalized cost.
+    Dsrl,
+    /// The spread and raw scale behind the paper's numbers.
+    Spread,
+}
+
+/// One evaluation metric as the vocabulary serves it (`GET /v1/vocabulary`), so that no client
+/// keeps its own list.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, utoipa::ToSchema)]
+pub struct MetricInfo {
+    /// Its key in an evaluation's `metrics` and an experiment's results (the nested CVaR
+    /// flattened as `cvar_cost_<k>`).
+    #[schema(example = "average_cost")]
+    pub key: &'static str,
+    /// Its name in a job's metrics history: `eval/<key>`.
+    #[schema(example = "eval/average_cost")]
+    pub history_name: &'static str,
+    #[schema(example = "Average cost")]
+    pub label: &'static str,
+    /// Whether the lower value is the better one.
+    pub lower_is_better: bool,
+    pub kind: MetricKind,
+}
+
+const fn metric(
+    key: &'static str,
+    history_name: &'static str,
+    label: &'static str,
+    lower_is_better: bool,
+    kind: MetricKind,
+) -> MetricInfo {
+    MetricInfo { key, history_name, label, lower_is_better, kind }
+}
+
+/// Every metric, in the order [`Metrics::named_values`] gives their values; the paper's ones in
+/// the paper's order among themselves.
+pub const METRICS: [MetricInfo; 11] = [
+    metric(
+        "normalized_return",
+        "eval/normalized_return",
+        "Normalized return",
+        false,
+        MetricKind::Paper,
+    ),
+    metric("average_return", "eval/average_return", "Average return", false, MetricKind::Spread),
+    metric("return_std", "eval/return_std", "Return std", true, MetricKind::Spread),
+    metric("average_cost", "eval/average_cost", "Average cost", true, MetricKind::Paper),
+    metric("cost_std", "eval/cost_std", "Cost std", true, MetricKind::Spread),
+    metric(
+        "cost_violation_ratio",
+        "eval/cost_violation_ratio",
+        "Violation ratio",
+        true,
+        MetricKind::Paper,
+    ),
+    metric("cvar_cost_50", "eval/cvar_cost_50", "CVaR 50%", true, MetricKind::Paper),
+    metric("cvar_cost_20", "eval/cvar_cost_20", "CVaR 20%", true, MetricKind::Paper),
+    metric("cvar_cost_10", "eval/cvar_cost_10", "CVaR 10%", true, MetricKind::Paper),
+    metric("cvar_cost_5", "eval/cvar_cost_5", "CVaR 5%", true, MetricKind::Paper),
+    metric("normalized_cost", "eval/normalized_cost", "Normalized cost", true, MetricKind::Dsrl),
+];
+
 impl Metrics {
     /// The metrics as named scalars, as a job's `eval` block records them in its metrics
-    /// history (`eval/<name>`; the CVaR ones as `eval/cvar_cost_<k>`).
+    /// history ([`MetricInfo::history_name`]).
     pub fn named_values(&self) -> [(&'static str, f64); 11] {
-        [
-            ("eval/normalized_return", self.normalized_return),
-            ("eval/average_return", self.average_return),
-            ("eval/return_std", self.return_std),
-            ("eval/average_cost", self.average_cost),
-            ("eval/cost_std", self.cost_std),
-            ("eval/cost_violation_ratio", self.cost_violation_ratio),
-            ("eval/cvar_cost_50", self.cvar_cost.k50),
-            ("eval/cvar_cost_20", self.cvar_cost.k20),
-            ("eval/cvar_cost_10", self.cvar_cost.k10),
-            ("eval/cvar_cost_5", self.cvar_cost.k5),
-            ("eval/normalized_cost", self.normalized_cost),
-        ]
+        let values = [
+            self.normalized_return,
+            self.average_return,
+            self.return_std,
+            self.average_cost,
+            self.cost_std,
+            self.cost_violation_ratio,
+            self.cvar_cost.k50,
+            self.cvar_cost.k20,
+            self.cvar_cost.k10,
+            self.cvar_cost.k5,
+            self.normalized_cost,
+        ];
+        std::array::from_fn(|i| (METRICS[i].history_name, values[i]))
     }
 }
 
@@ -347,6 +416,29 @@ mod tests {
             non_preferred_return: 51.0,
             non_preferred_cost: 10.0,
             cost_threshold: 6.0,
+        }
+    }
+
+    /// The vocabulary's table names each value where the struct has it: a metric's `key` reads
+    /// the same number in the serialised metrics (CVaR flattened) as `named_values` gives under
+    /// its `history_name`.
+    #[test]
+    fn the_metric_table_names_every_value_where_the_serialised_metrics_have_it() {
+        let returns: Vec<f64> = (0..20).map(|i| f64::from(i * i)).collect();
+        let costs: Vec<f64> = (0..20).map(|i| f64::from((i * 7) % 13)).collect();
+        let metrics = compute_metrics(&returns, &costs, &reference());
+        let json = serde_json::to_value(&metrics).unwrap();
+        let read = |key: &str| match key.strip_prefix("cvar_cost_") {
+            Some(k) => json["cvar_cost"][k].as_f64(),
+            None => json[key].as_f64(),
+        };
+        let named = metrics.named_values();
+        let distinct: std::collections::BTreeSet<u64> =
+            named.iter().map(|(_, v)| v.to_bits()).collect();
+        assert_eq!(distinct.len(), METRICS.len(), "distinct values, so the check can tell");
+        for (info, (name, value)) in METRICS.iter().zip(named) {
+            assert_eq!(info.history_name, format!("eval/{}", info.key));
+            assert_eq!((info.history_name, read(info.key)), (name, Some(value)));
         }
     }
 

@@ -73,6 +73,8 @@ pub struct GridProgress {
     pub succeeded: usize,
     pub failed: usize,
     pub cancelled: usize,
+    /// Given up after their workers vanished `max_attempts` times.
+    pub discarded: usize,
 }
 
 /// An experiment with its jobs and results.
@@ -150,6 +152,7 @@ impl GridProgress {
             JobStatus::Succeeded => &mut self.succeeded,
             JobStatus::Failed => &mut self.failed,
             JobStatus::Cancelled => &mut self.cancelled,
+            JobStatus::Discarded => &mut self.discarded,
         };
         *slot += n;
         self.total += n;

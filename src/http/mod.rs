@@ -33,6 +33,7 @@ pub mod policies;
 pub mod prometheus;
 pub mod results;
 pub mod ui;
+pub mod vocabulary;
 
 use std::sync::Arc;
 use std::time::Duration;
@@ -166,6 +167,7 @@ fn routes() -> OpenApiRouter<AppState> {
         .merge(model_serving::router())
         .merge(model_shadows::router())
         .merge(inference::router())
+        .merge(vocabulary::router())
         .layer(middleware::from_fn(timeout));
     // Routes that legitimately take long: uploads of up to --max-upload-bytes, event streams.
     let long_running = OpenApiRouter::new().merge(datasets::upload_router()).merge(jobs::streams());

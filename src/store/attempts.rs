@@ -6,7 +6,7 @@
 //! stops renewing its lease ends nothing: the next worker to look for work finds the expired
 //! lease ([`Store::reap_expired_jobs`]), records the attempt as `crashed` (with what the worker
 //! last said of its memory), and either queues the job again for `now + backoff` or, at its
-//! `max_attempts`, fails it with the history in the message. Every decision is taken on the
+//! `max_attempts`, discards it with the history in the message. Every decision is taken on the
 //! database's clock.
 
 use sqlx::{Any, Transaction};
@@ -22,7 +22,7 @@ use crate::domain::{AttemptOutcome, JobAttempt, JobId, JobStatus, RetryBackoff};
 #[derive(Clone, Debug, PartialEq)]
 pub struct ReapedJob {
     pub id: JobId,
-    /// `queued` (to be tried again) or `failed` (its attempts are spent).
+    /// `queued` (to be tried again) or `discarded` (its attempts are spent).
     pub status: JobStatus,
     pub message: String,
 }
@@ -101,7 +101,8 @@ impl Store {
     }
 
     /// Finds running jobs whose lease expired and ends their attempt as `crashed`: each goes
-    /// back to the queue, claimable after `backoff`, or fails once it has had `max_attempts`.
+    /// back to the queue, claimable after `backoff`, or is discarded once it has had
+    /// `max_attempts`.
     /// Each job is one write transaction that only changes it while the same lease is still
     /// expired, so concurrent reapers (every worker runs this before it claims) and a late
     /// heartbeat never both win. `reaper` names the worker in the job's log.
@@ -172,7 +173,7 @@ impl Store {
                      updated_at = $3, finished_at = $3, lease_expires_ms = 0, \
                      lease_takeovers = lease_takeovers + 1 WHERE id = $4",
             )
-            .bind(JobStatus::Failed.as_str())
+            .bind(JobStatus::Discarded.as_str())
             .bind(&message)
             .bind(&time)
             .bind(&job.id)
@@ -182,7 +183,7 @@ impl Store {
                 .bind(&job.id)
                 .execute(&mut *tx)
                 .await?;
-            (JobStatus::Failed, message)
+            (JobStatus::Discarded, message)
         } else {
             let seconds = delay.as_secs_f64();
             let message = format!(
@@ -349,9 +350,9 @@ mod tests {
         let second = claim_and_vanish(&store, "w2").await;
         assert_eq!(store.checkpoint(&id).await.unwrap().map(|c| c.0), Some(7));
         let reaped = store.reap_expired_jobs("w3", &AT_ONCE).await.unwrap();
-        assert_eq!(reaped[0].status, JobStatus::Failed);
+        assert_eq!(reaped[0].status, JobStatus::Discarded);
         let job = store.job(&id).await.unwrap();
-        assert_eq!((job.status, job.attempt), (JobStatus::Failed, 2));
+        assert_eq!((job.status, job.attempt), (JobStatus::Discarded, 2));
         let error = job.error.unwrap();
         assert!(error.starts_with("gave up after 2 attempts (2 ended with the worker gone)"));
         assert!(error.contains("out-of-memory killer"), "{error}");
@@ -370,7 +371,7 @@ mod tests {
         let attempts = store.job_attempts(&id).await.unwrap();
         assert_eq!(attempts[1].outcome, AttemptOutcome::LeaseLost);
         let job = store.job(&id).await.unwrap();
-        assert_eq!((job.status, job.attempt), (JobStatus::Failed, 2), "the job is untouched");
+        assert_eq!((job.status, job.attempt), (JobStatus::Discarded, 2), "the job is untouched");
     }
 
     /// A run handed back on shutdown is not the job's fault: the attempt is given back, and the

@@ -29,6 +29,7 @@ pub mod jobs;
 pub mod leases;
 mod listing;
 pub mod logs;
+mod migrate;
 pub mod model_aliases;
 pub mod models;
 pub mod policies;
@@ -388,8 +389,7 @@ impl Store {
             .connect_with(options)
             .await
             .with_context(|| format!("cannot open the database {}", database.display()))?;
-        sqlx::migrate!("./migrations/sqlite")
-            .run(&pool)
+        migrate::sqlite(&sqlite)
             .await
             .with_context(|| format!("cannot migrate the database {}", database.display()))?;
         Ok(Store {

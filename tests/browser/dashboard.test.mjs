@@ -468,6 +468,11 @@ test('the job list pages through jobs with stable pages and filters by name, tag
   await page.waitForFunction(() => document.querySelectorAll('#jobs-table tbody tr').length === 1);
   assert.equal(await page.getAttribute('#jobs-table tbody tr', 'data-id'), state.job.id);
   await page.fill('#jobs-search', '');
+  // The status filter offers the server's statuses (GET /v1/vocabulary), each with its meaning.
+  const vocabulary = (await api('/v1/vocabulary')).body;
+  const offered = await page.$$eval('#jobs-status option', (os) => os.map((o) => [o.value, o.title]));
+  assert.deepEqual(offered, [['', ''], ...vocabulary.job_statuses.map((s) => [s.name, s.meaning])]);
+  assert.ok(offered.some(([value]) => value === 'discarded'));
   await page.selectOption('#jobs-status', 'succeeded');
   await page.waitForFunction(() => document.querySelectorAll('#jobs-table tbody tr').length === 1);
   await page.fill('#jobs-search', 'no such job');

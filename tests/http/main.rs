@@ -43,3 +43,4 @@ mod restart;
 mod safety;
 mod shadow;
 mod ui;
+mod vocabulary;

@@ -320,6 +320,15 @@ def test_algorithms_list_what_each_needs(client: Client) -> None:
     assert algorithms["bc"]["needs_non_preferred"] is False
 
 
+def test_the_final_statuses_come_from_the_servers_vocabulary(client: Client) -> None:
+    vocabulary = client.vocabulary()
+    names = [s["name"] for s in vocabulary["job_statuses"]]
+    assert names[:2] == ["queued", "running"] and "discarded" in names
+    assert client.final_statuses() == frozenset(names[2:])
+    keys = [m["key"] for m in vocabulary["evaluation_metrics"]]
+    assert {"normalized_return", "average_cost", "cvar_cost_5"} <= set(keys)
+
+
 def cartpole_demonstrations(episodes: int, seed: int) -> dict:
     """Episodes of a hand-written CartPole-v1 controller (push the cart the way the pole falls)
     in the D4RL layout, from gymnasium itself."""

@@ -25,7 +25,6 @@ DatasetSource = Union[str, os.PathLike, Mapping[str, np.ndarray]]
 
 #: Rows per /act request when `act` splits a large batch (the service takes at most 16,384).
 ACT_BATCH = 4096
-FINAL_STATUSES = ("succeeded", "failed", "cancelled")
 
 
 class ApiError(Exception):
@@ -37,7 +36,7 @@ class ApiError(Exception):
 
 
 class JobFailed(Exception):
-    """A job `wait` followed ended `failed` or `cancelled`."""
+    """A job `wait` followed ended other than `succeeded` (`failed`, `discarded`, `cancelled`)."""
 
     def __init__(self, job: Json):
         super().__init__(f"job {job['id']} ended {job['status']}: {job.get('error')}")
@@ -58,6 +57,7 @@ class Client:
         # One kept-alive connection per thread for the JSON calls: an agent calling `act` in a
         # loop pays the TCP handshake once, not once per step.
         self._local = threading.local()
+        self._final_statuses: Optional[frozenset] = None
 
     # -- environments and datasets -------------------------------------------------------
 
@@ -121,6 +121,18 @@ class Client:
     def algorithms(self) -> list:
         """The algorithms a job can run: name, what it needs, its config keys and defaults."""
         return self._get("/v1/algorithms")["items"]
+
+    def vocabulary(self) -> Json:
+        """The service's words with what each means: ``job_statuses`` (name, final, meaning) and
+        ``evaluation_metrics`` (key, history_name, label, lower_is_better, kind)."""
+        return self._get("/v1/vocabulary")
+
+    def final_statuses(self) -> frozenset:
+        """The job statuses a job never leaves, as the server names them (read once)."""
+        if self._final_statuses is None:
+            statuses = self.vocabulary()["job_statuses"]
+            self._final_statuses = frozenset(s["name"] for s in statuses if s["final"])
+        return self._final_statuses
 
     # -- jobs -----------------------------------------------------------------------------
 
@@ -199,14 +211,15 @@ class Client:
     def wait(
         self, job_id: str, timeout: Optional[float] = None, progress: bool = True, poll: float = 0.5
     ) -> Json:
-        """Waits until the job ends; the succeeded job. Raises `JobFailed` when it fails or is
-        cancelled, `TimeoutError` after `timeout` seconds. With `progress`, a bar on stderr."""
+        """Waits until the job ends; the succeeded job. Raises `JobFailed` when it ends any other
+        way (failed, discarded, cancelled), `TimeoutError` after `timeout` seconds. With
+        `progress`, a bar on stderr."""
         started = time.monotonic()
         while True:
             job = self.job(job_id)
             if progress:
                 _progress_line(job)
-            if job["status"] in FINAL_STATUSES:
+            if job["status"] in self.final_statuses():
                 if progress:
                     sys.stderr.write("\n")
                 if job["status"] != "succeeded":
@@ -234,7 +247,7 @@ class Client:
                         payload = json.loads("\n".join(data))
                         yield name, payload
                         if name == "deleted" or (
-                            name == "status" and payload["status"] in FINAL_STATUSES
+                            name == "status" and payload["status"] in self.final_statuses()
                         ):
                             return
                         name, data = None, []
@@ -687,6 +700,6 @@ def _progress_line(job: Json) -> None:
 
 def _print_progress(progress: Json) -> None:
     """An experiment's progress as one line on stderr."""
-    done = progress["succeeded"] + progress["failed"] + progress["cancelled"]
+    done = progress["total"] - progress["running"] - progress["queued"]
     print(f"{done} of {progress['total']} jobs finished ({progress['succeeded']} succeeded, "
           f"{progress['running']} running, {progress['queued']} queued)", file=sys.stderr)
