@@ -40,9 +40,45 @@ const IR_VERSION: i64 = 8;
 /// The ONNX model of a portable policy file (what `GET /v1/policies/{id}/weights` serves and
 /// `safedice export` reads), the file's metadata kept in the model's metadata properties.
 pub fn export_portable(file: &[u8]) -> Result<Vec<u8>, TrainError> {
-    let (policy, metadata) = super::Policy::from_portable(file)?;
-    let json = serde_json::to_string(&metadata).map_err(|e| TrainError::Other(e.to_string()))?;
-    export(policy.spec(), file, &[(super::policy::PORTABLE_METADATA_KEY, json)])
+    // Loading checks that the spec matches the tensors before the graph is built from them.
+    let (_, metadata) = super::Policy::from_portable(file)?;
+    build_portable(file, &metadata)?.to_bytes()
+}
+
+/// The ONNX model of a policy from its safetensors `weights` and the portable file's metadata
+/// (kept in the model's metadata properties, as [`export_portable`] does), without writing the
+/// portable file or loading the policy: the model holds its own copy of the weights, so the
+/// caller can drop `weights` before writing it ([`OnnxModel::write_to`]).
+pub fn build_portable(
+    weights: &[u8],
+    metadata: &super::PortableMetadata,
+) -> Result<OnnxModel, TrainError> {
+    let json = serde_json::to_string(metadata).map_err(|e| TrainError::Other(e.to_string()))?;
+    build(&metadata.spec, weights, &[(super::policy::PORTABLE_METADATA_KEY, json)])
+}
+
+/// An ONNX model built and not yet written.
+pub struct OnnxModel(ModelProto);
+
+impl OnnxModel {
+    /// The size of the written model in bytes.
+    pub fn len(&self) -> u64 {
+        self.0.compute_size()
+    }
+
+    /// Never: a model has at least its graph.
+    pub fn is_empty(&self) -> bool {
+        false
+    }
+
+    /// Writes the model, for a caller that streams it rather than holding a second copy.
+    pub fn write_to(&self, out: &mut dyn std::io::Write) -> Result<(), TrainError> {
+        self.0.write_to_writer(out).map_err(error)
+    }
+
+    pub fn to_bytes(&self) -> Result<Vec<u8>, TrainError> {
+        self.0.write_to_bytes().map_err(error)
+    }
 }
 
 /// The ONNX model of a policy: `spec` and its safetensors `weights`; `metadata` (e.g. the
@@ -52,6 +88,15 @@ pub fn export(
     weights: &[u8],
     metadata: &[(&str, String)],
 ) -> Result<Vec<u8>, TrainError> {
+    build(spec, weights, metadata)?.to_bytes()
+}
+
+/// [`export`], built and not yet written.
+pub fn build(
+    spec: &PolicySpec,
+    weights: &[u8],
+    metadata: &[(&str, String)],
+) -> Result<OnnxModel, TrainError> {
     let tensors = safetensors::SafeTensors::deserialize(weights).map_err(error)?;
     let mut graph = Graph { proto: GraphProto::new(), tensors: &tensors, count: 0 };
     graph.proto.name = format!("safedice-{}", spec.algorithm);
@@ -138,7 +183,7 @@ pub fn export(
         })
         .collect();
     model.graph = MessageField::some(graph.proto);
-    model.write_to_bytes().map_err(error)
+    Ok(OnnxModel(model))
 }
 
 fn error(e: impl std::fmt::Display) -> TrainError {

@@ -322,6 +322,29 @@ pub(crate) fn heavy_read_permit(
     })
 }
 
+/// Bytes of a streamed body written ahead of the client's reading.
+const STREAMED_BODY_PIPE_BYTES: usize = 256 * 1024;
+
+/// A body that `write` writes on a blocking thread as the client reads it
+/// (through a pipe of [`STREAMED_BODY_PIPE_BYTES`]), so a large file is sent without a second
+/// copy of it in memory. A client that goes away makes the next write fail, which ends the
+/// thread; a write that fails on its own ends the body short of the Content-Length the caller
+/// sets, so the client sees a broken download, never a short file that looks whole.
+pub(crate) fn body_written_by(
+    write: impl FnOnce(&mut dyn std::io::Write) -> Result<(), String> + Send + 'static,
+) -> axum::body::Body {
+    let (reader, writer) = tokio::io::duplex(STREAMED_BODY_PIPE_BYTES);
+    let mut bridge = tokio_util::io::SyncIoBridge::new(writer);
+    tokio::task::spawn_blocking(move || {
+        let written =
+            write(&mut bridge).and_then(|()| bridge.shutdown().map_err(|e| e.to_string()));
+        if let Err(error) = written {
+            tracing::warn!(%error, "a streamed download stopped before its end");
+        }
+    });
+    axum::body::Body::from_stream(tokio_util::io::ReaderStream::new(reader))
+}
+
 /// [`attachment`] whose body holds `permit` until it has been sent (or the client went away):
 /// a file is in memory, or on its way out of a temp file, until then.
 pub(crate) fn attachment_holding(

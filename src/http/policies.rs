@@ -223,7 +223,12 @@ async fn export_policy(
     let ExportFormat::Onnx = query.format.unwrap_or(ExportFormat::Onnx);
     let permit = super::heavy_read_permit(&state)?;
     let model = crate::serving::onnx_model(&state.store, &id).await?;
-    super::attachment_holding(&format!("policy-{id}.onnx"), OCTET_STREAM, model, permit)
+    let len = model.len();
+    let body = super::body_written_by(move |out| model.write_to(out).map_err(|e| e.to_string()));
+    let mut response =
+        super::attachment_holding(&format!("policy-{id}.onnx"), OCTET_STREAM, body, permit)?;
+    response.headers_mut().insert(axum::http::header::CONTENT_LENGTH, len.into());
+    Ok(response)
 }
 
 /// Actions for a batch of observations. Callable with the inference token.

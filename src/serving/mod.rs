@@ -198,7 +198,15 @@ pub struct CacheUsage {
 /// ([`Policy::from_file`]). Contains no id of the job or policy: two runs of the same training
 /// give the same file.
 pub async fn portable_weights(store: &Store, id: &str) -> Result<Vec<u8>, PolicyLoadError> {
-    let unreadable = |message: String| PolicyLoadError::Unreadable { id: id.to_owned(), message };
+    let (weights, metadata) = portable_parts(store, id).await?;
+    run_blocking(id, move || crate::algo::portable_file(&weights, &metadata)).await
+}
+
+/// The stored weights and what the portable file says of them.
+async fn portable_parts(
+    store: &Store,
+    id: &str,
+) -> Result<(Vec<u8>, crate::algo::PortableMetadata), PolicyLoadError> {
     let policy_id = PolicyId::from(id);
     let (_, weights) = store.policy_artifact(&policy_id).await?;
     let record = store.policy(&policy_id).await?;
@@ -208,22 +216,34 @@ pub async fn portable_weights(store: &Store, id: &str) -> Result<Vec<u8>, Policy
         "unlabeled_dataset": job.unlabeled_dataset,
         "non_preferred_dataset": job.non_preferred_dataset,
     });
-    let metadata = crate::algo::PortableMetadata { spec: record.spec, training };
-    tokio::task::spawn_blocking(move || crate::algo::portable_file(&weights, &metadata))
+    Ok((weights, crate::algo::PortableMetadata { spec: record.spec, training }))
+}
+
+/// CPU work on a policy's bytes, off the runtime's threads; its failure names the policy.
+async fn run_blocking<T: Send + 'static>(
+    id: &str,
+    work: impl FnOnce() -> Result<T, crate::algo::TrainError> + Send + 'static,
+) -> Result<T, PolicyLoadError> {
+    let unreadable = |message: String| PolicyLoadError::Unreadable { id: id.to_owned(), message };
+    tokio::task::spawn_blocking(work)
         .await
         .map_err(|e| unreadable(e.to_string()))?
         .map_err(|e| unreadable(e.to_string()))
 }
 
-/// The policy as an ONNX model ([`crate::algo::onnx`]), its portable file's metadata kept in the
-/// model's metadata properties.
-pub async fn onnx_model(store: &Store, id: &str) -> Result<Vec<u8>, PolicyLoadError> {
-    let unreadable = |message: String| PolicyLoadError::Unreadable { id: id.to_owned(), message };
-    let file = portable_weights(store, id).await?;
-    tokio::task::spawn_blocking(move || crate::algo::onnx::export_portable(&file))
-        .await
-        .map_err(|e| unreadable(e.to_string()))?
-        .map_err(|e| unreadable(e.to_string()))
+/// The policy as an ONNX model ([`crate::algo::onnx`]), built straight from the stored weights
+/// (no portable file, no loaded policy in between), with the portable file's metadata in the
+/// model's metadata properties: the same model as `safedice export` of the policy file. The
+/// stored weights are dropped once the model holds its copy, so an export holds one copy of
+/// the weights while it is written out ([`OnnxModel::write_to`]).
+///
+/// [`OnnxModel::write_to`]: crate::algo::onnx::OnnxModel::write_to
+pub async fn onnx_model(
+    store: &Store,
+    id: &str,
+) -> Result<crate::algo::onnx::OnnxModel, PolicyLoadError> {
+    let (weights, metadata) = portable_parts(store, id).await?;
+    run_blocking(id, move || crate::algo::onnx::build_portable(&weights, &metadata)).await
 }
 
 /// Values by id with their sizes, dropped least recently used first once their sizes add up to

@@ -250,8 +250,15 @@ async fn safedice_and_bc_train_and_serve_identical_actions_over_act_and_v2() {
         let export = format!("/v1/policies/{policy_id}/export");
         let model = app.get(&format!("{export}?format=onnx")).send().await.unwrap();
         assert_eq!(model.status(), StatusCode::OK);
-        let model = onnx_protobuf::ModelProto::parse_from_bytes(&model.bytes().await.unwrap())
-            .expect("an ONNX model");
+        let length = model.headers()["content-length"].to_str().unwrap().parse::<usize>();
+        let bytes = model.bytes().await.unwrap();
+        assert_eq!(length, Ok(bytes.len()), "streamed with its length announced");
+        // Built from the stored weights, it is the model `safedice export` makes of the policy
+        // file, byte for byte.
+        let file = app.get(&format!("/v1/policies/{policy_id}/weights")).send().await.unwrap();
+        let file = file.bytes().await.unwrap();
+        assert_eq!(safedice::algo::onnx::export_portable(&file).unwrap(), bytes);
+        let model = onnx_protobuf::ModelProto::parse_from_bytes(&bytes).expect("an ONNX model");
         assert_eq!(model.opset_import[0].version, safedice::algo::onnx::OPSET);
         let names = |v: &[onnx_protobuf::ValueInfoProto]| -> Vec<String> {
             v.iter().map(|i| i.name.clone()).collect()
