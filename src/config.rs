@@ -141,14 +141,17 @@ pub struct ServeConfig {
     pub min_body_rate: u64,
 
     /// Dataset uploads received at once; one more is answered 503 `too_many_uploads` with
-    /// Retry-After.
+    /// Retry-After. One client (an IP address, an IPv6 /64) sends at most half of them (at least
+    /// one); its next is answered 503 `too_many_uploads_from_address`.
     #[arg(long, env = "SAFEDICE_MAX_CONCURRENT_UPLOADS", default_value_t = 8, value_parser = clap::value_parser!(u16).range(1..))]
     pub max_concurrent_uploads: u16,
 
     /// Heavy reads served at once: dataset previews and downloads, policy files and exports,
     /// each of which holds a dataset or a policy file in memory while it is built and sent; one
     /// more is answered 503 `too_many_heavy_reads` with Retry-After, so memory stays bounded
-    /// by this many of them whatever the number of clients.
+    /// by this many of them whatever the number of clients. One client (an IP address, an IPv6
+    /// /64) is sent at most half of them (at least one) at once; its next is answered 503
+    /// `too_many_heavy_reads_from_address`, so a slow reader leaves the rest to others.
     #[arg(long, env = "SAFEDICE_MAX_HEAVY_READS", default_value_t = 4, value_parser = clap::value_parser!(u16).range(1..))]
     pub max_heavy_reads: u16,
 

@@ -10,13 +10,18 @@ use std::io;
 use std::sync::Arc;
 use std::time::Duration;
 
+use axum::http::Request;
 use axum::Router;
+use hyper::body::Incoming;
 use hyper_util::rt::{TokioExecutor, TokioIo, TokioTimer};
 use hyper_util::server::conn::auto;
 use hyper_util::server::graceful::GracefulShutdown;
 use hyper_util::service::TowerToHyperService;
 use tokio::net::{TcpListener, TcpStream};
 use tokio::sync::Semaphore;
+use tower::ServiceExt;
+
+use super::client_slots::Client;
 use tokio_util::sync::CancellationToken;
 
 /// Descriptors kept free for everything that is not a client connection: the database pool
@@ -145,10 +150,16 @@ pub async fn serve(
         let (builder, app, watcher) = (builder.clone(), app.clone(), graceful.watcher());
         let (header_timeout, shutdown) = (limits.header_read_timeout, shutdown.clone());
         let send_stall = limits.send_stall_timeout;
+        let client = Client(client_of(peer.ip()));
         tokio::spawn(async move {
             // hyper's header deadline starts once it knows the protocol, which it learns from
             // the first bytes: a connection that sends none is bounded here.
             if first_byte(&stream, header_timeout, &shutdown).await {
+                // Every request knows its client, for the slots it may hold a share of.
+                let app = app.map_request(move |mut request: Request<Incoming>| {
+                    request.extensions_mut().insert(client);
+                    request
+                });
                 let service = TowerToHyperService::new(app);
                 let io = TokioIo::new(StallLimited::new(stream, send_stall));
                 let connection = builder.serve_connection_with_upgrades(io, service);

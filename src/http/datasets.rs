@@ -18,6 +18,7 @@ use utoipa::ToSchema;
 use utoipa_axum::router::OpenApiRouter;
 use utoipa_axum::routes;
 
+use super::client_slots::{Refusal, RequestClient};
 use super::error::ErrorBody;
 use super::extract::{Json, Path as UrlPath, Query};
 use super::pagination::{Page, PageParams};
@@ -160,12 +161,13 @@ pub fn upload_router() -> OpenApiRouter<AppState> {
         (status = 408, description = "The body paused longer than --body-idle-timeout-secs (`request_timeout`) or arrived slower than --min-body-rate on average (`request_too_slow`); nothing was stored", body = ErrorBody),
         (status = 413, description = "The file exceeds --max-upload-bytes (`payload_too_large`); a declared Content-Length over the limit is answered before the body is read", body = ErrorBody),
         (status = 422, description = "The file is not a valid dataset (`invalid_dataset`, `unknown_format`, `empty_dataset`, `unsupported_format`) or the name/description is invalid (`invalid_name`, `invalid_description`); the message names the line, row or key", body = ErrorBody),
-        (status = 503, description = "--max-concurrent-uploads uploads are in flight (`too_many_uploads`); retry after `Retry-After` seconds", body = ErrorBody),
+        (status = 503, description = "--max-concurrent-uploads uploads are in flight (`too_many_uploads`), or half of them from this client (`too_many_uploads_from_address`); retry after `Retry-After` seconds", body = ErrorBody),
         (status = 507, description = "The server's disk is full (`insufficient_storage`); nothing was stored", body = ErrorBody),
     )
 )]
 async fn upload_dataset(
     State(state): State<AppState>,
+    RequestClient(client): RequestClient,
     headers: HeaderMap,
     multipart: Result<Multipart, MultipartRejection>,
 ) -> Result<Response, ApiError> {
@@ -179,15 +181,23 @@ async fn upload_dataset(
     }
     let mut multipart = multipart?;
     // Each upload in flight holds a connection, a temp file and a parser thread at the end.
-    let Ok(_receiving) = state.uploads.clone().try_acquire_owned() else {
-        return Err(ApiError::unavailable(
+    let _receiving = state.uploads.try_take(client).map_err(|refusal| match refusal {
+        Refusal::ClientShare { share } => ApiError::unavailable(
+            "too_many_uploads_from_address",
+            format!(
+                "this address is sending {share} uploads already, its share of the {} the server \
+                 receives at once (--max-concurrent-uploads); retry once one has finished",
+                state.uploads.total()
+            ),
+        ),
+        Refusal::AllTaken => ApiError::unavailable(
             "too_many_uploads",
             format!(
                 "{} uploads are being received already (--max-concurrent-uploads); retry shortly",
-                state.config.max_concurrent_uploads
+                state.uploads.total()
             ),
-        ));
-    };
+        ),
+    })?;
     let upload = match receive_form(&mut multipart, &state.store.tmp_dir(), limit).await {
         Err(too_large @ ApiError::PayloadTooLarge { .. }) => {
             drain(&mut multipart).await;
@@ -432,10 +442,12 @@ pub struct PreviewParams {
             body = ErrorBody),
         (status = 404, description = "No such dataset (`not_found`)", body = ErrorBody),
         (status = 503, description = "--max-heavy-reads dataset or policy files are being \
-            built or sent (`too_many_heavy_reads`); retry after `Retry-After` seconds", body = ErrorBody),
+            built or sent (`too_many_heavy_reads`), or half of them to this client \
+            (`too_many_heavy_reads_from_address`); retry after `Retry-After` seconds", body = ErrorBody),
     ))]
 async fn preview_dataset(
     State(state): State<AppState>,
+    RequestClient(client): RequestClient,
     UrlPath(id): UrlPath<DatasetId>,
     Query(params): Query<PreviewParams>,
 ) -> Result<Json<data::DatasetPreview>, ApiError> {
@@ -447,7 +459,7 @@ async fn preview_dataset(
         ));
     }
     // Reads 13 bytes a transition of the episodes it summarises, up to the whole dataset's.
-    let _permit = super::heavy_read_permit(&state)?;
+    let _permit = super::heavy_read_permit(&state, client)?;
     Ok(Json(state.store.preview_dataset(&id, rows, episodes).await?))
 }
 
@@ -460,13 +472,15 @@ async fn preview_dataset(
             body = Vec<u8>),
         (status = 404, description = "No such dataset (`not_found`)", body = ErrorBody),
         (status = 503, description = "--max-heavy-reads dataset or policy files are being \
-            built or sent (`too_many_heavy_reads`); retry after `Retry-After` seconds", body = ErrorBody),
+            built or sent (`too_many_heavy_reads`), or half of them to this client \
+            (`too_many_heavy_reads_from_address`); retry after `Retry-After` seconds", body = ErrorBody),
     ))]
 async fn download_dataset(
     State(state): State<AppState>,
+    RequestClient(client): RequestClient,
     UrlPath(id): UrlPath<DatasetId>,
 ) -> Result<Response, ApiError> {
-    let permit = super::heavy_read_permit(&state)?;
+    let permit = super::heavy_read_permit(&state, client)?;
     let dataset = state.store.load_dataset(&id).await?;
     let tmp_dir = state.store.tmp_dir();
     // Written to a temp file and sent from it: the decoded dataset is dropped before the first

@@ -9,6 +9,7 @@
 pub mod act;
 pub mod algorithms;
 pub mod auth;
+pub mod client_slots;
 pub mod connections;
 pub mod datasets;
 pub mod envs;
@@ -95,12 +96,13 @@ pub struct Services {
     /// Trained policies loaded for inference (`serving.policies`) and the named models
     /// (`serving.models`: which policy answers `name`, `name@alias` or a version).
     pub serving: Serving,
-    /// One permit per upload being received (`--max-concurrent-uploads`).
-    pub uploads: Arc<tokio::sync::Semaphore>,
+    /// One slot per upload being received (`--max-concurrent-uploads`), half of them per client.
+    pub uploads: Arc<client_slots::ClientSlots>,
     /// One permit per open event stream (`--max-streams`).
     pub streams: Arc<tokio::sync::Semaphore>,
-    /// One permit per heavy read being built or sent (`--max-heavy-reads`).
-    pub heavy_reads: Arc<tokio::sync::Semaphore>,
+    /// One slot per heavy read being built or sent (`--max-heavy-reads`), half of them per
+    /// client.
+    pub heavy_reads: Arc<client_slots::ClientSlots>,
     /// Whether the database is known to be down (requests then answer fast).
     pub outage: Arc<outage::OutageWatch>,
 }
@@ -115,9 +117,9 @@ impl AppState {
     ) -> Self {
         let tokens =
             auth::Tokens::new(config.api_token.as_deref(), config.inference_token.as_deref());
-        let uploads = tokio::sync::Semaphore::new(usize::from(config.max_concurrent_uploads));
+        let uploads = client_slots::ClientSlots::new(usize::from(config.max_concurrent_uploads));
         let streams = tokio::sync::Semaphore::new(config.max_streams as usize);
-        let heavy_reads = tokio::sync::Semaphore::new(usize::from(config.max_heavy_reads));
+        let heavy_reads = client_slots::ClientSlots::new(usize::from(config.max_heavy_reads));
         AppState(Arc::new(Services {
             metrics: Arc::new(prometheus::Metrics::new()),
             tokens: Arc::new(tokens),
@@ -303,22 +305,32 @@ fn panic_response(panic: Box<dyn std::any::Any + Send + 'static>) -> Response {
 
 pub(crate) const OCTET_STREAM: &str = "application/octet-stream";
 
-/// A file download: `bytes` of `content_type`, saved by browsers and `curl -OJ` as `file_name`.
-/// A slot for one more heavy read (a dataset preview or download, a policy file or export), or
-/// 503 `too_many_heavy_reads` with Retry-After. Hand the permit to [`attachment_holding`] so
-/// it is held until the file has been sent.
+/// A slot for one more heavy read (a dataset preview or download, a policy file or export) by
+/// `client`, or 503 with Retry-After: `too_many_heavy_reads_from_address` once the client holds
+/// its share (half the slots), `too_many_heavy_reads` once all are taken. Hand the slot to
+/// [`attachment_holding`] so it is held until the file has been sent.
 pub(crate) fn heavy_read_permit(
     state: &AppState,
-) -> Result<tokio::sync::OwnedSemaphorePermit, ApiError> {
-    state.heavy_reads.clone().try_acquire_owned().map_err(|_| {
-        ApiError::unavailable(
+    client: Option<client_slots::Client>,
+) -> Result<client_slots::Slot, ApiError> {
+    state.heavy_reads.try_take(client).map_err(|refusal| match refusal {
+        client_slots::Refusal::ClientShare { share } => ApiError::unavailable(
+            "too_many_heavy_reads_from_address",
+            format!(
+                "this address is being sent {share} dataset or policy files already, its share \
+                 of the {} the server builds or sends at once (--max-heavy-reads); retry once \
+                 one has arrived",
+                state.heavy_reads.total()
+            ),
+        ),
+        client_slots::Refusal::AllTaken => ApiError::unavailable(
             "too_many_heavy_reads",
             format!(
                 "{} dataset or policy files are being built or sent already (--max-heavy-reads); \
                  retry shortly",
-                state.config.max_heavy_reads
+                state.heavy_reads.total()
             ),
-        )
+        ),
     })
 }
 
@@ -345,23 +357,24 @@ pub(crate) fn body_written_by(
     axum::body::Body::from_stream(tokio_util::io::ReaderStream::new(reader))
 }
 
-/// [`attachment`] whose body holds `permit` until it has been sent (or the client went away):
+/// [`attachment`] whose body holds `slot` until it has been sent (or the client went away):
 /// a file is in memory, or on its way out of a temp file, until then.
 pub(crate) fn attachment_holding(
     file_name: &str,
     content_type: &'static str,
     body: impl Into<axum::body::Body>,
-    permit: tokio::sync::OwnedSemaphorePermit,
+    slot: client_slots::Slot,
 ) -> Result<axum::response::Response, ApiError> {
     use futures::StreamExt;
     let chunks = body.into().into_data_stream().map(move |chunk| {
-        // The stream owns the permit: it is released when hyper drops the finished body.
-        let _held = &permit;
+        // The stream owns the slot: it is released when hyper drops the finished body.
+        let _held = &slot;
         chunk
     });
     attachment(file_name, content_type, axum::body::Body::from_stream(chunks))
 }
 
+/// A file download: `bytes` of `content_type`, saved by browsers and `curl -OJ` as `file_name`.
 pub(crate) fn attachment(
     file_name: &str,
     content_type: &'static str,

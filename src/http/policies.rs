@@ -9,6 +9,7 @@ use utoipa_axum::router::OpenApiRouter;
 use utoipa_axum::routes;
 
 use super::act::{act_on, ActRequest, ActResponse, ACTION_BODY_LIMIT};
+use super::client_slots::RequestClient;
 use super::error::ErrorBody;
 use super::extract::{Json, Path, Query, StraightJson};
 use super::pagination::{Page, PageParams};
@@ -166,13 +167,15 @@ async fn get_policy(
          headers(("x-safedice-policy-spec" = String, description = "The policy spec (JSON)"))),
         (status = 404, body = ErrorBody),
         (status = 503, description = "--max-heavy-reads dataset or policy files are being \
-            built or sent (`too_many_heavy_reads`); retry after `Retry-After` seconds", body = ErrorBody),
+            built or sent (`too_many_heavy_reads`), or half of them to this client \
+            (`too_many_heavy_reads_from_address`); retry after `Retry-After` seconds", body = ErrorBody),
     ))]
 async fn policy_weights(
     State(state): State<AppState>,
+    RequestClient(client): RequestClient,
     Path(id): Path<PolicyId>,
 ) -> Result<Response, ApiError> {
-    let permit = super::heavy_read_permit(&state)?;
+    let permit = super::heavy_read_permit(&state, client)?;
     // The spec from the policy's row; the weights (the large part) are read once, by the file.
     let spec = serde_json::to_string(&state.store.policy(&id).await?.spec)
         .map_err(|e| ApiError::Internal(anyhow::anyhow!("policy {id}: spec: {e}")))?;
@@ -213,15 +216,17 @@ pub enum ExportFormat {
         (status = 400, description = "Unknown format", body = ErrorBody),
         (status = 404, body = ErrorBody),
         (status = 503, description = "--max-heavy-reads dataset or policy files are being \
-            built or sent (`too_many_heavy_reads`); retry after `Retry-After` seconds", body = ErrorBody),
+            built or sent (`too_many_heavy_reads`), or half of them to this client \
+            (`too_many_heavy_reads_from_address`); retry after `Retry-After` seconds", body = ErrorBody),
     ))]
 async fn export_policy(
     State(state): State<AppState>,
+    RequestClient(client): RequestClient,
     Path(id): Path<PolicyId>,
     Query(query): Query<ExportQuery>,
 ) -> Result<Response, ApiError> {
     let ExportFormat::Onnx = query.format.unwrap_or(ExportFormat::Onnx);
-    let permit = super::heavy_read_permit(&state)?;
+    let permit = super::heavy_read_permit(&state, client)?;
     let model = crate::serving::onnx_model(&state.store, &id).await?;
     let len = model.len();
     let body = super::body_written_by(move |out| model.write_to(out).map_err(|e| e.to_string()));

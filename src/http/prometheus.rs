@@ -72,8 +72,16 @@ pub struct Metrics {
     policy_bytes_outside_cache: Gauge,
     shadow_queue: Gauge,
     shadow_requests: Family<ShadowLabel, Counter>,
+    slots_in_use: Family<SlotLabel, Gauge>,
     /// Two scrapes at once must not both add the same totals' growth to the counters.
     shadow_sync: std::sync::Mutex<()>,
+}
+
+/// Which limited slots: `heavy_read` (--max-heavy-reads), `upload` (--max-concurrent-uploads),
+/// `stream` (--max-streams).
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+struct SlotLabel {
+    kind: &'static str,
 }
 
 /// What became of a request drawn for a shadow.
@@ -205,11 +213,20 @@ impl Metrics {
         registry.register(
             "shadow_requests",
             "Requests drawn for an alias's shadow, by result: compared, skipped (queue full or \
-             policy not loaded), failed",
+             policy not loaded), error (the comparison gave nothing comparable)",
             shadow_requests.clone(),
+        );
+        let slots_in_use = Family::<SlotLabel, Gauge>::default();
+        registry.register(
+            "request_slots_in_use",
+            "Slots held by requests in flight, by kind: heavy_read (files built or being sent, \
+             --max-heavy-reads), upload (--max-concurrent-uploads), stream (event streams, \
+             --max-streams)",
+            slots_in_use.clone(),
         );
         Metrics {
             registry,
+            slots_in_use,
             shadow_queue,
             shadow_requests,
             shadow_sync: std::sync::Mutex::new(()),
@@ -292,6 +309,14 @@ async fn metrics(State(state): State<AppState>) -> Result<Response, ApiError> {
     state.metrics.policies_loaded.set(usage.loaded as i64);
     state.metrics.policy_cache_bytes.set(gauge(usage.bytes));
     state.metrics.policy_bytes_outside_cache.set(gauge(usage.held_outside));
+    let streams_in_use = state.config.max_streams as usize - state.streams.available_permits();
+    for (kind, in_use) in [
+        ("heavy_read", state.heavy_reads.in_use()),
+        ("upload", state.uploads.in_use()),
+        ("stream", streams_in_use),
+    ] {
+        state.metrics.slots_in_use.get_or_create(&SlotLabel { kind }).set(in_use as i64);
+    }
     let shadows = state.serving.models.shadows().usage();
     state.metrics.shadow_queue.set(gauge(shadows.queued));
     let _one_scrape = state.metrics.shadow_sync.lock().expect("shadow metrics lock");

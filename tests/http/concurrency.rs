@@ -57,7 +57,15 @@ fn npz_bytes(dataset: &safedice::data::Dataset) -> Vec<u8> {
 async fn concurrent_submits_cancels_uploads_and_deletes_never_answer_5xx() {
     const TASKS: usize = 8;
     const ROUNDS: usize = 40;
-    let app = Arc::new(TestApp::spawn_with(|c| c.workers = 2).await);
+    // Every task uploads from the same address, which holds half the upload slots: enough
+    // slots that the cap never answers (this test is about the database's writers).
+    let app = Arc::new(
+        TestApp::spawn_with(|c| {
+            c.workers = 2;
+            c.max_concurrent_uploads = 2 * TASKS as u16;
+        })
+        .await,
+    );
     let (u, n) = {
         let (unlabeled, non_preferred) = grid_datasets();
         let u = upload(&app.client, &app.base_url, &unlabeled, "grid-unlabeled").await;

@@ -490,6 +490,37 @@ async fn heavy_reads_beyond_the_cap_get_503_until_the_file_in_flight_is_sent() {
     }
 }
 
+/// One client (an address; an IPv6 /64) holds at most half of the heavy-read slots: with 2, a
+/// client whose download is being sent gets 503 `too_many_heavy_reads_from_address` for a
+/// second heavy read, while another address is served from the other slot.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn one_client_holds_at_most_half_of_the_heavy_read_slots() {
+    let app = TestApp::spawn_with(|c| c.max_heavy_reads = 2).await;
+    let dataset = wide_dataset(100_000, 48);
+    let id = crate::support::jobs::upload(&app.client, &app.base_url, &dataset, "wide").await;
+    let download = app.get(&format!("/v1/datasets/{id}/download")).send().await.unwrap();
+    assert_eq!(download.status(), StatusCode::OK);
+    let preview = format!("/v1/datasets/{id}/preview?rows=3");
+    let again = app.get(&preview).send().await.unwrap();
+    assert_eq!(again.headers()["retry-after"], "1");
+    let message =
+        assert_error(again, StatusCode::SERVICE_UNAVAILABLE, "too_many_heavy_reads_from_address")
+            .await;
+    assert!(message.contains("--max-heavy-reads"), "{message}");
+    let metrics = app.get("/metrics").send().await.unwrap().text().await.unwrap();
+    let held = r#"safedice_request_slots_in_use{kind="heavy_read"} 1"#;
+    assert!(metrics.lines().any(|line| line == held), "{metrics}");
+    // Another address on the loopback network is another client.
+    let other = reqwest::Client::builder()
+        .local_address("127.0.0.2".parse::<std::net::IpAddr>().unwrap())
+        .build()
+        .unwrap();
+    let served = other.get(app.url(&preview)).send().await.unwrap();
+    assert_eq!(served.status(), StatusCode::OK);
+    let length: u64 = download.headers()["content-length"].to_str().unwrap().parse().unwrap();
+    assert_eq!(download.bytes().await.unwrap().len() as u64, length);
+}
+
 /// A download its client stops reading (a reader at a byte a second, a stalled network): after
 /// --send-stall-timeout-secs without the client taking a byte the server closes the connection,
 /// and the heavy-read slot it held serves others again; before that, they get 503.

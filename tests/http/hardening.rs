@@ -321,6 +321,53 @@ async fn a_declared_oversized_upload_is_answered_413_before_its_body_is_sent() {
     app.assert_no_datasets_stored().await;
 }
 
+/// Two transitions of one episode: a dataset the server stores.
+const VALID_JSONL: &[u8] = b"{\"episode\": 0, \"obs\": [0.0, 0.1], \"action\": [0.5]}\n\
+    {\"episode\": 0, \"obs\": [0.1, 0.2], \"action\": [-0.2], \"terminal\": true}\n";
+
+/// One client holds at most half of the upload slots: with 2, a client whose upload is in
+/// flight gets 503 `too_many_uploads_from_address` for a second one, and nothing of it is
+/// stored, while an upload from another address goes through.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn one_client_holds_at_most_half_of_the_upload_slots() {
+    let app = TestApp::spawn_with(|c| {
+        c.max_concurrent_uploads = 2;
+        c.body_idle_timeout_secs = 30;
+    })
+    .await;
+    let head = "POST /v1/datasets HTTP/1.1\r\nHost: x\r\n\
+                Content-Type: multipart/form-data; boundary=XyZ\r\nContent-Length: 100000\r\n\r\n\
+                --XyZ\r\nContent-Disposition: form-data; name=\"file\"; filename=\"d.jsonl\"\r\n\r\n";
+    let slow = connect(&app, head.as_bytes());
+    // The paused upload holds its client's one slot once its handler runs; until then a second
+    // upload from the same address may go through (and is stored), so look until it is refused.
+    let (mut refused, mut stored_before) = (None, 0);
+    let started = Instant::now();
+    while started.elapsed() < PATIENCE {
+        stored_before = app.count_rows("datasets").await;
+        let response = app.upload_dataset("d.jsonl", VALID_JSONL.to_vec(), None).await;
+        if response.status() == StatusCode::SERVICE_UNAVAILABLE {
+            refused = Some(response);
+            break;
+        }
+        assert!(response.status().is_success(), "{}", response.status());
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    let response = refused.expect("the client's second upload was never refused");
+    assert_eq!(response.headers()["retry-after"], "1");
+    assert_error(response, StatusCode::SERVICE_UNAVAILABLE, "too_many_uploads_from_address").await;
+    assert_eq!(app.count_rows("datasets").await, stored_before, "nothing of it was stored");
+    let other = reqwest::Client::builder()
+        .local_address("127.0.0.2".parse::<std::net::IpAddr>().unwrap())
+        .build()
+        .unwrap();
+    let form = reqwest::multipart::Form::new()
+        .part("file", reqwest::multipart::Part::bytes(VALID_JSONL.to_vec()).file_name("d.jsonl"));
+    let response = other.post(app.url("/v1/datasets")).multipart(form).send().await.unwrap();
+    assert_eq!(response.status(), StatusCode::CREATED, "another address has the other slot");
+    slow.shutdown(Shutdown::Both).unwrap();
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn uploads_beyond_the_concurrency_cap_get_503_with_retry_after() {
     let app = TestApp::spawn_with(|c| {
