@@ -187,6 +187,7 @@ pub fn openapi_for(secured: bool) -> utoipa::openapi::OpenApi {
     let mut doc = routes().into_openapi();
     openapi::document_shared_errors(&mut doc);
     openapi::link_created_resources(&mut doc);
+    openapi::describe_event_streams(&mut doc);
     if secured {
         openapi::secure_api_routes(&mut doc);
     } else {

@@ -20,6 +20,7 @@ use utoipa_axum::router::OpenApiRouter;
 use utoipa_axum::routes;
 
 use super::error::ErrorBody;
+use super::jobs::streams::{DeletedJob, JOB_EVENTS, LOG_EVENTS};
 use super::AppState;
 
 const SECURITY_SCHEME: &str = "bearer";
@@ -49,7 +50,7 @@ const SECURITY_SCHEME: &str = "bearer";
             and actions by name (`name`, `name@alias`, a version)"),
         (name = "operations", description = "Health, readiness, metrics, API description"),
     ),
-    components(schemas(ErrorBody)),
+    components(schemas(ErrorBody, DeletedJob)),
 )]
 struct ApiDoc;
 
@@ -193,8 +194,35 @@ pub fn document_shared_errors(doc: &mut OpenApiDoc) {
     }
 }
 
-/// Adds an error answer with the shared error body (the inference protocol's on `/v2`), unless
-/// the operation documents that status already (its own description is more specific).
+/// Declares the events of each Server-Sent Events stream: on its `text/event-stream` media
+/// type, `x-sse-events` maps every event name to the schema of its JSON data (OpenAPI 3.1 has
+/// no field for the items of a stream; its body stays a `string`).
+pub fn describe_event_streams(doc: &mut OpenApiDoc) {
+    for item in doc.paths.paths.values_mut() {
+        for operation in operations(item) {
+            let events: &[(&str, &str)] = match operation.operation_id.as_deref() {
+                Some("job_events") => &JOB_EVENTS,
+                Some("job_log") => &LOG_EVENTS,
+                _ => continue,
+            };
+            let declared: serde_json::Map<String, serde_json::Value> = events
+                .iter()
+                .map(|(event, schema)| {
+                    let reference = format!("#/components/schemas/{schema}");
+                    ((*event).to_owned(), serde_json::json!({ "$ref": reference }))
+                })
+                .collect();
+            for response in operation.responses.responses.values_mut() {
+                let RefOr::T(response) = response else { continue };
+                if let Some(stream) = response.content.get_mut("text/event-stream") {
+                    let extensions = stream.extensions.get_or_insert_with(Default::default);
+                    extensions.insert("x-sse-events".to_owned(), declared.clone().into());
+                }
+            }
+        }
+    }
+}
+
 /// What a create answers with points at its resource's operations: OpenAPI links from each
 /// `POST` that creates (a 201 or 202 answer) to the operations under the created resource's
 /// path, the new path parameter taken from the answer's body (`id`, `name`, `version`) and the

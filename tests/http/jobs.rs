@@ -109,6 +109,7 @@ async fn safedice_and_bc_train_and_serve_identical_actions_over_act_and_v2() {
     assert_eq!(bc["runner"]["log_every"], 100, "default runner options");
 
     let events = read_events(&app, safedice["id"].as_str().unwrap()).await;
+    crate::openapi::assert_events_declared(&app, "/v1/jobs/{id}/events", &events).await;
     let (last_name, last_job) = events.last().unwrap();
     assert_eq!((last_name.as_str(), last_job["status"].as_str()), ("status", Some("succeeded")));
     assert_eq!(events[0].0, "status");

@@ -145,6 +145,9 @@ async fn a_job_logs_its_story_and_exports_its_metrics() {
     let id = job["id"].as_str().unwrap();
     // Followed from the start: the stream ends once the job has finished.
     let followed = follow_log(&app, id).await;
+    let as_events: Vec<(String, Value)> =
+        followed.iter().map(|l| ("log".into(), l.clone())).collect();
+    crate::openapi::assert_events_declared(&app, "/v1/jobs/{id}/logs", &as_events).await;
     let job = get_json(&app.client, &app.url(&format!("/v1/jobs/{id}"))).await;
     assert_eq!(job["status"], "succeeded");
     let lines: Vec<Value> = get_json(&app.client, &app.url(&format!("/v1/jobs/{id}/logs")))

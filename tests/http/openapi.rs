@@ -121,3 +121,34 @@ fn creates_link_to_the_operations_of_what_they_created() {
     }
     assert!(count >= 30, "{count} links");
 }
+
+/// Checks each (event, JSON data) a stream sent against what the served document declares for
+/// the stream at `path` (`x-sse-events`): the event is declared, and its data has every
+/// property the schema requires and none it does not list.
+pub(crate) async fn assert_events_declared(
+    app: &TestApp,
+    path: &str,
+    events: &[(String, serde_json::Value)],
+) {
+    let doc: serde_json::Value =
+        app.get("/v1/openapi.json").send().await.unwrap().json().await.unwrap();
+    let declared = &doc["paths"][path]["get"]["responses"]["200"]["content"]["text/event-stream"]
+        ["x-sse-events"];
+    assert!(declared.is_object(), "{path} declares its events");
+    assert!(!events.is_empty());
+    for (event, data) in events {
+        let reference = declared[event]["$ref"].as_str();
+        let reference = reference.unwrap_or_else(|| panic!("{path}: event {event} undeclared"));
+        let name = reference.trim_start_matches("#/components/schemas/");
+        let schema = &doc["components"]["schemas"][name];
+        let data = data.as_object().unwrap_or_else(|| panic!("{event}: {data}"));
+        for required in schema["required"].as_array().into_iter().flatten() {
+            let required = required.as_str().unwrap();
+            assert!(data.contains_key(required), "{event} ({name}) lacks {required}: {data:?}");
+        }
+        let properties = schema["properties"].as_object().expect("an object schema");
+        for key in data.keys() {
+            assert!(properties.contains_key(key), "{event} ({name}): {key} undeclared");
+        }
+    }
+}

@@ -4,7 +4,7 @@
 //! (the event stream and the log).
 
 mod metrics;
-mod streams;
+pub mod streams;
 
 use std::time::Duration;
 

@@ -22,6 +22,20 @@ use crate::http::{ApiError, AppState};
 use crate::jobs::JobEvent;
 use crate::store::{Store, StoreError};
 
+/// The events of `GET /v1/jobs/{id}/events` and the component schema of each one's JSON data,
+/// as the OpenAPI document declares them (`x-sse-events` on the stream's media type).
+pub const JOB_EVENTS: [(&str, &str); 3] =
+    [("status", "Job"), ("progress", "JobProgress"), ("deleted", "DeletedJob")];
+
+/// The events of `GET /v1/jobs/{id}/logs?follow=true`, as [`JOB_EVENTS`].
+pub const LOG_EVENTS: [(&str, &str); 1] = [("log", "LogLine")];
+
+/// The data of the `deleted` event: the job's id.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct DeletedJob {
+    pub id: String,
+}
+
 pub(super) fn router() -> OpenApiRouter<AppState> {
     OpenApiRouter::new().routes(routes!(job_events)).routes(routes!(job_log))
 }
@@ -154,7 +168,7 @@ async fn job_events(
             let event = match event {
                 Update::Progress(progress) => json_event("progress", &progress),
                 Update::Status(job) => status_event(&job),
-                Update::Deleted => json_event("deleted", &serde_json::json!({"id": id})),
+                Update::Deleted => json_event("deleted", &DeletedJob { id: id.to_string() }),
             };
             Some((event, (receiver, store, id, finished)))
         },
