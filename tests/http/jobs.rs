@@ -254,8 +254,7 @@ async fn safedice_and_bc_train_and_serve_identical_actions_over_act_and_v2() {
         let length = model.headers()["content-length"].to_str().unwrap().parse::<usize>();
         let bytes = model.bytes().await.unwrap();
         assert_eq!(length, Ok(bytes.len()), "streamed with its length announced");
-        // Built from the stored weights, it is the model `safedice export` makes of the policy
-        // file, byte for byte.
+        // Built from the stored weights: `safedice export` of the policy file, byte for byte.
         let file = app.get(&format!("/v1/policies/{policy_id}/weights")).send().await.unwrap();
         let file = file.bytes().await.unwrap();
         assert_eq!(safedice::algo::onnx::export_portable(&file).unwrap(), bytes);
