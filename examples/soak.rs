@@ -21,9 +21,14 @@
 //! sampled every 10 s.
 //! The mix per client step: upload a small dataset (one in five invalid), submit a short job
 //! (BC or SafeDICE), cancel a job, delete a dataset (refused while a job uses it), read a job's
-//! metrics, list jobs, follow a job's events for a moment, and `/act` on a trained policy.
-//! Exits non-zero on any 5xx, any transport error, anything accepted and then missing, or a
-//! job that did not end exactly once.
+//! metrics, list jobs, follow a job's events for a moment, `/act` on a trained policy, and churn
+//! a model of its own: create it with a version of one of two trained policies and point
+//! `prod` at it, act on `name@prod` through another API node, or delete the alias and the model
+//! and create them again on the other policy. An answer from the other node must come from the
+//! policy the model has now once [`ROUTE_GRACE`] has passed since the change (the nodes follow
+//! within about a second: notification, or the 1 s poll).
+//! Exits non-zero on any 5xx, any transport error, anything accepted and then missing, a job
+//! that did not end exactly once, or a stale route.
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::process::{Child, Command, Stdio};
@@ -36,6 +41,10 @@ use rand_chacha::ChaCha8Rng;
 use serde_json::{json, Value};
 
 const OBS_DIM: usize = 4;
+
+/// How long after a model changed an API node may still answer from what it had before: the
+/// 1 s poll, and slack for a machine whose cores the soak keeps busy.
+const ROUTE_GRACE: Duration = Duration::from_secs(3);
 
 struct Args {
     clients: usize,
@@ -172,6 +181,9 @@ struct Ledger {
     datasets: BTreeSet<String>,
     deleted_datasets: BTreeSet<String>,
     jobs: BTreeSet<String>,
+    models_created: u64,
+    model_acts: u64,
+    model_acts_in_grace: u64,
 }
 
 impl Ledger {
@@ -210,6 +222,13 @@ struct Client {
     rng: ChaCha8Rng,
     ledger: Arc<Mutex<Ledger>>,
     policy: String,
+    /// The two policies the client's model alternates between.
+    policies: [String; 2],
+    /// Another API node (the same one with a single node), where the model is acted on.
+    other_url: String,
+    model: String,
+    /// The model's current policy (index into `policies`) and when it last changed.
+    model_state: Option<(usize, Instant)>,
 }
 
 impl Client {
@@ -296,6 +315,7 @@ impl Client {
                 let request = self.http.get(format!("{url}/v1/jobs?limit=100"));
                 self.send("list", request).await?;
             }
+            70..=79 => self.churn_model().await?,
             67..=69 => {
                 let Some(job) = self.pick(&jobs).cloned() else { return Ok(()) };
                 self.follow_events(&format!("{url}/v1/jobs/{job}/events")).await;
@@ -315,6 +335,98 @@ impl Client {
 }
 
 impl Client {
+    /// One step of the model churn (see the module's docs).
+    async fn churn_model(&mut self) -> anyhow::Result<()> {
+        match self.model_state {
+            None => self.create_model(0).await,
+            Some((current, _)) if self.rng.random_range(0..4) == 0 => {
+                let (url, model) = (self.url.clone(), self.model.clone());
+                let alias = self.http.delete(format!("{url}/v1/models/{model}/aliases/prod"));
+                self.send("model delete", alias).await?;
+                let (status, _) = self
+                    .send("model delete", self.http.delete(format!("{url}/v1/models/{model}")))
+                    .await?;
+                if status != 204 {
+                    self.note_failure(format!("model delete: {status}"));
+                }
+                self.create_model(1 - current).await
+            }
+            Some((current, changed)) => {
+                let obs: Vec<f32> = vec![0.1; OBS_DIM];
+                let url = format!("{}/v1/models/{}@prod/act", self.other_url, self.model);
+                let request = self.http.post(url).json(&json!({"observations": [obs]}));
+                let response = match request.send().await {
+                    Ok(response) => response,
+                    Err(e) => {
+                        self.note_failure(format!("model act: transport {e}"));
+                        return Ok(());
+                    }
+                };
+                let status = response.status().as_u16();
+                self.ledger.lock().unwrap().record("model act", status);
+                let answered = response
+                    .headers()
+                    .get("x-safedice-policy-id")
+                    .and_then(|v| v.to_str().ok())
+                    .map(str::to_owned);
+                let settled = changed.elapsed() > ROUTE_GRACE;
+                let stale = match (status, answered) {
+                    (200, Some(policy)) => policy != self.policies[current],
+                    (404, _) => true,
+                    _ => false,
+                };
+                if settled && stale {
+                    let after = changed.elapsed();
+                    self.note_failure(format!(
+                        "model act: {} answered {status} from a stale route {after:?} after the \
+                         change",
+                        self.model
+                    ));
+                }
+                let mut ledger = self.ledger.lock().unwrap();
+                ledger.model_acts += 1;
+                if stale && !settled {
+                    ledger.model_acts_in_grace += 1;
+                }
+                Ok(())
+            }
+        }
+    }
+
+    /// Creates the client's model with one version of `policies[which]` and `prod` on it.
+    async fn create_model(&mut self, which: usize) -> anyhow::Result<()> {
+        let (url, model) = (self.url.clone(), self.model.clone());
+        let steps = [
+            (self.http.post(format!("{url}/v1/models")).json(&json!({"name": model})), 201),
+            (
+                self.http
+                    .post(format!("{url}/v1/models/{model}/versions"))
+                    .json(&json!({"policy_id": self.policies[which]})),
+                201,
+            ),
+            (
+                self.http
+                    .put(format!("{url}/v1/models/{model}/aliases/prod"))
+                    .json(&json!({"version": 1, "actor": "soak"})),
+                200,
+            ),
+        ];
+        for (request, expected) in steps {
+            let (status, body) = self.send("model create", request).await?;
+            if status != expected {
+                self.note_failure(format!("model create: {status} {body}"));
+                return Ok(());
+            }
+        }
+        self.model_state = Some((which, Instant::now()));
+        self.ledger.lock().unwrap().models_created += 1;
+        Ok(())
+    }
+
+    fn note_failure(&self, failure: String) {
+        self.ledger.lock().unwrap().failures.push(failure);
+    }
+
     /// Opens a job's event stream and reads it for up to a second (a dashboard tab that comes
     /// and goes).
     async fn follow_events(&mut self, url: &str) {
@@ -336,7 +448,7 @@ impl Client {
 }
 
 /// Trains the policy the `/act` requests use.
-async fn train_policy(http: &reqwest::Client, url: &str) -> anyhow::Result<String> {
+async fn train_policy(http: &reqwest::Client, url: &str, seed: u64) -> anyhow::Result<String> {
     let mut rng = ChaCha8Rng::seed_from_u64(1);
     let form = reqwest::multipart::Form::new().part(
         "file",
@@ -347,7 +459,7 @@ async fn train_policy(http: &reqwest::Client, url: &str) -> anyhow::Result<Strin
     let job: Value = http
         .post(format!("{url}/v1/jobs"))
         .json(&json!({"algorithm": "bc", "unlabeled_dataset": dataset["id"],
-                      "config": {"iterations": 100, "seed": 0, "hidden_sizes": [32, 32]}}))
+                      "config": {"iterations": 100, "seed": seed, "hidden_sizes": [32, 32]}}))
         .send()
         .await?
         .json()
@@ -357,7 +469,7 @@ async fn train_policy(http: &reqwest::Client, url: &str) -> anyhow::Result<Strin
         let job: Value = http.get(&job_url).send().await?.json().await?;
         match job["status"].as_str() {
             Some("succeeded") => return Ok(job["policy_id"].as_str().context("policy")?.into()),
-            Some("failed" | "cancelled") => bail!("training failed: {job}"),
+            Some("failed" | "cancelled" | "discarded") => bail!("training failed: {job}"),
             _ => tokio::time::sleep(Duration::from_millis(100)).await,
         }
     }
@@ -483,7 +595,8 @@ async fn main() -> anyhow::Result<()> {
     let node_urls: Vec<String> = processes.nodes.iter().map(|n| n.url.clone()).collect();
     let url = node_urls[0].clone();
     let http = reqwest::Client::builder().timeout(Duration::from_secs(60)).build()?;
-    let policy = train_policy(&http, &url).await?;
+    let policy = train_policy(&http, &url, 0).await?;
+    let other_policy = train_policy(&http, &url, 1).await?;
     let ledger = Arc::new(Mutex::new(Ledger::default()));
     let started = Instant::now();
     let deadline = started + Duration::from_secs(args.seconds);
@@ -495,6 +608,10 @@ async fn main() -> anyhow::Result<()> {
                 rng: ChaCha8Rng::seed_from_u64(100 + i as u64),
                 ledger: ledger.clone(),
                 policy: policy.clone(),
+                policies: [policy.clone(), other_policy.clone()],
+                other_url: node_urls[(i + 1) % node_urls.len()].clone(),
+                model: format!("soak-model-{i}"),
+                model_state: None,
             };
             tokio::spawn(async move {
                 while Instant::now() < deadline {
@@ -589,7 +706,15 @@ async fn main() -> anyhow::Result<()> {
             samples.iter().cloned().fold(0.0, f64::max)
         );
     }
-    println!("failures (neither 2xx nor 4xx, or transport): {}", ledger.failures.len());
+    println!(
+        "models: {} created (each delete and create again counts), {} acts through another node \
+         ({} answered from the route before a change within {ROUTE_GRACE:?} of it)",
+        ledger.models_created, ledger.model_acts, ledger.model_acts_in_grace
+    );
+    println!(
+        "failures (neither 2xx nor 4xx, transport, or a stale route): {}",
+        ledger.failures.len()
+    );
     for failure in ledger.failures.iter().take(20) {
         println!("  {failure}");
     }
