@@ -1,3 +1,4 @@
+// ceiling: one ordered session against one server and one browser: the later pages (policy, models, experiments, Compare) use the datasets, trained job and policy that the earlier tests made, so a split would train them again per file
 // Browser tests of the dashboard: headless Chromium (Debian's `chromium`, driven by
 // playwright-core) against the real `safedice serve` binary on a free loopback port with a
 // fresh data dir. The tests run in order and share one server: upload, submit, watch, chart,

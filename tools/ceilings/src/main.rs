@@ -1,8 +1,9 @@
 //! `ceilings`: the structure checks that CI runs (`.ci/ceilings`; docs/architecture.md,
 //! "Checked in CI"). It fails on
 //!
-//! - `ceiling`: a source file (src/**/*.rs, tests/**/*.rs, web/*.js) over 700 lines whose first
-//!   line is not `// ceiling: <reason>`;
+//! - `ceiling`: a source file (src/**/*.rs, tests/**/*.rs, web/*.js, tests/**/*.mjs, and the
+//!   Python of tests/, clients/ and bench/) over 700 lines whose first line is not
+//!   `// ceiling: <reason>` (`# ceiling: <reason>` in Python);
 //! - `status-literal`: a job-status word (the variants of `JobStatus` in src/domain/, as serde
 //!   writes them) hand-written in a string literal (SQL included) in src/ outside src/domain/;
 //! - `layer`: an import that runs up the layers, or an HTTP crate below http/, or sqlx below
@@ -28,8 +29,17 @@ use source::{Crate, Crates};
 
 /// Lines a source file may have without a reason.
 const CEILING_LINES: usize = 700;
-/// The first line that gives a long file its reason.
+/// The first line that gives a long file its reason (Python's comments start with `#`).
 const MARKER: &str = "// ceiling:";
+const PYTHON_MARKER: &str = "# ceiling:";
+
+fn marker(rel: &str) -> &'static str {
+    if rel.ends_with(".py") {
+        PYTHON_MARKER
+    } else {
+        MARKER
+    }
+}
 const ALLOW_FILE: &str = "tools/ceilings/src/allow.rs";
 
 /// The layers of docs/architecture.md, top first. A module may import its own layer and the
@@ -196,7 +206,9 @@ pub fn walk(root: &Path, folder: &str, keep: &dyn Fn(&str) -> bool) -> Result<Ve
             let rel = format!("{dir}/{name}");
             let kind = entry.file_type().map_err(|e| format!("{rel}: {e}"))?;
             if kind.is_dir() {
-                if !name.starts_with('.') && name != "node_modules" && name != "target" {
+                // Not checked: installed packages, build outputs and Python's byte code.
+                let generated = ["node_modules", "target", "build", "__pycache__"];
+                if !name.starts_with('.') && !generated.contains(&name.as_str()) {
                     pending.push(rel);
                 }
             } else if kind.is_file() && keep(&rel) {
@@ -215,11 +227,17 @@ fn ceilings(root: &Path, report: &mut Report) -> Result<usize, String> {
     files.extend(walk(root, "tests", &|p| p.ends_with(".rs"))?);
     // web/*.js: the dashboard's own scripts, not web/vendor/.
     files.extend(walk(root, "web", &|p| p.ends_with(".js") && p.matches('/').count() == 1)?);
+    // The browser tests, and the Python of the clients' tests, the Python client and benchmarks.
+    files.extend(walk(root, "tests", &|p| p.ends_with(".mjs") || p.ends_with(".py"))?);
+    for folder in ["clients", "bench"] {
+        files.extend(walk(root, folder, &|p| p.ends_with(".py"))?);
+    }
     for rel in &files {
         let text = std::fs::read_to_string(root.join(rel)).map_err(|e| format!("{rel}: {e}"))?;
         let lines = text.lines().count();
         let first = text.lines().next().unwrap_or("");
-        let reason = first.strip_prefix(MARKER).map(str::trim);
+        let marker = marker(rel);
+        let reason = first.strip_prefix(marker).map(str::trim);
         let allowed = allow::CEILING.iter().find(|(file, _)| file == rel);
         if lines > CEILING_LINES {
             match (reason, allowed) {
@@ -236,7 +254,7 @@ fn ceilings(root: &Path, report: &mut Report) -> Result<usize, String> {
                     rel,
                     1,
                     "ceiling",
-                    format!("{lines} lines and a `{MARKER}` line without a reason: say why"),
+                    format!("{lines} lines and a `{marker}` line without a reason: say why"),
                 ),
                 (None, None) => report.problem(
                     rel,
@@ -244,7 +262,7 @@ fn ceilings(root: &Path, report: &mut Report) -> Result<usize, String> {
                     "ceiling",
                     format!(
                         "{lines} lines, over the ceiling of {CEILING_LINES}: split it, or make \
-                         its first line `{MARKER} <why it is long>`"
+                         its first line `{marker} <why it is long>`"
                     ),
                 ),
             }
@@ -256,7 +274,7 @@ fn ceilings(root: &Path, report: &mut Report) -> Result<usize, String> {
                     "ceiling",
                     format!(
                         "{lines} lines, within the ceiling of {CEILING_LINES}: remove its \
-                         `{MARKER}` line"
+                         `{marker}` line"
                     ),
                 );
             }

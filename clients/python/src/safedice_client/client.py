@@ -19,6 +19,7 @@ from typing import Any, Callable, Dict, Iterator, Mapping, Optional, Sequence, T
 import numpy as np
 
 from . import simulator
+from .progress import print_grid_progress, progress_line
 
 Json = Dict[str, Any]
 DatasetSource = Union[str, os.PathLike, Mapping[str, np.ndarray]]
@@ -218,7 +219,7 @@ class Client:
         while True:
             job = self.job(job_id)
             if progress:
-                _progress_line(job)
+                progress_line(job)
             if job["status"] in self.final_statuses():
                 if progress:
                     sys.stderr.write("\n")
@@ -360,7 +361,7 @@ class Client:
         `on_progress(progress)` is called with the jobs' counts by status each time they change
         (default: a line on stderr when it is a terminal)."""
         deadline = None if timeout is None else time.monotonic() + timeout
-        report = on_progress or (_print_progress if sys.stderr.isatty() else None)
+        report = on_progress or (print_grid_progress if sys.stderr.isatty() else None)
         last = None
         while True:
             experiment = self.experiment(experiment_id)
@@ -682,24 +683,3 @@ def _multipart(fields: Mapping[str, Optional[str]], filename: str, content: byte
     )
     parts.append(f"--{boundary}--\r\n".encode())
     return b"".join(parts), f"multipart/form-data; boundary={boundary}"
-
-
-def _progress_line(job: Json) -> None:
-    progress = job.get("progress") or {}
-    fraction = progress.get("fraction") or 0.0
-    width = 30
-    bar = "#" * int(fraction * width) + "-" * (width - int(fraction * width))
-    speed = progress.get("iterations_per_second")
-    eta = progress.get("eta_seconds")
-    extra = (f" {speed:,.0f} it/s" if speed else "") + (f" eta {eta:,.0f} s" if eta else "")
-    sys.stderr.write(
-        f"\r{job['id'][:8]} [{bar}] {fraction:6.1%} {job['status']}{extra}".ljust(79)
-    )
-    sys.stderr.flush()
-
-
-def _print_progress(progress: Json) -> None:
-    """An experiment's progress as one line on stderr."""
-    done = progress["total"] - progress["running"] - progress["queued"]
-    print(f"{done} of {progress['total']} jobs finished ({progress['succeeded']} succeeded, "
-          f"{progress['running']} running, {progress['queued']} queued)", file=sys.stderr)
