@@ -100,7 +100,8 @@ impl From<EvaluationRecord> for Evaluation {
 #[into_params(parameter_in = Query)]
 pub struct EvaluationFilter {
     /// Only the evaluations of this policy.
-    pub policy_id: Option<String>,
+    #[param(value_type = Option<String>)]
+    pub policy_id: Option<PolicyId>,
 }
 
 pub fn router() -> OpenApiRouter<AppState> {
@@ -187,7 +188,7 @@ async fn list_evaluations(
     Query(page): Query<PageParams>,
 ) -> Result<Json<Page<Evaluation>>, ApiError> {
     let page = page.resolve(&state.store, Listing::Evaluations).await?;
-    let (records, total) = state.store.list_evaluations(filter.policy_id.as_deref(), &page).await?;
+    let (records, total) = state.store.list_evaluations(filter.policy_id.as_ref(), &page).await?;
     let items = records.into_iter().map(Evaluation::from).collect();
     Ok(Json(Page::new(items, total, page, |e: &Evaluation| &e.id)))
 }

@@ -15,7 +15,7 @@ use super::extract::{Json, Path, Query, StraightJson};
 use super::pagination::{Page, PageParams};
 use super::{ApiError, AppState, OCTET_STREAM};
 use crate::algo::Algorithm;
-use crate::domain::{rfc3339, PolicyId, PolicyRecord};
+use crate::domain::{rfc3339, JobId, PolicyId, PolicyRecord};
 use crate::serving::act::{resolve, ActTarget};
 use crate::store::{DeleteOutcome, Listing};
 
@@ -74,7 +74,8 @@ impl From<PolicyRecord> for PolicyResource {
 #[into_params(parameter_in = Query)]
 pub struct PolicyFilter {
     /// Only the policy of this job.
-    pub job_id: Option<String>,
+    #[param(value_type = Option<String>)]
+    pub job_id: Option<JobId>,
 }
 
 pub fn router() -> OpenApiRouter<AppState> {
@@ -101,7 +102,7 @@ async fn list_policies(
     Query(page): Query<PageParams>,
 ) -> Result<Json<Page<PolicyResource>>, ApiError> {
     let page = page.resolve(&state.store, Listing::Policies).await?;
-    let (records, total) = state.store.list_policies(filter.job_id.as_deref(), &page).await?;
+    let (records, total) = state.store.list_policies(filter.job_id.as_ref(), &page).await?;
     let items = records.into_iter().map(PolicyResource::from).collect();
     Ok(Json(Page::new(items, total, page, |p: &PolicyResource| &p.id)))
 }

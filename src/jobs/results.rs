@@ -167,7 +167,7 @@ async fn job_scores(store: &Store, job: JobRecord) -> Result<JobScores, StoreErr
 /// A policy's newest succeeded evaluation under each protocol, newest first.
 async fn evaluations(store: &Store, policy: &PolicyId) -> Result<Vec<Scored>, StoreError> {
     let page = PageQuery { limit: EVALUATIONS_READ, offset: 0, after: None };
-    let (evaluations, _) = store.list_evaluations(Some(policy.as_str()), &page).await?;
+    let (evaluations, _) = store.list_evaluations(Some(policy), &page).await?;
     let mut seen = BTreeSet::new();
     Ok(evaluations
         .into_iter()

@@ -261,9 +261,10 @@ impl Store {
     /// A page of evaluations, newest first (only those of `policy_id` when given); and the total.
     pub async fn list_evaluations(
         &self,
-        policy_id: Option<&str>,
+        policy_id: Option<&PolicyId>,
         page: &PageQuery,
     ) -> Result<(Vec<EvaluationRecord>, u64), StoreError> {
+        let policy_id = policy_id.map(PolicyId::as_str);
         let rows: Vec<EvaluationRow> = sqlx::query_as(&format!(
             "SELECT {EVALUATION_COLUMNS} FROM evaluations WHERE ($1 IS NULL OR policy_id = $1) \
              AND {} ORDER BY created_at DESC, id DESC LIMIT $2 OFFSET $3",

@@ -116,9 +116,10 @@ impl Store {
     /// A page of policies, newest first (only those of `job_id` when given); and the total.
     pub async fn list_policies(
         &self,
-        job_id: Option<&str>,
+        job_id: Option<&JobId>,
         page: &PageQuery,
     ) -> Result<(Vec<PolicyRecord>, u64), StoreError> {
+        let job_id = job_id.map(JobId::as_str);
         let rows: Vec<PolicyRow> = sqlx::query_as(&format!(
             "SELECT {POLICY_COLUMNS} FROM policies WHERE ($1 IS NULL OR job_id = $1) AND {} \
              ORDER BY created_at DESC, id DESC LIMIT $2 OFFSET $3",
