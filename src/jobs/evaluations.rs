@@ -18,9 +18,8 @@ use tokio_util::sync::CancellationToken;
 use super::fleet::{self, Announcement, LeaseKeeper, WorkerOptions};
 use super::EvalSpec;
 use crate::algo::Policy;
-use crate::domain::EvaluationRecord;
+use crate::domain::{EvaluationId, EvaluationRecord};
 use crate::envs::{self, EvalError, EvalReport};
-use crate::store::leases::LeaseTable;
 use crate::store::{Lease, Store, StoreError};
 
 /// Runs `spec` with `policy` and the paper's metrics. `interrupted` is asked between
@@ -104,17 +103,11 @@ impl Evaluator {
     }
 
     #[tracing::instrument(skip_all, fields(evaluation_id = %row.id, policy_id = %row.policy_id, env = %row.spec.env))]
-    async fn run_one(&self, row: EvaluationRecord, lease: Lease) {
+    async fn run_one(&self, row: EvaluationRecord, lease: Lease<EvaluationId>) {
         let store = &self.inner.store;
         // A lost lease needs no flag here: the evaluation is short, and its result is refused.
         let lost = Arc::new(AtomicBool::new(false));
-        let keeper = LeaseKeeper::start(
-            store.clone(),
-            LeaseTable::Evaluations,
-            lease.clone(),
-            &self.inner.options,
-            lost,
-        );
+        let keeper = LeaseKeeper::start(store.clone(), lease.clone(), &self.inner.options, lost);
         let outcome = self.evaluate(&row).await;
         drop(keeper);
         let stored = match &outcome {

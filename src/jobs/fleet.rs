@@ -14,7 +14,7 @@ use tokio::task::JoinHandle;
 use super::{JobEvent, JobRunner};
 use crate::domain::attempt::MemorySample;
 use crate::domain::{JobRecord, JobStatus, RetryBackoff};
-use crate::store::leases::{host_name, LeaseTable};
+use crate::store::leases::{host_name, Leased};
 use crate::store::{Backend, Lease, Store, StoreError};
 
 /// How this process takes part in the shared queue.
@@ -69,10 +69,9 @@ pub(super) struct LeaseKeeper {
 }
 
 impl LeaseKeeper {
-    pub(super) fn start(
+    pub(super) fn start<I: Leased + Send + Sync + 'static>(
         store: Store,
-        table: LeaseTable,
-        lease: Lease,
+        lease: Lease<I>,
         options: &WorkerOptions,
         on_lost: Arc<AtomicBool>,
     ) -> Self {
@@ -80,7 +79,7 @@ impl LeaseKeeper {
         let task = tokio::spawn(async move {
             loop {
                 tokio::time::sleep(every).await;
-                match store.renew_lease(table, &lease, duration).await {
+                match store.renew_lease(&lease, duration).await {
                     Ok(()) => {}
                     // Also once the run ended its job (the row is no longer `running`): the
                     // flag then stops nothing.

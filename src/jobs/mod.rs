@@ -292,7 +292,11 @@ impl JobRunner {
     /// too while the disk is full: it is retried until it goes through, the lease is lost, or
     /// shutdown begins (a job left `running` is claimed again once its lease expires). False
     /// when another worker had taken the job over meanwhile.
-    async fn release_when_possible(&self, lease: &crate::store::Lease, reason: &str) -> bool {
+    async fn release_when_possible(
+        &self,
+        lease: &crate::store::Lease<JobId>,
+        reason: &str,
+    ) -> bool {
         let mut delay = STORAGE_RETRY;
         loop {
             match self.store().release_job(lease, reason).await {

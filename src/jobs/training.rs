@@ -17,9 +17,9 @@ use tokio_util::sync::CancellationToken;
 
 use super::{EvalOptions, JobEvent, JobProgress, JobRunner, RunnerOptions};
 use crate::algo::{self, Policy, Progress, Trainer};
-use crate::domain::JobRecord;
 use crate::domain::LogLevel;
 use crate::domain::MetricRecord;
+use crate::domain::{JobId, JobRecord};
 use crate::store::evaluations::TrainingEvaluation;
 use crate::store::jobs::ProgressUpdate;
 use crate::store::storage::{is_io_storage_full, is_storage_full};
@@ -101,12 +101,12 @@ fn store_unavailable(e: &anyhow::Error) -> bool {
 #[derive(Clone)]
 pub(super) struct JobLog {
     store: Store,
-    lease: Lease,
+    lease: Lease<JobId>,
     pub(super) worker: String,
 }
 
 impl JobLog {
-    pub(super) fn new(runner: &JobRunner, lease: &Lease) -> Self {
+    pub(super) fn new(runner: &JobRunner, lease: &Lease<JobId>) -> Self {
         let worker = runner.inner.options.worker_id.clone();
         JobLog { store: runner.store().clone(), lease: lease.clone(), worker }
     }
@@ -202,7 +202,7 @@ pub(super) struct TrainingRun {
     runner: JobRunner,
     job: JobRecord,
     /// Carried by every write: refused once another worker took the job over.
-    lease: Lease,
+    lease: Lease<JobId>,
     cancel: Arc<AtomicBool>,
     /// Metrics recorded since the last write.
     pending: Vec<MetricRecord>,
@@ -218,7 +218,7 @@ impl TrainingRun {
     pub(super) fn new(
         runner: JobRunner,
         job: JobRecord,
-        lease: Lease,
+        lease: Lease<JobId>,
         cancel: Arc<AtomicBool>,
         log: JobLog,
     ) -> Self {

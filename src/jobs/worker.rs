@@ -7,9 +7,8 @@ use super::training::{JobLog, Outcome, TrainedPolicy, TrainingRun};
 use super::{JobEvent, JobRunner};
 use crate::domain::LogLevel;
 use crate::domain::MetricRecord;
-use crate::domain::{JobRecord, JobStatus, PolicyId};
+use crate::domain::{JobId, JobRecord, JobStatus, PolicyId};
 use crate::store::jobs::SucceededRun;
-use crate::store::leases::LeaseTable;
 use crate::store::{Lease, Store, StoreError};
 
 /// What writing a run's end came to.
@@ -63,7 +62,7 @@ async fn reap_expired_jobs(runner: &JobRunner) {
 }
 
 #[tracing::instrument(skip_all, fields(job_id = %job.id, algorithm = %job.algorithm, claim = lease.token))]
-async fn run_job(runner: &JobRunner, job: JobRecord, lease: Lease) {
+async fn run_job(runner: &JobRunner, job: JobRecord, lease: Lease<JobId>) {
     let id = job.id.clone();
     let cancel = runner.register_cancel_flag(&id);
     // A cancel may have been requested between the claim and the flag's registration.
@@ -72,7 +71,6 @@ async fn run_job(runner: &JobRunner, job: JobRecord, lease: Lease) {
     }
     let keeper = LeaseKeeper::start(
         runner.store().clone(),
-        LeaseTable::Jobs,
         lease.clone(),
         &runner.inner.options,
         cancel.clone(),
@@ -121,7 +119,7 @@ async fn run_job(runner: &JobRunner, job: JobRecord, lease: Lease) {
 async fn write_end(
     runner: &JobRunner,
     log: &JobLog,
-    lease: &Lease,
+    lease: &Lease<JobId>,
     mut outcome: Outcome,
     mut metrics: Vec<MetricRecord>,
 ) -> Ended {
@@ -167,7 +165,7 @@ async fn write_end(
 async fn store_policy(
     store: &Store,
     log: &JobLog,
-    lease: &Lease,
+    lease: &Lease<JobId>,
     trained: TrainedPolicy,
     metrics: Vec<MetricRecord>,
 ) -> anyhow::Result<()> {
@@ -191,7 +189,7 @@ async fn store_policy(
 
 /// The end of a run whose job another worker took over: nothing more is written for the job;
 /// the run's own attempt says what happened (the reaper recorded it as a crash).
-async fn end_after_lease_lost(runner: &JobRunner, lease: &Lease) {
+async fn end_after_lease_lost(runner: &JobRunner, lease: &Lease<JobId>) {
     tracing::warn!(
         "another worker took the job over after this worker's lease expired; this run stops \
          without writing anything more"

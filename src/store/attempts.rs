@@ -53,7 +53,7 @@ impl Store {
     /// worker that dies in between leaves an attempt without a row, which the reaper tolerates).
     pub(super) async fn start_attempt(
         &self,
-        lease: &Lease,
+        lease: &Lease<JobId>,
         worker: &str,
         attempt: u32,
     ) -> Result<(), StoreError> {
@@ -61,7 +61,7 @@ impl Store {
             "INSERT INTO job_attempts (job_id, claim, attempt, worker, started_at, outcome) \
              VALUES ($1, $2, $3, $4, $5, $6) ON CONFLICT (job_id, claim) DO NOTHING",
         )
-        .bind(&lease.id)
+        .bind(lease.id.as_str())
         .bind(lease.token)
         .bind(i64::from(attempt))
         .bind(worker)
@@ -241,7 +241,11 @@ impl Store {
 
     /// A worker that came back after its lease expired says so on its attempt (the reaper had
     /// recorded a crash). Its own row only: no fencing needed, the job itself is not touched.
-    pub async fn record_lease_lost(&self, lease: &Lease, message: &str) -> Result<(), StoreError> {
+    pub async fn record_lease_lost(
+        &self,
+        lease: &Lease<JobId>,
+        message: &str,
+    ) -> Result<(), StoreError> {
         sqlx::query(
             "UPDATE job_attempts SET outcome = $1, message = $2, ended_at = COALESCE(ended_at, $3) \
              WHERE job_id = $4 AND claim = $5 AND outcome IN ($6, $7)",
@@ -249,7 +253,7 @@ impl Store {
         .bind(AttemptOutcome::LeaseLost.as_str())
         .bind(message)
         .bind(now())
-        .bind(&lease.id)
+        .bind(lease.id.as_str())
         .bind(lease.token)
         .bind(AttemptOutcome::Running.as_str())
         .bind(AttemptOutcome::Crashed.as_str())
@@ -262,7 +266,7 @@ impl Store {
 /// Ends the attempt `lease` started, inside the transaction that writes how the run ended.
 pub(super) async fn end_attempt(
     tx: &mut Transaction<'_, Any>,
-    lease: &Lease,
+    lease: &Lease<JobId>,
     outcome: AttemptOutcome,
     message: Option<&str>,
 ) -> Result<(), sqlx::Error> {
@@ -273,7 +277,7 @@ pub(super) async fn end_attempt(
     .bind(outcome.as_str())
     .bind(message)
     .bind(now())
-    .bind(&lease.id)
+    .bind(lease.id.as_str())
     .bind(lease.token)
     .execute(&mut **tx)
     .await?;
@@ -310,7 +314,7 @@ mod tests {
     }
 
     /// A claim whose lease is already over: the worker "vanishes" at once.
-    async fn claim_and_vanish(store: &Store, worker: &str) -> Lease {
+    async fn claim_and_vanish(store: &Store, worker: &str) -> Lease<JobId> {
         let (_, lease) = store.claim_next_job(worker, Duration::ZERO).await.unwrap().unwrap();
         tokio::time::sleep(Duration::from_millis(5)).await;
         lease

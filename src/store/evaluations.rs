@@ -6,7 +6,7 @@ use std::time::Duration;
 use sqlx::{Any, Transaction};
 
 use super::datasets::DeleteOutcome;
-use super::leases::{self, Lease, LeaseTable};
+use super::leases::{self, Lease};
 use super::{now, parse_optional_time, parse_time, Listing, PageQuery, Store, StoreError};
 use crate::domain::{
     EvalRuntime, EvalSpec, EvaluationId, EvaluationRecord, EvaluationSource, EvaluationStatus,
@@ -293,33 +293,28 @@ impl Store {
         &self,
         worker: &str,
         lease_duration: Duration,
-    ) -> Result<Option<(EvaluationRecord, Lease)>, StoreError> {
+    ) -> Result<Option<(EvaluationRecord, Lease<EvaluationId>)>, StoreError> {
         let claim = leases::Claim {
             claimable: leases::Claimable::QueuedOrExpired,
-            table: LeaseTable::Evaluations,
             set: "started_at = $1",
             order: "created_at, id",
         };
-        let claimed = claim.run(self, worker, lease_duration).await?;
-        match claimed {
-            Some((id, token)) => {
-                let record = self.evaluation(&EvaluationId::from(id.as_str())).await?;
-                Ok(Some((record, Lease::new(id, token))))
-            }
+        match claim.run::<EvaluationId>(self, worker, lease_duration).await? {
+            Some(lease) => Ok(Some((self.evaluation(&lease.id).await?, lease))),
             None => Ok(None),
         }
     }
 
     /// Puts an evaluation interrupted by a shutdown back in the queue.
-    pub async fn requeue_evaluation(&self, lease: &Lease) -> Result<(), StoreError> {
+    pub async fn requeue_evaluation(&self, lease: &Lease<EvaluationId>) -> Result<(), StoreError> {
         let mut tx = self.begin_write().await?;
-        leases::hold(&mut tx, LeaseTable::Evaluations, lease).await?;
+        leases::hold(&mut tx, lease).await?;
         sqlx::query(&format!(
             "UPDATE evaluations SET status = {}, started_at = NULL, lease_expires_ms = 0 \
              WHERE id = $1",
             EvaluationStatus::Queued.sql()
         ))
-        .bind(&lease.id)
+        .bind(lease.id.as_str())
         .execute(&mut *tx)
         .await?;
         tx.commit().await?;
@@ -329,7 +324,7 @@ impl Store {
     /// Ends a running evaluation: `Ok(report)` → `succeeded`, `Err(message)` → `failed`.
     pub async fn finish_evaluation(
         &self,
-        lease: &Lease,
+        lease: &Lease<EvaluationId>,
         result: Result<&EvalReport, &str>,
     ) -> Result<(), StoreError> {
         let (status, report, error) = match result.map(serde_json::to_string) {
@@ -338,7 +333,7 @@ impl Store {
             Err(message) => (EvaluationStatus::Failed, None, Some(message.to_owned())),
         };
         let mut tx = self.begin_write().await?;
-        leases::hold(&mut tx, LeaseTable::Evaluations, lease).await?;
+        leases::hold(&mut tx, lease).await?;
         sqlx::query(
             "UPDATE evaluations SET status = $1, report = $2, error = $3, finished_at = $4 \
              WHERE id = $5",
@@ -347,7 +342,7 @@ impl Store {
         .bind(report)
         .bind(error)
         .bind(now())
-        .bind(&lease.id)
+        .bind(lease.id.as_str())
         .execute(&mut *tx)
         .await?;
         tx.commit().await?;

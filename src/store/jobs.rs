@@ -8,7 +8,7 @@ use sqlx::{Any, Transaction};
 
 use super::attempts::end_attempt;
 use super::evaluations::{insert_training_evaluation, TrainingEvaluation};
-use super::leases::{self, Lease, LeaseTable};
+use super::leases::{self, Lease};
 use super::policies::NewPolicy;
 use super::{
     now, optional_real, parse_optional_time, parse_time, placeholders, Listing, PageQuery, Store,
@@ -479,18 +479,16 @@ impl Store {
         &self,
         worker: &str,
         lease_duration: Duration,
-    ) -> Result<Option<(JobRecord, Lease)>, StoreError> {
+    ) -> Result<Option<(JobRecord, Lease<JobId>)>, StoreError> {
         let claim = leases::Claim {
-            table: LeaseTable::Jobs,
             claimable: leases::Claimable::QueuedAndDue,
             set: "updated_at = $1, started_at = COALESCE(started_at, $1), \
                   iterations_per_second = NULL, attempt = attempt + 1, scheduled_ms = 0",
             order: "started_at IS NULL, created_at, id",
         };
-        let claimed = claim.run(self, worker, lease_duration).await?;
-        let Some((id, token)) = claimed else { return Ok(None) };
-        let lease = Lease::new(id, token);
-        let job = self.job(&lease.job_id()).await;
+        let claimed = claim.run::<JobId>(self, worker, lease_duration).await?;
+        let Some(lease) = claimed else { return Ok(None) };
+        let job = self.job(&lease.id).await;
         if let Ok(job) = &job {
             self.start_attempt(&lease, worker, job.attempt).await?;
         }
@@ -508,9 +506,9 @@ impl Store {
 
     /// A running job handed back to the queue by the worker holding its lease (graceful
     /// shutdown after its checkpoint, or a store that cannot take its writes).
-    pub async fn release_job(&self, lease: &Lease, reason: &str) -> Result<(), StoreError> {
+    pub async fn release_job(&self, lease: &Lease<JobId>, reason: &str) -> Result<(), StoreError> {
         let mut tx = self.begin_write().await?;
-        leases::hold(&mut tx, LeaseTable::Jobs, lease).await?;
+        leases::hold(&mut tx, lease).await?;
         let now = self.db_now_in(&mut tx).await?;
         // Not the job's fault: the attempt is given back.
         sqlx::query(&format!(
@@ -519,7 +517,7 @@ impl Store {
             JobStatus::Queued.sql()
         ))
         .bind(now)
-        .bind(&lease.id)
+        .bind(lease.id.as_str())
         .execute(&mut *tx)
         .await?;
         end_attempt(&mut tx, lease, AttemptOutcome::Released, Some(reason)).await?;
@@ -530,7 +528,7 @@ impl Store {
     /// Records progress; returns whether a cancel was requested meanwhile.
     pub async fn update_progress(
         &self,
-        lease: &Lease,
+        lease: &Lease<JobId>,
         progress: &ProgressUpdate<'_>,
     ) -> Result<bool, StoreError> {
         let cancel: Option<i64> = sqlx::query_scalar(&format!(
@@ -546,26 +544,26 @@ impl Store {
         .bind(optional_real(progress.iterations_per_second))
         .bind(optional_real(progress.alpha_hat))
         .bind(self.db_now().await?)
-        .bind(&lease.id)
+        .bind(lease.id.as_str())
         .bind(lease.token)
         .fetch_optional(self.pool())
         .await?;
         match cancel {
             Some(flag) => Ok(flag != 0),
-            None => Err(StoreError::LeaseLost(lease.id.clone())),
+            None => Err(StoreError::LeaseLost(lease.id.to_string())),
         }
     }
 
     pub async fn insert_metrics(
         &self,
-        lease: &Lease,
+        lease: &Lease<JobId>,
         rows: &[MetricRecord],
     ) -> Result<(), StoreError> {
         if rows.is_empty() {
             return Ok(());
         }
         let mut tx = self.begin_write().await?;
-        leases::hold(&mut tx, LeaseTable::Jobs, lease).await?;
+        leases::hold(&mut tx, lease).await?;
         insert_metric_rows(&mut tx, &lease.id, rows).await?;
         tx.commit().await?;
         Ok(())
@@ -575,20 +573,20 @@ impl Store {
     /// checkpoint never refers to metrics that are not stored.
     pub async fn save_checkpoint(
         &self,
-        lease: &Lease,
+        lease: &Lease<JobId>,
         step: u64,
         data: &[u8],
         pending_metrics: &[MetricRecord],
     ) -> Result<(), StoreError> {
         let mut tx = self.begin_write().await?;
-        leases::hold(&mut tx, LeaseTable::Jobs, lease).await?;
+        leases::hold(&mut tx, lease).await?;
         insert_metric_rows(&mut tx, &lease.id, pending_metrics).await?;
         sqlx::query(
             "INSERT INTO job_checkpoints (job_id, step, data, created_at) VALUES ($1, $2, $3, $4) \
              ON CONFLICT (job_id) DO UPDATE SET step = excluded.step, data = excluded.data, \
                  created_at = excluded.created_at",
         )
-        .bind(&lease.id)
+        .bind(lease.id.as_str())
         .bind(step as i64)
         .bind(data)
         .bind(now())
@@ -611,11 +609,15 @@ impl Store {
 
     /// Deletes the metrics recorded after `step` (a resume from the checkpoint at `step`
     /// recomputes them; deleting first keeps every (name, step) row exactly once).
-    pub async fn discard_metrics_after(&self, lease: &Lease, step: u64) -> Result<u64, StoreError> {
+    pub async fn discard_metrics_after(
+        &self,
+        lease: &Lease<JobId>,
+        step: u64,
+    ) -> Result<u64, StoreError> {
         let mut tx = self.begin_write().await?;
-        leases::hold(&mut tx, LeaseTable::Jobs, lease).await?;
+        leases::hold(&mut tx, lease).await?;
         let done = sqlx::query("DELETE FROM job_metrics WHERE job_id = $1 AND step > $2")
-            .bind(&lease.id)
+            .bind(lease.id.as_str())
             .bind(step as i64)
             .execute(&mut *tx)
             .await?;
@@ -660,15 +662,15 @@ impl Store {
     /// commit.
     pub async fn finish_job_succeeded(
         &self,
-        lease: &Lease,
+        lease: &Lease<JobId>,
         worker: &str,
         pending_metrics: &[MetricRecord],
         run: &SucceededRun<'_>,
     ) -> Result<Option<(String, u32)>, StoreError> {
         let mut tx = self.begin_write().await?;
-        leases::hold(&mut tx, LeaseTable::Jobs, lease).await?;
+        leases::hold(&mut tx, lease).await?;
         insert_metric_rows(&mut tx, &lease.id, pending_metrics).await?;
-        let job_id = lease.job_id();
+        let job_id = lease.id.clone();
         let final_metrics = last_metric_values_in(&mut tx, job_id.as_str()).await?;
         let policy = NewPolicy {
             id: run.policy_id,
@@ -695,7 +697,7 @@ impl Store {
         .bind(run.step as i64)
         .bind(optional_real(policy.alpha_hat))
         .bind(&now)
-        .bind(&lease.id)
+        .bind(lease.id.as_str())
         .execute(&mut *tx)
         .await?;
         delete_checkpoint(&mut tx, &lease.id).await?;
@@ -759,14 +761,14 @@ impl Store {
     /// metrics history stays.
     pub async fn finish_job(
         &self,
-        lease: &Lease,
+        lease: &Lease<JobId>,
         status: JobStatus,
         error: Option<&str>,
         pending_metrics: &[MetricRecord],
     ) -> Result<(), StoreError> {
         debug_assert!(matches!(status, JobStatus::Failed | JobStatus::Cancelled));
         let mut tx = self.begin_write().await?;
-        leases::hold(&mut tx, LeaseTable::Jobs, lease).await?;
+        leases::hold(&mut tx, lease).await?;
         insert_metric_rows(&mut tx, &lease.id, pending_metrics).await?;
         let now = self.db_now_in(&mut tx).await?;
         sqlx::query(
@@ -776,7 +778,7 @@ impl Store {
         .bind(status.as_str())
         .bind(error)
         .bind(now)
-        .bind(&lease.id)
+        .bind(lease.id.as_str())
         .execute(&mut *tx)
         .await?;
         delete_checkpoint(&mut tx, &lease.id).await?;

@@ -15,25 +15,43 @@ use sqlx::{Any, Transaction};
 
 use super::{now, parse_time, Store, StoreError};
 use crate::domain::attempt::MemorySample;
-use crate::domain::{JobId, JobStatus, WorkerRecord};
+use crate::domain::{EvaluationId, JobId, JobStatus, WorkerRecord};
 
-/// A worker's claim on one running job or evaluation.
+/// What a lease is held on: a job or an evaluation, each in its own table. The lease's type
+/// names its table, so a job's lease cannot fence a write to an evaluation.
+pub trait Leased: Clone + std::fmt::Debug + std::fmt::Display + From<String> {
+    const TABLE: LeaseTable;
+
+    fn as_str(&self) -> &str;
+}
+
+impl Leased for JobId {
+    const TABLE: LeaseTable = LeaseTable::Jobs;
+
+    fn as_str(&self) -> &str {
+        JobId::as_str(self)
+    }
+}
+
+impl Leased for EvaluationId {
+    const TABLE: LeaseTable = LeaseTable::Evaluations;
+
+    fn as_str(&self) -> &str {
+        EvaluationId::as_str(self)
+    }
+}
+
+/// A worker's claim on one running job (`Lease<JobId>`) or evaluation (`Lease<EvaluationId>`).
 #[derive(Clone, Debug, PartialEq, Eq)]
-pub struct Lease {
-    /// The job's (or evaluation's) id.
-    pub id: String,
+pub struct Lease<I> {
+    pub id: I,
     /// The row's `lease_token` at the claim; a later claim by anyone changes it.
     pub token: i64,
 }
 
-impl Lease {
-    pub fn new(id: impl Into<String>, token: i64) -> Self {
+impl<I: Leased> Lease<I> {
+    pub fn new(id: impl Into<I>, token: i64) -> Self {
         Lease { id: id.into(), token }
-    }
-
-    /// The id as a job's (a lease on the jobs table).
-    pub fn job_id(&self) -> JobId {
-        JobId::from(self.id.as_str())
     }
 }
 
@@ -83,26 +101,25 @@ pub(super) fn millis(duration: Duration) -> i64 {
     i64::try_from(duration.as_millis()).unwrap_or(i64::MAX)
 }
 
-/// Inside a write transaction: confirms that `lease` still holds the running job `table` row and
-/// (on PostgreSQL) locks that row until the transaction ends, so no claim can take the job over
-/// between this check and the commit. Every fenced write starts with it.
-pub(super) async fn hold(
+/// Inside a write transaction: confirms that `lease` still holds its running row (in its id's
+/// table) and (on PostgreSQL) locks that row until the transaction ends, so no claim can take it
+/// over between this check and the commit. Every fenced write starts with it.
+pub(super) async fn hold<I: Leased>(
     tx: &mut Transaction<'_, Any>,
-    table: LeaseTable,
-    lease: &Lease,
+    lease: &Lease<I>,
 ) -> Result<(), StoreError> {
     let held = sqlx::query(&format!(
         "UPDATE {} SET lease_token = lease_token WHERE id = $1 AND lease_token = $2 \
          AND status = {}",
-        table.as_str(),
+        I::TABLE.as_str(),
         JobStatus::Running.sql()
     ))
-    .bind(&lease.id)
+    .bind(lease.id.as_str())
     .bind(lease.token)
     .execute(&mut **tx)
     .await?;
     if held.rows_affected() == 0 {
-        return Err(StoreError::LeaseLost(lease.id.clone()));
+        return Err(StoreError::LeaseLost(lease.id.to_string()));
     }
     Ok(())
 }
@@ -113,7 +130,6 @@ pub(super) async fn hold(
 /// runs one write at a time. The statement binds `$1` now (RFC 3339), `$2` the worker, `$3` the
 /// lease in milliseconds.
 pub(super) struct Claim {
-    pub table: LeaseTable,
     pub claimable: Claimable,
     /// The table's own `SET` assignments (they see the row's old values).
     pub set: &'static str,
@@ -132,14 +148,14 @@ pub(super) enum Claimable {
 }
 
 impl Claim {
-    /// Runs the claim: the claimed row's (id, lease token).
-    pub async fn run(
+    /// Runs the claim on `I`'s table: the lease on the claimed row.
+    pub async fn run<I: Leased>(
         &self,
         store: &Store,
         worker: &str,
         lease: Duration,
-    ) -> Result<Option<(String, i64)>, sqlx::Error> {
-        let (table, now_ms) = (self.table.as_str(), store.backend.now_ms());
+    ) -> Result<Option<Lease<I>>, sqlx::Error> {
+        let (table, now_ms) = (I::TABLE.as_str(), store.backend.now_ms());
         let (queued, running) = (JobStatus::Queued.sql(), JobStatus::Running.sql());
         let claimable = match self.claimable {
             Claimable::QueuedOrExpired => format!(
@@ -147,7 +163,7 @@ impl Claim {
             ),
             Claimable::QueuedAndDue => format!("(status = {queued} AND scheduled_ms <= {now_ms})"),
         };
-        sqlx::query_as(&format!(
+        let claimed: Option<(String, i64)> = sqlx::query_as(&format!(
             "UPDATE {table} SET status = {running}, {}, lease_owner = $2, \
                  lease_token = lease_token + 1, lease_expires_ms = {now_ms} + $3 \
              WHERE id = (SELECT id FROM {table} WHERE {claimable} \
@@ -162,32 +178,32 @@ impl Claim {
         .bind(worker)
         .bind(millis(lease))
         .fetch_optional(store.pool())
-        .await
+        .await?;
+        Ok(claimed.map(|(id, token)| Lease::new(id, token)))
     }
 }
 
 impl Store {
     /// Pushes the lease's expiry `duration` past now (the worker's heartbeat).
-    pub async fn renew_lease(
+    pub async fn renew_lease<I: Leased>(
         &self,
-        table: LeaseTable,
-        lease: &Lease,
+        lease: &Lease<I>,
         duration: Duration,
     ) -> Result<(), StoreError> {
         let renewed = sqlx::query(&format!(
             "UPDATE {} SET lease_expires_ms = {} + $1 \
              WHERE id = $2 AND lease_token = $3 AND status = {}",
-            table.as_str(),
+            I::TABLE.as_str(),
             self.backend.now_ms(),
             JobStatus::Running.sql()
         ))
         .bind(millis(duration))
-        .bind(&lease.id)
+        .bind(lease.id.as_str())
         .bind(lease.token)
         .execute(self.pool())
         .await?;
         if renewed.rows_affected() == 0 {
-            return Err(StoreError::LeaseLost(lease.id.clone()));
+            return Err(StoreError::LeaseLost(lease.id.to_string()));
         }
         Ok(())
     }
@@ -370,7 +386,7 @@ mod tests {
         assert!(lost(store.insert_metrics(&stale, &[metric(1)]).await));
         assert!(lost(store.save_checkpoint(&stale, 1, b"ckpt", &[metric(1)]).await));
         assert!(lost(store.discard_metrics_after(&stale, 0).await.map(drop)));
-        assert!(lost(store.renew_lease(LeaseTable::Jobs, &stale, Duration::from_secs(60)).await));
+        assert!(lost(store.renew_lease(&stale, Duration::from_secs(60)).await));
         assert!(lost(store.release_job(&stale, "shutdown").await));
         assert!(lost(store.finish_job(&stale, JobStatus::Failed, Some("late"), &[]).await));
         let unchanged = store.job(&id).await.unwrap();

@@ -2,7 +2,7 @@
 
 use sqlx::{Any, Transaction};
 
-use super::leases::{self, Lease, LeaseTable};
+use super::leases::{self, Lease};
 use super::{now, parse_time, Store, StoreError};
 use crate::domain::{JobId, LogLevel, LogRecord};
 
@@ -37,14 +37,14 @@ impl Store {
     /// last line. Fenced like every worker write: refused once another worker took the job.
     pub async fn append_job_log(
         &self,
-        lease: &Lease,
+        lease: &Lease<JobId>,
         worker: &str,
         level: LogLevel,
         message: &str,
     ) -> Result<(), StoreError> {
         let mut tx = self.begin_write().await?;
         // Holding the lease row-locks the job on PostgreSQL, so two lines never get one number.
-        leases::hold(&mut tx, LeaseTable::Jobs, lease).await?;
+        leases::hold(&mut tx, lease).await?;
         insert_log_line(&mut tx, &lease.id, worker, level, message).await?;
         tx.commit().await?;
         Ok(())

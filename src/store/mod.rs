@@ -47,7 +47,7 @@ use sqlx::sqlite::SqliteConnectOptions;
 use sqlx::{Any, AnyPool, Connection, Transaction};
 
 pub use datasets::{DeleteOutcome, NewDataset};
-pub use leases::Lease;
+pub use leases::{Lease, Leased};
 pub use listing::{Listing, PageQuery};
 
 pub use storage::StorageProblem;

@@ -614,7 +614,7 @@ async fn a_transaction_left_open_by_a_stalled_worker_does_not_block_the_takeover
         stalled.claim_next_job("stalled", Duration::from_millis(500)).await.unwrap().unwrap();
     let mut open = stalled.begin_write().await.unwrap();
     let locked: Option<String> = sqlx::query_scalar("SELECT id FROM jobs WHERE id = $1 FOR UPDATE")
-        .bind(&lease.id)
+        .bind(lease.id.as_str())
         .fetch_optional(&mut *open)
         .await
         .unwrap();
