@@ -145,6 +145,40 @@ impl AlgorithmSpec {
     pub fn knobs(&self) -> Vec<Knob> {
         COMMON_KNOBS.iter().chain(self.own_knobs).copied().collect()
     }
+
+    /// The name of its phase before policy learning, if it has one.
+    pub fn pretraining_phase(&self) -> Option<&'static str> {
+        self.own_knobs.iter().find_map(|knob| knob.pretraining)
+    }
+}
+
+/// The steps a run of a resolved configuration takes, as progress and metrics count them.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, utoipa::ToSchema)]
+pub struct StepPlan {
+    /// Steps of the phase before policy learning (0 for the algorithms without one).
+    #[schema(example = 10_000)]
+    pub pretraining_steps: u64,
+    /// That phase's name; null for the algorithms without one.
+    #[schema(example = "discriminator pretraining")]
+    pub pretraining_phase: Option<&'static str>,
+    /// Policy iterations, after the pretraining phase.
+    #[schema(example = 100_000)]
+    pub iterations: u64,
+    /// Every step of the run: a job's `progress.total`.
+    #[schema(example = 110_000)]
+    pub total_steps: u64,
+}
+
+impl StepPlan {
+    pub fn of(config: &ResolvedConfig) -> StepPlan {
+        let pretraining_steps = config.pretraining_steps();
+        StepPlan {
+            pretraining_steps,
+            pretraining_phase: config.algorithm().spec().pretraining_phase(),
+            iterations: config.common.iterations,
+            total_steps: config.total_steps(),
+        }
+    }
 }
 
 #[cfg(test)]
@@ -173,5 +207,17 @@ mod tests {
             let pretraining = spec.own_knobs.iter().filter(|k| k.pretraining.is_some()).count();
             assert_eq!(pretraining, usize::from(resolved.pretraining_steps() > 0), "{}", spec.name);
         }
+    }
+
+    #[test]
+    fn a_step_plan_adds_the_pretraining_phase_to_the_iterations() {
+        let safedice = resolve_config(Algorithm::Safedice, &serde_json::json!({"iterations": 300}));
+        let plan = StepPlan::of(&safedice.unwrap());
+        assert_eq!(plan.pretraining_phase, Some("discriminator pretraining"));
+        assert_eq!(plan.pretraining_steps + plan.iterations, plan.total_steps);
+        assert_eq!(plan.iterations, 300);
+        let bc = StepPlan::of(&resolve_config(Algorithm::Bc, &serde_json::json!({})).unwrap());
+        assert_eq!((bc.pretraining_steps, bc.pretraining_phase), (0, None));
+        assert_eq!(bc.total_steps, bc.iterations);
     }
 }

@@ -2,13 +2,15 @@
 //! configuration. It is the one place clients (the dashboard among them) learn names, colours and
 //! defaults from, so none of them keeps its own copy.
 
+use axum::extract::Path;
 use utoipa::ToSchema;
 use utoipa_axum::router::OpenApiRouter;
 use utoipa_axum::routes;
 
+use super::error::{ApiError, ErrorBody};
 use super::extract::Json;
 use super::AppState;
-use crate::algo::registry::Knob;
+use crate::algo::registry::{Knob, StepPlan};
 use crate::algo::{self, Algorithm, Preset};
 
 /// An algorithm and its presets.
@@ -46,8 +48,18 @@ pub struct AlgorithmList {
     pub items: Vec<AlgorithmInfo>,
 }
 
+/// What a job with a given `config` would run, resolved without queueing it.
+#[derive(Debug, serde::Serialize, ToSchema)]
+pub struct ConfigPlan {
+    pub algorithm: Algorithm,
+    /// The resolved configuration: every knob with its value, as the job would store it.
+    #[schema(value_type = Object)]
+    pub config: serde_json::Value,
+    pub steps: StepPlan,
+}
+
 pub fn router() -> OpenApiRouter<AppState> {
-    OpenApiRouter::new().routes(routes!(list_algorithms))
+    OpenApiRouter::new().routes(routes!(list_algorithms)).routes(routes!(plan_config))
 }
 
 /// The algorithms with their labels, colours and every preset's resolved configuration.
@@ -55,6 +67,35 @@ pub fn router() -> OpenApiRouter<AppState> {
     responses((status = 200, description = "Every algorithm", body = AlgorithmList)))]
 async fn list_algorithms() -> Json<AlgorithmList> {
     Json(algorithm_list())
+}
+
+/// Resolves a job's `config` (a preset and overrides, `{}` for the service preset) without
+/// queueing anything: its every knob and the steps the run takes, with the configuration checks
+/// and errors of `POST /v1/jobs` (those that need the datasets aside). The dashboard's job form
+/// shows the plan from it as the knobs are typed.
+#[utoipa::path(post, path = "/v1/algorithms/{name}/plan", tag = "algorithms",
+    params(("name" = Algorithm, Path, description = "The algorithm, as a job's `algorithm`")),
+    request_body(content = Object, description = "A job's `config`",
+        example = json!({"preset": "service", "iterations": 20000})),
+    responses(
+        (status = 200, body = ConfigPlan),
+        (status = 404, description = "No such algorithm", body = ErrorBody),
+        (status = 422, description = "A configuration a job would be refused for \
+            (`invalid_config`, the message names the key)", body = ErrorBody),
+    ))]
+async fn plan_config(
+    Path(name): Path<String>,
+    Json(config): Json<serde_json::Value>,
+) -> Result<Json<ConfigPlan>, ApiError> {
+    let algorithm: Algorithm = serde_json::from_value(serde_json::Value::String(name.clone()))
+        .map_err(|_| ApiError::not_found("algorithm", &name))?;
+    let resolved = algo::resolve_config(algorithm, &config)
+        .map_err(|e| ApiError::unprocessable("invalid_config", e.message))?;
+    Ok(Json(ConfigPlan {
+        algorithm,
+        steps: StepPlan::of(&resolved),
+        config: serde_json::to_value(&resolved).expect("a configuration serialises"),
+    }))
 }
 
 /// The table behind `/v1/algorithms` (and the dashboard's copy of it).

@@ -15,7 +15,7 @@ const CSS: &str = "text/css; charset=utf-8";
 
 /// Every embedded file of the dashboard: URL path, content type, contents. index.html loads the
 /// scripts in this order (each uses what the ones before it define).
-const ASSETS: [(&str, &str, &str); 11] = [
+const ASSETS: [(&str, &str, &str); 13] = [
     ("/ui/style.css", CSS, include_str!("../../web/style.css")),
     ("/ui/favicon.svg", "image/svg+xml", include_str!("../../web/favicon.svg")),
     ("/ui/vendor/uPlot.min.css", CSS, include_str!("../../web/vendor/uPlot.min.css")),
@@ -25,6 +25,8 @@ const ASSETS: [(&str, &str, &str); 11] = [
     ("/ui/models.js", JS, include_str!("../../web/models.js")),
     ("/ui/experiments.js", JS, include_str!("../../web/experiments.js")),
     ("/ui/policies.js", JS, include_str!("../../web/policies.js")),
+    ("/ui/job_form.js", JS, include_str!("../../web/job_form.js")),
+    ("/ui/compare.js", JS, include_str!("../../web/compare.js")),
     ("/ui/app.js", JS, include_str!("../../web/app.js")),
     (
         "/ui/vendor/uPlot.LICENSE",

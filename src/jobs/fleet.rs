@@ -156,7 +156,7 @@ const CHANNEL: &str = "safedice";
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub enum Announcement {
     /// A job was queued: idle workers claim.
-    Queued,
+    JobQueued,
     /// An evaluation was queued.
     EvaluationQueued,
     /// A cancel was requested for this running job: its worker stops now.
@@ -168,7 +168,7 @@ pub enum Announcement {
 impl Announcement {
     fn payload(&self) -> String {
         match self {
-            Announcement::Queued => "queued".to_owned(),
+            Announcement::JobQueued => "job".to_owned(),
             Announcement::EvaluationQueued => "evaluation".to_owned(),
             Announcement::Cancel(id) => format!("cancel:{id}"),
             Announcement::Changed(id) => format!("changed:{id}"),
@@ -177,7 +177,7 @@ impl Announcement {
 
     fn parse(payload: &str) -> Option<Announcement> {
         match payload.split_once(':') {
-            None if payload == "queued" => Some(Announcement::Queued),
+            None if payload == "job" => Some(Announcement::JobQueued),
             None if payload == "evaluation" => Some(Announcement::EvaluationQueued),
             Some(("cancel", id)) => Some(Announcement::Cancel(id.to_owned())),
             Some(("changed", id)) => Some(Announcement::Changed(id.to_owned())),
@@ -201,36 +201,20 @@ pub fn announce(store: &Store, announcement: Announcement) {
     });
 }
 
-/// Listens for the other processes' announcements (PostgreSQL) until shutdown, reconnecting
-/// after a lost connection.
-pub(super) async fn listen(runner: JobRunner, url: String) {
+/// Listens for the other processes' announcements (PostgreSQL) until shutdown.
+pub(super) async fn listen(runner: JobRunner) {
     let shutdown = runner.inner.shutdown.clone();
-    while !shutdown.is_cancelled() {
-        match sqlx::postgres::PgListener::connect(&url).await {
-            Ok(mut listener) => match listener.listen(CHANNEL).await {
-                Ok(()) => loop {
-                    tokio::select! {
-                        () = shutdown.cancelled() => return,
-                        received = listener.recv() => match received {
-                            Ok(notification) => dispatch(&runner, notification.payload()),
-                            Err(e) => {
-                                tracing::warn!(error = %e, "lost the notification connection");
-                                break;
-                            }
-                        },
-                    }
-                },
-                Err(e) => tracing::warn!(error = %e, "cannot listen for notifications"),
-            },
-            Err(e) => tracing::warn!(error = %e, "cannot open the notification connection"),
-        }
-        super::sleep_unless_shutdown(&shutdown, Duration::from_secs(1)).await;
-    }
+    let store = runner.inner.store.clone();
+    let dispatch = |payload: String| {
+        dispatch(&runner, &payload);
+        std::future::ready(())
+    };
+    store.listen(CHANNEL, &shutdown, Duration::from_secs(1), dispatch).await;
 }
 
 fn dispatch(runner: &JobRunner, payload: &str) {
     match Announcement::parse(payload) {
-        Some(Announcement::Queued) => runner.inner.wake.notify_one(),
+        Some(Announcement::JobQueued) => runner.inner.wake.notify_one(),
         Some(Announcement::EvaluationQueued) => runner.inner.evaluator.wake_local(),
         Some(Announcement::Cancel(id)) => {
             runner.cancel_local(&id);
@@ -333,7 +317,7 @@ mod tests {
     #[test]
     fn announcements_survive_their_payload() {
         for announcement in [
-            Announcement::Queued,
+            Announcement::JobQueued,
             Announcement::EvaluationQueued,
             Announcement::Cancel("job-1".into()),
             Announcement::Changed("abc:def".into()),

@@ -131,8 +131,8 @@ impl JobRunner {
         if follow {
             tasks.push(tokio::spawn(fleet::follow_jobs(self.clone())));
         }
-        if let Some(url) = self.inner.store.database_url() {
-            tasks.push(tokio::spawn(fleet::listen(self.clone(), url.to_owned())));
+        if self.inner.store.database_url().is_some() {
+            tasks.push(tokio::spawn(fleet::listen(self.clone())));
         }
         self.inner.tasks.lock().expect("runner lock").extend(tasks);
         tracing::info!(
@@ -170,7 +170,7 @@ impl JobRunner {
     /// Tells an idle worker that a job was queued (and, on PostgreSQL, every other process).
     pub fn wake(&self) {
         self.inner.wake.notify_one();
-        fleet::announce(&self.inner.store, fleet::Announcement::Queued);
+        fleet::announce(&self.inner.store, fleet::Announcement::JobQueued);
     }
 
     /// Stops a job this process is running at its next step; a job another process runs

@@ -21,7 +21,7 @@ use crate::domain::LogLevel;
 use crate::domain::MetricRecord;
 use crate::domain::{JobId, JobRecord};
 use crate::store::evaluations::TrainingEvaluation;
-use crate::store::jobs::ProgressUpdate;
+use crate::store::job_runs::ProgressUpdate;
 use crate::store::storage::{is_io_storage_full, is_storage_full};
 use crate::store::{is_busy, Lease, Store, StoreError};
 

@@ -8,7 +8,7 @@ use super::{JobEvent, JobRunner};
 use crate::domain::LogLevel;
 use crate::domain::MetricRecord;
 use crate::domain::{JobId, JobRecord, JobStatus, PolicyId};
-use crate::store::jobs::SucceededRun;
+use crate::store::job_runs::SucceededRun;
 use crate::store::{Lease, Store, StoreError};
 
 /// What writing a run's end came to.

@@ -429,8 +429,8 @@ impl ModelRegistry {
                 }
             }
         });
-        if let Some(url) = self.store.database_url().map(str::to_owned) {
-            tokio::spawn(listen(self, url, shutdown));
+        if self.store.database_url().is_some() {
+            tokio::spawn(listen(self, shutdown));
         }
     }
 
@@ -526,37 +526,19 @@ fn fnv1a(bytes: &[u8]) -> u64 {
     })
 }
 
-/// Refreshes a model as soon as another process's change of it is notified, until shutdown,
-/// reconnecting after a lost connection (the poll covers the gaps).
-async fn listen(registry: Arc<ModelRegistry>, url: String, shutdown: CancellationToken) {
-    while !shutdown.is_cancelled() {
-        match sqlx::postgres::PgListener::connect(&url).await {
-            Ok(mut listener) => match listener.listen(MODELS_CHANNEL).await {
-                Ok(()) => loop {
-                    tokio::select! {
-                        () = shutdown.cancelled() => return,
-                        received = listener.recv() => match received {
-                            Ok(notification) => {
-                                if let Err(e) = registry.refresh_model(notification.payload()).await {
-                                    tracing::error!(model = notification.payload(), error = %e, "cannot load the model's new versions; the previous ones keep serving");
-                                }
-                            }
-                            Err(e) => {
-                                tracing::warn!(error = %e, "lost the model notification connection");
-                                break;
-                            }
-                        },
-                    }
-                },
-                Err(e) => tracing::warn!(error = %e, "cannot listen for model notifications"),
-            },
-            Err(e) => tracing::warn!(error = %e, "cannot open the model notification connection"),
+/// Refreshes a model as soon as another process's change of it is notified, until shutdown (the
+/// poll covers what a lost connection misses).
+async fn listen(registry: Arc<ModelRegistry>, shutdown: CancellationToken) {
+    let store = registry.store.clone();
+    let refresh = |model: String| {
+        let registry = registry.clone();
+        async move {
+            if let Err(e) = registry.refresh_model(&model).await {
+                tracing::error!(%model, error = %e, "cannot load the model's new versions; the previous ones keep serving");
+            }
         }
-        tokio::select! {
-            () = shutdown.cancelled() => return,
-            () = tokio::time::sleep(POLL) => {}
-        }
-    }
+    };
+    store.listen(MODELS_CHANNEL, &shutdown, POLL, refresh).await;
 }
 
 #[cfg(test)]

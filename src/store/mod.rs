@@ -25,6 +25,8 @@ pub mod attempts;
 pub mod datasets;
 pub mod evaluations;
 pub mod experiments;
+pub mod job_metrics;
+pub mod job_runs;
 pub mod jobs;
 pub mod leases;
 mod listing;
@@ -32,6 +34,7 @@ pub mod logs;
 mod migrate;
 pub mod model_aliases;
 pub mod models;
+mod notifications;
 pub mod policies;
 pub mod shadows;
 pub mod storage;
@@ -456,19 +459,6 @@ impl Store {
     /// PostgreSQL's URL; None on SQLite.
     pub fn database_url(&self) -> Option<&str> {
         self.database_url.as_deref()
-    }
-
-    /// Sends `payload` to every connection listening on `channel` (PostgreSQL's NOTIFY; a no-op
-    /// on SQLite, whose processes poll).
-    pub async fn notify(&self, channel: &str, payload: &str) -> Result<(), sqlx::Error> {
-        if self.backend == Backend::Postgres {
-            sqlx::query("SELECT CAST(pg_notify($1, $2) AS TEXT)")
-                .bind(channel)
-                .bind(payload)
-                .execute(&self.pool)
-                .await?;
-        }
-        Ok(())
     }
 
     /// Begins a transaction that writes. On SQLite, `BEGIN IMMEDIATE` takes the write lock up

@@ -2,7 +2,7 @@
 //! server: one table of names, colours and preset values, the same in both places, and a job
 //! that names only a preset resolves to exactly that preset's listed values.
 
-use crate::support::app::TestApp;
+use crate::support::app::{assert_error, TestApp};
 use reqwest::StatusCode;
 use serde_json::{json, Value};
 
@@ -62,4 +62,54 @@ async fn the_dashboard_script_carries_the_same_table() {
     // /v1 stays behind the token.
     let anonymous = app.client.get(app.url("/v1/algorithms")).send().await.unwrap();
     assert_eq!(anonymous.status(), StatusCode::UNAUTHORIZED);
+}
+
+/// The plan of a configuration is what a job created with it stores and reports, for every
+/// algorithm; a configuration a job would be refused for is refused the same way.
+#[tokio::test]
+async fn a_plan_is_what_a_job_with_the_same_config_runs() {
+    use crate::support::jobs::{create_job, grid_datasets, small_config, upload};
+    let app = TestApp::spawn().await;
+    let (unlabeled, non_preferred) = grid_datasets();
+    let u = upload(&app.client, &app.base_url, &unlabeled, "u.jsonl").await;
+    let n = upload(&app.client, &app.base_url, &non_preferred, "n.jsonl").await;
+    for algorithm in ["safedice", "bc", "dwbc", "ppl", "dexperts"] {
+        let config = small_config(300, 1);
+        let response = app
+            .post(&format!("/v1/algorithms/{algorithm}/plan"))
+            .json(&config)
+            .send()
+            .await
+            .unwrap();
+        assert_eq!(response.status(), StatusCode::OK, "{algorithm}");
+        let plan: Value = response.json().await.unwrap();
+        let job = create_job(
+            &app.client,
+            &app.base_url,
+            json!({"algorithm": algorithm, "unlabeled_dataset": u, "non_preferred_dataset": n,
+                   "config": config}),
+        )
+        .await;
+        let steps = &plan["steps"];
+        assert_eq!(steps["total_steps"], job["progress"]["total"], "{algorithm}");
+        assert_eq!(steps["pretraining_steps"], job["pretraining_steps"], "{algorithm}");
+        assert_eq!(steps["iterations"], 300, "{algorithm}");
+        let has_phase = job["pretraining_steps"].as_u64().unwrap() > 0;
+        assert_eq!(steps["pretraining_phase"].is_string(), has_phase, "{algorithm}");
+        // The job may pick its threads from the data; every other knob is the plan's.
+        let (mut planned, mut stored) = (plan["config"].clone(), job["config"].clone());
+        planned.as_object_mut().unwrap().remove("threads");
+        stored.as_object_mut().unwrap().remove("threads");
+        assert_eq!(planned, stored, "{algorithm}");
+    }
+    let jobs_before = app.count_rows("jobs").await;
+    let bad = app.post("/v1/algorithms/safedice/plan").json(&json!({"batch": 5})).send().await;
+    let message =
+        assert_error(bad.unwrap(), StatusCode::UNPROCESSABLE_ENTITY, "invalid_config").await;
+    assert!(message.contains("config.batch: unknown key"), "{message}");
+    let not_object = app.post("/v1/algorithms/bc/plan").json(&json!([1])).send().await;
+    assert_error(not_object.unwrap(), StatusCode::UNPROCESSABLE_ENTITY, "invalid_body").await;
+    let unknown = app.post("/v1/algorithms/gail/plan").json(&json!({})).send().await;
+    assert_error(unknown.unwrap(), StatusCode::NOT_FOUND, "not_found").await;
+    assert_eq!(app.count_rows("jobs").await, jobs_before, "a plan stores no job");
 }

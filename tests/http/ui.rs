@@ -31,6 +31,8 @@ async fn the_dashboard_and_its_assets_are_served_without_a_token() {
         ("/ui/lib.js", "text/javascript; charset=utf-8", "async function api("),
         ("/ui/charts.js", "text/javascript; charset=utf-8", "function lineChart("),
         ("/ui/models.js", "text/javascript; charset=utf-8", "function modelsPage("),
+        ("/ui/job_form.js", "text/javascript; charset=utf-8", "function jobForm("),
+        ("/ui/compare.js", "text/javascript; charset=utf-8", "function comparePage("),
         ("/ui/experiments.js", "text/javascript; charset=utf-8", "function experimentsPage("),
         ("/ui/policies.js", "text/javascript; charset=utf-8", "function policyPage("),
         ("/ui/vendor/uPlot.iife.min.js", "text/javascript; charset=utf-8", "uPlot (v1.6.32)"),

@@ -320,6 +320,20 @@ def test_algorithms_list_what_each_needs(client: Client) -> None:
     assert algorithms["bc"]["needs_non_preferred"] is False
 
 
+def test_a_plan_resolves_a_config_without_queueing_a_job(client: Client) -> None:
+    before = len(list(client.jobs()))
+    plan = client.plan("safedice", {"iterations": 300})
+    steps = plan["steps"]
+    assert steps["iterations"] == 300 and plan["config"]["iterations"] == 300
+    assert steps["total_steps"] == steps["pretraining_steps"] + 300
+    assert steps["pretraining_phase"] == "discriminator pretraining"
+    assert client.plan("bc")["steps"]["pretraining_steps"] == 0
+    with pytest.raises(ApiError) as refused:
+        client.plan("bc", {"iterations": 0})
+    assert (refused.value.status, refused.value.code) == (422, "invalid_config")
+    assert len(list(client.jobs())) == before
+
+
 def test_the_final_statuses_come_from_the_servers_vocabulary(client: Client) -> None:
     vocabulary = client.vocabulary()
     names = [s["name"] for s in vocabulary["job_statuses"]]

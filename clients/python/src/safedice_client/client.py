@@ -123,6 +123,12 @@ class Client:
         """The algorithms a job can run: name, what it needs, its config keys and defaults."""
         return self._get("/v1/algorithms")["items"]
 
+    def plan(self, algorithm: str, config: Optional[Json] = None) -> Json:
+        """What a job of ``algorithm`` with ``config`` would run, queueing nothing: ``config``
+        resolved (every knob) and ``steps`` (pretraining_steps, pretraining_phase, iterations,
+        total_steps). A configuration a job would be refused for raises the same ApiError."""
+        return self._post_json(f"/v1/algorithms/{algorithm}/plan", config or {})
+
     def vocabulary(self) -> Json:
         """The service's words with what each means: ``job_statuses`` (name, final, meaning) and
         ``evaluation_metrics`` (key, history_name, label, lower_is_better, kind)."""
