@@ -97,3 +97,8 @@ impl Trainer for BcTrainer {
         self.fused = None;
     }
 }
+
+/// FLOPs of one step: the policy trained on B rows.
+pub fn step_flops(shape: &super::flops::StepShape) -> u64 {
+    super::flops::train_flops(&shape.policy(), shape.batch)
+}

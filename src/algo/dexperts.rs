@@ -282,3 +282,9 @@ impl Trainer for DexpertsTrainer {
         self.fused = None;
     }
 }
+
+/// FLOPs of one step: two experts on B rows each (discrete actions) or one policy on 2B rows
+/// (continuous, Eq. 45): the same count.
+pub fn step_flops(shape: &super::flops::StepShape) -> u64 {
+    super::flops::train_flops(&shape.policy(), 2 * shape.batch)
+}

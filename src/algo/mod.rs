@@ -21,6 +21,7 @@ pub mod columns;
 pub mod dexperts;
 pub mod discriminator_stop;
 pub mod dwbc;
+pub mod flops;
 pub mod fused_mlp;
 pub mod fused_ops;
 pub mod fused_policy;

@@ -193,3 +193,10 @@ impl Trainer for PplTrainer {
         self.fused = None;
     }
 }
+
+/// FLOPs of one policy step (the reward model frozen): the reward model's forward on B rows and
+/// the policy trained on B.
+pub fn step_flops(shape: &super::flops::StepShape) -> u64 {
+    use super::flops::{forward_flops, train_flops};
+    forward_flops(&shape.critic(0), shape.batch) + train_flops(&shape.policy(), shape.batch)
+}

@@ -4,13 +4,14 @@
 //! it the OpenAPI example, the dashboard's form and colours) and [`super::build_trainer`] read
 //! this table; nothing outside `algo/` matches on an algorithm to learn these.
 //!
-//! To add an algorithm: its module beside the others (a [`Trainer`]), its variant of
-//! [`Algorithm`] and of [`AlgorithmConfig`](super::hyperparams::AlgorithmConfig) with its
-//! presets and checks in `hyperparams.rs`, its memory term in `memory.rs`, and its entry in
-//! [`SPECS`] below (docs/architecture.md, "Recipes").
+//! To add an algorithm: its module beside the others (a [`Trainer`] and its `step_flops`), its
+//! variant of [`Algorithm`] and of [`AlgorithmConfig`](super::hyperparams::AlgorithmConfig)
+//! with its presets and checks in `hyperparams.rs`, its memory term in `memory.rs`, its entry
+//! in [`SPECS`] below and its keys in the CreateJob doc (docs/architecture.md, "Recipes").
 
 use serde::Serialize;
 
+use super::flops::StepShape;
 use super::{
     bc, dexperts, dwbc, ppl, safedice, Algorithm, ResolvedConfig, TrainError, Trainer, TrainingData,
 };
@@ -19,6 +20,15 @@ use super::{
 pub type Build = fn(&ResolvedConfig, &TrainingData) -> Result<Box<dyn Trainer>, TrainError>;
 /// Resumes a run of one algorithm from the bytes of its [`Trainer::checkpoint`].
 pub type Resume = fn(&ResolvedConfig, &TrainingData, &[u8]) -> Result<Box<dyn Trainer>, TrainError>;
+
+/// One policy-learning step of an algorithm, as the speed benchmark measures it.
+#[derive(Clone, Copy)]
+pub struct StepCost {
+    /// What the step trains, in a few words.
+    pub label: &'static str,
+    /// Its FLOPs (matrix products) for networks of a shape.
+    pub flops: fn(&StepShape) -> u64,
+}
 
 /// Everything about one algorithm that is not its training code or its configuration.
 pub struct AlgorithmSpec {
@@ -33,6 +43,8 @@ pub struct AlgorithmSpec {
     pub needs_non_preferred: bool,
     /// The job form's knobs of its own, after [`COMMON_KNOBS`].
     pub own_knobs: &'static [Knob],
+    /// Its policy-learning step (SafeDICE's main-loop iteration).
+    pub step: StepCost,
     pub build: Build,
     pub resume: Resume,
 }
@@ -92,6 +104,10 @@ pub const SPECS: [AlgorithmSpec; 5] = [
             },
             knob("gamma", "Discount γ", KnobKind::Float),
         ],
+        step: StepCost {
+            label: "main loop (nu on s,s',s0 + nu GP + policy)",
+            flops: safedice::step_flops,
+        },
         build: |c, d| Ok(Box::new(safedice::SafediceTrainer::new(c, d)?)),
         resume: |c, d, b| Ok(Box::new(safedice::SafediceTrainer::resume(c, d, b)?)),
     },
@@ -102,6 +118,7 @@ pub const SPECS: [AlgorithmSpec; 5] = [
         color: "#6b7280",
         needs_non_preferred: false,
         own_knobs: &[],
+        step: StepCost { label: "BC step", flops: bc::step_flops },
         build: |c, d| Ok(Box::new(bc::BcTrainer::new(c, d)?)),
         resume: |c, d, b| Ok(Box::new(bc::BcTrainer::resume(c, d, b)?)),
     },
@@ -112,6 +129,10 @@ pub const SPECS: [AlgorithmSpec; 5] = [
         color: "#d97706",
         needs_non_preferred: true,
         own_knobs: &[knob("eta", "η (DWBC)", KnobKind::Float)],
+        step: StepCost {
+            label: "DWBC step (discriminator with GP + policy)",
+            flops: dwbc::step_flops,
+        },
         build: |c, d| Ok(Box::new(dwbc::DwbcTrainer::new(c, d)?)),
         resume: |c, d, b| Ok(Box::new(dwbc::DwbcTrainer::resume(c, d, b)?)),
     },
@@ -125,6 +146,7 @@ pub const SPECS: [AlgorithmSpec; 5] = [
             pretraining: Some("reward-model pretraining"),
             ..knob("reward_model_iterations", "Reward-model iterations", KnobKind::Int)
         }],
+        step: StepCost { label: "PPL policy step (reward model frozen)", flops: ppl::step_flops },
         build: |c, d| Ok(Box::new(ppl::PplTrainer::new(c, d)?)),
         resume: |c, d, b| Ok(Box::new(ppl::PplTrainer::resume(c, d, b)?)),
     },
@@ -135,6 +157,10 @@ pub const SPECS: [AlgorithmSpec; 5] = [
         color: "#7c3aed",
         needs_non_preferred: true,
         own_knobs: &[knob("alpha", "α (DExperts)", KnobKind::Float)],
+        step: StepCost {
+            label: "DExperts step (both experts / Eq. 45)",
+            flops: dexperts::step_flops,
+        },
         build: |c, d| Ok(Box::new(dexperts::DexpertsTrainer::new(c, d)?)),
         resume: |c, d, b| Ok(Box::new(dexperts::DexpertsTrainer::resume(c, d, b)?)),
     },
@@ -207,6 +233,27 @@ mod tests {
             let pretraining = spec.own_knobs.iter().filter(|k| k.pretraining.is_some()).count();
             assert_eq!(pretraining, usize::from(resolved.pretraining_steps() > 0), "{}", spec.name);
         }
+    }
+
+    /// Every algorithm counts its step's FLOPs for the speed benchmark: more rows, more work, and
+    /// a label of its own.
+    #[test]
+    fn every_algorithm_counts_its_step() {
+        let shape = |batch| StepShape {
+            obs_dim: 17,
+            act_input: 6,
+            policy_output: 12,
+            hidden: vec![256, 256],
+            batch,
+        };
+        let mut labels: Vec<&str> = SPECS.iter().map(|s| s.step.label).collect();
+        for spec in &SPECS {
+            let (small, large) = ((spec.step.flops)(&shape(256)), (spec.step.flops)(&shape(512)));
+            assert!(small > 0 && large == 2 * small, "{}: {small} then {large}", spec.name);
+        }
+        labels.sort_unstable();
+        labels.dedup();
+        assert_eq!(labels.len(), SPECS.len());
     }
 
     #[test]

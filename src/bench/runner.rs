@@ -12,6 +12,7 @@ use serde::Serialize;
 use super::ablation::{self, SafediceAblation, Variant};
 use super::BenchConfig;
 use super::DataSize;
+use crate::algo::flops::StepShape;
 use crate::algo::safedice::{oracle_logits, SafediceOverrides, SafediceTrainer};
 use crate::algo::{self, Algorithm, Policy, TrainError, Trainer, TrainingData};
 use crate::data::Dataset;
@@ -400,15 +401,21 @@ fn ground_truth(
     Ok((truth, summary))
 }
 
-/// Every job, the slowest algorithms first so the last ones to finish are short (SafeDICE and
-/// PPL have a pretraining phase on top of the policy iterations).
+/// Every job, the costliest rows first so the last ones to finish are short. A row's cost is
+/// its steps (a pretraining phase included) times its policy step's FLOPs as the algorithm's
+/// module counts them, on a nominal task (the tasks' own sizes only scale every row alike).
 fn schedule(config: &BenchConfig, envs: usize) -> Vec<Job> {
-    let cost = |a: Algorithm| match a {
-        Algorithm::Safedice => 0,
-        Algorithm::Ppl => 1,
-        Algorithm::Dwbc => 2,
-        Algorithm::Dexperts => 3,
-        Algorithm::Bc => 4,
+    let cost = |algorithm: Algorithm, variant: Variant| -> u64 {
+        let training = config.training_config(algorithm, variant, 0);
+        let Ok(resolved) = algo::resolve_config(algorithm, &training) else { return 0 };
+        let shape = StepShape {
+            obs_dim: 8,
+            act_input: 2,
+            policy_output: 4,
+            hidden: resolved.common.hidden_sizes.clone(),
+            batch: resolved.common.batch_size,
+        };
+        resolved.total_steps().saturating_mul((algorithm.spec().step.flops)(&shape))
     };
     let rows = config.rows();
     let mut jobs: Vec<Job> = (0..envs)
@@ -418,7 +425,9 @@ fn schedule(config: &BenchConfig, envs: usize) -> Vec<Job> {
             })
         })
         .collect();
-    jobs.sort_by_key(|j| (cost(j.algorithm), j.seed, j.env));
+    let costs: std::collections::HashMap<(Algorithm, Variant), u64> =
+        rows.iter().map(|&(a, v)| ((a, v), cost(a, v))).collect();
+    jobs.sort_by_key(|j| (std::cmp::Reverse(costs[&(j.algorithm, j.variant)]), j.seed, j.env));
     jobs
 }
 

@@ -25,7 +25,9 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, StandardNormal};
 
-use crate::algo::fused_mlp::{peak_gemm_gflops, MlpShape};
+use crate::algo::flops::StepShape;
+use crate::algo::fused_mlp::peak_gemm_gflops;
+use crate::algo::safedice;
 use crate::algo::safedice::SafediceTrainer;
 use crate::algo::{build_trainer, resolve_config, Algorithm, Trainer, TrainingData};
 use crate::data::{ActionSpace, Actions, Dataset, DatasetParts};
@@ -66,77 +68,31 @@ impl SpeedConfig {
         self.discrete.unwrap_or(2 * self.act_dim)
     }
 
-    pub fn nu_shape(&self) -> MlpShape {
-        MlpShape::new(self.obs_dim, &self.hidden, 1, false)
+    /// The networks' sizes, as the algorithms count their FLOPs.
+    pub fn step_shape(&self) -> StepShape {
+        StepShape {
+            obs_dim: self.obs_dim,
+            act_input: self.act_input(),
+            policy_output: self.policy_output(),
+            hidden: self.hidden.clone(),
+            batch: self.batch,
+        }
     }
-
-    pub fn policy_shape(&self) -> MlpShape {
-        MlpShape::new(self.obs_dim, &self.hidden, self.policy_output(), true)
-    }
-
-    pub fn disc_shape(&self) -> MlpShape {
-        MlpShape::new(self.obs_dim + self.act_input(), &self.hidden, 1, false)
-    }
 }
 
-// ---------------------------------------------------------------------------------------------
-// FLOP counts (matrix products only; element-wise work and Adam are not counted)
-
-fn linear_flops(rows: usize, din: usize, dout: usize) -> u64 {
-    2 * (rows * din * dout) as u64
-}
-
-/// Forward, weight gradients, and input gradients of every layer but the first.
-fn train_flops(shape: &MlpShape, rows: usize) -> u64 {
-    let fwd = shape.forward_flops_per_row() * rows as u64;
-    let dx: u64 = shape.dims[1..].windows(2).map(|w| linear_flops(rows, w[0], w[1])).sum();
-    2 * fwd + dx
-}
-
-/// Scalar critic's gradient penalty: forward, input-gradient through the hidden layers, and the
-/// backward of that input-gradient (a weight gradient and a delta gradient per hidden layer).
-fn penalty_flops(shape: &MlpShape, rows: usize) -> u64 {
-    let fwd = shape.forward_flops_per_row() * rows as u64;
-    let hidden_layers = &shape.dims[..shape.dims.len() - 1];
-    let input_grad: u64 = hidden_layers.windows(2).map(|w| linear_flops(rows, w[0], w[1])).sum();
-    fwd + 3 * input_grad
-}
-
-/// FLOPs of one main-loop iteration.
+/// FLOPs of one main-loop iteration (SafeDICE's step in the registry).
 pub fn main_loop_flops(cfg: &SpeedConfig) -> u64 {
-    let b = cfg.batch;
-    train_flops(&cfg.nu_shape(), 3 * b)
-        + penalty_flops(&cfg.nu_shape(), 2 * b)
-        + train_flops(&cfg.policy_shape(), b)
+    safedice::step_flops(&cfg.step_shape())
 }
 
 /// FLOPs of one discriminator step.
 pub fn disc_step_flops(cfg: &SpeedConfig) -> u64 {
-    let b = cfg.batch;
-    train_flops(&cfg.disc_shape(), 2 * b) + penalty_flops(&cfg.disc_shape(), 2 * b)
+    safedice::discriminator_step_flops(&cfg.step_shape())
 }
 
-/// FLOPs of one policy-learning step of a baseline (service preset: DWBC's discriminator
-/// penalty on, PPL's reward model frozen). BC: the policy trained on B rows. DWBC: log π on the
-/// D^U and D^N batches (two forwards), the discriminator (input `s, a, log π`) trained on 2B rows
-/// with its penalty on B interpolated rows, the policy trained on B. PPL: the reward model's
-/// forward on B rows and the policy trained on B. DExperts: two experts on B rows each
-/// (discrete) or one policy on 2B rows (continuous): the same count.
+/// FLOPs of one policy-learning step of `cfg.algorithm`, as its module counts them.
 pub fn baseline_step_flops(cfg: &SpeedConfig) -> u64 {
-    let (b, policy) = (cfg.batch, cfg.policy_shape());
-    let critic =
-        |extra: usize| MlpShape::new(cfg.obs_dim + cfg.act_input() + extra, &cfg.hidden, 1, false);
-    match cfg.algorithm {
-        Algorithm::Safedice | Algorithm::Bc => train_flops(&policy, b),
-        Algorithm::Dwbc => {
-            2 * policy.forward_flops_per_row() * b as u64
-                + train_flops(&critic(1), 2 * b)
-                + penalty_flops(&critic(1), b)
-                + train_flops(&policy, b)
-        }
-        Algorithm::Ppl => critic(0).forward_flops_per_row() * b as u64 + train_flops(&policy, b),
-        Algorithm::Dexperts => train_flops(&policy, 2 * b),
-    }
+    (cfg.algorithm.spec().step.flops)(&cfg.step_shape())
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -358,12 +314,7 @@ fn run_baseline(cfg: &SpeedConfig) -> anyhow::Result<SpeedResults> {
         trainer.step(false)?;
         Ok(())
     };
-    let name = match cfg.algorithm {
-        Algorithm::Dwbc => "DWBC step (discriminator with GP + policy)",
-        Algorithm::Ppl => "PPL policy step (reward model frozen)",
-        Algorithm::Dexperts => "DExperts step (both experts / Eq. 45)",
-        _ => "BC step",
-    };
+    let name = cfg.algorithm.spec().step.label;
     let main = measure(name, "steps/s", baseline_step_flops(cfg), cfg, step)?;
     let peak_gflops = peak_gemm_gflops(cfg.threads);
     Ok(SpeedResults { workloads: vec![main], peak_gflops })
@@ -389,7 +340,7 @@ fn run_safedice(cfg: &SpeedConfig) -> anyhow::Result<SpeedResults> {
         measure("discriminator step (with GP)", "steps/s", disc_step_flops(cfg), cfg, &mut step)?;
     step()?;
     let main = measure(
-        "main loop (nu on s,s',s0 + nu GP + policy)",
+        Algorithm::Safedice.spec().step.label,
         "iterations/s",
         main_loop_flops(cfg),
         cfg,

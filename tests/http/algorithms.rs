@@ -113,3 +113,21 @@ async fn a_plan_is_what_a_job_with_the_same_config_runs() {
     assert_error(unknown.unwrap(), StatusCode::NOT_FOUND, "not_found").await;
     assert_eq!(app.count_rows("jobs").await, jobs_before, "a plan stores no job");
 }
+
+/// An algorithm added to the registry is documented where users read about configurations: the
+/// CreateJob schema's `config` names it and every key of its configuration. (The dashboard's
+/// form, `/v1/algorithms`, the benchmarks' rows and step FLOPs, and the memory estimate read the
+/// registry or match on it exhaustively, so the compiler holds those.)
+#[test]
+fn the_create_job_doc_names_every_algorithm_and_each_of_its_keys() {
+    let doc: Value = serde_json::from_str(&safedice::http::openapi::json(true)).unwrap();
+    let config = &doc["components"]["schemas"]["CreateJob"]["properties"]["config"];
+    let text = config["description"].as_str().expect("CreateJob.config has a description");
+    for algorithm in safedice::algo::Algorithm::ALL {
+        let name = algorithm.spec().name;
+        assert!(text.contains(&format!("`{name}`:")), "the doc does not name `{name}`");
+        for key in safedice::algo::config_keys(algorithm) {
+            assert!(text.contains(&format!("`{key}`")), "`{name}`'s key `{key}` is undocumented");
+        }
+    }
+}

@@ -197,3 +197,15 @@ impl Trainer for DwbcTrainer {
         self.fused = None;
     }
 }
+
+/// FLOPs of one step (discriminator penalty on): log π on the D^U and D^N batches (two
+/// forwards), the discriminator (input `s, a, log π`) trained on 2B rows with its penalty on B
+/// interpolated rows, and the policy trained on B.
+pub fn step_flops(shape: &super::flops::StepShape) -> u64 {
+    use super::flops::{forward_flops, penalty_flops, train_flops};
+    let (b, policy, disc) = (shape.batch, shape.policy(), shape.critic(1));
+    2 * forward_flops(&policy, b)
+        + train_flops(&disc, 2 * b)
+        + penalty_flops(&disc, b)
+        + train_flops(&policy, b)
+}

@@ -34,6 +34,22 @@ pub mod objectives;
 pub mod trainer;
 mod weighting;
 
+/// FLOPs of one main-loop iteration: ν trained on s, s' and s0 (3B rows) with its gradient
+/// penalty on 2B interpolated rows, and the policy trained on B.
+pub fn step_flops(shape: &super::flops::StepShape) -> u64 {
+    use super::flops::{penalty_flops, train_flops};
+    let (b, nu) = (shape.batch, shape.state_critic(0));
+    train_flops(&nu, 3 * b) + penalty_flops(&nu, 2 * b) + train_flops(&shape.policy(), b)
+}
+
+/// FLOPs of one discriminator step: trained on B rows of D^U and B of D^N, with its gradient
+/// penalty on 2B rows.
+pub fn discriminator_step_flops(shape: &super::flops::StepShape) -> u64 {
+    use super::flops::{penalty_flops, train_flops};
+    let (b, disc) = (shape.batch, shape.critic(0));
+    train_flops(&disc, 2 * b) + penalty_flops(&disc, 2 * b)
+}
+
 #[cfg(test)]
 mod tests;
 
