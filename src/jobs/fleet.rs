@@ -217,9 +217,9 @@ fn dispatch(runner: &JobRunner, payload: &str) {
         Some(Announcement::JobQueued) => runner.inner.wake.notify_one(),
         Some(Announcement::EvaluationQueued) => runner.inner.evaluator.wake_local(),
         Some(Announcement::Cancel(id)) => {
-            runner.cancel_local(&id);
+            runner.inner.cancels.raise(&id);
         }
-        Some(Announcement::Changed(_)) => runner.inner.followed.changed.notify_one(),
+        Some(Announcement::Changed(_)) => runner.inner.events.followed.changed.notify_one(),
         None => tracing::debug!(payload, "unknown notification"),
     }
 }
@@ -247,12 +247,12 @@ pub(super) async fn follow_jobs(runner: JobRunner) {
     loop {
         tokio::select! {
             () = shutdown.cancelled() => return,
-            () = runner.inner.followed.changed.notified() => {}
+            () = runner.inner.events.followed.changed.notified() => {}
             () = tokio::time::sleep(FOLLOW_POLL) => {}
         }
         // Nobody watching: nothing to publish, and a stream opened later starts from the job
         // as stored.
-        if runner.inner.events.receiver_count() == 0 {
+        if !runner.inner.events.watched() {
             continue;
         }
         let since = overlap_before(&newest);
@@ -262,7 +262,7 @@ pub(super) async fn follow_jobs(runner: JobRunner) {
                     newest = newest.max(crate::domain::rfc3339(&job.updated_at));
                     publish_change(&runner, job);
                 }
-                forget_older_than(&runner.inner.followed, &since);
+                forget_older_than(&runner.inner.events.followed, &since);
             }
             Err(e) => tracing::warn!(error = %e, "cannot read the jobs' changes"),
         }
@@ -278,12 +278,13 @@ fn overlap_before(time: &str) -> String {
 /// Publishes what changed of `job` since the follower last saw it (jobs this process runs
 /// publish their own events).
 fn publish_change(runner: &JobRunner, job: JobRecord) {
-    if runner.runs_locally(&job.id) {
+    if runner.inner.cancels.runs(&job.id) {
         return;
     }
     let updated_at = crate::domain::rfc3339(&job.updated_at);
     let previous = runner
         .inner
+        .events
         .followed
         .seen
         .lock()
@@ -298,7 +299,7 @@ fn publish_change(runner: &JobRunner, job: JobRecord) {
         }
         _ => JobEvent::Status { job_id: job.id, status: job.status },
     };
-    runner.publish_followed(event);
+    runner.inner.events.publish_here(event);
 }
 
 /// Keeps the follower's memory bounded: jobs unchanged since before the window are forgotten.

@@ -18,16 +18,17 @@
 //! `--min-free-disk` free again (at least [`STORAGE_RETRY`], doubling while runs keep failing so,
 //! up to [`STORAGE_RETRY_MAX`]), rather than failing job after job for good.
 
+mod cancels;
 pub mod evaluations;
+mod events;
 pub mod experiments;
 pub mod fleet;
 pub mod results;
+mod storage_gate;
 pub mod submit;
 mod training;
 mod worker;
 
-use std::collections::HashMap;
-use std::sync::atomic::{AtomicBool, AtomicU32, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
@@ -35,33 +36,16 @@ use tokio::sync::{broadcast, Notify};
 use tokio::task::JoinHandle;
 use tokio_util::sync::CancellationToken;
 
-use crate::domain::{DatasetId, JobId, JobStatus};
+use crate::domain::{DatasetId, JobId};
 pub use crate::domain::{EvalOptions, EvalSpec, JobProgress, RunnerOptions};
 use crate::store::Store;
+use cancels::CancelFlags;
 pub use evaluations::{evaluate_policy, Evaluator};
+pub use events::JobEvent;
+use events::JobEvents;
 pub use fleet::WorkerOptions;
+use storage_gate::StorageGate;
 pub use submit::{submit, JobRequest, SubmitError, SubmitLimits};
-
-/// Something a watcher of a job wants to know.
-#[derive(Clone, Debug)]
-pub enum JobEvent {
-    /// A running job advanced.
-    Progress { job_id: JobId, progress: JobProgress },
-    /// A job changed status (`running`, `queued` again on shutdown, or a final status).
-    Status { job_id: JobId, status: JobStatus },
-    /// A finished job was deleted: its streams end.
-    Deleted { job_id: JobId },
-}
-
-impl JobEvent {
-    pub fn job_id(&self) -> &JobId {
-        match self {
-            JobEvent::Progress { job_id, .. }
-            | JobEvent::Status { job_id, .. }
-            | JobEvent::Deleted { job_id } => job_id,
-        }
-    }
-}
 
 /// Handle to the worker pool; cheap to clone.
 #[derive(Clone)]
@@ -72,42 +56,35 @@ pub struct JobRunner {
 struct Inner {
     store: Store,
     options: WorkerOptions,
+    shutdown: CancellationToken,
+    /// The workers and the fleet's tasks, awaited at shutdown.
+    tasks: Mutex<Vec<JoinHandle<()>>>,
     /// Woken when a job is queued.
     wake: Notify,
-    events: broadcast::Sender<JobEvent>,
-    /// Cancel flags of the jobs this process is running, checked by their worker every step.
-    cancels: Mutex<HashMap<String, Arc<AtomicBool>>>,
-    shutdown: CancellationToken,
-    tasks: Mutex<Vec<JoinHandle<()>>>,
     /// Runs policy evaluations beside the training workers.
     evaluator: Evaluator,
-    /// Runs in a row that ended because the store could not take their writes; while above
-    /// zero, workers wait for the storage before claiming.
-    storage_failures: AtomicU32,
-    /// What this process last published of jobs other processes run.
-    followed: fleet::Followed,
+    events: JobEvents,
+    /// Of the jobs this process is running, checked by their worker every step.
+    cancels: CancelFlags,
+    /// Closed while the store cannot take writes: workers wait at it before claiming.
+    storage: StorageGate,
 }
-
-/// Events buffered per subscriber; a slow event stream skips ahead rather than blocking workers.
-const EVENT_BUFFER: usize = 1024;
 
 impl JobRunner {
     /// A pool of `options.workers` workers (not started) that stops when `shutdown` is
     /// cancelled; with 0 workers it trains nothing and runs no evaluations (an API-only node).
     pub fn new(store: Store, options: WorkerOptions, shutdown: CancellationToken) -> Self {
-        let (events, _) = broadcast::channel(EVENT_BUFFER);
         JobRunner {
             inner: Arc::new(Inner {
-                wake: Notify::new(),
-                events,
-                cancels: Mutex::new(HashMap::new()),
                 evaluator: Evaluator::new(store.clone(), options.clone(), shutdown.clone()),
                 store,
                 options,
                 shutdown,
                 tasks: Mutex::new(Vec::new()),
-                storage_failures: AtomicU32::new(0),
-                followed: fleet::Followed::default(),
+                wake: Notify::new(),
+                events: JobEvents::new(),
+                cancels: CancelFlags::default(),
+                storage: StorageGate::default(),
             }),
         }
     }
@@ -177,25 +154,9 @@ impl JobRunner {
     /// learns of its cancel request at its next progress write (about twice a second), or at
     /// once through a PostgreSQL notification.
     pub fn cancel_running(&self, job_id: &str) {
-        if !self.cancel_local(job_id) {
+        if !self.inner.cancels.raise(job_id) {
             fleet::announce(&self.inner.store, fleet::Announcement::Cancel(job_id.to_owned()));
         }
-    }
-
-    /// Sets the cancel flag of a job this process runs; false when it runs no such job.
-    fn cancel_local(&self, job_id: &str) -> bool {
-        match self.inner.cancels.lock().expect("runner lock").get(job_id) {
-            Some(flag) => {
-                flag.store(true, Ordering::Relaxed);
-                true
-            }
-            None => false,
-        }
-    }
-
-    /// Whether this process runs the job now.
-    fn runs_locally(&self, job_id: &str) -> bool {
-        self.inner.cancels.lock().expect("runner lock").contains_key(job_id)
     }
 
     /// Progress and status changes of every job, from now on.
@@ -218,74 +179,15 @@ impl JobRunner {
         self.publish(event);
     }
 
-    /// Publishes an event of a job this process runs, to its own event streams and (on
-    /// PostgreSQL) to the API nodes that follow it.
+    /// Publishes an event of a job this process runs (see [`JobEvents::publish`]).
     fn publish(&self, event: JobEvent) {
-        fleet::announce(
-            &self.inner.store,
-            fleet::Announcement::Changed(event.job_id().to_string()),
-        );
-        self.publish_followed(event);
+        self.inner.events.publish(&self.inner.store, event);
     }
 
-    /// Publishes an event to this process's event streams only.
-    fn publish_followed(&self, event: JobEvent) {
-        // No subscriber is fine: nobody is watching.
-        let _ = self.inner.events.send(event);
-    }
-
-    fn register_cancel_flag(&self, job_id: &str) -> Arc<AtomicBool> {
-        let flag = Arc::new(AtomicBool::new(false));
-        self.inner.cancels.lock().expect("runner lock").insert(job_id.to_owned(), flag.clone());
-        flag
-    }
-
-    fn forget_cancel_flag(&self, job_id: &str) {
-        self.inner.cancels.lock().expect("runner lock").remove(job_id);
-    }
-
-    /// A run ended because the store could not take its writes: workers pause before claiming.
-    fn pause_for_storage(&self) {
-        self.inner.storage_failures.fetch_add(1, Ordering::Relaxed);
-    }
-
-    /// A run's writes went through: no pause any more.
-    fn storage_recovered(&self) {
-        self.inner.storage_failures.store(0, Ordering::Relaxed);
-    }
-
-    /// While training is paused for storage: waits the back-off, then until the data directory
-    /// takes writes and has `--min-free-disk` free (or shutdown begins). Returns at once
-    /// otherwise.
+    /// Waits at the storage gate (at once while it is open).
     async fn wait_for_storage(&self) {
-        let failures = self.inner.storage_failures.load(Ordering::Relaxed);
-        if failures == 0 {
-            return;
-        }
-        let shutdown = &self.inner.shutdown;
-        let pause =
-            STORAGE_RETRY.saturating_mul(1 << (failures - 1).min(16)).min(STORAGE_RETRY_MAX);
-        tracing::warn!(
-            seconds = pause.as_secs(),
-            "training paused: the store could not take writes"
-        );
-        if sleep_unless_shutdown(shutdown, pause).await {
-            return;
-        }
-        loop {
-            match self.store().check_storage(self.inner.options.min_free_disk).await {
-                Ok(()) => {
-                    tracing::info!("the data directory takes writes again; training resumes");
-                    return;
-                }
-                Err(problem) => {
-                    tracing::warn!(%problem, "training stays paused");
-                    if sleep_unless_shutdown(shutdown, STORAGE_RETRY).await {
-                        return;
-                    }
-                }
-            }
-        }
+        let (store, shutdown) = (&self.inner.store, &self.inner.shutdown);
+        self.inner.storage.wait(store, self.inner.options.min_free_disk, shutdown).await;
     }
 
     /// Puts a job whose run stopped on a failed write back in the queue. That write may fail

@@ -36,7 +36,7 @@ pub(super) async fn run_worker(runner: JobRunner, index: usize) {
             // A claim is a write too: on a full disk, pause like a run that could not write.
             Err(e) if e.is_storage_full() => {
                 tracing::error!(error = %e, "cannot claim a job: the disk is full");
-                runner.pause_for_storage();
+                runner.inner.storage.close();
             }
             Err(e) => {
                 tracing::error!(error = %e, "cannot claim a job; retrying");
@@ -64,7 +64,7 @@ async fn reap_expired_jobs(runner: &JobRunner) {
 #[tracing::instrument(skip_all, fields(job_id = %job.id, algorithm = %job.algorithm, claim = lease.token))]
 async fn run_job(runner: &JobRunner, job: JobRecord, lease: Lease<JobId>) {
     let id = job.id.clone();
-    let cancel = runner.register_cancel_flag(&id);
+    let cancel = runner.inner.cancels.register(&id);
     // A cancel may have been requested between the claim and the flag's registration.
     if job.cancel_requested {
         cancel.store(true, Ordering::Relaxed);
@@ -88,9 +88,9 @@ async fn run_job(runner: &JobRunner, job: JobRecord, lease: Lease<JobId>) {
     // While the lease is still kept alive: a slow write of the end does not lose the job.
     let ended = write_end(runner, &log, &lease, outcome, metrics).await;
     drop(keeper);
-    runner.forget_cancel_flag(&id);
+    runner.inner.cancels.forget(&id);
     if !matches!(ended, Ended::StoreUnavailable(_) | Ended::Written(JobStatus::Queued)) {
-        runner.storage_recovered();
+        runner.inner.storage.open();
     }
     let status = match ended {
         Ended::LeaseLost => return end_after_lease_lost(runner, &lease).await,
@@ -101,7 +101,7 @@ async fn run_job(runner: &JobRunner, job: JobRecord, lease: Lease<JobId>) {
                 "the store cannot take the job's writes; the job goes back to the queue and \
                  training pauses until the data directory takes writes again"
             );
-            runner.pause_for_storage();
+            runner.inner.storage.close();
             let reason = format!("the store could not take the run's writes: {message}");
             if !runner.release_when_possible(&lease, &reason).await {
                 return end_after_lease_lost(runner, &lease).await;
