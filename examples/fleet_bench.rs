@@ -438,7 +438,7 @@ async fn dataset_round_trip(
     };
     let store = Store::connect(&reader_dir, db.url.as_deref()).await?;
     let started = Instant::now();
-    let loaded = store.load_dataset(&id.as_str().into()).await?;
+    let loaded = store.load_dataset(&id.clone().into()).await?;
     let load_s = started.elapsed().as_secs_f64();
     let canonical = data::encode_canonical(&loaded).len() as f64 / 1e6;
     store.close().await;

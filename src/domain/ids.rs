@@ -26,6 +26,11 @@ macro_rules! id_type {
             pub fn into_string(self) -> String {
                 self.0
             }
+
+            /// The first 8 characters: the short form the dashboard shows and `?q=` finds.
+            pub fn short(&self) -> &str {
+                self.0.get(..8).unwrap_or(&self.0)
+            }
         }
 
         /// An id as given by a client or read from the store (not checked: an unknown id is
@@ -33,19 +38,6 @@ macro_rules! id_type {
         impl From<String> for $name {
             fn from(id: String) -> Self {
                 $name(id)
-            }
-        }
-
-        impl From<&str> for $name {
-            fn from(id: &str) -> Self {
-                $name(id.to_owned())
-            }
-        }
-
-        impl std::ops::Deref for $name {
-            type Target = str;
-            fn deref(&self) -> &str {
-                &self.0
             }
         }
 
@@ -98,7 +90,7 @@ mod tests {
     fn generated_ids_are_distinct_uuids_and_serialize_as_plain_strings() {
         let (a, b) = (JobId::generate(), JobId::generate());
         assert_ne!(a, b);
-        assert!(uuid::Uuid::parse_str(&a).is_ok());
+        assert!(uuid::Uuid::parse_str(a.as_str()).is_ok());
         assert_eq!(serde_json::to_value(&a).unwrap(), serde_json::Value::String(a.to_string()));
         let back: JobId = serde_json::from_value(serde_json::to_value(&a).unwrap()).unwrap();
         assert_eq!(back, a);

@@ -94,7 +94,7 @@ pub struct ErrorDetail {
 }
 
 impl ApiError {
-    pub fn not_found(kind: &str, id: &str) -> Self {
+    pub fn not_found(kind: &str, id: impl std::fmt::Display) -> Self {
         ApiError::NotFound(format!("{kind} {id} does not exist"))
     }
 

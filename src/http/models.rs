@@ -327,14 +327,14 @@ async fn create_version(
         let message = format!("policy_id: no policy {:?}", request.policy_id);
         ApiError::unprocessable("unknown_policy", message)
     };
-    match state.store.policy(&PolicyId::from(request.policy_id.as_str())).await {
+    match state.store.policy(&PolicyId::from(request.policy_id.clone())).await {
         Err(StoreError::NotFound { .. }) => return Err(unknown_policy()),
         found => drop(found?),
     }
     if let Some(alias) = &request.alias {
         model::check_alias_name(alias).map_err(invalid_name)?;
         // The alias must not resolve to a policy that cannot load: load it first.
-        state.serving.policies.get(&PolicyId::from(request.policy_id.as_str())).await?;
+        state.serving.policies.get(&PolicyId::from(request.policy_id.clone())).await?;
     }
     let note = note(request.actor, Some("registered with the alias".into()), None)?;
     let version = NewVersion {

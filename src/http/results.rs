@@ -86,7 +86,7 @@ fn job_ids(list: &str) -> Result<Vec<JobId>, ApiError> {
             format!("jobs: 1 to {MAX_COMPARED} comma-separated job ids, got {}", ids.len()),
         ));
     }
-    Ok(ids.into_iter().map(JobId::from).collect())
+    Ok(ids.into_iter().map(|id| JobId::from(id.to_owned())).collect())
 }
 
 /// The protocol a `?protocol=` names, or 404 listing the ones there are (the view it asks for

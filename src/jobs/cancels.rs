@@ -5,26 +5,28 @@ use std::collections::HashMap;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 
+use crate::domain::JobId;
+
 #[derive(Default)]
 pub(super) struct CancelFlags {
-    flags: Mutex<HashMap<String, Arc<AtomicBool>>>,
+    flags: Mutex<HashMap<JobId, Arc<AtomicBool>>>,
 }
 
 impl CancelFlags {
     /// A fresh flag for a job this process starts running.
-    pub(super) fn register(&self, job_id: &str) -> Arc<AtomicBool> {
+    pub(super) fn register(&self, job_id: &JobId) -> Arc<AtomicBool> {
         let flag = Arc::new(AtomicBool::new(false));
-        self.lock().insert(job_id.to_owned(), flag.clone());
+        self.lock().insert(job_id.clone(), flag.clone());
         flag
     }
 
     /// The job's run ended here.
-    pub(super) fn forget(&self, job_id: &str) {
+    pub(super) fn forget(&self, job_id: &JobId) {
         self.lock().remove(job_id);
     }
 
     /// Sets the job's flag; false when this process runs no such job.
-    pub(super) fn raise(&self, job_id: &str) -> bool {
+    pub(super) fn raise(&self, job_id: &JobId) -> bool {
         match self.lock().get(job_id) {
             Some(flag) => {
                 flag.store(true, Ordering::Relaxed);
@@ -35,11 +37,11 @@ impl CancelFlags {
     }
 
     /// Whether this process runs the job now.
-    pub(super) fn runs(&self, job_id: &str) -> bool {
+    pub(super) fn runs(&self, job_id: &JobId) -> bool {
         self.lock().contains_key(job_id)
     }
 
-    fn lock(&self) -> std::sync::MutexGuard<'_, HashMap<String, Arc<AtomicBool>>> {
+    fn lock(&self) -> std::sync::MutexGuard<'_, HashMap<JobId, Arc<AtomicBool>>> {
         self.flags.lock().expect("cancel flags lock")
     }
 }

@@ -15,7 +15,8 @@ use tokio::sync::Notify;
 use tokio::task::JoinHandle;
 use tokio_util::sync::CancellationToken;
 
-use super::fleet::{self, Announcement, LeaseKeeper, WorkerOptions};
+use super::announcements::{announce, Announcement};
+use super::fleet::{LeaseKeeper, WorkerOptions};
 use super::EvalSpec;
 use crate::algo::Policy;
 use crate::domain::{EvaluationId, EvaluationRecord};
@@ -69,7 +70,7 @@ impl Evaluator {
     /// queued.
     pub fn wake(&self) {
         self.wake_local();
-        fleet::announce(&self.inner.store, Announcement::EvaluationQueued);
+        announce(&self.inner.store, Announcement::EvaluationQueued);
     }
 
     /// Tells this process's evaluator alone.

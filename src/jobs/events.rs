@@ -2,9 +2,12 @@
 //! and, for the jobs this process runs, to the other processes of a fleet (which follow them,
 //! [`super::fleet::follow_jobs`]).
 
-use tokio::sync::broadcast;
+use std::collections::HashMap;
+use std::sync::Mutex;
 
-use super::fleet::{self, Announcement, Followed};
+use tokio::sync::{broadcast, Notify};
+
+use super::announcements::{announce, Announcement};
 use crate::domain::{JobId, JobProgress, JobStatus};
 use crate::store::Store;
 
@@ -55,7 +58,7 @@ impl JobEvents {
     /// An event of a job this process runs (or changed through its API): to its own streams
     /// and, on PostgreSQL, to the API nodes that follow it.
     pub(super) fn publish(&self, store: &Store, event: JobEvent) {
-        fleet::announce(store, Announcement::Changed(event.job_id().to_string()));
+        announce(store, Announcement::Changed(event.job_id().to_string()));
         self.publish_here(event);
     }
 
@@ -64,4 +67,11 @@ impl JobEvents {
         // No subscriber is fine: nobody is watching.
         let _ = self.sender.send(event);
     }
+}
+
+/// What the follower last published per job: (status, step, updated_at).
+#[derive(Default)]
+pub(super) struct Followed {
+    pub(super) seen: Mutex<HashMap<String, (JobStatus, u64, String)>>,
+    pub(super) changed: Notify,
 }

@@ -96,7 +96,7 @@ pub async fn submit_experiment(
     let id = ExperimentId::generate();
     let mut tags = request.tags.clone();
     tags.push(experiment_tag(&id));
-    let title = request.name.clone().unwrap_or_else(|| format!("experiment {}", &id[..8]));
+    let title = request.name.clone().unwrap_or_else(|| format!("experiment {}", id.short()));
     let mut jobs = Vec::with_capacity(request.arms.len() * seeds.len());
     for (index, arm) in request.arms.iter().enumerate() {
         for &seed in &seeds {

@@ -3,19 +3,19 @@
 //! run by other processes to this process's event streams, and the PostgreSQL notifications
 //! that make all of it prompt (polling stays the fallback, and the only way on SQLite).
 
-use std::collections::HashMap;
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::{Arc, Mutex};
+use std::sync::Arc;
 use std::time::Duration;
 
-use tokio::sync::Notify;
 use tokio::task::JoinHandle;
 
+use super::announcements::{Announcement, CHANNEL};
+use super::events::Followed;
 use super::{JobEvent, JobRunner};
 use crate::domain::attempt::MemorySample;
-use crate::domain::{JobRecord, JobStatus, RetryBackoff};
+use crate::domain::{JobId, JobRecord, JobStatus, RetryBackoff};
 use crate::store::leases::{host_name, Leased};
-use crate::store::{Backend, Lease, Store, StoreError};
+use crate::store::{Lease, Store, StoreError};
 
 /// How this process takes part in the shared queue.
 #[derive(Clone, Debug)]
@@ -149,58 +149,6 @@ fn cgroup_memory_left() -> Option<u64> {
     Some(max.saturating_sub(current))
 }
 
-/// The notification channel every process listens on (PostgreSQL).
-const CHANNEL: &str = "safedice";
-
-/// What one process tells the others.
-#[derive(Clone, Debug, PartialEq, Eq)]
-pub enum Announcement {
-    /// A job was queued: idle workers claim.
-    JobQueued,
-    /// An evaluation was queued.
-    EvaluationQueued,
-    /// A cancel was requested for this running job: its worker stops now.
-    Cancel(String),
-    /// This job changed (progress or status): API nodes update its event streams.
-    Changed(String),
-}
-
-impl Announcement {
-    fn payload(&self) -> String {
-        match self {
-            Announcement::JobQueued => "job".to_owned(),
-            Announcement::EvaluationQueued => "evaluation".to_owned(),
-            Announcement::Cancel(id) => format!("cancel:{id}"),
-            Announcement::Changed(id) => format!("changed:{id}"),
-        }
-    }
-
-    fn parse(payload: &str) -> Option<Announcement> {
-        match payload.split_once(':') {
-            None if payload == "job" => Some(Announcement::JobQueued),
-            None if payload == "evaluation" => Some(Announcement::EvaluationQueued),
-            Some(("cancel", id)) => Some(Announcement::Cancel(id.to_owned())),
-            Some(("changed", id)) => Some(Announcement::Changed(id.to_owned())),
-            _ => None,
-        }
-    }
-}
-
-/// Tells the other processes (PostgreSQL NOTIFY; nothing on SQLite, where they poll). In the
-/// background: an announcement only hastens what polling does anyway, so it never delays or
-/// fails the caller.
-pub fn announce(store: &Store, announcement: Announcement) {
-    if store.backend() != Backend::Postgres {
-        return;
-    }
-    let store = store.clone();
-    tokio::spawn(async move {
-        if let Err(e) = store.notify(CHANNEL, &announcement.payload()).await {
-            tracing::debug!(error = %e, "cannot notify the other processes");
-        }
-    });
-}
-
 /// Listens for the other processes' announcements (PostgreSQL) until shutdown.
 pub(super) async fn listen(runner: JobRunner) {
     let shutdown = runner.inner.shutdown.clone();
@@ -217,7 +165,7 @@ fn dispatch(runner: &JobRunner, payload: &str) {
         Some(Announcement::JobQueued) => runner.inner.wake.notify_one(),
         Some(Announcement::EvaluationQueued) => runner.inner.evaluator.wake_local(),
         Some(Announcement::Cancel(id)) => {
-            runner.inner.cancels.raise(&id);
+            runner.inner.cancels.raise(&JobId::from(id));
         }
         Some(Announcement::Changed(_)) => runner.inner.events.followed.changed.notify_one(),
         None => tracing::debug!(payload, "unknown notification"),
@@ -231,13 +179,6 @@ const FOLLOW_POLL: Duration = Duration::from_millis(500);
 /// (a transaction that took its time stamp before another's) or stamped by a machine whose
 /// clock is behind are still seen; what was already published is not published again.
 const FOLLOW_OVERLAP: chrono::TimeDelta = chrono::TimeDelta::seconds(5);
-
-/// What the follower last published per job: (status, step, updated_at).
-#[derive(Default)]
-pub(super) struct Followed {
-    seen: Mutex<HashMap<String, (JobStatus, u64, String)>>,
-    changed: Notify,
-}
 
 /// Publishes progress and status changes of jobs run by other processes to this process's
 /// event streams, until shutdown.
@@ -314,19 +255,6 @@ fn forget_older_than(followed: &Followed, since: &str) {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn announcements_survive_their_payload() {
-        for announcement in [
-            Announcement::JobQueued,
-            Announcement::EvaluationQueued,
-            Announcement::Cancel("job-1".into()),
-            Announcement::Changed("abc:def".into()),
-        ] {
-            assert_eq!(Announcement::parse(&announcement.payload()), Some(announcement));
-        }
-        assert_eq!(Announcement::parse("reboot"), None);
-    }
 
     #[test]
     fn the_follower_looks_back_by_the_overlap() {

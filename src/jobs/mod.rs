@@ -18,6 +18,7 @@
 //! `--min-free-disk` free again (at least [`STORAGE_RETRY`], doubling while runs keep failing so,
 //! up to [`STORAGE_RETRY_MAX`]), rather than failing job after job for good.
 
+mod announcements;
 mod cancels;
 pub mod evaluations;
 mod events;
@@ -39,6 +40,7 @@ use tokio_util::sync::CancellationToken;
 use crate::domain::{DatasetId, JobId};
 pub use crate::domain::{EvalOptions, EvalSpec, JobProgress, RunnerOptions};
 use crate::store::Store;
+use announcements::Announcement;
 use cancels::CancelFlags;
 pub use evaluations::{evaluate_policy, Evaluator};
 pub use events::JobEvent;
@@ -147,15 +149,15 @@ impl JobRunner {
     /// Tells an idle worker that a job was queued (and, on PostgreSQL, every other process).
     pub fn wake(&self) {
         self.inner.wake.notify_one();
-        fleet::announce(&self.inner.store, fleet::Announcement::JobQueued);
+        announcements::announce(&self.inner.store, Announcement::JobQueued);
     }
 
     /// Stops a job this process is running at its next step; a job another process runs
     /// learns of its cancel request at its next progress write (about twice a second), or at
     /// once through a PostgreSQL notification.
-    pub fn cancel_running(&self, job_id: &str) {
+    pub fn cancel_running(&self, job_id: &JobId) {
         if !self.inner.cancels.raise(job_id) {
-            fleet::announce(&self.inner.store, fleet::Announcement::Cancel(job_id.to_owned()));
+            announcements::announce(&self.inner.store, Announcement::Cancel(job_id.to_string()));
         }
     }
 

@@ -65,7 +65,7 @@ pub async fn served(
                      {MODEL_VERSION}) does not exist"
                 )));
             }
-            ActTarget::Policy(PolicyId::from(name.as_str()))
+            ActTarget::Policy(PolicyId::from(name.clone()))
         }
         Err(_) => ActTarget::Model(reference(&name, version.as_deref())?),
     };

@@ -138,7 +138,7 @@ impl PolicyCache {
             slots.loading.entry(id.to_owned()).or_default().loads += 1;
             LoadTicket { cache: self, id }
         };
-        let (spec, weights) = self.store.policy_artifact(&PolicyId::from(id)).await?;
+        let (spec, weights) = self.store.policy_artifact(&PolicyId::from(id.to_owned())).await?;
         let bytes = weights.len() as u64;
         let unreadable =
             |message: String| PolicyLoadError::Unreadable { id: id.to_owned(), message };
@@ -173,7 +173,8 @@ impl PolicyCache {
     /// under way so none inserts it back. Call it after the delete is committed: a load that
     /// starts later finds no policy in the store. (Other API processes of a fleet keep their
     /// loaded copy until they restart: see docs/fleet.md.)
-    pub fn forget(&self, id: &str) {
+    pub fn forget(&self, id: &PolicyId) {
+        let id = id.as_str();
         let mut slots = self.write();
         slots.loaded.remove(id);
         slots.alive.remove(id);
@@ -197,19 +198,18 @@ pub struct CacheUsage {
 /// configuration, dataset ids) in the safetensors metadata, so the file alone rebuilds it
 /// ([`Policy::from_file`]). Contains no id of the job or policy: two runs of the same training
 /// give the same file.
-pub async fn portable_weights(store: &Store, id: &str) -> Result<Vec<u8>, PolicyLoadError> {
+pub async fn portable_weights(store: &Store, id: &PolicyId) -> Result<Vec<u8>, PolicyLoadError> {
     let (weights, metadata) = portable_parts(store, id).await?;
-    run_blocking(id, move || crate::algo::portable_file(&weights, &metadata)).await
+    run_blocking(id.as_str(), move || crate::algo::portable_file(&weights, &metadata)).await
 }
 
 /// The stored weights and what the portable file says of them.
 async fn portable_parts(
     store: &Store,
-    id: &str,
+    id: &PolicyId,
 ) -> Result<(Vec<u8>, crate::algo::PortableMetadata), PolicyLoadError> {
-    let policy_id = PolicyId::from(id);
-    let (_, weights) = store.policy_artifact(&policy_id).await?;
-    let record = store.policy(&policy_id).await?;
+    let (_, weights) = store.policy_artifact(id).await?;
+    let record = store.policy(id).await?;
     let job = store.job(&record.job_id).await?;
     let training = serde_json::json!({
         "config": job.config,
@@ -240,10 +240,10 @@ async fn run_blocking<T: Send + 'static>(
 /// [`OnnxModel::write_to`]: crate::algo::onnx::OnnxModel::write_to
 pub async fn onnx_model(
     store: &Store,
-    id: &str,
+    id: &PolicyId,
 ) -> Result<crate::algo::onnx::OnnxModel, PolicyLoadError> {
     let (weights, metadata) = portable_parts(store, id).await?;
-    run_blocking(id, move || crate::algo::onnx::build_portable(&weights, &metadata)).await
+    run_blocking(id.as_str(), move || crate::algo::onnx::build_portable(&weights, &metadata)).await
 }
 
 /// Values by id with their sizes, dropped least recently used first once their sizes add up to

@@ -206,7 +206,7 @@ impl Store {
             .await?;
             (JobStatus::Queued, message)
         };
-        insert_log_line(&mut tx, &job.id, reaper, LogLevel::Error, &message).await?;
+        insert_log_line(&mut tx, &lease.id, reaper, LogLevel::Error, &message).await?;
         tx.commit().await?;
         Ok(Some(ReapedJob { id: job.id.clone().into(), status, message }))
     }

@@ -195,7 +195,7 @@ impl Store {
                 tx.commit().await?;
             }
         }
-        self.dataset(&DatasetId::from(id.as_str()))
+        self.dataset(&DatasetId::from(id.clone()))
             .await?
             .ok_or_else(|| StoreError::NotFound { kind: "dataset", id: id.clone() })
     }
@@ -378,7 +378,7 @@ impl Store {
     /// A dataset's file not found: deleted between reading its row and its file (as if never
     /// found), or, under a row that is still there, damage.
     async fn missing_file(&self, id: &str, path: &Path) -> StoreError {
-        match self.dataset(&DatasetId::from(id)).await {
+        match self.dataset(&DatasetId::from(id.to_owned())).await {
             Ok(None) => StoreError::NotFound { kind: "dataset", id: id.to_owned() },
             Ok(Some(_)) => {
                 StoreError::Corrupt(id.to_owned(), format!("{} is missing", path.display()))
@@ -558,7 +558,7 @@ mod tests {
         let (_dir, store, id) = store_with_a_dataset().await;
         std::fs::remove_file(store.canonical_path(&id)).unwrap();
         assert!(matches!(
-            store.load_dataset(&DatasetId::from(id.as_str())).await,
+            store.load_dataset(&DatasetId::from(id.clone())).await,
             Err(StoreError::Corrupt(..))
         ));
     }

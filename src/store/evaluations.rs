@@ -121,7 +121,7 @@ pub(super) async fn unfinished_evaluations(
 /// without it).
 pub(super) async fn insert_training_evaluation(
     tx: &mut Transaction<'_, Any>,
-    policy_id: &str,
+    policy_id: &PolicyId,
     evaluation: &TrainingEvaluation,
     now: &str,
 ) -> Result<(), StoreError> {
@@ -134,7 +134,7 @@ pub(super) async fn insert_training_evaluation(
          VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10, $11, $12, $12, $12)",
     )
     .bind(EvaluationId::generate().as_str())
-    .bind(policy_id)
+    .bind(policy_id.as_str())
     .bind(&report.env)
     .bind(report.episodes as i64)
     // SQL integers are signed: seeds above i64::MAX are stored bit for bit.

@@ -34,7 +34,7 @@ impl TryFrom<ExperimentRow> for ExperimentRecord {
 pub enum DeleteExperimentOutcome {
     Deleted {
         /// The policies that went with its jobs (for the serving cache to forget).
-        policies: Vec<String>,
+        policies: Vec<crate::domain::PolicyId>,
         jobs: Vec<String>,
     },
     NotFound,
@@ -61,7 +61,7 @@ impl Store {
             .execute(&mut *tx)
             .await?;
         for (job, arm) in jobs {
-            self.insert_job_in(&mut tx, job, Some((&experiment.id, arm))).await?;
+            self.insert_job_in(&mut tx, job, Some((experiment.id.as_str(), arm))).await?;
         }
         tx.commit().await?;
         Ok(())

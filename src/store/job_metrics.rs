@@ -96,7 +96,7 @@ impl Store {
 /// Metric rows in as few statements as the parameter limits allow.
 pub(super) async fn insert_metric_rows(
     tx: &mut Transaction<'_, Any>,
-    id: &str,
+    id: &JobId,
     rows: &[MetricRecord],
 ) -> Result<(), sqlx::Error> {
     // SQLite's bound-parameter limit is 32766, PostgreSQL's 65535; 5 per row.
@@ -110,7 +110,7 @@ pub(super) async fn insert_metric_rows(
         let mut insert = sqlx::query(&sql);
         for metric in chunk {
             insert = insert
-                .bind(id)
+                .bind(id.as_str())
                 .bind(&metric.name)
                 .bind(metric.step as i64)
                 .bind(metric.value)

@@ -14,7 +14,9 @@ use super::leases::{self, Lease};
 use super::policies::NewPolicy;
 use super::{now, optional_real, Store, StoreError};
 use crate::domain::model::MoveNote;
-use crate::domain::{AttemptOutcome, JobId, JobRecord, JobStatus, LogLevel, MetricRecord};
+use crate::domain::{
+    AttemptOutcome, JobId, JobRecord, JobStatus, LogLevel, MetricRecord, PolicyId,
+};
 
 /// A running job's progress as the worker reports it.
 #[derive(Clone, Debug)]
@@ -225,13 +227,13 @@ impl Store {
     async fn register_policy(
         &self,
         tx: &mut Transaction<'_, Any>,
-        job_id: &str,
+        job_id: &JobId,
         worker: &str,
-        policy_id: &str,
+        policy_id: &PolicyId,
     ) -> Result<Option<(String, u32)>, StoreError> {
         let (model, alias): (Option<String>, Option<String>) =
             sqlx::query_as("SELECT register_model, register_alias FROM jobs WHERE id = $1")
-                .bind(job_id)
+                .bind(job_id.as_str())
                 .fetch_one(&mut **tx)
                 .await?;
         let Some(model) = model else { return Ok(None) };
@@ -240,7 +242,7 @@ impl Store {
         let note = MoveNote { actor: source.clone(), reason, expected_version: None };
         let version = super::models::NewVersion {
             model: &model,
-            policy_id,
+            policy_id: policy_id.as_str(),
             description: "",
             source: &source,
             alias: alias.as_deref().map(|alias| (alias, &note)),
@@ -257,7 +259,7 @@ impl Store {
                 (LogLevel::Info, message, Some((model, number)))
             }
             Err(StoreError::NotFound { kind: "model", .. }) => {
-                tracing::warn!(%model, job_id, "the job's model was deleted: policy not registered");
+                tracing::warn!(%model, %job_id, "the job's model was deleted: policy not registered");
                 let message = format!(
                     "model {model} was deleted before the job ended: the policy was not \
                      registered (register it with POST /v1/models/{{name}}/versions)"

@@ -8,7 +8,7 @@ use super::{now, parse_optional_time, parse_time, Listing, PageQuery, Store, Sto
 use crate::algo::ResolvedConfig;
 use crate::domain::model::Registration;
 use crate::domain::{
-    DatasetId, EvalOptions, JobId, JobLabels, JobRecord, JobStatus, RunnerOptions,
+    DatasetId, EvalOptions, JobId, JobLabels, JobRecord, JobStatus, PolicyId, RunnerOptions,
 };
 
 /// A job row as the database returns it; [`JobRecord`] is its typed form.
@@ -143,7 +143,7 @@ pub struct JobQuery {
 pub enum DeleteJobOutcome {
     /// Deleted, with its policy if it had one (and that policy's evaluations).
     Deleted {
-        policy: Option<String>,
+        policy: Option<PolicyId>,
     },
     NotFound,
     /// Queued or running: cancel it first.
@@ -245,7 +245,7 @@ impl Store {
         .bind(job.config.algorithm().as_str())
         .bind(JobStatus::Queued.as_str())
         .bind(job.unlabeled_dataset.as_str())
-        .bind(job.non_preferred_dataset.as_deref())
+        .bind(job.non_preferred_dataset.as_ref().map(DatasetId::as_str))
         .bind(config)
         .bind(runner)
         .bind(eval)
@@ -393,7 +393,7 @@ impl Store {
             sqlx::query(statement).bind(id).execute(&mut *tx).await?;
         }
         tx.commit().await?;
-        Ok(DeleteJobOutcome::Deleted { policy })
+        Ok(DeleteJobOutcome::Deleted { policy: policy.map(PolicyId::from) })
     }
 
     /// Jobs changed since `since` (their `updated_at`, RFC 3339 as stored), oldest change first:
@@ -411,8 +411,8 @@ impl Store {
 
     /// Cancels a queued job at once, or flags a running one for its worker. The status read and
     /// the update are one write transaction (the row locked), so a claim cannot slip in between.
-    pub async fn request_cancel(&self, id: &JobId) -> Result<CancelOutcome, StoreError> {
-        let id = id.as_str();
+    pub async fn request_cancel(&self, job_id: &JobId) -> Result<CancelOutcome, StoreError> {
+        let id = job_id.as_str();
         let now = self.db_now().await?;
         let mut tx = self.begin_write().await?;
         let status: String = sqlx::query_scalar(&format!(
@@ -434,7 +434,7 @@ impl Store {
                 .bind(id)
                 .execute(&mut *tx)
                 .await?;
-                delete_checkpoint(&mut tx, id).await?;
+                delete_checkpoint(&mut tx, job_id).await?;
                 CancelOutcome::Cancelled
             }
             JobStatus::Running => {
@@ -465,10 +465,10 @@ fn parse_status(id: &str, status: &str) -> Result<JobStatus, StoreError> {
 /// A finished job keeps no checkpoint: it would only be read to resume.
 pub(super) async fn delete_checkpoint(
     tx: &mut Transaction<'_, Any>,
-    id: &str,
+    id: &JobId,
 ) -> Result<(), sqlx::Error> {
     sqlx::query("DELETE FROM job_checkpoints WHERE job_id = $1")
-        .bind(id)
+        .bind(id.as_str())
         .execute(&mut **tx)
         .await?;
     Ok(())

@@ -17,7 +17,7 @@ struct LogRow {
 }
 
 impl LogRow {
-    fn into_record(self, job: &str) -> Result<LogRecord, StoreError> {
+    fn into_record(self, job: &JobId) -> Result<LogRecord, StoreError> {
         let owner = format!("job {job} log line {}", self.seq);
         let level = LogLevel::parse(&self.level).ok_or_else(|| {
             StoreError::Corrupt(owner.clone(), format!("log level {:?}", self.level))
@@ -74,7 +74,7 @@ impl Store {
 /// the job's row, so two lines never get one number).
 pub(super) async fn insert_log_line(
     tx: &mut Transaction<'_, Any>,
-    id: &str,
+    id: &JobId,
     worker: &str,
     level: LogLevel,
     message: &str,
@@ -83,7 +83,7 @@ pub(super) async fn insert_log_line(
         "INSERT INTO job_logs (job_id, seq, time, level, worker, message) \
          SELECT $1, COALESCE(MAX(seq), 0) + 1, $2, $3, $4, $5 FROM job_logs WHERE job_id = $1",
     )
-    .bind(id)
+    .bind(id.as_str())
     .bind(now())
     .bind(level.as_str())
     .bind(worker)

@@ -89,7 +89,7 @@ async fn every_format_round_trips_into_the_store() {
             let fetched: serde_json::Value =
                 app.get(&location).send().await.unwrap().json().await.unwrap();
             assert_eq!(fetched, body);
-            let loaded = store.load_dataset(&id.into()).await.unwrap();
+            let loaded = store.load_dataset(&id.to_owned().into()).await.unwrap();
             assert_eq!(loaded, original, "{extension} did not round-trip");
         }
     }
@@ -289,7 +289,7 @@ async fn listing_pages_newest_first_and_survives_a_restart() {
     assert_eq!(page(&app, "").await, everything);
     let store = app.store().await;
     for id in &ids {
-        assert_eq!(store.load_dataset(&id.as_str().into()).await.unwrap(), discrete_dataset());
+        assert_eq!(store.load_dataset(&id.clone().into()).await.unwrap(), discrete_dataset());
     }
     store.close().await;
 }
