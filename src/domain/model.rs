@@ -28,9 +28,53 @@ pub const LATEST: &str = "latest";
 pub const NAME_RULE: &str = "1-64 characters from ASCII letters, digits and `- _ .`, starting \
      with a letter or a digit";
 
+/// A model's name, checked ([`ModelName::parse`]): how the service carries one past the edge.
+#[derive(Clone, Debug, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize)]
+#[serde(transparent)]
+pub struct ModelName(String);
+
+/// An alias's name, checked ([`AliasName::parse`]).
+#[derive(Clone, Debug, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize)]
+#[serde(transparent)]
+pub struct AliasName(String);
+
+impl ModelName {
+    /// `text` if it follows the rules of [`check_model_name`]; else what is wrong with it.
+    pub fn parse(text: &str) -> Result<ModelName, String> {
+        check_model_name(text).map(|()| ModelName(text.to_owned()))
+    }
+
+    pub fn as_str(&self) -> &str {
+        &self.0
+    }
+}
+
+impl AliasName {
+    /// `text` if it follows the rules of [`check_alias_name`]; else what is wrong with it.
+    pub fn parse(text: &str) -> Result<AliasName, String> {
+        check_alias_name(text).map(|()| AliasName(text.to_owned()))
+    }
+
+    pub fn as_str(&self) -> &str {
+        &self.0
+    }
+}
+
+impl std::fmt::Display for ModelName {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(&self.0)
+    }
+}
+
+impl std::fmt::Display for AliasName {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(&self.0)
+    }
+}
+
 /// Checks a model's name: [`NAME_RULE`], and not of the form of a policy id (a UUID), so
 /// `/v2/models/{name}` is never ambiguous between a model and a policy.
-pub fn check_model_name(name: &str) -> Result<(), String> {
+fn check_model_name(name: &str) -> Result<(), String> {
     check_name("model name", name)?;
     if uuid::Uuid::try_parse(name).is_ok() {
         return Err(format!(
@@ -44,7 +88,7 @@ pub fn check_model_name(name: &str) -> Result<(), String> {
 /// Checks an alias's name: [`NAME_RULE`], not all digits (that reads as a version number) and
 /// not `latest` in any case (which always means the newest version: `LATEST` beside `latest`
 /// would read as the same word and answer another version).
-pub fn check_alias_name(alias: &str) -> Result<(), String> {
+fn check_alias_name(alias: &str) -> Result<(), String> {
     check_name("alias", alias)?;
     if alias.chars().all(|c| c.is_ascii_digit()) {
         return Err(format!("alias {alias:?} is all digits, which reads as a version number"));
@@ -89,7 +133,7 @@ pub enum Selector {
     /// The highest-numbered version.
     Latest,
     /// The version an alias points at (or its canary's, for its share of requests).
-    Alias(String),
+    Alias(AliasName),
     /// A version by number.
     Version(u32),
 }
@@ -98,7 +142,7 @@ pub enum Selector {
 /// route's `/versions/{n}`.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct ModelRef {
-    pub model: String,
+    pub model: ModelName,
     pub selector: Selector,
 }
 
@@ -108,25 +152,21 @@ impl ModelRef {
         let (model, selector) = match text.split_once('@') {
             None => (text, Selector::Latest),
             Some((model, alias)) if alias.eq_ignore_ascii_case(LATEST) => (model, Selector::Latest),
-            Some((model, alias)) => {
-                check_alias_name(alias)?;
-                (model, Selector::Alias(alias.to_owned()))
-            }
+            Some((model, alias)) => (model, Selector::Alias(AliasName::parse(alias)?)),
         };
-        check_model_name(model)?;
-        Ok(ModelRef { model: model.to_owned(), selector })
+        Ok(ModelRef { model: ModelName::parse(model)?, selector })
     }
 
     /// `name` with version `version` (from a route's `/versions/{n}`; `text` may not carry an
     /// alias then).
     pub fn with_version(text: &str, version: &str) -> Result<ModelRef, String> {
-        check_model_name(text)?;
+        let model = ModelName::parse(text)?;
         let number = version
             .parse::<u32>()
             .ok()
             .filter(|&n| n > 0)
             .ok_or_else(|| format!("version {version:?} is not a version number (1, 2, …)"))?;
-        Ok(ModelRef { model: text.to_owned(), selector: Selector::Version(number) })
+        Ok(ModelRef { model, selector: Selector::Version(number) })
     }
 }
 
@@ -254,12 +294,13 @@ pub struct Registration {
 }
 
 impl Registration {
-    pub fn validated(&self) -> Result<(), String> {
-        check_model_name(&self.model).map_err(|e| format!("register.model: {e}"))?;
+    /// The model's name, once the model's and the alias's names are checked.
+    pub fn validated(&self) -> Result<ModelName, String> {
+        let model = ModelName::parse(&self.model).map_err(|e| format!("register.model: {e}"))?;
         if let Some(alias) = &self.alias {
-            check_alias_name(alias).map_err(|e| format!("register.alias: {e}"))?;
+            AliasName::parse(alias).map_err(|e| format!("register.alias: {e}"))?;
         }
-        Ok(())
+        Ok(model)
     }
 }
 
@@ -280,7 +321,7 @@ mod tests {
     #[test]
     fn references_name_a_model_and_its_alias_or_the_latest_version() {
         let parsed = ModelRef::parse("pilot@production").unwrap();
-        assert_eq!(parsed.selector, Selector::Alias("production".into()));
+        assert_eq!(parsed.selector, Selector::Alias(AliasName::parse("production").unwrap()));
         assert_eq!(parsed.to_string(), "pilot@production");
         assert_eq!(ModelRef::parse("pilot").unwrap().selector, Selector::Latest);
         assert_eq!(ModelRef::parse("pilot@latest").unwrap().selector, Selector::Latest);

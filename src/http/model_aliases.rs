@@ -235,7 +235,7 @@ async fn set_alias(
     Json(request): Json<SetAlias>,
 ) -> Result<Json<AliasMoveResource>, ApiError> {
     model_name(&path.name)?;
-    model::check_alias_name(&path.alias).map_err(invalid_name)?;
+    model::AliasName::parse(&path.alias).map_err(invalid_name)?;
     // A canary of the alias's own version splits nothing: it is no canary (the schema cannot
     // say "another version", so it is not refused).
     let canary = canary_of(request.canary)?.filter(|c| c.version != request.version);

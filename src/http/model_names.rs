@@ -8,8 +8,8 @@ use axum::http::{HeaderMap, HeaderName, HeaderValue};
 use axum::response::Response;
 
 use super::{ApiError, AppState};
-use crate::domain::model::ModelRef;
 use crate::domain::model::{self as model, MoveNote, MAX_ACTOR_CHARS};
+use crate::domain::model::{ModelName, ModelRef};
 use crate::serving::registry::Answer;
 
 /// The version that answered a request by model name.
@@ -48,8 +48,8 @@ pub(crate) fn check_text(field: &str, text: &str, max: usize) -> Result<(), ApiE
 
 /// A model name from the path: anything else than a model's name is 404 (a name that breaks
 /// the rules cannot exist), except that `name@alias` says where to use it.
-pub(crate) fn model_name(name: &str) -> Result<(), ApiError> {
-    model::check_model_name(name)
+pub(crate) fn model_name(name: &str) -> Result<ModelName, ApiError> {
+    ModelName::parse(name)
         .map_err(|rule| ApiError::NotFound(format!("model {name:?} does not exist ({rule})")))
 }
 

@@ -16,7 +16,6 @@ use super::error::ErrorBody;
 use super::extract::{Json, Path, Query};
 use super::{ApiError, AppState};
 use crate::data::ActionSpace;
-use crate::domain::model;
 use crate::domain::rfc3339;
 use crate::domain::shadow::{ComparisonCounts, ComparisonSeries};
 
@@ -146,8 +145,7 @@ async fn shadow_series(
     Path(name): Path<String>,
     Query(params): Query<ShadowParams>,
 ) -> Result<Json<ShadowReport>, ApiError> {
-    model::check_model_name(&name)
-        .map_err(|rule| ApiError::NotFound(format!("model {name:?} does not exist ({rule})")))?;
+    super::model_names::model_name(&name)?;
     let minutes = params.minutes.unwrap_or(60);
     if !(1..=MAX_MINUTES).contains(&minutes) {
         return Err(ApiError::bad_request(

@@ -225,7 +225,7 @@ async fn create_model(
     State(state): State<AppState>,
     Json(request): Json<CreateModel>,
 ) -> Result<impl IntoResponse, ApiError> {
-    model::check_model_name(&request.name).map_err(invalid_name)?;
+    model::ModelName::parse(&request.name).map_err(invalid_name)?;
     check_text("description", &request.description, MAX_DESCRIPTION_CHARS)?;
     check_tags(&request.tags)?;
     let new =
@@ -258,7 +258,7 @@ async fn get_model(
     State(state): State<AppState>,
     Path(name): Path<String>,
 ) -> Result<Json<Model>, ApiError> {
-    model_name(&name)?;
+    let name = model_name(&name)?;
     Ok(Json(state.store.model(&name).await?.into()))
 }
 
@@ -296,8 +296,8 @@ async fn delete_model(
     State(state): State<AppState>,
     Path(name): Path<String>,
 ) -> Result<StatusCode, ApiError> {
-    model_name(&name)?;
-    state.store.delete_model(&name).await?;
+    let model = model_name(&name)?;
+    state.store.delete_model(&model).await?;
     refresh(&state, &name).await;
     tracing::info!(model = %name, "model deleted");
     Ok(StatusCode::NO_CONTENT)
@@ -332,7 +332,7 @@ async fn create_version(
         found => drop(found?),
     }
     if let Some(alias) = &request.alias {
-        model::check_alias_name(alias).map_err(invalid_name)?;
+        model::AliasName::parse(alias).map_err(invalid_name)?;
         // The alias must not resolve to a policy that cannot load: load it first.
         state.serving.policies.get(&PolicyId::from(request.policy_id.clone())).await?;
     }
@@ -414,8 +414,8 @@ async fn delete_version(
     State(state): State<AppState>,
     Path(path): Path<VersionPath>,
 ) -> Result<StatusCode, ApiError> {
-    model_name(&path.name)?;
-    state.store.delete_model_version(&path.name, path.version).await?;
+    let model = model_name(&path.name)?;
+    state.store.delete_model_version(&model, path.version).await?;
     refresh(&state, &path.name).await;
     Ok(StatusCode::NO_CONTENT)
 }

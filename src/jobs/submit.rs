@@ -145,8 +145,8 @@ pub async fn prepare(
 /// check and the insert is no loss: the job then registers nothing and says so; deletes are
 /// refused once the job is queued.)
 async fn check_registration(store: &Store, register: &Registration) -> Result<(), SubmitError> {
-    register.validated().map_err(SubmitError::InvalidConfig)?;
-    match store.model(&register.model).await {
+    let model = register.validated().map_err(SubmitError::InvalidConfig)?;
+    match store.model(&model).await {
         Ok(_) => Ok(()),
         Err(StoreError::NotFound { .. }) => Err(SubmitError::InvalidConfig(format!(
             "register.model: model {} does not exist; create it first (POST /v1/models)",

@@ -227,9 +227,9 @@ pub async fn resolve(
         }
         ActTarget::Model(reference) => {
             let answer = serving.models.resolve(reference, key).await?;
-            let versions = serving.models.versions(&reference.model);
+            let versions = serving.models.versions(reference.model.as_str());
             Ok(Served {
-                name: reference.model.clone(),
+                name: reference.model.to_string(),
                 version: answer.target.version.to_string(),
                 policy: answer.target.policy.clone(),
                 answer: Some((answer, versions)),

@@ -369,29 +369,29 @@ pub async fn statistics(
     version: Option<&str>,
 ) -> Result<Vec<Statistics>, ServeError> {
     let reference = reference(name, version)?;
-    let model = &reference.model;
+    let model = reference.model.as_str();
     if version.is_some() {
         let answer = serving.models.resolve(&reference, None).await?;
         let version = answer.target.version;
         return Ok(vec![Statistics::read(model, version, &answer.target.stats)]);
     }
-    serving.models.check_exists(model).await?;
+    serving.models.check_exists(&reference.model).await?;
     let stats = serving.models.model_stats(model);
     Ok(stats.iter().map(|(version, stats)| Statistics::read(model, *version, stats)).collect())
 }
 
 /// Loads a named model on this process (again after an unload) and returns once it is ready.
 pub async fn load(serving: &Serving, name: &str) -> Result<(), ServeError> {
-    reference(name, None)?;
-    serving.models.load_model(name).await?;
+    let reference = reference(name, None)?;
+    serving.models.load_model(&reference.model).await?;
     tracing::info!(model = %name, "model loaded on request");
     Ok(())
 }
 
 /// Stops serving a named model on this process (other processes of a fleet keep serving it).
 pub async fn unload(serving: &Serving, name: &str) -> Result<(), ServeError> {
-    reference(name, None)?;
-    serving.models.unload_model(name).await?;
+    let reference = reference(name, None)?;
+    serving.models.unload_model(&reference.model).await?;
     tracing::info!(model = %name, "model unloaded on request");
     Ok(())
 }

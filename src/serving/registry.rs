@@ -24,7 +24,7 @@ use tokio_util::sync::CancellationToken;
 use super::shadow::Shadows;
 use super::{PolicyCache, PolicyLoadError};
 use crate::algo::Policy;
-use crate::domain::model::{AliasTarget, ModelRef, ModelRoutes, Selector, BASIS_POINTS};
+use crate::domain::model::{AliasTarget, ModelName, ModelRef, ModelRoutes, Selector, BASIS_POINTS};
 use crate::domain::PolicyId;
 use crate::store::models::MODELS_CHANNEL;
 use crate::store::{Store, StoreError};
@@ -205,9 +205,9 @@ impl ModelRegistry {
         reference: &ModelRef,
         key: Option<&str>,
     ) -> Result<Answer, ResolveError> {
-        let model = &reference.model;
+        let model = reference.model.as_str();
         if self.is_unloaded(model) {
-            return Err(ResolveError::Unloaded(model.clone()));
+            return Err(ResolveError::Unloaded(model.to_owned()));
         }
         match self.resolve_loaded(reference, key).await {
             // An alias or version made on another node a moment ago, before its notification
@@ -241,7 +241,7 @@ impl ModelRegistry {
         reference: &ModelRef,
         key: Option<&str>,
     ) -> Result<Answer, ResolveError> {
-        let model = &reference.model;
+        let model = reference.model.as_str();
         let table = self
             .table(model)
             .ok_or_else(|| ResolveError::NotFound(format!("model {model} does not exist")))?;
@@ -251,11 +251,11 @@ impl ModelRegistry {
                 ResolveError::NotFound(format!("model {model} has no version yet"))
             })?,
             Selector::Alias(alias) => {
-                let route = table.aliases.get(alias).ok_or_else(|| {
+                let route = table.aliases.get(alias.as_str()).ok_or_else(|| {
                     ResolveError::NotFound(format!("model {model} has no alias {alias}"))
                 })?;
                 let picked = pick(route, key).clone();
-                shadow = self.draw_shadow(alias, route, &picked);
+                shadow = self.draw_shadow(alias.as_str(), route, &picked);
                 picked
             }
             Selector::Version(version) => {
@@ -265,7 +265,7 @@ impl ModelRegistry {
                 self.route(model, *version, policy_id)
             }
         };
-        Ok(Answer { model: model.clone(), target: self.target(route).await?, shadow })
+        Ok(Answer { model: model.to_owned(), target: self.target(route).await?, shadow })
     }
 
     /// The alias's shadow for this request, for its share of requests (drawn at random, apart
@@ -456,7 +456,8 @@ impl ModelRegistry {
     }
 
     /// Loads a model on this process (again after an unload) and waits until it is ready.
-    pub async fn load_model(&self, name: &str) -> Result<(), ResolveError> {
+    pub async fn load_model(&self, name: &ModelName) -> Result<(), ResolveError> {
+        let name = name.as_str();
         self.unloaded.lock().expect("unloaded lock").remove(name);
         self.refresh_model(name).await?;
         if self.table(name).is_none() {
@@ -467,15 +468,15 @@ impl ModelRegistry {
 
     /// Stops serving a model on this process (its policies are released once the requests in
     /// flight finish). Other processes of a fleet keep serving it.
-    pub async fn unload_model(&self, name: &str) -> Result<(), ResolveError> {
+    pub async fn unload_model(&self, name: &ModelName) -> Result<(), ResolveError> {
         self.store.model(name).await?;
-        self.unloaded.lock().expect("unloaded lock").insert(name.to_owned());
-        self.tables.write().expect("model tables lock").remove(name);
+        self.unloaded.lock().expect("unloaded lock").insert(name.to_string());
+        self.tables.write().expect("model tables lock").remove(name.as_str());
         Ok(())
     }
 
     /// Whether `name` is a stored model (not found otherwise), loaded here or not.
-    pub async fn check_exists(&self, name: &str) -> Result<(), ResolveError> {
+    pub async fn check_exists(&self, name: &ModelName) -> Result<(), ResolveError> {
         self.store.model(name).await?;
         Ok(())
     }

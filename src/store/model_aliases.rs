@@ -113,7 +113,7 @@ impl Store {
         alias: Option<&str>,
         limit: u32,
     ) -> Result<Vec<AliasMove>, StoreError> {
-        self.model(model).await?;
+        self.read_model(model).await?;
         let rows: Vec<MoveRow> = sqlx::query_as(&format!(
             "SELECT {MOVE_COLUMNS} FROM model_alias_moves WHERE model = $1 \
              AND ($2 IS NULL OR alias = $2) ORDER BY seq DESC LIMIT $3"

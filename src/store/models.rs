@@ -14,7 +14,7 @@ use super::model_aliases::{
 use super::{parse_time, Listing, PageQuery, Store, StoreError};
 use crate::domain::job::JobStatus;
 use crate::domain::model::{
-    AliasRecord, AliasTarget, ModelRecord, ModelRoutes, ModelVersionRecord, MoveNote,
+    AliasRecord, AliasTarget, ModelName, ModelRecord, ModelRoutes, ModelVersionRecord, MoveNote,
 };
 
 /// A new model's fields.
@@ -151,10 +151,15 @@ impl Store {
         }
         self.notify_model(&mut tx, model.name).await?;
         tx.commit().await?;
-        self.model(model.name).await
+        self.read_model(model.name).await
     }
 
-    pub async fn model(&self, name: &str) -> Result<ModelRecord, StoreError> {
+    pub async fn model(&self, name: &ModelName) -> Result<ModelRecord, StoreError> {
+        self.read_model(name.as_str()).await
+    }
+
+    /// [`Store::model`] by a name this store wrote (checked when the model was created).
+    pub(super) async fn read_model(&self, name: &str) -> Result<ModelRecord, StoreError> {
         let row: ModelRow =
             sqlx::query_as(&format!("SELECT {MODEL_COLUMNS} FROM models WHERE name = $1"))
                 .bind(name)
@@ -226,13 +231,14 @@ impl Store {
         if updated.rows_affected() == 0 {
             return Err(model_not_found(name));
         }
-        self.model(name).await
+        self.read_model(name).await
     }
 
     /// Deletes a model with its versions and history (never the policies). Refused (409
     /// `model_in_use`) while an alias points at one of its versions (agents may be using it)
     /// or a queued or running job will register into it.
-    pub async fn delete_model(&self, name: &str) -> Result<(), StoreError> {
+    pub async fn delete_model(&self, name: &ModelName) -> Result<(), StoreError> {
+        let name = name.as_str();
         let mut tx = self.begin_write().await?;
         lock_model(&mut tx, self, name).await?;
         let aliases: Vec<String> =
@@ -324,7 +330,7 @@ impl Store {
         limit: u32,
         offset: u64,
     ) -> Result<(Vec<ModelVersionRecord>, u64), StoreError> {
-        self.model(model).await?;
+        self.read_model(model).await?;
         let rows: Vec<VersionRow> = sqlx::query_as(&format!(
             "SELECT {VERSION_COLUMNS} FROM {VERSIONS} WHERE model = $1 \
              ORDER BY version DESC LIMIT $2 OFFSET $3"
@@ -343,7 +349,12 @@ impl Store {
     }
 
     /// Deletes a version no alias points at (its number is never handed out again).
-    pub async fn delete_model_version(&self, model: &str, version: u32) -> Result<(), StoreError> {
+    pub async fn delete_model_version(
+        &self,
+        model: &ModelName,
+        version: u32,
+    ) -> Result<(), StoreError> {
+        let model = model.as_str();
         let mut tx = self.begin_write().await?;
         bump(&mut tx, model).await?;
         let aliases: Vec<String> = sqlx::query_scalar(

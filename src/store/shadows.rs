@@ -166,7 +166,7 @@ impl Store {
         alias: Option<&str>,
         since: &DateTime<Utc>,
     ) -> Result<Vec<ComparisonSeries>, StoreError> {
-        self.model(model).await?;
+        self.read_model(model).await?;
         let rows: Vec<ComparisonRow> = sqlx::query_as(&format!(
             "SELECT alias, production_version, shadow_version, minute, {} \
              FROM shadow_comparisons WHERE model = $1 AND ($2 IS NULL OR alias = $2) \
