@@ -12,23 +12,33 @@ const CURVE_POINTS = 300;
  *  then DSRL's normalized cost: the server's vocabulary ({key, label, ...}). */
 const EXPERIMENT_METRICS = [...PAPER_METRIC_INFO,
   ...VOCABULARY.evaluation_metrics.filter((m) => m.kind === 'dsrl')];
+// The job statuses in the server's lifecycle order: those a job leaves (queued, running) and
+// its endings, the successful one first.
+const UNFINISHED = JOB_STATUSES.filter((s) => !s.final).map((s) => s.name);
+const [SUCCESS, ...OTHER_ENDINGS] = JOB_STATUSES.filter((s) => s.final).map((s) => s.name);
+
+const unfinishedCount = (p) => UNFINISHED.reduce((sum, s) => sum + p[s], 0);
 /** Jobs of a grid that ended, whatever the end. */
-const finishedCount = (p) => p.total - p.queued - p.running;
+const finishedCount = (p) => p.total - unfinishedCount(p);
 
 const experimentHref = (id) => `#/experiments/${id}`;
 const experimentTitle = (e) => e.name || shortId(e.id);
-const gridActive = (e) => e.progress.queued + e.progress.running > 0;
+const gridActive = (e) => unfinishedCount(e.progress) > 0;
 
-/** Where a grid stands, from its progress counts: [word, status class for the pill]: running
- *  or queued while jobs are, then finished, or how many failed, were discarded or cancelled. */
+/** Where a grid stands, from its progress counts: [word, status class for the pill]: the
+ *  latest stage any job is still in (with how many are done, unless none has started), then
+ *  finished, or how many ended otherwise (failed, discarded, cancelled). */
 function gridStatus(p) {
   const finished = finishedCount(p);
-  if (p.running) return [`running (${finished} of ${p.total} done)`, 'running'];
-  if (p.queued) return [finished ? `queued (${finished} of ${p.total} done)` : 'queued', 'queued'];
-  for (const end of ['failed', 'discarded', 'cancelled']) {
+  for (const stage of [...UNFINISHED].reverse()) {
+    if (!p[stage]) continue;
+    const bare = stage === UNFINISHED[0] && !finished;
+    return [bare ? stage : `${stage} (${finished} of ${p.total} done)`, stage];
+  }
+  for (const end of OTHER_ENDINGS) {
     if (p[end]) return [`${p[end]} ${end}`, end];
   }
-  return ['finished', 'succeeded'];
+  return ['finished', SUCCESS];
 }
 
 /** "12.34 ± 0.56": the mean to 4 significant digits, its standard error to 2; the mean alone
@@ -171,8 +181,8 @@ function experimentsPage(view) {
 // ---------- one experiment ----------
 
 function progressText(p) {
-  const parts = [`${p.succeeded} succeeded`, `${p.running} running`, `${p.queued} queued`];
-  for (const end of ['failed', 'discarded', 'cancelled']) {
+  const parts = [SUCCESS, ...[...UNFINISHED].reverse()].map((s) => `${p[s]} ${s}`);
+  for (const end of OTHER_ENDINGS) {
     if (p[end]) parts.push(`${p[end]} ${end}`);
   }
   return `${finishedCount(p)} of ${p.total} jobs finished: ${parts.join(', ')}`;
@@ -350,7 +360,7 @@ function curvesCard() {
   };
   const draw = async () => {
     if (!experiment || !metric.value) return;
-    const started = experiment.jobs.filter((j) => j.status !== 'queued');
+    const started = experiment.jobs.filter((j) => j.status !== UNFINISHED[0]);
     const perJob = await Promise.all(started.map(async (job) => {
       const [m, before] = await Promise.all([api(withParams(`/v1/jobs/${job.job_id}/metrics`,
         { names: metric.value, max_points: CURVE_POINTS })), pretrainingOf(job.job_id)]);
@@ -370,7 +380,7 @@ function curvesCard() {
   mode.addEventListener('change', redraw);
   const refresh = async (e) => {
     experiment = e;
-    const started = e.jobs.filter((j) => j.status !== 'queued');
+    const started = e.jobs.filter((j) => j.status !== UNFINISHED[0]);
     const lists = await Promise.all(started.map((j) => api(`/v1/jobs/${j.job_id}/metrics/names`)));
     const found = [...new Set(lists.flat().map((m) => m.name))].sort((a, b) => (a.startsWith('eval/') === b.startsWith('eval/') ? a.localeCompare(b) : a.startsWith('eval/') ? -1 : 1));
     // The metrics every algorithm of the grid has recorded (in one of its jobs at least).
@@ -433,7 +443,7 @@ function experimentPage(view, id) {
     cancel: () => dialog.show({
       title: `Cancel ${experimentTitle(experiment)}`,
       fields: [h('p', { class: 'hint' }, 'Queued jobs are cancelled, running ones stopped; finished jobs and their results stay.')],
-      question: `Cancel the ${experiment.progress.queued + experiment.progress.running} unfinished jobs?`,
+      question: `Cancel the ${unfinishedCount(experiment.progress)} unfinished jobs?`,
       confirmLabel: 'Cancel jobs',
       action: async () => {
         experiment = await api(`/v1/experiments/${id}/cancel`, { method: 'POST' });

@@ -397,3 +397,23 @@ fn csv_field(text: &str) -> String {
         text.to_owned()
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::GridProgress;
+    use crate::domain::JobStatus;
+
+    /// Clients count a grid's unfinished and finished jobs from the served vocabulary, so the
+    /// progress must have a count for every status and nothing but `total` besides.
+    #[test]
+    fn grid_progress_counts_every_status_of_the_vocabulary() {
+        let progress = serde_json::to_value(GridProgress::default()).unwrap();
+        let mut keys: Vec<&str> =
+            progress.as_object().unwrap().keys().map(String::as_str).collect();
+        let mut expected: Vec<&str> = JobStatus::ALL.iter().map(|s| s.as_str()).collect();
+        expected.push("total");
+        keys.sort_unstable();
+        expected.sort_unstable();
+        assert_eq!(keys, expected);
+    }
+}

@@ -375,7 +375,7 @@ class Client:
             if report is not None and progress != last:
                 report(progress)
                 last = progress
-            if progress["queued"] == 0 and progress["running"] == 0:
+            if sum(progress.get(s, 0) for s in self.final_statuses()) == progress["total"]:
                 return experiment
             if deadline is not None and time.monotonic() > deadline:
                 raise TimeoutError(f"experiment {experiment_id} still running: {progress}")

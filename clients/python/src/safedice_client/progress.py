@@ -22,7 +22,7 @@ def progress_line(job: Json) -> None:
 
 
 def print_grid_progress(progress: Json) -> None:
-    """An experiment's progress as one line on stderr."""
-    done = progress["total"] - progress["running"] - progress["queued"]
-    print(f"{done} of {progress['total']} jobs finished ({progress['succeeded']} succeeded, "
-          f"{progress['running']} running, {progress['queued']} queued)", file=sys.stderr)
+    """An experiment's progress as one line on stderr: its jobs by status, in the server's
+    words (the counts other than ``total`` are per status)."""
+    counts = ", ".join(f"{n} {status}" for status, n in progress.items() if status != "total" and n)
+    print(f"{progress['total']} jobs: {counts}", file=sys.stderr)
