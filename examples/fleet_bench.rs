@@ -33,8 +33,8 @@ use std::time::{Duration, Instant};
 use anyhow::{bail, ensure, Context};
 use safedice::algo::{Algorithm, Preset, ResolvedConfig};
 use safedice::data::{self, ActionSpace, Actions, Dataset, DatasetParts, Format};
+use safedice::domain::NewJob;
 use safedice::domain::{JobId, JobStatus, RunnerOptions};
-use safedice::store::jobs::NewJob;
 use safedice::store::{NewDataset, Store};
 use serde_json::{json, Value};
 

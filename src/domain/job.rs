@@ -146,6 +146,22 @@ impl JobRecord {
     }
 }
 
+/// A job to queue: its datasets, resolved configuration and options.
+#[derive(Clone, Debug)]
+pub struct NewJob {
+    pub id: JobId,
+    pub unlabeled_dataset: DatasetId,
+    pub non_preferred_dataset: Option<DatasetId>,
+    pub config: ResolvedConfig,
+    pub runner: RunnerOptions,
+    pub eval: Option<EvalOptions>,
+    pub labels: JobLabels,
+    /// Attempts before the job fails for good when its workers keep vanishing.
+    pub max_attempts: u32,
+    /// The model its policy becomes a version of when it succeeds.
+    pub register: Option<super::model::Registration>,
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

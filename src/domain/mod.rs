@@ -23,7 +23,7 @@ pub use attempt::{AttemptOutcome, JobAttempt, RetryBackoff};
 pub use dataset::DatasetRecord;
 pub use evaluation::{EvaluationRecord, EvaluationSource, EvaluationStatus};
 pub use ids::{DatasetId, EvaluationId, ExperimentId, JobId, PolicyId};
-pub use job::{JobRecord, JobStatus};
+pub use job::{JobRecord, JobStatus, NewJob};
 pub use labels::JobLabels;
 pub use options::{EvalOptions, EvalSpec, RunnerOptions};
 pub use policy::PolicyRecord;

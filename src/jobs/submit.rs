@@ -8,9 +8,8 @@ use crate::domain::attempt::MOST_ATTEMPTS;
 use crate::domain::model::Registration;
 use crate::domain::DatasetRecord;
 use crate::domain::{
-    DatasetId, DatasetRole, EvalOptions, JobId, JobLabels, JobRecord, RunnerOptions,
+    DatasetId, DatasetRole, EvalOptions, JobId, JobLabels, JobRecord, NewJob, RunnerOptions,
 };
-use crate::store::jobs::NewJob;
 use crate::store::{Store, StoreError};
 
 /// What a client asks for: the algorithm, its datasets, and the raw `config`, `runner` and

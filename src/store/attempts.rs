@@ -290,8 +290,8 @@ mod tests {
 
     use super::*;
     use crate::algo::{Algorithm, Preset, ResolvedConfig};
+    use crate::domain::NewJob;
     use crate::domain::RunnerOptions;
-    use crate::store::jobs::NewJob;
     use crate::store::test_support::store_with_a_dataset;
 
     const AT_ONCE: RetryBackoff = RetryBackoff { base: Duration::ZERO, max: Duration::ZERO };

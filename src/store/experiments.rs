@@ -1,8 +1,9 @@
 //! Experiments: the grid's row and its jobs, queued together in one transaction (all or none).
 
-use super::jobs::{DeleteJobOutcome, NewJob};
+use super::jobs::DeleteJobOutcome;
 use super::{parse_time, Listing, PageQuery, Store, StoreError};
 use crate::domain::experiment::{ExperimentRecord, ExperimentSpec};
+use crate::domain::NewJob;
 use crate::domain::{ExperimentId, JobId, JobRecord, JobStatus};
 
 #[derive(sqlx::FromRow)]

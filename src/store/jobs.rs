@@ -8,7 +8,7 @@ use super::{now, parse_optional_time, parse_time, Listing, PageQuery, Store, Sto
 use crate::algo::ResolvedConfig;
 use crate::domain::model::Registration;
 use crate::domain::{
-    DatasetId, EvalOptions, JobId, JobLabels, JobRecord, JobStatus, PolicyId, RunnerOptions,
+    DatasetId, EvalOptions, JobId, JobLabels, JobRecord, JobStatus, NewJob, PolicyId, RunnerOptions,
 };
 
 /// A job row as the database returns it; [`JobRecord`] is its typed form.
@@ -110,22 +110,6 @@ impl TryFrom<JobRow> for JobRecord {
             lease_expired_at: row.lease_expired_at_ms.map(from_millis),
         })
     }
-}
-
-/// A job to queue: its datasets, resolved configuration and options.
-#[derive(Clone, Debug)]
-pub struct NewJob {
-    pub id: JobId,
-    pub unlabeled_dataset: DatasetId,
-    pub non_preferred_dataset: Option<DatasetId>,
-    pub config: ResolvedConfig,
-    pub runner: RunnerOptions,
-    pub eval: Option<EvalOptions>,
-    pub labels: JobLabels,
-    /// Attempts before the job fails for good when its workers keep vanishing.
-    pub max_attempts: u32,
-    /// The model its policy becomes a version of when it succeeds.
-    pub register: Option<Registration>,
 }
 
 /// Which jobs a list shows: all of them, or those with a status, a tag, or a name or id that

@@ -330,9 +330,9 @@ mod tests {
     use super::*;
     use crate::algo::{Algorithm, Preset, ResolvedConfig};
     use crate::domain::MetricRecord;
+    use crate::domain::NewJob;
     use crate::domain::{JobId, JobStatus, RetryBackoff, RunnerOptions};
     use crate::store::job_runs::ProgressUpdate;
-    use crate::store::jobs::NewJob;
     use crate::store::test_support::store_with_a_dataset;
 
     async fn store_with_a_queued_job() -> (tempfile::TempDir, Store, JobId) {
