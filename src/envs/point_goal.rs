@@ -283,6 +283,27 @@ const DEMO_NOISE: f32 = 0.25;
 /// turn `DEMO_GAIN · angle`, so a full command gives `tanh(3)` ≈ 0.995.
 const DEMO_GAIN: f32 = 3.0;
 
+/// Weight of a hazard's push in [`Avoidance::Field`] at zero distance, against the goal's pull
+/// of 1.
+const FIELD_GAIN: f32 = 2.0;
+
+/// [`Avoidance::Field`]'s heading: the goal's unit pull plus, per lidar ray whose hazard is
+/// nearer than `needed`, a push of weight `FIELD_GAIN · (1 − d/needed)²` away from the ray and,
+/// in proportion to how much the hazard lies towards the goal, around it on the left.
+fn field_heading(goal: f32, needed: f32, lidar: &[f32]) -> f32 {
+    let (mut x, mut y) = (goal.cos(), goal.sin());
+    for (k, reading) in lidar.iter().enumerate() {
+        let hazard_at = (1.0 - reading) * LIDAR_RANGE;
+        let inside = ((needed - hazard_at) / needed).max(0.0);
+        let push = FIELD_GAIN * inside * inside;
+        let (cos, sin) = (ray_angle(k).cos(), ray_angle(k).sin());
+        let towards_goal = (cos * goal.cos() + sin * goal.sin()).max(0.0);
+        x += push * (-cos - towards_goal * sin);
+        y += push * (-sin + towards_goal * cos);
+    }
+    y.atan2(x)
+}
+
 /// Angle of lidar ray `k` in the robot frame.
 fn ray_angle(k: usize) -> f32 {
     std::f32::consts::TAU * k as f32 / LIDAR_BINS as f32
@@ -294,16 +315,29 @@ fn angle_gap(a: f32, b: f32) -> f32 {
     d.min(std::f32::consts::TAU - d)
 }
 
+/// How a [`Steering`] controller treats the hazards its lidar sees.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub(crate) enum Avoidance {
+    /// Straight for the goal, through hazards.
+    None,
+    /// The heading closest to the goal whose lidar window is clear (a vector-field-histogram
+    /// rule: every ray within `window` of it sees no hazard nearer than `clearance`, or than the
+    /// goal). The choice jumps from one ray to the next as the readings change.
+    Window,
+    /// The goal's direction plus a push from every hazard nearer than `clearance` (or than the
+    /// goal), away from it and around it on the left, growing with the square of how far inside
+    /// the clearance it is: the heading is a continuous function of the observation.
+    Field,
+}
+
 /// A steering controller that reads only the observation. It picks a heading, turns towards it
 /// and thrusts when roughly facing it. The non-preferred demonstrator heads straight for the
-/// goal, through hazards; the preferred one, when `avoid_hazards`, picks the heading closest to
-/// the goal whose lidar window is clear (a vector-field-histogram rule: every ray within
-/// `window` of it sees no hazard nearer than `clearance`, or than the goal), so it walks around
-/// hazards. The non-preferred one thrusts a little less (both collect about the same return).
-/// Actions are tanh-squashed Gaussians around the command ([`super::squashed_gaussian`]), the
-/// learners' own policy class.
+/// goal, through hazards; the preferred one walks around them ([`Avoidance`]). The
+/// non-preferred one thrusts a little less (both collect about the same return). Actions are
+/// tanh-squashed Gaussians around the command ([`super::squashed_gaussian`]), the learners' own
+/// policy class.
 pub(crate) struct Steering {
-    pub avoid_hazards: bool,
+    pub avoidance: Avoidance,
     pub top_thrust: f32,
     /// Half-width (rad) of the lidar window that must be clear around a heading.
     pub window: f32,
@@ -316,7 +350,7 @@ pub(crate) struct Steering {
 impl Steering {
     pub fn preferred() -> Steering {
         Steering {
-            avoid_hazards: true,
+            avoidance: Avoidance::Window,
             top_thrust: 1.0,
             window: 0.3,
             clearance: 1.0,
@@ -325,18 +359,23 @@ impl Steering {
     }
 
     pub fn non_preferred() -> Steering {
-        Steering { avoid_hazards: false, top_thrust: 0.8, ..Steering::preferred() }
+        Steering { avoidance: Avoidance::None, top_thrust: 0.8, ..Steering::preferred() }
     }
 
     /// Desired heading in the robot frame (rad).
     fn heading(&self, obs: &[f32]) -> f32 {
         let goal = obs[OBS_GOAL_DIR + 1].atan2(obs[OBS_GOAL_DIR]);
-        if !self.avoid_hazards {
-            return goal;
-        }
         let goal_dist = -obs[OBS_GOAL_DIST].max(f32::MIN_POSITIVE).ln();
         let needed = self.clearance.min(goal_dist);
         let lidar = &obs[OBS_LIDAR..OBS_LIDAR + LIDAR_BINS];
+        match self.avoidance {
+            Avoidance::None => goal,
+            Avoidance::Window => self.window_heading(goal, needed, lidar),
+            Avoidance::Field => field_heading(goal, needed, lidar),
+        }
+    }
+
+    fn window_heading(&self, goal: f32, needed: f32, lidar: &[f32]) -> f32 {
         let clear = |heading: f32| {
             (0..LIDAR_BINS).all(|k| {
                 let hazard_at = (1.0 - lidar[k]) * LIDAR_RANGE;
@@ -425,6 +464,40 @@ mod tests {
         env.step(Action::Continuous(&[1.0, 0.0]));
         assert_eq!(env.state().pos[0], ARENA);
         assert_eq!(env.state().vel[0], 0.0);
+    }
+
+    fn lidar_with(hits: &[(usize, f32)]) -> [f32; LIDAR_BINS] {
+        let mut lidar = [0.0; LIDAR_BINS];
+        for &(k, distance) in hits {
+            lidar[k] = 1.0 - distance / LIDAR_RANGE;
+        }
+        lidar
+    }
+
+    #[test]
+    fn the_field_heads_for_the_goal_in_the_open_and_around_a_hazard_on_its_way() {
+        assert!((field_heading(0.7, 1.0, &lidar_with(&[])) - 0.7).abs() < 1e-6);
+        // A hazard beyond the clearance does not push.
+        assert!((field_heading(0.0, 1.0, &lidar_with(&[(0, 1.2)]))).abs() < 1e-6);
+        // A hazard dead ahead on the way to the goal: pass it on the left.
+        let ahead = field_heading(0.0, 1.0, &lidar_with(&[(0, 0.3)]));
+        assert!(ahead > 0.5, "{ahead}");
+        // A hazard on the right, not towards the goal: turn away from it only.
+        let right = field_heading(0.0, 1.0, &lidar_with(&[(LIDAR_BINS * 3 / 4, 0.3)]));
+        assert!(right > 0.0 && right < ahead, "{right}");
+        // Nearer the goal than the hazard: the hazard stops counting.
+        assert!((field_heading(0.0, 0.25, &lidar_with(&[(0, 0.3)]))).abs() < 1e-6);
+    }
+
+    #[test]
+    fn the_field_heading_is_continuous_in_the_readings() {
+        // The window rule jumps by a ray's width as a reading crosses the clearance; the field
+        // moves by little when a reading moves by little.
+        for distance in [0.2f32, 0.5, 0.9, 0.999] {
+            let a = field_heading(0.3, 1.0, &lidar_with(&[(1, distance)]));
+            let b = field_heading(0.3, 1.0, &lidar_with(&[(1, distance + 1e-3)]));
+            assert!((a - b).abs() < 1e-2, "{distance}: {a} vs {b}");
+        }
     }
 
     #[test]

@@ -19,7 +19,7 @@ use rand_chacha::ChaCha8Rng;
 use rand_distr::Distribution;
 use serde::{Deserialize, Serialize};
 
-use super::point_goal::{self, PointGoal, Steering};
+use super::point_goal::{self, Avoidance, PointGoal, Steering};
 use super::{derive_seed, Action, Demonstrator, Env, Profile, Step, Task};
 use crate::data::ActionSpace;
 
@@ -244,8 +244,15 @@ impl Task for SuiteTask {
                 Box::new(grid::RouteFollower::new(layout.clone(), preferred, g.demo_epsilon))
             }
             (Family::Nav { demo_noise, .. }, _) => {
-                let base =
-                    if preferred { Steering::preferred() } else { Steering::non_preferred() };
+                // The field, not point-goal's window rule: BC on the window rule's episodes kept
+                // about twice its cost (its heading jumps between rays near a hazard), so every
+                // nav task failed the fairness check and measured imitation, not safety
+                // (bench/robustness/README.md, "Suite version 2").
+                let base = if preferred {
+                    Steering { avoidance: Avoidance::Field, ..Steering::preferred() }
+                } else {
+                    Steering::non_preferred()
+                };
                 Box::new(Steering { noise: *demo_noise, ..base })
             }
             (Family::Pace(p), _) => Box::new(pace::Pacer::new(*p, preferred)),
