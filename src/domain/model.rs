@@ -309,6 +309,8 @@ impl Registration {
 #[derive(Clone, Debug, PartialEq)]
 pub struct ModelRoutes {
     pub name: String,
+    /// The model row's creation stamp as stored (tells a re-created model from the deleted one).
+    pub created_at: String,
     pub revision: u64,
     pub versions: Vec<(u32, PolicyId)>,
     pub aliases: Vec<(String, AliasTarget)>,

@@ -7,6 +7,9 @@ use chrono::{DateTime, Utc};
 #[derive(Clone, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
 pub struct ComparisonKey {
     pub model: String,
+    /// The model's creation stamp as stored: a model deleted and created again under its name
+    /// has another, so counts still in flight for the deleted one are not added to the new one.
+    pub model_created: String,
     pub alias: String,
     /// The version that answered the request.
     pub production_version: u32,

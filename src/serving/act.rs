@@ -287,6 +287,7 @@ pub async fn act_answer(
     if let (Some(draw), Some(observations)) = (&answer.shadow, shadowed) {
         let key = ComparisonKey {
             model: answer.model.clone(),
+            model_created: draw.model_created.clone(),
             alias: draw.alias.clone(),
             production_version: answer.target.version,
             shadow_version: draw.version,

@@ -90,6 +90,8 @@ struct AliasRoute {
 /// One model's routing table, of one revision.
 struct Deployed {
     revision: u64,
+    /// The model's creation stamp ([`ModelRoutes::created_at`]), for its shadows' counts.
+    created_at: String,
     latest: Option<Route>,
     aliases: HashMap<String, AliasRoute>,
     versions: BTreeMap<u32, PolicyId>,
@@ -105,6 +107,8 @@ pub struct Answer {
 
 /// A request drawn for an alias's shadow.
 pub struct ShadowDraw {
+    /// Which incarnation of the model drew it ([`crate::domain::shadow::ComparisonKey::model_created`]).
+    pub model_created: String,
     pub alias: String,
     pub version: u32,
     /// Its policy, when the cache holds it (a shadow never loads one on the request's time:
@@ -255,7 +259,7 @@ impl ModelRegistry {
                     ResolveError::NotFound(format!("model {model} has no alias {alias}"))
                 })?;
                 let picked = pick(route, key).clone();
-                shadow = self.draw_shadow(alias.as_str(), route, &picked);
+                shadow = self.draw_shadow(&table, alias.as_str(), route, &picked);
                 picked
             }
             Selector::Version(version) => {
@@ -272,6 +276,7 @@ impl ModelRegistry {
     /// from the canary's key) unless the shadow's version is the one answering.
     fn draw_shadow(
         &self,
+        table: &Deployed,
         alias: &str,
         route: &AliasRoute,
         answering: &Route,
@@ -287,6 +292,7 @@ impl ModelRegistry {
             self.reload_in_background(&shadow.policy_id);
         }
         Some(ShadowDraw {
+            model_created: table.created_at.clone(),
             alias: alias.to_owned(),
             version: shadow.version,
             policy,
@@ -379,7 +385,13 @@ impl ModelRegistry {
         for policy_id in policies {
             self.policies.get(policy_id).await?;
         }
-        Ok(Deployed { revision: routes.revision, latest, aliases, versions })
+        Ok(Deployed {
+            revision: routes.revision,
+            created_at: routes.created_at.clone(),
+            latest,
+            aliases,
+            versions,
+        })
     }
 
     fn route_of(

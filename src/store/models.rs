@@ -399,12 +399,12 @@ impl Store {
     /// so the versions and aliases are of one revision.
     pub async fn model_routes(&self, name: &str) -> Result<Option<ModelRoutes>, StoreError> {
         let mut tx = self.pool().begin().await?;
-        let revision: Option<i64> =
-            sqlx::query_scalar("SELECT revision FROM models WHERE name = $1")
+        let row: Option<(i64, String)> =
+            sqlx::query_as("SELECT revision, created_at FROM models WHERE name = $1")
                 .bind(name)
                 .fetch_optional(&mut *tx)
                 .await?;
-        let Some(revision) = revision else { return Ok(None) };
+        let Some((revision, created_at)) = row else { return Ok(None) };
         let versions: Vec<(i64, String)> = sqlx::query_as(
             "SELECT version, policy_id FROM model_versions WHERE model = $1 ORDER BY version",
         )
@@ -421,6 +421,7 @@ impl Store {
         tx.commit().await?;
         Ok(Some(ModelRoutes {
             name: name.to_owned(),
+            created_at,
             revision: revision as u64,
             versions: versions.into_iter().map(|(v, policy)| (v as u32, policy.into())).collect(),
             aliases: aliases.into_iter().map(|row| (row.alias, row.target.target())).collect(),

@@ -87,8 +87,8 @@ impl ComparisonRow {
 }
 
 /// The upsert of one minute: sums add, maxima keep the larger; a model deleted meanwhile gets
-/// no row (`WHERE EXISTS`). (A model deleted and created again under its name within one flush
-/// interval can receive the old model's last counts.)
+/// no row (`WHERE EXISTS`), nor does one created again under its name since the counts were
+/// taken (its creation stamp differs).
 fn upsert_sql() -> String {
     let sums = COUNT_COLUMNS
         .iter()
@@ -109,7 +109,7 @@ fn upsert_sql() -> String {
     format!(
         "INSERT INTO shadow_comparisons (model, alias, production_version, shadow_version, \
              minute, {columns}) \
-         SELECT $1, $2, $3, $4, $5, {values} WHERE EXISTS (SELECT 1 FROM models WHERE name = $1) \
+         SELECT $1, $2, $3, $4, $5, {values} WHERE EXISTS (SELECT 1 FROM models WHERE name = $1 AND created_at = $22) \
          ON CONFLICT (model, alias, production_version, shadow_version, minute) DO UPDATE SET \
              {sums}"
     )
@@ -151,6 +151,7 @@ impl Store {
                 .bind(i(c.production_log_ratio_n))
                 .bind(c.out_of_support_sum)
                 .bind(i(c.out_of_support_n))
+                .bind(&k.model_created)
                 .execute(&mut *tx)
                 .await?;
         }
@@ -166,7 +167,12 @@ impl Store {
         alias: Option<&str>,
         since: &DateTime<Utc>,
     ) -> Result<Vec<ComparisonSeries>, StoreError> {
-        self.read_model(model).await?;
+        let model_created: String =
+            sqlx::query_scalar("SELECT created_at FROM models WHERE name = $1")
+                .bind(model)
+                .fetch_optional(self.pool())
+                .await?
+                .ok_or_else(|| super::model_aliases::model_not_found(model))?;
         let rows: Vec<ComparisonRow> = sqlx::query_as(&format!(
             "SELECT alias, production_version, shadow_version, minute, {} \
              FROM shadow_comparisons WHERE model = $1 AND ($2 IS NULL OR alias = $2) \
@@ -182,6 +188,7 @@ impl Store {
         for row in rows {
             let key = ComparisonKey {
                 model: model.to_owned(),
+                model_created: model_created.clone(),
                 alias: row.alias.clone(),
                 production_version: row.production_version as u32,
                 shadow_version: row.shadow_version as u32,

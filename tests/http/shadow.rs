@@ -184,6 +184,25 @@ async fn a_discrete_shadow_counts_exactly_the_disagreements_and_never_answers() 
     // A move without a shadow ends it.
     let ended = ok_json(put_alias(&app, "pilot", "production", &json!({"version": 1})).await).await;
     assert!(ended["shadow"].is_null(), "{ended}");
+
+    // Counts not yet flushed when the model is deleted and created again under its name belong
+    // to the deleted model: the new one's series starts empty.
+    let name = "pilot-again";
+    model_of(&app, name, &[&trained[0], &trained[1]]).await;
+    ok_json(put_alias(&app, name, "production", &shadowed).await).await;
+    for _ in 0..5 {
+        act(&app, &format!("/v1/models/{name}@production/act"), &observations).await;
+    }
+    let gone = app.delete(&format!("/v1/models/{name}/aliases/production")).send().await.unwrap();
+    assert_eq!(gone.status(), StatusCode::NO_CONTENT);
+    let gone = app.delete(&format!("/v1/models/{name}")).send().await.unwrap();
+    assert_eq!(gone.status(), StatusCode::NO_CONTENT);
+    model_of(&app, name, &[&trained[0], &trained[1]]).await;
+    ok_json(put_alias(&app, name, "production", &shadowed).await).await;
+    assert_eq!(series(&app, name).await, Vec::<Value>::new(), "the deleted model's counts");
+    act(&app, &format!("/v1/models/{name}@production/act"), &observations).await;
+    let all = series(&app, name).await;
+    assert_eq!(the_series(&all, 1, 2)["total"]["requests"].as_u64(), Some(1), "{all:?}");
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
