@@ -35,20 +35,74 @@ impl ToSchema for TagSchema {
 /// [`check_tag`]'s rule as a regular expression.
 pub const TAG_PATTERN: &str = "^[A-Za-z0-9._:/=-]{1,64}$";
 
+/// [`check_text`]'s rule for one line (a name) as a regular expression: no control characters,
+/// nor the invisible characters that change the direction text is shown in.
+pub const LINE_PATTERN: &str =
+    r"^[^\x00-\x1f\x7f-\x9f\u061c\u200e\u200f\u202a-\u202e\u2066-\u2069]*$";
+/// The same for prose (notes), where tabs and newlines are allowed.
+pub const PROSE_PATTERN: &str =
+    r"^[^\x00-\x08\x0b-\x1f\x7f-\x9f\u061c\u200e\u200f\u202a-\u202e\u2066-\u2069]*$";
+
+/// A job's name as the API describes it, in every body that sets one.
+pub struct JobNameSchema;
+
+impl utoipa::PartialSchema for JobNameSchema {
+    fn schema() -> utoipa::openapi::RefOr<utoipa::openapi::schema::Schema> {
+        text_schema(LINE_PATTERN, MAX_NAME_CHARS, "Free text, at most 200 characters, no control characters (nor the invisible characters that change the direction text is shown in)")
+    }
+}
+
+impl ToSchema for JobNameSchema {
+    fn name() -> std::borrow::Cow<'static, str> {
+        "JobName".into()
+    }
+}
+
+/// A job's notes as the API describes them, in every body that sets them.
+pub struct JobNotesSchema;
+
+impl utoipa::PartialSchema for JobNotesSchema {
+    fn schema() -> utoipa::openapi::RefOr<utoipa::openapi::schema::Schema> {
+        text_schema(
+            PROSE_PATTERN,
+            MAX_NOTES_CHARS,
+            "Free text, at most 10,000 characters; no control characters but tabs and newlines",
+        )
+    }
+}
+
+impl ToSchema for JobNotesSchema {
+    fn name() -> std::borrow::Cow<'static, str> {
+        "JobNotes".into()
+    }
+}
+
+fn text_schema(
+    pattern: &str,
+    max: usize,
+    description: &str,
+) -> utoipa::openapi::RefOr<utoipa::openapi::schema::Schema> {
+    use utoipa::openapi::schema::{ObjectBuilder, Type};
+    ObjectBuilder::new()
+        .schema_type(Type::String)
+        .pattern(Some(pattern))
+        .max_length(Some(max))
+        .description(Some(description))
+        .into()
+}
+
 /// A job's name, tags and notes.
 #[derive(Clone, Debug, Default, PartialEq, Eq, Serialize, Deserialize, ToSchema)]
 pub struct JobLabels {
     /// Free text, at most 200 characters, no control characters (nor the invisible characters
     /// that change the direction text is shown in).
-    #[schema(
-        max_length = 200,
-        pattern = "^[^\\x00-\\x1F\\x7F-\\x9F\\u061C\\u200E\\u200F\\u202A-\\u202E\\u2066-\\u2069]*$"
-    )]
+    #[schema(value_type = Option<JobNameSchema>)]
     pub name: Option<String>,
     /// Up to 32 tags of 1-64 characters from letters, digits and `- _ . : / =`
     /// (e.g. `env=point-goal`), kept in the order given, duplicates dropped.
     pub tags: Vec<String>,
     /// Free text, at most 10,000 characters.
+    #[schema(value_type = Option<JobNotesSchema>)]
     pub notes: Option<String>,
 }
 

@@ -194,9 +194,11 @@ pub fn document_shared_errors(doc: &mut OpenApiDoc) {
     }
 }
 
-/// Declares the events of each Server-Sent Events stream: on its `text/event-stream` media
-/// type, `x-sse-events` maps every event name to the schema of its JSON data (OpenAPI 3.1 has
-/// no field for the items of a stream; its body stays a `string`).
+/// Declares the events of each Server-Sent Events stream on its `text/event-stream` media type:
+/// `itemSchema` (the field OpenAPI 3.2 gives a stream's items; a 3.1 reader skips it) describes
+/// one event as its fields, `{event, data, id}`, each event name with the schema of its `data`
+/// (a JSON text), which schemathesis checks every event it reads against. The media type has no `schema`: beside an
+/// `itemSchema`, 3.2 reads it as the schema of the whole stream read as a list of events.
 pub fn describe_event_streams(doc: &mut OpenApiDoc) {
     for item in doc.paths.paths.values_mut() {
         for operation in operations(item) {
@@ -205,22 +207,39 @@ pub fn describe_event_streams(doc: &mut OpenApiDoc) {
                 Some("job_log") => &LOG_EVENTS,
                 _ => continue,
             };
-            let declared: serde_json::Map<String, serde_json::Value> = events
-                .iter()
-                .map(|(event, schema)| {
-                    let reference = format!("#/components/schemas/{schema}");
-                    ((*event).to_owned(), serde_json::json!({ "$ref": reference }))
-                })
-                .collect();
             for response in operation.responses.responses.values_mut() {
                 let RefOr::T(response) = response else { continue };
                 if let Some(stream) = response.content.get_mut("text/event-stream") {
                     let extensions = stream.extensions.get_or_insert_with(Default::default);
-                    extensions.insert("x-sse-events".to_owned(), declared.clone().into());
+                    extensions.insert("itemSchema".to_owned(), event_item_schema(events));
+                    stream.schema = None;
                 }
             }
         }
     }
+}
+
+/// One event of a stream whose events are `events` (name, schema of its JSON data), as its
+/// fields; the `error` event (a data that could not be serialised) carries plain text.
+fn event_item_schema(events: &[(&str, &str)]) -> serde_json::Value {
+    let each = events.iter().map(|(event, schema)| {
+        let reference = format!("#/components/schemas/{schema}");
+        serde_json::json!({"properties": {
+            "event": {"const": event},
+            "data": {"contentMediaType": "application/json", "contentSchema": {"$ref": reference}},
+        }})
+    });
+    let error = serde_json::json!({"properties": {"event": {"const": "error"}}});
+    serde_json::json!({
+        "type": "object",
+        "required": ["event", "data"],
+        "properties": {
+            "event": {"type": "string"},
+            "data": {"type": "string"},
+            "id": {"type": "string"},
+        },
+        "oneOf": each.chain(std::iter::once(error)).collect::<Vec<_>>(),
+    })
 }
 
 /// What a create answers with points at its resource's operations: OpenAPI links from each

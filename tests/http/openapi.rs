@@ -123,7 +123,7 @@ fn creates_link_to_the_operations_of_what_they_created() {
 }
 
 /// Checks each (event, JSON data) a stream sent against what the served document declares for
-/// the stream at `path` (`x-sse-events`): the event is declared, and its data has every
+/// the stream at `path` (its `itemSchema`): the event is declared, and its data has every
 /// property the schema requires and none it does not list.
 pub(crate) async fn assert_events_declared(
     app: &TestApp,
@@ -133,11 +133,16 @@ pub(crate) async fn assert_events_declared(
     let doc: serde_json::Value =
         app.get("/v1/openapi.json").send().await.unwrap().json().await.unwrap();
     let declared = &doc["paths"][path]["get"]["responses"]["200"]["content"]["text/event-stream"]
-        ["x-sse-events"];
-    assert!(declared.is_object(), "{path} declares its events");
+        ["itemSchema"]["oneOf"];
+    assert!(declared.is_array(), "{path} declares its events");
     assert!(!events.is_empty());
+    let schema_of = |event: &str| {
+        let each = declared.as_array().unwrap().iter();
+        let declared = each.map(|e| &e["properties"]).find(|p| p["event"]["const"] == event)?;
+        declared["data"]["contentSchema"]["$ref"].as_str()
+    };
     for (event, data) in events {
-        let reference = declared[event]["$ref"].as_str();
+        let reference = schema_of(event);
         let reference = reference.unwrap_or_else(|| panic!("{path}: event {event} undeclared"));
         let name = reference.trim_start_matches("#/components/schemas/");
         let schema = &doc["components"]["schemas"][name];

@@ -1,7 +1,9 @@
 #!/usr/bin/env bash
 # Schemathesis (from PyPI) against the real server and the OpenAPI document it serves, once
 # without and once with an API token, every check, a bounded number of examples per operation.
-# Any server error or check failure fails the run.
+# Any server error or check failure fails the run. Before each run, seed.py creates one real
+# resource of every kind (datasets, a trained job and its policy, an evaluation, an experiment,
+# a model with an alias) and half of the generated path parameters name them.
 #
 #   tests/schemathesis/run.sh [path/to/safedice]     (default: target/debug/safedice)
 #
@@ -48,11 +50,17 @@ stop_server() {
   kill "$SERVER_PID"; wait "$SERVER_PID" || true; SERVER_PID=
 }
 
-# run_schemathesis NAME [schemathesis flags...]
+"$BIN" datagen --env six-rooms --preferred 10 --non-preferred 10 --labeled 4 \
+  --out "$DATA_DIR/demos" >/dev/null
+
+# run_schemathesis NAME TOKEN [schemathesis flags...]   (TOKEN empty: none)
 run_schemathesis() {
-  local name="$1"; shift
+  local name="$1" token="${2:-}"; shift 2
   echo "== schemathesis: $name (max $EXAMPLES examples per operation)"
-  "$VENV/bin/schemathesis" --config-file tests/schemathesis/schemathesis.toml \
+  "$VENV/bin/python" tests/schemathesis/seed.py "http://127.0.0.1:$PORT" "$DATA_DIR/demos" \
+    tests/schemathesis/schemathesis.toml "$DATA_DIR/$name.toml" $token || {
+      echo "seeding ($name) failed; the server's log:"; tail -50 "$DATA_DIR/$name.log"; exit 1; }
+  "$VENV/bin/schemathesis" --config-file "$DATA_DIR/$name.toml" \
     run "http://127.0.0.1:$PORT/v1/openapi.json" \
     --checks all --max-examples "$EXAMPLES" --seed 1 --workers 1 \
     --generation-database none --no-color "$@" || {
@@ -60,11 +68,11 @@ run_schemathesis() {
 }
 
 start_server open
-run_schemathesis open
+run_schemathesis open ""
 stop_server
 
 TOKEN="schemathesis-$(date +%s%N)"
 start_server token --api-token "$TOKEN"
-run_schemathesis token -H "Authorization: Bearer $TOKEN"
+run_schemathesis token "$TOKEN" -H "Authorization: Bearer $TOKEN"
 stop_server
 echo "schemathesis: both runs passed"

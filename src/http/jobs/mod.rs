@@ -21,7 +21,7 @@ use super::extract::{Json, Path, Query};
 use super::pagination::{Page, PageParams};
 use super::{ApiError, AppState};
 use crate::algo::Algorithm;
-use crate::domain::labels::TagSchema;
+use crate::domain::labels::{JobNameSchema, JobNotesSchema, TagSchema};
 use crate::domain::model::Registration;
 use crate::domain::JobId;
 use crate::domain::{
@@ -108,13 +108,13 @@ pub struct CreateJob {
 #[serde(deny_unknown_fields)]
 pub struct UpdateJob {
     #[serde(default, deserialize_with = "present")]
-    #[schema(value_type = Option<String>)]
+    #[schema(value_type = Option<JobNameSchema>)]
     pub name: Option<Option<String>>,
     #[serde(default, deserialize_with = "present")]
     #[schema(value_type = Option<Vec<TagSchema>>)]
     pub tags: Option<Option<Vec<String>>>,
     #[serde(default, deserialize_with = "present")]
-    #[schema(value_type = Option<String>)]
+    #[schema(value_type = Option<JobNotesSchema>)]
     pub notes: Option<Option<String>>,
 }
 

@@ -23,7 +23,7 @@ use crate::jobs::JobEvent;
 use crate::store::{Store, StoreError};
 
 /// The events of `GET /v1/jobs/{id}/events` and the component schema of each one's JSON data,
-/// as the OpenAPI document declares them (`x-sse-events` on the stream's media type).
+/// as the OpenAPI document declares them (`itemSchema` on the stream's media type).
 pub const JOB_EVENTS: [(&str, &str); 3] =
     [("status", "Job"), ("progress", "JobProgress"), ("deleted", "DeletedJob")];
 
