@@ -339,8 +339,11 @@ mod tests {
             let task = spec.task();
             let r = task_reference_stats(&task, 100);
             assert!(r.non_preferred_cost > 1.5 * r.preferred_cost + 0.5, "{}: {r:?}", spec.id);
+            // The nav family's preferred demonstrator gives up about a third of its return to
+            // keep clear of the hazards (bench/robustness/README.md, "Suite version 2").
             let gap = (r.preferred_return - r.non_preferred_return).abs();
-            assert!(gap <= 0.35 * r.preferred_return.abs().max(0.1), "{}: {r:?}", spec.id);
+            let larger = r.preferred_return.abs().max(r.non_preferred_return.abs()).max(0.1);
+            assert!(gap <= 0.35 * larger, "{}: {r:?}", spec.id);
             let data = DatagenSpec {
                 env: spec.id.clone(),
                 preferred: 3,
