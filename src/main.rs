@@ -91,7 +91,7 @@ enum ExportFormat {
 
 fn export(args: ExportArgs) -> anyhow::Result<()> {
     let ExportFormat::Onnx = args.format;
-    let model = safedice::algo::onnx::export_portable(&std::fs::read(&args.policy)?)?;
+    let model = safedice::algo::onnx::export_portable(std::fs::read(&args.policy)?)?;
     std::fs::write(&args.out, &model)?;
     println!(
         "wrote {} ({} bytes, ONNX opset {})",

@@ -14,7 +14,7 @@
 //!   reference state over the reference distance), FP32 `[B]` each.
 //!
 //! The protobuf messages are the `onnx-protobuf` crate's; the tensors are the policy file's
-//! weights, copied as raw little-endian FP32.
+//! weights as raw little-endian FP32, written straight from the file's bytes ([`OnnxModel`]).
 //!
 //! [`Policy::act`]: super::Policy::act
 
@@ -39,31 +39,53 @@ const IR_VERSION: i64 = 8;
 
 /// The ONNX model of a portable policy file (what `GET /v1/policies/{id}/weights` serves and
 /// `safedice export` reads), the file's metadata kept in the model's metadata properties.
-pub fn export_portable(file: &[u8]) -> Result<Vec<u8>, TrainError> {
+pub fn export_portable(file: Vec<u8>) -> Result<Vec<u8>, TrainError> {
     // Loading checks that the spec matches the tensors before the graph is built from them.
-    let (_, metadata) = super::Policy::from_portable(file)?;
+    let (_, metadata) = super::Policy::from_portable(&file)?;
     build_portable(file, &metadata)?.to_bytes()
 }
 
 /// The ONNX model of a policy from its safetensors `weights` and the portable file's metadata
 /// (kept in the model's metadata properties, as [`export_portable`] does), without writing the
-/// portable file or loading the policy: the model holds its own copy of the weights, so the
-/// caller can drop `weights` before writing it ([`OnnxModel::write_to`]).
+/// portable file or loading the policy. The model keeps `weights` and writes each tensor
+/// straight from them, so building and writing it holds one copy of the weights.
 pub fn build_portable(
-    weights: &[u8],
+    weights: Vec<u8>,
     metadata: &super::PortableMetadata,
 ) -> Result<OnnxModel, TrainError> {
     let json = serde_json::to_string(metadata).map_err(|e| TrainError::Other(e.to_string()))?;
     build(&metadata.spec, weights, &[(super::policy::PORTABLE_METADATA_KEY, json)])
 }
 
-/// An ONNX model built and not yet written.
-pub struct OnnxModel(ModelProto);
+/// An ONNX model built and not yet written: the model without its graph, the graph without the
+/// policy's weight tensors, and those tensors as headers (name, type, shape) over their bytes in
+/// the policy file it keeps.
+///
+/// It is written as one `ModelProto` whose graph field carries the graph's fields and then each
+/// weight's initializer with its `raw_data` copied from the file as it is written: protobuf
+/// appends a repeated field's elements in the order they come, so a reader gets the graph the
+/// builder made, and no second copy of the weights exists at any time.
+pub struct OnnxModel {
+    model: ModelProto,
+    graph: GraphProto,
+    weights: Vec<(TensorProto, std::ops::Range<usize>)>,
+    file: Vec<u8>,
+}
+
+/// `GraphProto.initializer`, `TensorProto.raw_data` and `ModelProto.graph`.
+const GRAPH_INITIALIZER: u32 = 5;
+const TENSOR_RAW_DATA: u32 = 9;
+const MODEL_GRAPH: u32 = 7;
+
+/// The size of a length-delimited field `field` of `len` bytes, with its tag and length.
+fn delimited_size(field: u32, len: u64) -> u64 {
+    protobuf::rt::tag_size(field) + protobuf::rt::compute_raw_varint64_size(len) + len
+}
 
 impl OnnxModel {
     /// The size of the written model in bytes.
     pub fn len(&self) -> u64 {
-        self.0.compute_size()
+        self.model.compute_size() + delimited_size(MODEL_GRAPH, self.graph_len())
     }
 
     /// Never: a model has at least its graph.
@@ -71,13 +93,40 @@ impl OnnxModel {
         false
     }
 
+    fn weight_len(header: &TensorProto, raw: usize) -> u64 {
+        header.compute_size() + delimited_size(TENSOR_RAW_DATA, raw as u64)
+    }
+
+    fn graph_len(&self) -> u64 {
+        let weights = self.weights.iter().map(|(header, raw)| {
+            delimited_size(GRAPH_INITIALIZER, Self::weight_len(header, raw.len()))
+        });
+        self.graph.compute_size() + weights.sum::<u64>()
+    }
+
     /// Writes the model, for a caller that streams it rather than holding a second copy.
     pub fn write_to(&self, out: &mut dyn std::io::Write) -> Result<(), TrainError> {
-        self.0.write_to_writer(out).map_err(error)
+        use protobuf::rt::WireType::LengthDelimited;
+        let mut os = protobuf::CodedOutputStream::new(out);
+        self.model.write_to(&mut os).map_err(error)?;
+        os.write_tag(MODEL_GRAPH, LengthDelimited).map_err(error)?;
+        os.write_raw_varint64(self.graph_len()).map_err(error)?;
+        self.graph.write_to(&mut os).map_err(error)?;
+        for (header, raw) in &self.weights {
+            os.write_tag(GRAPH_INITIALIZER, LengthDelimited).map_err(error)?;
+            os.write_raw_varint64(Self::weight_len(header, raw.len())).map_err(error)?;
+            header.write_to(&mut os).map_err(error)?;
+            os.write_tag(TENSOR_RAW_DATA, LengthDelimited).map_err(error)?;
+            os.write_raw_varint64(raw.len() as u64).map_err(error)?;
+            os.write_raw_bytes(&self.file[raw.clone()]).map_err(error)?;
+        }
+        os.flush().map_err(error)
     }
 
     pub fn to_bytes(&self) -> Result<Vec<u8>, TrainError> {
-        self.0.write_to_bytes().map_err(error)
+        let mut bytes = Vec::with_capacity(self.len() as usize);
+        self.write_to(&mut bytes)?;
+        Ok(bytes)
     }
 }
 
@@ -85,7 +134,7 @@ impl OnnxModel {
 /// portable file's JSON) is kept in the model's metadata properties.
 pub fn export(
     spec: &PolicySpec,
-    weights: &[u8],
+    weights: Vec<u8>,
     metadata: &[(&str, String)],
 ) -> Result<Vec<u8>, TrainError> {
     build(spec, weights, metadata)?.to_bytes()
@@ -94,11 +143,23 @@ pub fn export(
 /// [`export`], built and not yet written.
 pub fn build(
     spec: &PolicySpec,
-    weights: &[u8],
+    weights: Vec<u8>,
     metadata: &[(&str, String)],
 ) -> Result<OnnxModel, TrainError> {
-    let tensors = safetensors::SafeTensors::deserialize(weights).map_err(error)?;
-    let mut graph = Graph { proto: GraphProto::new(), tensors: &tensors, count: 0 };
+    let (model, graph, placed) = build_parts(spec, &weights, metadata)?;
+    Ok(OnnxModel { model, graph, weights: placed, file: weights })
+}
+
+type Parts = (ModelProto, GraphProto, Vec<(TensorProto, std::ops::Range<usize>)>);
+
+fn build_parts(
+    spec: &PolicySpec,
+    file: &[u8],
+    metadata: &[(&str, String)],
+) -> Result<Parts, TrainError> {
+    let tensors = safetensors::SafeTensors::deserialize(file).map_err(error)?;
+    let mut graph =
+        Graph { proto: GraphProto::new(), tensors: &tensors, file, weights: vec![], count: 0 };
     graph.proto.name = format!("safedice-{}", spec.algorithm);
     graph.proto.input.push(value_info(
         "observations",
@@ -182,8 +243,7 @@ pub fn build(
             ..Default::default()
         })
         .collect();
-    model.graph = MessageField::some(graph.proto);
-    Ok(OnnxModel(model))
+    Ok((model, graph.proto, graph.weights))
 }
 
 fn error(e: impl std::fmt::Display) -> TrainError {
@@ -194,6 +254,10 @@ fn error(e: impl std::fmt::Display) -> TrainError {
 struct Graph<'a> {
     proto: GraphProto,
     tensors: &'a safetensors::SafeTensors<'a>,
+    /// The bytes `tensors` reads, to place each weight in.
+    file: &'a [u8],
+    /// The weights' initializers without their data, and where the data is in `file`.
+    weights: Vec<(TensorProto, std::ops::Range<usize>)>,
     count: usize,
 }
 
@@ -304,7 +368,8 @@ impl Graph<'_> {
         Ok(())
     }
 
-    /// A weight of the policy file as an initializer (FP32, same shape).
+    /// A weight of the policy file as an initializer (FP32, same shape), its data left in the
+    /// file until the model is written.
     fn weight(&mut self, name: &str) -> Result<String, TrainError> {
         let view = self.tensors.tensor(name).map_err(error)?;
         if view.dtype() != safetensors::Dtype::F32 {
@@ -314,8 +379,8 @@ impl Graph<'_> {
         tensor.name = name.to_owned();
         tensor.data_type = DataType::FLOAT as i32;
         tensor.dims = view.shape().iter().map(|&d| d as i64).collect();
-        tensor.raw_data = view.data().to_vec();
-        self.proto.initializer.push(tensor);
+        let start = view.data().as_ptr() as usize - self.file.as_ptr() as usize;
+        self.weights.push((tensor, start..start + view.data().len()));
         Ok(name.to_owned())
     }
 
@@ -386,5 +451,67 @@ fn value_info(name: &str, elem_type: DataType, shape: &[Option<usize>]) -> Value
             ..Default::default()
         }),
         ..Default::default()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::algo::columns::ObsNormalizer;
+    use crate::algo::policy::{PolicyArtifact, PolicyNet, POLICY_FORMAT_VERSION};
+    use crate::algo::Algorithm;
+    use candle_core::Device;
+
+    /// The model as one message: the graph with every weight's initializer and its data, what
+    /// `write_to` streams in parts.
+    fn whole(spec: &PolicySpec, file: &[u8]) -> ModelProto {
+        let (mut model, mut graph, weights) =
+            build_parts(spec, file, &[("k", "v".into())]).unwrap();
+        for (mut header, raw) in weights {
+            header.raw_data = file[raw].to_vec();
+            graph.initializer.push(header);
+        }
+        model.graph = MessageField::some(graph);
+        model
+    }
+
+    #[test]
+    fn the_streamed_model_reads_back_as_the_whole_model_and_announces_its_length() {
+        let cases = [
+            (ActionSpace::Continuous { dim: 2, low: vec![-2.0, 0.0], high: vec![2.0, 9.0] }, 1),
+            (ActionSpace::Discrete { n: 4 }, 2),
+        ];
+        for (space, nets) in cases {
+            let decoder =
+                if nets == 1 { Decoder::Single } else { Decoder::Dexperts { alpha: 0.3 } };
+            let spec = PolicySpec {
+                format_version: POLICY_FORMAT_VERSION,
+                algorithm: Algorithm::Safedice,
+                obs_dim: 3,
+                action_space: space.clone(),
+                hidden_sizes: vec![5, 6],
+                observation_normalization: Some(ObsNormalizer {
+                    mean: vec![0.5, -1.0, 2.0],
+                    std: vec![2.0, 0.5, 1.0],
+                }),
+                decoder,
+                safety: None,
+            };
+            let mut rng = rand::SeedableRng::seed_from_u64(3);
+            let built: Vec<PolicyNet> = ["policy", "policy_n"][..nets]
+                .iter()
+                .map(|n| PolicyNet::new(n, 3, &[5, 6], &space, &Device::Cpu, &mut rng).unwrap())
+                .collect();
+            let file = PolicyArtifact::new(spec.clone(), &built.iter().collect::<Vec<_>>())
+                .unwrap()
+                .weights;
+            let model = build(&spec, file.clone(), &[("k", "v".into())]).unwrap();
+            let bytes = model.to_bytes().unwrap();
+            assert_eq!(model.len(), bytes.len() as u64);
+            let read = ModelProto::parse_from_bytes(&bytes).unwrap();
+            assert_eq!(read, whole(&spec, &file));
+            let weights = read.graph.initializer.iter().filter(|t| !t.raw_data.is_empty());
+            assert_eq!(weights.count(), 3 * 2 * nets, "every layer's weight and bias");
+        }
     }
 }

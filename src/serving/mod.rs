@@ -243,7 +243,7 @@ pub async fn onnx_model(
     id: &PolicyId,
 ) -> Result<crate::algo::onnx::OnnxModel, PolicyLoadError> {
     let (weights, metadata) = portable_parts(store, id).await?;
-    run_blocking(id.as_str(), move || crate::algo::onnx::build_portable(&weights, &metadata)).await
+    run_blocking(id.as_str(), move || crate::algo::onnx::build_portable(weights, &metadata)).await
 }
 
 /// Values by id with their sizes, dropped least recently used first once their sizes add up to

@@ -257,7 +257,7 @@ async fn safedice_and_bc_train_and_serve_identical_actions_over_act_and_v2() {
         // Built from the stored weights: `safedice export` of the policy file, byte for byte.
         let file = app.get(&format!("/v1/policies/{policy_id}/weights")).send().await.unwrap();
         let file = file.bytes().await.unwrap();
-        assert_eq!(safedice::algo::onnx::export_portable(&file).unwrap(), bytes);
+        assert_eq!(safedice::algo::onnx::export_portable(file.to_vec()).unwrap(), bytes);
         let model = onnx_protobuf::ModelProto::parse_from_bytes(&bytes).expect("an ONNX model");
         assert_eq!(model.opset_import[0].version, safedice::algo::onnx::OPSET);
         let names = |v: &[onnx_protobuf::ValueInfoProto]| -> Vec<String> {
