@@ -234,8 +234,8 @@ async fn set_alias(
     Path(path): Path<AliasPath>,
     Json(request): Json<SetAlias>,
 ) -> Result<Json<AliasMoveResource>, ApiError> {
-    model_name(&path.name)?;
-    model::AliasName::parse(&path.alias).map_err(invalid_name)?;
+    let name = model_name(&path.name)?;
+    let alias = model::AliasName::parse(&path.alias).map_err(invalid_name)?;
     // A canary of the alias's own version splits nothing: it is no canary (the schema cannot
     // say "another version", so it is not refused).
     let canary = canary_of(request.canary)?.filter(|c| c.version != request.version);
@@ -243,9 +243,9 @@ async fn set_alias(
     let target = AliasTarget { version: request.version, canary, shadow };
     let note = note(request.actor, request.reason, request.expected_version)?;
     // Versions that do not exist are 404 before anything else is said of them.
-    preload(&state, &path.name, &target).await?;
-    let moved = state.store.set_alias(&path.name, &path.alias, &target, &note).await?;
-    refresh(&state, &path.name).await;
+    preload(&state, &name, &target).await?;
+    let moved = state.store.set_alias(&name, &alias, &target, &note).await?;
+    refresh(&state, &name).await;
     let from = moved.from.as_ref().map(|t| t.version);
     tracing::info!(model = %path.name, alias = %path.alias, ?from, to = target.version, actor = %note.actor, "alias moved");
     Ok(Json(moved.into()))
@@ -254,7 +254,11 @@ async fn set_alias(
 /// Loads the policies of the versions an alias will point at, so that a policy that cannot be
 /// served is refused before the move (and loading takes no request's time after it); a shadow
 /// must act on what the alias's version acts on.
-async fn preload(state: &AppState, model: &str, target: &AliasTarget) -> Result<(), ApiError> {
+async fn preload(
+    state: &AppState,
+    model: &model::ModelName,
+    target: &AliasTarget,
+) -> Result<(), ApiError> {
     let mut answering = Vec::new();
     for version in target.versions() {
         let record = state.store.model_version(model, version).await?;
@@ -316,10 +320,10 @@ async fn delete_alias(
     Path(path): Path<AliasPath>,
     Query(params): Query<MoveParams>,
 ) -> Result<StatusCode, ApiError> {
-    model_name(&path.name)?;
+    let name = model_name(&path.name)?;
     let note = note(params.actor, params.reason, params.expected_version)?;
-    state.store.delete_alias(&path.name, &path.alias, &note).await?;
-    refresh(&state, &path.name).await;
+    state.store.delete_alias(&name, &path.alias, &note).await?;
+    refresh(&state, &name).await;
     Ok(StatusCode::NO_CONTENT)
 }
 
@@ -334,7 +338,7 @@ async fn model_history(
     Path(name): Path<String>,
     Query(params): Query<HistoryParams>,
 ) -> Result<Json<History>, ApiError> {
-    model_name(&name)?;
+    let name = model_name(&name)?;
     let limit = params.limit.unwrap_or(100);
     if !(1..=1000).contains(&limit) {
         return Err(ApiError::bad_request(

@@ -71,8 +71,8 @@ pub(crate) fn note(
 
 /// This server serves the change at once (the others of a fleet follow by notification or
 /// poll). A failure to load leaves the previous table serving and is retried by the poll.
-pub(crate) async fn refresh(state: &AppState, model: &str) {
-    if let Err(e) = state.serving.models.refresh_model(model).await {
+pub(crate) async fn refresh(state: &AppState, model: &crate::domain::model::ModelName) {
+    if let Err(e) = state.serving.models.refresh_model(model.as_str()).await {
         tracing::error!(%model, error = %e, "cannot load the model's new versions yet; the previous ones keep serving");
     }
 }

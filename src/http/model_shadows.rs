@@ -16,6 +16,7 @@ use super::error::ErrorBody;
 use super::extract::{Json, Path, Query};
 use super::{ApiError, AppState};
 use crate::data::ActionSpace;
+use crate::domain::model::ModelName;
 use crate::domain::rfc3339;
 use crate::domain::shadow::{ComparisonCounts, ComparisonSeries};
 
@@ -145,7 +146,7 @@ async fn shadow_series(
     Path(name): Path<String>,
     Query(params): Query<ShadowParams>,
 ) -> Result<Json<ShadowReport>, ApiError> {
-    super::model_names::model_name(&name)?;
+    let model = super::model_names::model_name(&name)?;
     let minutes = params.minutes.unwrap_or(60);
     if !(1..=MAX_MINUTES).contains(&minutes) {
         return Err(ApiError::bad_request(
@@ -160,16 +161,20 @@ async fn shadow_series(
     let since = now - chrono::TimeDelta::minutes(i64::from(minutes) - 1);
     let since = chrono::DurationRound::duration_trunc(since, chrono::TimeDelta::minutes(1))
         .map_err(|e| ApiError::Internal(anyhow::anyhow!("{e}")))?;
-    let stored = state.store.shadow_series(&name, params.alias.as_deref(), &since).await?;
+    let stored = state.store.shadow_series(&model, params.alias.as_deref(), &since).await?;
     let mut series = Vec::with_capacity(stored.len());
     for one in stored {
-        series.push(resource(&state, one).await);
+        series.push(resource(&state, &model, one).await);
     }
     Ok(Json(ShadowReport { model: name, since: rfc3339(&since), series }))
 }
 
-async fn resource(state: &AppState, series: ComparisonSeries) -> ShadowSeriesResource {
-    let discrete = action_kind(state, &series.key.model, series.key.production_version).await;
+async fn resource(
+    state: &AppState,
+    model: &ModelName,
+    series: ComparisonSeries,
+) -> ShadowSeriesResource {
+    let discrete = action_kind(state, model, series.key.production_version).await;
     let mut total = ComparisonCounts::default();
     let points = series
         .points
@@ -193,7 +198,7 @@ async fn resource(state: &AppState, series: ComparisonSeries) -> ShadowSeriesRes
 }
 
 /// Whether the version gives discrete actions (None: the version or its policy is gone).
-async fn action_kind(state: &AppState, model: &str, version: u32) -> Option<bool> {
+async fn action_kind(state: &AppState, model: &ModelName, version: u32) -> Option<bool> {
     let record = state.store.model_version(model, version).await.ok()?;
     let policy = state.store.policy(&record.policy_id).await.ok()?;
     Some(matches!(policy.action_space, ActionSpace::Discrete { .. }))

@@ -272,7 +272,7 @@ async fn update_model(
     Path(name): Path<String>,
     Json(request): Json<UpdateModel>,
 ) -> Result<Json<Model>, ApiError> {
-    model_name(&name)?;
+    let name = model_name(&name)?;
     if let Some(description) = &request.description {
         check_text("description", description, MAX_DESCRIPTION_CHARS)?;
     }
@@ -298,7 +298,7 @@ async fn delete_model(
 ) -> Result<StatusCode, ApiError> {
     let model = model_name(&name)?;
     state.store.delete_model(&model).await?;
-    refresh(&state, &name).await;
+    refresh(&state, &model).await;
     tracing::info!(model = %name, "model deleted");
     Ok(StatusCode::NO_CONTENT)
 }
@@ -319,7 +319,7 @@ async fn create_version(
     Path(name): Path<String>,
     Json(request): Json<CreateVersion>,
 ) -> Result<impl IntoResponse, ApiError> {
-    model_name(&name)?;
+    let name = model_name(&name)?;
     check_text("description", &request.description, MAX_DESCRIPTION_CHARS)?;
     // The body names the policy: one that does not exist makes the body wrong (422); 404 is
     // for the model the path names.
@@ -331,8 +331,11 @@ async fn create_version(
         Err(StoreError::NotFound { .. }) => return Err(unknown_policy()),
         found => drop(found?),
     }
-    if let Some(alias) = &request.alias {
-        model::AliasName::parse(alias).map_err(invalid_name)?;
+    let alias = match &request.alias {
+        Some(alias) => Some(model::AliasName::parse(alias).map_err(invalid_name)?),
+        None => None,
+    };
+    if alias.is_some() {
         // The alias must not resolve to a policy that cannot load: load it first.
         state.serving.policies.get(&PolicyId::from(request.policy_id.clone())).await?;
     }
@@ -342,7 +345,7 @@ async fn create_version(
         policy_id: &request.policy_id,
         description: &request.description,
         source: "api",
-        alias: request.alias.as_deref().map(|alias| (alias, &note)),
+        alias: alias.as_ref().map(|alias| (alias, &note)),
     };
     let record = match state.store.register_version(&version).await {
         // Deleted since the check above.
@@ -365,7 +368,7 @@ async fn list_versions(
     Path(name): Path<String>,
     Query(params): Query<VersionParams>,
 ) -> Result<Json<VersionList>, ApiError> {
-    model_name(&name)?;
+    let name = model_name(&name)?;
     let limit = params.limit.unwrap_or(50);
     if !(1..=500).contains(&limit) {
         return Err(ApiError::bad_request(
@@ -399,8 +402,8 @@ async fn get_version(
     State(state): State<AppState>,
     Path(path): Path<VersionPath>,
 ) -> Result<Json<ModelVersion>, ApiError> {
-    model_name(&path.name)?;
-    Ok(Json(state.store.model_version(&path.name, path.version).await?.into()))
+    let name = model_name(&path.name)?;
+    Ok(Json(state.store.model_version(&name, path.version).await?.into()))
 }
 
 /// Delete a version no alias points at (its number is not handed out again; the policy stays).
@@ -416,6 +419,6 @@ async fn delete_version(
 ) -> Result<StatusCode, ApiError> {
     let model = model_name(&path.name)?;
     state.store.delete_model_version(&model, path.version).await?;
-    refresh(&state, &path.name).await;
+    refresh(&state, &model).await;
     Ok(StatusCode::NO_CONTENT)
 }

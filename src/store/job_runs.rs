@@ -13,7 +13,7 @@ use super::jobs::delete_checkpoint;
 use super::leases::{self, Lease};
 use super::policies::NewPolicy;
 use super::{now, optional_real, Store, StoreError};
-use crate::domain::model::MoveNote;
+use crate::domain::model::{AliasName, ModelName, MoveNote};
 use crate::domain::{
     AttemptOutcome, JobId, JobRecord, JobStatus, LogLevel, MetricRecord, PolicyId,
 };
@@ -237,6 +237,11 @@ impl Store {
                 .fetch_one(&mut **tx)
                 .await?;
         let Some(model) = model else { return Ok(None) };
+        // Both were parsed when the job was queued; a stored name that no longer parses is a
+        // corrupt row.
+        let corrupt = |e: String| StoreError::Corrupt(format!("job {job_id}"), e);
+        let model = ModelName::parse(&model).map_err(corrupt)?;
+        let alias = alias.map(|a| AliasName::parse(&a)).transpose().map_err(corrupt)?;
         let source = format!("job {job_id}");
         let reason = Some("registered on success".into());
         let note = MoveNote { actor: source.clone(), reason, expected_version: None };
@@ -245,18 +250,18 @@ impl Store {
             policy_id: policy_id.as_str(),
             description: "",
             source: &source,
-            alias: alias.as_deref().map(|alias| (alias, &note)),
+            alias: alias.as_ref().map(|alias| (alias, &note)),
         };
         let (level, message, registered) = match super::models::register_in(tx, self, &version)
             .await
         {
             Ok(number) => {
-                let moved = alias.as_deref().map(|a| format!(", alias {a} moved to it"));
+                let moved = alias.as_ref().map(|a| format!(", alias {a} moved to it"));
                 let message = format!(
                     "registered the policy as version {number} of model {model}{}",
                     moved.unwrap_or_default()
                 );
-                (LogLevel::Info, message, Some((model, number)))
+                (LogLevel::Info, message, Some((model.as_str().to_owned(), number)))
             }
             Err(StoreError::NotFound { kind: "model", .. }) => {
                 tracing::warn!(%model, %job_id, "the job's model was deleted: policy not registered");

@@ -4,7 +4,9 @@
 use sqlx::{Any, Transaction};
 
 use super::{parse_time, Store, StoreError};
-use crate::domain::model::{AliasMove, AliasTarget, Canary, MoveNote, Shadow};
+use crate::domain::model::{
+    AliasMove, AliasName, AliasTarget, Canary, ModelName, MoveNote, Shadow,
+};
 
 /// The PostgreSQL notification channel of model changes; the payload is the model's name.
 pub const MODELS_CHANNEL: &str = "safedice_models";
@@ -71,24 +73,27 @@ impl Store {
     /// Points `alias` at `target` (creating it), recording the move.
     pub async fn set_alias(
         &self,
-        model: &str,
-        alias: &str,
+        model: &ModelName,
+        alias: &AliasName,
         target: &AliasTarget,
         note: &MoveNote,
     ) -> Result<AliasMove, StoreError> {
+        let (model, alias) = (model.as_str(), alias.as_str());
         let mut tx = self.begin_write().await?;
         let seq = set_alias_in(&mut tx, self, model, alias, Some(target), note).await?;
         tx.commit().await?;
         self.alias_move(model, seq).await
     }
 
-    /// Deletes `alias`, recording the move; NotFound if the model has no such alias.
+    /// Deletes `alias` (a name as asked: one that is no valid alias name names none), recording
+    /// the move; NotFound if the model has no such alias.
     pub async fn delete_alias(
         &self,
-        model: &str,
+        model: &ModelName,
         alias: &str,
         note: &MoveNote,
     ) -> Result<AliasMove, StoreError> {
+        let model = model.as_str();
         let mut tx = self.begin_write().await?;
         let seq = set_alias_in(&mut tx, self, model, alias, None, note).await?;
         tx.commit().await?;
@@ -106,13 +111,14 @@ impl Store {
         row.into_move(model)
     }
 
-    /// The moves of a model's aliases (of `alias` only, when given), newest first.
+    /// The moves of a model's aliases (of `alias` only, when given, as asked), newest first.
     pub async fn alias_history(
         &self,
-        model: &str,
+        model: &ModelName,
         alias: Option<&str>,
         limit: u32,
     ) -> Result<Vec<AliasMove>, StoreError> {
+        let model = model.as_str();
         self.read_model(model).await?;
         let rows: Vec<MoveRow> = sqlx::query_as(&format!(
             "SELECT {MOVE_COLUMNS} FROM model_alias_moves WHERE model = $1 \

@@ -14,7 +14,8 @@ use super::model_aliases::{
 use super::{parse_time, Listing, PageQuery, Store, StoreError};
 use crate::domain::job::JobStatus;
 use crate::domain::model::{
-    AliasRecord, AliasTarget, ModelName, ModelRecord, ModelRoutes, ModelVersionRecord, MoveNote,
+    AliasName, AliasRecord, AliasTarget, ModelName, ModelRecord, ModelRoutes, ModelVersionRecord,
+    MoveNote,
 };
 
 /// A new model's fields.
@@ -28,13 +29,13 @@ pub struct NewModel<'a> {
 /// A new version's fields.
 #[derive(Clone, Debug)]
 pub struct NewVersion<'a> {
-    pub model: &'a str,
+    pub model: &'a ModelName,
     pub policy_id: &'a str,
     pub description: &'a str,
     /// `api`, or `job <id>`.
     pub source: &'a str,
     /// An alias to move to the new version in the same transaction.
-    pub alias: Option<(&'a str, &'a MoveNote)>,
+    pub alias: Option<(&'a AliasName, &'a MoveNote)>,
 }
 
 #[derive(sqlx::FromRow)]
@@ -213,7 +214,7 @@ impl Store {
     /// Changes a model's description and/or tags.
     pub async fn update_model(
         &self,
-        name: &str,
+        name: &ModelName,
         description: Option<&str>,
         tags: Option<&[String]>,
     ) -> Result<ModelRecord, StoreError> {
@@ -222,16 +223,16 @@ impl Store {
             "UPDATE models SET description = COALESCE($2, description), tags = COALESCE($3, tags), \
              updated_at = $4 WHERE name = $1",
         )
-        .bind(name)
+        .bind(name.as_str())
         .bind(description)
         .bind(tags)
         .bind(self.db_now().await?)
         .execute(self.pool())
         .await?;
         if updated.rows_affected() == 0 {
-            return Err(model_not_found(name));
+            return Err(model_not_found(name.as_str()));
         }
-        self.read_model(name).await
+        self.read_model(name.as_str()).await
     }
 
     /// Deletes a model with its versions and history (never the policies). Refused (409
@@ -309,27 +310,28 @@ impl Store {
 
     pub async fn model_version(
         &self,
-        model: &str,
+        model: &ModelName,
         version: u32,
     ) -> Result<ModelVersionRecord, StoreError> {
         let row: VersionRow = sqlx::query_as(&format!(
             "SELECT {VERSION_COLUMNS} FROM {VERSIONS} WHERE model = $1 AND version = $2"
         ))
-        .bind(model)
+        .bind(model.as_str())
         .bind(i64::from(version))
         .fetch_optional(self.pool())
         .await?
-        .ok_or_else(|| version_not_found(model, version))?;
+        .ok_or_else(|| version_not_found(model.as_str(), version))?;
         row.try_into()
     }
 
     /// A model's versions, newest first (`limit` after skipping `offset`); and how many it has.
     pub async fn model_versions(
         &self,
-        model: &str,
+        model: &ModelName,
         limit: u32,
         offset: u64,
     ) -> Result<(Vec<ModelVersionRecord>, u64), StoreError> {
+        let model = model.as_str();
         self.read_model(model).await?;
         let rows: Vec<VersionRow> = sqlx::query_as(&format!(
             "SELECT {VERSION_COLUMNS} FROM {VERSIONS} WHERE model = $1 \
@@ -469,11 +471,11 @@ pub(super) async fn register_in(
         "UPDATE models SET last_version = last_version + 1, revision = revision + 1, \
          updated_at = $2 WHERE name = $1 RETURNING last_version",
     )
-    .bind(version.model)
+    .bind(version.model.as_str())
     .bind(super::now())
     .fetch_optional(&mut **tx)
     .await?;
-    let number = number.ok_or_else(|| model_not_found(version.model))?;
+    let number = number.ok_or_else(|| model_not_found(version.model.as_str()))?;
     let policy: Option<String> = sqlx::query_scalar(&format!(
         "SELECT id FROM policies WHERE id = $1{}",
         store.backend().share_row()
@@ -488,7 +490,7 @@ pub(super) async fn register_in(
         "INSERT INTO model_versions (model, version, policy_id, description, source, created_at) \
          VALUES ($1, $2, $3, $4, $5, $6)",
     )
-    .bind(version.model)
+    .bind(version.model.as_str())
     .bind(number)
     .bind(version.policy_id)
     .bind(version.description)
@@ -499,10 +501,17 @@ pub(super) async fn register_in(
     let number = number as u32;
     if let Some((alias, note)) = version.alias {
         let target = AliasTarget { version: number, canary: None, shadow: None };
-        super::model_aliases::set_alias_in(tx, store, version.model, alias, Some(&target), note)
-            .await?;
+        super::model_aliases::set_alias_in(
+            tx,
+            store,
+            version.model.as_str(),
+            alias.as_str(),
+            Some(&target),
+            note,
+        )
+        .await?;
     } else {
-        store.notify_model(tx, version.model).await?;
+        store.notify_model(tx, version.model.as_str()).await?;
     }
     Ok(number)
 }

@@ -4,6 +4,7 @@
 use chrono::{DateTime, SecondsFormat, Utc};
 
 use super::{parse_time, Store, StoreError};
+use crate::domain::model::ModelName;
 use crate::domain::shadow::{ComparisonCounts, ComparisonKey, ComparisonPoint, ComparisonSeries};
 
 /// A minute as its row keeps it: RFC 3339, milliseconds, UTC (text that sorts in time order).
@@ -163,10 +164,11 @@ impl Store {
     /// alias, answering version and shadow version, each oldest minute first.
     pub async fn shadow_series(
         &self,
-        model: &str,
+        model: &ModelName,
         alias: Option<&str>,
         since: &DateTime<Utc>,
     ) -> Result<Vec<ComparisonSeries>, StoreError> {
+        let model = model.as_str();
         let model_created: String =
             sqlx::query_scalar("SELECT created_at FROM models WHERE name = $1")
                 .bind(model)
