@@ -78,6 +78,20 @@ pub enum AlphaEstimator {
     Bbe,
 }
 
+/// Which rows of D^U Best Bin Estimation reads for the mixture's side of its ratio.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum BbeUnlabeledRows {
+    /// The held-out fifth of D^U's episodes only: scores the discriminator never trained on,
+    /// so the bin's share is unbiased, but it is the share of about a fifth of the episodes.
+    /// The default of a config without it.
+    #[default]
+    HeldOut,
+    /// Every row of D^U: the share of the whole mixture, whose four fifths the discriminator
+    /// trained on as its negative class (their scores are biased toward "preferred").
+    All,
+}
+
 /// What Eq. 10 does on rows where it is undefined (`1 − α e^c ≤ 0`: the discriminator says the
 /// row is more non-preferred than α allows, i.e. `d^P = 0` there).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
@@ -201,6 +215,17 @@ pub struct SafediceConfig {
     /// `scale · c + shift`) before Eq. 10 reads `e^c` as `d^N/d^U`.
     #[serde(default)]
     pub calibrate_discriminator: bool,
+    /// With `bbe`: the rows of D^U whose scores give the mixture's share above the threshold.
+    #[serde(default)]
+    pub bbe_unlabeled_rows: BbeUnlabeledRows,
+    /// Multiplies Eq. 10's reward (after the standardisation, if on): above 1 the weights of
+    /// Eq. 12 separate the rows more sharply, below 1 they stay closer to uniform.
+    #[serde(default = "unit_scale")]
+    pub reward_scale: f64,
+}
+
+fn unit_scale() -> f64 {
+    1.0
 }
 
 /// DWBC's knobs (Eq. 38, 39).
@@ -387,6 +412,7 @@ impl ResolvedConfig {
                 in_range("gamma", s.gamma, 0.0, 0.9999)?;
                 in_range("alpha_hat_quantile", s.alpha_hat_quantile, 0.0, 0.5)?;
                 in_range("ess_warning_fraction", s.ess_warning_fraction, 0.0, 1.0)?;
+                in_range("reward_scale", s.reward_scale, 0.01, 100.0)?;
                 check_alpha_estimator(s)?;
             }
             AlgorithmConfig::Bc(_) => {}
@@ -428,6 +454,8 @@ impl SafediceConfig {
             undefined_reward: UndefinedReward::Floor,
             uniform_fallback: false,
             calibrate_discriminator: false,
+            bbe_unlabeled_rows: BbeUnlabeledRows::HeldOut,
+            reward_scale: 1.0,
         }
     }
 

@@ -264,6 +264,10 @@ pub struct BenchArgs {
     /// With --suite: tasks per split (at most 24).
     #[arg(long, default_value_t = crate::envs::suite::TASKS_PER_SPLIT)]
     pub tasks: usize,
+    /// With --suite: only these task families (e.g. `grid-continuing,pace`), for a study of one
+    /// family on the development split; every family by default.
+    #[arg(long, value_enum, value_delimiter = ',')]
+    pub families: Vec<FamilyArg>,
     /// With --suite: leave out the "SafeDICE (paper preset)" row (e.g. when comparing
     /// candidate defaults on the development split).
     #[arg(long)]
@@ -282,6 +286,27 @@ pub enum SuiteName {
     Robustness,
     /// The paper's tabular check on six-rooms (Appendix G), solved exactly.
     Tabular,
+}
+
+/// `--families`: the generated suite's task families.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum FamilyArg {
+    Grid,
+    GridContinuing,
+    Nav,
+    Pace,
+}
+
+impl FamilyArg {
+    /// The family's name in task ids (`dev-01-grid-continuing`).
+    pub fn name(self) -> &'static str {
+        match self {
+            FamilyArg::Grid => "grid",
+            FamilyArg::GridContinuing => "grid-continuing",
+            FamilyArg::Nav => "nav",
+            FamilyArg::Pace => "pace",
+        }
+    }
 }
 
 /// `--split`: one half of the suite, or both.
@@ -512,7 +537,9 @@ pub fn run_cli(args: &BenchArgs, command: &str) -> anyhow::Result<()> {
     if let Some(SuiteName::Robustness) = args.suite {
         let config = BenchConfig { runs_log, ..args.to_suite_config()? };
         let splits = args.split.splits();
-        let written = robustness::run_cli(config, &splits, args.tasks, &out, command)?;
+        let families: Vec<&str> = args.families.iter().map(|f| f.name()).collect();
+        let selection = robustness::Selection { splits: &splits, count: args.tasks, families };
+        let written = robustness::run_cli(config, &selection, &out, command)?;
         for path in written {
             println!("wrote {}", path.display());
         }

@@ -297,16 +297,33 @@ pub fn summarize_rows(
     out
 }
 
+/// Which tasks a run trains on: the first `count` of each split, of the named families only
+/// when `families` names any.
+pub struct Selection<'a> {
+    pub splits: &'a [Split],
+    pub count: usize,
+    pub families: Vec<&'a str>,
+}
+
+impl Selection<'_> {
+    fn keeps(&self, spec: &TaskSpec) -> bool {
+        self.families.is_empty() || self.families.contains(&spec.family.name())
+    }
+}
+
 /// `safedice bench --suite robustness`: runs the splits, writes results.md and results.json.
 pub fn run_cli(
     mut config: BenchConfig,
-    splits: &[Split],
-    count: usize,
+    selection: &Selection,
     out: &Path,
     command: &str,
 ) -> anyhow::Result<Vec<PathBuf>> {
-    let pairs = tasks(splits, count, config.iterations);
-    let (specs, bench_tasks): (Vec<TaskSpec>, Vec<BenchTask>) = pairs.into_iter().unzip();
+    let pairs = tasks(selection.splits, selection.count, config.iterations);
+    let (specs, bench_tasks): (Vec<TaskSpec>, Vec<BenchTask>) =
+        pairs.into_iter().filter(|(spec, _)| selection.keeps(spec)).unzip();
+    if specs.is_empty() {
+        anyhow::bail!("no task of the suite matches --tasks {} and --families", selection.count);
+    }
     config.envs = specs.iter().map(|s| s.id.clone()).collect();
     if !config.algorithms.contains(&Algorithm::Bc) {
         config.algorithms.push(Algorithm::Bc);
@@ -512,5 +529,19 @@ mod tests {
         assert!((quantile(&v, 0.1) - 0.4).abs() < 1e-12);
         assert_eq!(quantile(&[7.0], 0.1), 7.0);
         assert!(quantile(&[], 0.5).is_nan());
+    }
+
+    #[test]
+    fn a_family_selection_keeps_that_family_only() {
+        let splits = [Split::Dev];
+        let pace = Selection { splits: &splits, count: 8, families: vec!["pace"] };
+        let kept: Vec<String> = TaskSpec::split(Split::Dev, 8)
+            .into_iter()
+            .filter(|t| pace.keeps(t))
+            .map(|t| t.id)
+            .collect();
+        assert_eq!(kept, ["dev-03-pace", "dev-07-pace"]);
+        let every = Selection { families: vec![], ..pace };
+        assert!(TaskSpec::split(Split::Dev, 8).iter().all(|t| every.keeps(t)));
     }
 }

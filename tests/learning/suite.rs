@@ -19,11 +19,15 @@ fn tiny() -> safedice::bench::BenchConfig {
     config
 }
 
+fn first_four() -> robustness::Selection<'static> {
+    robustness::Selection { splits: &[Split::Dev], count: 4, families: vec![] }
+}
+
 #[test]
 fn ci_sized_suite_trains_scores_and_reports_every_task_deterministically() {
     let dir = tempfile::tempdir().unwrap();
     let written =
-        robustness::run_cli(tiny(), &[Split::Dev], 4, dir.path(), "safedice bench (test)").unwrap();
+        robustness::run_cli(tiny(), &first_four(), dir.path(), "safedice bench (test)").unwrap();
     assert_eq!(written.len(), 2);
     let json: serde_json::Value =
         serde_json::from_slice(&std::fs::read(dir.path().join("results.json")).unwrap()).unwrap();
@@ -51,7 +55,7 @@ fn ci_sized_suite_trains_scores_and_reports_every_task_deterministically() {
 
     // Determinism: the same configuration again gives the same metrics for every run.
     let again = tempfile::tempdir().unwrap();
-    robustness::run_cli(tiny(), &[Split::Dev], 4, again.path(), "again").unwrap();
+    robustness::run_cli(tiny(), &first_four(), again.path(), "again").unwrap();
     let json2: serde_json::Value =
         serde_json::from_slice(&std::fs::read(again.path().join("results.json")).unwrap()).unwrap();
     let key = |r: &serde_json::Value| {

@@ -99,3 +99,23 @@ fn dexperts_bounds_eq45_only_in_the_service_preset() {
     let err = resolve_config(Algorithm::Dexperts, &json!({"non_preferred_term": "hinge"}));
     assert!(err.is_err(), "an unknown term is refused");
 }
+
+/// The weighting-stage knobs added after jobs were stored: a stored config without them reads
+/// as the behaviour it trained with, and bad values name the key.
+#[test]
+fn weighting_knobs_default_for_stored_configs_and_are_checked() {
+    let mut stored =
+        serde_json::to_value(ResolvedConfig::preset(Algorithm::Safedice, Preset::Service)).unwrap();
+    let map = stored.as_object_mut().unwrap();
+    assert!(map.remove("bbe_unlabeled_rows").is_some() && map.remove("reward_scale").is_some());
+    let read: ResolvedConfig = serde_json::from_value(stored).unwrap();
+    let AlgorithmConfig::Safedice(s) = &read.specific else { panic!("a SafeDICE config") };
+    assert_eq!((s.bbe_unlabeled_rows, s.reward_scale), (BbeUnlabeledRows::HeldOut, 1.0));
+    let all = resolve_config(Algorithm::Safedice, &json!({"bbe_unlabeled_rows": "all"})).unwrap();
+    let AlgorithmConfig::Safedice(s) = &all.specific else { panic!("a SafeDICE config") };
+    assert_eq!(s.bbe_unlabeled_rows, BbeUnlabeledRows::All);
+    for bad in [json!({"reward_scale": 0.0}), json!({"bbe_unlabeled_rows": "some"})] {
+        let key = bad.as_object().unwrap().keys().next().unwrap().clone();
+        assert_eq!(resolve_config(Algorithm::Safedice, &bad).unwrap_err().key, key);
+    }
+}

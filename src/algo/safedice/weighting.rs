@@ -12,7 +12,7 @@ use super::objectives::{alpha_hat_from_logits, eq10_rewards, ALPHA_MARGIN, POLIC
 use super::trainer::{SafediceTrainer, UniformWeights};
 use crate::algo::bc::bc_loss;
 use crate::algo::fused_policy::{fused_policy_step, fused_policy_update};
-use crate::algo::hyperparams::AlphaEstimator;
+use crate::algo::hyperparams::{AlphaEstimator, BbeUnlabeledRows};
 use crate::algo::optim::Adam;
 use crate::algo::{Algorithm, ResolvedConfig, TrainError};
 
@@ -23,7 +23,7 @@ impl SafediceTrainer {
             Some(given) => given.clone(),
             None => self.score(&self.run.u)?,
         };
-        let heldout = self.heldout_statistics()?;
+        let heldout = self.heldout_statistics(&logits)?;
         let episode_ids = &self.run.u.episode_ids;
         let mut alpha = alpha_hat_from_logits(&logits, episode_ids, self.cfg.alpha_hat_quantile);
         // The paper's statistic above reads the discriminator as trained; Eq. 10 reads it
@@ -82,15 +82,17 @@ impl SafediceTrainer {
         }
         self.decide_weighting(heldout.as_ref(), eq10.undefined_rows == logits.len())?;
         self.heldout = heldout;
-        let rewards: Vec<f32> = eq10.rewards.iter().map(|&r| r as f32).collect();
+        let scale = self.cfg.reward_scale;
+        let rewards: Vec<f32> = eq10.rewards.iter().map(|&r| (scale * r) as f32).collect();
         self.flow = Some(FlowColumns::build(&self.run.u, rewards, &self.cfg)?);
         self.alpha = Some(alpha);
         Ok(())
     }
 
     /// With the `bbe` estimator: the frozen discriminator's scores on the held-out rows of D^N
-    /// and D^U, Best Bin Estimation of alpha-hat on them and their ROC AUC.
-    fn heldout_statistics(&self) -> Result<Option<HeldOut>, TrainError> {
+    /// and D^U, Best Bin Estimation of alpha-hat on them (or on every row of D^U, `logits_u`,
+    /// for the mixture's side with `bbe_unlabeled_rows: all`) and their ROC AUC.
+    fn heldout_statistics(&self, logits_u: &[f32]) -> Result<Option<HeldOut>, TrainError> {
         // Given logits (the oracle ablation) are a discriminator of their own: Eq. 15 on them.
         let given = self.overrides.unlabeled_logits.is_some();
         if self.cfg.alpha_hat_estimator != AlphaEstimator::Bbe || given {
@@ -99,8 +101,12 @@ impl SafediceTrainer {
         let Some(v) = &self.disc_stop else { return Ok(None) };
         let scores_n = self.score_rows(self.run.non_preferred(), &v.n.validation)?;
         let scores_u = self.score_rows(&self.run.u, &v.u.validation)?;
+        let mixture = match self.cfg.bbe_unlabeled_rows {
+            BbeUnlabeledRows::HeldOut => &scores_u[..],
+            BbeUnlabeledRows::All => logits_u,
+        };
         let (Some(alpha), Some(auc)) =
-            (best_bin_estimate(&scores_n, &scores_u), roc_auc(&scores_n, &scores_u))
+            (best_bin_estimate(&scores_n, mixture), roc_auc(&scores_n, &scores_u))
         else {
             return Ok(None);
         };

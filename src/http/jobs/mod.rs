@@ -60,7 +60,9 @@ pub struct CreateJob {
     /// D^U), `alpha_hat_quantile` (`min` only; 0: the minimum itself), `undefined_reward`
     /// (`exclude`: rows where Eq. 10 is −∞ get no weight, the `service` default; `floor`),
     /// `uniform_fallback` (train as BC when held-out data cannot tell D^N from D^U; `bbe`
-    /// only), `calibrate_discriminator` (`bbe` only), `ess_warning_fraction`,
+    /// only), `calibrate_discriminator` (`bbe` only), `bbe_unlabeled_rows` (`bbe` only: the
+    /// rows of D^U its ratio reads, `held_out` or `all`), `reward_scale` (multiplies Eq. 10's
+    /// reward after the standardisation; 1 by default), `ess_warning_fraction`,
     /// `discriminator_early_stopping` (hold out a fifth of
     /// the data and stop the discriminator when its held-out loss stops improving;
     /// `discriminator_iterations` is then its most). `dwbc`: `eta`, `lr_discriminator`, `discriminator_gp`.
