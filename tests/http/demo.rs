@@ -99,10 +99,10 @@ async fn the_readme_quotes_the_demos_own_numbers() {
     );
     // Normalized return, average cost, violation ratio, CVaR 10%, alpha-hat. CVaR 10% is the
     // mean cost of the worst tenth of the episodes, so where the cost sits in that tenth it
-    // moves ten times as far as the average cost (on an AMD EPYC family 25 model 1: 0.32 and
-    // 3.2 against the README's 0.40 and 4.00). alpha-hat moves with where the discriminator's
-    // early stopping lands (0.529 there against 0.588), well inside its own 90% interval
-    // (about ±0.15 on this data).
+    // moves ten times as far as the average cost (between a Zen 5 and a Zen 3 AMD EPYC: 0.40
+    // and 4.00 against 0.32 and 3.2 with the defaults of 2026-11-27). alpha-hat moves with where
+    // the discriminator's early stopping lands (0.588 against 0.529 there), well inside its own
+    // 90% interval (about ±0.15 on this data).
     let tolerance: [f64; 5] = [1.0, 0.1, 0.02, 1.0, 0.1];
     for ((name, quoted), (_, printed)) in quoted.iter().zip(&printed) {
         for (i, (q, p)) in quoted.iter().zip(printed).enumerate() {

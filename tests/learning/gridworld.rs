@@ -28,12 +28,14 @@ fn safedice_takes_the_safe_route_and_bc_does_not() {
         train(Algorithm::Safedice, small(json!({"discriminator_iterations": 300})), &data);
     let (cost, reached) = grid_rollout(&safedice);
     let alpha = alpha.unwrap();
-    assert!(alpha > 0.2 && alpha < 0.9, "alpha-hat {alpha}");
     assert_eq!(
         (cost, reached),
         (0, true),
         "SafeDICE (alpha-hat {alpha}) should take the detour to the goal"
     );
+    // The service's alpha-hat is the lower end of its interval (docs/algorithm.md): above 0,
+    // since the data do separate, and below the 0.6 share of unsafe episodes in D^U.
+    assert!(alpha > 0.0 && alpha < 0.6, "alpha-hat {alpha}");
 }
 
 /// Measurements behind the `service` defaults (not a check: prints a table). Run with

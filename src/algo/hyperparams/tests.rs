@@ -107,14 +107,25 @@ fn weighting_knobs_default_for_stored_configs_and_are_checked() {
     let mut stored =
         serde_json::to_value(ResolvedConfig::preset(Algorithm::Safedice, Preset::Service)).unwrap();
     let map = stored.as_object_mut().unwrap();
-    assert!(map.remove("bbe_unlabeled_rows").is_some() && map.remove("reward_scale").is_some());
+    for key in ["bbe_unlabeled_rows", "reward_scale", "alpha_hat_point"] {
+        assert!(map.remove(key).is_some(), "{key} is in the service preset");
+    }
     let read: ResolvedConfig = serde_json::from_value(stored).unwrap();
     let AlgorithmConfig::Safedice(s) = &read.specific else { panic!("a SafeDICE config") };
     assert_eq!((s.bbe_unlabeled_rows, s.reward_scale), (BbeUnlabeledRows::HeldOut, 1.0));
+    assert_eq!(s.alpha_hat_point, AlphaHatPoint::Estimate);
+    let lower = resolve_config(Algorithm::Safedice, &json!({"alpha_hat_point": "lower"})).unwrap();
+    let AlgorithmConfig::Safedice(s) = &lower.specific else { panic!("a SafeDICE config") };
+    assert_eq!(s.alpha_hat_point, AlphaHatPoint::Lower);
     let all = resolve_config(Algorithm::Safedice, &json!({"bbe_unlabeled_rows": "all"})).unwrap();
     let AlgorithmConfig::Safedice(s) = &all.specific else { panic!("a SafeDICE config") };
     assert_eq!(s.bbe_unlabeled_rows, BbeUnlabeledRows::All);
-    for bad in [json!({"reward_scale": 0.0}), json!({"bbe_unlabeled_rows": "some"})] {
+    let bad_values = [
+        json!({"reward_scale": 0.0}),
+        json!({"bbe_unlabeled_rows": "some"}),
+        json!({"alpha_hat_point": "upper"}),
+    ];
+    for bad in bad_values {
         let key = bad.as_object().unwrap().keys().next().unwrap().clone();
         assert_eq!(resolve_config(Algorithm::Safedice, &bad).unwrap_err().key, key);
     }

@@ -193,6 +193,7 @@ impl HeldOut {
     pub fn metrics(&self) -> Vec<(&'static str, f64)> {
         let (a, auc) = (&self.alpha, &self.auc);
         let mut metrics = vec![
+            ("alpha_hat_bin_ratio", a.value),
             ("alpha_hat_lower", a.lower),
             ("alpha_hat_upper", a.upper),
             ("alpha_hat_bin_threshold", a.threshold),

@@ -4,6 +4,7 @@
 
 use super::ablation::{oracle_logits, SafediceOverrides};
 use super::trainer::SafediceTrainer;
+use crate::algo::hyperparams::AlgorithmConfig;
 use crate::algo::safedice::objectives::{reward_from_logit, ALPHA_MARGIN};
 use crate::algo::{Dataset, ResolvedConfig, Trainer, TrainingData};
 
@@ -64,7 +65,8 @@ fn metric(scalars: &[(&'static str, f64)], name: &str) -> f64 {
 
 /// Oracle logits make Eq. 15 return the true share (minus its margin), and the weights of
 /// Eq. 12 on non-preferred rows are the closed form: every row has the same state, so ν
-/// cancels and `w_np / w_p = exp(r_np − r_p)` ≈ 1e-5/α, i.e. practically 0.
+/// cancels and `w_np / w_p = exp(s · (r_np − r_p))` ≈ (1e-5/α)^s with `s` the reward scale,
+/// i.e. practically 0.
 #[test]
 fn oracle_logits_give_the_true_alpha_and_near_zero_weight_on_non_preferred_rows() {
     let (data, flags) = one_state_task();
@@ -88,7 +90,8 @@ fn oracle_logits_give_the_true_alpha_and_near_zero_weight_on_non_preferred_rows(
     let logits = oracle_logits(&flags);
     let reward = |row: usize| reward_from_logit(logits[row] as f64, used).0;
     let (np, p) = (flags.iter().position(|&f| f).unwrap(), flags.iter().position(|&f| !f).unwrap());
-    let expected = (reward(np) - reward(p)).exp();
+    let AlgorithmConfig::Safedice(cfg) = &tiny_config().specific else { panic!("SafeDICE") };
+    let expected = (cfg.reward_scale * (reward(np) - reward(p))).exp();
     assert!(expected < 1e-4, "{expected}");
     assert!(((w[np] / w[p]) / expected - 1.0).abs() < 1e-3, "{} vs {expected}", w[np] / w[p]);
     let share: f64 = w.iter().zip(&flags).filter(|(_, &f)| f).map(|(w, _)| w).sum::<f64>()

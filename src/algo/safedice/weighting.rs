@@ -12,7 +12,7 @@ use super::objectives::{alpha_hat_from_logits, eq10_rewards, ALPHA_MARGIN, POLIC
 use super::trainer::{SafediceTrainer, UniformWeights};
 use crate::algo::bc::bc_loss;
 use crate::algo::fused_policy::{fused_policy_step, fused_policy_update};
-use crate::algo::hyperparams::{AlphaEstimator, BbeUnlabeledRows};
+use crate::algo::hyperparams::{AlphaEstimator, AlphaHatPoint, BbeUnlabeledRows};
 use crate::algo::optim::Adam;
 use crate::algo::{Algorithm, ResolvedConfig, TrainError};
 
@@ -32,7 +32,11 @@ impl SafediceTrainer {
             logits.iter_mut().for_each(|c| *c = (scale * *c as f64 + shift) as f32);
         }
         if let Some(bin) = heldout.as_ref().map(|h| &h.alpha) {
-            alpha.value = (bin.value - ALPHA_MARGIN).clamp(0.0, 1.0 - ALPHA_MARGIN);
+            let point = match self.cfg.alpha_hat_point {
+                AlphaHatPoint::Estimate => bin.value,
+                AlphaHatPoint::Lower => bin.lower,
+            };
+            alpha.value = (point - ALPHA_MARGIN).clamp(0.0, 1.0 - ALPHA_MARGIN);
         }
         let estimated = alpha.value;
         if let Some(a) = self.overrides.alpha {
@@ -217,14 +221,22 @@ impl SafediceTrainer {
         let alpha = self.alpha.as_ref()?;
         Some(match &self.heldout {
             Some(HeldOut { alpha: bin, auc, .. }) => format!(
-                "Best Bin Estimation on held-out episodes: {:.4}, 90% interval [{:.3}, {:.3}], from the {:.0}% of held-out D^N rows scoring at least {:.3} (and {:.0}% of D^U's); held-out AUC {:.3} [{:.3}, {:.3}]; the paper's minimum over D^U would be {:.4}",
-                alpha.value, bin.lower, bin.upper, 100.0 * bin.share_n, bin.threshold,
-                100.0 * bin.share_u, auc.value, auc.lower, auc.upper, alpha.min_ratio
+                "Best Bin Estimation on held-out episodes: {:.4} ({}), 90% interval [{:.3}, {:.3}] around the bin's ratio {:.3}, from the {:.0}% of held-out D^N rows scoring at least {:.3} (and {:.0}% of D^U's); held-out AUC {:.3} [{:.3}, {:.3}]; the paper's minimum over D^U would be {:.4}",
+                alpha.value, self.alpha_point_words(), bin.lower, bin.upper, bin.value,
+                100.0 * bin.share_n, bin.threshold, 100.0 * bin.share_u, auc.value, auc.lower,
+                auc.upper, alpha.min_ratio
             ),
             None => format!(
                 "the minimum of 1/c - 1 over D^U (the paper), at row {} of episode {}",
                 alpha.argmin_row, alpha.argmin_episode
             ),
         })
+    }
+
+    fn alpha_point_words(&self) -> &'static str {
+        match self.cfg.alpha_hat_point {
+            AlphaHatPoint::Estimate => "the bin's ratio",
+            AlphaHatPoint::Lower => "the interval's lower end",
+        }
     }
 }

@@ -61,7 +61,8 @@ pub struct CreateJob {
     /// (`exclude`: rows where Eq. 10 is −∞ get no weight, the `service` default; `floor`),
     /// `uniform_fallback` (train as BC when held-out data cannot tell D^N from D^U; `bbe`
     /// only), `calibrate_discriminator` (`bbe` only), `bbe_unlabeled_rows` (`bbe` only: the
-    /// rows of D^U its ratio reads, `held_out` or `all`), `reward_scale` (multiplies Eq. 10's
+    /// rows of D^U its ratio reads, `held_out` or `all`), `alpha_hat_point` (`bbe` only:
+    /// `estimate`, the bin's ratio, or `lower`, its interval's lower end), `reward_scale` (multiplies Eq. 10's
     /// reward after the standardisation; 1 by default), `ess_warning_fraction`,
     /// `discriminator_early_stopping` (hold out a fifth of
     /// the data and stop the discriminator when its held-out loss stops improving;
