@@ -23,6 +23,13 @@ use serde_json::{Map, Value};
 
 use super::Algorithm;
 
+mod safedice;
+use safedice::check_alpha_estimator;
+pub use safedice::{
+    AlphaEstimator, AlphaHatPoint, BbeUnlabeledRows, SafediceConfig, TerminalHandling,
+    UndefinedReward,
+};
+
 /// A config the user got wrong; `message` names the key and what is allowed.
 #[derive(Debug, thiserror::Error)]
 #[error("{message}")]
@@ -47,75 +54,6 @@ pub enum Preset {
 
 impl Preset {
     pub const ALL: [Preset; 3] = [Preset::Service, Preset::Paper, Preset::AuthorsCode];
-}
-
-/// How the nu step treats a transition that ends its episode in a terminal state.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum TerminalHandling {
-    /// As the authors: `A = r + γ ν(s') − ν(s)` for every transition.
-    None,
-    /// `A = r + γ (1 − done) ν(s') − ν(s)`.
-    Mask,
-    /// A terminal transition's next state is replaced by its episode's start state (a sample of
-    /// p0), so episodic data keeps its Bellman flow.
-    Reset,
-    /// DemoDICE-style absorbing state: terminal transitions lead to an absorbing state (an extra
-    /// observation flag) that loops on itself with reward 0.
-    Absorbing,
-}
-
-/// How alpha-hat (Eq. 15) is estimated.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum AlphaEstimator {
-    /// The paper: the minimum of `1/c − 1` over every row of D^U (or the `alpha_hat_quantile`
-    /// diagnostic). One row with a large logit sets it. The default of a config without it.
-    #[default]
-    Min,
-    /// Best Bin Estimation on held-out episodes (`algo::safedice::mixture`): the ratio of D^U's
-    /// to D^N's share above the score threshold that minimises its upper confidence bound.
-    Bbe,
-}
-
-/// Which rows of D^U Best Bin Estimation reads for the mixture's side of its ratio.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum BbeUnlabeledRows {
-    /// The held-out fifth of D^U's episodes only: scores the discriminator never trained on,
-    /// so the bin's share is unbiased, but it is the share of about a fifth of the episodes.
-    /// The default of a config without it.
-    #[default]
-    HeldOut,
-    /// Every row of D^U: the share of the whole mixture, whose four fifths the discriminator
-    /// trained on as its negative class (their scores are biased toward "preferred").
-    All,
-}
-
-/// Which point of Best Bin Estimation's interval alpha-hat takes.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum AlphaHatPoint {
-    /// The bin's ratio itself. The default of a config without it.
-    #[default]
-    Estimate,
-    /// The interval's lower end: alpha-hat errs toward fewer rows marked impossible under the
-    /// preferred demonstrator, i.e. toward BC, when the held-out sample is small.
-    Lower,
-}
-
-/// What Eq. 10 does on rows where it is undefined (`1 − α e^c ≤ 0`: the discriminator says the
-/// row is more non-preferred than α allows, i.e. `d^P = 0` there).
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum UndefinedReward {
-    /// Floor `1 − α e^c` at 1e-8 (a reward of about −18 that standardisation can shrink).
-    #[default]
-    Floor,
-    /// Keep the reward at −∞: such rows get no weight in Eq. 37 and none in Eq. 36's sum
-    /// (their reward is set 30 below the lowest defined one, `e^{−30}` of a weight), and the
-    /// standardisation is taken over the defined rows only.
-    Exclude,
 }
 
 /// What DExperts' continuous objective (Eq. 45) does with D^N's actions.
@@ -178,69 +116,6 @@ pub const MAX_JOB_THREADS: usize = 64;
 
 fn one_thread() -> usize {
     1
-}
-
-/// SafeDICE's knobs (Algorithm 1, Eq. 9, 10, 15, 36, 37).
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct SafediceConfig {
-    /// Discriminator pretraining steps (Eq. 9). Defaults to `iterations` in the `service`
-    /// preset (see [`SafediceConfig::service`]) and to 10% of `iterations` in the others, the
-    /// authors' ratio (100k discriminator steps for 1M iterations).
-    pub discriminator_iterations: u64,
-    pub lr_discriminator: f64,
-    pub lr_nu: f64,
-    /// Coefficient of the interpolated gradient penalty `(‖∇c‖ − 1)²` of the discriminator.
-    pub discriminator_gp: f64,
-    /// Coefficient of the zero-centred gradient penalty `‖∇ν‖²` of nu (0 disables it).
-    pub nu_gp: f64,
-    /// Discount factor γ (paper: 0.99).
-    pub gamma: f64,
-    pub terminal_handling: TerminalHandling,
-    /// Standardise the reward of Eq. 10 by its mean and std over D^U (the authors' Safety-Gym
-    /// script does; their RWRL script does not).
-    pub standardize_reward: bool,
-    /// 0 = the paper's alpha-hat, the minimum of Eq. 15 over all of D^U. A value q > 0 uses the
-    /// q-quantile instead: a diagnostic against a single rare sample setting alpha-hat, NOT the
-    /// paper (rows whose reward would be undefined are clipped).
-    pub alpha_hat_quantile: f64,
-    /// Warn (metric `weight_degenerate` = 1) when the effective sample size of a batch's weights
-    /// falls below this fraction of the batch.
-    pub ess_warning_fraction: f64,
-    /// Hold out a fifth of D^N and D^U and stop the discriminator when its held-out Eq. 9 loss
-    /// stops improving, keeping the best weights (`algo::discriminator_stop`);
-    /// `discriminator_iterations` is then the most it trains. Off: the paper's fixed step count.
-    #[serde(default)]
-    pub discriminator_early_stopping: bool,
-    /// How alpha-hat is estimated (`min`: the paper's Eq. 15; `bbe`: Best Bin Estimation on
-    /// held-out episodes).
-    #[serde(default)]
-    pub alpha_hat_estimator: AlphaEstimator,
-    /// Eq. 10 where it is undefined (`floor` as before, `exclude`: weight 0).
-    #[serde(default)]
-    pub undefined_reward: UndefinedReward,
-    /// With `bbe` (nothing with `min`): when the held-out data cannot tell D^N from D^U (the
-    /// AUC's interval covers 0.5, or alpha-hat's covers 1), train with uniform weights, i.e.
-    /// BC, and say so.
-    #[serde(default)]
-    pub uniform_fallback: bool,
-    /// With `bbe` (nothing with `min`): recalibrate the discriminator's logit on the held-out rows (Platt scaling,
-    /// `scale · c + shift`) before Eq. 10 reads `e^c` as `d^N/d^U`.
-    #[serde(default)]
-    pub calibrate_discriminator: bool,
-    /// With `bbe`: the rows of D^U whose scores give the mixture's share above the threshold.
-    #[serde(default)]
-    pub bbe_unlabeled_rows: BbeUnlabeledRows,
-    /// With `bbe`: alpha-hat is the bin's ratio (`estimate`) or its interval's lower end.
-    #[serde(default)]
-    pub alpha_hat_point: AlphaHatPoint,
-    /// Multiplies Eq. 10's reward (after the standardisation, if on): above 1 the weights of
-    /// Eq. 12 separate the rows more sharply, below 1 they stay closer to uniform.
-    #[serde(default = "unit_scale")]
-    pub reward_scale: f64,
-}
-
-fn unit_scale() -> f64 {
-    1.0
 }
 
 /// DWBC's knobs (Eq. 38, 39).
@@ -446,143 +321,6 @@ impl ResolvedConfig {
         }
         Ok(())
     }
-}
-
-impl SafediceConfig {
-    /// Actor learning rate of the `service` preset.
-    pub const SERVICE_LR_ACTOR: f64 = 1e-4;
-
-    fn paper(discriminator_iterations: u64) -> Self {
-        SafediceConfig {
-            discriminator_iterations,
-            lr_discriminator: 3e-4,
-            lr_nu: 3e-4,
-            discriminator_gp: 0.1,
-            nu_gp: 0.0,
-            gamma: 0.99,
-            terminal_handling: TerminalHandling::None,
-            standardize_reward: false,
-            alpha_hat_quantile: 0.0,
-            ess_warning_fraction: 0.01,
-            discriminator_early_stopping: false,
-            alpha_hat_estimator: AlphaEstimator::Min,
-            undefined_reward: UndefinedReward::Floor,
-            uniform_fallback: false,
-            calibrate_discriminator: false,
-            bbe_unlabeled_rows: BbeUnlabeledRows::HeldOut,
-            alpha_hat_point: AlphaHatPoint::Estimate,
-            reward_scale: 1.0,
-        }
-    }
-
-    fn authors_code() -> Self {
-        SafediceConfig {
-            discriminator_iterations: 100_000,
-            lr_discriminator: 1e-4,
-            lr_nu: 1e-4,
-            discriminator_gp: 10.0,
-            nu_gp: 1e-6,
-            ..Self::paper(100_000)
-        }
-    }
-
-    /// The service defaults, chosen by measurement. The discriminator phase is as long as the
-    /// policy phase (`discriminator_iterations` = `iterations`) from the benchmark (`safedice
-    /// bench --algorithms safedice --ablations`, 64-64 networks, batch 256, 50k iterations,
-    /// seeds 0-1, 200 evaluation episodes; SafeDICE's average cost as a multiple of BC's, the
-    /// discriminator's held-out ROC AUC in brackets):
-    ///
-    /// | discriminator steps | six-rooms | point-goal | cartpole-slider |
-    /// |---|---|---|---|
-    /// | 5k (10%, the authors' ratio) | 0.57x (0.976) | 0.90x (0.66) | 1.16x (0.93; alpha-hat 0) |
-    /// | 25k (50%) | | 0.81x | 0.83x |
-    /// | 50k (100%) | 0.66x | 0.78x (0.69) | 0.33x (0.98) |
-    /// | 100k (200%) | | 0.78x | |
-    ///
-    /// On cartpole-slider 4 seeds at 100% gave 0.35x ± 0.02; the committed 5-seed run with 500
-    /// evaluation episodes (bench/results.md) gives 0.68x, 0.81x and 0.49x. What else was measured there and
-    /// left as it was (bench/README.md, "Choosing the service defaults"): actor lr 3e-4 (0.66x on
-    /// point-goal, but 0.68x with seeds from 0.31x to 1.10x on cartpole-slider), discriminator
-    /// GP 0.1 or 1, the 1% quantile in place of alpha-hat's minimum, and the raw Eq. 10 reward.
-    ///
-    /// The rest was measured earlier (`cargo test --test learning --
-    /// --ignored --nocapture measure_defaults`: SafeDICE with hidden [64, 64], batch 256, 500
-    /// discriminator steps + 3000 iterations, seeds 0-2, greedy rollout from the start; the
-    /// gridworld and the 2-D point task of `tests/support/tasks.rs`, both with short episodes that
-    /// end in a terminal goal, 60% unsafe demonstrations in D^U). Safe route taken to the goal:
-    ///
-    /// | variant | gridworld | point |
-    /// |---|---|---|
-    /// | service: reset, standardised reward, GP 10 / 1e-6, lr 1e-4 | 3/3 (ESS 0.76-0.82) | 3/3 (ESS 0.77-0.81) |
-    /// | terminal `none` (the authors') | 0/3, loops (ESS 0.09-0.24) | 1/3 (ESS < 0.01) |
-    /// | terminal `mask` | 0/3, loops (ESS 0.10-0.24) | 0/3 (ESS 0.14-0.26) |
-    /// | terminal `absorbing` | 0/3, loops (ESS 0.08-0.14) | 1/3 (ESS 0.02-0.16) |
-    /// | raw reward | 3/3 (ESS 0.59-0.85) | 3/3 (ESS 0.86-0.92) |
-    /// | discriminator GP 0.1 | 3/3 | 3/3 |
-    /// | lr_actor 3e-4 | 3/3 | 3/3 |
-    /// | preset `paper` (terminal none, all lr 3e-4) | 0/3, loops | 0/2 (one through the hazard) |
-    /// | preset `authors-code` (terminal none, actor 1e-5) | 0/3, loops | 0/3 (one through the hazard) |
-    ///
-    /// Without `reset` the nu loss went negative and kept falling (Eq. 36 unbounded on short
-    /// terminal episodes) and the weights degenerated; no run crossed a hazard except the two
-    /// faithful presets on the point task. alpha-hat was 0.34-0.57 (true non-preferred share of
-    /// D^U: 0.6 of the episodes).
-    ///
-    /// Hence `reset` terminal handling (the only one that kept the Bellman flow of short
-    /// episodic data and non-degenerate weights), the authors' code's learning rates and
-    /// penalties (the paper's 3e-4 diverged on a small continuous task in our reference runs; GP
-    /// 10 keeps alpha-hat from being set by one rare sample), a standardised reward (as the
-    /// authors' Safety-Gym script and our reference runs; neutral on these two tasks), and an
-    /// actor lr of 1e-4 (3e-4 gave the same outcomes here; the authors' 1e-5 moves the policy
-    /// little in a 100k-iteration run, not measured separately).
-    ///
-    /// Since the robustness suite (bench/robustness/, docs/algorithm.md "How defaults are
-    /// chosen"), the discriminator also stops early on held-out data
-    /// (`discriminator_early_stopping`), `discriminator_iterations` being its most. On the
-    /// suite's development split (24 tasks, 2 seeds; captured share of the achievable cost
-    /// reduction, median / 10th percentile / worst, and tasks worse than BC):
-    ///
-    /// | discriminator | median | p10 | worst | worse than BC |
-    /// |---|---|---|---|---|
-    /// | 100% of iterations, fixed | 0.49 | 0.14 | -1.77 | 2 |
-    /// | 100% with early stopping | 0.48 | 0.13 | -0.63 | 1 |
-    /// | early stopping, raw Eq. 10 reward | 0.08 | -0.05 | -0.43 | 2 |
-    /// | 10% of iterations, fixed | 0.29 | -0.02 | -0.77 | 2 |
-    ///
-    /// The weighting stage (alpha-hat by BBE, recalibrated; Eq. 10's undefined rows excluded;
-    /// the uniform fallback) was chosen the same way, 2026-11-27: every candidate's numbers are
-    /// in bench/robustness/README.md and docs/algorithm.md, "How defaults are chosen". On
-    /// 2026-11-28 alpha-hat became the lower end of BBE's interval and the reward scale 1.5:
-    /// sharper weights alone captured more (median 0.83) but made three tasks worse than BC,
-    /// where alpha-hat overshot; with the lower end none was (median 0.68, the default before
-    /// 0.65), while at scale 2 two were.
-    fn service(discriminator_iterations: u64) -> Self {
-        SafediceConfig {
-            discriminator_iterations,
-            terminal_handling: TerminalHandling::Reset,
-            standardize_reward: true,
-            discriminator_early_stopping: true,
-            alpha_hat_estimator: AlphaEstimator::Bbe,
-            undefined_reward: UndefinedReward::Exclude,
-            uniform_fallback: true,
-            calibrate_discriminator: true,
-            alpha_hat_point: AlphaHatPoint::Lower,
-            reward_scale: 1.5,
-            ..Self::authors_code()
-        }
-    }
-}
-
-/// The quantile diagnostic belongs to the paper's minimum (`uniform_fallback` and
-/// `calibrate_discriminator` do nothing with `min`, so one key switches the estimator).
-fn check_alpha_estimator(s: &SafediceConfig) -> Result<(), HyperparamError> {
-    if s.alpha_hat_estimator == AlphaEstimator::Bbe && s.alpha_hat_quantile > 0.0 {
-        return Err(HyperparamError::new(
-            "alpha_hat_quantile",
-            "config.alpha_hat_quantile: applies to alpha_hat_estimator \"min\" only; set it to 0 or choose \"min\"",
-        ));
-    }
-    Ok(())
 }
 
 fn in_range(key: &str, value: f64, low: f64, high: f64) -> Result<(), HyperparamError> {
