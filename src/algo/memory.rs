@@ -181,6 +181,11 @@ pub fn estimate_job_memory(
             // alpha-hat is computed.
             let flow_obs = if absorbing { 4 * (d + 1) } else { 3 * d };
             data += n_u * (F32 * (flow_obs + 3) + 3 * 8);
+            if s.cross_fit {
+                // The folds' row lists, the first half's scores and the second's, one each
+                // per row of D^U.
+                data += n_u * 3 * F32;
+            }
             let workspaces = workspace_floats(&disc, 4 * b)
                 + workspace_floats(&nu, 5 * b)
                 + workspace_floats(&policy, b);

@@ -107,13 +107,14 @@ fn weighting_knobs_default_for_stored_configs_and_are_checked() {
     let mut stored =
         serde_json::to_value(ResolvedConfig::preset(Algorithm::Safedice, Preset::Service)).unwrap();
     let map = stored.as_object_mut().unwrap();
-    for key in ["bbe_unlabeled_rows", "reward_scale", "alpha_hat_point"] {
+    for key in ["bbe_unlabeled_rows", "reward_scale", "alpha_hat_point", "cross_fit"] {
         assert!(map.remove(key).is_some(), "{key} is in the service preset");
     }
     let read: ResolvedConfig = serde_json::from_value(stored).unwrap();
     let AlgorithmConfig::Safedice(s) = &read.specific else { panic!("a SafeDICE config") };
     assert_eq!((s.bbe_unlabeled_rows, s.reward_scale), (BbeUnlabeledRows::HeldOut, 1.0));
     assert_eq!(s.alpha_hat_point, AlphaHatPoint::Estimate);
+    assert!(!s.cross_fit, "a stored config trained with one discriminator");
     let lower = resolve_config(Algorithm::Safedice, &json!({"alpha_hat_point": "lower"})).unwrap();
     let AlgorithmConfig::Safedice(s) = &lower.specific else { panic!("a SafeDICE config") };
     assert_eq!(s.alpha_hat_point, AlphaHatPoint::Lower);
@@ -124,6 +125,8 @@ fn weighting_knobs_default_for_stored_configs_and_are_checked() {
         json!({"reward_scale": 0.0}),
         json!({"bbe_unlabeled_rows": "some"}),
         json!({"alpha_hat_point": "upper"}),
+        json!({"cross_fit": "yes"}),
+        json!({"cross_fit": true, "discriminator_iterations": 1}),
     ];
     for bad in bad_values {
         let key = bad.as_object().unwrap().keys().next().unwrap().clone();

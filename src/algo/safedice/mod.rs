@@ -17,7 +17,8 @@
 //! Files, from the paper down to the machine:
 //! - [`objectives`]: the equations (9, 10, 15, 36, 37), each written once;
 //! - [`mixture`]: alpha-hat as mixture proportion estimation (Best Bin Estimation), the held-out
-//!   AUC and the discriminator's recalibration;
+//!   AUC and the discriminator's recalibration; `cross_fit`, the option that scores every row
+//!   of D^U with a discriminator that never trained on it;
 //! - [`draws`]: the flow table of step 3 and the minibatches both phases draw;
 //! - [`trainer`]: Algorithm 1 as a [`crate::algo::Trainer`], the reference in candle autograd,
 //!   with its steps 2-3 and the uniform fallback in `weighting`;
@@ -26,6 +27,7 @@
 //! - [`ablation`]: the benchmark's replacements for alpha-hat and the discriminator.
 
 pub mod ablation;
+mod cross_fit;
 pub mod draws;
 pub mod fused;
 mod fused_steps;

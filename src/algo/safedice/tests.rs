@@ -135,24 +135,25 @@ fn alpha_override_is_the_alpha_the_trainer_uses() {
 /// says whether an episode takes action 1 always (the unsafe kind) or acts at random with a
 /// state-dependent probability (the other kind), from a stream seeded by `seed`.
 fn two_action_episodes(count: usize, seed: u64, non_preferred: impl Fn(usize) -> bool) -> Dataset {
-    use crate::data::{ActionSpace, Actions, DatasetParts};
     use rand::{Rng, SeedableRng};
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+    episodes_acting(count, |episode, s| {
+        let random = u32::from(rng.random::<f32>() < 0.3 + 0.4 * s);
+        if non_preferred(episode) {
+            1
+        } else {
+            random
+        }
+    })
+}
+
+/// `count` episodes of 10 steps on 1-D states `t/10`; `act(episode, state)` picks each action.
+fn episodes_acting(count: usize, mut act: impl FnMut(usize, f32) -> u32) -> Dataset {
+    use crate::data::{ActionSpace, Actions, DatasetParts};
     let len = 10;
     let n = count * len;
     let observations: Vec<f32> = (0..n).map(|i| (i % len) as f32 / len as f32).collect();
-    let actions = observations
-        .iter()
-        .enumerate()
-        .map(|(i, &s)| {
-            let random = u32::from(rng.random::<f32>() < 0.3 + 0.4 * s);
-            if non_preferred(i / len) {
-                1
-            } else {
-                random
-            }
-        })
-        .collect();
+    let actions = observations.iter().enumerate().map(|(i, &s)| act(i / len, s)).collect();
     Dataset::new(DatasetParts {
         obs_dim: 1,
         action_space: ActionSpace::Discrete { n: 2 },
@@ -272,4 +273,82 @@ fn separable_data_keep_the_weighting_and_report_the_interval() {
         resumed.step(false).unwrap();
     }
     assert_eq!(resumed.export_policy().unwrap().weights, t.export_policy().unwrap().weights);
+}
+
+/// Cross-fitting on the same separable data: every row of D^U scored by the discriminator of
+/// the other fold, the interval around the true share, and a run stopped in either half (the
+/// first, and the second with the first's scores in the checkpoint) and resumed ends with the
+/// same weights and alpha-hat as the run that never stopped.
+#[test]
+fn cross_fitted_discriminators_cover_the_true_share_and_resume_in_either_half() {
+    let data = TrainingData {
+        unlabeled: std::sync::Arc::new(two_action_episodes(60, 1, |e| e % 5 < 2)),
+        non_preferred: Some(std::sync::Arc::new(two_action_episodes(15, 2, |_| true))),
+    };
+    let config = crate::algo::resolve_config(
+        crate::algo::Algorithm::Safedice,
+        &serde_json::json!({
+            "seed": 3, "batch_size": 32, "hidden_sizes": [16, 16], "iterations": 3,
+            "discriminator_iterations": 400, "lr_discriminator": 3e-3, "cross_fit": true,
+        }),
+    )
+    .unwrap();
+    let mut t = SafediceTrainer::new(&config, &data).unwrap();
+    let scalars = finish_phase(&mut t);
+    assert_eq!(metric(&scalars, "discriminator_cross_fitted"), 1.0, "{scalars:?}");
+    assert_eq!(metric(&scalars, "weighting_uniform"), 0.0, "{scalars:?}");
+    let (lower, upper) = (metric(&scalars, "alpha_hat_lower"), metric(&scalars, "alpha_hat_upper"));
+    assert!(lower <= 0.4 && 0.4 <= upper, "true share 0.4 outside the interval: {scalars:?}");
+    assert!(metric(&scalars, "discriminator_heldout_auc_lower") > 0.5, "{scalars:?}");
+    assert!(t.alpha_hat_detail().unwrap().contains("cross-fitted"));
+    while !t.is_finished() {
+        t.step(false).unwrap();
+    }
+    for stop in [150, 250] {
+        let mut partial = SafediceTrainer::new(&config, &data).unwrap();
+        for _ in 0..stop {
+            partial.step(false).unwrap();
+        }
+        let bytes = partial.checkpoint().unwrap();
+        let mut resumed = SafediceTrainer::resume(&config, &data, &bytes).unwrap();
+        while !resumed.is_finished() {
+            resumed.step(false).unwrap();
+        }
+        assert_eq!(resumed.alpha_hat(), t.alpha_hat(), "alpha-hat, resumed at step {stop}");
+        let weights = |t: &SafediceTrainer| t.export_policy().unwrap().weights;
+        assert_eq!(weights(&resumed), weights(&t), "weights, resumed at step {stop}");
+    }
+}
+
+#[test]
+fn cross_fit_needs_bbe() {
+    let json = serde_json::json!({"cross_fit": true, "alpha_hat_estimator": "min"});
+    let err = crate::algo::resolve_config(crate::algo::Algorithm::Safedice, &json).unwrap_err();
+    assert!(err.to_string().contains("cross_fit"), "{err}");
+}
+
+/// D^N (always action 1) is told apart from D^U (always action 0) perfectly, and D^U holds no
+/// non-preferred row: alpha-hat is 0, Eq. 10's reward is 0 on every row, and the run trains as
+/// BC, saying why.
+#[test]
+fn alpha_hat_zero_trains_as_bc() {
+    let data = TrainingData {
+        unlabeled: std::sync::Arc::new(episodes_acting(60, |_, _| 0)),
+        non_preferred: Some(std::sync::Arc::new(episodes_acting(15, |_, _| 1))),
+    };
+    let config = crate::algo::resolve_config(
+        crate::algo::Algorithm::Safedice,
+        &serde_json::json!({
+            "seed": 3, "batch_size": 32, "hidden_sizes": [16, 16], "iterations": 3,
+            "discriminator_iterations": 400, "lr_discriminator": 3e-3,
+        }),
+    )
+    .unwrap();
+    let mut t = SafediceTrainer::new(&config, &data).unwrap();
+    let scalars = finish_phase(&mut t);
+    assert_eq!(metric(&scalars, "alpha_hat"), 0.0, "{scalars:?}");
+    assert!(metric(&scalars, "discriminator_heldout_auc_lower") > 0.5, "{scalars:?}");
+    assert_eq!(metric(&scalars, "weighting_uniform"), 1.0, "{scalars:?}");
+    let reason = t.uniform_weighting_reason().unwrap();
+    assert!(reason.contains("same on every row"), "{reason}");
 }

@@ -9,6 +9,7 @@ use rand::seq::SliceRandom;
 use rand::Rng;
 
 use super::ablation::SafediceOverrides;
+use super::cross_fit::CrossFit;
 use super::draws::{DiscDraws, FlowColumns, MainDraws};
 use super::fused::FusedSafedice;
 use super::mixture::HeldOut;
@@ -62,6 +63,8 @@ pub struct SafediceTrainer {
     pub(super) uniform: Option<UniformWeights>,
     /// The held-out statistics alpha-hat came from (`bbe`), once the phase is over.
     pub(super) heldout: Option<HeldOut>,
+    /// With `cross_fit`: D^U's two folds and the first half's scores.
+    pub(super) cross_fit: Option<CrossFit>,
 }
 
 /// The main loop with uniform weights: BC's step, since the held-out data cannot tell D^N from
@@ -78,10 +81,10 @@ pub(super) struct DiscValidation {
     pub(super) u: Holdout,
     /// Whether the stopping rule runs (`discriminator_early_stopping`).
     early_stopping: bool,
-    rule: EarlyStop,
+    pub(super) rule: EarlyStop,
     /// The discriminator's weights at the best held-out loss so far, by variable name.
-    best: std::collections::HashMap<String, Tensor>,
-    last_loss: f64,
+    pub(super) best: std::collections::HashMap<String, Tensor>,
+    pub(super) last_loss: f64,
 }
 
 impl DiscValidation {
@@ -161,13 +164,17 @@ impl SafediceTrainer {
         } else {
             None
         };
+        let cross_fit = match (&disc_stop, cfg.cross_fit) {
+            (Some(_), true) => CrossFit::new(&run.u.episode_ids, run.config.seed()),
+            _ => None,
+        };
         let fused = match run.device {
             candle_core::Device::Cpu => {
                 Some(FusedSafedice::new(&disc, &nu, policy.mlp(), run.batch(), &run.threads)?)
             }
             _ => None,
         };
-        Ok(SafediceTrainer {
+        let mut trainer = SafediceTrainer {
             fused,
             disc_opt: Adam::new(disc.named_vars(), cfg.lr_discriminator)?,
             nu_opt: Adam::new(nu.named_vars(), cfg.lr_nu)?,
@@ -184,7 +191,10 @@ impl SafediceTrainer {
             disc_stop,
             uniform: None,
             heldout: None,
-        })
+            cross_fit,
+        };
+        trainer.enter_half(0);
+        Ok(trainer)
     }
 
     pub fn resume(
@@ -199,9 +209,14 @@ impl SafediceTrainer {
         restored.restore("discriminator", &mut t.disc_opt)?;
         restored.restore("nu", &mut t.nu_opt)?;
         restored.restore("policy", &mut t.policy_opt)?;
+        t.enter_half(t.run.step);
+        let mut tensors = restored.extra_tensors();
+        if let Some(cf) = t.cross_fit.as_mut() {
+            cf.restore(&mut tensors)?;
+        }
         if let Some(v) = t.disc_stop.as_mut() {
             v.rule.restore(&restored.extra_scalars);
-            v.best = restored.extra_tensors();
+            v.best = tensors;
         }
         if t.run.step >= t.cfg.discriminator_iterations {
             // Deterministic from the frozen discriminator: the same alpha-hat and rewards.
@@ -374,6 +389,9 @@ impl SafediceTrainer {
     pub(super) fn end_discriminator_step(&mut self) -> Result<(), TrainError> {
         self.run.step += 1;
         self.measure_held_out()?;
+        if Some(self.run.step) == self.first_half_end() {
+            self.end_first_half()?;
+        }
         if self.run.step == self.cfg.discriminator_iterations {
             if let Some(v) = self.disc_stop.as_ref().filter(|v| !v.best.is_empty()) {
                 self.disc.load(&v.best)?;
@@ -395,7 +413,7 @@ impl SafediceTrainer {
     /// With early stopping, the held-out Eq. 9 loss after this step when the rule measures it;
     /// keeps the weights of a new best.
     fn measure_held_out(&mut self) -> Result<(), TrainError> {
-        let step = self.run.step;
+        let step = self.steps_into_half(self.run.step);
         let measures = |v: &&DiscValidation| v.early_stopping && v.rule.measures_at(step);
         let Some(v) = self.disc_stop.as_ref().filter(measures) else {
             return Ok(());
@@ -621,6 +639,7 @@ impl Trainer for SafediceTrainer {
         if let Some(v) = &self.disc_stop {
             extra.scalars = v.rule.to_scalars().iter().map(|(k, x)| (k.to_string(), *x)).collect();
             extra.tensors = v.best.iter().map(|(k, t)| (k.clone(), t.clone())).collect();
+            extra.tensors.extend(self.cross_fit.iter().flat_map(CrossFit::checkpoint_tensors));
             extra.tensors.sort_by(|a, b| a.0.cmp(&b.0));
         }
         self.run.checkpoint_with(

@@ -19,17 +19,15 @@ use crate::algo::{Algorithm, ResolvedConfig, TrainError};
 impl SafediceTrainer {
     /// Algorithm 1 step 2 and the reward of Eq. 10 over all of D^U, with the frozen discriminator.
     pub(super) fn finish_discriminator_phase(&mut self) -> Result<(), TrainError> {
-        let mut logits = match &self.overrides.unlabeled_logits {
-            Some(given) => given.clone(),
-            None => self.score(&self.run.u)?,
-        };
-        let heldout = self.heldout_statistics(&logits)?;
+        let (mut logits, heldout, calibrated) = self.unlabeled_scores()?;
         let episode_ids = &self.run.u.episode_ids;
         let mut alpha = alpha_hat_from_logits(&logits, episode_ids, self.cfg.alpha_hat_quantile);
         // The paper's statistic above reads the discriminator as trained; Eq. 10 reads it
-        // recalibrated.
+        // recalibrated (cross-fitted logits already are).
         if let Some((scale, shift)) = heldout.as_ref().and_then(|h| h.calibration) {
-            logits.iter_mut().for_each(|c| *c = (scale * *c as f64 + shift) as f32);
+            if !calibrated {
+                logits.iter_mut().for_each(|c| *c = (scale * *c as f64 + shift) as f32);
+            }
         }
         if let Some(bin) = heldout.as_ref().map(|h| &h.alpha) {
             let point = match self.cfg.alpha_hat_point {
@@ -78,19 +76,45 @@ impl SafediceTrainer {
         if let Some(h) = &heldout {
             self.phase_metrics.extend(h.metrics());
         }
+        if calibrated {
+            self.phase_metrics.push(("discriminator_cross_fitted", 1.0));
+        }
         if self.overrides.alpha.is_some() {
             self.phase_metrics.push(("alpha_hat_estimated", estimated));
         }
         if self.overrides.unlabeled_logits.is_some() {
             self.phase_metrics.push(("discriminator_outputs_given", 1.0));
         }
-        self.decide_weighting(heldout.as_ref(), eq10.undefined_rows == logits.len())?;
+        let uninformative = if eq10.undefined_rows == logits.len() {
+            Some("Eq. 10 is undefined on every row".to_string())
+        } else {
+            // alpha-hat 0 makes Eq. 10 exactly 0 everywhere: uniform weights, at SafeDICE's
+            // lower learning rate and with ν's noise, unless the run trains as BC itself.
+            (eq10.std == 0.0).then(|| {
+                format!("Eq. 10's reward is the same on every row (alpha-hat {:.4}), so there is nothing to weight", alpha.value)
+            })
+        };
+        self.decide_weighting(heldout.as_ref(), uninformative)?;
         self.heldout = heldout;
         let scale = self.cfg.reward_scale;
         let rewards: Vec<f32> = eq10.rewards.iter().map(|&r| (scale * r) as f32).collect();
         self.flow = Some(FlowColumns::build(&self.run.u, rewards, &self.cfg)?);
         self.alpha = Some(alpha);
         Ok(())
+    }
+
+    /// The discriminator's logits on every row of D^U (given ones in the oracle ablation), the
+    /// held-out statistics and whether the logits are already recalibrated (cross-fitted).
+    fn unlabeled_scores(&self) -> Result<(Vec<f32>, Option<HeldOut>, bool), TrainError> {
+        if let Some(given) = &self.overrides.unlabeled_logits {
+            return Ok((given.clone(), None, false));
+        }
+        if let Some((logits, heldout)) = self.cross_fitted()? {
+            return Ok((logits, heldout, true));
+        }
+        let logits = self.score(&self.run.u)?;
+        let heldout = self.heldout_statistics(&logits)?;
+        Ok((logits, heldout, false))
     }
 
     /// With the `bbe` estimator: the frozen discriminator's scores on the held-out rows of D^N
@@ -124,7 +148,7 @@ impl SafediceTrainer {
     fn decide_weighting(
         &mut self,
         heldout: Option<&HeldOut>,
-        undefined_everywhere: bool,
+        uninformative_reward: Option<String>,
     ) -> Result<(), TrainError> {
         let ablation = self.overrides.alpha.is_some() || self.overrides.unlabeled_logits.is_some();
         let bbe = self.cfg.alpha_hat_estimator == AlphaEstimator::Bbe;
@@ -135,7 +159,7 @@ impl SafediceTrainer {
             None => Some("no held-out rows to estimate alpha-hat on".to_string()),
             Some(h) => h.not_identifiable(),
         }
-        .or_else(|| undefined_everywhere.then(|| "Eq. 10 is undefined on every row".to_string()));
+        .or(uninformative_reward);
         self.phase_metrics.push(("weighting_uniform", f64::from(u8::from(reason.is_some()))));
         let Some(reason) = reason else { return Ok(()) };
         tracing::warn!(reason = %reason, "weighting: uniform, {reason}; SafeDICE trains as BC");
@@ -221,8 +245,8 @@ impl SafediceTrainer {
         let alpha = self.alpha.as_ref()?;
         Some(match &self.heldout {
             Some(HeldOut { alpha: bin, auc, .. }) => format!(
-                "Best Bin Estimation on held-out episodes: {:.4} ({}), 90% interval [{:.3}, {:.3}] around the bin's ratio {:.3}, from the {:.0}% of held-out D^N rows scoring at least {:.3} (and {:.0}% of D^U's); held-out AUC {:.3} [{:.3}, {:.3}]; the paper's minimum over D^U would be {:.4}",
-                alpha.value, self.alpha_point_words(), bin.lower, bin.upper, bin.value,
+                "Best Bin Estimation on {}: {:.4} ({}), 90% interval [{:.3}, {:.3}] around the bin's ratio {:.3}, from the {:.0}% of held-out D^N rows scoring at least {:.3} (and {:.0}% of D^U's); held-out AUC {:.3} [{:.3}, {:.3}]; the paper's minimum over D^U would be {:.4}",
+                self.scored_rows_words(), alpha.value, self.alpha_point_words(), bin.lower, bin.upper, bin.value,
                 100.0 * bin.share_n, bin.threshold, 100.0 * bin.share_u, auc.value, auc.lower,
                 auc.upper, alpha.min_ratio
             ),
@@ -231,6 +255,13 @@ impl SafediceTrainer {
                 alpha.argmin_row, alpha.argmin_episode
             ),
         })
+    }
+
+    fn scored_rows_words(&self) -> &'static str {
+        match self.cross_fit {
+            Some(_) => "every row of D^U, each scored by the discriminator that did not train on its episode (cross-fitted)",
+            None => "held-out episodes",
+        }
     }
 
     fn alpha_point_words(&self) -> &'static str {

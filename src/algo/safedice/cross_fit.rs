@@ -1,0 +1,218 @@
+//! Cross-fitting of the discriminator (`cross_fit`): Eq. 10 reads `c(s, a)` on every row of
+//! D^U, and a discriminator scores the D^U rows it trained on (label "unlabeled") lower than
+//! rows it never saw, non-preferred ones included: their reward is not low enough, and the
+//! weights keep them. Here D^U's episodes go in two folds; the discriminator's step budget is
+//! split in two halves, the first trains on fold 0 against D^N and scores fold 1, the second
+//! (initialised afresh) trains on fold 1 and scores fold 0. Every row of D^U is then scored by a
+//! discriminator that never trained on its episode, and Best Bin Estimation reads all of D^U
+//! rather than a held-out fifth. Each half keeps its own early-stopping rule, measured on the
+//! other fold; with `calibrate_discriminator` each half's logit is recalibrated on its own
+//! held-out scores (Platt scaling) before the two are pooled, so both speak one scale.
+//! docs/algorithm.md, "Cross-fitting", says what the development split showed.
+
+use std::collections::HashMap;
+
+use candle_core::Tensor;
+use rand::seq::SliceRandom;
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+
+use super::mixture::{best_bin_estimate, platt_scaling, roc_auc, HeldOut};
+use super::trainer::SafediceTrainer;
+use crate::algo::discriminator_stop::{EarlyStop, Holdout, MAX_VALIDATION_ROWS};
+use crate::algo::mlp::Mlp;
+use crate::algo::optim::Adam;
+use crate::algo::TrainError;
+
+/// Checkpoint names of the first half's scores (beside the early-stopping rule's weights).
+const FIRST_U: &str = "cross_fit/first_u";
+const FIRST_N: &str = "cross_fit/first_n";
+
+/// D^U's two folds and, once the first half is done, its discriminator's out-of-fold scores.
+pub(super) struct CrossFit {
+    /// Rows of D^U in each fold (whole episodes; rows when D^U has fewer than four episodes).
+    folds: [Vec<u32>; 2],
+    first: Option<FoldScores>,
+}
+
+/// The first half's discriminator, raw logits: on every row of fold 1 and on D^N's held-out rows.
+struct FoldScores {
+    u: Vec<f32>,
+    n: Vec<f32>,
+}
+
+impl CrossFit {
+    /// Two folds of D^U from the run's seed (a stream of its own); None with a single row.
+    pub(super) fn new(episode_ids: &[u32], seed: u64) -> Option<CrossFit> {
+        if episode_ids.len() < 2 {
+            return None;
+        }
+        let mut episodes: Vec<u32> = episode_ids.to_vec();
+        episodes.sort_unstable();
+        episodes.dedup();
+        let by_row = episodes.len() < 4;
+        let mut units: Vec<u32> =
+            if by_row { (0..episode_ids.len() as u32).collect() } else { episodes };
+        units.shuffle(&mut ChaCha8Rng::seed_from_u64(seed ^ 0x5afe_d1ce_0000_00cf));
+        let in_first: std::collections::HashSet<u32> =
+            units[..units.len() / 2].iter().copied().collect();
+        let mut folds = [Vec::new(), Vec::new()];
+        for (row, &episode) in episode_ids.iter().enumerate() {
+            let unit = if by_row { row as u32 } else { episode };
+            folds[usize::from(!in_first.contains(&unit))].push(row as u32);
+        }
+        Some(CrossFit { folds, first: None })
+    }
+
+    /// The discriminator of half `half`: trains on its fold, stops early on the other (a fixed
+    /// subset of it when longer than the held-out cap).
+    pub(super) fn holdout(&self, half: usize) -> Holdout {
+        let other = &self.folds[1 - half];
+        let stride = other.len().div_ceil(MAX_VALIDATION_ROWS).max(1);
+        Holdout {
+            train: self.folds[half].clone(),
+            validation: other.iter().step_by(stride).copied().collect(),
+        }
+    }
+
+    /// The first half's scores as checkpoint tensors (none before it is done).
+    pub(super) fn checkpoint_tensors(&self) -> Vec<(String, Tensor)> {
+        let Some(first) = &self.first else { return Vec::new() };
+        let column = |v: &[f32]| Tensor::from_slice(v, v.len(), &candle_core::Device::Cpu);
+        [(FIRST_N, &first.n), (FIRST_U, &first.u)]
+            .into_iter()
+            .filter_map(|(name, v)| Some((name.to_string(), column(v).ok()?)))
+            .collect()
+    }
+
+    /// Takes the first half's scores out of a checkpoint's tensors, leaving the rest.
+    pub(super) fn restore(
+        &mut self,
+        tensors: &mut HashMap<String, Tensor>,
+    ) -> Result<(), TrainError> {
+        let (Some(u), Some(n)) = (tensors.remove(FIRST_U), tensors.remove(FIRST_N)) else {
+            return Ok(());
+        };
+        let (u, n) = (u.to_vec1::<f32>()?, n.to_vec1::<f32>()?);
+        if u.len() != self.folds[1].len() {
+            return Err(TrainError::Other(format!(
+                "checkpoint has {} cross-fitted scores for {} rows of fold 1",
+                u.len(),
+                self.folds[1].len()
+            )));
+        }
+        self.first = Some(FoldScores { u, n });
+        Ok(())
+    }
+}
+
+impl SafediceTrainer {
+    /// The step that ends the first half of the discriminator's budget (cross-fitting only).
+    pub(super) fn first_half_end(&self) -> Option<u64> {
+        self.cross_fit.as_ref().map(|_| self.cfg.discriminator_iterations / 2)
+    }
+
+    /// `step` counted from the start of the discriminator that trains at it: the early-stopping
+    /// rule of each half counts its own steps.
+    pub(super) fn steps_into_half(&self, step: u64) -> u64 {
+        match self.first_half_end() {
+            Some(half) if step > half => step - half,
+            _ => step,
+        }
+    }
+
+    /// The held-out rows of D^U and the stopping rule for the half that trains after `step`.
+    pub(super) fn enter_half(&mut self, step: u64) {
+        let (Some(half_end), Some(cf)) = (self.first_half_end(), self.cross_fit.as_ref()) else {
+            return;
+        };
+        let budget = self.cfg.discriminator_iterations;
+        let (half, steps) = if step < half_end { (0, half_end) } else { (1, budget - half_end) };
+        let holdout = cf.holdout(half);
+        if let Some(v) = self.disc_stop.as_mut() {
+            v.u = holdout;
+            v.rule = EarlyStop::new(steps);
+            v.best.clear();
+            v.last_loss = f64::NAN;
+        }
+    }
+
+    /// The first half is done: keep its (best) discriminator's scores on fold 1 and on D^N's
+    /// held-out rows, then start the second half's discriminator from fresh weights and a fresh
+    /// optimiser.
+    pub(super) fn end_first_half(&mut self) -> Result<(), TrainError> {
+        let Some(v) = self.disc_stop.as_ref() else { return Ok(()) };
+        if !v.best.is_empty() {
+            self.disc.load(&v.best)?;
+        }
+        let fold_1 = self.cross_fit.as_ref().map_or(Vec::new(), |cf| cf.folds[1].clone());
+        let u = self.score_rows(&self.run.u, &fold_1)?;
+        let n = self.score_rows(self.run.non_preferred(), &v.n.validation)?;
+        tracing::info!(
+            best_step = v.rule.best_step,
+            heldout_loss = v.rule.best_loss,
+            "SafeDICE discriminator, cross-fitting: first half done, fold 1 scored"
+        );
+        let seed = self.run.config.seed() ^ 0x5afe_d1ce_0000_00d1;
+        let dims = self.disc.dims().to_vec();
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let fresh = Mlp::new("discriminator", &dims, false, &self.run.device, &mut rng)?;
+        let weights: HashMap<String, Tensor> = fresh
+            .named_vars()
+            .into_iter()
+            .map(|(name, var)| (name, var.as_tensor().clone()))
+            .collect();
+        self.disc.load(&weights)?;
+        self.disc_opt = Adam::new(self.disc.named_vars(), self.cfg.lr_discriminator)?;
+        if let Some(cf) = self.cross_fit.as_mut() {
+            cf.first = Some(FoldScores { u, n });
+        }
+        self.enter_half(self.cfg.discriminator_iterations);
+        Ok(())
+    }
+
+    /// With cross-fitting, once both halves are done: every row of D^U's logit from the
+    /// discriminator that did not train on it (each recalibrated on its own held-out scores
+    /// with `calibrate_discriminator`), and Best Bin Estimation and the AUC on them.
+    /// D^N's held-out rows are shared out between the two discriminators in the proportion
+    /// their folds have in D^U, so the labeled scores come from the same mixture of the two
+    /// score functions as D^U's. None without cross-fitting.
+    pub(super) fn cross_fitted(&self) -> Result<Option<(Vec<f32>, Option<HeldOut>)>, TrainError> {
+        let (Some(cf), Some(v)) = (self.cross_fit.as_ref(), self.disc_stop.as_ref()) else {
+            return Ok(None);
+        };
+        let Some(first) = cf.first.as_ref() else { return Ok(None) };
+        let second_u = self.score_rows(&self.run.u, &cf.folds[0])?;
+        let second_n = self.score_rows(self.run.non_preferred(), &v.n.validation)?;
+        let fit = |n: &[f32], u: &[f32]| match self.cfg.calibrate_discriminator {
+            true => platt_scaling(n, u),
+            false => (1.0, 0.0),
+        };
+        let (first_fit, second_fit) = (fit(&first.n, &first.u), fit(&second_n, &second_u));
+        let apply = |(scale, shift): (f64, f64), c: f32| (scale * c as f64 + shift) as f32;
+        let mut logits = vec![0f32; self.run.u.len];
+        for (&row, &c) in cf.folds[1].iter().zip(&first.u) {
+            logits[row as usize] = apply(first_fit, c);
+        }
+        for (&row, &c) in cf.folds[0].iter().zip(&second_u) {
+            logits[row as usize] = apply(second_fit, c);
+        }
+        let share_first = cf.folds[1].len() as f64 / self.run.u.len.max(1) as f64;
+        let from_first = (share_first * first.n.len() as f64).round() as usize;
+        let scores_n: Vec<f32> = (0..first.n.len())
+            .map(|i| match i < from_first {
+                true => apply(first_fit, first.n[i]),
+                false => apply(second_fit, second_n[i]),
+            })
+            .collect();
+        let heldout = match (best_bin_estimate(&scores_n, &logits), roc_auc(&scores_n, &logits)) {
+            (Some(alpha), Some(auc)) => {
+                // The exported safety head is the second half's discriminator: its own fit.
+                let calibration = self.cfg.calibrate_discriminator.then_some(second_fit);
+                Some(HeldOut { alpha, auc, calibration })
+            }
+            _ => None,
+        };
+        Ok(Some((logits, heldout)))
+    }
+}
