@@ -411,23 +411,23 @@ function jobSummary(job, onCancel) {
       FINAL.has(job.status) ? null : h('button', { class: 'danger cancel', type: 'button', onclick: onCancel }, 'Cancel')),
     h('div', { style: 'margin-top:12px' }, progressBar(job, true)),
     h('p', { class: 'hint', id: 'step-plan' }, `${stepPlanText(plan)} (every phase counts as steps).`),
-    job.status === 'failed' ? h('div', { class: 'error-box job-error', role: 'alert' },
+    job.status === STATUS.failed ? h('div', { class: 'error-box job-error', role: 'alert' },
       h('strong', {}, 'This job failed: '), h('span', { class: 'error-message' }, job.error || 'no reason recorded'),
       h('div', { class: 'hint' }, 'The log below tells what the worker did; fix what the message names (a knob of the config or the data) and queue a new job on the Jobs page.')) : null,
-    job.status === 'discarded' ? h('div', { class: 'error-box job-error', role: 'alert' },
+    job.status === STATUS.discarded ? h('div', { class: 'error-box job-error', role: 'alert' },
       h('strong', {}, 'This job was discarded: '), h('span', { class: 'error-message' }, job.error || 'no reason recorded'),
       h('div', { class: 'hint' }, `Its workers vanished ${job.attempt} times (killed, out of memory, the machine gone) before it ended; the training itself reported no error. The attempts below say what each worker last reported; give the workers more memory or lower batch_size or hidden_sizes, and queue it again.`)) : null,
-    job.cancel_requested && job.status === 'running' ? h('div', { class: 'hint' }, 'Cancel requested; the job stops within a second.') : null,
+    job.cancel_requested && job.status === STATUS.running ? h('div', { class: 'hint' }, 'Cancel requested; the job stops within a second.') : null,
     attemptNotice(job));
 }
 
 /** A job whose worker vanished: waiting for another worker, or for its retry after the backoff. */
 function attemptNotice(job) {
-  if (job.status === 'running' && job.lease_expired_at) {
+  if (job.status === STATUS.running && job.lease_expired_at) {
     return h('div', { class: 'notice', id: 'lease-expired', role: 'status' },
       `Waiting for a worker: the worker stopped renewing its lease at ${fmtTime(job.lease_expired_at)} (progress is frozen). Another worker takes attempt ${job.attempt} of ${job.max_attempts} over from the last checkpoint, or retries the job.`);
   }
-  if (job.status === 'queued' && job.retry_at) {
+  if (job.status === STATUS.queued && job.retry_at) {
     return h('div', { class: 'notice', id: 'retry-at', role: 'status' },
       `Attempt ${job.attempt} of ${job.max_attempts} ended when its worker vanished (see the log); attempt ${job.attempt + 1} starts after ${fmtTime(job.retry_at)}, from the last checkpoint.`);
   }
@@ -617,7 +617,7 @@ async function drawCharts(job, slots) {
   slots.chartsNote.id = 'charts-empty';
   slots.chartsNote.className = 'empty';
   slots.chartsNote.hidden = series.size > 0;
-  slots.chartsNote.textContent = job.status === 'queued' ? 'The job is queued: charts appear once it starts training.'
+  slots.chartsNote.textContent = job.status === STATUS.queued ? 'The job is queued: charts appear once it starts training.'
     : 'No metrics recorded yet: the worker records them every log_every steps (runner option on the Jobs form).';
   slots.charts.show(chartSpecs(job, series));
   slots.once.replaceChildren(weighting || '', stopping || '', once.length ? h('div', { class: 'card', id: 'single-values', style: 'margin-top:18px' },

@@ -13,6 +13,15 @@ const JOB_STATUSES = VOCABULARY.job_statuses;
 const FINAL = new Set(JOB_STATUSES.filter((s) => s.final).map((s) => s.name));
 const RUNNING = new Set(JOB_STATUSES.filter((s) => !s.final).map((s) => s.name));
 const STATUS_MEANING = Object.fromEntries(JOB_STATUSES.map((s) => [s.name, s.meaning]));
+// The statuses by name, for the few places that treat one apart (STATUS.failed): naming one the
+// server does not serve throws, so a renamed status fails the browser tests instead of silently
+// never matching.
+const STATUS = new Proxy(Object.fromEntries(JOB_STATUSES.map((s) => [s.name, s.name])), {
+  get(known, name) {
+    if (typeof name === 'string' && !(name in known)) throw new Error(`no job status "${name}" in /ui/vocabulary.js`);
+    return known[name];
+  },
+});
 /** The metrics the paper's tables report, in the paper's order ({key, history_name, label, ...}). */
 const PAPER_METRIC_INFO = VOCABULARY.evaluation_metrics.filter((m) => m.kind === 'paper');
 const TOKEN_KEY = 'safedice.token';
