@@ -126,7 +126,6 @@ fn weighting_knobs_default_for_stored_configs_and_are_checked() {
         json!({"bbe_unlabeled_rows": "some"}),
         json!({"alpha_hat_point": "upper"}),
         json!({"cross_fit": "yes"}),
-        json!({"cross_fit": true, "discriminator_iterations": 1}),
     ];
     for bad in bad_values {
         let key = bad.as_object().unwrap().keys().next().unwrap().clone();

@@ -133,7 +133,6 @@ impl SafediceTrainer {
             v.u = holdout;
             v.rule = EarlyStop::new(steps);
             v.best.clear();
-            v.last_loss = f64::NAN;
         }
     }
 

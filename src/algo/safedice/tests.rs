@@ -320,11 +320,20 @@ fn cross_fitted_discriminators_cover_the_true_share_and_resume_in_either_half() 
     }
 }
 
+/// `cross_fit` belongs to `bbe`: with the paper's minimum, or a single discriminator step, the
+/// run trains one discriminator (the key does nothing, as `uniform_fallback` does not).
 #[test]
-fn cross_fit_needs_bbe() {
-    let json = serde_json::json!({"cross_fit": true, "alpha_hat_estimator": "min"});
-    let err = crate::algo::resolve_config(crate::algo::Algorithm::Safedice, &json).unwrap_err();
-    assert!(err.to_string().contains("cross_fit"), "{err}");
+fn cross_fit_does_nothing_with_min_or_one_step() {
+    let data = inseparable_task();
+    let configs = [
+        serde_json::json!({"alpha_hat_estimator": "min", "discriminator_iterations": 4}),
+        serde_json::json!({"discriminator_iterations": 1}),
+    ];
+    for json in configs {
+        let config = crate::algo::resolve_config(crate::algo::Algorithm::Safedice, &json).unwrap();
+        let t = SafediceTrainer::new(&config, &data).unwrap();
+        assert!(t.cross_fit.is_none(), "{json}");
+    }
 }
 
 /// D^N (always action 1) is told apart from D^U (always action 0) perfectly, and D^U holds no

@@ -164,8 +164,10 @@ impl SafediceTrainer {
         } else {
             None
         };
-        let cross_fit = match (&disc_stop, cfg.cross_fit) {
-            (Some(_), true) => CrossFit::new(&run.u.episode_ids, run.config.seed()),
+        let cross_fit = match &disc_stop {
+            Some(_) if bbe && cfg.cross_fit && cfg.discriminator_iterations >= 2 => {
+                CrossFit::new(&run.u.episode_ids, run.config.seed())
+            }
             _ => None,
         };
         let fused = match run.device {
