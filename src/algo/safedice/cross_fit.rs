@@ -19,6 +19,7 @@ use rand_chacha::ChaCha8Rng;
 
 use super::mixture::{best_bin_estimate, platt_scaling, roc_auc, HeldOut};
 use super::trainer::SafediceTrainer;
+use super::weighting::UnlabeledScores;
 use crate::algo::discriminator_stop::{EarlyStop, Holdout, MAX_VALIDATION_ROWS};
 use crate::algo::mlp::Mlp;
 use crate::algo::optim::Adam;
@@ -176,7 +177,7 @@ impl SafediceTrainer {
     /// D^N's held-out rows are shared out between the two discriminators in the proportion
     /// their folds have in D^U, so the labeled scores come from the same mixture of the two
     /// score functions as D^U's. None without cross-fitting.
-    pub(super) fn cross_fitted(&self) -> Result<Option<(Vec<f32>, Option<HeldOut>)>, TrainError> {
+    pub(super) fn cross_fitted(&self) -> Result<Option<UnlabeledScores>, TrainError> {
         let (Some(cf), Some(v)) = (self.cross_fit.as_ref(), self.disc_stop.as_ref()) else {
             return Ok(None);
         };
@@ -212,6 +213,6 @@ impl SafediceTrainer {
             }
             _ => None,
         };
-        Ok(Some((logits, heldout)))
+        Ok(Some(UnlabeledScores { logits, heldout, calibrated: true }))
     }
 }

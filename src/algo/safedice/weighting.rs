@@ -16,10 +16,18 @@ use crate::algo::hyperparams::{AlphaEstimator, AlphaHatPoint, BbeUnlabeledRows};
 use crate::algo::optim::Adam;
 use crate::algo::{Algorithm, ResolvedConfig, TrainError};
 
+/// The discriminator's logits on every row of D^U, the held-out statistics alpha-hat reads,
+/// and whether the logits are recalibrated already (cross-fitted: each half on its own fit).
+pub(super) struct UnlabeledScores {
+    pub(super) logits: Vec<f32>,
+    pub(super) heldout: Option<HeldOut>,
+    pub(super) calibrated: bool,
+}
+
 impl SafediceTrainer {
     /// Algorithm 1 step 2 and the reward of Eq. 10 over all of D^U, with the frozen discriminator.
     pub(super) fn finish_discriminator_phase(&mut self) -> Result<(), TrainError> {
-        let (mut logits, heldout, calibrated) = self.unlabeled_scores()?;
+        let UnlabeledScores { mut logits, heldout, calibrated } = self.unlabeled_scores()?;
         let episode_ids = &self.run.u.episode_ids;
         let mut alpha = alpha_hat_from_logits(&logits, episode_ids, self.cfg.alpha_hat_quantile);
         // The paper's statistic above reads the discriminator as trained; Eq. 10 reads it
@@ -103,18 +111,18 @@ impl SafediceTrainer {
         Ok(())
     }
 
-    /// The discriminator's logits on every row of D^U (given ones in the oracle ablation), the
-    /// held-out statistics and whether the logits are already recalibrated (cross-fitted).
-    fn unlabeled_scores(&self) -> Result<(Vec<f32>, Option<HeldOut>, bool), TrainError> {
+    /// The discriminator's logits on every row of D^U (given ones in the oracle ablation,
+    /// cross-fitted ones with `cross_fit`) and the held-out statistics.
+    fn unlabeled_scores(&self) -> Result<UnlabeledScores, TrainError> {
         if let Some(given) = &self.overrides.unlabeled_logits {
-            return Ok((given.clone(), None, false));
+            return Ok(UnlabeledScores { logits: given.clone(), heldout: None, calibrated: false });
         }
-        if let Some((logits, heldout)) = self.cross_fitted()? {
-            return Ok((logits, heldout, true));
+        if let Some(cross_fitted) = self.cross_fitted()? {
+            return Ok(cross_fitted);
         }
         let logits = self.score(&self.run.u)?;
         let heldout = self.heldout_statistics(&logits)?;
-        Ok((logits, heldout, false))
+        Ok(UnlabeledScores { logits, heldout, calibrated: false })
     }
 
     /// With the `bbe` estimator: the frozen discriminator's scores on the held-out rows of D^N
