@@ -13,99 +13,17 @@
 use std::collections::HashMap;
 
 use candle_core::Tensor;
-use rand::seq::SliceRandom;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
+use super::folds::FoldScores;
 use super::mixture::{best_bin_estimate, platt_scaling, roc_auc, HeldOut};
 use super::trainer::SafediceTrainer;
 use super::weighting::UnlabeledScores;
-use crate::algo::discriminator_stop::{EarlyStop, Holdout, MAX_VALIDATION_ROWS};
+use crate::algo::discriminator_stop::EarlyStop;
 use crate::algo::mlp::Mlp;
 use crate::algo::optim::Adam;
 use crate::algo::TrainError;
-
-/// Checkpoint names of the first half's scores (beside the early-stopping rule's weights).
-const FIRST_U: &str = "cross_fit/first_u";
-const FIRST_N: &str = "cross_fit/first_n";
-
-/// D^U's two folds and, once the first half is done, its discriminator's out-of-fold scores.
-pub(super) struct CrossFit {
-    /// Rows of D^U in each fold (whole episodes; rows when D^U has fewer than four episodes).
-    folds: [Vec<u32>; 2],
-    first: Option<FoldScores>,
-}
-
-/// The first half's discriminator, raw logits: on every row of fold 1 and on D^N's held-out rows.
-struct FoldScores {
-    u: Vec<f32>,
-    n: Vec<f32>,
-}
-
-impl CrossFit {
-    /// Two folds of D^U from the run's seed (a stream of its own); None with a single row.
-    pub(super) fn new(episode_ids: &[u32], seed: u64) -> Option<CrossFit> {
-        if episode_ids.len() < 2 {
-            return None;
-        }
-        let mut episodes: Vec<u32> = episode_ids.to_vec();
-        episodes.sort_unstable();
-        episodes.dedup();
-        let by_row = episodes.len() < 4;
-        let mut units: Vec<u32> =
-            if by_row { (0..episode_ids.len() as u32).collect() } else { episodes };
-        units.shuffle(&mut ChaCha8Rng::seed_from_u64(seed ^ 0x5afe_d1ce_0000_00cf));
-        let in_first: std::collections::HashSet<u32> =
-            units[..units.len() / 2].iter().copied().collect();
-        let mut folds = [Vec::new(), Vec::new()];
-        for (row, &episode) in episode_ids.iter().enumerate() {
-            let unit = if by_row { row as u32 } else { episode };
-            folds[usize::from(!in_first.contains(&unit))].push(row as u32);
-        }
-        Some(CrossFit { folds, first: None })
-    }
-
-    /// The discriminator of half `half`: trains on its fold, stops early on the other (a fixed
-    /// subset of it when longer than the held-out cap).
-    pub(super) fn holdout(&self, half: usize) -> Holdout {
-        let other = &self.folds[1 - half];
-        let stride = other.len().div_ceil(MAX_VALIDATION_ROWS).max(1);
-        Holdout {
-            train: self.folds[half].clone(),
-            validation: other.iter().step_by(stride).copied().collect(),
-        }
-    }
-
-    /// The first half's scores as checkpoint tensors (none before it is done).
-    pub(super) fn checkpoint_tensors(&self) -> Vec<(String, Tensor)> {
-        let Some(first) = &self.first else { return Vec::new() };
-        let column = |v: &[f32]| Tensor::from_slice(v, v.len(), &candle_core::Device::Cpu);
-        [(FIRST_N, &first.n), (FIRST_U, &first.u)]
-            .into_iter()
-            .filter_map(|(name, v)| Some((name.to_string(), column(v).ok()?)))
-            .collect()
-    }
-
-    /// Takes the first half's scores out of a checkpoint's tensors, leaving the rest.
-    pub(super) fn restore(
-        &mut self,
-        tensors: &mut HashMap<String, Tensor>,
-    ) -> Result<(), TrainError> {
-        let (Some(u), Some(n)) = (tensors.remove(FIRST_U), tensors.remove(FIRST_N)) else {
-            return Ok(());
-        };
-        let (u, n) = (u.to_vec1::<f32>()?, n.to_vec1::<f32>()?);
-        if u.len() != self.folds[1].len() {
-            return Err(TrainError::Other(format!(
-                "checkpoint has {} cross-fitted scores for {} rows of fold 1",
-                u.len(),
-                self.folds[1].len()
-            )));
-        }
-        self.first = Some(FoldScores { u, n });
-        Ok(())
-    }
-}
 
 impl SafediceTrainer {
     /// The step that ends the first half of the discriminator's budget (cross-fitting only).

@@ -29,6 +29,7 @@
 pub mod ablation;
 mod cross_fit;
 pub mod draws;
+mod folds;
 pub mod fused;
 mod fused_steps;
 pub mod mixture;

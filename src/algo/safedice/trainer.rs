@@ -9,8 +9,8 @@ use rand::seq::SliceRandom;
 use rand::Rng;
 
 use super::ablation::SafediceOverrides;
-use super::cross_fit::CrossFit;
 use super::draws::{DiscDraws, FlowColumns, MainDraws};
+use super::folds::CrossFit;
 use super::fused::FusedSafedice;
 use super::mixture::HeldOut;
 use super::objectives::{
