@@ -125,13 +125,18 @@ impl EarlyStop {
         }
     }
 
-    /// The state as checkpoint scalars.
-    pub fn to_scalars(&self) -> [(&'static str, f64); 3] {
+    /// The state as checkpoint scalars. Before the first measurement the best loss is infinite, which a checkpoint's JSON header
+    /// cannot hold (it would read back as `null`): it is left out, and [`Self::restore`] keeps
+    /// the fresh state's infinity.
+    pub fn to_scalars(&self) -> Vec<(&'static str, f64)> {
         [
             ("discriminator_best_loss", self.best_loss),
             ("discriminator_best_step", self.best_step as f64),
             ("discriminator_stopped_at", self.stopped_at.map_or(-1.0, |s| s as f64)),
         ]
+        .into_iter()
+        .filter(|(_, value)| value.is_finite())
+        .collect()
     }
 
     /// Restores the state from checkpoint scalars (absent keys leave the fresh state).
@@ -195,6 +200,12 @@ mod tests {
         let mut back = EarlyStop::new(2000);
         back.restore(&s.to_scalars().iter().map(|(k, v)| (k.to_string(), *v)).collect());
         assert_eq!(back, s);
+        // Before any measurement (a checkpoint at the start of cross-fitting's second half).
+        let fresh = EarlyStop::new(2000);
+        assert!(fresh.to_scalars().iter().all(|(_, v)| v.is_finite()), "JSON has no infinity");
+        let mut back = EarlyStop::new(2000);
+        back.restore(&fresh.to_scalars().iter().map(|(k, v)| (k.to_string(), *v)).collect());
+        assert_eq!(back, fresh);
     }
 
     /// D^U and D^N drawn from the same distribution (nothing to learn): every gain on the

@@ -183,8 +183,8 @@ pub fn estimate_job_memory(
             data += n_u * (F32 * (flow_obs + 3) + 3 * 8);
             if s.cross_fit {
                 // The folds' row lists, the first half's scores and the second's, one each
-                // per row of D^U.
-                data += n_u * 3 * F32;
+                // per row of D^U; and the first half's discriminator, kept for the safety head.
+                data += n_u * 3 * F32 + F32 * parameters(&disc, false);
             }
             let workspaces = workspace_floats(&disc, 4 * b)
                 + workspace_floats(&nu, 5 * b)

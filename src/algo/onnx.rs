@@ -28,7 +28,9 @@ use onnx_protobuf::{
 use protobuf::{EnumOrUnknown, MessageField};
 
 use super::policy::{Decoder, PolicySpec, MEAN_CLIP};
-use super::safety::{SafetySpec, DISCRIMINATOR, SCORE_NAMES as SAFETY_OUTPUTS, SUPPORT_TENSOR};
+use super::safety::{
+    discriminator_prefix, Recalibration, SafetySpec, SCORE_NAMES as SAFETY_OUTPUTS, SUPPORT_TENSOR,
+};
 use super::TrainError;
 use crate::data::ActionSpace;
 
@@ -333,12 +335,7 @@ impl Graph<'_> {
     ) -> Result<(), TrainError> {
         let input =
             self.node("Concat", &[observations, action_input], vec![int_attribute("axis", 1)]);
-        let layers = safety.discriminator_hidden_sizes.len() + 1;
-        let logit = self.mlp_with(DISCRIMINATOR, &input, layers, false)?;
-        let scale = self.scalar("safety_logit_scale", safety.logit_scale as f32);
-        let shift = self.scalar("safety_logit_shift", safety.logit_shift as f32);
-        let scaled = self.node("Mul", &[&logit, &scale], vec![]);
-        let calibrated = self.node("Add", &[&scaled, &shift], vec![]);
+        let calibrated = self.safety_log_ratio(safety, &input)?;
         let batch = self.int64s("safety_batch_shape", &[-1]);
         self.output_node("Reshape", &[&calibrated, &batch], SAFETY_OUTPUTS[0]);
         let norm = &safety.support_normalization;
@@ -366,6 +363,38 @@ impl Graph<'_> {
             self.proto.output.push(value_info(name, DataType::FLOAT, &[None]));
         }
         Ok(())
+    }
+
+    /// The safety head's log-ratio on `input`: each discriminator's recalibrated logit, summed
+    /// in member order and divided by their count when there are several, as
+    /// [`super::Policy`] computes it.
+    fn safety_log_ratio(&mut self, safety: &SafetySpec, input: &str) -> Result<String, TrainError> {
+        let layers = safety.discriminator_hidden_sizes.len() + 1;
+        let own =
+            Recalibration { logit_scale: safety.logit_scale, logit_shift: safety.logit_shift };
+        let members: Vec<Recalibration> =
+            std::iter::once(own).chain(safety.more_discriminators.iter().copied()).collect();
+        let mut total: Option<String> = None;
+        for (k, recalibration) in members.iter().enumerate() {
+            let prefix = discriminator_prefix(k);
+            let logit = self.mlp_with(&prefix, input, layers, false)?;
+            let scale =
+                self.scalar(&format!("{prefix}_logit_scale"), recalibration.logit_scale as f32);
+            let shift =
+                self.scalar(&format!("{prefix}_logit_shift"), recalibration.logit_shift as f32);
+            let scaled = self.node("Mul", &[&logit, &scale], vec![]);
+            let calibrated = self.node("Add", &[&scaled, &shift], vec![]);
+            total = Some(match total {
+                None => calibrated,
+                Some(sum) => self.node("Add", &[&sum, &calibrated], vec![]),
+            });
+        }
+        let total = total.expect("a safety head has its own discriminator");
+        if members.len() == 1 {
+            return Ok(total);
+        }
+        let count = self.scalar("safety_discriminators", members.len() as f32);
+        Ok(self.node("Div", &[&total, &count], vec![]))
     }
 
     /// A weight of the policy file as an initializer (FP32, same shape), its data left in the

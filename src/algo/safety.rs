@@ -5,6 +5,9 @@
 //!   action, recalibrated as Eq. 10 reads it. Trained on balanced minibatches of D^N and D^U,
 //!   `σ(c)` estimates `d^N / (d^N + d^U)`, so `c` estimates `log d^N(s,a) / d^U(s,a)`: above 0,
 //!   the pair looks more like the non-preferred demonstrations than like the unlabeled data.
+//!   A cross-fitted run (`cross_fit`) trained two discriminators, each on half of D^U's
+//!   episodes; the head keeps both and answers the mean of their recalibrated logits, which
+//!   reads all of D^U as the one discriminator of other runs does.
 //! - `out_of_support`: how far the observation is from the states of D^U: the distance to the
 //!   nearest of up to [`SUPPORT_ROWS`] reference states of D^U (standardised per dimension),
 //!   divided by the [`SUPPORT_QUANTILE`] quantile of that distance over other rows of D^U. Up to
@@ -28,7 +31,8 @@ use crate::data::{ActionSpace, Actions};
 /// The two scores' names, in this order, wherever they are answered (`/act`, the inference
 /// protocol's outputs, the ONNX export's outputs).
 pub const SCORE_NAMES: [&str; 2] = ["non_preferred_log_ratio", "out_of_support"];
-/// The discriminator's tensors in the policy file (`discriminator.{layer}.weight|bias`).
+/// The discriminator's tensors in the policy file (`discriminator.{layer}.weight|bias`); the
+/// k-th of [`SafetySpec::more_discriminators`] is `discriminator_{k}.*`, k from 1.
 pub const DISCRIMINATOR: &str = "discriminator";
 /// The reference states of D^U (`rows × obs_dim`, standardised), in the policy file.
 pub const SUPPORT_TENSOR: &str = "support.observations";
@@ -51,6 +55,11 @@ pub struct SafetySpec {
     /// The recalibration `scale · c + shift` Eq. 10 read the logit with (`1, 0` when none).
     pub logit_scale: f64,
     pub logit_shift: f64,
+    /// Further discriminators of the same shape (cross-fitting's first half), each with its own
+    /// recalibration; the log-ratio is the mean of every member's recalibrated logit. Empty (and
+    /// absent from the JSON) with one discriminator.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub more_discriminators: Vec<Recalibration>,
     /// The discriminator's ROC AUC on held-out episodes, when the run measured it: near 0.5 the
     /// log-ratio carries no information.
     pub heldout_auc: Option<f64>,
@@ -63,6 +72,33 @@ pub struct SafetySpec {
     pub support_reference_distance: f32,
 }
 
+/// A discriminator's recalibration `scale · c + shift`.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Recalibration {
+    pub logit_scale: f64,
+    pub logit_shift: f64,
+}
+
+impl Recalibration {
+    /// No recalibration (`1, 0`).
+    pub const NONE: Recalibration = Recalibration { logit_scale: 1.0, logit_shift: 0.0 };
+}
+
+/// The name prefix of the `k`-th discriminator's tensors (0: the spec's own).
+pub fn discriminator_prefix(k: usize) -> String {
+    match k {
+        0 => DISCRIMINATOR.to_owned(),
+        k => format!("{DISCRIMINATOR}_{k}"),
+    }
+}
+
+/// One discriminator of a head being built: its weights by variable name (as a
+/// [`DISCRIMINATOR`] network names them) and its recalibration.
+pub struct Member {
+    pub weights: HashMap<String, Tensor>,
+    pub recalibration: Recalibration,
+}
+
 /// Both scores for each of `B` rows.
 #[derive(Clone, Debug, PartialEq)]
 pub struct SafetyScores {
@@ -73,7 +109,8 @@ pub struct SafetyScores {
 /// The safety head of a loaded policy.
 pub struct SafetyHead {
     spec: SafetySpec,
-    discriminator: FusedMlp,
+    /// Each member with its recalibration, the spec's own first.
+    discriminators: Vec<(FusedMlp, Recalibration)>,
     /// The reference states, standardised ([`Support`]).
     support: Support,
 }
@@ -86,8 +123,18 @@ impl SafetyHead {
         space: &ActionSpace,
         tensors: &HashMap<String, Tensor>,
     ) -> Result<SafetyHead, TrainError> {
-        let discriminator = discriminator_net(obs_dim, space, &spec.discriminator_hidden_sizes)?;
-        discriminator.load(tensors)?;
+        let own = Recalibration { logit_scale: spec.logit_scale, logit_shift: spec.logit_shift };
+        let recalibrations = std::iter::once(own).chain(spec.more_discriminators.iter().copied());
+        let discriminators = recalibrations
+            .enumerate()
+            .map(|(k, recalibration)| {
+                let prefix = discriminator_prefix(k);
+                let net =
+                    discriminator_net(&prefix, obs_dim, space, &spec.discriminator_hidden_sizes)?;
+                net.load(tensors)?;
+                Ok((net.to_fused()?, recalibration))
+            })
+            .collect::<Result<_, TrainError>>()?;
         let support = tensors
             .get(SUPPORT_TENSOR)
             .ok_or_else(|| TrainError::Other(format!("the policy file lacks `{SUPPORT_TENSOR}`")))?
@@ -103,7 +150,7 @@ impl SafetyHead {
             )));
         }
         let support = Support::new(&support, obs_dim);
-        Ok(SafetyHead { spec: spec.clone(), discriminator: discriminator.to_fused()?, support })
+        Ok(SafetyHead { spec: spec.clone(), discriminators, support })
     }
 
     /// The scores of `actions` (in the dataset's units) at `observations` (`B × obs_dim`,
@@ -129,7 +176,7 @@ impl SafetyHead {
         space: &ActionSpace,
         rows: usize,
     ) -> Vec<f32> {
-        let shape = self.discriminator.shape();
+        let shape = self.discriminators[0].0.shape();
         let mut ws = Workspace::for_inference(shape, rows);
         let input = ws.input_mut();
         let obs_dim = observations.len() / rows.max(1);
@@ -138,10 +185,20 @@ impl SafetyHead {
             row[..obs_dim].copy_from_slice(&observations[r * obs_dim..(r + 1) * obs_dim]);
             encode_action(actions, space, r, &mut row[obs_dim..]);
         }
-        self.discriminator.forward(&mut ws, rows);
-        // In f32, as the ONNX export's Mul and Add compute it.
-        let (scale, shift) = (self.spec.logit_scale as f32, self.spec.logit_shift as f32);
-        ws.output()[..rows].iter().map(|&c| scale * c + shift).collect()
+        let mut sum = vec![0f32; rows];
+        for (net, recalibration) in &self.discriminators {
+            net.forward(&mut ws, rows);
+            // In f32 and in member order, as the ONNX export's Mul, Add and Sum compute it.
+            let scale = recalibration.logit_scale as f32;
+            let shift = recalibration.logit_shift as f32;
+            for (total, &c) in sum.iter_mut().zip(&ws.output()[..rows]) {
+                *total += scale * c + shift;
+            }
+        }
+        match self.discriminators.len() {
+            1 => sum,
+            members => sum.into_iter().map(|total| total / members as f32).collect(),
+        }
     }
 
     fn support_scores(&self, observations: &[f32], rows: usize) -> Vec<f32> {
@@ -161,8 +218,10 @@ impl SafetyHead {
     }
 }
 
-/// The discriminator as SafeDICE builds it (`run.new_critic`): no bias on the output layer.
+/// The discriminator as SafeDICE builds it (`run.new_critic`), its variables named under
+/// `prefix`: no bias on the output layer.
 fn discriminator_net(
+    prefix: &str,
     obs_dim: usize,
     space: &ActionSpace,
     hidden: &[usize],
@@ -172,7 +231,7 @@ fn discriminator_net(
         .chain(std::iter::once(1))
         .collect();
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(0);
-    Ok(Mlp::new(DISCRIMINATOR, &dims, false, &Device::Cpu, &mut rng)?)
+    Ok(Mlp::new(prefix, &dims, false, &Device::Cpu, &mut rng)?)
 }
 
 /// Row `r`'s action as the discriminator's input: the unit-box action, or a one-hot.
@@ -225,14 +284,14 @@ impl Support {
 }
 
 /// Builds the safety head of a trained SafeDICE run: its spec and the tensors to add to the
-/// policy file. `observations`: D^U's observations as the run fed them to its networks
-/// (`N × obs_dim`, normalised when the run normalises). No random draws: the reference states
-/// are evenly spaced rows and the held-out ones the rows halfway between, so exporting a policy
-/// never changes what the run trains.
+/// policy file. `members`: the discriminators, at least one, the first the spec's own.
+/// `observations`: D^U's observations as the run fed them to its networks (`N × obs_dim`,
+/// normalised when the run normalises). No random draws: the reference states are evenly spaced
+/// rows and the held-out ones the rows halfway between, so exporting a policy never changes what
+/// the run trains.
 pub fn build(
-    discriminator: &Mlp,
+    members: &[Member],
     hidden: &[usize],
-    calibration: Option<(f64, f64)>,
     heldout_auc: Option<f64>,
     observations: &[f32],
     obs_dim: usize,
@@ -253,21 +312,33 @@ pub fn build(
         .get(((distances.len() as f64 - 1.0) * SUPPORT_QUANTILE).round() as usize)
         .copied()
         .unwrap_or(0.0);
-    let (logit_scale, logit_shift) = calibration.unwrap_or((1.0, 0.0));
+    let (own, more) = members
+        .split_first()
+        .ok_or_else(|| TrainError::Other("a safety head needs a discriminator".into()))?;
     let spec = SafetySpec {
         discriminator_hidden_sizes: hidden.to_vec(),
-        logit_scale,
-        logit_shift,
+        logit_scale: own.recalibration.logit_scale,
+        logit_shift: own.recalibration.logit_shift,
+        more_discriminators: more.iter().map(|m| m.recalibration).collect(),
         heldout_auc,
         support_normalization: normalization,
         support_rows: reference_rows.len(),
         support_reference_distance: quantile.max(MIN_REFERENCE_DISTANCE),
     };
-    let mut tensors: Vec<(String, Tensor)> = discriminator
-        .named_vars()
-        .into_iter()
-        .map(|(name, var)| Ok((name, var.as_tensor().to_device(&Device::Cpu)?)))
-        .collect::<candle_core::Result<_>>()?;
+    let mut tensors = Vec::new();
+    for (k, member) in members.iter().enumerate() {
+        let prefix = discriminator_prefix(k);
+        for (name, tensor) in &member.weights {
+            let name = match name.strip_prefix(DISCRIMINATOR) {
+                Some(layer) => format!("{prefix}{layer}"),
+                None => {
+                    return Err(TrainError::Other(format!("`{name}` is not a discriminator's")))
+                }
+            };
+            tensors.push((name, tensor.to_device(&Device::Cpu)?));
+        }
+    }
+    tensors.sort_by(|a, b| a.0.cmp(&b.0));
     let rows = reference_rows.len();
     tensors.push((
         SUPPORT_TENSOR.to_owned(),

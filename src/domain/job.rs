@@ -58,6 +58,12 @@ impl JobStatus {
         !matches!(self, JobStatus::Queued | JobStatus::Running)
     }
 
+    /// The job ended with what it was for (its policy stored): the one final status a client
+    /// that waits for a job treats as success.
+    pub fn is_success(self) -> bool {
+        matches!(self, JobStatus::Succeeded)
+    }
+
     /// What the status means, as the vocabulary serves it to clients.
     pub fn meaning(self) -> &'static str {
         match self {

@@ -1,5 +1,5 @@
 //! `/v1/vocabulary`: the words the service's resources use, with what each means: job statuses
-//! (which are final) and evaluation metrics (labels, which way is better, which the paper
+//! (which are final, which a success) and evaluation metrics (labels, which way is better, which the paper
 //! reports). The dashboard loads the same table as `/ui/vocabulary.js` and the Python client
 //! reads it, so neither keeps a copy that a new status or metric would leave behind.
 
@@ -19,6 +19,10 @@ pub struct JobStatusInfo {
     /// The job never runs again.
     #[serde(rename = "final")]
     pub is_final: bool,
+    /// The job ended with what it was for (its policy stored); every other final status is a
+    /// failure to the client that waited.
+    #[serde(rename = "success")]
+    pub is_success: bool,
     pub meaning: &'static str,
 }
 
@@ -46,7 +50,12 @@ async fn get_vocabulary() -> Json<Vocabulary> {
 pub fn vocabulary() -> Vocabulary {
     let job_statuses = JobStatus::ALL
         .into_iter()
-        .map(|name| JobStatusInfo { name, is_final: name.is_final(), meaning: name.meaning() })
+        .map(|name| JobStatusInfo {
+            name,
+            is_final: name.is_final(),
+            is_success: name.is_success(),
+            meaning: name.meaning(),
+        })
         .collect();
     Vocabulary { job_statuses, evaluation_metrics: METRICS.to_vec() }
 }

@@ -1,6 +1,6 @@
 //! GET /v1/vocabulary and the dashboard's copy of it (/ui/vocabulary.js) through the real
-//! server: the job statuses (final or not, with what each means) and the evaluation metrics, the
-//! same in both places and in the OpenAPI document's enum.
+//! server: the job statuses (final or not, a success or not, with what each means) and the
+//! evaluation metrics, the same in both places and in the OpenAPI document's enum.
 
 use crate::support::app::TestApp;
 use reqwest::StatusCode;
@@ -12,27 +12,28 @@ async fn the_vocabulary_lists_every_status_and_metric_as_the_api_document_has_th
     let response = app.get("/v1/vocabulary").send().await.unwrap();
     assert_eq!(response.status(), StatusCode::OK);
     let body: Value = response.json().await.unwrap();
-    let statuses: Vec<(&str, bool)> = body["job_statuses"]
+    let flag = |s: &Value, key: &str| s[key].as_bool().unwrap();
+    let statuses: Vec<(&str, bool, bool)> = body["job_statuses"]
         .as_array()
         .unwrap()
         .iter()
-        .map(|s| (s["name"].as_str().unwrap(), s["final"].as_bool().unwrap()))
+        .map(|s| (s["name"].as_str().unwrap(), flag(s, "final"), flag(s, "success")))
         .collect();
     assert_eq!(
         statuses,
         [
-            ("queued", false),
-            ("running", false),
-            ("succeeded", true),
-            ("failed", true),
-            ("cancelled", true),
-            ("discarded", true),
+            ("queued", false, false),
+            ("running", false, false),
+            ("succeeded", true, true),
+            ("failed", true, false),
+            ("cancelled", true, false),
+            ("discarded", true, false),
         ]
     );
     assert!(body["job_statuses"].as_array().unwrap().iter().all(|s| s["meaning"].is_string()));
     let document: Value = app.get("/v1/openapi.json").send().await.unwrap().json().await.unwrap();
     let declared = &document["components"]["schemas"]["JobStatus"]["enum"];
-    let names: Vec<&str> = statuses.iter().map(|(name, _)| *name).collect();
+    let names: Vec<&str> = statuses.iter().map(|(name, ..)| *name).collect();
     assert_eq!(declared, &serde_json::json!(names), "the schema's enum is the served list");
 
     let metrics = body["evaluation_metrics"].as_array().unwrap();

@@ -24,8 +24,9 @@ fn safedice_takes_the_safe_route_and_bc_does_not() {
     let (bc_cost, _) = grid_rollout(&bc);
     assert!(bc_cost > 0, "BC should follow the unsafe majority");
 
+    // Cross-fitting trains two discriminators, each for half the steps: 300 each.
     let (safedice, alpha) =
-        train(Algorithm::Safedice, small(json!({"discriminator_iterations": 300})), &data);
+        train(Algorithm::Safedice, small(json!({"discriminator_iterations": 600})), &data);
     let (cost, reached) = grid_rollout(&safedice);
     let alpha = alpha.unwrap();
     assert_eq!(

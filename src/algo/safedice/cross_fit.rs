@@ -18,12 +18,14 @@ use rand_chacha::ChaCha8Rng;
 
 use super::folds::FoldScores;
 use super::mixture::{best_bin_estimate, platt_scaling, roc_auc, HeldOut};
-use super::trainer::SafediceTrainer;
+use super::trainer::{logits_of, snapshot, SafediceTrainer};
 use super::weighting::UnlabeledScores;
 use crate::algo::discriminator_stop::EarlyStop;
 use crate::algo::mlp::Mlp;
 use crate::algo::optim::Adam;
+use crate::algo::safety::{Member, Recalibration};
 use crate::algo::TrainError;
+use crate::data::Dataset;
 
 impl SafediceTrainer {
     /// The step that ends the first half of the discriminator's budget (cross-fitting only).
@@ -63,6 +65,7 @@ impl SafediceTrainer {
         if !v.best.is_empty() {
             self.disc.load(&v.best)?;
         }
+        let trained = snapshot(&self.disc)?;
         let fold_1 = self.cross_fit.as_ref().map_or(Vec::new(), |cf| cf.folds[1].clone());
         let u = self.score_rows(&self.run.u, &fold_1)?;
         let n = self.score_rows(self.run.non_preferred(), &v.n.validation)?;
@@ -83,7 +86,7 @@ impl SafediceTrainer {
         self.disc.load(&weights)?;
         self.disc_opt = Adam::new(self.disc.named_vars(), self.cfg.lr_discriminator)?;
         if let Some(cf) = self.cross_fit.as_mut() {
-            cf.first = Some(FoldScores { u, n });
+            cf.first = Some(FoldScores { u, n, weights: trained });
         }
         self.enter_half(self.cfg.discriminator_iterations);
         Ok(())
@@ -102,10 +105,7 @@ impl SafediceTrainer {
         let Some(first) = cf.first.as_ref() else { return Ok(None) };
         let second_u = self.score_rows(&self.run.u, &cf.folds[0])?;
         let second_n = self.score_rows(self.run.non_preferred(), &v.n.validation)?;
-        let fit = |n: &[f32], u: &[f32]| match self.cfg.calibrate_discriminator {
-            true => platt_scaling(n, u),
-            false => (1.0, 0.0),
-        };
+        let fit = |n: &[f32], u: &[f32]| self.recalibration(n, u);
         let (first_fit, second_fit) = (fit(&first.n, &first.u), fit(&second_n, &second_u));
         let apply = |(scale, shift): (f64, f64), c: f32| (scale * c as f64 + shift) as f32;
         let mut logits = vec![0f32; self.run.u.len];
@@ -125,12 +125,52 @@ impl SafediceTrainer {
             .collect();
         let heldout = match (best_bin_estimate(&scores_n, &logits), roc_auc(&scores_n, &logits)) {
             (Some(alpha), Some(auc)) => {
-                // The exported safety head is the second half's discriminator: its own fit.
+                // The safety head's own discriminator is the second half's: its own fit
+                // ([`Self::first_half_member`] gives the first's).
                 let calibration = self.cfg.calibrate_discriminator.then_some(second_fit);
                 Some(HeldOut { alpha, auc, calibration })
             }
             _ => None,
         };
         Ok(Some(UnlabeledScores { logits, heldout, calibrated: true }))
+    }
+
+    /// With `calibrate_discriminator`, the Platt fit of a discriminator's logits on held-out
+    /// rows of D^N and D^U; `1, 0` without.
+    fn recalibration(&self, n: &[f32], u: &[f32]) -> (f64, f64) {
+        match self.cfg.calibrate_discriminator {
+            true => platt_scaling(n, u),
+            false => (1.0, 0.0),
+        }
+    }
+
+    /// The first half's discriminator as the safety head's second member, recalibrated as
+    /// [`Self::cross_fitted`] read it; None without cross-fitting, before the first half is done,
+    /// or from a checkpoint written before its weights were kept.
+    pub(super) fn first_half_member(&self) -> Option<Member> {
+        let first = self.cross_fit.as_ref()?.first.as_ref()?;
+        if first.weights.is_empty() {
+            return None;
+        }
+        let (logit_scale, logit_shift) = self.recalibration(&first.n, &first.u);
+        let recalibration = Recalibration { logit_scale, logit_shift };
+        Some(Member { weights: first.weights.clone(), recalibration })
+    }
+
+    /// The first half's discriminator's logits on every row of `data` (raw, as
+    /// [`Self::discriminator_logits`] gives the second's); None where
+    /// [`Self::first_half_member`] is.
+    pub fn first_half_discriminator_logits(
+        &self,
+        data: &Dataset,
+    ) -> Result<Option<Vec<f32>>, TrainError> {
+        let Some(member) = self.first_half_member() else { return Ok(None) };
+        let mut unused = ChaCha8Rng::seed_from_u64(0);
+        let net =
+            Mlp::new("discriminator", self.disc.dims(), false, &self.run.device, &mut unused)?;
+        net.load(&member.weights)?;
+        let columns = self.columns_of(data)?;
+        let every_row: Vec<u32> = (0..columns.len as u32).collect();
+        Ok(Some(logits_of(&net, &columns, &every_row)?))
     }
 }

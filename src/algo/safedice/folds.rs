@@ -1,6 +1,6 @@
 //! The data side of cross-fitting (`cross_fit`, [`super::cross_fit`]): D^U's two folds, the
-//! held-out rows each half's discriminator stops early on, and the first half's scores as the
-//! checkpoint carries them. Below the trainer, which holds a [`CrossFit`].
+//! held-out rows each half's discriminator stops early on, and the first half's scores and
+//! weights as the checkpoint carries them. Below the trainer, which holds a [`CrossFit`].
 
 use std::collections::HashMap;
 
@@ -15,6 +15,9 @@ use crate::algo::TrainError;
 /// Checkpoint names of the first half's scores (beside the early-stopping rule's weights).
 const FIRST_U: &str = "cross_fit/first_u";
 const FIRST_N: &str = "cross_fit/first_n";
+/// Prefix of the first half's discriminator weights in the checkpoint (the safety head's second
+/// member).
+const FIRST_WEIGHTS: &str = "cross_fit/first/";
 
 /// D^U's two folds and, once the first half is done, its discriminator's out-of-fold scores.
 pub(super) struct CrossFit {
@@ -23,10 +26,12 @@ pub(super) struct CrossFit {
     pub(super) first: Option<FoldScores>,
 }
 
-/// The first half's discriminator, raw logits: on every row of fold 1 and on D^N's held-out rows.
+/// The first half's discriminator: its raw logits on every row of fold 1 and on D^N's held-out
+/// rows, and its weights by variable name (empty in a checkpoint written before they were kept).
 pub(super) struct FoldScores {
     pub(super) u: Vec<f32>,
     pub(super) n: Vec<f32>,
+    pub(super) weights: HashMap<String, Tensor>,
 }
 
 impl CrossFit {
@@ -63,17 +68,19 @@ impl CrossFit {
         }
     }
 
-    /// The first half's scores as checkpoint tensors (none before it is done).
+    /// The first half's scores and weights as checkpoint tensors (none before it is done).
     pub(super) fn checkpoint_tensors(&self) -> Vec<(String, Tensor)> {
         let Some(first) = &self.first else { return Vec::new() };
         let column = |v: &[f32]| Tensor::from_slice(v, v.len(), &candle_core::Device::Cpu);
-        [(FIRST_N, &first.n), (FIRST_U, &first.u)]
+        let scores = [(FIRST_N, &first.n), (FIRST_U, &first.u)]
             .into_iter()
-            .filter_map(|(name, v)| Some((name.to_string(), column(v).ok()?)))
-            .collect()
+            .filter_map(|(name, v)| Some((name.to_string(), column(v).ok()?)));
+        let weights =
+            first.weights.iter().map(|(name, t)| (format!("{FIRST_WEIGHTS}{name}"), t.clone()));
+        scores.chain(weights).collect()
     }
 
-    /// Takes the first half's scores out of a checkpoint's tensors, leaving the rest.
+    /// Takes the first half's scores and weights out of a checkpoint's tensors, leaving the rest.
     pub(super) fn restore(
         &mut self,
         tensors: &mut HashMap<String, Tensor>,
@@ -89,7 +96,13 @@ impl CrossFit {
                 self.folds[1].len()
             )));
         }
-        self.first = Some(FoldScores { u, n });
+        let names: Vec<String> =
+            tensors.keys().filter(|k| k.starts_with(FIRST_WEIGHTS)).cloned().collect();
+        let weights = names
+            .into_iter()
+            .filter_map(|k| Some((k[FIRST_WEIGHTS.len()..].to_string(), tensors.remove(&k)?)))
+            .collect();
+        self.first = Some(FoldScores { u, n, weights });
         Ok(())
     }
 }

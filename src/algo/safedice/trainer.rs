@@ -243,31 +243,19 @@ impl SafediceTrainer {
         self.alpha.as_ref()
     }
 
-    /// The discriminator's logits `c(s, a)` on every row of `columns`, in chunks.
-    /// The discriminator's logits on `rows` of `columns`.
+    /// The discriminator's logits `c(s, a)` on `rows` of `columns`.
     pub(super) fn score_rows(
         &self,
         columns: &Columns,
         rows: &[u32],
     ) -> Result<Vec<f32>, TrainError> {
-        let mut logits = Vec::with_capacity(rows.len());
-        for chunk in rows.chunks(SCORING_CHUNK) {
-            let idx = Tensor::from_slice(chunk, chunk.len(), &self.run.device)?;
-            let x = columns.state_action(&idx)?;
-            logits.extend(self.disc.forward(&x)?.flatten_all()?.to_vec1::<f32>()?);
-        }
-        Ok(logits)
+        logits_of(&self.disc, columns, rows)
     }
 
+    /// The discriminator's logits on every row of `columns`.
     pub(super) fn score(&self, columns: &Columns) -> Result<Vec<f32>, TrainError> {
-        let mut logits = Vec::with_capacity(columns.len);
-        for start in (0..columns.len).step_by(SCORING_CHUNK) {
-            let rows = SCORING_CHUNK.min(columns.len - start);
-            let idx = Tensor::arange(start as u32, (start + rows) as u32, &self.run.device)?;
-            let x = columns.state_action(&idx)?;
-            logits.extend(self.disc.forward(&x)?.flatten_all()?.to_vec1::<f32>()?);
-        }
-        Ok(logits)
+        let every_row: Vec<u32> = (0..columns.len as u32).collect();
+        self.score_rows(columns, &every_row)
     }
 
     /// The trained discriminator's logits (σ(c) = probability of "non-preferred") on every row
@@ -279,13 +267,18 @@ impl SafediceTrainer {
     /// The trained discriminator's logits on every row of another dataset of the same spaces
     /// (normalised and encoded as the run's own data).
     pub fn discriminator_logits(&self, data: &Dataset) -> Result<Vec<f32>, TrainError> {
+        self.score(&self.columns_of(data)?)
+    }
+
+    /// Another dataset of the run's spaces, normalised and encoded as the run's own data.
+    pub(super) fn columns_of(&self, data: &Dataset) -> Result<Columns, TrainError> {
         if data.obs_dim() != self.run.obs_dim
             || !data.action_space().compatible_with(&self.run.space)
         {
             return Err(TrainError::Other("the dataset's spaces differ from the run's".into()));
         }
         let device = &self.run.device;
-        self.score(&Columns::new(data, &self.run.space, self.run.normalizer.as_ref(), device)?)
+        Ok(Columns::new(data, &self.run.space, self.run.normalizer.as_ref(), device)?)
     }
 
     /// Eq. 12's weights `w = exp(A − 1)` on every row of D^U with the current ν
@@ -594,14 +587,22 @@ impl SafediceTrainer {
 
 impl SafediceTrainer {
     /// The safety head the policy file carries: the discriminator as Eq. 10 read it
-    /// (recalibrated when the run recalibrated it) and D^U's reference states.
+    /// (recalibrated when the run recalibrated it; with cross-fitting, both halves'
+    /// discriminators) and D^U's reference states.
     fn safety_head(&self) -> Result<(SafetySpec, Vec<(String, Tensor)>), TrainError> {
         let heldout = self.heldout.as_ref();
+        let recalibration = heldout
+            .and_then(|h| h.calibration)
+            .map_or(safety::Recalibration::NONE, |(logit_scale, logit_shift)| {
+                safety::Recalibration { logit_scale, logit_shift }
+            });
+        let own = safety::Member { weights: snapshot(&self.disc)?, recalibration };
+        let members: Vec<safety::Member> =
+            std::iter::once(own).chain(self.first_half_member()).collect();
         let observations = self.run.u.obs.flatten_all()?.to_vec1::<f32>()?;
         safety::build(
-            &self.disc,
+            &members,
             self.run.hidden(),
-            heldout.and_then(|h| h.calibration),
             heldout.map(|h| h.auc.value),
             &observations,
             self.run.obs_dim,
@@ -609,8 +610,25 @@ impl SafediceTrainer {
     }
 }
 
+/// A discriminator's logits on `rows` of `columns`, in chunks.
+pub(super) fn logits_of(
+    net: &Mlp,
+    columns: &Columns,
+    rows: &[u32],
+) -> Result<Vec<f32>, TrainError> {
+    let mut logits = Vec::with_capacity(rows.len());
+    for chunk in rows.chunks(SCORING_CHUNK) {
+        let idx = Tensor::from_slice(chunk, chunk.len(), columns.obs.device())?;
+        let x = columns.state_action(&idx)?;
+        logits.extend(net.forward(&x)?.flatten_all()?.to_vec1::<f32>()?);
+    }
+    Ok(logits)
+}
+
 /// An independent copy of a network's weights, by variable name.
-fn snapshot(net: &Mlp) -> candle_core::Result<std::collections::HashMap<String, Tensor>> {
+pub(super) fn snapshot(
+    net: &Mlp,
+) -> candle_core::Result<std::collections::HashMap<String, Tensor>> {
     net.named_vars().into_iter().map(|(name, var)| Ok((name, var.as_tensor().copy()?))).collect()
 }
 

@@ -65,7 +65,7 @@ pub struct CreateJob {
     /// `estimate`, the bin's ratio, or `lower`, its interval's lower end), `reward_scale` (multiplies Eq. 10's
     /// reward after the standardisation; 1 by default), `cross_fit` (`bbe` only: two
     /// discriminators on two folds of D^U's episodes, each row scored by the one that did not
-    /// train on it; off by default), `ess_warning_fraction`,
+    /// train on it, and the safety head the mean of both; on in `service`), `ess_warning_fraction`,
     /// `discriminator_early_stopping` (hold out a fifth of
     /// the data and stop the discriminator when its held-out loss stops improving;
     /// `discriminator_iterations` is then its most). `dwbc`: `eta`, `lr_discriminator`, `discriminator_gp`.
