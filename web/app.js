@@ -274,7 +274,7 @@ function jobsPage(view) {
   view.append(h('h1', {}, 'Jobs'), formSlot,
     h('div', { class: 'card' }, h('div', { class: 'card-head' }, h('h2', {}, 'Jobs'), filters), listError, list, pages.nav));
 
-  Promise.all([api('/v1/datasets?limit=100'), api('/v1/envs'), api('/v1/jobs?status=succeeded&limit=100'), api('/v1/models?limit=100')])
+  Promise.all([api('/v1/datasets?limit=100'), api('/v1/envs'), api(`/v1/jobs?status=${SUCCESS}&limit=100`), api('/v1/models?limit=100')])
     .then(([datasets, envs, finished, models]) => {
       if (!datasets.items.length) {
         formSlot.replaceChildren(h('div', { class: 'card' }, h('div', { class: 'empty' },

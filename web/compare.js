@@ -166,7 +166,7 @@ function comparePage(view) {
 
   const redraw = () => draw().catch((e) => output.replaceChildren(errorBox(e)));
   const loadPage = async () => {
-    const page = await api(withParams('/v1/jobs', { status: STATUS.succeeded, limit: 50, page_token: nextToken }));
+    const page = await api(withParams('/v1/jobs', { status: SUCCESS, limit: 50, page_token: nextToken }));
     const first = jobs.length === 0;
     jobs.push(...page.items);
     nextToken = page.next_page_token || null;

@@ -13,6 +13,8 @@ const JOB_STATUSES = VOCABULARY.job_statuses;
 const FINAL = new Set(JOB_STATUSES.filter((s) => s.final).map((s) => s.name));
 const RUNNING = new Set(JOB_STATUSES.filter((s) => !s.final).map((s) => s.name));
 const STATUS_MEANING = Object.fromEntries(JOB_STATUSES.map((s) => [s.name, s.meaning]));
+// The final status of a job that did what it was for (its policy stored), as the server flags it.
+const SUCCESS = JOB_STATUSES.find((s) => s.success).name;
 // The statuses by name, for the few places that treat one apart (STATUS.failed): naming one the
 // server does not serve throws, so a renamed status fails the browser tests instead of silently
 // never matching.

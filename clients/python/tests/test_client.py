@@ -339,6 +339,7 @@ def test_the_final_statuses_come_from_the_servers_vocabulary(client: Client) -> 
     names = [s["name"] for s in vocabulary["job_statuses"]]
     assert names[:2] == ["queued", "running"] and "discarded" in names
     assert client.final_statuses() == frozenset(names[2:])
+    assert client.success_statuses() == frozenset(["succeeded"])
     keys = [m["key"] for m in vocabulary["evaluation_metrics"]]
     assert {"normalized_return", "average_cost", "cvar_cost_5"} <= set(keys)
 

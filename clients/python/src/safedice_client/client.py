@@ -37,7 +37,7 @@ class ApiError(Exception):
 
 
 class JobFailed(Exception):
-    """A job `wait` followed ended other than `succeeded` (`failed`, `discarded`, `cancelled`)."""
+    """A job `wait` followed ended in a final status the vocabulary does not call a success."""
 
     def __init__(self, job: Json):
         super().__init__(f"job {job['id']} ended {job['status']}: {job.get('error')}")
@@ -58,7 +58,7 @@ class Client:
         # One kept-alive connection per thread for the JSON calls: an agent calling `act` in a
         # loop pays the TCP handshake once, not once per step.
         self._local = threading.local()
-        self._final_statuses: Optional[frozenset] = None
+        self._statuses: Optional[list] = None
 
     # -- environments and datasets -------------------------------------------------------
 
@@ -130,16 +130,23 @@ class Client:
         return self._post_json(f"/v1/algorithms/{algorithm}/plan", config or {})
 
     def vocabulary(self) -> Json:
-        """The service's words with what each means: ``job_statuses`` (name, final, meaning) and
+        """The service's words with what each means: ``job_statuses`` (name, final, success,
+        meaning) and
         ``evaluation_metrics`` (key, history_name, label, lower_is_better, kind)."""
         return self._get("/v1/vocabulary")
 
     def final_statuses(self) -> frozenset:
         """The job statuses a job never leaves, as the server names them (read once)."""
-        if self._final_statuses is None:
-            statuses = self.vocabulary()["job_statuses"]
-            self._final_statuses = frozenset(s["name"] for s in statuses if s["final"])
-        return self._final_statuses
+        return frozenset(s["name"] for s in self._job_statuses() if s["final"])
+
+    def success_statuses(self) -> frozenset:
+        """The final statuses that mean the job did what it was for (read once)."""
+        return frozenset(s["name"] for s in self._job_statuses() if s["success"])
+
+    def _job_statuses(self) -> list:
+        if self._statuses is None:
+            self._statuses = self.vocabulary()["job_statuses"]
+        return self._statuses
 
     # -- jobs -----------------------------------------------------------------------------
 
@@ -218,8 +225,8 @@ class Client:
     def wait(
         self, job_id: str, timeout: Optional[float] = None, progress: bool = True, poll: float = 0.5
     ) -> Json:
-        """Waits until the job ends; the succeeded job. Raises `JobFailed` when it ends any other
-        way (failed, discarded, cancelled), `TimeoutError` after `timeout` seconds. With
+        """Waits until the job ends; the job, when its final status is a success. Raises
+        `JobFailed` when it ends any other way (the vocabulary's other final statuses), `TimeoutError` after `timeout` seconds. With
         `progress`, a bar on stderr."""
         started = time.monotonic()
         while True:
@@ -229,7 +236,7 @@ class Client:
             if job["status"] in self.final_statuses():
                 if progress:
                     sys.stderr.write("\n")
-                if job["status"] != "succeeded":
+                if job["status"] not in self.success_statuses():
                     raise JobFailed(job)
                 return job
             if timeout is not None and time.monotonic() - started > timeout:
