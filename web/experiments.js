@@ -13,9 +13,9 @@ const CURVE_POINTS = 300;
 const EXPERIMENT_METRICS = [...PAPER_METRIC_INFO,
   ...VOCABULARY.evaluation_metrics.filter((m) => m.kind === 'dsrl')];
 // The job statuses in the server's lifecycle order: those a job leaves (queued, running) and
-// its endings, the successful one first.
+// its endings other than the success (SUCCESS, lib.js).
 const UNFINISHED = JOB_STATUSES.filter((s) => !s.final).map((s) => s.name);
-const [SUCCESS, ...OTHER_ENDINGS] = JOB_STATUSES.filter((s) => s.final).map((s) => s.name);
+const OTHER_ENDINGS = JOB_STATUSES.filter((s) => s.final && !s.success).map((s) => s.name);
 
 const unfinishedCount = (p) => UNFINISHED.reduce((sum, s) => sum + p[s], 0);
 /** Jobs of a grid that ended, whatever the end. */
