@@ -102,3 +102,11 @@ impl Trainer for BcTrainer {
 pub fn step_flops(shape: &super::flops::StepShape) -> u64 {
     super::flops::train_flops(&shape.policy(), shape.batch)
 }
+
+/// Its share of a run's memory: the policy and its candle graph over B rows.
+pub fn memory(shape: &super::memory::MemoryShape) -> super::memory::Footprint {
+    use super::memory::{autograd_floats, Footprint, Network, AUTOGRAD_FLOATS, F32};
+    let policy = Network::policy(shape);
+    let step = F32 * autograd_floats(&policy.dims, shape.batch(), AUTOGRAD_FLOATS);
+    Footprint { networks: vec![policy], step, data: 0 }
+}

@@ -288,3 +288,13 @@ impl Trainer for DexpertsTrainer {
 pub fn step_flops(shape: &super::flops::StepShape) -> u64 {
     super::flops::train_flops(&shape.policy(), 2 * shape.batch)
 }
+
+/// Its share of a run's memory: π^U and π^N (discrete actions) or the one policy, and the
+/// candle graphs of its step on D^U and D^N.
+pub fn memory(shape: &super::memory::MemoryShape) -> super::memory::Footprint {
+    use super::memory::{autograd_floats, Footprint, Network, AUTOGRAD_FLOATS, F32};
+    let policy = Network::policy(shape);
+    let step = F32 * 2 * autograd_floats(&policy.dims, shape.batch(), AUTOGRAD_FLOATS);
+    let experts = if shape.discrete_actions() { 2 } else { 1 };
+    Footprint { networks: vec![policy; experts], step, data: 0 }
+}

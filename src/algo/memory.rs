@@ -40,20 +40,19 @@
 //! On a CUDA build the step buffers live in GPU memory; the estimate still counts them, as
 //! host memory, which keeps it an upper bound of the host's share.
 
-use super::hyperparams::{AlgorithmConfig, ResolvedConfig};
-use super::TerminalHandling;
+use super::hyperparams::ResolvedConfig;
 use crate::data::ActionSpace;
 
-const F32: u64 = 4;
+pub(super) const F32: u64 = 4;
 /// Per parameter: the value, its gradient, Adam's two moments, the fused engine's copy and
 /// gradient, and the checkpoint's encoded value and moments (twice: the buffer and its copy
 /// bound to the database write).
 const BYTES_PER_PARAMETER: u64 = 13 * F32;
 /// Floats per row and unit of layer width that a candle forward and backward pass keeps (the
 /// matmul, bias and activation outputs, then their gradients).
-const AUTOGRAD_FLOATS: u64 = 8;
+pub(super) const AUTOGRAD_FLOATS: u64 = 8;
 /// The same with an input-gradient penalty: the gradient graph is differentiated once more.
-const PENALTY_FLOATS: u64 = 24;
+pub(super) const PENALTY_FLOATS: u64 = 24;
 /// The worker's thread, its allocator arena and candle's per-run state.
 const JOB_OVERHEAD: u64 = 48 << 20;
 
@@ -127,7 +126,7 @@ fn parameters(dims: &[u64], last_bias: bool) -> u64 {
 }
 
 /// Floats of a fused-engine workspace for `rows` rows (see `fused_mlp::Workspace::new`).
-fn workspace_floats(dims: &[u64], rows: u64) -> u64 {
+pub(super) fn workspace_floats(dims: &[u64], rows: u64) -> u64 {
     let widest = dims.iter().copied().max().unwrap_or(0);
     rows * (2 * dims.iter().sum::<u64>() + dims[0] + widest)
 }
@@ -143,8 +142,90 @@ fn shard_bytes(config: &ResolvedConfig, parameters: u64) -> u64 {
 }
 
 /// Floats a candle forward and backward pass over `rows` rows keeps.
-fn autograd_floats(dims: &[u64], rows: u64, per_width: u64) -> u64 {
+pub(super) fn autograd_floats(dims: &[u64], rows: u64, per_width: u64) -> u64 {
     rows * per_width * dims.iter().sum::<u64>()
+}
+
+/// What an algorithm's share of the estimate is computed from: the run's configuration, its
+/// datasets' shapes and the networks' layer widths they give. Each algorithm's module answers
+/// it with its `memory` (the registry points at it), beside its `step_flops`.
+pub struct MemoryShape<'a> {
+    pub config: &'a ResolvedConfig,
+    pub unlabeled: &'a DataShape,
+    /// D^N, for the algorithms that use it (`None` for the others).
+    pub non_preferred: Option<&'a DataShape>,
+}
+
+impl MemoryShape<'_> {
+    pub fn batch(&self) -> u64 {
+        self.config.common.batch_size as u64
+    }
+
+    pub fn obs_dim(&self) -> u64 {
+        self.unlabeled.obs_dim
+    }
+
+    /// The action as a network input: its width, or a one-hot.
+    pub fn action_width(&self) -> u64 {
+        self.unlabeled.action_width()
+    }
+
+    pub fn discrete_actions(&self) -> bool {
+        matches!(self.unlabeled.action_space, ActionSpace::Discrete { .. })
+    }
+
+    /// Layer widths of a network from `input` columns through the hidden layers to `output`.
+    pub fn net(&self, input: u64, output: u64) -> Vec<u64> {
+        let hidden = self.config.common.hidden_sizes.iter().map(|&h| h as u64);
+        std::iter::once(input).chain(hidden).chain([output]).collect()
+    }
+
+    /// The policy: observations to its head (mean and log-std per action, or a logit each).
+    pub fn policy(&self) -> Vec<u64> {
+        let head = match self.unlabeled.action_space {
+            ActionSpace::Continuous { dim, .. } => 2 * dim as u64,
+            ActionSpace::Discrete { n } => n as u64,
+        };
+        self.net(self.obs_dim(), head)
+    }
+
+    /// A scalar critic of the state-action and `extra` more columns (a discriminator, a
+    /// reward model).
+    pub fn critic(&self, extra: u64) -> Network {
+        Network {
+            dims: self.net(self.obs_dim() + self.action_width() + extra, 1),
+            last_bias: false,
+        }
+    }
+}
+
+/// A network a run trains: its layer widths, and whether its last layer has a bias (the
+/// policy's does, the scalar critics' do not).
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Network {
+    pub dims: Vec<u64>,
+    pub last_bias: bool,
+}
+
+impl Network {
+    pub fn policy(shape: &MemoryShape) -> Network {
+        Network { dims: shape.policy(), last_bias: true }
+    }
+
+    pub fn parameters(&self) -> u64 {
+        parameters(&self.dims, self.last_bias)
+    }
+}
+
+/// One algorithm's share of a run's peak memory.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Footprint {
+    /// Every network it trains (each parameter is counted [`BYTES_PER_PARAMETER`] times).
+    pub networks: Vec<Network>,
+    /// Bytes of its per-step buffers at their peak.
+    pub step: u64,
+    /// Bytes it keeps over the training data beyond the datasets' own (SafeDICE's flow table).
+    pub data: u64,
 }
 
 /// Estimates the peak memory of a run of `config` on datasets of these shapes (`non_preferred`
@@ -154,87 +235,14 @@ pub fn estimate_job_memory(
     unlabeled: &DataShape,
     non_preferred: Option<&DataShape>,
 ) -> MemoryEstimate {
-    let algorithm = config.algorithm();
-    let non_preferred = non_preferred.filter(|_| algorithm.needs_non_preferred());
-    let b = config.common.batch_size as u64;
-    let hidden: Vec<u64> = config.common.hidden_sizes.iter().map(|&h| h as u64).collect();
-    let (d, a) = (unlabeled.obs_dim, unlabeled.action_width());
-    let head = match unlabeled.action_space {
-        ActionSpace::Continuous { dim, .. } => 2 * dim as u64,
-        ActionSpace::Discrete { n } => n as u64,
-    };
-    let net = |input: u64, output: u64| -> Vec<u64> {
-        std::iter::once(input).chain(hidden.iter().copied()).chain([output]).collect()
-    };
-    let policy = net(d, head);
-    let n_u = unlabeled.transitions;
-
-    let mut data = unlabeled.bytes() + non_preferred.map_or(0, DataShape::bytes);
-    let (nets, step) = match &config.specific {
-        AlgorithmConfig::Safedice(s) => {
-            let absorbing = s.terminal_handling == TerminalHandling::Absorbing;
-            let disc = net(d + a, 1);
-            let nu = net(d + u64::from(absorbing), 1);
-            // The flow table: next states (built through a 2N concatenation), or with
-            // `absorbing` both observation tables again with the flag column; the reward and
-            // discount columns; the discriminator's scores and the rewards in f64 while
-            // alpha-hat is computed.
-            let flow_obs = if absorbing { 4 * (d + 1) } else { 3 * d };
-            data += n_u * (F32 * (flow_obs + 3) + 3 * 8);
-            if s.cross_fit {
-                // The folds' row lists, the first half's scores and the second's, one each
-                // per row of D^U; and the first half's discriminator, kept for the safety head.
-                data += n_u * 3 * F32 + F32 * parameters(&disc, false);
-            }
-            let workspaces = workspace_floats(&disc, 4 * b)
-                + workspace_floats(&nu, 5 * b)
-                + workspace_floats(&policy, b);
-            // The minibatch gathered as tensors and copied to the host.
-            let gathered = 2 * b * (3 * (d + a) + 4 * d + 2 * a + 8);
-            ([(disc, false), (nu, false), (policy, true)].to_vec(), F32 * (workspaces + gathered))
-        }
-        AlgorithmConfig::Bc(_) => {
-            let step = autograd_floats(&policy, b, AUTOGRAD_FLOATS);
-            ([(policy, true)].to_vec(), F32 * step)
-        }
-        AlgorithmConfig::Dwbc(_) => {
-            let disc = net(d + a + 1, 1);
-            let step = autograd_floats(&policy, 2 * b, AUTOGRAD_FLOATS)
-                + autograd_floats(&disc, 2 * b, AUTOGRAD_FLOATS)
-                + autograd_floats(&disc, b, PENALTY_FLOATS);
-            ([(disc, false), (policy, true)].to_vec(), F32 * step)
-        }
-        AlgorithmConfig::Ppl(p) => {
-            let reward = net(d + a, 1);
-            let pairs = p.pairs_per_batch as u64;
-            // Each segment is at most as long as the longest episode it is cut from.
-            let longest = unlabeled
-                .longest_episode
-                .max(non_preferred.map_or(0, |n| n.longest_episode))
-                .max(1);
-            let rows = pairs * (p.segment_length as u64).min(longest);
-            // Per side: the segment rows through the reward model, and the pairs x rows 0/1
-            // matrix that sums them (with its gradient).
-            let reward_phase =
-                2 * (autograd_floats(&reward, rows, AUTOGRAD_FLOATS) + 2 * pairs * rows);
-            let policy_phase = autograd_floats(&reward, b, AUTOGRAD_FLOATS)
-                + autograd_floats(&policy, b, AUTOGRAD_FLOATS);
-            ([(reward, false), (policy, true)].to_vec(), F32 * reward_phase.max(policy_phase))
-        }
-        AlgorithmConfig::Dexperts(_) => {
-            let discrete = matches!(unlabeled.action_space, ActionSpace::Discrete { .. });
-            let mut nets = vec![(policy.clone(), true)];
-            if discrete {
-                nets.push((policy.clone(), true));
-            }
-            // π^U on D^U and π^N (or the one policy again) on D^N.
-            let step = 2 * autograd_floats(&policy, b, AUTOGRAD_FLOATS);
-            (nets, F32 * step)
-        }
-    };
-    let parameter_count =
-        nets.iter().map(|(dims, last_bias)| parameters(dims, *last_bias)).sum::<u64>();
+    let spec = config.algorithm().spec();
+    let non_preferred = non_preferred.filter(|_| spec.needs_non_preferred);
+    let shape = MemoryShape { config, unlabeled, non_preferred };
+    let footprint = (spec.memory)(&shape);
+    let data = unlabeled.bytes() + non_preferred.map_or(0, DataShape::bytes) + footprint.data;
+    let parameter_count = footprint.networks.iter().map(Network::parameters).sum::<u64>();
     let networks = parameter_count * BYTES_PER_PARAMETER + shard_bytes(config, parameter_count);
+    let step = footprint.step;
     let sum = data + networks + step + JOB_OVERHEAD;
     MemoryEstimate { total: sum + sum / 10, data, networks, step }
 }

@@ -200,3 +200,29 @@ pub fn step_flops(shape: &super::flops::StepShape) -> u64 {
     use super::flops::{forward_flops, train_flops};
     forward_flops(&shape.critic(0), shape.batch) + train_flops(&shape.policy(), shape.batch)
 }
+
+/// Its share of a run's memory: the reward model and the policy; the larger of its two phases'
+/// candle graphs (the reward model on both sides' segments, or the policy step).
+pub fn memory(shape: &super::memory::MemoryShape) -> super::memory::Footprint {
+    use super::memory::{autograd_floats, Footprint, Network, AUTOGRAD_FLOATS, F32};
+    let AlgorithmConfig::Ppl(config) = &shape.config.specific else {
+        unreachable!("the registry asks PPL's memory for PPL runs only")
+    };
+    let (reward, policy) = (shape.critic(0), Network::policy(shape));
+    let pairs = config.pairs_per_batch as u64;
+    // Each segment is at most as long as the longest episode it is cut from.
+    let longest = shape
+        .unlabeled
+        .longest_episode
+        .max(shape.non_preferred.map_or(0, |n| n.longest_episode))
+        .max(1);
+    let rows = pairs * (config.segment_length as u64).min(longest);
+    // Per side: the segment rows through the reward model, and the pairs x rows 0/1 matrix
+    // that sums them (with its gradient).
+    let reward_phase =
+        2 * (autograd_floats(&reward.dims, rows, AUTOGRAD_FLOATS) + 2 * pairs * rows);
+    let policy_phase = autograd_floats(&reward.dims, shape.batch(), AUTOGRAD_FLOATS)
+        + autograd_floats(&policy.dims, shape.batch(), AUTOGRAD_FLOATS);
+    let step = F32 * reward_phase.max(policy_phase);
+    Footprint { networks: vec![reward, policy], step, data: 0 }
+}

@@ -4,14 +4,16 @@
 //! it the OpenAPI example, the dashboard's form and colours) and [`super::build_trainer`] read
 //! this table; nothing outside `algo/` matches on an algorithm to learn these.
 //!
-//! To add an algorithm: its module beside the others (a [`Trainer`] and its `step_flops`), its
-//! variant of [`Algorithm`] and of [`AlgorithmConfig`](super::hyperparams::AlgorithmConfig)
-//! with its presets and checks in `hyperparams.rs`, its memory term in `memory.rs`, its entry
-//! in [`SPECS`] below and its keys in the CreateJob doc (docs/architecture.md, "Recipes").
+//! To add an algorithm: its module beside the others (a [`Trainer`], its `step_flops` and its
+//! `memory`), its variant of [`Algorithm`] and of
+//! [`AlgorithmConfig`](super::hyperparams::AlgorithmConfig) with its presets and checks in
+//! `hyperparams.rs`, its entry in [`SPECS`] below and its keys in the CreateJob doc
+//! (docs/architecture.md, "Recipes").
 
 use serde::Serialize;
 
 use super::flops::StepShape;
+use super::memory::{Footprint, MemoryShape};
 use super::{
     bc, dexperts, dwbc, ppl, safedice, Algorithm, ResolvedConfig, TrainError, Trainer, TrainingData,
 };
@@ -45,6 +47,9 @@ pub struct AlgorithmSpec {
     pub own_knobs: &'static [Knob],
     /// Its policy-learning step (SafeDICE's main-loop iteration).
     pub step: StepCost,
+    /// Its share of a run's peak memory (its networks, step buffers and data of its own), which
+    /// [`super::memory::estimate_job_memory`] adds to the datasets'.
+    pub memory: fn(&MemoryShape) -> Footprint,
     pub build: Build,
     pub resume: Resume,
 }
@@ -108,6 +113,7 @@ pub const SPECS: [AlgorithmSpec; 5] = [
             label: "main loop (nu on s,s',s0 + nu GP + policy)",
             flops: safedice::step_flops,
         },
+        memory: safedice::memory,
         build: |c, d| Ok(Box::new(safedice::SafediceTrainer::new(c, d)?)),
         resume: |c, d, b| Ok(Box::new(safedice::SafediceTrainer::resume(c, d, b)?)),
     },
@@ -119,6 +125,7 @@ pub const SPECS: [AlgorithmSpec; 5] = [
         needs_non_preferred: false,
         own_knobs: &[],
         step: StepCost { label: "BC step", flops: bc::step_flops },
+        memory: bc::memory,
         build: |c, d| Ok(Box::new(bc::BcTrainer::new(c, d)?)),
         resume: |c, d, b| Ok(Box::new(bc::BcTrainer::resume(c, d, b)?)),
     },
@@ -133,6 +140,7 @@ pub const SPECS: [AlgorithmSpec; 5] = [
             label: "DWBC step (discriminator with GP + policy)",
             flops: dwbc::step_flops,
         },
+        memory: dwbc::memory,
         build: |c, d| Ok(Box::new(dwbc::DwbcTrainer::new(c, d)?)),
         resume: |c, d, b| Ok(Box::new(dwbc::DwbcTrainer::resume(c, d, b)?)),
     },
@@ -147,6 +155,7 @@ pub const SPECS: [AlgorithmSpec; 5] = [
             ..knob("reward_model_iterations", "Reward-model iterations", KnobKind::Int)
         }],
         step: StepCost { label: "PPL policy step (reward model frozen)", flops: ppl::step_flops },
+        memory: ppl::memory,
         build: |c, d| Ok(Box::new(ppl::PplTrainer::new(c, d)?)),
         resume: |c, d, b| Ok(Box::new(ppl::PplTrainer::resume(c, d, b)?)),
     },
@@ -161,6 +170,7 @@ pub const SPECS: [AlgorithmSpec; 5] = [
             label: "DExperts step (both experts / Eq. 45)",
             flops: dexperts::step_flops,
         },
+        memory: dexperts::memory,
         build: |c, d| Ok(Box::new(dexperts::DexpertsTrainer::new(c, d)?)),
         resume: |c, d, b| Ok(Box::new(dexperts::DexpertsTrainer::resume(c, d, b)?)),
     },
@@ -254,6 +264,41 @@ mod tests {
         labels.sort_unstable();
         labels.dedup();
         assert_eq!(labels.len(), SPECS.len());
+    }
+
+    /// Every algorithm states its memory: its networks include the policy, and its step buffers
+    /// grow with the batch.
+    #[test]
+    fn every_algorithm_estimates_its_memory() {
+        use crate::algo::memory::{DataShape, MemoryShape, Network};
+        use crate::data::ActionSpace;
+        let data = DataShape {
+            transitions: 10_000,
+            obs_dim: 17,
+            action_space: ActionSpace::Continuous {
+                dim: 6,
+                low: vec![-1.0; 6],
+                high: vec![1.0; 6],
+            },
+            longest_episode: 1_000,
+        };
+        for spec in &SPECS {
+            let footprint = |batch: u64| {
+                let config = serde_json::json!({"batch_size": batch});
+                let config = resolve_config(spec.algorithm, &config).unwrap();
+                let shape = MemoryShape { config: &config, unlabeled: &data, non_preferred: None };
+                (spec.memory)(&shape)
+            };
+            let (small, large) = (footprint(256), footprint(65_536));
+            let config = resolve_config(spec.algorithm, &serde_json::json!({})).unwrap();
+            let shape = MemoryShape { config: &config, unlabeled: &data, non_preferred: None };
+            assert!(small.networks.contains(&Network::policy(&shape)), "{}", spec.name);
+            assert!(
+                0 < small.step && small.step < large.step,
+                "{}: {small:?} {large:?}",
+                spec.name
+            );
+        }
     }
 
     #[test]

@@ -209,3 +209,16 @@ pub fn step_flops(shape: &super::flops::StepShape) -> u64 {
         + penalty_flops(&disc, b)
         + train_flops(&policy, b)
 }
+
+/// Its share of a run's memory: the discriminator (input `s, a, log π`) and the policy, with
+/// the candle graphs of a step on 2B rows and the penalty's second backward pass on B.
+pub fn memory(shape: &super::memory::MemoryShape) -> super::memory::Footprint {
+    use super::memory::{
+        autograd_floats, Footprint, Network, AUTOGRAD_FLOATS, F32, PENALTY_FLOATS,
+    };
+    let (b, policy, disc) = (shape.batch(), Network::policy(shape), shape.critic(1));
+    let step = autograd_floats(&policy.dims, 2 * b, AUTOGRAD_FLOATS)
+        + autograd_floats(&disc.dims, 2 * b, AUTOGRAD_FLOATS)
+        + autograd_floats(&disc.dims, b, PENALTY_FLOATS);
+    Footprint { networks: vec![disc, policy], step: F32 * step, data: 0 }
+}

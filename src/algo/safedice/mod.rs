@@ -53,6 +53,40 @@ pub fn discriminator_step_flops(shape: &super::flops::StepShape) -> u64 {
     train_flops(&disc, 2 * b) + penalty_flops(&disc, 2 * b)
 }
 
+/// Its share of a run's memory (`memory.rs` adds the datasets and what each parameter costs):
+/// the discriminator, ν and the policy; the fused engine's workspaces, allocated once for 4B,
+/// 5B and B rows; and the flow table over D^U.
+pub fn memory(shape: &super::memory::MemoryShape) -> super::memory::Footprint {
+    use super::hyperparams::AlgorithmConfig;
+    use super::memory::{workspace_floats, Footprint, Network, F32};
+    use super::TerminalHandling;
+    let AlgorithmConfig::Safedice(config) = &shape.config.specific else {
+        unreachable!("the registry asks SafeDICE's memory for SafeDICE runs only")
+    };
+    let (d, a, b) = (shape.obs_dim(), shape.action_width(), shape.batch());
+    let absorbing = config.terminal_handling == TerminalHandling::Absorbing;
+    let disc = shape.critic(0);
+    let nu = Network { dims: shape.net(d + u64::from(absorbing), 1), last_bias: false };
+    let policy = Network::policy(shape);
+    // The flow table: next states (built through a 2N concatenation), or with `absorbing` both
+    // observation tables again with the flag column; the reward and discount columns; the
+    // discriminator's scores and the rewards in f64 while alpha-hat is computed.
+    let n_u = shape.unlabeled.transitions;
+    let flow_obs = if absorbing { 4 * (d + 1) } else { 3 * d };
+    let mut data = n_u * (F32 * (flow_obs + 3) + 3 * 8);
+    if config.cross_fit {
+        // The folds' row lists, the first half's scores and the second's, one each per row of
+        // D^U; and the first half's discriminator, kept for the safety head.
+        data += n_u * 3 * F32 + F32 * disc.parameters();
+    }
+    let workspaces = workspace_floats(&disc.dims, 4 * b)
+        + workspace_floats(&nu.dims, 5 * b)
+        + workspace_floats(&policy.dims, b);
+    // The minibatch gathered as tensors and copied to the host.
+    let gathered = 2 * b * (3 * (d + a) + 4 * d + 2 * a + 8);
+    Footprint { networks: vec![disc, nu, policy], step: F32 * (workspaces + gathered), data }
+}
+
 #[cfg(test)]
 mod tests;
 
