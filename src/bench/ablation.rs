@@ -238,8 +238,8 @@ mod tests {
 
     /// `bench` with `--ablations` on one environment, tiny networks and a few iterations: the
     /// extra rows reach the summary, results.json and results.md, the true-α row uses the true
-    /// share, the oracle row's Eq. 15 recovers it, and every SafeDICE row reports the same
-    /// discriminator AUCs (one discriminator per seed).
+    /// share, the oracle row's Eq. 15 recovers it, `--fixed-alpha` sets the standard row's α,
+    /// and every SafeDICE row reports the same discriminator AUCs (one discriminator per seed).
     #[test]
     fn tiny_bench_with_ablations_writes_the_extra_rows() {
         use crate::bench::{self, BenchConfig, DataSize};
@@ -255,6 +255,11 @@ mod tests {
         assert!(parse(&["bench", "--quick", "--ablations"]).unwrap().ablations);
         assert!(!parse(&["bench", "--quick"]).unwrap().ablations);
         assert!(parse(&["bench", "--ablations", "--preferred", "0"]).is_err());
+        assert_eq!(
+            parse(&["bench", "--quick", "--fixed-alpha", "0.25"]).unwrap().fixed_alpha,
+            Some(0.25)
+        );
+        assert!(parse(&["bench", "--quick", "--fixed-alpha", "1"]).is_err());
 
         let mut config = BenchConfig::quick();
         config.envs = vec!["six-rooms".to_string()];
@@ -266,6 +271,8 @@ mod tests {
         config.record_every = 10;
         config.threads = 1;
         config.ablations = true;
+        // A study's fixed α replaces alpha-hat in the standard row only.
+        config.fixed_alpha = Some(0.25);
         config.overrides.insert("batch_size".into(), 32.into());
         config.overrides.insert("hidden_sizes".into(), serde_json::json!([16, 16]));
         let results = bench::run(&config).unwrap();
@@ -286,6 +293,7 @@ mod tests {
         let run = |v: Variant| results.runs.iter().find(|r| r.variant == v).unwrap();
         let alpha = |v: Variant| run(v).alpha.as_ref().unwrap().alpha_hat;
         assert_eq!(alpha(Variant::TrueAlpha), truth.true_alpha);
+        assert_eq!(alpha(Variant::Standard), 0.25);
         assert!((alpha(Variant::OracleLabels) - (truth.true_alpha - 1e-5)).abs() < 1e-6);
         assert!(
             run(Variant::PreferredOnly).alpha.is_none()

@@ -93,6 +93,11 @@ pub struct BenchConfig {
     /// place of the preset's (for comparing candidate defaults across tasks of different
     /// lengths); None keeps the preset's.
     pub discriminator_share: Option<f64>,
+    /// SafeDICE's α in place of alpha-hat in its standard rows (the estimate is still made and
+    /// recorded as `alpha_hat_estimated`): a study of the weighting at one α across tasks;
+    /// None estimates it as the service does.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub fixed_alpha: Option<f64>,
     /// Where each finished training's result is appended as a JSON line as it ends (so a run
     /// cut short still leaves its data): `runs.jsonl` in the output directory.
     #[serde(skip)]
@@ -123,6 +128,7 @@ impl BenchConfig {
             paper_preset_row: false,
             preferred_only_row: false,
             discriminator_share: None,
+            fixed_alpha: None,
             runs_log: None,
         }
     }
@@ -277,6 +283,10 @@ pub struct BenchArgs {
     /// lengths.
     #[arg(long)]
     pub discriminator_share: Option<f64>,
+    /// SafeDICE's α, fixed in place of alpha-hat in its rows (e.g. 0.000001, the limit as α goes
+    /// to 0): a study of the weighting stage at one α on every task, never a default.
+    #[arg(long)]
+    pub fixed_alpha: Option<f64>,
 }
 
 /// The generated suites of `--suite`.
@@ -356,6 +366,7 @@ impl BenchArgs {
             ablations: self.ablations,
             paper_preset_row: !self.no_paper_row,
             discriminator_share: self.discriminator_share,
+            fixed_alpha: self.fixed_alpha,
             ..base
         };
         config.validate()?;
@@ -423,6 +434,8 @@ impl BenchArgs {
             deterministic_eval: self.deterministic,
             threads: self.threads,
             ablations: self.ablations,
+            discriminator_share: self.discriminator_share,
+            fixed_alpha: self.fixed_alpha,
             ..base
         };
         config.validate()?;
@@ -439,6 +452,9 @@ impl BenchConfig {
         }
         if self.discriminator_share.is_some_and(|s| !(s > 0.0 && s <= 100.0)) {
             return bad("--discriminator-share must be in (0, 100]");
+        }
+        if self.fixed_alpha.is_some_and(|a| !(0.0..1.0).contains(&a)) {
+            return bad("--fixed-alpha must be in [0, 1)");
         }
         if self.threads == 0 {
             return bad("--parallel must be at least 1");

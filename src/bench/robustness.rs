@@ -90,6 +90,7 @@ pub fn default_config() -> BenchConfig {
         paper_preset_row: true,
         preferred_only_row: true,
         discriminator_share: None,
+        fixed_alpha: None,
         runs_log: None,
     }
 }
@@ -404,6 +405,12 @@ fn markdown(
         c.eval_episodes,
         c.threads
     );
+    if let Some(alpha) = c.fixed_alpha {
+        let _ = writeln!(
+            md,
+            "- SafeDICE's α fixed at {alpha} in place of alpha-hat (a study, not a default)"
+        );
+    }
     let _ = writeln!(md, "- Wall time: {:.1} min\n", results.wall_seconds / 60.0);
     let _ = writeln!(
         md,

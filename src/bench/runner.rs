@@ -529,6 +529,9 @@ fn train_and_evaluate(
                 unlabeled_logits: Some(oracle_logits(&truth()?.unlabeled_non_preferred)),
                 ..Default::default()
             },
+            Variant::Standard => {
+                SafediceOverrides { alpha: config.fixed_alpha, ..Default::default() }
+            }
             _ => SafediceOverrides::default(),
         };
         algo::check_data(&resolved, data).map_err(|e| fail(e.message))?;
