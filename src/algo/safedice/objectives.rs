@@ -83,14 +83,22 @@ pub const EXCLUDED_REWARD_GAP: f64 = 30.0;
 /// Eq. 10 for every logit of D^U at `alpha`; with [`UndefinedReward::Exclude`] the rows where
 /// Eq. 10 is −∞ stay out of the standardisation and sit [`EXCLUDED_REWARD_GAP`] below the
 /// lowest defined reward.
+///
+/// At `alpha` 0 Eq. 10 is 0 on every row, yet its standardisation has a limit as α → 0+:
+/// `log(1 − α e^c) − log(1 − α) = −α (e^c − 1) + O(α²)`, whose standardisation is that of
+/// `−e^c`. With `standardize`, alpha-hat 0 weights by that limit ([`eq10_limit_at_zero`]), so
+/// alpha-hat 0 and 1e-6 train alike instead of one of them falling off a cliff to BC.
 pub fn eq10_rewards(
     logits: &[f32],
     alpha: f64,
     undefined: UndefinedReward,
     standardize: bool,
 ) -> Eq10Rewards {
-    let raw: Vec<(f64, bool)> =
-        logits.iter().map(|&c| reward_from_logit(c as f64, alpha)).collect();
+    let raw: Vec<(f64, bool)> = if alpha == 0.0 && standardize {
+        logits.iter().map(|&c| (eq10_limit_at_zero(c as f64), false)).collect()
+    } else {
+        logits.iter().map(|&c| reward_from_logit(c as f64, alpha)).collect()
+    };
     let undefined_rows = raw.iter().filter(|r| r.1).count();
     let exclude = undefined == UndefinedReward::Exclude;
     let defined: Vec<f64> = raw.iter().filter(|r| !(exclude && r.1)).map(|r| r.0).collect();
@@ -103,6 +111,12 @@ pub fn eq10_rewards(
         .map(|&(r, was_undefined)| if exclude && was_undefined { excluded } else { scale(r) })
         .collect();
     Eq10Rewards { rewards, mean, std, undefined_rows }
+}
+
+/// Eq. 10's shape as α → 0+, up to the factor α and a constant, which a standardisation
+/// removes: `−e^c`.
+pub fn eq10_limit_at_zero(c: f64) -> f64 {
+    -c.exp()
 }
 
 fn mean_std(values: &[f64]) -> (f64, f64) {
@@ -214,6 +228,26 @@ mod tests {
         let (r0, r1) = (excluded.rewards[0], excluded.rewards[1]);
         assert!((r0 + r1).abs() < 1e-9 && (r0.abs() - 1.0).abs() < 1e-6, "{excluded:?}");
         assert!((excluded.rewards[2] - (r0.min(r1) - EXCLUDED_REWARD_GAP)).abs() < 1e-9);
+    }
+
+    /// Standardised, Eq. 10 at α = 0 is its limit as α → 0+: the rewards at α = 1e-3 and 1e-4
+    /// approach it, their distance shrinking with α (an error of order α e^c; much below 1e-6
+    /// the standardisation's 1e-8 floor on the deviation starts to damp them);
+    /// unstandardised it stays 0 on every row.
+    #[test]
+    fn standardised_eq10_is_continuous_at_alpha_zero() {
+        let logits = [-3.0f32, -0.5, 0.0, 0.7, 1.5, 2.5];
+        let at = |alpha: f64| eq10_rewards(&logits, alpha, UndefinedReward::Exclude, true).rewards;
+        let limit = at(0.0);
+        let distance = |alpha: f64| {
+            at(alpha).iter().zip(&limit).map(|(r, l)| (r - l).abs()).fold(0.0, f64::max)
+        };
+        assert!(distance(1e-4) < 1e-2, "{:?} vs {limit:?}", at(1e-4));
+        assert!(distance(1e-4) < distance(1e-3) / 5.0, "{} {}", distance(1e-4), distance(1e-3));
+        let mean = limit.iter().sum::<f64>() / limit.len() as f64;
+        assert!(mean.abs() < 1e-12 && limit.windows(2).all(|w| w[0] > w[1]), "{limit:?}");
+        let raw = eq10_rewards(&logits, 0.0, UndefinedReward::Exclude, false);
+        assert!(raw.rewards.iter().all(|&r| r == 0.0) && raw.std == 0.0, "{raw:?}");
     }
 
     #[test]

@@ -337,27 +337,37 @@ fn cross_fit_does_nothing_with_min_or_one_step() {
 }
 
 /// D^N (always action 1) is told apart from D^U (always action 0) perfectly, and D^U holds no
-/// non-preferred row: alpha-hat is 0, Eq. 10's reward is 0 on every row, and the run trains as
-/// BC, saying why.
+/// non-preferred row: alpha-hat is 0. With the standardised reward (the service preset) the run
+/// weights by Eq. 10's limit as α → 0+; without it Eq. 10's reward is 0 on every row and the
+/// run trains as BC, saying why.
 #[test]
-fn alpha_hat_zero_trains_as_bc() {
+fn alpha_hat_zero_weights_by_the_limit_or_trains_as_bc() {
     let data = TrainingData {
         unlabeled: std::sync::Arc::new(episodes_acting(60, |_, _| 0)),
         non_preferred: Some(std::sync::Arc::new(episodes_acting(15, |_, _| 1))),
     };
-    let config = crate::algo::resolve_config(
-        crate::algo::Algorithm::Safedice,
-        &serde_json::json!({
-            "seed": 3, "batch_size": 32, "hidden_sizes": [16, 16], "iterations": 3,
-            "discriminator_iterations": 400, "lr_discriminator": 3e-3,
-        }),
-    )
-    .unwrap();
-    let mut t = SafediceTrainer::new(&config, &data).unwrap();
-    let scalars = finish_phase(&mut t);
-    assert_eq!(metric(&scalars, "alpha_hat"), 0.0, "{scalars:?}");
-    assert!(metric(&scalars, "discriminator_heldout_auc_lower") > 0.5, "{scalars:?}");
+    let run = |standardize: bool| {
+        let config = crate::algo::resolve_config(
+            crate::algo::Algorithm::Safedice,
+            &serde_json::json!({
+                "seed": 3, "batch_size": 32, "hidden_sizes": [16, 16], "iterations": 3,
+                "discriminator_iterations": 400, "lr_discriminator": 3e-3,
+                "standardize_reward": standardize,
+            }),
+        )
+        .unwrap();
+        let mut t = SafediceTrainer::new(&config, &data).unwrap();
+        let scalars = finish_phase(&mut t);
+        assert_eq!(metric(&scalars, "alpha_hat"), 0.0, "{scalars:?}");
+        assert!(metric(&scalars, "discriminator_heldout_auc_lower") > 0.5, "{scalars:?}");
+        (t, scalars)
+    };
+    let (limit, scalars) = run(true);
+    assert_eq!(metric(&scalars, "weighting_uniform"), 0.0, "{scalars:?}");
+    assert!(metric(&scalars, "reward_std") > 0.0, "{scalars:?}");
+    assert!(limit.uniform_weighting_reason().is_none());
+    let (bc, scalars) = run(false);
     assert_eq!(metric(&scalars, "weighting_uniform"), 1.0, "{scalars:?}");
-    let reason = t.uniform_weighting_reason().unwrap();
+    let reason = bc.uniform_weighting_reason().unwrap();
     assert!(reason.contains("same on every row"), "{reason}");
 }

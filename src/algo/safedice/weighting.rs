@@ -96,8 +96,9 @@ impl SafediceTrainer {
         let uninformative = if eq10.undefined_rows == logits.len() {
             Some("Eq. 10 is undefined on every row".to_string())
         } else {
-            // alpha-hat 0 makes Eq. 10 exactly 0 everywhere: uniform weights, at SafeDICE's
-            // lower learning rate and with ν's noise, unless the run trains as BC itself.
+            // Unstandardised, alpha-hat 0 makes Eq. 10 exactly 0 everywhere (standardised, it
+            // weights by the limit as α → 0+): uniform weights, at SafeDICE's lower learning
+            // rate and with ν's noise, unless the run trains as BC itself.
             (eq10.std == 0.0).then(|| {
                 format!("Eq. 10's reward is the same on every row (alpha-hat {:.4}), so there is nothing to weight", alpha.value)
             })
