@@ -59,7 +59,7 @@ pub struct CreateJob {
     /// Estimation on held-out episodes, the `service` default; `min`: the paper's minimum over
     /// D^U), `alpha_hat_quantile` (`min` only; 0: the minimum itself), `undefined_reward`
     /// (`exclude`: rows where Eq. 10 is −∞ get no weight, the `service` default; `floor`),
-    /// `uniform_fallback` (train as BC when held-out data cannot tell D^N from D^U, or alpha-hat is 0; `bbe`
+    /// `uniform_fallback` (train as BC when held-out data cannot tell D^N from D^U, or alpha-hat is 0 without `standardize_reward`, which weights by Eq. 10's limit as α → 0; `bbe`
     /// only), `calibrate_discriminator` (`bbe` only), `bbe_unlabeled_rows` (`bbe` only: the
     /// rows of D^U its ratio reads, `held_out` or `all`), `alpha_hat_point` (`bbe` only:
     /// `estimate`, the bin's ratio, or `lower`, its interval's lower end), `reward_scale` (multiplies Eq. 10's
