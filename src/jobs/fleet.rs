@@ -184,7 +184,14 @@ const FOLLOW_OVERLAP: chrono::TimeDelta = chrono::TimeDelta::seconds(5);
 /// event streams, until shutdown.
 pub(super) async fn follow_jobs(runner: JobRunner) {
     let shutdown = runner.inner.shutdown.clone();
-    let mut newest = crate::store::now();
+    // The stamps compared are the database's (see `store::now_in`), so the start is too.
+    let mut newest = match runner.store().db_now().await {
+        Ok(now) => now,
+        Err(e) => {
+            tracing::warn!(error = %e, "cannot read the database's clock; starting from this machine's");
+            crate::domain::rfc3339(&chrono::Utc::now())
+        }
+    };
     loop {
         tokio::select! {
             () = shutdown.cancelled() => return,

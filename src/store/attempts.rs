@@ -13,7 +13,7 @@ use sqlx::{Any, Transaction};
 
 use super::leases::Lease;
 use super::logs::insert_log_line;
-use super::{now, parse_optional_time, parse_time, Store, StoreError};
+use super::{now_in, parse_optional_time, parse_time, Store, StoreError};
 use crate::domain::attempt::{crash_message, gave_up_message, MemorySample};
 use crate::domain::LogLevel;
 use crate::domain::{AttemptOutcome, JobAttempt, JobId, JobStatus, RetryBackoff};
@@ -65,7 +65,7 @@ impl Store {
         .bind(lease.token)
         .bind(i64::from(attempt))
         .bind(worker)
-        .bind(now())
+        .bind(self.db_now().await?)
         .bind(AttemptOutcome::Running.as_str())
         .execute(self.pool())
         .await?;
@@ -163,7 +163,7 @@ impl Store {
         }
         let lease = Lease::new(job.id.clone(), job.lease_token);
         end_attempt(&mut tx, &lease, AttemptOutcome::Crashed, Some(crash)).await?;
-        let time = self.db_now_in(&mut tx).await?;
+        let time = now_in(&mut tx).await?;
         let give_up = job.attempt >= job.max_attempts;
         let (status, message) = if give_up {
             let history = self.crash_count(&mut tx, &job.id).await?;
@@ -252,7 +252,7 @@ impl Store {
         )
         .bind(AttemptOutcome::LeaseLost.as_str())
         .bind(message)
-        .bind(now())
+        .bind(self.db_now().await?)
         .bind(lease.id.as_str())
         .bind(lease.token)
         .bind(AttemptOutcome::Running.as_str())
@@ -276,7 +276,7 @@ pub(super) async fn end_attempt(
     )
     .bind(outcome.as_str())
     .bind(message)
-    .bind(now())
+    .bind(now_in(tx).await?)
     .bind(lease.id.as_str())
     .bind(lease.token)
     .execute(&mut **tx)

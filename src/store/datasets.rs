@@ -8,7 +8,7 @@ use futures::TryStreamExt;
 use sha2::{Digest, Sha256};
 use sqlx::{Any, Transaction};
 
-use super::{now, parse_time, Backend, Listing, PageQuery, Store, StoreError};
+use super::{now_in, parse_time, Backend, Listing, PageQuery, Store, StoreError};
 use crate::data::{self, ActionSpace, Dataset, DatasetStats, Format};
 use crate::domain::{DatasetId, DatasetRecord, DatasetRole, JobStatus};
 
@@ -539,7 +539,7 @@ async fn insert_dataset_row(
     .bind(new.bytes as i64)
     .bind(&hashed.sha256)
     .bind(hashed.bytes.len() as i64)
-    .bind(now())
+    .bind(now_in(tx).await?)
     .bind(new.role.map(DatasetRole::as_str))
     .execute(&mut **tx)
     .await?;

@@ -7,7 +7,7 @@ use sqlx::{Any, Transaction};
 
 use super::datasets::DeleteOutcome;
 use super::leases::{self, Lease};
-use super::{now, parse_optional_time, parse_time, Listing, PageQuery, Store, StoreError};
+use super::{now_in, parse_optional_time, parse_time, Listing, PageQuery, Store, StoreError};
 use crate::domain::{
     EvalRuntime, EvalSpec, EvaluationId, EvaluationRecord, EvaluationSource, EvaluationStatus,
     PolicyId,
@@ -176,7 +176,8 @@ impl Store {
         &self,
         evaluation: &NewEvaluation,
     ) -> Result<EvaluationRecord, StoreError> {
-        let now = now();
+        let mut tx = self.begin_write().await?;
+        let now = now_in(&mut tx).await?;
         let (status, source, runtime, report, finished_at) = match &evaluation.recorded {
             None => (
                 EvaluationStatus::Queued,
@@ -192,7 +193,6 @@ impl Store {
                 (succeeded, EvaluationSource::External, *runtime, Some(json), Some(&now))
             }
         };
-        let mut tx = self.begin_write().await?;
         let policy: Option<String> = sqlx::query_scalar(&format!(
             "SELECT id FROM policies WHERE id = $1{}",
             self.backend.share_row()
@@ -341,7 +341,7 @@ impl Store {
         .bind(status.as_str())
         .bind(report)
         .bind(error)
-        .bind(now())
+        .bind(now_in(&mut tx).await?)
         .bind(lease.id.as_str())
         .execute(&mut *tx)
         .await?;

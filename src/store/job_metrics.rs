@@ -99,6 +99,10 @@ pub(super) async fn insert_metric_rows(
     id: &JobId,
     rows: &[MetricRecord],
 ) -> Result<(), sqlx::Error> {
+    if rows.is_empty() {
+        return Ok(());
+    }
+    let offset = super::clock_offset_in(tx).await?;
     // SQLite's bound-parameter limit is 32766, PostgreSQL's 65535; 5 per row.
     for chunk in rows.chunks(4000) {
         let values = (0..chunk.len())
@@ -114,7 +118,7 @@ pub(super) async fn insert_metric_rows(
                 .bind(&metric.name)
                 .bind(metric.step as i64)
                 .bind(metric.value)
-                .bind(rfc3339(&metric.time));
+                .bind(rfc3339(&(metric.time + offset)));
         }
         insert.execute(&mut **tx).await?;
     }

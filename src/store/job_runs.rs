@@ -12,7 +12,7 @@ use super::job_metrics::{insert_metric_rows, last_metric_values_in};
 use super::jobs::delete_checkpoint;
 use super::leases::{self, Lease};
 use super::policies::NewPolicy;
-use super::{now, optional_real, Store, StoreError};
+use super::{now_in, optional_real, Store, StoreError};
 use crate::domain::model::{AliasName, ModelName, MoveNote};
 use crate::domain::{
     AttemptOutcome, JobId, JobRecord, JobStatus, LogLevel, MetricRecord, PolicyId,
@@ -67,7 +67,7 @@ impl Store {
     pub async fn release_job(&self, lease: &Lease<JobId>, reason: &str) -> Result<(), StoreError> {
         let mut tx = self.begin_write().await?;
         leases::hold(&mut tx, lease).await?;
-        let now = self.db_now_in(&mut tx).await?;
+        let now = now_in(&mut tx).await?;
         // Not the job's fault: the attempt is given back.
         sqlx::query(&format!(
             "UPDATE jobs SET status = {}, updated_at = $1, iterations_per_second = NULL, \
@@ -132,7 +132,7 @@ impl Store {
         .bind(lease.id.as_str())
         .bind(step as i64)
         .bind(data)
-        .bind(now())
+        .bind(now_in(&mut tx).await?)
         .execute(&mut *tx)
         .await?;
         tx.commit().await?;
@@ -195,7 +195,7 @@ impl Store {
             alpha_hat: run.alpha_hat,
         };
         super::policies::insert_policy(&mut tx, &policy).await?;
-        let now = self.db_now_in(&mut tx).await?;
+        let now = now_in(&mut tx).await?;
         if let Some(evaluation) = run.evaluation {
             insert_training_evaluation(&mut tx, policy.id, evaluation, &now).await?;
         }
@@ -290,7 +290,7 @@ impl Store {
         let mut tx = self.begin_write().await?;
         leases::hold(&mut tx, lease).await?;
         insert_metric_rows(&mut tx, &lease.id, pending_metrics).await?;
-        let now = self.db_now_in(&mut tx).await?;
+        let now = now_in(&mut tx).await?;
         sqlx::query(
             "UPDATE jobs SET status = $1, error = $2, iterations_per_second = NULL, \
                  updated_at = $3, finished_at = $3 WHERE id = $4",

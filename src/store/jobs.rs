@@ -4,7 +4,7 @@
 
 use sqlx::{Any, Transaction};
 
-use super::{now, parse_optional_time, parse_time, Listing, PageQuery, Store, StoreError};
+use super::{now_in, parse_optional_time, parse_time, Listing, PageQuery, Store, StoreError};
 use crate::algo::ResolvedConfig;
 use crate::domain::model::Registration;
 use crate::domain::{
@@ -234,7 +234,7 @@ impl Store {
         .bind(runner)
         .bind(eval)
         .bind(job.config.total_steps() as i64)
-        .bind(now())
+        .bind(now_in(tx).await?)
         .bind(job.labels.name.as_deref())
         .bind(to_json(&job.labels.tags))
         .bind(job.labels.notes.as_deref())
@@ -397,8 +397,8 @@ impl Store {
     /// the update are one write transaction (the row locked), so a claim cannot slip in between.
     pub async fn request_cancel(&self, job_id: &JobId) -> Result<CancelOutcome, StoreError> {
         let id = job_id.as_str();
-        let now = self.db_now().await?;
         let mut tx = self.begin_write().await?;
+        let now = now_in(&mut tx).await?;
         let status: String = sqlx::query_scalar(&format!(
             "SELECT status FROM jobs WHERE id = $1{}",
             self.backend.lock_row()

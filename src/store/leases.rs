@@ -13,7 +13,7 @@ use std::time::Duration;
 
 use sqlx::{Any, Transaction};
 
-use super::{now, parse_time, Store, StoreError};
+use super::{parse_time, Store, StoreError};
 use crate::domain::attempt::MemorySample;
 use crate::domain::{EvaluationId, JobId, JobStatus, WorkerRecord};
 
@@ -230,7 +230,7 @@ impl Store {
         .bind(host_name())
         .bind(i64::from(std::process::id()))
         .bind(concurrency as i64)
-        .bind(now())
+        .bind(self.db_now().await?)
         .execute(self.pool())
         .await?;
         Ok(())

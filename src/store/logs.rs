@@ -3,7 +3,7 @@
 use sqlx::{Any, Transaction};
 
 use super::leases::{self, Lease};
-use super::{now, parse_time, Store, StoreError};
+use super::{now_in, parse_time, Store, StoreError};
 use crate::domain::{JobId, LogLevel, LogRecord};
 
 /// A log line as stored (time and level as text).
@@ -84,7 +84,7 @@ pub(super) async fn insert_log_line(
          SELECT $1, COALESCE(MAX(seq), 0) + 1, $2, $3, $4, $5 FROM job_logs WHERE job_id = $1",
     )
     .bind(id.as_str())
-    .bind(now())
+    .bind(now_in(tx).await?)
     .bind(level.as_str())
     .bind(worker)
     .bind(message)

@@ -207,46 +207,74 @@ impl Backend {
 }
 
 impl Store {
-    /// The current time as stored (RFC 3339, UTC, milliseconds) on the database's clock: on
-    /// PostgreSQL the server's, so every process of a fleet stamps `updated_at` from one clock
-    /// (the follower's "changed since" compares those stamps across processes); on SQLite this
-    /// machine's, which every process sharing the file shares.
+    /// The current time as stored, on the database's clock (see [`now_in`]), asked on the pool:
+    /// for writes that are one statement and hold no transaction.
     pub(crate) async fn db_now(&self) -> Result<String, sqlx::Error> {
         match self.backend {
-            Backend::Sqlite => Ok(now()),
-            Backend::Postgres => sqlx::query_scalar(DB_NOW).fetch_one(self.pool()).await,
-        }
-    }
-
-    /// [`Store::db_now`] read on `conn` (a transaction's): a write transaction asks the time on
-    /// its own connection rather than take a second one from the pool.
-    pub(crate) async fn db_now_in(
-        &self,
-        conn: &mut sqlx::AnyConnection,
-    ) -> Result<String, sqlx::Error> {
-        match self.backend {
-            Backend::Sqlite => Ok(now()),
-            Backend::Postgres => sqlx::query_scalar(DB_NOW).fetch_one(conn).await,
+            Backend::Sqlite => Ok(process_now()),
+            Backend::Postgres => {
+                Ok(stamp(sqlx::query_scalar(PG_NOW_MS).fetch_one(self.pool()).await?))
+            }
         }
     }
 }
 
-/// PostgreSQL's clock as [`now`] formats time.
-const DB_NOW: &str =
-    "SELECT to_char(clock_timestamp() AT TIME ZONE 'UTC', 'YYYY-MM-DD\"T\"HH24:MI:SS.MS\"Z\"')";
+/// The current time as stored (RFC 3339, UTC, milliseconds) on the database's clock, read on
+/// `conn` (a write transaction asks on its own connection rather than take a second one from
+/// the pool). On PostgreSQL the server's clock, so every process of a fleet stamps every stored
+/// time from one clock (the follower's "changed since" compares `updated_at` stamps across
+/// processes, and a log line, attempt or alias move written by one worker orders against
+/// another's); on SQLite this machine's, which every process sharing the file shares. Every
+/// stored time comes from here or [`Store::db_now`]: the process clock is private to this module.
+pub(crate) async fn now_in(conn: &mut sqlx::AnyConnection) -> Result<String, sqlx::Error> {
+    if on_postgres(conn) {
+        Ok(stamp(sqlx::query_scalar(PG_NOW_MS).fetch_one(conn).await?))
+    } else {
+        Ok(process_now())
+    }
+}
 
-/// Current time as stored: RFC 3339, UTC, milliseconds (text that sorts in time order). Never
-/// the same twice in one process: a call in the millisecond of the last one gets the next
-/// millisecond, so rows made one after another (two evaluations recorded in a burst) list in
-/// the order they were made; lists break ties by id only between processes.
-pub fn now() -> String {
+/// How far the database's clock runs ahead of this process's, read on `conn`: times sampled
+/// before they are written (a run's metrics, stored in batches) move onto the database's clock
+/// by it, so they order against the stamps of [`now_in`]. Zero on SQLite, whose clock is this
+/// machine's.
+pub(crate) async fn clock_offset_in(
+    conn: &mut sqlx::AnyConnection,
+) -> Result<chrono::TimeDelta, sqlx::Error> {
+    if !on_postgres(conn) {
+        return Ok(chrono::TimeDelta::zero());
+    }
+    let before = chrono::Utc::now().timestamp_millis();
+    let database: i64 = sqlx::query_scalar(PG_NOW_MS).fetch_one(conn).await?;
+    let after = chrono::Utc::now().timestamp_millis();
+    // The server read its clock somewhere within the round trip: its middle is the best guess.
+    Ok(chrono::TimeDelta::milliseconds(database - (before + after) / 2))
+}
+
+fn on_postgres(conn: &sqlx::AnyConnection) -> bool {
+    conn.backend_name() == <sqlx::Postgres as sqlx::Database>::NAME
+}
+
+/// PostgreSQL's clock in milliseconds since the Unix epoch.
+const PG_NOW_MS: &str = "SELECT CAST(EXTRACT(EPOCH FROM clock_timestamp()) * 1000 AS BIGINT)";
+
+/// This process's clock, as stored: SQLite's stamps (see [`now_in`]).
+fn process_now() -> String {
+    stamp(chrono::Utc::now().timestamp_millis())
+}
+
+/// A clock reading in milliseconds as stored: RFC 3339, UTC, milliseconds (text that sorts in
+/// time order). Never the same twice in one process: a reading in the millisecond of the last
+/// one gets the next millisecond, so rows made one after another (two evaluations recorded in a
+/// burst) list in the order they were made, on either clock; lists break ties by id only
+/// between processes.
+fn stamp(clock_ms: i64) -> String {
     use std::sync::atomic::{AtomicI64, Ordering};
     static LAST_MS: AtomicI64 = AtomicI64::new(i64::MIN);
-    let clock = chrono::Utc::now().timestamp_millis();
     let previous = LAST_MS
-        .fetch_update(Ordering::SeqCst, Ordering::SeqCst, |last| Some(clock.max(last + 1)))
+        .fetch_update(Ordering::SeqCst, Ordering::SeqCst, |last| Some(clock_ms.max(last + 1)))
         .expect("the update always succeeds");
-    let ms = clock.max(previous + 1);
+    let ms = clock_ms.max(previous + 1);
     chrono::DateTime::from_timestamp_millis(ms)
         .unwrap_or_else(chrono::Utc::now)
         .to_rfc3339_opts(chrono::SecondsFormat::Millis, true)
@@ -588,7 +616,7 @@ mod tests {
     /// even within one millisecond, must sort in the order they were taken.
     #[test]
     fn stored_times_taken_in_turn_sort_in_that_order() {
-        let times: Vec<String> = (0..5_000).map(|_| now()).collect();
+        let times: Vec<String> = (0..5_000).map(|_| process_now()).collect();
         assert!(times.windows(2).all(|pair| pair[0] < pair[1]));
         assert!(parse_time("t", &times[0]).is_ok());
     }

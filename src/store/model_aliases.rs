@@ -224,7 +224,7 @@ pub(super) async fn set_alias_in(
     if target.is_some() && from.is_none() {
         refuse_other_case(tx, model, alias).await?;
     }
-    let now = super::now();
+    let now = super::now_in(tx).await?;
     match target {
         Some(target) => {
             for version in target.versions() {
@@ -330,7 +330,7 @@ pub(super) async fn bump(tx: &mut Transaction<'_, Any>, model: &str) -> Result<u
          RETURNING revision",
     )
     .bind(model)
-    .bind(super::now())
+    .bind(super::now_in(tx).await?)
     .fetch_optional(&mut **tx)
     .await?;
     revision.map(|r| r as u64).ok_or_else(|| model_not_found(model))

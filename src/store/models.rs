@@ -112,9 +112,9 @@ impl TryFrom<VersionRow> for ModelVersionRecord {
 impl Store {
     /// Creates a model; `model_exists` (409) when the name is taken.
     pub async fn create_model(&self, model: &NewModel<'_>) -> Result<ModelRecord, StoreError> {
-        let now = self.db_now().await?;
         let tags = serde_json::Value::from(model.tags.to_vec()).to_string();
         let mut tx = self.begin_write().await?;
+        let now = super::now_in(&mut tx).await?;
         // `Pilot` beside `pilot` would read as one model and answer as two.
         let same: Option<String> =
             sqlx::query_scalar("SELECT name FROM models WHERE LOWER(name) = LOWER($1)")
@@ -472,7 +472,7 @@ pub(super) async fn register_in(
          updated_at = $2 WHERE name = $1 RETURNING last_version",
     )
     .bind(version.model.as_str())
-    .bind(super::now())
+    .bind(super::now_in(tx).await?)
     .fetch_optional(&mut **tx)
     .await?;
     let number = number.ok_or_else(|| model_not_found(version.model.as_str()))?;
@@ -495,7 +495,7 @@ pub(super) async fn register_in(
     .bind(version.policy_id)
     .bind(version.description)
     .bind(version.source)
-    .bind(super::now())
+    .bind(super::now_in(tx).await?)
     .execute(&mut **tx)
     .await?;
     let number = number as u32;

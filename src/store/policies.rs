@@ -95,7 +95,7 @@ pub(super) async fn insert_policy(
     .bind(&policy.artifact.weights[..])
     .bind(json_text(&final_metrics))
     .bind(super::optional_real(policy.alpha_hat))
-    .bind(super::now())
+    .bind(super::now_in(tx).await?)
     .execute(&mut **tx)
     .await?;
     Ok(())

@@ -65,6 +65,28 @@ async fn any_db(fleet: &Fleet) -> AnyConnection {
     AnyConnection::connect(&fleet.database_url).await.unwrap()
 }
 
+/// One clock for every stored time: the workers' metric samples (taken on the worker's clock,
+/// moved onto the database's when written) and log lines lie between their job's start and end
+/// (stamped on the database's clock). The slack covers the round trip the offset is measured
+/// over; a unit or sign slip in it would put samples seconds to hours away.
+async fn every_sample_and_log_line_within_its_run(conn: &mut AnyConnection) {
+    let times = "SELECT x.time, j.started_at, j.finished_at FROM jobs AS j JOIN \
+                   (SELECT job_id, time FROM job_metrics UNION ALL SELECT job_id, time FROM job_logs) \
+                 AS x ON x.job_id = j.id";
+    let rows: Vec<(String, String, String)> =
+        sqlx::query_as(times).fetch_all(&mut *conn).await.unwrap();
+    assert!(!rows.is_empty());
+    let parse = |t: &str| chrono::DateTime::parse_from_rfc3339(t).unwrap();
+    let slack = chrono::TimeDelta::milliseconds(50);
+    for (time, started, finished) in &rows {
+        let (time, started, finished) = (parse(time), parse(started), parse(finished));
+        assert!(
+            started - slack <= time && time <= finished + slack,
+            "{time} outside {started}..{finished}"
+        );
+    }
+}
+
 /// Waits until the job is running with a checkpoint stored: a kill then lands mid-run, and the
 /// job has something to resume from.
 async fn wait_for_checkpoint(fleet: &Fleet, id: &str) -> Value {
@@ -146,6 +168,7 @@ async fn twelve_jobs_each_exactly_once(fleet: &Fleet) -> BTreeMap<String, usize>
             .await
             .unwrap();
     assert_eq!(takeovers, 0, "no worker died, so no job changed hands");
+    every_sample_and_log_line_within_its_run(&mut conn).await;
     eprintln!("jobs per worker: {by_worker:?}");
     by_worker
 }
