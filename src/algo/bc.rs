@@ -1,5 +1,7 @@
 //! Behaviour cloning on D^U: the baseline that cannot tell preferred from non-preferred.
 
+pub mod config;
+
 use candle_core::Tensor;
 
 use super::columns::ActionColumn;

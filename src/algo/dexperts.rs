@@ -4,7 +4,11 @@
 //! `−E_U[log π] + α E_N[log π]` (Eq. 45), or with the D^N term bounded
 //! ([`NonPreferredTerm::Kernel`]).
 
+pub mod config;
+
 use candle_core::Tensor;
+
+use config::{DexpertsConfig, NonPreferredTerm};
 
 use super::bc::bc_loss;
 use super::columns::ActionColumn;
@@ -12,7 +16,7 @@ use super::fused_policy::{
     fused_policy_step, fused_policy_update, host, host_scalar, FusedPolicyStep, LossName,
     OwnedActions,
 };
-use super::hyperparams::{AlgorithmConfig, DexpertsConfig, NonPreferredTerm};
+use super::hyperparams::AlgorithmConfig;
 use super::optim::Adam;
 use super::policy::{gaussian_kernel, Decoder, PolicyArtifact, PolicyNet};
 use super::run::RunData;

@@ -14,72 +14,30 @@
 //!   lr 1e-5, discriminator GP 10, nu GP 1e-6, 100k discriminator steps + 1M iterations).
 //! - `service` (the default when no preset is given): the authors' code's learning rates and
 //!   penalties, plus the robustness options our measurements favoured, and a run length that fits
-//!   a service (100k iterations). See [`SafediceConfig::service`] for the measurements.
+//!   a service (100k iterations). `safedice/config.rs` has the measurements behind them.
 //!
 //! The baselines are not in the authors' repository, so for them `authors-code` equals `paper`.
+//!
+//! Each algorithm's own keys, their presets and checks live in its module's `config.rs`
+//! ([`knobs::AlgorithmKnobs`]); this file holds the common keys, lists the algorithms' configs
+//! (`algorithm_configs!`) and merges a user's keys over a preset.
 
 use serde::{Deserialize, Serialize};
 use serde_json::{Map, Value};
 
-use super::Algorithm;
-
-mod safedice;
-use safedice::check_alpha_estimator;
-pub use safedice::{
+use super::bc::config::BcConfig;
+pub use super::dexperts::config::{DexpertsConfig, NonPreferredTerm};
+pub use super::dwbc::config::DwbcConfig;
+pub use super::ppl::config::{PplConfig, PplWeight};
+pub use super::safedice::config::{
     AlphaEstimator, AlphaHatPoint, BbeUnlabeledRows, SafediceConfig, TerminalHandling,
     UndefinedReward,
 };
+use super::Algorithm;
 
-/// A config the user got wrong; `message` names the key and what is allowed.
-#[derive(Debug, thiserror::Error)]
-#[error("{message}")]
-pub struct HyperparamError {
-    pub key: String,
-    pub message: String,
-}
-
-impl HyperparamError {
-    fn new(key: &str, message: impl Into<String>) -> Self {
-        HyperparamError { key: key.to_string(), message: message.into() }
-    }
-}
-
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "kebab-case")]
-pub enum Preset {
-    Service,
-    Paper,
-    AuthorsCode,
-}
-
-impl Preset {
-    pub const ALL: [Preset; 3] = [Preset::Service, Preset::Paper, Preset::AuthorsCode];
-}
-
-/// What DExperts' continuous objective (Eq. 45) does with D^N's actions.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum NonPreferredTerm {
-    /// `α E_N[log π(a|s)]`, Eq. 45 as written: unbounded below, so minimising it can push D^N's
-    /// actions' likelihood down without end, dragging the policy off D^U's actions too. The
-    /// default of a config without it.
-    #[default]
-    LogLikelihood,
-    /// `α E_N[k(a|s)]`, with `k = exp(−½ Σ_j z_j²)` the D^N action's Gaussian kernel under the
-    /// policy (its density relative to the policy's mode, in (0, 1]), moving the mean only:
-    /// the push fades once a D^N action is a few standard deviations from the mean.
-    Kernel,
-}
-
-/// How PPL turns its learned reward `R_θ(s, a)` into behaviour-cloning weights.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum PplWeight {
-    /// `R_θ(s, a)` itself (Eq. 41 literally; negative weights push log-probabilities down).
-    Raw,
-    /// `σ(R_θ(s, a))`, in (0, 1).
-    Sigmoid,
-}
+pub mod knobs;
+use knobs::{in_range, learning_rate, AlgorithmKnobs};
+pub use knobs::{HyperparamError, Preset};
 
 /// Knobs every algorithm has.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -118,55 +76,61 @@ fn one_thread() -> usize {
     1
 }
 
-/// DWBC's knobs (Eq. 38, 39).
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct DwbcConfig {
-    /// η of Eq. 38: the assumed share of non-preferred samples in D^U.
-    pub eta: f64,
-    pub lr_discriminator: f64,
-    /// Interpolated gradient penalty of the discriminator (paper Table 2: 0.1).
-    pub discriminator_gp: f64,
+/// Lists each algorithm's own config, by its [`Algorithm`] variant: the tagged enum of the flat
+/// JSON and its dispatch to [`AlgorithmKnobs`] follow from the list.
+macro_rules! algorithm_configs {
+    ($($variant:ident($config:ty)),+ $(,)?) => {
+        /// The algorithm-specific part, tagged by "algorithm" in the flat JSON.
+        #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+        #[serde(tag = "algorithm", rename_all = "lowercase")]
+        pub enum AlgorithmConfig {
+            $($variant($config)),+
+        }
+
+        impl AlgorithmConfig {
+            pub fn algorithm(&self) -> Algorithm {
+                match self {
+                    $(AlgorithmConfig::$variant(_) => Algorithm::$variant),+
+                }
+            }
+
+            /// What the algorithm's own config knows of itself.
+            pub fn knobs(&self) -> &dyn AlgorithmKnobs {
+                match self {
+                    $(AlgorithmConfig::$variant(config) => config),+
+                }
+            }
+
+            fn preset(algorithm: Algorithm, preset: Preset, pretraining: u64) -> Self {
+                match algorithm {
+                    $(Algorithm::$variant => {
+                        AlgorithmConfig::$variant(<$config>::preset(preset, pretraining))
+                    }),+
+                }
+            }
+
+            fn lr_actor(algorithm: Algorithm, preset: Preset) -> Option<f64> {
+                match algorithm {
+                    $(Algorithm::$variant => <$config>::lr_actor(preset)),+
+                }
+            }
+
+            fn pretraining_default(algorithm: Algorithm, preset: Preset, iterations: u64) -> u64 {
+                match algorithm {
+                    $(Algorithm::$variant => <$config>::pretraining_default(preset, iterations)),+
+                }
+            }
+        }
+    };
 }
 
-/// PPL's knobs (Eq. 40, 41).
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct PplConfig {
-    /// Bradley–Terry reward-model steps before policy learning (default 10% of `iterations`).
-    pub reward_model_iterations: u64,
-    pub lr_reward_model: f64,
-    /// Trajectory pairs (τ_i ∈ D^U, τ_j ∈ D^N) per reward-model step.
-    pub pairs_per_batch: usize,
-    /// Eq. 40 sums R over whole trajectories; we sum over random segments of at most this many
-    /// steps so a step's cost stays bounded (episodes shorter than this are used whole).
-    pub segment_length: usize,
-    pub ppl_weight: PplWeight,
-}
-
-/// DExperts' knobs (Eq. 44 for discrete actions, Eq. 45 for continuous ones).
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct DexpertsConfig {
-    /// α of Eq. 44/45: how strongly the non-preferred expert is subtracted.
-    pub alpha: f64,
-    /// Continuous actions: Eq. 45's D^N term as written or bounded (discrete actions decode
-    /// with Eq. 44 and ignore it).
-    #[serde(default)]
-    pub non_preferred_term: NonPreferredTerm,
-}
-
-/// BC has no knobs of its own.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct BcConfig {}
-
-/// The algorithm-specific part, tagged by "algorithm" in the flat JSON.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(tag = "algorithm", rename_all = "lowercase")]
-pub enum AlgorithmConfig {
+algorithm_configs!(
     Safedice(SafediceConfig),
     Bc(BcConfig),
     Dwbc(DwbcConfig),
     Ppl(PplConfig),
     Dexperts(DexpertsConfig),
-}
+);
 
 /// A validated configuration with every default filled in; its JSON is flat.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -179,13 +143,7 @@ pub struct ResolvedConfig {
 
 impl ResolvedConfig {
     pub fn algorithm(&self) -> Algorithm {
-        match self.specific {
-            AlgorithmConfig::Safedice(_) => Algorithm::Safedice,
-            AlgorithmConfig::Bc(_) => Algorithm::Bc,
-            AlgorithmConfig::Dwbc(_) => Algorithm::Dwbc,
-            AlgorithmConfig::Ppl(_) => Algorithm::Ppl,
-            AlgorithmConfig::Dexperts(_) => Algorithm::Dexperts,
-        }
+        self.specific.algorithm()
     }
 
     pub fn seed(&self) -> u64 {
@@ -199,16 +157,12 @@ impl ResolvedConfig {
 
     /// Steps of the phase before policy learning (discriminator or reward model), 0 if none.
     pub fn pretraining_steps(&self) -> u64 {
-        match &self.specific {
-            AlgorithmConfig::Safedice(s) => s.discriminator_iterations,
-            AlgorithmConfig::Ppl(p) => p.reward_model_iterations,
-            _ => 0,
-        }
+        self.specific.knobs().pretraining_steps()
     }
 
     /// The defaults of `preset` for `algorithm`.
     pub fn preset(algorithm: Algorithm, preset: Preset) -> ResolvedConfig {
-        let paper_like = preset != Preset::Service;
+        let paper_like = preset.paper_like();
         let common = CommonConfig {
             preset,
             seed: 0,
@@ -219,52 +173,12 @@ impl ResolvedConfig {
             normalize_observations: !paper_like,
             threads: 1,
         };
-        let phase = pretraining_default(algorithm, preset, common.iterations);
-        let (common, specific) = match algorithm {
-            Algorithm::Safedice => {
-                let s = match preset {
-                    Preset::Paper => SafediceConfig::paper(phase),
-                    Preset::AuthorsCode => SafediceConfig::authors_code(),
-                    Preset::Service => SafediceConfig::service(phase),
-                };
-                let lr_actor = match preset {
-                    Preset::Paper => 3e-4,
-                    Preset::AuthorsCode => 1e-5,
-                    Preset::Service => SafediceConfig::SERVICE_LR_ACTOR,
-                };
-                (CommonConfig { lr_actor, ..common }, AlgorithmConfig::Safedice(s))
-            }
-            Algorithm::Bc => (common, AlgorithmConfig::Bc(BcConfig {})),
-            Algorithm::Dwbc => (
-                common,
-                AlgorithmConfig::Dwbc(DwbcConfig {
-                    eta: 0.2,
-                    lr_discriminator: 3e-4,
-                    discriminator_gp: 0.1,
-                }),
-            ),
-            Algorithm::Ppl => (
-                common,
-                AlgorithmConfig::Ppl(PplConfig {
-                    reward_model_iterations: phase,
-                    lr_reward_model: 3e-4,
-                    pairs_per_batch: 16,
-                    segment_length: 32,
-                    ppl_weight: if paper_like { PplWeight::Raw } else { PplWeight::Sigmoid },
-                }),
-            ),
-            Algorithm::Dexperts => {
-                let non_preferred_term = match preset {
-                    Preset::Service => NonPreferredTerm::Kernel,
-                    Preset::Paper | Preset::AuthorsCode => NonPreferredTerm::LogLikelihood,
-                };
-                (
-                    common,
-                    AlgorithmConfig::Dexperts(DexpertsConfig { alpha: 0.2, non_preferred_term }),
-                )
-            }
-        };
-        ResolvedConfig { common, specific }
+        let pretraining = pretraining_default(algorithm, preset, common.iterations);
+        let lr_actor = AlgorithmConfig::lr_actor(algorithm, preset).unwrap_or(common.lr_actor);
+        ResolvedConfig {
+            common: CommonConfig { lr_actor, ..common },
+            specific: AlgorithmConfig::preset(algorithm, preset, pretraining),
+        }
     }
 
     fn validate(&self) -> Result<(), HyperparamError> {
@@ -292,56 +206,7 @@ impl ResolvedConfig {
                 ),
             ));
         }
-        match &self.specific {
-            AlgorithmConfig::Safedice(s) => {
-                in_range("discriminator_iterations", s.discriminator_iterations as f64, 1.0, 1e8)?;
-                learning_rate("lr_discriminator", s.lr_discriminator)?;
-                learning_rate("lr_nu", s.lr_nu)?;
-                in_range("discriminator_gp", s.discriminator_gp, 0.0, 1e6)?;
-                in_range("nu_gp", s.nu_gp, 0.0, 1e6)?;
-                in_range("gamma", s.gamma, 0.0, 0.9999)?;
-                in_range("alpha_hat_quantile", s.alpha_hat_quantile, 0.0, 0.5)?;
-                in_range("ess_warning_fraction", s.ess_warning_fraction, 0.0, 1.0)?;
-                in_range("reward_scale", s.reward_scale, 0.01, 100.0)?;
-                check_alpha_estimator(s)?;
-            }
-            AlgorithmConfig::Bc(_) => {}
-            AlgorithmConfig::Dwbc(d) => {
-                in_range("eta", d.eta, 0.0, 0.99)?;
-                learning_rate("lr_discriminator", d.lr_discriminator)?;
-                in_range("discriminator_gp", d.discriminator_gp, 0.0, 1e6)?;
-            }
-            AlgorithmConfig::Ppl(p) => {
-                in_range("reward_model_iterations", p.reward_model_iterations as f64, 1.0, 1e8)?;
-                learning_rate("lr_reward_model", p.lr_reward_model)?;
-                in_range("pairs_per_batch", p.pairs_per_batch as f64, 1.0, 4096.0)?;
-                in_range("segment_length", p.segment_length as f64, 1.0, 100_000.0)?;
-            }
-            AlgorithmConfig::Dexperts(d) => in_range("alpha", d.alpha, 0.0, 10.0)?,
-        }
-        Ok(())
-    }
-}
-
-fn in_range(key: &str, value: f64, low: f64, high: f64) -> Result<(), HyperparamError> {
-    if value.is_finite() && value >= low && value <= high {
-        Ok(())
-    } else {
-        Err(HyperparamError::new(
-            key,
-            format!("config.{key}: must be between {low} and {high}, got {value}"),
-        ))
-    }
-}
-
-fn learning_rate(key: &str, value: f64) -> Result<(), HyperparamError> {
-    if value.is_finite() && value > 0.0 && value <= 1.0 {
-        Ok(())
-    } else {
-        Err(HyperparamError::new(
-            key,
-            format!("config.{key}: must be a learning rate in (0, 1], got {value}"),
-        ))
+        self.specific.knobs().validate()
     }
 }
 
@@ -349,14 +214,10 @@ fn learning_rate(key: &str, value: f64) -> Result<(), HyperparamError> {
 const PHASE_KEYS: [&str; 2] = ["discriminator_iterations", "reward_model_iterations"];
 
 /// The default length of the phase before policy learning (SafeDICE's discriminator, PPL's
-/// reward model) for a run of `iterations` policy iterations: as many steps in SafeDICE's
-/// `service` preset ([`SafediceConfig::service`] says why), a tenth otherwise (the authors'
-/// ratio); at least one step.
+/// reward model) for a run of `iterations` policy iterations: the algorithm's rule
+/// ([`AlgorithmKnobs::pretraining_default`]).
 pub fn pretraining_default(algorithm: Algorithm, preset: Preset, iterations: u64) -> u64 {
-    match (algorithm, preset) {
-        (Algorithm::Safedice, Preset::Service) => iterations.max(1),
-        _ => (iterations / 10).max(1),
-    }
+    AlgorithmConfig::pretraining_default(algorithm, preset, iterations)
 }
 
 /// The keys a `config` object of `algorithm` may hold besides "preset" (the same in every preset).

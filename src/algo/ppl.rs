@@ -2,13 +2,17 @@
 //! on pairs where every D^U trajectory is preferred over every D^N trajectory (Eq. 40), then
 //! behaviour cloning on D^U weighted by the learned reward (Eq. 41).
 
+pub mod config;
+
 use candle_core::{Device, Tensor};
 use rand::Rng;
 use rand_chacha::ChaCha8Rng;
 
+use config::{PplConfig, PplWeight};
+
 use super::columns::Columns;
 use super::fused_policy::{fused_policy_step, fused_policy_update, FusedPolicyStep, LossName};
-use super::hyperparams::{AlgorithmConfig, PplConfig, PplWeight};
+use super::hyperparams::AlgorithmConfig;
 use super::losses::{softplus, weighted_nll};
 use super::mlp::Mlp;
 use super::optim::Adam;

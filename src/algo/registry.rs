@@ -4,11 +4,10 @@
 //! it the OpenAPI example, the dashboard's form and colours) and [`super::build_trainer`] read
 //! this table; nothing outside `algo/` matches on an algorithm to learn these.
 //!
-//! To add an algorithm: its module beside the others (a [`Trainer`], its `step_flops` and its
-//! `memory`), its variant of [`Algorithm`] and of
-//! [`AlgorithmConfig`](super::hyperparams::AlgorithmConfig) with its presets and checks in
-//! `hyperparams.rs`, its entry in [`SPECS`] below and its keys in the CreateJob doc
-//! (docs/architecture.md, "Recipes").
+//! To add an algorithm: its module beside the others (a [`Trainer`], its `step_flops`, its
+//! `memory`, and its `config.rs` with presets and checks), its variant of [`Algorithm`] and its
+//! line in `hyperparams.rs`'s `algorithm_configs!`, its entry in [`SPECS`] below and its keys in
+//! the CreateJob doc (docs/architecture.md, "Recipes").
 
 use serde::Serialize;
 

@@ -3,6 +3,7 @@
 //! `1 − d(s, a)` (Eq. 39). Discriminator and policy are trained together, one step each per
 //! iteration, as in DWBC.
 
+pub mod config;
 pub mod fused;
 pub mod objectives;
 
@@ -12,13 +13,14 @@ use crate::algo::columns::uniform_column;
 use crate::algo::fused_policy::{
     fused_policy_update, host, host_scalar, FusedPolicyStep, LossName,
 };
-use crate::algo::hyperparams::{AlgorithmConfig, DwbcConfig};
+use crate::algo::hyperparams::AlgorithmConfig;
 use crate::algo::losses::{interpolate, unit_gradient_penalty, weighted_nll};
 use crate::algo::mlp::Mlp;
 use crate::algo::optim::Adam;
 use crate::algo::policy::{PolicyArtifact, PolicyNet};
 use crate::algo::run::RunData;
 use crate::algo::{Progress, ResolvedConfig, TrainError, Trainer, TrainingData};
+use config::DwbcConfig;
 use fused::{DwbcDiscBatch, FusedDwbcDisc};
 pub use objectives::{negative_unlabeled_loss, preference_weights, LOGIT_CLIP};
 

@@ -27,6 +27,7 @@
 //! - [`ablation`]: the benchmark's replacements for alpha-hat and the discriminator.
 
 pub mod ablation;
+pub mod config;
 mod cross_fit;
 pub mod draws;
 mod folds;

@@ -1,9 +1,10 @@
-//! SafeDICE's knobs and its three presets, with the measurements behind the `service` values
-//! (kept apart from the other algorithms' configs in `hyperparams.rs`, which dispatches to them).
+//! SafeDICE's knobs and its three presets, with the measurements behind the `service` values.
 
 use serde::{Deserialize, Serialize};
 
-use super::HyperparamError;
+use crate::algo::hyperparams::knobs::{
+    a_tenth_of, in_range, learning_rate, AlgorithmKnobs, HyperparamError, Preset,
+};
 
 /// How the nu step treats a transition that ends its episode in a terminal state.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
@@ -148,7 +149,7 @@ impl SafediceConfig {
     /// Actor learning rate of the `service` preset.
     pub const SERVICE_LR_ACTOR: f64 = 1e-4;
 
-    pub(super) fn paper(discriminator_iterations: u64) -> Self {
+    fn paper(discriminator_iterations: u64) -> Self {
         SafediceConfig {
             discriminator_iterations,
             lr_discriminator: 3e-4,
@@ -172,7 +173,7 @@ impl SafediceConfig {
         }
     }
 
-    pub(super) fn authors_code() -> Self {
+    fn authors_code() -> Self {
         SafediceConfig {
             discriminator_iterations: 100_000,
             lr_discriminator: 1e-4,
@@ -256,7 +257,7 @@ impl SafediceConfig {
     /// development split (median 0.73, 10th percentile 0.32, none worse) and is the default
     /// since its safety head keeps both halves' discriminators (ROC AUC 0.90 on the
     /// cartpole-slider safety test, one half alone 0.78; docs/algorithm.md, "Cross-fitting").
-    pub(super) fn service(discriminator_iterations: u64) -> Self {
+    fn service(discriminator_iterations: u64) -> Self {
         SafediceConfig {
             discriminator_iterations,
             terminal_handling: TerminalHandling::Reset,
@@ -274,10 +275,54 @@ impl SafediceConfig {
     }
 }
 
+impl AlgorithmKnobs for SafediceConfig {
+    fn preset(preset: Preset, discriminator_iterations: u64) -> Self {
+        match preset {
+            Preset::Paper => Self::paper(discriminator_iterations),
+            Preset::AuthorsCode => Self::authors_code(),
+            Preset::Service => Self::service(discriminator_iterations),
+        }
+    }
+
+    fn lr_actor(preset: Preset) -> Option<f64> {
+        Some(match preset {
+            Preset::Paper => 3e-4,
+            Preset::AuthorsCode => 1e-5,
+            Preset::Service => Self::SERVICE_LR_ACTOR,
+        })
+    }
+
+    /// In the `service` preset the discriminator may train as long as the policy
+    /// ([`SafediceConfig::service`] says why); the authors' tenth otherwise.
+    fn pretraining_default(preset: Preset, iterations: u64) -> u64 {
+        match preset {
+            Preset::Service => iterations.max(1),
+            Preset::Paper | Preset::AuthorsCode => a_tenth_of(iterations),
+        }
+    }
+
+    fn pretraining_steps(&self) -> u64 {
+        self.discriminator_iterations
+    }
+
+    fn validate(&self) -> Result<(), HyperparamError> {
+        in_range("discriminator_iterations", self.discriminator_iterations as f64, 1.0, 1e8)?;
+        learning_rate("lr_discriminator", self.lr_discriminator)?;
+        learning_rate("lr_nu", self.lr_nu)?;
+        in_range("discriminator_gp", self.discriminator_gp, 0.0, 1e6)?;
+        in_range("nu_gp", self.nu_gp, 0.0, 1e6)?;
+        in_range("gamma", self.gamma, 0.0, 0.9999)?;
+        in_range("alpha_hat_quantile", self.alpha_hat_quantile, 0.0, 0.5)?;
+        in_range("ess_warning_fraction", self.ess_warning_fraction, 0.0, 1.0)?;
+        in_range("reward_scale", self.reward_scale, 0.01, 100.0)?;
+        check_alpha_estimator(self)
+    }
+}
+
 /// The quantile diagnostic belongs to the paper's minimum (`uniform_fallback`,
 /// `calibrate_discriminator` and `cross_fit` do nothing with `min`, so one key switches the
 /// estimator).
-pub(super) fn check_alpha_estimator(s: &SafediceConfig) -> Result<(), HyperparamError> {
+fn check_alpha_estimator(s: &SafediceConfig) -> Result<(), HyperparamError> {
     if s.alpha_hat_estimator == AlphaEstimator::Bbe && s.alpha_hat_quantile > 0.0 {
         return Err(HyperparamError::new(
             "alpha_hat_quantile",
