@@ -83,8 +83,9 @@ pub struct SafediceAblation {
     /// The same on D^U's transitions against their true flags (in-sample: the discriminator
     /// was trained on D^U as its negative class).
     pub auc_unlabeled: f64,
-    /// Share of Eq. 37's batch-normalised weights (current ν, all of D^U in batches of the
-    /// run's size, [`batch_weight_share`]) on the non-preferred transitions at the end of
+    /// Share of Eq. 37's batch-normalised weights as the policy step reads them (current ν, all
+    /// of D^U in batches of the run's size, with its `policy_uniform_share`,
+    /// [`batch_weight_share`]) on the non-preferred transitions at the end of
     /// training: the true share α means no filtering, 0 a perfect filter.
     pub non_preferred_weight_share: f64,
 }
@@ -170,8 +171,15 @@ pub fn weight_share(weights: &[f64], flagged: &[bool]) -> f64 {
 /// `exp(A)` self-normalised within the batch (stably, from the log-weights `log_weights`), the
 /// batches' shares averaged by size. A share over the whole dataset at once can be ruled by a
 /// few rows whose `A` lies hundreds of nats above the rest (ν far outside the states the
-/// minibatches usually hold) while no minibatch gives them that role.
-pub fn batch_weight_share(log_weights: &[f64], flagged: &[bool], batch: usize, seed: u64) -> f64 {
+/// minibatches usually hold) while no minibatch gives them that role. `uniform_share` mixes
+/// the batch's weights as the policy step does (`policy_uniform_share`: `(1 − m) w + m`).
+pub fn batch_weight_share(
+    log_weights: &[f64],
+    flagged: &[bool],
+    batch: usize,
+    seed: u64,
+    uniform_share: f64,
+) -> f64 {
     use rand::seq::SliceRandom;
     use rand::SeedableRng;
     assert_eq!(log_weights.len(), flagged.len(), "one flag per row");
@@ -180,7 +188,10 @@ pub fn batch_weight_share(log_weights: &[f64], flagged: &[bool], batch: usize, s
     let mut total = 0.0;
     for rows in order.chunks(batch.max(1)) {
         let max = rows.iter().map(|&i| log_weights[i]).fold(f64::NEG_INFINITY, f64::max);
-        let weights: Vec<f64> = rows.iter().map(|&i| (log_weights[i] - max).exp()).collect();
+        let exp: Vec<f64> = rows.iter().map(|&i| (log_weights[i] - max).exp()).collect();
+        let mean = exp.iter().sum::<f64>() / exp.len() as f64;
+        let weights: Vec<f64> =
+            exp.iter().map(|e| (1.0 - uniform_share) * e / mean + uniform_share).collect();
         let flags: Vec<bool> = rows.iter().map(|&i| flagged[i]).collect();
         total += weight_share(&weights, &flags) * rows.len() as f64;
     }
@@ -373,15 +384,19 @@ mod tests {
     fn batch_weight_share_normalises_each_batch() {
         let flags = [false, true, false, true];
         let logs = [0.0, 3f64.ln(), 0.0, 3f64.ln()];
-        assert!((batch_weight_share(&logs, &flags, 4, 0) - 0.75).abs() < 1e-12);
-        assert!((batch_weight_share(&logs, &flags, 1, 0) - 0.5).abs() < 1e-12);
+        assert!((batch_weight_share(&logs, &flags, 4, 0, 0.0) - 0.75).abs() < 1e-12);
+        assert!((batch_weight_share(&logs, &flags, 1, 0, 0.0) - 0.5).abs() < 1e-12);
         let mut logs = vec![0.0; 8];
         let mut flags = vec![false; 8];
         logs[0] = 1000.0;
         flags[1..].iter_mut().for_each(|f| *f = true);
         // Batches of one: the share is the flagged fraction of rows, 7/8.
-        assert!((batch_weight_share(&logs, &flags, 1, 3) - 7.0 / 8.0).abs() < 1e-12);
+        assert!((batch_weight_share(&logs, &flags, 1, 3, 0.0) - 7.0 / 8.0).abs() < 1e-12);
         // Batches of four: the batch holding row 0 gives 0, the other 1: mean 1/2.
-        assert!((batch_weight_share(&logs, &flags, 4, 3) - 0.5).abs() < 1e-12);
+        assert!((batch_weight_share(&logs, &flags, 4, 3, 0.0) - 0.5).abs() < 1e-12);
+        // A uniform share m moves each batch's share toward its flagged fraction:
+        // (1 − m) · 1/2 + m · 7/8.
+        let mixed = batch_weight_share(&logs, &flags, 4, 3, 0.2);
+        assert!((mixed - (0.8 * 0.5 + 0.2 * 7.0 / 8.0)).abs() < 1e-12, "{mixed}");
     }
 }

@@ -600,7 +600,8 @@ fn safedice_ablation(t: &SafediceTrainer, truth: &Truth) -> Result<SafediceAblat
     let unlabeled = t.discriminator_logits_unlabeled()?;
     let flags = &truth.unlabeled_non_preferred;
     let share = t.unlabeled_advantages()?.map_or(f64::NAN, |a| {
-        ablation::batch_weight_share(&a, flags, t.batch_size(), ablation::WEIGHT_SHARE_SEED)
+        let seed = ablation::WEIGHT_SHARE_SEED;
+        ablation::batch_weight_share(&a, flags, t.batch_size(), seed, t.policy_uniform_share())
     });
     Ok(SafediceAblation {
         auc_heldout: ablation::roc_auc(&heldout, &truth.heldout_non_preferred).unwrap_or(f64::NAN),

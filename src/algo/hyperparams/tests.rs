@@ -107,7 +107,13 @@ fn weighting_knobs_default_for_stored_configs_and_are_checked() {
     let mut stored =
         serde_json::to_value(ResolvedConfig::preset(Algorithm::Safedice, Preset::Service)).unwrap();
     let map = stored.as_object_mut().unwrap();
-    for key in ["bbe_unlabeled_rows", "reward_scale", "alpha_hat_point", "cross_fit"] {
+    for key in [
+        "bbe_unlabeled_rows",
+        "reward_scale",
+        "alpha_hat_point",
+        "cross_fit",
+        "policy_uniform_share",
+    ] {
         assert!(map.remove(key).is_some(), "{key} is in the service preset");
     }
     let read: ResolvedConfig = serde_json::from_value(stored).unwrap();
@@ -115,6 +121,8 @@ fn weighting_knobs_default_for_stored_configs_and_are_checked() {
     assert_eq!((s.bbe_unlabeled_rows, s.reward_scale), (BbeUnlabeledRows::HeldOut, 1.0));
     assert_eq!(s.alpha_hat_point, AlphaHatPoint::Estimate);
     assert!(!s.cross_fit, "a stored config trained with one discriminator");
+    assert_eq!(s.policy_uniform_share, 0.0, "a stored config trained with Eq. 37's weights");
+    assert_eq!(s.excluded_reward_gap, 30.0, "a stored config excluded rows at e^-30");
     let lower = resolve_config(Algorithm::Safedice, &json!({"alpha_hat_point": "lower"})).unwrap();
     let AlgorithmConfig::Safedice(s) = &lower.specific else { panic!("a SafeDICE config") };
     assert_eq!(s.alpha_hat_point, AlphaHatPoint::Lower);
@@ -126,6 +134,9 @@ fn weighting_knobs_default_for_stored_configs_and_are_checked() {
         json!({"bbe_unlabeled_rows": "some"}),
         json!({"alpha_hat_point": "upper"}),
         json!({"cross_fit": "yes"}),
+        json!({"policy_uniform_share": 1.5}),
+        json!({"policy_uniform_share": -0.1}),
+        json!({"excluded_reward_gap": -1.0}),
     ];
     for bad in bad_values {
         let key = bad.as_object().unwrap().keys().next().unwrap().clone();

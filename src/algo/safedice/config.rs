@@ -139,6 +139,31 @@ pub struct SafediceConfig {
     /// config without the key): one discriminator scores all of D^U.
     #[serde(default)]
     pub cross_fit: bool,
+    /// The share of each policy step's weight spread evenly over its rows, BC's weights: Eq. 37
+    /// reads `(1 − m) w + m` for the weights `w` (mean 1). Eq. 37's policy is undefined where
+    /// the weights leave a state no row (the states only excluded rows reach), and the network
+    /// then acts there as it generalises; `m > 0` gives such states D^U's behaviour, `m`-fold
+    /// weaker than where the weights speak. 0 (the paper presets, and a stored config without
+    /// the key): Eq. 37 as written.
+    #[serde(default)]
+    pub policy_uniform_share: f64,
+    /// With `undefined_reward: exclude`: how far below the lowest defined (standardised) reward
+    /// an excluded row's reward sits, before `reward_scale`. 30 (the default, and a stored config
+    /// without the key): `e^{−30}` of a weight, the −∞ of Eq. 10. A few units keep the rows
+    /// Eq. 10 rules out in both Eq. 36 and 37 at a small weight, so the states only they reach
+    /// are not left without a policy.
+    #[serde(default = "excluded_gap")]
+    pub excluded_reward_gap: f64,
+}
+
+/// How far below the lowest defined reward an excluded row's reward is set by default
+/// (`excluded_reward_gap`): its weight in Eq. 37 and its term in Eq. 36's sum are then
+/// `e^{−30}` (about 1e-13) of the lowest defined row's, which is the −∞ of Eq. 10 as far as a
+/// float sum can tell, without an infinity in the engines.
+pub const EXCLUDED_REWARD_GAP: f64 = 30.0;
+
+fn excluded_gap() -> f64 {
+    EXCLUDED_REWARD_GAP
 }
 
 fn unit_scale() -> f64 {
@@ -170,6 +195,8 @@ impl SafediceConfig {
             alpha_hat_point: AlphaHatPoint::Estimate,
             reward_scale: 1.0,
             cross_fit: false,
+            policy_uniform_share: 0.0,
+            excluded_reward_gap: EXCLUDED_REWARD_GAP,
         }
     }
 
@@ -315,6 +342,8 @@ impl AlgorithmKnobs for SafediceConfig {
         in_range("alpha_hat_quantile", self.alpha_hat_quantile, 0.0, 0.5)?;
         in_range("ess_warning_fraction", self.ess_warning_fraction, 0.0, 1.0)?;
         in_range("reward_scale", self.reward_scale, 0.01, 100.0)?;
+        in_range("policy_uniform_share", self.policy_uniform_share, 0.0, 1.0)?;
+        in_range("excluded_reward_gap", self.excluded_reward_gap, 0.0, 1000.0)?;
         check_alpha_estimator(self)
     }
 }

@@ -12,7 +12,7 @@
 
 use candle_core::Result;
 
-use super::objectives::MASK_RENORM_EPS;
+use super::objectives::{with_uniform_share, MASK_RENORM_EPS};
 use crate::algo::fused_mlp::{EngineThreads, FusedMlp, TrainingWorkspace};
 use crate::algo::fused_ops::{interpolate_rows, sigmoid_f32, softplus_f32, unit_penalty_and_grad};
 use crate::algo::fused_policy::FusedPolicyStep;
@@ -58,6 +58,8 @@ pub struct HostMainBatch<'a> {
     pub actions: HostActions<'a>,
     /// Rows with an action (all but absorbing-state rows); None when all have one.
     pub has_action: Option<&'a [bool]>,
+    /// The share of the policy weights spread evenly (`policy_uniform_share`).
+    pub uniform_share: f32,
 }
 
 #[derive(Clone, Debug, Default)]
@@ -229,6 +231,10 @@ impl FusedSafedice {
         // Eq. 37's weights w̃/mean(w̃) = B·softmax(A), masked and renormalised where rows
         // carry no action (as losses::self_normalized_weights and trainer.rs).
         weights.iter_mut().for_each(|w| *w *= b as f32);
+        if batch.uniform_share > 0.0 {
+            let share = batch.uniform_share;
+            weights.iter_mut().for_each(|w| *w = with_uniform_share(*w, share));
+        }
         if let Some(has_action) = batch.has_action {
             for (w, &keep) in weights.iter_mut().zip(has_action) {
                 if !keep {

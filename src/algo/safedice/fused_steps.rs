@@ -69,6 +69,7 @@ impl SafediceTrainer {
                 policy_obs: &policy_obs,
                 actions: actions.view(),
                 has_action: batch.has_action.as_deref(),
+                uniform_share: self.cfg.policy_uniform_share as f32,
             },
         )?;
         let nu_value = self.run.checked(&host_scalar(out.nu_loss)?, NU_LOSS.0, NU_LOSS.1)?;

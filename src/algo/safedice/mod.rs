@@ -24,11 +24,13 @@
 //!   with its steps 2-3 and the uniform fallback in `weighting`;
 //! - [`fused`]: the same two hot loops with hand-derived gradients on the CPU engine, and
 //!   [`fused_steps`], which runs the trainer's steps on it;
-//! - [`ablation`]: the benchmark's replacements for alpha-hat and the discriminator.
+//! - [`ablation`]: the benchmark's replacements for alpha-hat and the discriminator, and
+//!   `diagnostics`, what its report reads off a trained run (Eq. 12's weights on all of D^U).
 
 pub mod ablation;
 pub mod config;
 mod cross_fit;
+mod diagnostics;
 pub mod draws;
 mod folds;
 pub mod fused;

@@ -52,6 +52,13 @@ pub fn policy_loss(log_prob: &Tensor, weights: &Tensor) -> candle_core::Result<T
     weighted_nll(log_prob, weights)
 }
 
+/// Eq. 37's weights `w` (mean 1 over the batch) with a share `m` spread evenly over the rows:
+/// `(1 − m) w + m`, still of mean 1 (the `policy_uniform_share` knob). The fused engine calls
+/// it per row; the candle trainer applies the same map as `affine(1 − m, m)`.
+pub fn with_uniform_share(w: f32, share: f32) -> f32 {
+    (1.0 - share) * w + share
+}
+
 /// Eq. 10 written with the discriminator logit `c` (σ(c) = c* of the paper):
 /// `log((1 − (1+α)σ) / ((1−α)(1−σ))) = log(1 − α e^c) − log(1 − α)`, exact and free of the
 /// cancellations of the sigmoid form. Returns the reward and whether `1 − α e^c` had to be
@@ -75,14 +82,9 @@ pub struct Eq10Rewards {
     pub undefined_rows: usize,
 }
 
-/// How far below the lowest defined reward an excluded row's reward is set: its weight in Eq. 37
-/// and its term in Eq. 36's sum are then `e^{−30}` (about 1e-13) of the lowest defined row's,
-/// which is the −∞ of Eq. 10 as far as a float sum can tell, without an infinity in the engines.
-pub const EXCLUDED_REWARD_GAP: f64 = 30.0;
-
 /// Eq. 10 for every logit of D^U at `alpha`; with [`UndefinedReward::Exclude`] the rows where
-/// Eq. 10 is −∞ stay out of the standardisation and sit [`EXCLUDED_REWARD_GAP`] below the
-/// lowest defined reward.
+/// Eq. 10 is −∞ stay out of the standardisation and sit `gap` below the lowest defined reward
+/// ([`super::config::EXCLUDED_REWARD_GAP`] by default).
 ///
 /// At `alpha` 0 Eq. 10 is 0 on every row, yet its standardisation has a limit as α → 0+:
 /// `log(1 − α e^c) − log(1 − α) = −α (e^c − 1) + O(α²)`, whose standardisation is that of
@@ -92,6 +94,7 @@ pub fn eq10_rewards(
     logits: &[f32],
     alpha: f64,
     undefined: UndefinedReward,
+    gap: f64,
     standardize: bool,
 ) -> Eq10Rewards {
     let raw: Vec<(f64, bool)> = if alpha == 0.0 && standardize {
@@ -105,7 +108,7 @@ pub fn eq10_rewards(
     let (mean, std) = mean_std(&defined);
     let scale = |r: f64| if standardize { (r - mean) / (std + 1e-8) } else { r };
     let lowest = defined.iter().map(|&r| scale(r)).fold(f64::INFINITY, f64::min);
-    let excluded = if lowest.is_finite() { lowest - EXCLUDED_REWARD_GAP } else { 0.0 };
+    let excluded = if lowest.is_finite() { lowest - gap } else { 0.0 };
     let rewards = raw
         .iter()
         .map(|&(r, was_undefined)| if exclude && was_undefined { excluded } else { scale(r) })
@@ -166,6 +169,7 @@ pub fn alpha_hat_from_logits(logits: &[f32], episode_ids: &[u32], quantile: f64)
 
 #[cfg(test)]
 mod tests {
+    use super::super::config::EXCLUDED_REWARD_GAP;
     use super::*;
 
     /// With the optimal discriminator c* = d^N/(d^U + d^N), i.e. logit log(d^N/d^U), alpha-hat
@@ -217,10 +221,12 @@ mod tests {
         let alpha = 0.5f64;
         // e^c = 1/α on the last row: 1 − α e^c = 0, Eq. 10 is −∞ there.
         let logits = [0.0f32, -1.0, (1.0 / alpha).ln() as f32 + 0.1];
-        let floored = eq10_rewards(&logits, alpha, UndefinedReward::Floor, false);
+        let floored =
+            eq10_rewards(&logits, alpha, UndefinedReward::Floor, EXCLUDED_REWARD_GAP, false);
         assert_eq!(floored.undefined_rows, 1);
         assert!((floored.rewards[2] - (1e-8f64.ln() - 0.5f64.ln())).abs() < 1e-9);
-        let excluded = eq10_rewards(&logits, alpha, UndefinedReward::Exclude, true);
+        let excluded =
+            eq10_rewards(&logits, alpha, UndefinedReward::Exclude, EXCLUDED_REWARD_GAP, true);
         assert_eq!(excluded.undefined_rows, 1);
         let defined = [reward_from_logit(0.0, alpha).0, reward_from_logit(-1.0, alpha).0];
         let mean = (defined[0] + defined[1]) / 2.0;
@@ -228,6 +234,10 @@ mod tests {
         let (r0, r1) = (excluded.rewards[0], excluded.rewards[1]);
         assert!((r0 + r1).abs() < 1e-9 && (r0.abs() - 1.0).abs() < 1e-6, "{excluded:?}");
         assert!((excluded.rewards[2] - (r0.min(r1) - EXCLUDED_REWARD_GAP)).abs() < 1e-9);
+        // A smaller gap moves the excluded row only; the defined rows keep their rewards.
+        let near = eq10_rewards(&logits, alpha, UndefinedReward::Exclude, 2.0, true);
+        assert_eq!(&near.rewards[..2], &excluded.rewards[..2]);
+        assert!((near.rewards[2] - (r0.min(r1) - 2.0)).abs() < 1e-9, "{near:?}");
     }
 
     /// Standardised, Eq. 10 at α = 0 is its limit as α → 0+: the rewards at α = 1e-3 and 1e-4
@@ -237,7 +247,10 @@ mod tests {
     #[test]
     fn standardised_eq10_is_continuous_at_alpha_zero() {
         let logits = [-3.0f32, -0.5, 0.0, 0.7, 1.5, 2.5];
-        let at = |alpha: f64| eq10_rewards(&logits, alpha, UndefinedReward::Exclude, true).rewards;
+        let exclude = |alpha: f64| {
+            eq10_rewards(&logits, alpha, UndefinedReward::Exclude, EXCLUDED_REWARD_GAP, true)
+        };
+        let at = |alpha: f64| exclude(alpha).rewards;
         let limit = at(0.0);
         let distance = |alpha: f64| {
             at(alpha).iter().zip(&limit).map(|(r, l)| (r - l).abs()).fold(0.0, f64::max)
@@ -246,7 +259,7 @@ mod tests {
         assert!(distance(1e-4) < distance(1e-3) / 5.0, "{} {}", distance(1e-4), distance(1e-3));
         let mean = limit.iter().sum::<f64>() / limit.len() as f64;
         assert!(mean.abs() < 1e-12 && limit.windows(2).all(|w| w[0] > w[1]), "{limit:?}");
-        let raw = eq10_rewards(&logits, 0.0, UndefinedReward::Exclude, false);
+        let raw = eq10_rewards(&logits, 0.0, UndefinedReward::Exclude, EXCLUDED_REWARD_GAP, false);
         assert!(raw.rewards.iter().all(|&r| r == 0.0) && raw.std == 0.0, "{raw:?}");
     }
 

@@ -35,7 +35,7 @@ use crate::algo::{Progress, ResolvedConfig, TerminalHandling, TrainError, Traine
 use crate::data::Dataset;
 
 /// Rows per forward pass when scoring all of D^U.
-const SCORING_CHUNK: usize = 8192;
+pub(super) const SCORING_CHUNK: usize = 8192;
 
 pub struct SafediceTrainer {
     pub(super) run: RunData,
@@ -281,41 +281,6 @@ impl SafediceTrainer {
         Ok(Columns::new(data, &self.run.space, self.run.normalizer.as_ref(), device)?)
     }
 
-    /// Eq. 12's weights `w = exp(A − 1)` on every row of D^U with the current ν
-    /// (`A = r + γ' ν(s') − ν(s)` on the flow table), self-normalised to mean 1 over D^U: the
-    /// whole-dataset version of Eq. 37's per-batch weights (absorbing-state rows, which carry no
-    /// action, are left out as there). None before the main phase.
-    pub fn unlabeled_weights(&self) -> Result<Option<Vec<f64>>, TrainError> {
-        let Some(advantages) = self.unlabeled_advantages()? else { return Ok(None) };
-        // n · softmax(A): the constant e^{−1} cancels, as in `losses::self_normalized_weights`.
-        let n = advantages.len();
-        let max = advantages.iter().copied().fold(f64::NEG_INFINITY, f64::max);
-        let exp: Vec<f64> = advantages.iter().map(|a| (a - max).exp()).collect();
-        let total: f64 = exp.iter().sum();
-        Ok(Some(exp.iter().map(|e| e * n as f64 / total).collect()))
-    }
-
-    /// `A = r + γ' ν(s') − ν(s)` (Eq. 12's log-weight plus 1) on every row of D^U with the
-    /// current ν; None before the main phase. Whole-dataset weights from these can be ruled by
-    /// a handful of rows far outside the minibatches' usual range; Eq. 37 normalises per batch.
-    pub fn unlabeled_advantages(&self) -> Result<Option<Vec<f64>>, TrainError> {
-        let Some(flow) = &self.flow else { return Ok(None) };
-        let n = flow.real_rows;
-        let mut advantages = Vec::with_capacity(n);
-        for start in (0..n).step_by(SCORING_CHUNK) {
-            let rows = SCORING_CHUNK.min(n - start);
-            let s = flow.obs.narrow(0, start, rows)?;
-            let s_next = flow.next_obs.narrow(0, start, rows)?;
-            let values = self.nu.forward(&Tensor::cat(&[&s, &s_next], 0)?)?.squeeze(1)?;
-            let (nu_s, nu_next) = (values.narrow(0, 0, rows)?, values.narrow(0, rows, rows)?);
-            let reward = flow.reward.narrow(0, start, rows)?;
-            let discount = flow.discount.narrow(0, start, rows)?;
-            let a = ((reward + (discount * nu_next)?)? - nu_s)?;
-            advantages.extend(a.to_vec1::<f32>()?.into_iter().map(f64::from));
-        }
-        Ok(Some(advantages))
-    }
-
     /// Algorithm 1 step 1, one step: Eq. 9 plus the interpolated gradient penalty
     /// `λ mean((‖∇c(x̂)‖ − 1)²)` at `x̂ = u x_N + (1−u) x_U` and `x̂ = u shuffle(x_U) + (1−u) x_U`.
     fn discriminator_step(&mut self, record: bool) -> Result<Vec<(&'static str, f64)>, TrainError> {
@@ -496,9 +461,14 @@ impl SafediceTrainer {
             loss_nu = (loss_nu + (penalty * self.cfg.nu_gp)?)?;
         }
 
-        // Eq. 37's weights; rows without an action (absorbing states) get none, and the rest are
-        // renormalised to mean 1.
+        // Eq. 37's weights, with `policy_uniform_share` of them spread evenly
+        // (`objectives::with_uniform_share`); rows without an action (absorbing states) get none,
+        // and the rest are renormalised to mean 1.
         let mut weights = self_normalized_weights(&advantages)?;
+        let share = self.cfg.policy_uniform_share;
+        if share > 0.0 {
+            weights = weights.affine(1.0 - share, share)?;
+        }
         if let Some(has_action) = &batch.has_action {
             let mask: Vec<f32> = has_action.iter().map(|&k| k as u8 as f32).collect();
             let masked = (weights * Tensor::from_vec(mask, b, s.device())?)?;

@@ -52,6 +52,7 @@ impl SafediceTrainer {
             &logits,
             alpha.value,
             self.cfg.undefined_reward,
+            self.cfg.excluded_reward_gap,
             self.cfg.standardize_reward,
         );
         if let Some(bad) = eq10.rewards.iter().position(|r| !r.is_finite()) {

@@ -59,13 +59,18 @@ pub struct CreateJob {
     /// Estimation on held-out episodes, the `service` default; `min`: the paper's minimum over
     /// D^U), `alpha_hat_quantile` (`min` only; 0: the minimum itself), `undefined_reward`
     /// (`exclude`: rows where Eq. 10 is −∞ get no weight, the `service` default; `floor`),
+    /// `excluded_reward_gap` (with `exclude`: how far below the lowest defined standardised
+    /// reward such rows sit; 30, i.e. weight `e^{−30}`, by default),
     /// `uniform_fallback` (train as BC when held-out data cannot tell D^N from D^U, or alpha-hat is 0 without `standardize_reward`, which weights by Eq. 10's limit as α → 0; `bbe`
     /// only), `calibrate_discriminator` (`bbe` only), `bbe_unlabeled_rows` (`bbe` only: the
     /// rows of D^U its ratio reads, `held_out` or `all`), `alpha_hat_point` (`bbe` only:
     /// `estimate`, the bin's ratio, or `lower`, its interval's lower end), `reward_scale` (multiplies Eq. 10's
     /// reward after the standardisation; 1 by default), `cross_fit` (`bbe` only: two
     /// discriminators on two folds of D^U's episodes, each row scored by the one that did not
-    /// train on it, and the safety head the mean of both; on in `service`), `ess_warning_fraction`,
+    /// train on it, and the safety head the mean of both; on in `service`),
+    /// `policy_uniform_share` (0 to 1: the share of each policy step's weight spread evenly over
+    /// its rows, BC's weights, so states Eq. 37's weights leave empty still get D^U's behaviour;
+    /// 0: Eq. 37 as written), `ess_warning_fraction`,
     /// `discriminator_early_stopping` (hold out a fifth of
     /// the data and stop the discriminator when its held-out loss stops improving;
     /// `discriminator_iterations` is then its most). `dwbc`: `eta`, `lr_discriminator`, `discriminator_gp`.

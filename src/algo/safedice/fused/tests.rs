@@ -113,7 +113,8 @@ fn check_discriminator_step(shards: usize) {
     assert_grads_match("discriminator", &disc, &fused.disc_grads, &loss.backward().unwrap());
 }
 
-fn check_main_step(space: ActionSpace, masked_rows: bool, shards: usize) {
+/// `uniform_share` is `policy_uniform_share`, applied before the mask as trainer.rs does.
+fn check_main_step(space: ActionSpace, masked_rows: bool, uniform_share: f32, shards: usize) {
     let mut rng = ChaCha8Rng::seed_from_u64(2);
     let (obs, gamma, lambda) = (5, 0.99f32, 0.3f32);
     let dev = Device::Cpu;
@@ -159,6 +160,7 @@ fn check_main_step(space: ActionSpace, masked_rows: bool, shards: usize) {
                 policy_obs: &policy_obs,
                 actions,
                 has_action: masked_rows.then_some(&has_action[..]),
+                uniform_share,
             },
         )
         .unwrap();
@@ -183,6 +185,10 @@ fn check_main_step(space: ActionSpace, masked_rows: bool, shards: usize) {
     let loss_nu =
         (nu_loss(&adv, &v0, gamma as f64).unwrap() + (&penalty * lambda as f64).unwrap()).unwrap();
     let mut weights = self_normalized_weights(&adv).unwrap();
+    if uniform_share > 0.0 {
+        let m = uniform_share as f64;
+        weights = weights.affine(1.0 - m, m).unwrap();
+    }
     if masked_rows {
         let mask: Vec<f32> = has_action.iter().map(|&k| k as u8 as f32).collect();
         let masked = (weights * Tensor::from_vec(mask, B, &dev).unwrap()).unwrap();
@@ -208,14 +214,14 @@ fn check_main_step(space: ActionSpace, masked_rows: bool, shards: usize) {
 fn main_step_matches_candle_autograd_continuous() {
     let space = ActionSpace::Continuous { dim: 3, low: vec![-1.0; 3], high: vec![1.0; 3] };
     for shards in SHARD_COUNTS {
-        check_main_step(space.clone(), false, shards);
+        check_main_step(space.clone(), false, 0.0, shards);
     }
 }
 
 #[test]
-fn main_step_matches_candle_autograd_discrete_with_actionless_rows() {
+fn main_step_matches_candle_autograd_discrete_with_actionless_rows_and_a_uniform_share() {
     for shards in SHARD_COUNTS {
-        check_main_step(ActionSpace::Discrete { n: 4 }, true, shards);
+        check_main_step(ActionSpace::Discrete { n: 4 }, true, 0.2, shards);
     }
 }
 
