@@ -113,6 +113,7 @@ fn weighting_knobs_default_for_stored_configs_and_are_checked() {
         "alpha_hat_point",
         "cross_fit",
         "policy_uniform_share",
+        "excluded_reward_gap",
     ] {
         assert!(map.remove(key).is_some(), "{key} is in the service preset");
     }
@@ -137,6 +138,7 @@ fn weighting_knobs_default_for_stored_configs_and_are_checked() {
         json!({"policy_uniform_share": 1.5}),
         json!({"policy_uniform_share": -0.1}),
         json!({"excluded_reward_gap": -1.0}),
+        json!({"excluded_reward_gap": 1001.0}),
     ];
     for bad in bad_values {
         let key = bad.as_object().unwrap().keys().next().unwrap().clone();

@@ -149,7 +149,7 @@ pub struct SafediceConfig {
     pub policy_uniform_share: f64,
     /// With `undefined_reward: exclude`: how far below the lowest defined (standardised) reward
     /// an excluded row's reward sits, before `reward_scale`. 30 (the default, and a stored config
-    /// without the key): `e^{−30}` of a weight, the −∞ of Eq. 10. A few units keep the rows
+    /// without the key): `e^{−30·reward_scale}` of a weight, the −∞ of Eq. 10. A few units keep the rows
     /// Eq. 10 rules out in both Eq. 36 and 37 at a small weight, so the states only they reach
     /// are not left without a policy.
     #[serde(default = "excluded_gap")]

@@ -59,8 +59,8 @@ pub struct CreateJob {
     /// Estimation on held-out episodes, the `service` default; `min`: the paper's minimum over
     /// D^U), `alpha_hat_quantile` (`min` only; 0: the minimum itself), `undefined_reward`
     /// (`exclude`: rows where Eq. 10 is −∞ get no weight, the `service` default; `floor`),
-    /// `excluded_reward_gap` (with `exclude`: how far below the lowest defined standardised
-    /// reward such rows sit; 30, i.e. weight `e^{−30}`, by default),
+    /// `excluded_reward_gap` (with `exclude`: how far below the lowest defined reward such rows
+    /// sit, before `reward_scale`; 30 by default, a weight of `e^{−30·reward_scale}`),
     /// `uniform_fallback` (train as BC when held-out data cannot tell D^N from D^U, or alpha-hat is 0 without `standardize_reward`, which weights by Eq. 10's limit as α → 0; `bbe`
     /// only), `calibrate_discriminator` (`bbe` only), `bbe_unlabeled_rows` (`bbe` only: the
     /// rows of D^U its ratio reads, `held_out` or `all`), `alpha_hat_point` (`bbe` only:
