@@ -112,6 +112,7 @@ fn weighting_knobs_default_for_stored_configs_and_are_checked() {
         "reward_scale",
         "alpha_hat_point",
         "cross_fit",
+        "cross_fit_labeled",
         "policy_uniform_share",
         "excluded_reward_gap",
     ] {
@@ -122,6 +123,7 @@ fn weighting_knobs_default_for_stored_configs_and_are_checked() {
     assert_eq!((s.bbe_unlabeled_rows, s.reward_scale), (BbeUnlabeledRows::HeldOut, 1.0));
     assert_eq!(s.alpha_hat_point, AlphaHatPoint::Estimate);
     assert!(!s.cross_fit, "a stored config trained with one discriminator");
+    assert!(!s.cross_fit_labeled, "a stored config held a fifth of D^N out");
     assert_eq!(s.policy_uniform_share, 0.0, "a stored config trained with Eq. 37's weights");
     assert_eq!(s.excluded_reward_gap, 30.0, "a stored config excluded rows at e^-30");
     let lower = resolve_config(Algorithm::Safedice, &json!({"alpha_hat_point": "lower"})).unwrap();
@@ -135,6 +137,7 @@ fn weighting_knobs_default_for_stored_configs_and_are_checked() {
         json!({"bbe_unlabeled_rows": "some"}),
         json!({"alpha_hat_point": "upper"}),
         json!({"cross_fit": "yes"}),
+        json!({"cross_fit_labeled": 1}),
         json!({"policy_uniform_share": 1.5}),
         json!({"policy_uniform_share": -0.1}),
         json!({"excluded_reward_gap": -1.0}),

@@ -139,6 +139,13 @@ pub struct SafediceConfig {
     /// config without the key): one discriminator scores all of D^U.
     #[serde(default)]
     pub cross_fit: bool,
+    /// With `cross_fit`: D^N's episodes in two folds as well. Each half's discriminator trains on
+    /// its fold of D^N (half of D^N, where it trains on four fifths without this), stops early on
+    /// the other, and scores it, so Best Bin Estimation and the held-out AUC read every row of
+    /// D^N rather than a fifth of its episodes. Off (every preset, and a stored config without
+    /// the key): D^N's held-out fifth, shared out between the two discriminators.
+    #[serde(default)]
+    pub cross_fit_labeled: bool,
     /// The share of each policy step's weight spread evenly over its rows, BC's weights: Eq. 37
     /// reads `(1 − m) w + m` for the weights `w` (mean 1). Eq. 37's policy is undefined where
     /// the weights leave a state no row (the states only excluded rows reach), and the network
@@ -195,6 +202,7 @@ impl SafediceConfig {
             alpha_hat_point: AlphaHatPoint::Estimate,
             reward_scale: 1.0,
             cross_fit: false,
+            cross_fit_labeled: false,
             policy_uniform_share: 0.0,
             excluded_reward_gap: EXCLUDED_REWARD_GAP,
         }

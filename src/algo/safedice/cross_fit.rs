@@ -49,9 +49,12 @@ impl SafediceTrainer {
         };
         let budget = self.cfg.discriminator_iterations;
         let (half, steps) = if step < half_end { (0, half_end) } else { (1, budget - half_end) };
-        let holdout = cf.holdout(half);
+        let (holdout, labeled) = (cf.holdout(half), cf.labeled_holdout(half));
         if let Some(v) = self.disc_stop.as_mut() {
             v.u = holdout;
+            if let Some(labeled) = labeled {
+                v.n = labeled;
+            }
             v.rule = EarlyStop::new(steps);
             v.best.clear();
         }
@@ -66,9 +69,10 @@ impl SafediceTrainer {
             self.disc.load(&v.best)?;
         }
         let trained = snapshot(&self.disc)?;
-        let fold_1 = self.cross_fit.as_ref().map_or(Vec::new(), |cf| cf.folds[1].clone());
-        let u = self.score_rows(&self.run.u, &fold_1)?;
-        let n = self.score_rows(self.run.non_preferred(), &v.n.validation)?;
+        let Some(cf) = self.cross_fit.as_ref() else { return Ok(()) };
+        let u = self.score_rows(&self.run.u, &cf.folds[1])?;
+        let labeled = cf.labeled_rows_scored(0, &v.n.validation);
+        let n = self.score_rows(self.run.non_preferred(), &labeled)?;
         tracing::info!(
             best_step = v.rule.best_step,
             heldout_loss = v.rule.best_loss,
@@ -97,14 +101,17 @@ impl SafediceTrainer {
     /// with `calibrate_discriminator`), and Best Bin Estimation and the AUC on them.
     /// D^N's held-out rows are shared out between the two discriminators in the proportion
     /// their folds have in D^U, so the labeled scores come from the same mixture of the two
-    /// score functions as D^U's. None without cross-fitting.
+    /// score functions as D^U's; with `cross_fit_labeled` each discriminator scores its other
+    /// fold of D^N, every row of it, and the two are pooled as they are (each fold about half
+    /// of its set). None without cross-fitting.
     pub(super) fn cross_fitted(&self) -> Result<Option<UnlabeledScores>, TrainError> {
         let (Some(cf), Some(v)) = (self.cross_fit.as_ref(), self.disc_stop.as_ref()) else {
             return Ok(None);
         };
         let Some(first) = cf.first.as_ref() else { return Ok(None) };
         let second_u = self.score_rows(&self.run.u, &cf.folds[0])?;
-        let second_n = self.score_rows(self.run.non_preferred(), &v.n.validation)?;
+        let second_n_rows = cf.labeled_rows_scored(1, &v.n.validation);
+        let second_n = self.score_rows(self.run.non_preferred(), &second_n_rows)?;
         let fit = |n: &[f32], u: &[f32]| self.recalibration(n, u);
         let (first_fit, second_fit) = (fit(&first.n, &first.u), fit(&second_n, &second_u));
         let apply = |(scale, shift): (f64, f64), c: f32| (scale * c as f64 + shift) as f32;
@@ -115,14 +122,22 @@ impl SafediceTrainer {
         for (&row, &c) in cf.folds[0].iter().zip(&second_u) {
             logits[row as usize] = apply(second_fit, c);
         }
-        let share_first = cf.folds[1].len() as f64 / self.run.u.len.max(1) as f64;
-        let from_first = (share_first * first.n.len() as f64).round() as usize;
-        let scores_n: Vec<f32> = (0..first.n.len())
-            .map(|i| match i < from_first {
-                true => apply(first_fit, first.n[i]),
-                false => apply(second_fit, second_n[i]),
-            })
-            .collect();
+        let scores_n: Vec<f32> = match cf.labeled_folds {
+            Some(_) => {
+                let first_n = first.n.iter().map(|&c| apply(first_fit, c));
+                first_n.chain(second_n.iter().map(|&c| apply(second_fit, c))).collect()
+            }
+            None => {
+                let share_first = cf.folds[1].len() as f64 / self.run.u.len.max(1) as f64;
+                let from_first = (share_first * first.n.len() as f64).round() as usize;
+                (0..first.n.len())
+                    .map(|i| match i < from_first {
+                        true => apply(first_fit, first.n[i]),
+                        false => apply(second_fit, second_n[i]),
+                    })
+                    .collect()
+            }
+        };
         let heldout = match (best_bin_estimate(&scores_n, &logits), roc_auc(&scores_n, &logits)) {
             (Some(alpha), Some(auc)) => {
                 // The safety head's own discriminator is the second half's: its own fit

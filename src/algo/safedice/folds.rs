@@ -23,11 +23,14 @@ const FIRST_WEIGHTS: &str = "cross_fit/first/";
 pub(super) struct CrossFit {
     /// Rows of D^U in each fold (whole episodes; rows when D^U has fewer than four episodes).
     pub(super) folds: [Vec<u32>; 2],
+    /// With `cross_fit_labeled`: rows of D^N in each fold, split the same way; None otherwise
+    /// (D^N's held-out fifth then serves both halves).
+    pub(super) labeled_folds: Option<[Vec<u32>; 2]>,
     pub(super) first: Option<FoldScores>,
 }
 
 /// The first half's discriminator: its raw logits on every row of fold 1 and on D^N's held-out
-/// rows, and its weights by variable name (empty in a checkpoint written before they were kept).
+/// rows (every row of D^N's fold 1 with `cross_fit_labeled`), and its weights by variable name (empty in a checkpoint written before they were kept).
 pub(super) struct FoldScores {
     pub(super) u: Vec<f32>,
     pub(super) n: Vec<f32>,
@@ -35,36 +38,37 @@ pub(super) struct FoldScores {
 }
 
 impl CrossFit {
-    /// Two folds of D^U from the run's seed (a stream of its own); None with a single row.
-    pub(super) fn new(episode_ids: &[u32], seed: u64) -> Option<CrossFit> {
-        if episode_ids.len() < 2 {
-            return None;
-        }
-        let mut episodes: Vec<u32> = episode_ids.to_vec();
-        episodes.sort_unstable();
-        episodes.dedup();
-        let by_row = episodes.len() < 4;
-        let mut units: Vec<u32> =
-            if by_row { (0..episode_ids.len() as u32).collect() } else { episodes };
-        units.shuffle(&mut ChaCha8Rng::seed_from_u64(seed ^ 0x5afe_d1ce_0000_00cf));
-        let in_first: std::collections::HashSet<u32> =
-            units[..units.len() / 2].iter().copied().collect();
-        let mut folds = [Vec::new(), Vec::new()];
-        for (row, &episode) in episode_ids.iter().enumerate() {
-            let unit = if by_row { row as u32 } else { episode };
-            folds[usize::from(!in_first.contains(&unit))].push(row as u32);
-        }
-        Some(CrossFit { folds, first: None })
+    /// Two folds of D^U from the run's seed (a stream of its own), and of D^N too when
+    /// `labeled_episode_ids` is given (another stream; D^N keeps its held-out fifth when it has
+    /// a single row); None with a single row in D^U.
+    pub(super) fn new(
+        episode_ids: &[u32],
+        labeled_episode_ids: Option<&[u32]>,
+        seed: u64,
+    ) -> Option<CrossFit> {
+        let folds = two_folds(episode_ids, seed ^ 0x5afe_d1ce_0000_00cf)?;
+        let labeled_folds =
+            labeled_episode_ids.and_then(|ids| two_folds(ids, seed ^ 0x5afe_d1ce_0000_00ce));
+        Some(CrossFit { folds, labeled_folds, first: None })
     }
 
-    /// The discriminator of half `half`: trains on its fold, stops early on the other (a fixed
-    /// subset of it when longer than the held-out cap).
+    /// The discriminator of half `half`: trains on its fold of D^U, stops early on the other
+    /// (a fixed subset of it when longer than the held-out cap).
     pub(super) fn holdout(&self, half: usize) -> Holdout {
-        let other = &self.folds[1 - half];
-        let stride = other.len().div_ceil(MAX_VALIDATION_ROWS).max(1);
-        Holdout {
-            train: self.folds[half].clone(),
-            validation: other.iter().step_by(stride).copied().collect(),
+        fold_holdout(&self.folds, half)
+    }
+
+    /// With `cross_fit_labeled`, the same for D^N; None without.
+    pub(super) fn labeled_holdout(&self, half: usize) -> Option<Holdout> {
+        self.labeled_folds.as_ref().map(|folds| fold_holdout(folds, half))
+    }
+
+    /// The rows of D^N the discriminator of half `half` scores once trained: with
+    /// `cross_fit_labeled` its other fold, every row of it; otherwise `held_out`, D^N's fifth.
+    pub(super) fn labeled_rows_scored(&self, half: usize, held_out: &[u32]) -> Vec<u32> {
+        match &self.labeled_folds {
+            Some(folds) => folds[1 - half].clone(),
+            None => held_out.to_vec(),
         }
     }
 
@@ -104,5 +108,39 @@ impl CrossFit {
             .collect();
         self.first = Some(FoldScores { u, n, weights });
         Ok(())
+    }
+}
+
+/// Rows in two folds of whole episodes (of rows, with fewer than four episodes), shuffled by
+/// `seed`; None with a single row.
+fn two_folds(episode_ids: &[u32], seed: u64) -> Option<[Vec<u32>; 2]> {
+    if episode_ids.len() < 2 {
+        return None;
+    }
+    let mut episodes: Vec<u32> = episode_ids.to_vec();
+    episodes.sort_unstable();
+    episodes.dedup();
+    let by_row = episodes.len() < 4;
+    let mut units: Vec<u32> =
+        if by_row { (0..episode_ids.len() as u32).collect() } else { episodes };
+    units.shuffle(&mut ChaCha8Rng::seed_from_u64(seed));
+    let in_first: std::collections::HashSet<u32> =
+        units[..units.len() / 2].iter().copied().collect();
+    let mut folds = [Vec::new(), Vec::new()];
+    for (row, &episode) in episode_ids.iter().enumerate() {
+        let unit = if by_row { row as u32 } else { episode };
+        folds[usize::from(!in_first.contains(&unit))].push(row as u32);
+    }
+    Some(folds)
+}
+
+/// Half `half` trains on its fold and stops early on the other, a fixed subset of it when
+/// longer than the held-out cap.
+fn fold_holdout(folds: &[Vec<u32>; 2], half: usize) -> Holdout {
+    let other = &folds[1 - half];
+    let stride = other.len().div_ceil(MAX_VALIDATION_ROWS).max(1);
+    Holdout {
+        train: folds[half].clone(),
+        validation: other.iter().step_by(stride).copied().collect(),
     }
 }

@@ -199,6 +199,8 @@ impl HeldOut {
             ("alpha_hat_bin_threshold", a.threshold),
             ("alpha_hat_bin_share_dn", a.share_n),
             ("alpha_hat_bin_share_du", a.share_u),
+            ("alpha_hat_rows_dn", a.rows_n as f64),
+            ("alpha_hat_rows_du", a.rows_u as f64),
             ("discriminator_heldout_auc", auc.value),
             ("discriminator_heldout_auc_lower", auc.lower),
             ("discriminator_heldout_auc_upper", auc.upper),

@@ -81,6 +81,10 @@ pub fn memory(shape: &super::memory::MemoryShape) -> super::memory::Footprint {
         // The folds' row lists, the first half's scores and the second's, one each per row of
         // D^U; and the first half's discriminator, kept for the safety head.
         data += n_u * 3 * F32 + F32 * disc.parameters();
+        if config.cross_fit_labeled {
+            // D^N's folds and both halves' scores on them, one each per row of D^N.
+            data += shape.non_preferred.map_or(0, |n| n.transitions) * 3 * F32;
+        }
     }
     let workspaces = workspace_floats(&disc.dims, 4 * b)
         + workspace_floats(&nu.dims, 5 * b)

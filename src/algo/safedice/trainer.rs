@@ -166,7 +166,8 @@ impl SafediceTrainer {
         };
         let cross_fit = match &disc_stop {
             Some(_) if bbe && cfg.cross_fit && cfg.discriminator_iterations >= 2 => {
-                CrossFit::new(&run.u.episode_ids, run.config.seed())
+                let labeled = cfg.cross_fit_labeled.then(|| &run.non_preferred().episode_ids[..]);
+                CrossFit::new(&run.u.episode_ids, labeled, run.config.seed())
             }
             _ => None,
         };
