@@ -125,21 +125,20 @@ fn check_safety_head(env: &str) {
     let off = score(&far, &p_act);
     assert!(off.out_of_support.iter().all(|&s| s > 2.0), "{:?}", &off.out_of_support[..8]);
 
-    // The policy file's head is the trainer's discriminators (cross-fitting's two halves), each
+    // The policy file's head is the trainer's discriminators (cross-fitting's parts), each
     // read through its recalibration, averaged.
     let own = trainer.discriminator_logits(labeled).unwrap();
-    let first = trainer.first_half_discriminator_logits(labeled).unwrap();
-    assert_eq!(first.is_some(), safety.more_discriminators.len() == 1, "{safety:?}");
+    let parts = trainer.finished_part_discriminator_logits(labeled).unwrap();
+    assert_eq!(parts.len(), safety.more_discriminators.len(), "{safety:?}");
     let calibrated = |c: f32, scale: f64, shift: f64| scale * f64::from(c) + shift;
-    let want: Vec<f64> = match (&first, safety.more_discriminators.first()) {
-        (Some(first), Some(r)) => (own.iter().zip(first))
-            .map(|(&c, &f)| {
-                let second = calibrated(c, safety.logit_scale, safety.logit_shift);
-                (second + calibrated(f, r.logit_scale, r.logit_shift)) / 2.0
-            })
-            .collect(),
-        _ => own.iter().map(|&c| calibrated(c, safety.logit_scale, safety.logit_shift)).collect(),
-    };
+    let want: Vec<f64> = (0..own.len())
+        .map(|i| {
+            let last = calibrated(own[i], safety.logit_scale, safety.logit_shift);
+            let others = (parts.iter().zip(&safety.more_discriminators))
+                .map(|(logits, r)| calibrated(logits[i], r.logit_scale, r.logit_shift));
+            (last + others.sum::<f64>()) / (1 + parts.len()) as f64
+        })
+        .collect();
     let recorded = policy.safety_scores(&n_obs, labeled.actions()).unwrap();
     for (got, want) in recorded.non_preferred_log_ratio.iter().zip(&want) {
         assert!((f64::from(*got) - want).abs() <= 1e-4 * want.abs().max(1.0), "{got} vs {want}");

@@ -113,6 +113,7 @@ fn weighting_knobs_default_for_stored_configs_and_are_checked() {
         "alpha_hat_point",
         "cross_fit",
         "cross_fit_labeled",
+        "cross_fit_folds",
         "policy_uniform_share",
         "excluded_reward_gap",
     ] {
@@ -124,6 +125,7 @@ fn weighting_knobs_default_for_stored_configs_and_are_checked() {
     assert_eq!(s.alpha_hat_point, AlphaHatPoint::Estimate);
     assert!(!s.cross_fit, "a stored config trained with one discriminator");
     assert!(!s.cross_fit_labeled, "a stored config held a fifth of D^N out");
+    assert_eq!(s.cross_fit_folds, 2, "a stored config cross-fitted two halves");
     assert_eq!(s.policy_uniform_share, 0.0, "a stored config trained with Eq. 37's weights");
     assert_eq!(s.excluded_reward_gap, 30.0, "a stored config excluded rows at e^-30");
     let lower = resolve_config(Algorithm::Safedice, &json!({"alpha_hat_point": "lower"})).unwrap();
@@ -138,6 +140,8 @@ fn weighting_knobs_default_for_stored_configs_and_are_checked() {
         json!({"alpha_hat_point": "upper"}),
         json!({"cross_fit": "yes"}),
         json!({"cross_fit_labeled": 1}),
+        json!({"cross_fit_folds": 1}),
+        json!({"cross_fit_folds": 11}),
         json!({"policy_uniform_share": 1.5}),
         json!({"policy_uniform_share": -0.1}),
         json!({"excluded_reward_gap": -1.0}),

@@ -146,6 +146,14 @@ pub struct SafediceConfig {
     /// the key): D^N's held-out fifth, shared out between the two discriminators.
     #[serde(default)]
     pub cross_fit_labeled: bool,
+    /// With `cross_fit`: how many folds D^U's episodes go in, and parts the discriminator's
+    /// step budget. Each part's discriminator trains on every fold but one and scores that one;
+    /// above 2, D^N is in as many folds too, so each discriminator trains on `(K − 1) / K` of
+    /// both sets (the single discriminator's four fifths at 5) for `1 / K` of the steps, and
+    /// every row of both is scored out of fold. 2 (every preset, and a stored config without
+    /// the key): two halves.
+    #[serde(default = "two_folds")]
+    pub cross_fit_folds: u32,
     /// The share of each policy step's weight spread evenly over its rows, BC's weights: Eq. 37
     /// reads `(1 − m) w + m` for the weights `w` (mean 1). Eq. 37's policy is undefined where
     /// the weights leave a state no row (the states only excluded rows reach), and the network
@@ -171,6 +179,10 @@ pub const EXCLUDED_REWARD_GAP: f64 = 30.0;
 
 fn excluded_gap() -> f64 {
     EXCLUDED_REWARD_GAP
+}
+
+fn two_folds() -> u32 {
+    2
 }
 
 fn unit_scale() -> f64 {
@@ -203,6 +215,7 @@ impl SafediceConfig {
             reward_scale: 1.0,
             cross_fit: false,
             cross_fit_labeled: false,
+            cross_fit_folds: 2,
             policy_uniform_share: 0.0,
             excluded_reward_gap: EXCLUDED_REWARD_GAP,
         }
@@ -352,6 +365,7 @@ impl AlgorithmKnobs for SafediceConfig {
         in_range("reward_scale", self.reward_scale, 0.01, 100.0)?;
         in_range("policy_uniform_share", self.policy_uniform_share, 0.0, 1.0)?;
         in_range("excluded_reward_gap", self.excluded_reward_gap, 0.0, 1000.0)?;
+        in_range("cross_fit_folds", self.cross_fit_folds as f64, 2.0, 10.0)?;
         check_alpha_estimator(self)
     }
 }

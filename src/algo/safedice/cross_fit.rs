@@ -1,14 +1,15 @@
 //! Cross-fitting of the discriminator (`cross_fit`): Eq. 10 reads `c(s, a)` on every row of
 //! D^U, and a discriminator scores the D^U rows it trained on (label "unlabeled") lower than
 //! rows it never saw, non-preferred ones included: their reward is not low enough, and the
-//! weights keep them. Here D^U's episodes go in two folds; the discriminator's step budget is
-//! split in two halves, the first trains on fold 0 against D^N and scores fold 1, the second
-//! (initialised afresh) trains on fold 1 and scores fold 0. Every row of D^U is then scored by a
-//! discriminator that never trained on its episode, and Best Bin Estimation reads all of D^U
-//! rather than a held-out fifth. Each half keeps its own early-stopping rule, measured on the
-//! other fold; with `calibrate_discriminator` each half's logit is recalibrated on its own
-//! held-out scores (Platt scaling) before the two are pooled, so both speak one scale.
-//! docs/algorithm.md, "Cross-fitting", says what the development split showed.
+//! weights keep them. Here D^U's episodes go in `cross_fit_folds` folds (two by default) and the
+//! discriminator's step budget in as many parts: part `p` trains a discriminator (initialised
+//! afresh) on every fold but one against D^N and scores the fold it left out
+//! ([`super::folds`] says which). Every row of D^U is then scored by a discriminator that never
+//! trained on its episode, and Best Bin Estimation reads all of D^U rather than a held-out
+//! fifth. Each part keeps its own early-stopping rule, measured on the fold it scores; with
+//! `calibrate_discriminator` each part's logit is recalibrated on its own held-out scores (Platt
+//! scaling) before they are pooled, so all speak one scale. docs/algorithm.md, "Cross-fitting",
+//! says what the development split showed.
 
 use std::collections::HashMap;
 
@@ -28,57 +29,75 @@ use crate::algo::TrainError;
 use crate::data::Dataset;
 
 impl SafediceTrainer {
-    /// The step that ends the first half of the discriminator's budget (cross-fitting only).
-    pub(super) fn first_half_end(&self) -> Option<u64> {
-        self.cross_fit.as_ref().map(|_| self.cfg.discriminator_iterations / 2)
+    /// The steps part `part` of the discriminator's budget starts after and ends at.
+    fn part_bounds(&self, part: usize, parts: usize) -> (u64, u64) {
+        let budget = self.cfg.discriminator_iterations;
+        let at = |p: usize| (p as u64 * budget) / parts as u64;
+        (at(part), at(part + 1))
+    }
+
+    /// The part that trains after `step` steps are done (cross-fitting only).
+    fn part_after(&self, step: u64) -> Option<usize> {
+        let parts = self.cross_fit.as_ref()?.parts();
+        let ended = (0..parts - 1).filter(|&p| self.part_bounds(p, parts).1 <= step).count();
+        Some(ended)
+    }
+
+    /// Whether `step` ends a part that another follows (cross-fitting only).
+    pub(super) fn ends_a_part(&self, step: u64) -> bool {
+        let Some(parts) = self.cross_fit.as_ref().map(|cf| cf.parts()) else { return false };
+        (0..parts - 1).any(|p| self.part_bounds(p, parts).1 == step)
     }
 
     /// `step` counted from the start of the discriminator that trains at it: the early-stopping
-    /// rule of each half counts its own steps.
-    pub(super) fn steps_into_half(&self, step: u64) -> u64 {
-        match self.first_half_end() {
-            Some(half) if step > half => step - half,
+    /// rule of each part counts its own steps.
+    pub(super) fn steps_into_part(&self, step: u64) -> u64 {
+        match (self.part_after(step.saturating_sub(1)), self.cross_fit.as_ref()) {
+            (Some(part), Some(cf)) => step - self.part_bounds(part, cf.parts()).0,
             _ => step,
         }
     }
 
-    /// The held-out rows of D^U and the stopping rule for the half that trains after `step`.
-    pub(super) fn enter_half(&mut self, step: u64) {
-        let (Some(half_end), Some(cf)) = (self.first_half_end(), self.cross_fit.as_ref()) else {
+    /// The held-out rows and the stopping rule for the part that trains after `step`.
+    pub(super) fn enter_part(&mut self, step: u64) {
+        let (Some(part), Some(cf)) = (self.part_after(step), self.cross_fit.as_ref()) else {
             return;
         };
-        let budget = self.cfg.discriminator_iterations;
-        let (half, steps) = if step < half_end { (0, half_end) } else { (1, budget - half_end) };
-        let (holdout, labeled) = (cf.holdout(half), cf.labeled_holdout(half));
+        let (start, end) = self.part_bounds(part, cf.parts());
+        let (holdout, labeled) = (cf.holdout(part), cf.labeled_holdout(part));
         if let Some(v) = self.disc_stop.as_mut() {
             v.u = holdout;
             if let Some(labeled) = labeled {
                 v.n = labeled;
             }
-            v.rule = EarlyStop::new(steps);
+            v.rule = EarlyStop::new(end - start);
             v.best.clear();
         }
     }
 
-    /// The first half is done: keep its (best) discriminator's scores on fold 1 and on D^N's
-    /// held-out rows, then start the second half's discriminator from fresh weights and a fresh
-    /// optimiser.
-    pub(super) fn end_first_half(&mut self) -> Result<(), TrainError> {
-        let Some(v) = self.disc_stop.as_ref() else { return Ok(()) };
+    /// A part other than the last is done: keep its (best) discriminator's scores on the fold
+    /// of D^U and the rows of D^N it scores, then start the next part's discriminator from
+    /// fresh weights and a fresh optimiser.
+    pub(super) fn end_part(&mut self) -> Result<(), TrainError> {
+        let (Some(v), Some(cf)) = (self.disc_stop.as_ref(), self.cross_fit.as_ref()) else {
+            return Ok(());
+        };
         if !v.best.is_empty() {
             self.disc.load(&v.best)?;
         }
+        let part = cf.done.len();
         let trained = snapshot(&self.disc)?;
-        let Some(cf) = self.cross_fit.as_ref() else { return Ok(()) };
-        let u = self.score_rows(&self.run.u, &cf.folds[1])?;
-        let labeled = cf.labeled_rows_scored(0, &v.n.validation);
-        let n = self.score_rows(self.run.non_preferred(), &labeled)?;
+        let u = self.score_rows(&self.run.u, cf.rows_scored(part))?;
+        let n = self
+            .score_rows(self.run.non_preferred(), &cf.labeled_rows_scored(part, &v.n.validation))?;
         tracing::info!(
+            part,
             best_step = v.rule.best_step,
             heldout_loss = v.rule.best_loss,
-            "SafeDICE discriminator, cross-fitting: first half done, fold 1 scored"
+            "SafeDICE discriminator, cross-fitting: a part done, its fold scored"
         );
-        let seed = self.run.config.seed() ^ 0x5afe_d1ce_0000_00d1;
+        // The first part's stream is the one two-fold runs have always used.
+        let seed = self.run.config.seed() ^ 0x5afe_d1ce_0000_00d1 ^ ((part as u64) << 16);
         let dims = self.disc.dims().to_vec();
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
         let fresh = Mlp::new("discriminator", &dims, false, &self.run.device, &mut rng)?;
@@ -90,64 +109,76 @@ impl SafediceTrainer {
         self.disc.load(&weights)?;
         self.disc_opt = Adam::new(self.disc.named_vars(), self.cfg.lr_discriminator)?;
         if let Some(cf) = self.cross_fit.as_mut() {
-            cf.first = Some(FoldScores { u, n, weights: trained });
+            cf.done.push(FoldScores { u, n, weights: trained });
         }
-        self.enter_half(self.cfg.discriminator_iterations);
+        self.enter_part(self.run.step);
         Ok(())
     }
 
-    /// With cross-fitting, once both halves are done: every row of D^U's logit from the
+    /// With cross-fitting, once every part is done: every row of D^U's logit from the
     /// discriminator that did not train on it (each recalibrated on its own held-out scores
     /// with `calibrate_discriminator`), and Best Bin Estimation and the AUC on them.
-    /// D^N's held-out rows are shared out between the two discriminators in the proportion
-    /// their folds have in D^U, so the labeled scores come from the same mixture of the two
-    /// score functions as D^U's; with `cross_fit_labeled` each discriminator scores its other
-    /// fold of D^N, every row of it, and the two are pooled as they are (each fold about half
-    /// of its set). None without cross-fitting.
+    /// Without D^N in folds, D^N's held-out rows are shared out between the discriminators in
+    /// the proportion their folds have in D^U, so the labeled scores come from the same mixture
+    /// of score functions as D^U's; with D^N in folds each discriminator scores its fold of D^N,
+    /// every row of it, and they are pooled as they are (the folds' shares of D^N and of D^U
+    /// agree to an episode). None without cross-fitting.
     pub(super) fn cross_fitted(&self) -> Result<Option<UnlabeledScores>, TrainError> {
         let (Some(cf), Some(v)) = (self.cross_fit.as_ref(), self.disc_stop.as_ref()) else {
             return Ok(None);
         };
-        let Some(first) = cf.first.as_ref() else { return Ok(None) };
-        let second_u = self.score_rows(&self.run.u, &cf.folds[0])?;
-        let second_n_rows = cf.labeled_rows_scored(1, &v.n.validation);
-        let second_n = self.score_rows(self.run.non_preferred(), &second_n_rows)?;
-        let fit = |n: &[f32], u: &[f32]| self.recalibration(n, u);
-        let (first_fit, second_fit) = (fit(&first.n, &first.u), fit(&second_n, &second_u));
+        let last = cf.parts() - 1;
+        if cf.done.len() != last {
+            return Ok(None);
+        }
+        let own_u = self.score_rows(&self.run.u, cf.rows_scored(last))?;
+        let own_n_rows = cf.labeled_rows_scored(last, &v.n.validation);
+        let own_n = self.score_rows(self.run.non_preferred(), &own_n_rows)?;
+        let scores: Vec<(&[f32], &[f32])> = (cf.done.iter().map(|d| (&d.u[..], &d.n[..])))
+            .chain(std::iter::once((&own_u[..], &own_n[..])))
+            .collect();
+        let fits: Vec<(f64, f64)> = scores.iter().map(|&(u, n)| self.recalibration(n, u)).collect();
         let apply = |(scale, shift): (f64, f64), c: f32| (scale * c as f64 + shift) as f32;
         let mut logits = vec![0f32; self.run.u.len];
-        for (&row, &c) in cf.folds[1].iter().zip(&first.u) {
-            logits[row as usize] = apply(first_fit, c);
-        }
-        for (&row, &c) in cf.folds[0].iter().zip(&second_u) {
-            logits[row as usize] = apply(second_fit, c);
+        for (part, (&(u, _), &fit)) in scores.iter().zip(&fits).enumerate() {
+            for (&row, &c) in cf.rows_scored(part).iter().zip(u) {
+                logits[row as usize] = apply(fit, c);
+            }
         }
         let scores_n: Vec<f32> = match cf.labeled_folds {
-            Some(_) => {
-                let first_n = first.n.iter().map(|&c| apply(first_fit, c));
-                first_n.chain(second_n.iter().map(|&c| apply(second_fit, c))).collect()
-            }
+            Some(_) => (scores.iter().zip(&fits))
+                .flat_map(|(&(_, n), &fit)| n.iter().map(move |&c| apply(fit, c)))
+                .collect(),
             None => {
-                let share_first = cf.folds[1].len() as f64 / self.run.u.len.max(1) as f64;
-                let from_first = (share_first * first.n.len() as f64).round() as usize;
-                (0..first.n.len())
-                    .map(|i| match i < from_first {
-                        true => apply(first_fit, first.n[i]),
-                        false => apply(second_fit, second_n[i]),
-                    })
-                    .collect()
+                let rows_n = own_n.len();
+                let mut from = vec![last; rows_n];
+                let mut scored_before = 0usize;
+                for part in 0..last {
+                    let start = self.share_of(scored_before, rows_n);
+                    scored_before += cf.rows_scored(part).len();
+                    let end = self.share_of(scored_before, rows_n);
+                    from[start..end].fill(part);
+                }
+                (0..rows_n).map(|i| apply(fits[from[i]], scores[from[i]].1[i])).collect()
             }
         };
         let heldout = match (best_bin_estimate(&scores_n, &logits), roc_auc(&scores_n, &logits)) {
             (Some(alpha), Some(auc)) => {
-                // The safety head's own discriminator is the second half's: its own fit
-                // ([`Self::first_half_member`] gives the first's).
-                let calibration = self.cfg.calibrate_discriminator.then_some(second_fit);
+                // The safety head's own discriminator is the last part's: its own fit
+                // ([`Self::finished_part_members`] gives the others').
+                let calibration = self.cfg.calibrate_discriminator.then_some(fits[last]);
                 Some(HeldOut { alpha, auc, calibration })
             }
             _ => None,
         };
         Ok(Some(UnlabeledScores { logits, heldout, calibrated: true }))
+    }
+
+    /// How many of D^N's `rows_n` held-out rows go to the parts that score the first
+    /// `scored_rows` rows of D^U (in part order).
+    fn share_of(&self, scored_rows: usize, rows_n: usize) -> usize {
+        let share = scored_rows as f64 / self.run.u.len.max(1) as f64;
+        ((share * rows_n as f64).round() as usize).min(rows_n)
     }
 
     /// With `calibrate_discriminator`, the Platt fit of a discriminator's logits on held-out
@@ -159,33 +190,41 @@ impl SafediceTrainer {
         }
     }
 
-    /// The first half's discriminator as the safety head's second member, recalibrated as
-    /// [`Self::cross_fitted`] read it; None without cross-fitting, before the first half is done,
-    /// or from a checkpoint written before its weights were kept.
-    pub(super) fn first_half_member(&self) -> Option<Member> {
-        let first = self.cross_fit.as_ref()?.first.as_ref()?;
-        if first.weights.is_empty() {
-            return None;
-        }
-        let (logit_scale, logit_shift) = self.recalibration(&first.n, &first.u);
-        let recalibration = Recalibration { logit_scale, logit_shift };
-        Some(Member { weights: first.weights.clone(), recalibration })
+    /// The finished parts' discriminators as the safety head's further members, each
+    /// recalibrated as [`Self::cross_fitted`] read it; none without cross-fitting, before a part
+    /// is done, or from a checkpoint written before their weights were kept.
+    pub(super) fn finished_part_members(&self) -> Vec<Member> {
+        let Some(cf) = self.cross_fit.as_ref() else { return Vec::new() };
+        (cf.done.iter().filter(|d| !d.weights.is_empty()))
+            .map(|d| {
+                let (logit_scale, logit_shift) = self.recalibration(&d.n, &d.u);
+                let recalibration = Recalibration { logit_scale, logit_shift };
+                Member { weights: d.weights.clone(), recalibration }
+            })
+            .collect()
     }
 
-    /// The first half's discriminator's logits on every row of `data` (raw, as
-    /// [`Self::discriminator_logits`] gives the second's); None where
-    /// [`Self::first_half_member`] is.
-    pub fn first_half_discriminator_logits(
+    /// The finished parts' discriminators' logits on every row of `data` (raw, as
+    /// [`Self::discriminator_logits`] gives the last part's), in the order of
+    /// [`Self::finished_part_members`]; empty where that is.
+    pub fn finished_part_discriminator_logits(
         &self,
         data: &Dataset,
-    ) -> Result<Option<Vec<f32>>, TrainError> {
-        let Some(member) = self.first_half_member() else { return Ok(None) };
+    ) -> Result<Vec<Vec<f32>>, TrainError> {
+        let members = self.finished_part_members();
+        if members.is_empty() {
+            return Ok(Vec::new());
+        }
         let mut unused = ChaCha8Rng::seed_from_u64(0);
         let net =
             Mlp::new("discriminator", self.disc.dims(), false, &self.run.device, &mut unused)?;
-        net.load(&member.weights)?;
         let columns = self.columns_of(data)?;
         let every_row: Vec<u32> = (0..columns.len as u32).collect();
-        Ok(Some(logits_of(&net, &columns, &every_row)?))
+        let mut out = Vec::with_capacity(members.len());
+        for member in &members {
+            net.load(&member.weights)?;
+            out.push(logits_of(&net, &columns, &every_row)?);
+        }
+        Ok(out)
     }
 }

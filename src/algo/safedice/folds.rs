@@ -1,6 +1,10 @@
-//! The data side of cross-fitting (`cross_fit`, [`super::cross_fit`]): D^U's two folds, the
-//! held-out rows each half's discriminator stops early on, and the first half's scores and
-//! weights as the checkpoint carries them. Below the trainer, which holds a [`CrossFit`].
+//! The data side of cross-fitting (`cross_fit`, [`super::cross_fit`]): D^U's folds (and D^N's,
+//! with `cross_fit_labeled` or more than two folds), the held-out rows each part's discriminator
+//! stops early on, and the finished parts' scores and weights as the checkpoint carries them.
+//! Below the trainer, which holds a [`CrossFit`].
+//!
+//! Part `p` of `K` scores fold `(p + 1) mod K` and trains on the others: with two folds, the
+//! first part trains on fold 0 and scores fold 1, the second the reverse.
 
 use std::collections::HashMap;
 
@@ -12,25 +16,40 @@ use rand_chacha::ChaCha8Rng;
 use crate::algo::discriminator_stop::{Holdout, MAX_VALIDATION_ROWS};
 use crate::algo::TrainError;
 
-/// Checkpoint names of the first half's scores (beside the early-stopping rule's weights).
+/// Checkpoint names of the first part's scores (beside the early-stopping rule's weights).
 const FIRST_U: &str = "cross_fit/first_u";
 const FIRST_N: &str = "cross_fit/first_n";
-/// Prefix of the first half's discriminator weights in the checkpoint (the safety head's second
-/// member).
+/// Prefix of the first part's discriminator weights in the checkpoint (a safety head member).
 const FIRST_WEIGHTS: &str = "cross_fit/first/";
 
-/// D^U's two folds and, once the first half is done, its discriminator's out-of-fold scores.
-pub(super) struct CrossFit {
-    /// Rows of D^U in each fold (whole episodes; rows when D^U has fewer than four episodes).
-    pub(super) folds: [Vec<u32>; 2],
-    /// With `cross_fit_labeled`: rows of D^N in each fold, split the same way; None otherwise
-    /// (D^N's held-out fifth then serves both halves).
-    pub(super) labeled_folds: Option<[Vec<u32>; 2]>,
-    pub(super) first: Option<FoldScores>,
+/// The checkpoint names of finished part `part`'s D^U scores, D^N scores and weight prefix (the
+/// first part's are the names a two-fold checkpoint has always used).
+fn part_names(part: usize) -> (String, String, String) {
+    match part {
+        0 => (FIRST_U.into(), FIRST_N.into(), FIRST_WEIGHTS.into()),
+        p => (
+            format!("cross_fit/part{p}_u"),
+            format!("cross_fit/part{p}_n"),
+            format!("cross_fit/part{p}/"),
+        ),
+    }
 }
 
-/// The first half's discriminator: its raw logits on every row of fold 1 and on D^N's held-out
-/// rows (every row of D^N's fold 1 with `cross_fit_labeled`), and its weights by variable name (empty in a checkpoint written before they were kept).
+/// D^U's folds and, for every part done, its discriminator's out-of-fold scores.
+pub(super) struct CrossFit {
+    /// Rows of D^U in each fold (whole episodes; rows when D^U has fewer than two episodes per
+    /// fold).
+    pub(super) folds: Vec<Vec<u32>>,
+    /// Rows of D^N in each fold, split the same way, with `cross_fit_labeled` or more than two
+    /// folds; None otherwise (D^N's held-out fifth then serves every part).
+    pub(super) labeled_folds: Option<Vec<Vec<u32>>>,
+    /// The finished parts, in order.
+    pub(super) done: Vec<FoldScores>,
+}
+
+/// A finished part's discriminator: its raw logits on every row of the D^U fold it scores and
+/// on the D^N rows it scores (D^N's held-out rows, or its D^N fold), and its weights by variable
+/// name (empty in a checkpoint written before they were kept).
 pub(super) struct FoldScores {
     pub(super) u: Vec<f32>,
     pub(super) n: Vec<f32>,
@@ -38,109 +57,138 @@ pub(super) struct FoldScores {
 }
 
 impl CrossFit {
-    /// Two folds of D^U from the run's seed (a stream of its own), and of D^N too when
-    /// `labeled_episode_ids` is given (another stream; D^N keeps its held-out fifth when it has
-    /// a single row); None with a single row in D^U.
+    /// `k` folds of D^U from the run's seed (a stream of its own), and of D^N too when
+    /// `labeled_episode_ids` is given (another stream); None when D^U has fewer rows than
+    /// folds. D^N keeps its held-out fifth when it has fewer rows than folds.
     pub(super) fn new(
+        k: usize,
         episode_ids: &[u32],
         labeled_episode_ids: Option<&[u32]>,
         seed: u64,
     ) -> Option<CrossFit> {
-        let folds = two_folds(episode_ids, seed ^ 0x5afe_d1ce_0000_00cf)?;
+        let folds = folds_of(k, episode_ids, seed ^ 0x5afe_d1ce_0000_00cf)?;
         let labeled_folds =
-            labeled_episode_ids.and_then(|ids| two_folds(ids, seed ^ 0x5afe_d1ce_0000_00ce));
-        Some(CrossFit { folds, labeled_folds, first: None })
+            labeled_episode_ids.and_then(|ids| folds_of(k, ids, seed ^ 0x5afe_d1ce_0000_00ce));
+        Some(CrossFit { folds, labeled_folds, done: Vec::new() })
     }
 
-    /// The discriminator of half `half`: trains on its fold of D^U, stops early on the other
-    /// (a fixed subset of it when longer than the held-out cap).
-    pub(super) fn holdout(&self, half: usize) -> Holdout {
-        fold_holdout(&self.folds, half)
+    pub(super) fn parts(&self) -> usize {
+        self.folds.len()
     }
 
-    /// With `cross_fit_labeled`, the same for D^N; None without.
-    pub(super) fn labeled_holdout(&self, half: usize) -> Option<Holdout> {
-        self.labeled_folds.as_ref().map(|folds| fold_holdout(folds, half))
+    /// The fold part `part` scores (and stops early on); it trains on the others.
+    pub(super) fn scored_fold(&self, part: usize) -> usize {
+        (part + 1) % self.parts()
     }
 
-    /// The rows of D^N the discriminator of half `half` scores once trained: with
-    /// `cross_fit_labeled` its other fold, every row of it; otherwise `held_out`, D^N's fifth.
-    pub(super) fn labeled_rows_scored(&self, half: usize, held_out: &[u32]) -> Vec<u32> {
+    /// The discriminator of part `part`: trains on the other folds of D^U, stops early on the
+    /// one it scores (a fixed subset of it when longer than the held-out cap).
+    pub(super) fn holdout(&self, part: usize) -> Holdout {
+        fold_holdout(&self.folds, self.scored_fold(part))
+    }
+
+    /// With D^N in folds, the same for D^N; None without.
+    pub(super) fn labeled_holdout(&self, part: usize) -> Option<Holdout> {
+        let scored = self.scored_fold(part);
+        self.labeled_folds.as_ref().map(|folds| fold_holdout(folds, scored))
+    }
+
+    /// The rows of D^U part `part` scores once trained: every row of its fold.
+    pub(super) fn rows_scored(&self, part: usize) -> &[u32] {
+        &self.folds[self.scored_fold(part)]
+    }
+
+    /// The rows of D^N part `part` scores once trained: with D^N in folds every row of its fold;
+    /// otherwise `held_out`, D^N's fifth.
+    pub(super) fn labeled_rows_scored(&self, part: usize, held_out: &[u32]) -> Vec<u32> {
         match &self.labeled_folds {
-            Some(folds) => folds[1 - half].clone(),
+            Some(folds) => folds[self.scored_fold(part)].clone(),
             None => held_out.to_vec(),
         }
     }
 
-    /// The first half's scores and weights as checkpoint tensors (none before it is done).
+    /// The finished parts' scores and weights as checkpoint tensors (none before the first is
+    /// done).
     pub(super) fn checkpoint_tensors(&self) -> Vec<(String, Tensor)> {
-        let Some(first) = &self.first else { return Vec::new() };
         let column = |v: &[f32]| Tensor::from_slice(v, v.len(), &candle_core::Device::Cpu);
-        let scores = [(FIRST_N, &first.n), (FIRST_U, &first.u)]
-            .into_iter()
-            .filter_map(|(name, v)| Some((name.to_string(), column(v).ok()?)));
-        let weights =
-            first.weights.iter().map(|(name, t)| (format!("{FIRST_WEIGHTS}{name}"), t.clone()));
-        scores.chain(weights).collect()
+        let mut out = Vec::new();
+        for (part, scores) in self.done.iter().enumerate() {
+            let (u_name, n_name, prefix) = part_names(part);
+            for (name, v) in [(n_name, &scores.n), (u_name, &scores.u)] {
+                if let Ok(t) = column(v) {
+                    out.push((name, t));
+                }
+            }
+            out.extend(
+                scores.weights.iter().map(|(name, t)| (format!("{prefix}{name}"), t.clone())),
+            );
+        }
+        out
     }
 
-    /// Takes the first half's scores and weights out of a checkpoint's tensors, leaving the rest.
+    /// Takes the finished parts' scores and weights out of a checkpoint's tensors, leaving the
+    /// rest.
     pub(super) fn restore(
         &mut self,
         tensors: &mut HashMap<String, Tensor>,
     ) -> Result<(), TrainError> {
-        let (Some(u), Some(n)) = (tensors.remove(FIRST_U), tensors.remove(FIRST_N)) else {
-            return Ok(());
-        };
-        let (u, n) = (u.to_vec1::<f32>()?, n.to_vec1::<f32>()?);
-        if u.len() != self.folds[1].len() {
-            return Err(TrainError::Other(format!(
-                "checkpoint has {} cross-fitted scores for {} rows of fold 1",
-                u.len(),
-                self.folds[1].len()
-            )));
+        for part in 0..self.parts() - 1 {
+            let (u_name, n_name, prefix) = part_names(part);
+            let (Some(u), Some(n)) = (tensors.remove(&u_name), tensors.remove(&n_name)) else {
+                return Ok(());
+            };
+            let (u, n) = (u.to_vec1::<f32>()?, n.to_vec1::<f32>()?);
+            let expected = self.rows_scored(part).len();
+            if u.len() != expected {
+                return Err(TrainError::Other(format!(
+                    "checkpoint has {} cross-fitted scores for the {expected} rows part {part} scores",
+                    u.len(),
+                )));
+            }
+            let names: Vec<String> =
+                tensors.keys().filter(|k| k.starts_with(&prefix)).cloned().collect();
+            let weights = names
+                .into_iter()
+                .filter_map(|k| Some((k[prefix.len()..].to_string(), tensors.remove(&k)?)))
+                .collect();
+            self.done.push(FoldScores { u, n, weights });
         }
-        let names: Vec<String> =
-            tensors.keys().filter(|k| k.starts_with(FIRST_WEIGHTS)).cloned().collect();
-        let weights = names
-            .into_iter()
-            .filter_map(|k| Some((k[FIRST_WEIGHTS.len()..].to_string(), tensors.remove(&k)?)))
-            .collect();
-        self.first = Some(FoldScores { u, n, weights });
         Ok(())
     }
 }
 
-/// Rows in two folds of whole episodes (of rows, with fewer than four episodes), shuffled by
-/// `seed`; None with a single row.
-fn two_folds(episode_ids: &[u32], seed: u64) -> Option<[Vec<u32>; 2]> {
-    if episode_ids.len() < 2 {
+/// Rows in `k` folds of whole episodes (of rows, with fewer than two episodes per fold), shuffled
+/// by `seed`: the shuffled units cut into `k` runs of `len / k`, the last taking the remainder.
+/// None with fewer rows than folds.
+fn folds_of(k: usize, episode_ids: &[u32], seed: u64) -> Option<Vec<Vec<u32>>> {
+    if episode_ids.len() < k.max(2) {
         return None;
     }
     let mut episodes: Vec<u32> = episode_ids.to_vec();
     episodes.sort_unstable();
     episodes.dedup();
-    let by_row = episodes.len() < 4;
+    let by_row = episodes.len() < 2 * k;
     let mut units: Vec<u32> =
         if by_row { (0..episode_ids.len() as u32).collect() } else { episodes };
     units.shuffle(&mut ChaCha8Rng::seed_from_u64(seed));
-    let in_first: std::collections::HashSet<u32> =
-        units[..units.len() / 2].iter().copied().collect();
-    let mut folds = [Vec::new(), Vec::new()];
+    let run = (units.len() / k).max(1);
+    let fold_of: HashMap<u32, usize> =
+        units.iter().enumerate().map(|(i, &unit)| (unit, (i / run).min(k - 1))).collect();
+    let mut folds = vec![Vec::new(); k];
     for (row, &episode) in episode_ids.iter().enumerate() {
         let unit = if by_row { row as u32 } else { episode };
-        folds[usize::from(!in_first.contains(&unit))].push(row as u32);
+        folds[fold_of[&unit]].push(row as u32);
     }
     Some(folds)
 }
 
-/// Half `half` trains on its fold and stops early on the other, a fixed subset of it when
-/// longer than the held-out cap.
-fn fold_holdout(folds: &[Vec<u32>; 2], half: usize) -> Holdout {
-    let other = &folds[1 - half];
+/// Trains on every fold but `scored`, stops early on it (a fixed subset of it when longer than
+/// the held-out cap).
+fn fold_holdout(folds: &[Vec<u32>], scored: usize) -> Holdout {
+    let other = &folds[scored];
     let stride = other.len().div_ceil(MAX_VALIDATION_ROWS).max(1);
-    Holdout {
-        train: folds[half].clone(),
-        validation: other.iter().step_by(stride).copied().collect(),
-    }
+    let train = (0..folds.len()).filter(|&f| f != scored).flat_map(|f| folds[f].iter().copied());
+    let mut train: Vec<u32> = train.collect();
+    train.sort_unstable();
+    Holdout { train, validation: other.iter().step_by(stride).copied().collect() }
 }

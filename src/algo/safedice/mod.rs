@@ -78,11 +78,12 @@ pub fn memory(shape: &super::memory::MemoryShape) -> super::memory::Footprint {
     let flow_obs = if absorbing { 4 * (d + 1) } else { 3 * d };
     let mut data = n_u * (F32 * (flow_obs + 3) + 3 * 8);
     if config.cross_fit {
-        // The folds' row lists, the first half's scores and the second's, one each per row of
-        // D^U; and the first half's discriminator, kept for the safety head.
-        data += n_u * 3 * F32 + F32 * disc.parameters();
-        if config.cross_fit_labeled {
-            // D^N's folds and both halves' scores on them, one each per row of D^N.
+        // The folds' row lists, the finished parts' scores and the last's, one each per row of
+        // D^U; and the finished parts' discriminators, kept for the safety head.
+        let finished_parts = u64::from(config.cross_fit_folds.max(2)) - 1;
+        data += n_u * 3 * F32 + finished_parts * F32 * disc.parameters();
+        if config.cross_fit_labeled || config.cross_fit_folds > 2 {
+            // D^N's folds and the parts' scores on them, one each per row of D^N.
             data += shape.non_preferred.map_or(0, |n| n.transitions) * 3 * F32;
         }
     }

@@ -282,15 +282,24 @@ fn separable_data_keep_the_weighting_and_report_the_interval() {
 /// Estimation reads every row of D^N; without, its held-out fifth.
 #[test]
 fn cross_fitted_discriminators_cover_the_true_share_and_resume_in_either_half() {
-    cross_fitted_run(false);
+    cross_fitted_run(2, false, &[150, 200, 250]);
 }
 
 #[test]
 fn cross_fitted_labeled_folds_read_every_row_of_d_n_and_resume_in_either_half() {
-    cross_fitted_run(true);
+    cross_fitted_run(2, true, &[150, 250]);
 }
 
-fn cross_fitted_run(labeled: bool) {
+/// Three folds: D^N in folds too, three discriminators in the safety head, and a resume in
+/// each part and at a part's end.
+#[test]
+fn three_cross_fitted_folds_read_every_row_and_resume_in_any_part() {
+    let t = cross_fitted_run(3, false, &[100, 133, 200, 300]);
+    assert_eq!(t.cross_fit.as_ref().unwrap().done.len(), 2);
+    assert_eq!(t.finished_part_members().len(), 2);
+}
+
+fn cross_fitted_run(folds: u32, labeled: bool, stops: &[usize]) -> SafediceTrainer {
     let data = TrainingData {
         unlabeled: std::sync::Arc::new(two_action_episodes(60, 1, |e| e % 5 < 2)),
         non_preferred: Some(std::sync::Arc::new(two_action_episodes(15, 2, |_| true))),
@@ -300,7 +309,7 @@ fn cross_fitted_run(labeled: bool) {
         &serde_json::json!({
             "seed": 3, "batch_size": 32, "hidden_sizes": [16, 16], "iterations": 3,
             "discriminator_iterations": 400, "lr_discriminator": 3e-3, "cross_fit": true,
-            "cross_fit_labeled": labeled,
+            "cross_fit_labeled": labeled, "cross_fit_folds": folds,
         }),
     )
     .unwrap();
@@ -309,7 +318,7 @@ fn cross_fitted_run(labeled: bool) {
     assert_eq!(metric(&scalars, "discriminator_cross_fitted"), 1.0, "{scalars:?}");
     let rows_n = data.non_preferred.as_ref().unwrap().len() as f64;
     let read_n = metric(&scalars, "alpha_hat_rows_dn");
-    match labeled {
+    match labeled || folds > 2 {
         true => assert_eq!(read_n, rows_n, "{scalars:?}"),
         false => assert!(read_n > 0.0 && read_n <= 0.3 * rows_n, "{scalars:?}"),
     }
@@ -327,7 +336,7 @@ fn cross_fitted_run(labeled: bool) {
     while !t.is_finished() {
         t.step(false).unwrap();
     }
-    for stop in [150, 250] {
+    for &stop in stops {
         let mut partial = SafediceTrainer::new(&config, &data).unwrap();
         for _ in 0..stop {
             partial.step(false).unwrap();
@@ -341,6 +350,7 @@ fn cross_fitted_run(labeled: bool) {
         let weights = |t: &SafediceTrainer| t.export_policy().unwrap().weights;
         assert_eq!(weights(&resumed), weights(&t), "weights, resumed at step {stop}");
     }
+    t
 }
 
 /// `cross_fit` belongs to `bbe`: with the paper's minimum, or a single discriminator step, the

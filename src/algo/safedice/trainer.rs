@@ -63,7 +63,7 @@ pub struct SafediceTrainer {
     pub(super) uniform: Option<UniformWeights>,
     /// The held-out statistics alpha-hat came from (`bbe`), once the phase is over.
     pub(super) heldout: Option<HeldOut>,
-    /// With `cross_fit`: D^U's two folds and the first half's scores.
+    /// With `cross_fit`: D^U's folds (and D^N's) and the finished parts' scores.
     pub(super) cross_fit: Option<CrossFit>,
 }
 
@@ -164,10 +164,12 @@ impl SafediceTrainer {
         } else {
             None
         };
+        let k = cfg.cross_fit_folds as usize;
         let cross_fit = match &disc_stop {
-            Some(_) if bbe && cfg.cross_fit && cfg.discriminator_iterations >= 2 => {
-                let labeled = cfg.cross_fit_labeled.then(|| &run.non_preferred().episode_ids[..]);
-                CrossFit::new(&run.u.episode_ids, labeled, run.config.seed())
+            Some(_) if bbe && cfg.cross_fit && cfg.discriminator_iterations >= k as u64 => {
+                let labeled =
+                    (cfg.cross_fit_labeled || k > 2).then(|| &run.non_preferred().episode_ids[..]);
+                CrossFit::new(k, &run.u.episode_ids, labeled, run.config.seed())
             }
             _ => None,
         };
@@ -196,7 +198,7 @@ impl SafediceTrainer {
             heldout: None,
             cross_fit,
         };
-        trainer.enter_half(0);
+        trainer.enter_part(0);
         Ok(trainer)
     }
 
@@ -212,7 +214,7 @@ impl SafediceTrainer {
         restored.restore("discriminator", &mut t.disc_opt)?;
         restored.restore("nu", &mut t.nu_opt)?;
         restored.restore("policy", &mut t.policy_opt)?;
-        t.enter_half(t.run.step);
+        t.enter_part(t.run.step);
         let mut tensors = restored.extra_tensors();
         if let Some(cf) = t.cross_fit.as_mut() {
             cf.restore(&mut tensors)?;
@@ -350,8 +352,8 @@ impl SafediceTrainer {
     pub(super) fn end_discriminator_step(&mut self) -> Result<(), TrainError> {
         self.run.step += 1;
         self.measure_held_out()?;
-        if Some(self.run.step) == self.first_half_end() {
-            self.end_first_half()?;
+        if self.ends_a_part(self.run.step) {
+            self.end_part()?;
         }
         if self.run.step == self.cfg.discriminator_iterations {
             if let Some(v) = self.disc_stop.as_ref().filter(|v| !v.best.is_empty()) {
@@ -374,7 +376,7 @@ impl SafediceTrainer {
     /// With early stopping, the held-out Eq. 9 loss after this step when the rule measures it;
     /// keeps the weights of a new best.
     fn measure_held_out(&mut self) -> Result<(), TrainError> {
-        let step = self.steps_into_half(self.run.step);
+        let step = self.steps_into_part(self.run.step);
         let measures = |v: &&DiscValidation| v.early_stopping && v.rule.measures_at(step);
         let Some(v) = self.disc_stop.as_ref().filter(measures) else {
             return Ok(());
@@ -569,7 +571,7 @@ impl SafediceTrainer {
             });
         let own = safety::Member { weights: snapshot(&self.disc)?, recalibration };
         let members: Vec<safety::Member> =
-            std::iter::once(own).chain(self.first_half_member()).collect();
+            std::iter::once(own).chain(self.finished_part_members()).collect();
         let observations = self.run.u.obs.flatten_all()?.to_vec1::<f32>()?;
         safety::build(
             &members,

@@ -268,7 +268,8 @@ impl SafediceTrainer {
     }
 
     fn scored_rows_words(&self) -> &'static str {
-        match self.cross_fit {
+        match &self.cross_fit {
+            Some(cf) if cf.labeled_folds.is_some() => "every row of D^U and of D^N, each scored by the discriminator that did not train on its episode (cross-fitted)",
             Some(_) => "every row of D^U, each scored by the discriminator that did not train on its episode (cross-fitted)",
             None => "held-out episodes",
         }

@@ -69,7 +69,9 @@ pub struct CreateJob {
     /// discriminators on two folds of D^U's episodes, each row scored by the one that did not
     /// train on it, and the safety head the mean of both; on in `service`), `cross_fit_labeled`
     /// (with `cross_fit`: D^N's episodes in two folds too, so alpha-hat and the held-out AUC read
-    /// every row of D^N; off by default),
+    /// every row of D^N; off by default), `cross_fit_folds` (with `cross_fit`: 2 to 10 folds and
+    /// as many discriminators, each trained on all folds but the one it scores; above 2 D^N is
+    /// in folds too; 2 by default),
     /// `policy_uniform_share` (0 to 1: the share of each policy step's weight spread evenly over
     /// its rows, BC's weights, so states Eq. 37's weights leave empty still get D^U's behaviour;
     /// 0: Eq. 37 as written), `ess_warning_fraction`,
