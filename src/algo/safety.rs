@@ -55,7 +55,7 @@ pub struct SafetySpec {
     /// The recalibration `scale · c + shift` Eq. 10 read the logit with (`1, 0` when none).
     pub logit_scale: f64,
     pub logit_shift: f64,
-    /// Further discriminators of the same shape (cross-fitting's first half), each with its own
+    /// Further discriminators of the same shape (cross-fitting's finished parts), each with its own
     /// recalibration; the log-ratio is the mean of every member's recalibrated logit. Empty (and
     /// absent from the JSON) with one discriminator.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]

@@ -132,10 +132,10 @@ pub struct SafediceConfig {
     /// Eq. 12 separate the rows more sharply, below 1 they stay closer to uniform.
     #[serde(default = "unit_scale")]
     pub reward_scale: f64,
-    /// With `bbe` (nothing with `min`): D^U's episodes in two folds, a discriminator trained on
-    /// each for half of `discriminator_iterations` (one discriminator below 2 steps), every row
-    /// of D^U scored by the one that did not train on it (`algo::safedice::cross_fit`), and the
-    /// safety head the mean of both. On in `service`; off (the other presets, and a stored
+    /// With `bbe` (nothing with `min`): D^U's episodes in two folds (`cross_fit_folds`), a
+    /// discriminator trained on each for half of `discriminator_iterations` (one discriminator
+    /// below as many steps as folds), every row of D^U scored by the one that did not train on
+    /// it (`algo::safedice::cross_fit`), and the safety head the mean of all. On in `service`; off (the other presets, and a stored
     /// config without the key): one discriminator scores all of D^U.
     #[serde(default)]
     pub cross_fit: bool,
@@ -143,7 +143,8 @@ pub struct SafediceConfig {
     /// its fold of D^N (half of D^N, where it trains on four fifths without this), stops early on
     /// the other, and scores it, so Best Bin Estimation and the held-out AUC read every row of
     /// D^N rather than a fifth of its episodes. Off (every preset, and a stored config without
-    /// the key): D^N's held-out fifth, shared out between the two discriminators.
+    /// the key): D^N's held-out fifth, shared out between the two discriminators. Implied by
+    /// `cross_fit_folds` above 2.
     #[serde(default)]
     pub cross_fit_labeled: bool,
     /// With `cross_fit`: how many folds D^U's episodes go in, and parts the discriminator's

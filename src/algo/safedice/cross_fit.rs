@@ -43,6 +43,23 @@ impl SafediceTrainer {
         Some(ended)
     }
 
+    /// After a resume: the checkpoint must hold a finished part for every part its step has
+    /// passed, or the next part would score a fold it trained on.
+    pub(super) fn check_finished_parts(&self) -> Result<(), TrainError> {
+        let (Some(cf), Some(part)) = (self.cross_fit.as_ref(), self.part_after(self.run.step))
+        else {
+            return Ok(());
+        };
+        if cf.done.len() != part {
+            return Err(TrainError::Other(format!(
+                "checkpoint at step {} holds {} finished cross-fitting parts where {part} are done",
+                self.run.step,
+                cf.done.len()
+            )));
+        }
+        Ok(())
+    }
+
     /// Whether `step` ends a part that another follows (cross-fitting only).
     pub(super) fn ends_a_part(&self, step: u64) -> bool {
         let Some(parts) = self.cross_fit.as_ref().map(|cf| cf.parts()) else { return false };
@@ -86,6 +103,7 @@ impl SafediceTrainer {
             self.disc.load(&v.best)?;
         }
         let part = cf.done.len();
+        debug_assert_eq!(Some(part), self.part_after(self.run.step.saturating_sub(1)));
         let trained = snapshot(&self.disc)?;
         let u = self.score_rows(&self.run.u, cf.rows_scored(part))?;
         let n = self
@@ -122,7 +140,8 @@ impl SafediceTrainer {
     /// the proportion their folds have in D^U, so the labeled scores come from the same mixture
     /// of score functions as D^U's; with D^N in folds each discriminator scores its fold of D^N,
     /// every row of it, and they are pooled as they are (the folds' shares of D^N and of D^U
-    /// agree to an episode). None without cross-fitting.
+    /// agree roughly: both are cut evenly by episode, with their own draws). None without
+    /// cross-fitting.
     pub(super) fn cross_fitted(&self) -> Result<Option<UnlabeledScores>, TrainError> {
         let (Some(cf), Some(v)) = (self.cross_fit.as_ref(), self.disc_stop.as_ref()) else {
             return Ok(None);

@@ -37,8 +37,8 @@ fn part_names(part: usize) -> (String, String, String) {
 
 /// D^U's folds and, for every part done, its discriminator's out-of-fold scores.
 pub(super) struct CrossFit {
-    /// Rows of D^U in each fold (whole episodes; rows when D^U has fewer than two episodes per
-    /// fold).
+    /// Rows of D^U in each fold (whole episodes; rows when D^U has fewer episodes than
+    /// `max(K, 4)`).
     pub(super) folds: Vec<Vec<u32>>,
     /// Rows of D^N in each fold, split the same way, with `cross_fit_labeled` or more than two
     /// folds; None otherwise (D^N's held-out fifth then serves every part).
@@ -128,9 +128,11 @@ impl CrossFit {
 
     /// Takes the finished parts' scores and weights out of a checkpoint's tensors, leaving the
     /// rest.
+    /// `labeled_held_out` is D^N's held-out fifth (what the parts score without D^N in folds).
     pub(super) fn restore(
         &mut self,
         tensors: &mut HashMap<String, Tensor>,
+        labeled_held_out: &[u32],
     ) -> Result<(), TrainError> {
         for part in 0..self.parts() - 1 {
             let (u_name, n_name, prefix) = part_names(part);
@@ -139,10 +141,12 @@ impl CrossFit {
             };
             let (u, n) = (u.to_vec1::<f32>()?, n.to_vec1::<f32>()?);
             let expected = self.rows_scored(part).len();
-            if u.len() != expected {
+            let expected_n = self.labeled_rows_scored(part, labeled_held_out).len();
+            if u.len() != expected || n.len() != expected_n {
                 return Err(TrainError::Other(format!(
-                    "checkpoint has {} cross-fitted scores for the {expected} rows part {part} scores",
+                    "checkpoint has {} + {} cross-fitted scores for the {expected} + {expected_n} rows of D^U and D^N part {part} scores",
                     u.len(),
+                    n.len(),
                 )));
             }
             let names: Vec<String> =
@@ -157,9 +161,9 @@ impl CrossFit {
     }
 }
 
-/// Rows in `k` folds of whole episodes (of rows, with fewer than two episodes per fold), shuffled
-/// by `seed`: the shuffled units cut into `k` runs of `len / k`, the last taking the remainder.
-/// None with fewer rows than folds.
+/// Rows in `k` folds of whole episodes (of rows, with fewer episodes than `max(k, 4)`), shuffled
+/// by `seed`: fold `f` holds the shuffled units from `⌊f·len/k⌋` up to `⌊(f+1)·len/k⌋`, so the
+/// folds' sizes differ by one unit at most. None with fewer rows than folds.
 fn folds_of(k: usize, episode_ids: &[u32], seed: u64) -> Option<Vec<Vec<u32>>> {
     if episode_ids.len() < k.max(2) {
         return None;
@@ -167,13 +171,14 @@ fn folds_of(k: usize, episode_ids: &[u32], seed: u64) -> Option<Vec<Vec<u32>>> {
     let mut episodes: Vec<u32> = episode_ids.to_vec();
     episodes.sort_unstable();
     episodes.dedup();
-    let by_row = episodes.len() < 2 * k;
+    let by_row = episodes.len() < k.max(4);
     let mut units: Vec<u32> =
         if by_row { (0..episode_ids.len() as u32).collect() } else { episodes };
     units.shuffle(&mut ChaCha8Rng::seed_from_u64(seed));
-    let run = (units.len() / k).max(1);
+    let len = units.len();
+    let fold_at = |i: usize| (0..k).rev().find(|&f| f * len / k <= i).unwrap_or(0);
     let fold_of: HashMap<u32, usize> =
-        units.iter().enumerate().map(|(i, &unit)| (unit, (i / run).min(k - 1))).collect();
+        units.iter().enumerate().map(|(i, &unit)| (unit, fold_at(i))).collect();
     let mut folds = vec![Vec::new(); k];
     for (row, &episode) in episode_ids.iter().enumerate() {
         let unit = if by_row { row as u32 } else { episode };

@@ -173,6 +173,14 @@ impl SafediceTrainer {
             }
             _ => None,
         };
+        if bbe && cfg.cross_fit && disc_stop.is_some() && cross_fit.is_none() {
+            tracing::warn!(
+                folds = k,
+                discriminator_iterations = cfg.discriminator_iterations,
+                unlabeled_rows = run.u.len,
+                "cross-fitting needs at least as many discriminator steps and rows of D^U as folds: one discriminator scores D^U"
+            );
+        }
         let fused = match run.device {
             candle_core::Device::Cpu => {
                 Some(FusedSafedice::new(&disc, &nu, policy.mlp(), run.batch(), &run.threads)?)
@@ -217,8 +225,10 @@ impl SafediceTrainer {
         t.enter_part(t.run.step);
         let mut tensors = restored.extra_tensors();
         if let Some(cf) = t.cross_fit.as_mut() {
-            cf.restore(&mut tensors)?;
+            let held_out = t.disc_stop.as_ref().map_or(&[][..], |v| &v.n.validation[..]);
+            cf.restore(&mut tensors, held_out)?;
         }
+        t.check_finished_parts()?;
         if let Some(v) = t.disc_stop.as_mut() {
             v.rule.restore(&restored.extra_scalars);
             v.best = tensors;
@@ -560,8 +570,8 @@ impl SafediceTrainer {
 
 impl SafediceTrainer {
     /// The safety head the policy file carries: the discriminator as Eq. 10 read it
-    /// (recalibrated when the run recalibrated it; with cross-fitting, both halves'
-    /// discriminators) and D^U's reference states.
+    /// (recalibrated when the run recalibrated it; with cross-fitting, every part's
+    /// discriminator) and D^U's reference states.
     fn safety_head(&self) -> Result<(SafetySpec, Vec<(String, Tensor)>), TrainError> {
         let heldout = self.heldout.as_ref();
         let recalibration = heldout
