@@ -1,9 +1,15 @@
 // `sqlx::migrate!` embeds migrations/ at compile time: rebuild when a migration changes.
 // proto/: the Open Inference Protocol's gRPC service, compiled without a system protoc (protox
 // parses the files; tonic-prost-build writes the messages, the server and a client).
+// SAFEDICE_BUILD_COMMIT: the commit the binary is built from, so a benchmark report names the
+// code that ran rather than whatever the working tree holds when it runs.
+use std::path::Path;
+use std::process::Command;
+
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     println!("cargo:rerun-if-changed=migrations");
     println!("cargo:rerun-if-changed=proto");
+    record_build_commit();
     let descriptors = protox::compile(["proto/grpc_service.proto"], ["proto"])?;
     tonic_prost_build::configure()
         .build_server(true)
@@ -16,4 +22,34 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         .bytes(".inference")
         .compile_fds(descriptors)?;
     Ok(())
+}
+
+/// `git rev-parse --short=12 HEAD`, with `+modified` when tracked files that go into the build
+/// differ from it; "unknown" without git or a checkout (a Docker build copies no `.git`).
+fn record_build_commit() {
+    // Rerun when HEAD moves (a commit, a checkout) or the sources change (the `+modified` flag).
+    // Paths that do not exist are left out: cargo would rerun the script on every build.
+    for path in [".git/HEAD", ".git/refs/heads", ".git/packed-refs", "src", "build.rs"] {
+        if Path::new(path).exists() {
+            println!("cargo:rerun-if-changed={path}");
+        }
+    }
+    let commit = match git(&["rev-parse", "--short=12", "HEAD"]) {
+        None => "unknown".to_string(),
+        Some(hash) => {
+            let sources = ["src", "migrations", "proto", "build.rs", "Cargo.toml", "Cargo.lock"];
+            let status =
+                [&["status", "--porcelain", "--untracked-files=no", "--"][..], &sources[..]];
+            match git(&status.concat()) {
+                Some(changes) if changes.is_empty() => hash,
+                _ => format!("{hash}+modified"),
+            }
+        }
+    };
+    println!("cargo:rustc-env=SAFEDICE_BUILD_COMMIT={commit}");
+}
+
+fn git(args: &[&str]) -> Option<String> {
+    let out = Command::new("git").args(args).output().ok()?;
+    out.status.success().then(|| String::from_utf8_lossy(&out.stdout).trim().to_string())
 }

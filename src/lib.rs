@@ -18,6 +18,14 @@
 //! - [`charts`]: server-side SVG charts for the dashboard.
 //! - [`text`]: bounded messages (errors that quote client input stay short).
 
+/// The commit this binary was built from, `+modified` when its sources differed from it
+/// (build.rs; "unknown" when built outside a git checkout).
+pub const BUILD_COMMIT: &str = env!("SAFEDICE_BUILD_COMMIT");
+
+/// `safedice --version`: the package version and [`BUILD_COMMIT`].
+pub const VERSION: &str =
+    concat!(env!("CARGO_PKG_VERSION"), " (", env!("SAFEDICE_BUILD_COMMIT"), ")");
+
 pub mod algo;
 pub mod bench;
 pub mod charts;

@@ -9,7 +9,7 @@ use safedice::config::{ServeConfig, WorkerConfig};
 use safedice::server::{self, Server};
 
 #[derive(Parser)]
-#[command(name = "safedice", version, about = "Offline safe imitation learning service (SafeDICE)")]
+#[command(name = "safedice", version = safedice::VERSION, about = "Offline safe imitation learning service (SafeDICE)")]
 struct Cli {
     #[command(subcommand)]
     command: Command,

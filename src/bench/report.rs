@@ -84,7 +84,11 @@ pub fn markdown(results: &BenchResults, summary: &Summary, command: &str) -> Str
     let _ = writeln!(md, "# Benchmark results\n");
     let _ = writeln!(md, "- Command: `{command}`");
     let _ = writeln!(md, "- Date: {} (UTC start)", results.started.format("%Y-%m-%d %H:%M"));
-    let _ = writeln!(md, "- Git commit: {}", results.git_commit);
+    let _ = writeln!(
+        md,
+        "- Git commit: {} (checked out at the start); binary built from {}",
+        results.git_commit, results.build_commit
+    );
     let _ = writeln!(md, "- Machine: {}", results.machine);
     let _ = writeln!(
         md,

@@ -391,9 +391,10 @@ fn markdown(
     let _ = writeln!(md, "- Command: `{command}`");
     let _ = writeln!(
         md,
-        "- Date: {}; commit {}; machine: {}",
+        "- Date: {}; commit {} (binary built from {}); machine: {}",
         results.started.format("%Y-%m-%d %H:%M UTC"),
         results.git_commit,
+        results.build_commit,
         results.machine
     );
     let _ = writeln!(

@@ -129,6 +129,9 @@ pub struct BenchResults {
     pub started: chrono::DateTime<chrono::Utc>,
     /// `git rev-parse --short=12 HEAD` when the run started ("unknown" outside a checkout).
     pub git_commit: String,
+    /// The commit the running binary was built from ([`crate::BUILD_COMMIT`]); differs from
+    /// `git_commit` when the tree moved on after the build.
+    pub build_commit: String,
     /// The CPU the run trained on ([`machine`]); speed ratios change with it.
     pub machine: String,
     pub wall_seconds: f64,
@@ -218,6 +221,7 @@ pub fn run_tasks(config: &BenchConfig, tasks: &[BenchTask]) -> Result<BenchResul
         runs,
         started,
         git_commit,
+        build_commit: crate::BUILD_COMMIT.to_string(),
         machine: machine(),
         wall_seconds: clock.elapsed().as_secs_f64(),
     })
@@ -655,6 +659,15 @@ impl Recorder {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The binary names the commit it was built from: the tests are built from this checkout
+    /// (cargo reruns build.rs when HEAD moves), so it is HEAD, with `+modified` at most.
+    #[test]
+    fn the_build_commit_is_the_checkouts_head() {
+        let Some(head) = git_rev_parse() else { return };
+        assert_eq!(crate::BUILD_COMMIT.trim_end_matches("+modified"), head);
+        assert!(crate::VERSION.contains(crate::BUILD_COMMIT), "{}", crate::VERSION);
+    }
 
     /// Reading `.git` directly gives what git itself says, where both can answer.
     #[test]
