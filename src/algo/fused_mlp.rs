@@ -31,6 +31,23 @@ use gemm::Parallelism;
 mod shards;
 pub use shards::{EngineThreads, TrainingWorkspace};
 
+/// Which of gemm's f32 kernels this process runs, decided as gemm decides it: `avx512f` where the
+/// CPU has AVX-512 and the build the `avx512` feature, else `fma`, else `scalar`. Processes that
+/// run the same kernels train bit-identical weights from the same seed and data; the kernels
+/// round differently from each other (docs/fleet.md, "Determinism across machines").
+pub fn gemm_kernels() -> &'static str {
+    #[cfg(target_arch = "x86_64")]
+    {
+        if cfg!(feature = "avx512") && std::arch::is_x86_feature_detected!("avx512f") {
+            return "avx512f";
+        }
+        if std::arch::is_x86_feature_detected!("fma") {
+            return "fma";
+        }
+    }
+    "scalar"
+}
+
 /// Which way a matrix operand is read: as stored (`N`) or transposed (`T`).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 enum Op {

@@ -227,8 +227,9 @@ pub fn run_tasks(config: &BenchConfig, tasks: &[BenchTask]) -> Result<BenchResul
     })
 }
 
-/// This machine's CPU as `lscpu` names it (model name, family, model) and its core count, from
-/// /proc/cpuinfo; "unknown" where that file does not exist.
+/// This machine's CPU as `lscpu` names it (model name, family, model), its core count, from
+/// /proc/cpuinfo, and the GEMM kernels it runs (results are bit-identical only between runs on
+/// the same kernels); "unknown" where that file does not exist.
 pub fn machine() -> String {
     let Ok(info) = std::fs::read_to_string("/proc/cpuinfo") else {
         return "unknown".to_string();
@@ -242,10 +243,11 @@ pub fn machine() -> String {
     };
     let cores = std::thread::available_parallelism().map_or(0, |n| n.get());
     format!(
-        "{}, CPU family {} model {}, {cores} cores",
+        "{}, CPU family {} model {}, {cores} cores, {} GEMM kernels",
         field("model name"),
         field("cpu family"),
-        field("model")
+        field("model"),
+        crate::algo::fused_mlp::gemm_kernels()
     )
 }
 

@@ -119,6 +119,7 @@ impl JobRunner {
             job_threads = self.inner.options.job_threads,
             worker_id = %self.inner.options.worker_id,
             lease_seconds = self.inner.options.lease.as_secs(),
+            gemm_kernels = crate::algo::fused_mlp::gemm_kernels(),
             "job workers started"
         );
         Ok(())
