@@ -28,11 +28,17 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
 /// differ from it; "unknown" without git or a checkout (a Docker build copies no `.git`).
 fn record_build_commit() {
     // Rerun when HEAD moves (a commit, a checkout) or the sources change (the `+modified` flag).
-    // Paths that do not exist are left out: cargo would rerun the script on every build.
-    for path in [".git/HEAD", ".git/refs/heads", ".git/packed-refs", "src", "build.rs"] {
-        if Path::new(path).exists() {
-            println!("cargo:rerun-if-changed={path}");
-        }
+    // git names its directories (a worktree's HEAD is not under ./.git); paths that do not exist
+    // are left out, since cargo would rerun the script on every build.
+    let mut watched = vec!["src".to_string(), "build.rs".to_string()];
+    if let Some(dir) = git(&["rev-parse", "--git-dir"]) {
+        watched.push(format!("{dir}/HEAD"));
+    }
+    if let Some(common) = git(&["rev-parse", "--git-common-dir"]) {
+        watched.extend([format!("{common}/refs/heads"), format!("{common}/packed-refs")]);
+    }
+    for path in watched.iter().filter(|p| Path::new(p).exists()) {
+        println!("cargo:rerun-if-changed={path}");
     }
     let commit = match git(&["rev-parse", "--short=12", "HEAD"]) {
         None => "unknown".to_string(),
