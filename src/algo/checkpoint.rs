@@ -176,6 +176,37 @@ mod tests {
     use super::*;
     use rand::Rng;
 
+    /// Scalars go through the header's JSON: every finite f64 must read back to the same bits,
+    /// or a resumed run starts from a value one ulp away (the held-out loss early stopping keeps,
+    /// 1.8837101022153384, read back as ...386 before serde_json's `float_roundtrip`).
+    fn scalar_round_trip(value: f64) -> f64 {
+        let config = crate::algo::resolve_config(
+            crate::algo::Algorithm::Bc,
+            &serde_json::json!({"seed": 1}),
+        )
+        .unwrap();
+        let extra =
+            Extra { scalars: BTreeMap::from([("x".to_string(), value)]), tensors: Vec::new() };
+        let rng = ChaCha8Rng::seed_from_u64(1);
+        let bytes = encode(&config, 0, &rng, "data", &[], &extra).unwrap();
+        decode(&bytes, &config, "data", &Device::Cpu).unwrap().extra_scalars["x"]
+    }
+
+    #[test]
+    fn checkpoint_scalars_read_back_bit_for_bit() {
+        let seen = 1.883_710_102_215_338_4_f64;
+        assert_eq!(scalar_round_trip(seen).to_bits(), seen.to_bits());
+    }
+
+    proptest::proptest! {
+        #[test]
+        fn any_finite_scalar_reads_back_bit_for_bit(bits in proptest::num::u64::ANY) {
+            let value = f64::from_bits(bits);
+            proptest::prop_assume!(value.is_finite());
+            proptest::prop_assert_eq!(scalar_round_trip(value).to_bits(), value.to_bits());
+        }
+    }
+
     #[test]
     fn rng_state_round_trips_mid_stream() {
         let mut rng = ChaCha8Rng::seed_from_u64(42);
