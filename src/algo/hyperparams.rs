@@ -288,7 +288,26 @@ pub fn resolve_config(
     let config: ResolvedConfig = serde_json::from_value(Value::Object(merged))
         .map_err(|e| HyperparamError::new("config", format!("config: {e}")))?;
     config.validate()?;
-    Ok(config)
+    Ok(stored_form(config))
+}
+
+/// The config as it reads back from its JSON text. serde_json's default number parser is not
+/// always correctly rounded, so a float written as text can come back an ulp away (an `lr`
+/// sent with 20 digits did on about one value in ten); one more trip through text lands on a
+/// value that reads back as itself. The job then trains with, checkpoints and reports the same
+/// bits the request's response showed, instead of a neighbour picked up by the first trip
+/// through the database.
+fn stored_form(mut config: ResolvedConfig) -> ResolvedConfig {
+    const MAX_TRIPS: usize = 4;
+    for _ in 0..MAX_TRIPS {
+        let text = serde_json::to_string(&config).expect("config serializes");
+        let back: ResolvedConfig = serde_json::from_str(&text).expect("config reads back");
+        if back == config {
+            break;
+        }
+        config = back;
+    }
+    config
 }
 
 /// Rejects a value whose JSON type differs from the default's, naming the key.

@@ -152,3 +152,23 @@ fn weighting_knobs_default_for_stored_configs_and_are_checked() {
         assert_eq!(resolve_config(Algorithm::Safedice, &bad).unwrap_err().key, key);
     }
 }
+
+/// A learning rate sent with 20 significant digits (as `printf("%.20g")` writes it) whose
+/// first parse is not a value serde_json reads back as itself: the resolved config must already
+/// be the one the database and a checkpoint give back, bit for bit.
+#[test]
+fn resolved_floats_read_back_from_json_as_themselves() {
+    let sent = "3.8856717286787835486e-2";
+    let once: f64 = serde_json::from_str(sent).unwrap();
+    let twice: f64 = serde_json::from_str(&serde_json::to_string(&once).unwrap()).unwrap();
+    assert_ne!(once.to_bits(), twice.to_bits(), "the case needs a value that drifts");
+    let raw: serde_json::Value =
+        serde_json::from_str(&format!("{{\"lr_actor\": {sent}}}")).unwrap();
+    let config = resolve_config(Algorithm::Bc, &raw).unwrap();
+    let text = serde_json::to_string(&config).unwrap();
+    let via_text: ResolvedConfig = serde_json::from_str(&text).unwrap();
+    let via_value: ResolvedConfig =
+        serde_json::from_value(serde_json::from_str::<serde_json::Value>(&text).unwrap()).unwrap();
+    assert_eq!(via_text, config);
+    assert_eq!(via_value, config);
+}
