@@ -88,6 +88,10 @@ pub struct SafediceAblation {
     /// [`batch_weight_share`]) on the non-preferred transitions at the end of
     /// training: the true share α means no filtering, 0 a perfect filter.
     pub non_preferred_weight_share: f64,
+    /// The same share from Eq. 10's reward alone, `exp(r)` per batch with ν's terms
+    /// `γ' ν(s') − ν(s)` left out: what the weights would be before the ν step moved them. Far
+    /// below `non_preferred_weight_share` means ν gives the non-preferred rows back their weight.
+    pub reward_only_weight_share: f64,
 }
 
 /// Exact ROC AUC of `scores` for the classes `positive`: the Mann-Whitney U statistic over all

@@ -337,22 +337,23 @@ fn write_ablations(md: &mut String, results: &BenchResults, summary: &Summary) {
     }
     let _ = writeln!(
         md,
-        "\n| Env | Row | α used | AUC held-out | AUC D^U | weight share on non-preferred |"
+        "\n| Env | Row | α used | AUC held-out | AUC D^U | weight share on non-preferred | the same from Eq. 10's reward alone |"
     );
-    let _ = writeln!(md, "|---|---|---|---|---|---|");
+    let _ = writeln!(md, "|---|---|---|---|---|---|---|");
     let show =
         |s: Option<super::summary::Stat>, d: usize| s.map_or("–".to_string(), |s| s.show(d));
     for env in &summary.envs {
         for row in env.rows.iter().filter(|r| r.discriminator_auc_heldout.is_some()) {
             let _ = writeln!(
                 md,
-                "| {} | {} | {} | {} | {} | {} |",
+                "| {} | {} | {} | {} | {} | {} | {} |",
                 env.env,
                 row.label,
                 show(row.alpha_hat, 4),
                 show(row.discriminator_auc_heldout, 3),
                 show(row.discriminator_auc_unlabeled, 3),
-                show(row.non_preferred_weight_share, 3)
+                show(row.non_preferred_weight_share, 3),
+                show(row.reward_only_weight_share, 3)
             );
         }
     }

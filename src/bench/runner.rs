@@ -605,14 +605,19 @@ fn safedice_ablation(t: &SafediceTrainer, truth: &Truth) -> Result<SafediceAblat
     let heldout = t.discriminator_logits(&truth.heldout)?;
     let unlabeled = t.discriminator_logits_unlabeled()?;
     let flags = &truth.unlabeled_non_preferred;
-    let share = t.unlabeled_advantages()?.map_or(f64::NAN, |a| {
-        let seed = ablation::WEIGHT_SHARE_SEED;
-        ablation::batch_weight_share(&a, flags, t.batch_size(), seed, t.policy_uniform_share())
-    });
+    let share_of = |log_weights: Option<Vec<f64>>| {
+        log_weights.map_or(f64::NAN, |w| {
+            let seed = ablation::WEIGHT_SHARE_SEED;
+            ablation::batch_weight_share(&w, flags, t.batch_size(), seed, t.policy_uniform_share())
+        })
+    };
+    let share = share_of(t.unlabeled_advantages()?);
+    let reward_only_share = share_of(t.unlabeled_rewards()?);
     Ok(SafediceAblation {
         auc_heldout: ablation::roc_auc(&heldout, &truth.heldout_non_preferred).unwrap_or(f64::NAN),
         auc_unlabeled: ablation::roc_auc(&unlabeled, flags).unwrap_or(f64::NAN),
         non_preferred_weight_share: share,
+        reward_only_weight_share: reward_only_share,
     })
 }
 

@@ -71,6 +71,9 @@ pub struct AlgorithmSummary {
     pub discriminator_auc_unlabeled: Option<Stat>,
     #[serde(skip_serializing_if = "Option::is_none")]
     pub non_preferred_weight_share: Option<Stat>,
+    /// The same share from Eq. 10's reward alone (ν's terms left out).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub reward_only_weight_share: Option<Stat>,
     /// Training steps per second (all phases), mean over seeds.
     pub steps_per_second: f64,
     pub train_seconds: f64,
@@ -209,6 +212,7 @@ fn summarize_runs(algorithm: Algorithm, variant: Variant, runs: &[&RunResult]) -
         discriminator_auc_heldout: ablation(|a| a.auc_heldout),
         discriminator_auc_unlabeled: ablation(|a| a.auc_unlabeled),
         non_preferred_weight_share: ablation(|a| a.non_preferred_weight_share),
+        reward_only_weight_share: ablation(|a| a.reward_only_weight_share),
         steps_per_second: mean(RunResult::steps_per_second),
         train_seconds: mean(|r| r.train_seconds),
         eval_seconds: mean(|r| r.eval_seconds),
@@ -294,6 +298,7 @@ mod tests {
             discriminator_auc_heldout: None,
             discriminator_auc_unlabeled: None,
             non_preferred_weight_share: None,
+            reward_only_weight_share: None,
             steps_per_second: 0.0,
             train_seconds: 0.0,
             eval_seconds: 0.0,

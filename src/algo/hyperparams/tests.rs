@@ -116,6 +116,7 @@ fn weighting_knobs_default_for_stored_configs_and_are_checked() {
         "cross_fit_folds",
         "policy_uniform_share",
         "excluded_reward_gap",
+        "top_bin",
     ] {
         assert!(map.remove(key).is_some(), "{key} is in the service preset");
     }
@@ -128,6 +129,7 @@ fn weighting_knobs_default_for_stored_configs_and_are_checked() {
     assert_eq!(s.cross_fit_folds, 2, "a stored config cross-fitted two halves");
     assert_eq!(s.policy_uniform_share, 0.0, "a stored config trained with Eq. 37's weights");
     assert_eq!(s.excluded_reward_gap, 30.0, "a stored config excluded rows at e^-30");
+    assert_eq!(s.top_bin, TopBin::RowLogits, "a stored config read every row's own logit");
     let lower = resolve_config(Algorithm::Safedice, &json!({"alpha_hat_point": "lower"})).unwrap();
     let AlgorithmConfig::Safedice(s) = &lower.specific else { panic!("a SafeDICE config") };
     assert_eq!(s.alpha_hat_point, AlphaHatPoint::Lower);

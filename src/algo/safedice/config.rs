@@ -75,6 +75,26 @@ pub enum UndefinedReward {
     Exclude,
 }
 
+/// What Eq. 10 reads on the rows of D^U inside Best Bin Estimation's bin (every row scoring at
+/// least its threshold `t*`; `bbe` only). The bin is where D^U looks most like D^N: its ratio
+/// `q_U/q_N` is `α* + (1 − α*) q_P/q_N`, so when that is near the true share the preferred
+/// demonstrator has (almost) no rows there. A calibrated logit averages over its neighbours and
+/// puts such rows just under Eq. 10's edge `α e^c = 1`, where they keep a defined reward.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum TopBin {
+    /// Each row's own (recalibrated) logit, as everywhere else.
+    #[default]
+    RowLogits,
+    /// The bin's density ratio where it says more: `e^c = max(e^c, q_N/q_U)`. With alpha-hat
+    /// the bin's ratio (`alpha_hat_point: estimate`) that is Eq. 10's edge, every row ruled
+    /// out; with the interval's lower end, `1 − α e^c = width / ratio` at most, a penalty as
+    /// sharp as the estimate is certain.
+    BinRatio,
+    /// Every row in the bin ruled out (`d^P = 0`), whatever alpha-hat.
+    RuledOut,
+}
+
 /// SafeDICE's knobs (Algorithm 1, Eq. 9, 10, 15, 36, 37).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct SafediceConfig {
@@ -170,6 +190,10 @@ pub struct SafediceConfig {
     /// are not left without a policy.
     #[serde(default = "excluded_gap")]
     pub excluded_reward_gap: f64,
+    /// `bbe` only: what Eq. 10 reads on the rows in Best Bin Estimation's bin ([`TopBin`]).
+    /// `row_logits` (every preset, and a stored config without the key): each row's own.
+    #[serde(default)]
+    pub top_bin: TopBin,
 }
 
 /// How far below the lowest defined reward an excluded row's reward is set by default
@@ -219,6 +243,7 @@ impl SafediceConfig {
             cross_fit_folds: 2,
             policy_uniform_share: 0.0,
             excluded_reward_gap: EXCLUDED_REWARD_GAP,
+            top_bin: TopBin::RowLogits,
         }
     }
 

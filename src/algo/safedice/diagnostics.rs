@@ -43,6 +43,14 @@ impl SafediceTrainer {
         Ok(Some(advantages))
     }
 
+    /// Eq. 10's reward (standardised and scaled as the ν step reads it) on every row of D^U;
+    /// None before the main phase.
+    pub fn unlabeled_rewards(&self) -> Result<Option<Vec<f64>>, TrainError> {
+        let Some(flow) = &self.flow else { return Ok(None) };
+        let reward = flow.reward.narrow(0, 0, flow.real_rows)?.to_vec1::<f32>()?;
+        Ok(Some(reward.into_iter().map(f64::from).collect()))
+    }
+
     /// The share of each policy step's weight spread evenly (`policy_uniform_share`).
     pub fn policy_uniform_share(&self) -> f64 {
         self.cfg.policy_uniform_share

@@ -90,18 +90,26 @@ pub struct Eq10Rewards {
 /// `log(1 − α e^c) − log(1 − α) = −α (e^c − 1) + O(α²)`, whose standardisation is that of
 /// `−e^c`. With `standardize`, alpha-hat 0 weights by that limit ([`eq10_limit_at_zero`]), so
 /// alpha-hat 0 and 1e-6 train alike instead of one of them falling off a cliff to BC.
+///
+/// `ruled_out` flags rows to treat as undefined whatever their logit (`rule_out_top_bin`:
+/// the rows in Best Bin Estimation's bin, where `d^P = 0` up to the estimator's error); empty,
+/// none.
 pub fn eq10_rewards(
     logits: &[f32],
     alpha: f64,
     undefined: UndefinedReward,
     gap: f64,
     standardize: bool,
+    ruled_out: &[bool],
 ) -> Eq10Rewards {
-    let raw: Vec<(f64, bool)> = if alpha == 0.0 && standardize {
+    let mut raw: Vec<(f64, bool)> = if alpha == 0.0 && standardize {
         logits.iter().map(|&c| (eq10_limit_at_zero(c as f64), false)).collect()
     } else {
         logits.iter().map(|&c| reward_from_logit(c as f64, alpha)).collect()
     };
+    for (row, _) in raw.iter_mut().zip(ruled_out).filter(|(_, &flag)| flag) {
+        *row = ((REWARD_LOG_FLOOR).ln() - (1.0 - alpha).ln(), true);
+    }
     let undefined_rows = raw.iter().filter(|r| r.1).count();
     let exclude = undefined == UndefinedReward::Exclude;
     let defined: Vec<f64> = raw.iter().filter(|r| !(exclude && r.1)).map(|r| r.0).collect();
@@ -222,11 +230,11 @@ mod tests {
         // e^c = 1/α on the last row: 1 − α e^c = 0, Eq. 10 is −∞ there.
         let logits = [0.0f32, -1.0, (1.0 / alpha).ln() as f32 + 0.1];
         let floored =
-            eq10_rewards(&logits, alpha, UndefinedReward::Floor, EXCLUDED_REWARD_GAP, false);
+            eq10_rewards(&logits, alpha, UndefinedReward::Floor, EXCLUDED_REWARD_GAP, false, &[]);
         assert_eq!(floored.undefined_rows, 1);
         assert!((floored.rewards[2] - (1e-8f64.ln() - 0.5f64.ln())).abs() < 1e-9);
         let excluded =
-            eq10_rewards(&logits, alpha, UndefinedReward::Exclude, EXCLUDED_REWARD_GAP, true);
+            eq10_rewards(&logits, alpha, UndefinedReward::Exclude, EXCLUDED_REWARD_GAP, true, &[]);
         assert_eq!(excluded.undefined_rows, 1);
         let defined = [reward_from_logit(0.0, alpha).0, reward_from_logit(-1.0, alpha).0];
         let mean = (defined[0] + defined[1]) / 2.0;
@@ -235,9 +243,33 @@ mod tests {
         assert!((r0 + r1).abs() < 1e-9 && (r0.abs() - 1.0).abs() < 1e-6, "{excluded:?}");
         assert!((excluded.rewards[2] - (r0.min(r1) - EXCLUDED_REWARD_GAP)).abs() < 1e-9);
         // A smaller gap moves the excluded row only; the defined rows keep their rewards.
-        let near = eq10_rewards(&logits, alpha, UndefinedReward::Exclude, 2.0, true);
+        let near = eq10_rewards(&logits, alpha, UndefinedReward::Exclude, 2.0, true, &[]);
         assert_eq!(&near.rewards[..2], &excluded.rewards[..2]);
         assert!((near.rewards[2] - (r0.min(r1) - 2.0)).abs() < 1e-9, "{near:?}");
+    }
+
+    /// Rows flagged as ruled out (`rule_out_top_bin`) are undefined whatever their logit: the
+    /// same as a row past Eq. 10's edge, excluded or floored, and out of the statistics; at
+    /// α = 0 (the limit) too.
+    #[test]
+    fn flagged_rows_are_ruled_out_like_rows_past_eq10s_edge() {
+        let alpha = 0.5f64;
+        let logits = [0.0f32, -1.0, -2.0];
+        let flags = [false, true, false];
+        for standardize in [false, true] {
+            let flagged =
+                eq10_rewards(&logits, alpha, UndefinedReward::Exclude, 30.0, standardize, &flags);
+            let past_edge = [logits[0], (1.0 / alpha).ln() as f32 + 0.1, logits[2]];
+            let beyond =
+                eq10_rewards(&past_edge, alpha, UndefinedReward::Exclude, 30.0, standardize, &[]);
+            assert_eq!(flagged, beyond, "standardize {standardize}");
+            assert_eq!(flagged.undefined_rows, 1);
+        }
+        let floored = eq10_rewards(&logits, alpha, UndefinedReward::Floor, 30.0, false, &flags);
+        assert!((floored.rewards[1] - (1e-8f64.ln() - 0.5f64.ln())).abs() < 1e-9, "{floored:?}");
+        let limit = eq10_rewards(&logits, 0.0, UndefinedReward::Exclude, 30.0, true, &flags);
+        assert_eq!(limit.undefined_rows, 1);
+        assert!((limit.rewards[1] - (limit.rewards[0].min(limit.rewards[2]) - 30.0)).abs() < 1e-9);
     }
 
     /// Standardised, Eq. 10 at α = 0 is its limit as α → 0+: the rewards at α = 1e-3 and 1e-4
@@ -248,7 +280,7 @@ mod tests {
     fn standardised_eq10_is_continuous_at_alpha_zero() {
         let logits = [-3.0f32, -0.5, 0.0, 0.7, 1.5, 2.5];
         let exclude = |alpha: f64| {
-            eq10_rewards(&logits, alpha, UndefinedReward::Exclude, EXCLUDED_REWARD_GAP, true)
+            eq10_rewards(&logits, alpha, UndefinedReward::Exclude, EXCLUDED_REWARD_GAP, true, &[])
         };
         let at = |alpha: f64| exclude(alpha).rewards;
         let limit = at(0.0);
@@ -259,7 +291,8 @@ mod tests {
         assert!(distance(1e-4) < distance(1e-3) / 5.0, "{} {}", distance(1e-4), distance(1e-3));
         let mean = limit.iter().sum::<f64>() / limit.len() as f64;
         assert!(mean.abs() < 1e-12 && limit.windows(2).all(|w| w[0] > w[1]), "{limit:?}");
-        let raw = eq10_rewards(&logits, 0.0, UndefinedReward::Exclude, EXCLUDED_REWARD_GAP, false);
+        let raw =
+            eq10_rewards(&logits, 0.0, UndefinedReward::Exclude, EXCLUDED_REWARD_GAP, false, &[]);
         assert!(raw.rewards.iter().all(|&r| r == 0.0) && raw.std == 0.0, "{raw:?}");
     }
 

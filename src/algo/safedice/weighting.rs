@@ -12,7 +12,7 @@ use super::objectives::{alpha_hat_from_logits, eq10_rewards, ALPHA_MARGIN, POLIC
 use super::trainer::{SafediceTrainer, UniformWeights};
 use crate::algo::bc::bc_loss;
 use crate::algo::fused_policy::{fused_policy_step, fused_policy_update};
-use crate::algo::hyperparams::{AlphaEstimator, AlphaHatPoint, BbeUnlabeledRows};
+use crate::algo::hyperparams::{AlphaEstimator, AlphaHatPoint, BbeUnlabeledRows, TopBin};
 use crate::algo::optim::Adam;
 use crate::algo::{Algorithm, ResolvedConfig, TrainError};
 
@@ -28,6 +28,13 @@ impl SafediceTrainer {
     /// Algorithm 1 step 2 and the reward of Eq. 10 over all of D^U, with the frozen discriminator.
     pub(super) fn finish_discriminator_phase(&mut self) -> Result<(), TrainError> {
         let UnlabeledScores { mut logits, heldout, calibrated } = self.unlabeled_scores()?;
+        // The bin's rows, on the scores Best Bin Estimation read (before a recalibration here).
+        let in_bin: Vec<bool> = match &heldout {
+            Some(h) if self.cfg.top_bin != TopBin::RowLogits => {
+                logits.iter().map(|&c| c as f64 >= h.alpha.threshold).collect()
+            }
+            _ => Vec::new(),
+        };
         let episode_ids = &self.run.u.episode_ids;
         let mut alpha = alpha_hat_from_logits(&logits, episode_ids, self.cfg.alpha_hat_quantile);
         // The paper's statistic above reads the discriminator as trained; Eq. 10 reads it
@@ -44,6 +51,10 @@ impl SafediceTrainer {
             };
             alpha.value = (point - ALPHA_MARGIN).clamp(0.0, 1.0 - ALPHA_MARGIN);
         }
+        if let (TopBin::BinRatio, Some(h)) = (self.cfg.top_bin, &heldout) {
+            raise_to_bin_ratio(&mut logits, &in_bin, h.alpha.value);
+        }
+        let ruled_out = if self.cfg.top_bin == TopBin::RuledOut { &in_bin[..] } else { &[] };
         let estimated = alpha.value;
         if let Some(a) = self.overrides.alpha {
             alpha.value = a.clamp(0.0, 1.0 - ALPHA_MARGIN);
@@ -54,6 +65,7 @@ impl SafediceTrainer {
             self.cfg.undefined_reward,
             self.cfg.excluded_reward_gap,
             self.cfg.standardize_reward,
+            ruled_out,
         );
         if let Some(bad) = eq10.rewards.iter().position(|r| !r.is_finite()) {
             return Err(TrainError::Diverged {
@@ -280,5 +292,40 @@ impl SafediceTrainer {
             AlphaHatPoint::Estimate => "the bin's ratio",
             AlphaHatPoint::Lower => "the interval's lower end",
         }
+    }
+}
+
+/// `top_bin: bin_ratio`: on the bin's rows, the (recalibrated) logit becomes at least the bin's
+/// log density ratio `ln(q_N/q_U) = −ln(ratio)`; nothing changes without D^U rows in the bin.
+fn raise_to_bin_ratio(logits: &mut [f32], in_bin: &[bool], ratio: f64) {
+    if ratio <= 0.0 {
+        return;
+    }
+    let bin_logit = (-ratio.ln()) as f32;
+    for (c, _) in logits.iter_mut().zip(in_bin).filter(|(_, &flag)| flag) {
+        *c = c.max(bin_logit);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// On the bin's rows the logit rises to the bin's `ln(q_N/q_U)` and never falls; off the bin,
+    /// and with an empty bin (ratio 0), nothing moves. At alpha-hat the bin's ratio Eq. 10 then
+    /// sits at its edge on every row of the bin.
+    #[test]
+    fn bin_rows_read_at_least_the_bins_density_ratio() {
+        let ratio = 0.6f64;
+        let mut logits = [-1.0f32, 2.0, 0.1, -3.0];
+        let in_bin = [true, true, false, false];
+        raise_to_bin_ratio(&mut logits, &in_bin, ratio);
+        let bin_logit = -(ratio.ln()) as f32;
+        assert_eq!(logits, [bin_logit, 2.0, 0.1, -3.0]);
+        let edge = 1.0 - ratio * (logits[0] as f64).exp();
+        assert!(edge.abs() < 1e-6, "1 − α e^c = {edge}");
+        let mut empty = [-1.0f32, 2.0];
+        raise_to_bin_ratio(&mut empty, &[true, true], 0.0);
+        assert_eq!(empty, [-1.0, 2.0]);
     }
 }
