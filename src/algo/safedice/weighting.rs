@@ -51,9 +51,10 @@ impl SafediceTrainer {
             };
             alpha.value = (point - ALPHA_MARGIN).clamp(0.0, 1.0 - ALPHA_MARGIN);
         }
-        if let (TopBin::BinRatio, Some(h)) = (self.cfg.top_bin, &heldout) {
-            raise_to_bin_ratio(&mut logits, &in_bin, h.alpha.value);
-        }
+        let raised = match (self.cfg.top_bin, &heldout) {
+            (TopBin::BinRatio, Some(h)) => raise_to_bin_ratio(&mut logits, &in_bin, h.alpha.value),
+            _ => 0,
+        };
         let ruled_out = if self.cfg.top_bin == TopBin::RuledOut { &in_bin[..] } else { &[] };
         let estimated = alpha.value;
         if let Some(a) = self.overrides.alpha {
@@ -99,6 +100,11 @@ impl SafediceTrainer {
         }
         if calibrated {
             self.phase_metrics.push(("discriminator_cross_fitted", 1.0));
+        }
+        if !in_bin.is_empty() {
+            let rows = in_bin.iter().filter(|&&flag| flag).count();
+            self.phase_metrics.push(("top_bin_rows", rows as f64));
+            self.phase_metrics.push(("top_bin_rows_raised", raised as f64));
         }
         if self.overrides.alpha.is_some() {
             self.phase_metrics.push(("alpha_hat_estimated", estimated));
@@ -297,14 +303,20 @@ impl SafediceTrainer {
 
 /// `top_bin: bin_ratio`: on the bin's rows, the (recalibrated) logit becomes at least the bin's
 /// log density ratio `ln(q_N/q_U) = −ln(ratio)`; nothing changes without D^U rows in the bin.
-fn raise_to_bin_ratio(logits: &mut [f32], in_bin: &[bool], ratio: f64) {
+/// Returns how many logits rose.
+fn raise_to_bin_ratio(logits: &mut [f32], in_bin: &[bool], ratio: f64) -> usize {
     if ratio <= 0.0 {
-        return;
+        return 0;
     }
     let bin_logit = (-ratio.ln()) as f32;
+    let mut raised = 0;
     for (c, _) in logits.iter_mut().zip(in_bin).filter(|(_, &flag)| flag) {
-        *c = c.max(bin_logit);
+        if *c < bin_logit {
+            *c = bin_logit;
+            raised += 1;
+        }
     }
+    raised
 }
 
 #[cfg(test)]
@@ -319,13 +331,13 @@ mod tests {
         let ratio = 0.6f64;
         let mut logits = [-1.0f32, 2.0, 0.1, -3.0];
         let in_bin = [true, true, false, false];
-        raise_to_bin_ratio(&mut logits, &in_bin, ratio);
+        assert_eq!(raise_to_bin_ratio(&mut logits, &in_bin, ratio), 1);
         let bin_logit = -(ratio.ln()) as f32;
         assert_eq!(logits, [bin_logit, 2.0, 0.1, -3.0]);
         let edge = 1.0 - ratio * (logits[0] as f64).exp();
         assert!(edge.abs() < 1e-6, "1 − α e^c = {edge}");
         let mut empty = [-1.0f32, 2.0];
-        raise_to_bin_ratio(&mut empty, &[true, true], 0.0);
+        assert_eq!(raise_to_bin_ratio(&mut empty, &[true, true], 0.0), 0);
         assert_eq!(empty, [-1.0, 2.0]);
     }
 }
