@@ -75,7 +75,8 @@ pub fn reward_from_logit(c: f64, alpha: f64) -> (f64, bool) {
 pub struct Eq10Rewards {
     pub rewards: Vec<f64>,
     /// Mean and standard deviation of the raw reward over the rows it is defined on (all rows,
-    /// floored, with [`UndefinedReward::Floor`]).
+    /// floored, with [`UndefinedReward::Floor`]); of the rows' own logits' rewards where
+    /// `scale_from` gives those.
     pub mean: f64,
     pub std: f64,
     /// Rows where `1 − α e^c` fell below the floor: floored, or excluded.
@@ -94,14 +95,42 @@ pub struct Eq10Rewards {
 /// `ruled_out` flags rows to treat as undefined whatever their logit (`rule_out_top_bin`:
 /// the rows in Best Bin Estimation's bin, where `d^P = 0` up to the estimator's error); empty,
 /// none.
+///
+/// `scale_from`, when not empty, holds each row's own logit where `logits` holds what Eq. 10
+/// reads (`top_bin: bin_ratio_own_scale`, which raises the bin's rows only): the
+/// standardisation's mean and deviation then come from the own logits' rewards, so raising the
+/// bin lowers the bin's rewards and moves no other row's, as it does without the
+/// standardisation.
 pub fn eq10_rewards(
     logits: &[f32],
+    scale_from: &[f32],
     alpha: f64,
     undefined: UndefinedReward,
     gap: f64,
     standardize: bool,
     ruled_out: &[bool],
 ) -> Eq10Rewards {
+    let raw = raw_eq10(logits, alpha, standardize, ruled_out);
+    let own = (!scale_from.is_empty()).then(|| raw_eq10(scale_from, alpha, standardize, ruled_out));
+    let undefined_rows = raw.iter().filter(|r| r.1).count();
+    let exclude = undefined == UndefinedReward::Exclude;
+    let defined = |rows: &[(f64, bool)]| -> Vec<f64> {
+        rows.iter().filter(|r| !(exclude && r.1)).map(|r| r.0).collect()
+    };
+    let (mean, std) = mean_std(&defined(own.as_deref().unwrap_or(&raw)));
+    let scale = |r: f64| if standardize { (r - mean) / (std + 1e-8) } else { r };
+    let lowest = defined(&raw).into_iter().map(scale).fold(f64::INFINITY, f64::min);
+    let excluded = if lowest.is_finite() { lowest - gap } else { 0.0 };
+    let rewards = raw
+        .iter()
+        .map(|&(r, was_undefined)| if exclude && was_undefined { excluded } else { scale(r) })
+        .collect();
+    Eq10Rewards { rewards, mean, std, undefined_rows }
+}
+
+/// Eq. 10 (or its limit at α = 0, standardised) on every logit, with whether the row is
+/// undefined: past Eq. 10's edge, or flagged in `ruled_out`.
+fn raw_eq10(logits: &[f32], alpha: f64, standardize: bool, ruled_out: &[bool]) -> Vec<(f64, bool)> {
     let mut raw: Vec<(f64, bool)> = if alpha == 0.0 && standardize {
         logits.iter().map(|&c| (eq10_limit_at_zero(c as f64), false)).collect()
     } else {
@@ -110,18 +139,7 @@ pub fn eq10_rewards(
     for (row, _) in raw.iter_mut().zip(ruled_out).filter(|(_, &flag)| flag) {
         *row = ((REWARD_LOG_FLOOR).ln() - (1.0 - alpha).ln(), true);
     }
-    let undefined_rows = raw.iter().filter(|r| r.1).count();
-    let exclude = undefined == UndefinedReward::Exclude;
-    let defined: Vec<f64> = raw.iter().filter(|r| !(exclude && r.1)).map(|r| r.0).collect();
-    let (mean, std) = mean_std(&defined);
-    let scale = |r: f64| if standardize { (r - mean) / (std + 1e-8) } else { r };
-    let lowest = defined.iter().map(|&r| scale(r)).fold(f64::INFINITY, f64::min);
-    let excluded = if lowest.is_finite() { lowest - gap } else { 0.0 };
-    let rewards = raw
-        .iter()
-        .map(|&(r, was_undefined)| if exclude && was_undefined { excluded } else { scale(r) })
-        .collect();
-    Eq10Rewards { rewards, mean, std, undefined_rows }
+    raw
 }
 
 /// Eq. 10's shape as α → 0+, up to the factor α and a constant, which a standardisation
@@ -229,12 +247,26 @@ mod tests {
         let alpha = 0.5f64;
         // e^c = 1/α on the last row: 1 − α e^c = 0, Eq. 10 is −∞ there.
         let logits = [0.0f32, -1.0, (1.0 / alpha).ln() as f32 + 0.1];
-        let floored =
-            eq10_rewards(&logits, alpha, UndefinedReward::Floor, EXCLUDED_REWARD_GAP, false, &[]);
+        let floored = eq10_rewards(
+            &logits,
+            &[],
+            alpha,
+            UndefinedReward::Floor,
+            EXCLUDED_REWARD_GAP,
+            false,
+            &[],
+        );
         assert_eq!(floored.undefined_rows, 1);
         assert!((floored.rewards[2] - (1e-8f64.ln() - 0.5f64.ln())).abs() < 1e-9);
-        let excluded =
-            eq10_rewards(&logits, alpha, UndefinedReward::Exclude, EXCLUDED_REWARD_GAP, true, &[]);
+        let excluded = eq10_rewards(
+            &logits,
+            &[],
+            alpha,
+            UndefinedReward::Exclude,
+            EXCLUDED_REWARD_GAP,
+            true,
+            &[],
+        );
         assert_eq!(excluded.undefined_rows, 1);
         let defined = [reward_from_logit(0.0, alpha).0, reward_from_logit(-1.0, alpha).0];
         let mean = (defined[0] + defined[1]) / 2.0;
@@ -243,7 +275,7 @@ mod tests {
         assert!((r0 + r1).abs() < 1e-9 && (r0.abs() - 1.0).abs() < 1e-6, "{excluded:?}");
         assert!((excluded.rewards[2] - (r0.min(r1) - EXCLUDED_REWARD_GAP)).abs() < 1e-9);
         // A smaller gap moves the excluded row only; the defined rows keep their rewards.
-        let near = eq10_rewards(&logits, alpha, UndefinedReward::Exclude, 2.0, true, &[]);
+        let near = eq10_rewards(&logits, &[], alpha, UndefinedReward::Exclude, 2.0, true, &[]);
         assert_eq!(&near.rewards[..2], &excluded.rewards[..2]);
         assert!((near.rewards[2] - (r0.min(r1) - 2.0)).abs() < 1e-9, "{near:?}");
     }
@@ -257,19 +289,76 @@ mod tests {
         let logits = [0.0f32, -1.0, -2.0];
         let flags = [false, true, false];
         for standardize in [false, true] {
-            let flagged =
-                eq10_rewards(&logits, alpha, UndefinedReward::Exclude, 30.0, standardize, &flags);
+            let flagged = eq10_rewards(
+                &logits,
+                &[],
+                alpha,
+                UndefinedReward::Exclude,
+                30.0,
+                standardize,
+                &flags,
+            );
             let past_edge = [logits[0], (1.0 / alpha).ln() as f32 + 0.1, logits[2]];
-            let beyond =
-                eq10_rewards(&past_edge, alpha, UndefinedReward::Exclude, 30.0, standardize, &[]);
+            let beyond = eq10_rewards(
+                &past_edge,
+                &[],
+                alpha,
+                UndefinedReward::Exclude,
+                30.0,
+                standardize,
+                &[],
+            );
             assert_eq!(flagged, beyond, "standardize {standardize}");
             assert_eq!(flagged.undefined_rows, 1);
         }
-        let floored = eq10_rewards(&logits, alpha, UndefinedReward::Floor, 30.0, false, &flags);
+        let floored =
+            eq10_rewards(&logits, &[], alpha, UndefinedReward::Floor, 30.0, false, &flags);
         assert!((floored.rewards[1] - (1e-8f64.ln() - 0.5f64.ln())).abs() < 1e-9, "{floored:?}");
-        let limit = eq10_rewards(&logits, 0.0, UndefinedReward::Exclude, 30.0, true, &flags);
+        let limit = eq10_rewards(&logits, &[], 0.0, UndefinedReward::Exclude, 30.0, true, &flags);
         assert_eq!(limit.undefined_rows, 1);
         assert!((limit.rewards[1] - (limit.rewards[0].min(limit.rewards[2]) - 30.0)).abs() < 1e-9);
+    }
+
+    /// `scale_from` (`top_bin: bin_ratio_own_scale`): the rows whose logit was not raised keep
+    /// the rewards of their own logits exactly, standardised or not and at α = 0 too, while the
+    /// raised row's reward falls; the statistics are those of the own logits.
+    #[test]
+    fn raising_a_row_moves_no_other_rows_reward_on_the_own_scale() {
+        let own = [-2.0f32, -1.0, 0.0, 0.5, 1.0];
+        let mut raised = own;
+        raised[4] = 2.2; // e^2.2 ≈ 9: at α = 0.1 still under Eq. 10's edge
+        for (alpha, standardize) in [(0.1, true), (0.1, false), (0.0, true)] {
+            let rewards = |logits: &[f32], scale_from: &[f32]| {
+                let gap = EXCLUDED_REWARD_GAP;
+                eq10_rewards(
+                    logits,
+                    scale_from,
+                    alpha,
+                    UndefinedReward::Exclude,
+                    gap,
+                    standardize,
+                    &[],
+                )
+            };
+            let before = rewards(&own, &[]);
+            let after = rewards(&raised, &own);
+            assert_eq!(&after.rewards[..4], &before.rewards[..4], "α {alpha}, {standardize}");
+            assert_eq!((after.mean, after.std), (before.mean, before.std));
+            assert!(after.rewards[4] < before.rewards[4] - 1.0, "{after:?} vs {before:?}");
+            // In the statistics (`bin_ratio`), the raised row moves the others.
+            let counted = rewards(&raised, &[]);
+            if standardize {
+                assert!((counted.rewards[0] - before.rewards[0]).abs() > 0.1, "{counted:?}");
+            }
+        }
+        // Raised past the edge: excluded, below every other row, and the others still unmoved.
+        raised[4] = 3.0;
+        let own_scale = eq10_rewards(&raised, &own, 0.1, UndefinedReward::Exclude, 30.0, true, &[]);
+        let before = eq10_rewards(&own, &[], 0.1, UndefinedReward::Exclude, 30.0, true, &[]);
+        assert_eq!(own_scale.undefined_rows, 1);
+        assert_eq!(&own_scale.rewards[..4], &before.rewards[..4]);
+        let lowest = own_scale.rewards[..4].iter().copied().fold(f64::INFINITY, f64::min);
+        assert!((own_scale.rewards[4] - (lowest - 30.0)).abs() < 1e-9, "{own_scale:?}");
     }
 
     /// Standardised, Eq. 10 at α = 0 is its limit as α → 0+: the rewards at α = 1e-3 and 1e-4
@@ -280,7 +369,15 @@ mod tests {
     fn standardised_eq10_is_continuous_at_alpha_zero() {
         let logits = [-3.0f32, -0.5, 0.0, 0.7, 1.5, 2.5];
         let exclude = |alpha: f64| {
-            eq10_rewards(&logits, alpha, UndefinedReward::Exclude, EXCLUDED_REWARD_GAP, true, &[])
+            eq10_rewards(
+                &logits,
+                &[],
+                alpha,
+                UndefinedReward::Exclude,
+                EXCLUDED_REWARD_GAP,
+                true,
+                &[],
+            )
         };
         let at = |alpha: f64| exclude(alpha).rewards;
         let limit = at(0.0);
@@ -291,8 +388,15 @@ mod tests {
         assert!(distance(1e-4) < distance(1e-3) / 5.0, "{} {}", distance(1e-4), distance(1e-3));
         let mean = limit.iter().sum::<f64>() / limit.len() as f64;
         assert!(mean.abs() < 1e-12 && limit.windows(2).all(|w| w[0] > w[1]), "{limit:?}");
-        let raw =
-            eq10_rewards(&logits, 0.0, UndefinedReward::Exclude, EXCLUDED_REWARD_GAP, false, &[]);
+        let raw = eq10_rewards(
+            &logits,
+            &[],
+            0.0,
+            UndefinedReward::Exclude,
+            EXCLUDED_REWARD_GAP,
+            false,
+            &[],
+        );
         assert!(raw.rewards.iter().all(|&r| r == 0.0) && raw.std == 0.0, "{raw:?}");
     }
 

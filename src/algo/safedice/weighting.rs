@@ -51,8 +51,12 @@ impl SafediceTrainer {
             };
             alpha.value = (point - ALPHA_MARGIN).clamp(0.0, 1.0 - ALPHA_MARGIN);
         }
+        // `bin_ratio_own_scale` standardises on the rows' own logits, before the bin is raised.
+        let own_logits = (self.cfg.top_bin == TopBin::BinRatioOwnScale).then(|| logits.clone());
         let raised = match (self.cfg.top_bin, &heldout) {
-            (TopBin::BinRatio, Some(h)) => raise_to_bin_ratio(&mut logits, &in_bin, h.alpha.value),
+            (TopBin::BinRatio | TopBin::BinRatioOwnScale, Some(h)) => {
+                raise_to_bin_ratio(&mut logits, &in_bin, h.alpha.value)
+            }
             _ => 0,
         };
         let ruled_out = if self.cfg.top_bin == TopBin::RuledOut { &in_bin[..] } else { &[] };
@@ -62,6 +66,7 @@ impl SafediceTrainer {
         }
         let eq10 = eq10_rewards(
             &logits,
+            own_logits.as_deref().unwrap_or(&[]),
             alpha.value,
             self.cfg.undefined_reward,
             self.cfg.excluded_reward_gap,

@@ -76,7 +76,9 @@ pub struct CreateJob {
     /// its rows, BC's weights, so states Eq. 37's weights leave empty still get D^U's behaviour;
     /// 0: Eq. 37 as written), `top_bin` (`bbe` only: what Eq. 10 reads on the rows of D^U in
     /// Best Bin Estimation's bin: `row_logits`, each row's own, by default; `bin_ratio`, at least
-    /// the bin's density ratio; `ruled_out`, none of them allowed), `ess_warning_fraction`,
+    /// the bin's density ratio; `bin_ratio_own_scale`, the same with the reward standardised on
+    /// the rows' own logits, so that only the bin's rewards move; `ruled_out`, none of them
+    /// allowed), `ess_warning_fraction`,
     /// `discriminator_early_stopping` (hold out a fifth of
     /// the data and stop the discriminator when its held-out loss stops improving;
     /// `discriminator_iterations` is then its most). `dwbc`: `eta`, `lr_discriminator`, `discriminator_gp`.
