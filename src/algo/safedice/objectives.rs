@@ -240,6 +240,17 @@ mod tests {
         assert!(reward_from_logit(3.0, 0.5).1, "1 − α e^c < 0 is floored and reported");
     }
 
+    /// Eq. 10 on every row's own logit (no `scale_from`), no row flagged.
+    fn plain(
+        logits: &[f32],
+        alpha: f64,
+        undefined: UndefinedReward,
+        gap: f64,
+        standardize: bool,
+    ) -> Eq10Rewards {
+        eq10_rewards(logits, &[], alpha, undefined, gap, standardize, &[])
+    }
+
     /// Undefined rows: floored, they join the statistics (the old behaviour); excluded, they
     /// sit 30 below the lowest defined reward and the standardisation ignores them.
     #[test]
@@ -247,26 +258,10 @@ mod tests {
         let alpha = 0.5f64;
         // e^c = 1/α on the last row: 1 − α e^c = 0, Eq. 10 is −∞ there.
         let logits = [0.0f32, -1.0, (1.0 / alpha).ln() as f32 + 0.1];
-        let floored = eq10_rewards(
-            &logits,
-            &[],
-            alpha,
-            UndefinedReward::Floor,
-            EXCLUDED_REWARD_GAP,
-            false,
-            &[],
-        );
+        let floored = plain(&logits, alpha, UndefinedReward::Floor, EXCLUDED_REWARD_GAP, false);
         assert_eq!(floored.undefined_rows, 1);
         assert!((floored.rewards[2] - (1e-8f64.ln() - 0.5f64.ln())).abs() < 1e-9);
-        let excluded = eq10_rewards(
-            &logits,
-            &[],
-            alpha,
-            UndefinedReward::Exclude,
-            EXCLUDED_REWARD_GAP,
-            true,
-            &[],
-        );
+        let excluded = plain(&logits, alpha, UndefinedReward::Exclude, EXCLUDED_REWARD_GAP, true);
         assert_eq!(excluded.undefined_rows, 1);
         let defined = [reward_from_logit(0.0, alpha).0, reward_from_logit(-1.0, alpha).0];
         let mean = (defined[0] + defined[1]) / 2.0;
@@ -275,7 +270,7 @@ mod tests {
         assert!((r0 + r1).abs() < 1e-9 && (r0.abs() - 1.0).abs() < 1e-6, "{excluded:?}");
         assert!((excluded.rewards[2] - (r0.min(r1) - EXCLUDED_REWARD_GAP)).abs() < 1e-9);
         // A smaller gap moves the excluded row only; the defined rows keep their rewards.
-        let near = eq10_rewards(&logits, &[], alpha, UndefinedReward::Exclude, 2.0, true, &[]);
+        let near = plain(&logits, alpha, UndefinedReward::Exclude, 2.0, true);
         assert_eq!(&near.rewards[..2], &excluded.rewards[..2]);
         assert!((near.rewards[2] - (r0.min(r1) - 2.0)).abs() < 1e-9, "{near:?}");
     }
@@ -299,15 +294,7 @@ mod tests {
                 &flags,
             );
             let past_edge = [logits[0], (1.0 / alpha).ln() as f32 + 0.1, logits[2]];
-            let beyond = eq10_rewards(
-                &past_edge,
-                &[],
-                alpha,
-                UndefinedReward::Exclude,
-                30.0,
-                standardize,
-                &[],
-            );
+            let beyond = plain(&past_edge, alpha, UndefinedReward::Exclude, 30.0, standardize);
             assert_eq!(flagged, beyond, "standardize {standardize}");
             assert_eq!(flagged.undefined_rows, 1);
         }
@@ -354,7 +341,7 @@ mod tests {
         // Raised past the edge: excluded, below every other row, and the others still unmoved.
         raised[4] = 3.0;
         let own_scale = eq10_rewards(&raised, &own, 0.1, UndefinedReward::Exclude, 30.0, true, &[]);
-        let before = eq10_rewards(&own, &[], 0.1, UndefinedReward::Exclude, 30.0, true, &[]);
+        let before = plain(&own, 0.1, UndefinedReward::Exclude, 30.0, true);
         assert_eq!(own_scale.undefined_rows, 1);
         assert_eq!(&own_scale.rewards[..4], &before.rewards[..4]);
         let lowest = own_scale.rewards[..4].iter().copied().fold(f64::INFINITY, f64::min);
@@ -368,17 +355,8 @@ mod tests {
     #[test]
     fn standardised_eq10_is_continuous_at_alpha_zero() {
         let logits = [-3.0f32, -0.5, 0.0, 0.7, 1.5, 2.5];
-        let exclude = |alpha: f64| {
-            eq10_rewards(
-                &logits,
-                &[],
-                alpha,
-                UndefinedReward::Exclude,
-                EXCLUDED_REWARD_GAP,
-                true,
-                &[],
-            )
-        };
+        let exclude =
+            |alpha: f64| plain(&logits, alpha, UndefinedReward::Exclude, EXCLUDED_REWARD_GAP, true);
         let at = |alpha: f64| exclude(alpha).rewards;
         let limit = at(0.0);
         let distance = |alpha: f64| {
@@ -388,15 +366,7 @@ mod tests {
         assert!(distance(1e-4) < distance(1e-3) / 5.0, "{} {}", distance(1e-4), distance(1e-3));
         let mean = limit.iter().sum::<f64>() / limit.len() as f64;
         assert!(mean.abs() < 1e-12 && limit.windows(2).all(|w| w[0] > w[1]), "{limit:?}");
-        let raw = eq10_rewards(
-            &logits,
-            &[],
-            0.0,
-            UndefinedReward::Exclude,
-            EXCLUDED_REWARD_GAP,
-            false,
-            &[],
-        );
+        let raw = plain(&logits, 0.0, UndefinedReward::Exclude, EXCLUDED_REWARD_GAP, false);
         assert!(raw.rewards.iter().all(|&r| r == 0.0) && raw.std == 0.0, "{raw:?}");
     }
 
