@@ -30,8 +30,8 @@ pub use super::dexperts::config::{DexpertsConfig, NonPreferredTerm};
 pub use super::dwbc::config::DwbcConfig;
 pub use super::ppl::config::{PplConfig, PplWeight};
 pub use super::safedice::config::{
-    AlphaEstimator, AlphaHatPoint, BbeUnlabeledRows, SafediceConfig, TerminalHandling, TopBin,
-    UndefinedReward,
+    AlphaEstimator, AlphaHatPoint, AucInterval, BbeUnlabeledRows, SafediceConfig, TerminalHandling,
+    TopBin, UndefinedReward,
 };
 use super::Algorithm;
 

@@ -117,6 +117,7 @@ fn weighting_knobs_default_for_stored_configs_and_are_checked() {
         "policy_uniform_share",
         "excluded_reward_gap",
         "top_bin",
+        "auc_interval",
     ] {
         assert!(map.remove(key).is_some(), "{key} is in the service preset");
     }
@@ -130,6 +131,7 @@ fn weighting_knobs_default_for_stored_configs_and_are_checked() {
     assert_eq!(s.policy_uniform_share, 0.0, "a stored config trained with Eq. 37's weights");
     assert_eq!(s.excluded_reward_gap, 30.0, "a stored config excluded rows at e^-30");
     assert_eq!(s.top_bin, TopBin::RowLogits, "a stored config read every row's own logit");
+    assert_eq!(s.auc_interval, AucInterval::Rows, "a stored config counted held-out rows");
     let lower = resolve_config(Algorithm::Safedice, &json!({"alpha_hat_point": "lower"})).unwrap();
     let AlgorithmConfig::Safedice(s) = &lower.specific else { panic!("a SafeDICE config") };
     assert_eq!(s.alpha_hat_point, AlphaHatPoint::Lower);

@@ -101,6 +101,21 @@ pub enum TopBin {
     RuledOut,
 }
 
+/// How the held-out ROC AUC's interval, the uniform fallback's first test, counts its sample
+/// (`bbe` only; `algo::safedice::mixture`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum AucInterval {
+    /// Every held-out row an independent draw (the Hanley–McNeil variance). Rows of one episode
+    /// move together, so the interval is too narrow when episodes are long and the held-out
+    /// episodes few. The default of a config without the key.
+    #[default]
+    Rows,
+    /// Episodes counted: DeLong's variance, each set's part times Kish's design effect
+    /// `1 + (m̄ − 1)ρ` from the intra-episode correlation of the rows' components.
+    Episodes,
+}
+
 /// SafeDICE's knobs (Algorithm 1, Eq. 9, 10, 15, 36, 37).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct SafediceConfig {
@@ -200,6 +215,10 @@ pub struct SafediceConfig {
     /// `row_logits` (every preset, and a stored config without the key): each row's own.
     #[serde(default)]
     pub top_bin: TopBin,
+    /// `bbe` only: how the held-out AUC's interval counts its sample ([`AucInterval`]). `rows`
+    /// (every preset, and a stored config without the key): each row a draw.
+    #[serde(default)]
+    pub auc_interval: AucInterval,
 }
 
 /// How far below the lowest defined reward an excluded row's reward is set by default
@@ -250,6 +269,7 @@ impl SafediceConfig {
             policy_uniform_share: 0.0,
             excluded_reward_gap: EXCLUDED_REWARD_GAP,
             top_bin: TopBin::RowLogits,
+            auc_interval: AucInterval::Rows,
         }
     }
 

@@ -18,9 +18,9 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
 use super::folds::FoldScores;
-use super::mixture::{best_bin_estimate, platt_scaling, roc_auc, HeldOut};
+use super::mixture::{best_bin_estimate, platt_scaling, EpisodesOf, HeldOut};
 use super::trainer::{logits_of, snapshot, SafediceTrainer};
-use super::weighting::UnlabeledScores;
+use super::weighting::{episodes_of, UnlabeledScores};
 use crate::algo::discriminator_stop::EarlyStop;
 use crate::algo::mlp::Mlp;
 use crate::algo::optim::Adam;
@@ -181,7 +181,14 @@ impl SafediceTrainer {
                 (0..rows_n).map(|i| apply(fits[from[i]], scores[from[i]].1[i])).collect()
             }
         };
-        let heldout = match (best_bin_estimate(&scores_n, &logits), roc_auc(&scores_n, &logits)) {
+        let labeled_rows: Vec<u32> = match cf.labeled_folds {
+            Some(_) => (0..=last).flat_map(|part| cf.labeled_rows_scored(part, &[])).collect(),
+            None => own_n_rows,
+        };
+        let episodes_n = episodes_of(&self.run.non_preferred().episode_ids, &labeled_rows);
+        let episodes = EpisodesOf { labeled: &episodes_n, mixture: &self.run.u.episode_ids };
+        let auc = self.heldout_auc(&scores_n, &logits, episodes);
+        let heldout = match (best_bin_estimate(&scores_n, &logits), auc) {
             (Some(alpha), Some(auc)) => {
                 // The safety head's own discriminator is the last part's: its own fit
                 // ([`Self::finished_part_members`] gives the others').

@@ -8,7 +8,10 @@
 //!
 //! Both take *held-out* scores: rows whose episodes the discriminator never trained on, so the
 //! top bin is not the set of rows it memorised. Rows within an episode are not independent;
-//! the bounds below count rows, so they are optimistic when episodes are long (docs/algorithm.md).
+//! BBE's bound and [`roc_auc`]'s interval count rows, so they are optimistic when episodes are
+//! long (docs/algorithm.md); [`roc_auc_by_episode`] counts episodes.
+
+use std::collections::HashMap;
 
 /// Confidence level of the bounds: `1 − δ` (the BBE authors' δ).
 pub const DELTA: f64 = 0.1;
@@ -86,12 +89,15 @@ fn dkw(n: usize) -> f64 {
 }
 
 /// The held-out ROC AUC of a score (probability that a labeled row outscores a mixture row, ties
-/// counted half) with a normal interval from the Hanley–McNeil variance, at level `1 − δ`.
+/// counted half) with a normal interval at level `1 − δ`: from the Hanley–McNeil variance with
+/// every row an independent draw ([`roc_auc`]), or from DeLong's with episodes counted
+/// ([`roc_auc_by_episode`], which says how dependent it found the rows).
 #[derive(Clone, Debug, PartialEq)]
 pub struct Auc {
     pub value: f64,
     pub lower: f64,
     pub upper: f64,
+    pub episodes: Option<EpisodeDependence>,
 }
 
 /// [`Auc`] of `labeled` against `mixture` scores (higher = more like the labeled class).
@@ -120,7 +126,138 @@ pub fn roc_auc(labeled: &[f32], mixture: &[f32]) -> Option<Auc> {
     let variance =
         (a * (1.0 - a) + (n1 - 1.0) * (q1 - a * a) + (n0 - 1.0) * (q2 - a * a)) / (n1 * n0);
     let half = Z_AUC * variance.max(0.0).sqrt();
-    Some(Auc { value: a, lower: (a - half).max(0.0), upper: (a + half).min(1.0) })
+    Some(Auc { value: a, lower: (a - half).max(0.0), upper: (a + half).min(1.0), episodes: None })
+}
+
+/// Which episode each held-out row came from, on each side of [`roc_auc_by_episode`] (in the
+/// order of its scores).
+#[derive(Clone, Copy, Debug)]
+pub struct EpisodesOf<'a> {
+    pub labeled: &'a [u32],
+    pub mixture: &'a [u32],
+}
+
+/// How much the rows of one episode move together, as [`roc_auc_by_episode`] measured it.
+#[derive(Clone, Debug, PartialEq)]
+pub struct EpisodeDependence {
+    /// The intra-episode correlation `ρ` of DeLong's per-row components (both sets, one value).
+    pub correlation: f64,
+    /// Kish's design effect `1 + (m̄ − 1)ρ` of the labeled and the mixture side: how many rows
+    /// count as one independent draw.
+    pub design_effect_labeled: f64,
+    pub design_effect_mixture: f64,
+}
+
+/// [`Auc`] whose interval counts episodes rather than rows. DeLong's variance
+/// `S₁₀/n_N + S₀₁/n_U` of the Mann–Whitney statistic is built from per-row components (a labeled
+/// row's share of mixture rows it outscores, a mixture row's share of labeled rows above it);
+/// each side's term is multiplied by Kish's design effect `1 + (m̄ − 1)ρ`, with `m̄` the side's
+/// row-weighted mean episode length and `ρ` the intra-episode correlation of the components.
+/// `ρ` is one value for both sides (the one-way ANOVA estimator over the episodes of both, each
+/// side's components standardised) because D^N's held-out rows can be a single episode, whose
+/// own between-episode variance cannot be measured; D^U has many. With every row its own
+/// episode this is DeLong's interval. The interval is `[0, 1]` with fewer than two rows on a
+/// side. None when either side is empty or the episode lists do not match the scores.
+pub fn roc_auc_by_episode(labeled: &[f32], mixture: &[f32], episodes: EpisodesOf) -> Option<Auc> {
+    let mismatched =
+        episodes.labeled.len() != labeled.len() || episodes.mixture.len() != mixture.len();
+    if labeled.is_empty() || mixture.is_empty() || mismatched {
+        return None;
+    }
+    let (v10, v01) =
+        (delong_components(labeled, mixture), delong_components_below(mixture, labeled));
+    let a = v10.iter().sum::<f64>() / v10.len() as f64;
+    let (s10, s01) = (sample_variance(&v10, a), sample_variance(&v01, a));
+    let correlation = intra_episode_correlation(
+        &[(&v10, episodes.labeled, s10), (&v01, episodes.mixture, s01)],
+        a,
+    );
+    let design_effect = |ids: &[u32]| 1.0 + (row_weighted_episode_length(ids) - 1.0) * correlation;
+    let dependence = EpisodeDependence {
+        correlation,
+        design_effect_labeled: design_effect(episodes.labeled),
+        design_effect_mixture: design_effect(episodes.mixture),
+    };
+    let (n1, n0) = (labeled.len() as f64, mixture.len() as f64);
+    let variance = match (labeled.len() < 2, mixture.len() < 2) {
+        (false, false) => {
+            dependence.design_effect_labeled * s10 / n1
+                + dependence.design_effect_mixture * s01 / n0
+        }
+        _ => f64::INFINITY,
+    };
+    let half = Z_AUC * variance.sqrt();
+    let (lower, upper) = ((a - half).max(0.0), (a + half).min(1.0));
+    Some(Auc { value: a, lower, upper, episodes: Some(dependence) })
+}
+
+/// For each of `rows`, the share of `others` it outscores, ties counted half (DeLong's
+/// component of a labeled row when `rows` are labeled and `others` the mixture).
+fn delong_components(rows: &[f32], others: &[f32]) -> Vec<f64> {
+    let mut sorted = others.to_vec();
+    sorted.sort_by(f32::total_cmp);
+    let n = sorted.len() as f64;
+    let below = |s: f32| sorted.partition_point(|&o| o < s);
+    let at_most = |s: f32| sorted.partition_point(|&o| o <= s);
+    rows.iter().map(|&s| (below(s) as f64 + 0.5 * (at_most(s) - below(s)) as f64) / n).collect()
+}
+
+/// For each of `rows`, the share of `others` that outscore it, ties counted half (DeLong's
+/// component of a mixture row when `others` are labeled).
+fn delong_components_below(rows: &[f32], others: &[f32]) -> Vec<f64> {
+    delong_components(rows, others).into_iter().map(|v| 1.0 - v).collect()
+}
+
+/// `Σ (v − mean)² / (n − 1)`; 0 for fewer than two values.
+fn sample_variance(values: &[f64], mean: f64) -> f64 {
+    if values.len() < 2 {
+        return 0.0;
+    }
+    values.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / (values.len() - 1) as f64
+}
+
+/// The one-way ANOVA estimator of the intra-class correlation over the episodes of every side
+/// (`(values, episode of each, variance)`, values centred on `mean` and scaled by their side's
+/// deviation), kept in `[0, 1]`; 0 where no episode holds two rows.
+fn intra_episode_correlation(sides: &[(&[f64], &[u32], f64)], mean: f64) -> f64 {
+    // Per episode (side, id): rows, sum and sum of squares of the standardised components.
+    let mut episodes: HashMap<(usize, u32), (f64, f64, f64)> = HashMap::new();
+    for (side, &(values, ids, variance)) in sides.iter().enumerate() {
+        let scale = if variance > 0.0 { variance.sqrt() } else { f64::INFINITY };
+        for (&v, &id) in values.iter().zip(ids) {
+            let z = (v - mean) / scale;
+            let e = episodes.entry((side, id)).or_default();
+            *e = (e.0 + 1.0, e.1 + z, e.2 + z * z);
+        }
+    }
+    let groups = episodes.len() as f64;
+    let rows: f64 = episodes.values().map(|e| e.0).sum();
+    if groups < 2.0 || rows <= groups {
+        return 0.0;
+    }
+    let grand = episodes.values().map(|e| e.1).sum::<f64>() / rows;
+    let between: f64 = episodes.values().map(|&(m, sum, _)| m * (sum / m - grand).powi(2)).sum();
+    let within: f64 = episodes.values().map(|&(m, sum, sq)| sq - sum * sum / m).sum();
+    let (msb, msw) = (between / (groups - 1.0), within.max(0.0) / (rows - groups));
+    let sizes_squared: f64 = episodes.values().map(|e| e.0 * e.0).sum();
+    let m0 = (rows - sizes_squared / rows) / (groups - 1.0);
+    let denominator = msb + (m0 - 1.0) * msw;
+    if denominator <= 0.0 {
+        return 0.0;
+    }
+    ((msb - msw) / denominator).clamp(0.0, 1.0)
+}
+
+/// `Σ m_e² / Σ m_e` over the episodes' row counts `m_e`: the episode length a random row sits
+/// in, which is what a design effect reads when episodes differ in length.
+fn row_weighted_episode_length(episode_ids: &[u32]) -> f64 {
+    let mut rows: HashMap<u32, f64> = HashMap::new();
+    episode_ids.iter().for_each(|&id| *rows.entry(id).or_default() += 1.0);
+    let total: f64 = rows.values().sum();
+    if total == 0.0 {
+        return 1.0;
+    }
+    rows.values().map(|m| m * m).sum::<f64>() / total
 }
 
 /// A logistic recalibration `c' = scale · c + shift` of a logit whose `σ(c)` should be
@@ -205,6 +342,13 @@ impl HeldOut {
             ("discriminator_heldout_auc_lower", auc.lower),
             ("discriminator_heldout_auc_upper", auc.upper),
         ];
+        if let Some(d) = &auc.episodes {
+            metrics.extend([
+                ("discriminator_heldout_auc_episode_correlation", d.correlation),
+                ("discriminator_heldout_auc_design_effect_dn", d.design_effect_labeled),
+                ("discriminator_heldout_auc_design_effect_du", d.design_effect_mixture),
+            ]);
+        }
         if let Some((scale, shift)) = self.calibration {
             metrics.extend([
                 ("discriminator_calibration_scale", scale),
@@ -321,6 +465,75 @@ mod tests {
         // 2x − 2 = 2(3(s − 1)) − 2 = 6s − 8.
         assert!((scale - 6.0).abs() < 0.2 && (shift + 8.0).abs() < 0.3, "{scale}, {shift}");
         assert_eq!(platt_scaling(&[], &[1.0]), (1.0, 0.0));
+    }
+
+    /// Scores of episodes whose rows share an offset (`N(0, 1)` per episode, `N(0, noise²)` per
+    /// row), the same law on both sides: the true AUC is 0.5.
+    fn episodes_sharing_an_offset(
+        rng: &mut ChaCha8Rng,
+        episodes: usize,
+        length: usize,
+        noise: f64,
+    ) -> (Vec<f32>, Vec<u32>) {
+        let mut normal = || {
+            let (u1, u2): (f64, f64) = (rng.random::<f64>().max(1e-12), rng.random());
+            (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
+        };
+        let mut scores = Vec::with_capacity(episodes * length);
+        for _ in 0..episodes {
+            let offset = normal();
+            scores.extend((0..length).map(|_| (offset + noise * normal()) as f32));
+        }
+        let ids = (0..episodes * length).map(|row| (row / length) as u32).collect();
+        (scores, ids)
+    }
+
+    /// Where the rows of an episode move together, an interval that counts rows excludes the
+    /// true 0.5 in most draws (4 labeled episodes of 50 rows look like 200 draws); counting
+    /// episodes covers it at about the nominal 90%.
+    #[test]
+    fn counting_episodes_covers_the_true_auc_where_counting_rows_does_not() {
+        let (mut by_episode, mut by_row, trials) = (0, 0, 200);
+        for trial in 0..trials {
+            let mut rng = ChaCha8Rng::seed_from_u64(1000 + trial);
+            let (l, l_ids) = episodes_sharing_an_offset(&mut rng, 4, 50, 0.5);
+            let (m, m_ids) = episodes_sharing_an_offset(&mut rng, 40, 50, 0.5);
+            let episodes = EpisodesOf { labeled: &l_ids, mixture: &m_ids };
+            let auc = roc_auc_by_episode(&l, &m, episodes).unwrap();
+            by_episode += usize::from(auc.lower <= 0.5 && 0.5 <= auc.upper);
+            let rows = roc_auc(&l, &m).unwrap();
+            by_row += usize::from(rows.lower <= 0.5 && 0.5 <= rows.upper);
+            assert!((auc.value - rows.value).abs() < 1e-12, "the same statistic");
+            let d = auc.episodes.unwrap();
+            assert!(d.correlation > 0.5 && d.design_effect_labeled > 20.0, "{d:?}");
+        }
+        assert!(by_episode * 100 >= trials as usize * 80, "episodes: covered {by_episode}");
+        assert!(by_row * 100 <= trials as usize * 40, "rows: covered {by_row}");
+    }
+
+    /// With every row its own episode nothing is inflated: DeLong's interval, about as wide as
+    /// Hanley–McNeil's on two normals, around the same value.
+    #[test]
+    fn independent_rows_give_delong_interval() {
+        let mut rng = ChaCha8Rng::seed_from_u64(21);
+        let (l, m) = known_mixture(&mut rng, 1.0, 0.0, 2000, 3000);
+        let (l_ids, m_ids): (Vec<u32>, Vec<u32>) = ((0..2000).collect(), (0..3000).collect());
+        let episodes = EpisodesOf { labeled: &l_ids, mixture: &m_ids };
+        let auc = roc_auc_by_episode(&l, &m, episodes).unwrap();
+        let rows = roc_auc(&l, &m).unwrap();
+        let d = auc.episodes.clone().unwrap();
+        assert_eq!(
+            (d.correlation, d.design_effect_labeled, d.design_effect_mixture),
+            (0.0, 1.0, 1.0)
+        );
+        let ratio = (auc.upper - auc.lower) / (rows.upper - rows.lower);
+        assert!((0.85..1.15).contains(&ratio), "{auc:?} vs {rows:?}");
+        assert!((auc.value - 0.760_249).abs() < 0.02, "{auc:?}");
+        let one = [1u32];
+        let single = EpisodesOf { labeled: &one, mixture: &m_ids };
+        let wide = roc_auc_by_episode(&l[..1], &m, single).unwrap();
+        assert_eq!((wide.lower, wide.upper), (0.0, 1.0), "one labeled row says nothing");
+        assert!(roc_auc_by_episode(&l, &m, single).is_none(), "episodes must match the rows");
     }
 
     #[test]

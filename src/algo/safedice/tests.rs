@@ -278,6 +278,47 @@ fn separable_data_keep_the_weighting_and_report_the_interval() {
     assert_eq!(resumed.export_policy().unwrap().weights, t.export_policy().unwrap().weights);
 }
 
+/// `auc_interval: episodes` on the same separable data, with one discriminator and
+/// cross-fitted: the same discriminator, so the same alpha-hat and AUC as counting rows, with the
+/// episodes' design effects reported and the interval around the same value.
+#[test]
+fn counting_episodes_changes_the_auc_interval_only() {
+    let data = TrainingData {
+        unlabeled: std::sync::Arc::new(two_action_episodes(60, 1, |e| e % 5 < 2)),
+        non_preferred: Some(std::sync::Arc::new(two_action_episodes(30, 2, |_| true))),
+    };
+    for cross_fit in [false, true] {
+        let phase = |interval: &str| {
+            let json = serde_json::json!({
+                "seed": 3, "batch_size": 32, "hidden_sizes": [16, 16], "iterations": 3,
+                "discriminator_iterations": 400, "lr_discriminator": 3e-3,
+                "cross_fit": cross_fit, "auc_interval": interval,
+            });
+            let config = crate::algo::resolve_config(crate::algo::Algorithm::Safedice, &json);
+            finish_phase(&mut SafediceTrainer::new(&config.unwrap(), &data).unwrap())
+        };
+        let (rows, episodes) = (phase("rows"), phase("episodes"));
+        assert_eq!(metric(&rows, "alpha_hat"), metric(&episodes, "alpha_hat"), "{episodes:?}");
+        let auc = metric(&episodes, "discriminator_heldout_auc");
+        let rows_auc = metric(&rows, "discriminator_heldout_auc");
+        assert!((auc - rows_auc).abs() < 1e-12, "one statistic, summed two ways: {episodes:?}");
+        let (lower, upper) = (
+            metric(&episodes, "discriminator_heldout_auc_lower"),
+            metric(&episodes, "discriminator_heldout_auc_upper"),
+        );
+        assert!(lower < auc && auc <= upper, "{episodes:?}");
+        let rho = metric(&episodes, "discriminator_heldout_auc_episode_correlation");
+        assert!((0.0..=1.0).contains(&rho), "{episodes:?}");
+        for side in ["dn", "du"] {
+            let effect =
+                metric(&episodes, &format!("discriminator_heldout_auc_design_effect_{side}"));
+            assert!(effect >= 1.0, "{side}: {episodes:?}");
+        }
+        let has = |m: &[(&str, f64)]| m.iter().any(|(k, _)| k.contains("design_effect"));
+        assert!(!has(&rows), "counting rows reports no design effect");
+    }
+}
+
 /// Cross-fitting on the same separable data: every row of D^U scored by the discriminator of
 /// the other fold, the interval around the true share, and a run stopped in either half (the
 /// first, and the second with the first's scores in the checkpoint) and resumed ends with the

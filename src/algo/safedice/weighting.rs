@@ -7,12 +7,16 @@
 use rand::SeedableRng;
 
 use super::draws::FlowColumns;
-use super::mixture::{best_bin_estimate, platt_scaling, roc_auc, HeldOut};
+use super::mixture::{
+    best_bin_estimate, platt_scaling, roc_auc, roc_auc_by_episode, Auc, EpisodesOf, HeldOut,
+};
 use super::objectives::{alpha_hat_from_logits, eq10_rewards, ALPHA_MARGIN, POLICY_LOSS};
 use super::trainer::{SafediceTrainer, UniformWeights};
 use crate::algo::bc::bc_loss;
 use crate::algo::fused_policy::{fused_policy_step, fused_policy_update};
-use crate::algo::hyperparams::{AlphaEstimator, AlphaHatPoint, BbeUnlabeledRows, TopBin};
+use crate::algo::hyperparams::{
+    AlphaEstimator, AlphaHatPoint, AucInterval, BbeUnlabeledRows, TopBin,
+};
 use crate::algo::optim::Adam;
 use crate::algo::{Algorithm, ResolvedConfig, TrainError};
 
@@ -166,14 +170,32 @@ impl SafediceTrainer {
             BbeUnlabeledRows::HeldOut => &scores_u[..],
             BbeUnlabeledRows::All => logits_u,
         };
-        let (Some(alpha), Some(auc)) =
-            (best_bin_estimate(&scores_n, mixture), roc_auc(&scores_n, &scores_u))
-        else {
+        let episodes_n = episodes_of(&self.run.non_preferred().episode_ids, &v.n.validation);
+        let episodes_u = episodes_of(&self.run.u.episode_ids, &v.u.validation);
+        let episodes = EpisodesOf { labeled: &episodes_n, mixture: &episodes_u };
+        let (Some(alpha), Some(auc)) = (
+            best_bin_estimate(&scores_n, mixture),
+            self.heldout_auc(&scores_n, &scores_u, episodes),
+        ) else {
             return Ok(None);
         };
         let calibration =
             self.cfg.calibrate_discriminator.then(|| platt_scaling(&scores_n, &scores_u));
         Ok(Some(HeldOut { alpha, auc, calibration }))
+    }
+
+    /// The held-out ROC AUC of D^N's scores against D^U's, its interval counting rows or
+    /// episodes as `auc_interval` says.
+    pub(super) fn heldout_auc(
+        &self,
+        scores_n: &[f32],
+        scores_u: &[f32],
+        episodes: EpisodesOf,
+    ) -> Option<Auc> {
+        match self.cfg.auc_interval {
+            AucInterval::Rows => roc_auc(scores_n, scores_u),
+            AucInterval::Episodes => roc_auc_by_episode(scores_n, scores_u, episodes),
+        }
     }
 
     /// `uniform_fallback`: uniform weights (BC) when the held-out data cannot identify the
@@ -345,4 +367,9 @@ mod tests {
         assert_eq!(raise_to_bin_ratio(&mut empty, &[true, true], 0.0), 0);
         assert_eq!(empty, [-1.0, 2.0]);
     }
+}
+
+/// The episode of each of `rows` (rows of a set whose episodes are `episode_ids`).
+pub(super) fn episodes_of(episode_ids: &[u32], rows: &[u32]) -> Vec<u32> {
+    rows.iter().map(|&row| episode_ids[row as usize]).collect()
 }

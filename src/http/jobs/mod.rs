@@ -78,7 +78,10 @@ pub struct CreateJob {
     /// Best Bin Estimation's bin: `row_logits`, each row's own, by default; `bin_ratio`, at least
     /// the bin's density ratio; `bin_ratio_own_scale`, the same with the reward standardised on
     /// the rows' own logits, so that only the bin's rewards move; `ruled_out`, none of them
-    /// allowed), `ess_warning_fraction`,
+    /// allowed), `auc_interval` (`bbe` only: how the held-out AUC's interval, the uniform
+    /// fallback's first test, counts its sample: `rows`, each row a draw, by default;
+    /// `episodes`, DeLong's variance times each set's design effect from the rows'
+    /// intra-episode correlation), `ess_warning_fraction`,
     /// `discriminator_early_stopping` (hold out a fifth of
     /// the data and stop the discriminator when its held-out loss stops improving;
     /// `discriminator_iterations` is then its most). `dwbc`: `eta`, `lr_discriminator`, `discriminator_gp`.
