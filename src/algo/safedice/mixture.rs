@@ -365,6 +365,12 @@ mod tests {
     use rand::{Rng, SeedableRng};
     use rand_chacha::ChaCha8Rng;
 
+    /// A draw of N(0, 1) by Box–Muller: enough for a test's draws.
+    fn standard_normal(rng: &mut ChaCha8Rng) -> f64 {
+        let (u1, u2): (f64, f64) = (rng.random::<f64>().max(1e-12), rng.random());
+        (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
+    }
+
     /// Scores of a known mixture: the labeled class ~ N(μ, 1), the other ~ N(0, 1); the mixture
     /// holds `share` of the labeled class. With a monotone score, BBE converges to `share`
     /// (min d^P/d^N → 0 in the far tail).
@@ -375,11 +381,7 @@ mod tests {
         n_labeled: usize,
         n_mixture: usize,
     ) -> (Vec<f32>, Vec<f32>) {
-        let mut normal = || {
-            // Box–Muller: enough for a test's draws.
-            let (u1, u2): (f64, f64) = (rng.random::<f64>().max(1e-12), rng.random());
-            ((-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()) as f32
-        };
+        let mut normal = || standard_normal(rng) as f32;
         let labeled: Vec<f32> = (0..n_labeled).map(|_| mu + normal()).collect();
         let mut mixture = Vec::with_capacity(n_mixture);
         let mut rng2 = ChaCha8Rng::seed_from_u64(n_mixture as u64 ^ 77);
@@ -475,10 +477,7 @@ mod tests {
         length: usize,
         noise: f64,
     ) -> (Vec<f32>, Vec<u32>) {
-        let mut normal = || {
-            let (u1, u2): (f64, f64) = (rng.random::<f64>().max(1e-12), rng.random());
-            (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
-        };
+        let mut normal = || standard_normal(rng);
         let mut scores = Vec::with_capacity(episodes * length);
         for _ in 0..episodes {
             let offset = normal();

@@ -346,6 +346,11 @@ fn raise_to_bin_ratio(logits: &mut [f32], in_bin: &[bool], ratio: f64) -> usize 
     raised
 }
 
+/// The episode of each of `rows` (rows of a set whose episodes are `episode_ids`).
+pub(super) fn episodes_of(episode_ids: &[u32], rows: &[u32]) -> Vec<u32> {
+    rows.iter().map(|&row| episode_ids[row as usize]).collect()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -367,9 +372,4 @@ mod tests {
         assert_eq!(raise_to_bin_ratio(&mut empty, &[true, true], 0.0), 0);
         assert_eq!(empty, [-1.0, 2.0]);
     }
-}
-
-/// The episode of each of `rows` (rows of a set whose episodes are `episode_ids`).
-pub(super) fn episodes_of(episode_ids: &[u32], rows: &[u32]) -> Vec<u32> {
-    rows.iter().map(|&row| episode_ids[row as usize]).collect()
 }
