@@ -296,7 +296,8 @@ pub fn resolve_config(
 /// sent with 20 digits did on about one value in ten); one more trip through text lands on a
 /// value that reads back as itself. The job then trains with, checkpoints and reports the same
 /// bits the request's response showed, instead of a neighbour picked up by the first trip
-/// through the database.
+/// through the database. The crate enables serde_json's `float_roundtrip` (Cargo.toml), under
+/// which the first trip already lands there; the loop keeps the guarantee if that ever changes.
 fn stored_form(mut config: ResolvedConfig) -> ResolvedConfig {
     const MAX_TRIPS: usize = 4;
     for _ in 0..MAX_TRIPS {

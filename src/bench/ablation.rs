@@ -19,13 +19,15 @@
 //! All SafeDICE variants of one seed train the same discriminator (same seed, same draws), so
 //! their AUCs agree; the rows differ only in what Eq. 10 and Eq. 15 read.
 
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 use crate::algo::Algorithm;
 use crate::data::{Actions, Dataset, DatasetParts};
 
 /// What a benchmark row trains: an algorithm as the service runs it, or an ablation.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize)]
+#[derive(
+    Clone, Copy, Debug, Default, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize,
+)]
 #[serde(rename_all = "snake_case")]
 pub enum Variant {
     /// The algorithm on the benchmark's data, as the service trains it.
@@ -75,22 +77,26 @@ pub const HELDOUT_MIN_EPISODES: usize = 10;
 pub const WEIGHT_SHARE_SEED: u64 = 0;
 
 /// The discriminator's ranking quality and where the SafeDICE weights went, for one run.
-#[derive(Clone, Debug, Serialize)]
+#[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct SafediceAblation {
     /// ROC AUC of the trained discriminator's logit as a score of "non-preferred" on the
     /// held-out labeled set (fresh preferred vs non-preferred transitions).
+    #[serde(deserialize_with = "super::resume::nan_if_null")]
     pub auc_heldout: f64,
     /// The same on D^U's transitions against their true flags (in-sample: the discriminator
     /// was trained on D^U as its negative class).
+    #[serde(deserialize_with = "super::resume::nan_if_null")]
     pub auc_unlabeled: f64,
     /// Share of Eq. 37's batch-normalised weights as the policy step reads them (current ν, all
     /// of D^U in batches of the run's size, with its `policy_uniform_share`,
     /// [`batch_weight_share`]) on the non-preferred transitions at the end of
     /// training: the true share α means no filtering, 0 a perfect filter.
+    #[serde(deserialize_with = "super::resume::nan_if_null")]
     pub non_preferred_weight_share: f64,
     /// The same share from Eq. 10's reward alone, `exp(r)` per batch with ν's terms
     /// `γ' ν(s') − ν(s)` left out: what the weights would be before the ν step moved them. Far
     /// below `non_preferred_weight_share` means ν gives the non-preferred rows back their weight.
+    #[serde(deserialize_with = "super::resume::nan_if_null")]
     pub reward_only_weight_share: f64,
 }
 

@@ -19,6 +19,7 @@
 pub mod ablation;
 pub mod plot;
 pub mod report;
+pub mod resume;
 pub mod robustness;
 pub mod runner;
 pub mod speed;
@@ -102,6 +103,11 @@ pub struct BenchConfig {
     /// cut short still leaves its data): `runs.jsonl` in the output directory.
     #[serde(skip)]
     pub runs_log: Option<PathBuf>,
+    /// Keep the trainings `runs_log` already holds from an earlier invocation cut short, after
+    /// checking its recorded configuration ([`resume`]), and train the rest; a fresh start
+    /// empties the log instead.
+    #[serde(skip)]
+    pub resume: bool,
 }
 
 /// DWBC's η and DExperts' α: the service defaults, kept fixed. The paper picked them per task
@@ -130,6 +136,7 @@ impl BenchConfig {
             discriminator_share: None,
             fixed_alpha: None,
             runs_log: None,
+            resume: false,
         }
     }
 
@@ -213,8 +220,13 @@ pub struct BenchArgs {
     #[arg(long)]
     pub out: Option<PathBuf>,
     /// Write into --out even if it already holds files (replacing the results there).
-    #[arg(long)]
+    #[arg(long, conflicts_with = "resume")]
     pub force: bool,
+    /// Go on with a run cut short in --out: keep the trainings its runs.jsonl holds and train
+    /// the rest, with the same options (checked against the bench-config.json it recorded;
+    /// only --parallel may differ). Not with --suite tabular.
+    #[arg(long)]
+    pub resume: bool,
     /// Policy-learning iterations per training. Default: 1000000 (300 with --quick).
     #[arg(long)]
     pub iterations: Option<u64>,
@@ -541,8 +553,11 @@ pub fn run_cli(args: &BenchArgs, command: &str) -> anyhow::Result<()> {
         None => "bench-results",
     };
     let out = args.out.clone().unwrap_or_else(|| PathBuf::from(default_out));
-    check_out(&out, args.force)?;
+    if !args.resume {
+        check_out(&out, args.force)?;
+    }
     if let Some(SuiteName::Tabular) = args.suite {
+        anyhow::ensure!(!args.resume, "--resume: the tabular check runs in seconds; run it afresh");
         let iterations = args.iterations.unwrap_or(5000);
         for path in tabular::run_cli(iterations, args.data_seed, &out, command)? {
             println!("wrote {}", path.display());
@@ -551,7 +566,7 @@ pub fn run_cli(args: &BenchArgs, command: &str) -> anyhow::Result<()> {
     }
     let runs_log = Some(out.join("runs.jsonl"));
     if let Some(SuiteName::Robustness) = args.suite {
-        let config = BenchConfig { runs_log, ..args.to_suite_config()? };
+        let config = BenchConfig { runs_log, resume: args.resume, ..args.to_suite_config()? };
         let splits = args.split.splits();
         let families: Vec<&str> = args.families.iter().map(|f| f.name()).collect();
         let selection = robustness::Selection { splits: &splits, count: args.tasks, families };
@@ -561,7 +576,7 @@ pub fn run_cli(args: &BenchArgs, command: &str) -> anyhow::Result<()> {
         }
         return Ok(());
     }
-    let config = BenchConfig { runs_log, ..args.to_config()? };
+    let config = BenchConfig { runs_log, resume: args.resume, ..args.to_config()? };
     let results = run(&config)?;
     let summary = summarize(&results);
     let written = write_outputs(&results, &summary, &out, command)?;

@@ -118,9 +118,9 @@ pub fn markdown(results: &BenchResults, summary: &Summary, command: &str) -> Str
     );
     let _ = writeln!(
         md,
-        "- Wall time: {:.1} min; full mode (1M iterations, 5 seeds, 500 episodes, {} threads) \
+        "- Wall time: {}; full mode (1M iterations, 5 seeds, 500 episodes, {} threads) \
          estimated at {:.0} h from the speeds measured here (same networks, batch and load)",
-        results.wall_seconds / 60.0,
+        wall_time(results),
         c.threads,
         summary.full_mode_hours
     );
@@ -381,5 +381,18 @@ pub(super) fn seeds_text(seeds: u64) -> String {
     match seeds {
         1 => "seed 0".to_owned(),
         n => format!("seeds 0-{}", n.saturating_sub(1)),
+    }
+}
+
+/// The run's wall time, and how many of its trainings an earlier invocation did (`--resume`).
+pub fn wall_time(results: &BenchResults) -> String {
+    let minutes = format!("{:.1} min", results.wall_seconds / 60.0);
+    match results.resumed_runs {
+        0 => minutes,
+        kept => format!(
+            "{minutes} (resumed: {kept} of the {} trainings kept from an earlier invocation's \
+             runs.jsonl, whose time is not counted)",
+            results.runs.len()
+        ),
     }
 }

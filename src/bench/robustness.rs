@@ -14,6 +14,7 @@ use std::path::{Path, PathBuf};
 
 use serde::Serialize;
 
+use super::report;
 use super::runner::{self, BenchResults, BenchTask};
 use super::summary::{summarize, AlgorithmSummary, EnvSummary, Summary};
 use super::{BenchConfig, DataSize, Variant};
@@ -92,6 +93,7 @@ pub fn default_config() -> BenchConfig {
         discriminator_share: None,
         fixed_alpha: None,
         runs_log: None,
+        resume: false,
     }
 }
 
@@ -401,7 +403,7 @@ fn markdown(
         md,
         "- Training: {} base policy iterations (× 1 grids, × 2 pace, × 4 nav), {}, overrides {}; {} evaluation episodes per policy; {} thread(s)",
         c.iterations,
-        super::report::seeds_text(c.seeds),
+        report::seeds_text(c.seeds),
         serde_json::Value::Object(c.overrides.clone()),
         c.eval_episodes,
         c.threads
@@ -412,7 +414,7 @@ fn markdown(
             "- SafeDICE's α fixed at {alpha} in place of alpha-hat (a study, not a default)"
         );
     }
-    let _ = writeln!(md, "- Wall time: {:.1} min\n", results.wall_seconds / 60.0);
+    let _ = writeln!(md, "- Wall time: {}\n", report::wall_time(results));
     let _ = writeln!(
         md,
         "Captured share = (cost_BC − cost) / (cost_BC − cost_BC-preferred-only), over tasks where BC-preferred-only improves on BC by more than {MIN_ACHIEVABLE} κ. Worse than BC: cost > {WORSE_COST_RATIO}x BC's + 0.01 κ, or normalized return < {WORSE_RETURN_RATIO}x the lower of BC's and BC-preferred-only's (a safe policy is not asked for the return only the non-preferred demonstrator earns; the per-task table also marks returns below {WORSE_RETURN_RATIO}x BC's own).\n"

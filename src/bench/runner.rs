@@ -7,9 +7,10 @@ use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
 use rand_chacha::ChaCha8Rng;
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 use super::ablation::{self, SafediceAblation, Variant};
+use super::resume;
 use super::BenchConfig;
 use super::DataSize;
 use crate::algo::flops::StepShape;
@@ -59,12 +60,15 @@ pub struct AblationData {
 }
 
 /// Where SafeDICE's alpha-hat came from (Eq. 15), from the trainer's recorded scalars.
-#[derive(Clone, Debug, Serialize)]
+#[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct AlphaDiagnostics {
+    #[serde(deserialize_with = "resume::nan_if_null")]
     pub alpha_hat: f64,
     /// `min over D^U of e^{-logit}`: the statistic alpha-hat is (the minimum minus 1e-5).
+    #[serde(deserialize_with = "resume::nan_if_null")]
     pub min_ratio: f64,
     /// The 1% quantile of the same ratio (diagnostic, not the paper).
+    #[serde(deserialize_with = "resume::nan_if_null")]
     pub quantile_01: f64,
     /// D^U episode holding the minimum, and whether it is a non-preferred one (ground truth the
     /// learner never sees, from the data generator's manifest).
@@ -72,21 +76,28 @@ pub struct AlphaDiagnostics {
     pub argmin_episode_is_non_preferred: bool,
     /// Effective sample size of the policy weights as a fraction of the batch, averaged over
     /// the recorded policy steps, and at the last one.
+    #[serde(deserialize_with = "resume::nan_if_null")]
     pub ess_fraction_mean: f64,
+    #[serde(deserialize_with = "resume::nan_if_null")]
     pub ess_fraction_last: f64,
     /// Rows of D^U whose Eq. 10 reward is undefined (floored or excluded; 0 with the paper's
     /// alpha-hat).
+    #[serde(deserialize_with = "resume::nan_if_null")]
     pub reward_clipped_rows: f64,
     /// With the `bbe` estimator (NaN otherwise): alpha-hat's confidence interval, the
     /// discriminator's held-out AUC, and whether the weighting fell back to uniform (1).
+    #[serde(deserialize_with = "resume::nan_if_null")]
     pub alpha_hat_lower: f64,
+    #[serde(deserialize_with = "resume::nan_if_null")]
     pub alpha_hat_upper: f64,
+    #[serde(deserialize_with = "resume::nan_if_null")]
     pub heldout_auc: f64,
+    #[serde(deserialize_with = "resume::nan_if_null")]
     pub weighting_uniform: f64,
 }
 
-/// One trained and evaluated policy.
-#[derive(Clone, Debug, Serialize)]
+/// One trained and evaluated policy (a line of `runs.jsonl`, read back by [`resume`]).
+#[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct RunResult {
     pub env: String,
     pub algorithm: Algorithm,
@@ -105,6 +116,7 @@ pub struct RunResult {
     #[serde(skip_serializing_if = "Option::is_none")]
     pub ablation: Option<SafediceAblation>,
     /// The trainer's last recorded scalars (losses and the like).
+    #[serde(deserialize_with = "resume::nan_if_null_values")]
     pub last_recorded: BTreeMap<String, f64>,
 }
 
@@ -134,7 +146,10 @@ pub struct BenchResults {
     pub build_commit: String,
     /// The CPU the run trained on ([`machine`]); speed ratios change with it.
     pub machine: String,
+    /// This invocation's wall time (a resumed run's earlier part not counted).
     pub wall_seconds: f64,
+    /// Trainings kept from an earlier invocation's runs log (`--resume`), not trained again.
+    pub resumed_runs: usize,
 }
 
 /// A generated dataset and the ground truth the diagnostics need.
@@ -164,6 +179,14 @@ struct Job {
     algorithm: Algorithm,
     variant: Variant,
     seed: u64,
+}
+
+impl Job {
+    /// Whether `run` is this job's training (environments named by `names`, in job order).
+    fn trains(&self, names: &[String], run: &RunResult) -> bool {
+        names.get(self.env) == Some(&run.env)
+            && (run.algorithm, run.variant, run.seed) == (self.algorithm, self.variant, self.seed)
+    }
 }
 
 /// One environment of a run: where its episodes come from, the statistics its metrics are
@@ -213,8 +236,20 @@ pub fn run_tasks(config: &BenchConfig, tasks: &[BenchTask]) -> Result<BenchResul
         prepared.push(p);
         data.push(d);
     }
-    let jobs = schedule(config, tasks.len());
-    let runs = run_jobs(config, tasks, &prepared, &jobs)?;
+    let names: Vec<String> = tasks.iter().map(|t| t.task.name()).collect();
+    let earlier: Vec<RunResult> = resume::earlier_runs(config).map_err(BenchError::Config)?;
+    let is_done = |job: &Job| earlier.iter().any(|r| job.trains(&names, r));
+    let (done, jobs): (Vec<Job>, Vec<Job>) =
+        schedule(config, tasks.len()).into_iter().partition(is_done);
+    if !done.is_empty() {
+        tracing::info!(kept = done.len(), left = jobs.len(), "bench: resuming from the runs log");
+    }
+    let kept: Vec<RunResult> =
+        earlier.into_iter().filter(|r| done.iter().any(|j| j.trains(&names, r))).collect();
+    let resumed_runs = kept.len();
+    let mut runs = run_jobs(config, tasks, &prepared, &jobs)?;
+    runs.extend(kept);
+    sort_runs(config, &names, &mut runs);
     Ok(BenchResults {
         config: config.clone(),
         data,
@@ -224,7 +259,16 @@ pub fn run_tasks(config: &BenchConfig, tasks: &[BenchTask]) -> Result<BenchResul
         build_commit: crate::BUILD_COMMIT.to_string(),
         machine: machine(),
         wall_seconds: clock.elapsed().as_secs_f64(),
+        resumed_runs,
     })
+}
+
+/// Runs in the table's order: environment, row, seed.
+fn sort_runs(config: &BenchConfig, names: &[String], runs: &mut [RunResult]) {
+    let env_index = |name: &str| names.iter().position(|e| e == name);
+    let rows = config.rows();
+    let row_index = |r: &RunResult| rows.iter().position(|&row| row == (r.algorithm, r.variant));
+    runs.sort_by_key(|r| (env_index(&r.env), row_index(r), r.seed));
 }
 
 /// This machine's CPU as `lscpu` names it (model name, family, model), its core count, from
@@ -249,33 +293,6 @@ pub fn machine() -> String {
         field("model"),
         crate::algo::fused_mlp::gemm_kernels()
     )
-}
-
-/// `runs.jsonl`: one JSON line per finished training, appended as it ends, so a benchmark cut
-/// short still leaves its data (the console gets a one-line summary of each).
-struct RunsLog(Option<Mutex<std::fs::File>>);
-
-impl RunsLog {
-    fn open(path: Option<&std::path::Path>) -> RunsLog {
-        let file = path.and_then(|path| {
-            let opened = std::fs::create_dir_all(path.parent()?)
-                .and_then(|()| std::fs::OpenOptions::new().create(true).append(true).open(path));
-            opened
-                .map_err(|e| tracing::warn!(path = %path.display(), error = %e, "no runs log"))
-                .ok()
-        });
-        RunsLog(file.map(Mutex::new))
-    }
-
-    fn append(&self, run: &RunResult) {
-        use std::io::Write;
-        let Some(file) = &self.0 else { return };
-        let line = serde_json::to_string(run).unwrap_or_default();
-        let mut file = file.lock().unwrap_or_else(|p| p.into_inner());
-        if let Err(e) = writeln!(file, "{line}") {
-            tracing::warn!(error = %e, "could not append to the runs log");
-        }
-    }
 }
 
 /// The commit checked out where the benchmark runs: `git rev-parse`, else `.git/HEAD` read
@@ -445,7 +462,7 @@ fn run_jobs(
 ) -> Result<Vec<RunResult>, BenchError> {
     let next = AtomicUsize::new(0);
     let done = AtomicUsize::new(0);
-    let runs_log = RunsLog::open(config.runs_log.as_deref());
+    let runs_log = resume::RunsLog::open(config.runs_log.as_deref());
     let results: Mutex<Vec<Result<RunResult, BenchError>>> = Mutex::new(Vec::new());
     let failed = std::sync::atomic::AtomicBool::new(false);
     std::thread::scope(|scope| {
@@ -478,17 +495,7 @@ fn run_jobs(
             });
         }
     });
-    let mut runs = results
-        .into_inner()
-        .unwrap_or_else(|p| p.into_inner())
-        .into_iter()
-        .collect::<Result<Vec<_>, _>>()?;
-    let names: Vec<String> = tasks.iter().map(|t| t.task.name()).collect();
-    let env_index = |name: &str| names.iter().position(|e| e == name);
-    let rows = config.rows();
-    let row_index = |r: &RunResult| rows.iter().position(|&row| row == (r.algorithm, r.variant));
-    runs.sort_by_key(|r| (env_index(&r.env), row_index(r), r.seed));
-    Ok(runs)
+    results.into_inner().unwrap_or_else(|p| p.into_inner()).into_iter().collect()
 }
 
 /// Trains one policy to the end and evaluates it.

@@ -117,7 +117,9 @@ pub fn parse(reader: impl BufRead) -> Result<Dataset, ParseError> {
         if text.iter().all(u8::is_ascii_whitespace) {
             continue;
         }
-        let row: JsonRow = serde_json::from_slice(text).map_err(|e| json_error(number, text, e))?;
+        let row: JsonRow =
+            serde_path_to_error::deserialize(&mut serde_json::Deserializer::from_slice(text))
+                .map_err(|e| json_error(number, text, e))?;
         let action = match &row.action {
             JsonAction::Continuous(a) => RowAction::Continuous(a),
             JsonAction::Discrete(a) => RowAction::Discrete(*a),
@@ -146,8 +148,15 @@ fn strip_bom(number: usize, line: &[u8]) -> &[u8] {
 }
 
 /// serde_json's message without its "at line 1 column N" (we parse one line at a time), with
-/// our line number and a hint for the most common cause, Python's `NaN` / `Infinity` tokens.
-fn json_error(number: usize, text: &[u8], err: serde_json::Error) -> ParseError {
+/// our line number, the field it was in (`obs`[1]: a number beyond f32's range is refused
+/// there), and a hint for the most common cause, Python's `NaN` / `Infinity` tokens.
+fn json_error(
+    number: usize,
+    text: &[u8],
+    err: serde_path_to_error::Error<serde_json::Error>,
+) -> ParseError {
+    let field = field_of(err.path());
+    let err = err.into_inner();
     let full = err.to_string();
     let suffix = format!(" at line {} column {}", err.line(), err.column());
     let message = full.strip_suffix(&suffix).unwrap_or(&full);
@@ -159,5 +168,15 @@ fn json_error(number: usize, text: &[u8], err: serde_json::Error) -> ParseError 
     } else {
         ""
     };
-    ParseError::invalid(format!("line {number}, column {}: {message}{hint}", err.column()))
+    ParseError::invalid(format!("line {number}, column {}: {field}{message}{hint}", err.column()))
+}
+
+/// "`obs`[1]: " for the path `obs[1]`; nothing where serde_json failed outside a field.
+fn field_of(path: &serde_path_to_error::Path) -> String {
+    let path = path.to_string();
+    if path.is_empty() || path == "." {
+        return String::new();
+    }
+    let split = path.find('[').unwrap_or(path.len());
+    format!("`{}`{}: ", &path[..split], &path[split..])
 }

@@ -107,9 +107,9 @@ fn jsonl_rejects_non_finite_values_with_the_line() {
     // Python's json.dumps writes NaN / Infinity, which are not JSON.
     let text = JSONL_CONTINUOUS.replace("[1, 2]", "[NaN, 2]");
     rejected(parse("d.jsonl", &text), "invalid_dataset", &["line 2", "NaN"]);
-    // A finite decimal that overflows f32 becomes Inf.
+    // A finite decimal beyond f32's range is refused where it stands.
     let text = JSONL_CONTINUOUS.replace("[2, 3]", "[2, 1e39]");
-    rejected(parse("d.jsonl", &text), "invalid_dataset", &["line 3", "`obs`[1]", "inf"]);
+    rejected(parse("d.jsonl", &text), "invalid_dataset", &["line 3", "`obs`[1]", "out of range"]);
     let text = JSONL_CONTINUOUS.replace("\"reward\": 2", "\"reward\": 1e40");
     rejected(parse("d.jsonl", &text), "invalid_dataset", &["line 2", "`reward`"]);
 }

@@ -146,3 +146,54 @@ fn arguments_select_envs_algorithms_and_modes() {
     let err = parse(&["--algorithms", "safedice", "--config", r#"{"eta": 0.3}"#]).unwrap_err();
     assert!(err.contains("`eta` belongs to none of the selected algorithms"), "{err}");
 }
+
+/// A run's results with what differs between two invocations of the same trainings (their
+/// times, the wall clock, the commit) left out.
+fn trained(results: &bench::BenchResults) -> Vec<serde_json::Value> {
+    let mut runs = serde_json::to_value(&results.runs).unwrap();
+    for run in runs.as_array_mut().unwrap() {
+        let run = run.as_object_mut().unwrap();
+        run.remove("train_seconds");
+        run.remove("eval_seconds");
+    }
+    runs.as_array().unwrap().clone()
+}
+
+#[test]
+fn a_run_cut_short_resumes_to_the_results_of_one_that_never_stopped() {
+    let dir = tempfile::tempdir().unwrap();
+    let log = dir.path().join("runs.jsonl");
+    let mut config = tiny_config();
+    config.algorithms = vec![Algorithm::Safedice, Algorithm::Bc];
+    config.runs_log = Some(log.clone());
+    let whole = bench::run(&config).unwrap();
+    assert_eq!((whole.runs.len(), whole.resumed_runs), (4, 0));
+    let recorded = std::fs::read_to_string(dir.path().join("bench-config.json")).unwrap();
+    assert!(recorded.contains("\"iterations\": 20") && !recorded.contains("threads"), "{recorded}");
+
+    // Cut short after two trainings, the third one's line half written.
+    let lines: Vec<String> =
+        std::fs::read_to_string(&log).unwrap().lines().map(String::from).collect();
+    assert_eq!(lines.len(), 4, "one line per training");
+    let cut = format!("{}\n{}\n{}", lines[0], lines[1], &lines[2][..lines[2].len() / 2]);
+    std::fs::write(&log, cut).unwrap();
+
+    let resumed_config = BenchConfig { resume: true, threads: 1, ..config.clone() };
+    let resumed = bench::run(&resumed_config).unwrap();
+    assert_eq!(resumed.resumed_runs, 2);
+    assert_eq!(trained(&resumed), trained(&whole), "the same trainings, the same numbers");
+    let summary = bench::summarize(&resumed);
+    bench::write_outputs(&resumed, &summary, dir.path(), "safedice bench --resume").unwrap();
+    let md = std::fs::read_to_string(dir.path().join("results.md")).unwrap();
+    assert!(md.contains("resumed: 2 of the 4 trainings kept"), "{md}");
+    let again = bench::run(&resumed_config).unwrap();
+    assert_eq!(
+        (again.resumed_runs, trained(&again)),
+        (4, trained(&whole)),
+        "the log is whole again"
+    );
+
+    let other = BenchConfig { resume: true, seeds: 3, ..config };
+    let refused = bench::run(&other).unwrap_err().to_string();
+    assert!(refused.contains("differs in seeds"), "{refused}");
+}

@@ -158,14 +158,16 @@ fn weighting_knobs_default_for_stored_configs_and_are_checked() {
 }
 
 /// A learning rate sent with 20 significant digits (as `printf("%.20g")` writes it) whose
-/// first parse is not a value serde_json reads back as itself: the resolved config must already
-/// be the one the database and a checkpoint give back, bit for bit.
+/// first parse by serde_json's default parser was not a value it read back as itself: parsed
+/// correctly rounded (`float_roundtrip`), and the resolved config the one the database and a
+/// checkpoint give back, bit for bit.
 #[test]
 fn resolved_floats_read_back_from_json_as_themselves() {
     let sent = "3.8856717286787835486e-2";
     let once: f64 = serde_json::from_str(sent).unwrap();
+    assert_eq!(once.to_bits(), sent.parse::<f64>().unwrap().to_bits(), "correctly rounded");
     let twice: f64 = serde_json::from_str(&serde_json::to_string(&once).unwrap()).unwrap();
-    assert_ne!(once.to_bits(), twice.to_bits(), "the case needs a value that drifts");
+    assert_eq!(once.to_bits(), twice.to_bits(), "reads back as itself");
     let raw: serde_json::Value =
         serde_json::from_str(&format!("{{\"lr_actor\": {sent}}}")).unwrap();
     let config = resolve_config(Algorithm::Bc, &raw).unwrap();
