@@ -109,12 +109,34 @@ def build(work: Path, demos: Path, mode: str = "onnx") -> dict:
             run = {"summary": {m: _summary(r_evals, m) for m in ("onnx", "act")}, "evaluations": r_evals}
             if r_jobs:
                 run["jobs"] = [{k: j.get(k) for k in ("algorithm", "seed", "job_id", "policy_id", "status", "config",
-                                                      "alpha_hat")} | {"seconds": _seconds(j)} for j in r_jobs["jobs"]]
+                                                      "alpha_hat", "weighting")} | {"seconds": _seconds(j)} for j in r_jobs["jobs"]]
                 run["datasets"] = r_jobs.get("datasets")
                 run["algorithms"] = r_jobs.get("algorithms")
             entry["runs"][run_dir.name] = run
         out["envs"][env] = entry
     return out
+
+
+def _weighting_cells(job: dict) -> str:
+    """alpha-hat with its interval, its bin, the paper's point-wise minimum beside it, the held-out
+    AUC and the stage's weighting: the five cells after the status (dashes where the job has no
+    weighting stage or predates the record)."""
+    ah, w = job.get("alpha_hat"), job.get("weighting") or {}
+    if not isinstance(ah, (int, float)):
+        return "— | — | — | — | —"
+    alpha = f"{ah:.3f}"
+    if "alpha_hat_lower" in w and "alpha_hat_upper" in w:
+        alpha += f" [{w['alpha_hat_lower']:.3f}, {w['alpha_hat_upper']:.3f}]"
+    shares = (f"{w['alpha_hat_bin_share_du']:.4f} / {w['alpha_hat_bin_share_dn']:.4f}"
+              if "alpha_hat_bin_share_du" in w and "alpha_hat_bin_share_dn" in w else "—")
+    minimum = f"{w['alpha_hat_min_ratio']:.4f}" if "alpha_hat_min_ratio" in w else "—"
+    auc = "—"
+    if "discriminator_heldout_auc" in w:
+        auc = f"{w['discriminator_heldout_auc']:.3f}"
+        if "discriminator_heldout_auc_lower" in w and "discriminator_heldout_auc_upper" in w:
+            auc += f" [{w['discriminator_heldout_auc_lower']:.3f}, {w['discriminator_heldout_auc_upper']:.3f}]"
+    weighting = "—" if "weighting_uniform" not in w else ("uniform (BC)" if w["weighting_uniform"] else "SafeDICE")
+    return f"{alpha} | {shares} | {minimum} | {auc} | {weighting}"
 
 
 def markdown(res: dict, mode: str) -> str:
@@ -186,12 +208,14 @@ def markdown(res: dict, mode: str) -> str:
                     lines += ["", f"SafeDICE / BC: average cost {rc:.2f}x at {rr:.2f}x the normalized return "
                                   f"(issue goal ≤ 0.6x at ≥ 0.95x: {goal})."]
             if run.get("jobs"):
-                lines += ["", "| job | seed | config sent | status | alpha-hat | train time |", "|---|---|---|---|---|---|"]
+                share = (e.get("data") or {}).get("non_preferred_share")
+                lines += ["", f"| job | seed | config sent | status | alpha-hat [interval] (true {share}) | "
+                              "bin: share of D^U / of D^N | Eq. 15's minimum | held-out AUC [interval] | weighting | train time |",
+                          "|---|---|---|---|---|---|---|---|---|---|"]
                 labels = dict(_algorithms(run, {j["algorithm"] for j in run["jobs"]}))
                 for j in run["jobs"]:
                     secs = f"{j['seconds'] / 60:.1f} min" if j.get("seconds") else "—"
-                    ah = f"{j['alpha_hat']:.3f}" if isinstance(j.get("alpha_hat"), (int, float)) else "—"
                     lines.append(f"| {labels[j['algorithm']]} | {j['seed']} | "
-                                 f"`{json.dumps(j['config'])}` | {j['status']} | {ah} | {secs} |")
+                                 f"`{json.dumps(j['config'])}` | {j['status']} | {_weighting_cells(j)} | {secs} |")
         lines.append("")
     return "\n".join(lines)

@@ -277,9 +277,24 @@ def cmd_train(args) -> None:
                 print(f"job {j['job_id']} ({j['algorithm']} seed {j['seed']}): {e}", flush=True)
             j.update(status=job["status"], policy_id=job.get("policy_id"), error=job.get("error"),
                      started_at=job.get("started_at"), finished_at=job.get("finished_at"),
-                     alpha_hat=job.get("alpha_hat"))
+                     alpha_hat=job.get("alpha_hat"), weighting=_weighting(client, job))
             record_path.write_text(json.dumps(record, indent=1) + "\n")
             print(f"{j['algorithm']} seed {j['seed']}: {job['status']} policy {job.get('policy_id')}", flush=True)
+
+
+# The weighting stage's record of a job that estimated alpha-hat: its interval, the bin it came
+# from, the held-out AUC and whether the stage fell back to uniform weights (each metric's last
+# value; the service logs them once, when the discriminator phase ends).
+WEIGHTING_METRICS = ("alpha_hat_lower", "alpha_hat_upper", "alpha_hat_bin_ratio", "alpha_hat_bin_share_du",
+                     "alpha_hat_bin_share_dn", "alpha_hat_min_ratio", "discriminator_heldout_auc",
+                     "discriminator_heldout_auc_lower", "discriminator_heldout_auc_upper", "weighting_uniform")
+
+
+def _weighting(client, job) -> dict | None:
+    if job.get("alpha_hat") is None:
+        return None
+    series = client.metrics(job["id"], names=WEIGHTING_METRICS)
+    return {name: float(points[-1][1]) for name, points in series.items() if len(points)}
 
 
 def _onnx_policy(path: Path):
@@ -373,7 +388,8 @@ def cmd_report(args) -> None:
                 job = client.job(j["job_id"])
                 j.update(status=job["status"], policy_id=job.get("policy_id"), error=job.get("error"),
                          started_at=job.get("started_at"), finished_at=job.get("finished_at"),
-                         alpha_hat=job.get("alpha_hat"), progress=job.get("progress"))
+                         alpha_hat=job.get("alpha_hat"), progress=job.get("progress"),
+                         weighting=_weighting(client, job))
             record_path.write_text(json.dumps(record, indent=1) + "\n")
     res = report.build(Path(args.work), Path(args.demonstrators), args.mode)
     res["cpu"] = _cpu_name()

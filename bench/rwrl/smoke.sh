@@ -68,7 +68,13 @@ for e in evals:
     assert e["episodes"] == 3 and e["env"] == "cartpole", e
 jobs = json.loads((work / "runs/cartpole/jobs.json").read_text())["jobs"]
 assert all(j["status"] == "succeeded" for j in jobs), jobs
-assert "SafeDICE" in (work / "report/results.md").read_text()
+# The weighting stage's record: alpha-hat's interval holds alpha-hat, the AUC lies in [0, 1].
+(w,) = [j["weighting"] for j in jobs if j["algorithm"] == "safedice"]
+sd = next(j for j in jobs if j["algorithm"] == "safedice")
+assert w["alpha_hat_lower"] - 1e-9 <= sd["alpha_hat"] <= w["alpha_hat_upper"] + 1e-9, (sd["alpha_hat"], w)
+assert 0 <= w["discriminator_heldout_auc"] <= 1 and w["weighting_uniform"] in (0, 1), w
+report = (work / "report/results.md").read_text()
+assert "SafeDICE" in report and "alpha-hat [interval] (true 0.5)" in report, report
 print(f"smoke: {len(evals)} evaluations, {len(jobs)} jobs succeeded")
 EOF
 # The report's table here, since its file goes with the work folder.
