@@ -193,7 +193,7 @@ impl SafediceTrainer {
                 // The safety head's own discriminator is the last part's: its own fit
                 // ([`Self::finished_part_members`] gives the others').
                 let calibration = self.cfg.calibrate_discriminator.then_some(fits[last]);
-                Some(HeldOut { alpha, auc, calibration })
+                Some(HeldOut { alpha, auc, calibration, scores_n, episodes_n })
             }
             _ => None,
         };

@@ -17,8 +17,8 @@ use std::collections::HashMap;
 pub const DELTA: f64 = 0.1;
 /// The BBE authors' slack `γ` in the upper bound's `(1 + γ)` factor.
 const SLACK: f64 = 0.01;
-/// Two-sided normal quantile for the AUC's interval at level `1 − δ` (z of 0.95).
-const Z_AUC: f64 = 1.6449;
+/// Two-sided normal quantile for the intervals at level `1 − δ` (z of 0.95).
+pub(super) const Z_AUC: f64 = 1.6449;
 
 /// A mixture proportion with its confidence interval and the bin it came from.
 #[derive(Clone, Debug, PartialEq)]
@@ -168,10 +168,10 @@ pub fn roc_auc_by_episode(labeled: &[f32], mixture: &[f32], episodes: EpisodesOf
         (delong_components(labeled, mixture), delong_components_below(mixture, labeled));
     let a = v10.iter().sum::<f64>() / v10.len() as f64;
     let (s10, s01) = (sample_variance(&v10, a), sample_variance(&v01, a));
-    let correlation = intra_episode_correlation(
-        &[(&v10, episodes.labeled, s10), (&v01, episodes.mixture, s01)],
-        a,
-    );
+    let correlation = intra_episode_correlation(&[
+        (&v10, episodes.labeled, a, s10),
+        (&v01, episodes.mixture, a, s01),
+    ]);
     let design_effect = |ids: &[u32]| 1.0 + (row_weighted_episode_length(ids) - 1.0) * correlation;
     let dependence = EpisodeDependence {
         correlation,
@@ -209,7 +209,7 @@ fn delong_components_below(rows: &[f32], others: &[f32]) -> Vec<f64> {
 }
 
 /// `Σ (v − mean)² / (n − 1)`; 0 for fewer than two values.
-fn sample_variance(values: &[f64], mean: f64) -> f64 {
+pub(super) fn sample_variance(values: &[f64], mean: f64) -> f64 {
     if values.len() < 2 {
         return 0.0;
     }
@@ -217,12 +217,12 @@ fn sample_variance(values: &[f64], mean: f64) -> f64 {
 }
 
 /// The one-way ANOVA estimator of the intra-class correlation over the episodes of every side
-/// (`(values, episode of each, variance)`, values centred on `mean` and scaled by their side's
-/// deviation), kept in `[0, 1]`; 0 where no episode holds two rows.
-fn intra_episode_correlation(sides: &[(&[f64], &[u32], f64)], mean: f64) -> f64 {
-    // Per episode (side, id): rows, sum and sum of squares of the standardised components.
+/// (`(values, episode of each, mean, variance)`, values centred on their side's mean and scaled
+/// by its deviation), kept in `[0, 1]`; 0 where no episode holds two rows.
+pub(super) fn intra_episode_correlation(sides: &[(&[f64], &[u32], f64, f64)]) -> f64 {
+    // Per episode (side, id): rows, sum and sum of squares of the standardised values.
     let mut episodes: HashMap<(usize, u32), (f64, f64, f64)> = HashMap::new();
-    for (side, &(values, ids, variance)) in sides.iter().enumerate() {
+    for (side, &(values, ids, mean, variance)) in sides.iter().enumerate() {
         let scale = if variance > 0.0 { variance.sqrt() } else { f64::INFINITY };
         for (&v, &id) in values.iter().zip(ids) {
             let z = (v - mean) / scale;
@@ -250,7 +250,7 @@ fn intra_episode_correlation(sides: &[(&[f64], &[u32], f64)], mean: f64) -> f64 
 
 /// `Σ m_e² / Σ m_e` over the episodes' row counts `m_e`: the episode length a random row sits
 /// in, which is what a design effect reads when episodes differ in length.
-fn row_weighted_episode_length(episode_ids: &[u32]) -> f64 {
+pub(super) fn row_weighted_episode_length(episode_ids: &[u32]) -> f64 {
     let mut rows: HashMap<u32, f64> = HashMap::new();
     episode_ids.iter().for_each(|&id| *rows.entry(id).or_default() += 1.0);
     let total: f64 = rows.values().sum();
@@ -306,6 +306,10 @@ pub struct HeldOut {
     pub auc: Auc,
     /// `calibrate_discriminator`: Eq. 10 reads `scale · c + shift` (Platt scaling on these rows).
     pub calibration: Option<(f64, f64)>,
+    /// The held-out D^N rows' scores as Best Bin Estimation read them, and their episodes: the
+    /// kept share ([`super::kept_share`]) reads Eq. 10 on them.
+    pub scores_n: Vec<f32>,
+    pub episodes_n: Vec<u32>,
 }
 
 impl HeldOut {

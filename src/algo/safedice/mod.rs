@@ -18,7 +18,8 @@
 //! - [`objectives`]: the equations (9, 10, 15, 36, 37), each written once;
 //! - [`mixture`]: alpha-hat as mixture proportion estimation (Best Bin Estimation), the held-out
 //!   AUC and the discriminator's recalibration; `cross_fit`, the option that scores every row
-//!   of D^U with a discriminator that never trained on it;
+//!   of D^U with a discriminator that never trained on it; [`kept_share`], whether Eq. 10's
+//!   weights remove D^N's rows at all (the uniform fallback's test of the weighting itself);
 //! - [`draws`]: the flow table of step 3 and the minibatches both phases draw;
 //! - [`trainer`]: Algorithm 1 as a [`crate::algo::Trainer`], the reference in candle autograd,
 //!   with its steps 2-3 and the uniform fallback in `weighting`;
@@ -35,6 +36,7 @@ pub mod draws;
 mod folds;
 pub mod fused;
 mod fused_steps;
+pub mod kept_share;
 pub mod mixture;
 pub mod objectives;
 pub mod trainer;

@@ -81,6 +81,47 @@ pub struct Eq10Rewards {
     pub std: f64,
     /// Rows where `1 − α e^c` fell below the floor: floored, or excluded.
     pub undefined_rows: usize,
+    /// The map from a logit to its reward that made `rewards`, to read other rows (held-out
+    /// D^N) exactly as D^U's were read.
+    pub map: Eq10Map,
+}
+
+/// Eq. 10 at one alpha with one treatment of its undefined rows and one standardisation: what
+/// [`eq10_rewards`] fixed from D^U's rows, applied to any logit.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Eq10Map {
+    alpha: f64,
+    standardize: bool,
+    exclude: bool,
+    mean: f64,
+    std: f64,
+    /// The reward of an excluded row: `gap` below the lowest defined reward of D^U.
+    excluded: f64,
+}
+
+impl Eq10Map {
+    /// Eq. 10's reward of each logit, read as D^U's rows were (`ruled_out` as in
+    /// [`eq10_rewards`]).
+    pub fn rewards(&self, logits: &[f32], ruled_out: &[bool]) -> Vec<f64> {
+        let raw = raw_eq10(logits, self.alpha, self.standardize, ruled_out);
+        raw.into_iter().map(|row| self.reward(row)).collect()
+    }
+
+    fn reward(&self, (raw, undefined): (f64, bool)) -> f64 {
+        if self.exclude && undefined {
+            self.excluded
+        } else {
+            self.scale(raw)
+        }
+    }
+
+    fn scale(&self, raw: f64) -> f64 {
+        if self.standardize {
+            (raw - self.mean) / (self.std + 1e-8)
+        } else {
+            raw
+        }
+    }
 }
 
 /// Eq. 10 for every logit of D^U at `alpha`; with [`UndefinedReward::Exclude`] the rows where
@@ -118,14 +159,13 @@ pub fn eq10_rewards(
         rows.iter().filter(|r| !(exclude && r.1)).map(|r| r.0).collect()
     };
     let (mean, std) = mean_std(&defined(own.as_deref().unwrap_or(&raw)));
-    let scale = |r: f64| if standardize { (r - mean) / (std + 1e-8) } else { r };
-    let lowest = defined(&raw).into_iter().map(scale).fold(f64::INFINITY, f64::min);
-    let excluded = if lowest.is_finite() { lowest - gap } else { 0.0 };
-    let rewards = raw
-        .iter()
-        .map(|&(r, was_undefined)| if exclude && was_undefined { excluded } else { scale(r) })
-        .collect();
-    Eq10Rewards { rewards, mean, std, undefined_rows }
+    let mut map = Eq10Map { alpha, standardize, exclude, mean, std, excluded: 0.0 };
+    let lowest = defined(&raw).into_iter().map(|r| map.scale(r)).fold(f64::INFINITY, f64::min);
+    if lowest.is_finite() {
+        map.excluded = lowest - gap;
+    }
+    let rewards = raw.into_iter().map(|row| map.reward(row)).collect();
+    Eq10Rewards { rewards, mean, std, undefined_rows, map }
 }
 
 /// Eq. 10 (or its limit at α = 0, standardised) on every logit, with whether the row is

@@ -241,10 +241,7 @@ fn inseparable_data_fall_back_to_bc_exactly() {
 /// reported.
 #[test]
 fn separable_data_keep_the_weighting_and_report_the_interval() {
-    let data = TrainingData {
-        unlabeled: std::sync::Arc::new(two_action_episodes(60, 1, |e| e % 5 < 2)),
-        non_preferred: Some(std::sync::Arc::new(two_action_episodes(30, 2, |_| true))),
-    };
+    let data = separable_task();
     let config = crate::algo::resolve_config(
         crate::algo::Algorithm::Safedice,
         &serde_json::json!({
@@ -278,24 +275,38 @@ fn separable_data_keep_the_weighting_and_report_the_interval() {
     assert_eq!(resumed.export_policy().unwrap().weights, t.export_policy().unwrap().weights);
 }
 
+/// Separable data: unsafe episodes always take action 1, 40% of D^U's episodes.
+fn separable_task() -> TrainingData {
+    TrainingData {
+        unlabeled: std::sync::Arc::new(two_action_episodes(60, 1, |e| e % 5 < 2)),
+        non_preferred: Some(std::sync::Arc::new(two_action_episodes(30, 2, |_| true))),
+    }
+}
+
+/// The metrics where the discriminator phase ends on `data`, with a small config and `extra`'s
+/// keys over it.
+fn separable_phase(data: &TrainingData, extra: serde_json::Value) -> Vec<(&'static str, f64)> {
+    let mut json = serde_json::json!({
+        "seed": 3, "batch_size": 32, "hidden_sizes": [16, 16], "iterations": 3,
+        "discriminator_iterations": 400, "lr_discriminator": 3e-3,
+    });
+    json.as_object_mut().unwrap().extend(extra.as_object().unwrap().clone());
+    let config = crate::algo::resolve_config(crate::algo::Algorithm::Safedice, &json).unwrap();
+    finish_phase(&mut SafediceTrainer::new(&config, data).unwrap())
+}
+
 /// `auc_interval: episodes` on the same separable data, with one discriminator and
 /// cross-fitted: the same discriminator, so the same alpha-hat and AUC as counting rows, with the
 /// episodes' design effects reported and the interval around the same value.
 #[test]
 fn counting_episodes_changes_the_auc_interval_only() {
-    let data = TrainingData {
-        unlabeled: std::sync::Arc::new(two_action_episodes(60, 1, |e| e % 5 < 2)),
-        non_preferred: Some(std::sync::Arc::new(two_action_episodes(30, 2, |_| true))),
-    };
+    let data = separable_task();
     for cross_fit in [false, true] {
         let phase = |interval: &str| {
-            let json = serde_json::json!({
-                "seed": 3, "batch_size": 32, "hidden_sizes": [16, 16], "iterations": 3,
-                "discriminator_iterations": 400, "lr_discriminator": 3e-3,
-                "cross_fit": cross_fit, "auc_interval": interval,
-            });
-            let config = crate::algo::resolve_config(crate::algo::Algorithm::Safedice, &json);
-            finish_phase(&mut SafediceTrainer::new(&config.unwrap(), &data).unwrap())
+            separable_phase(
+                &data,
+                serde_json::json!({"cross_fit": cross_fit, "auc_interval": interval}),
+            )
         };
         let (rows, episodes) = (phase("rows"), phase("episodes"));
         assert_eq!(metric(&rows, "alpha_hat"), metric(&episodes, "alpha_hat"), "{episodes:?}");
@@ -314,8 +325,34 @@ fn counting_episodes_changes_the_auc_interval_only() {
                 metric(&episodes, &format!("discriminator_heldout_auc_design_effect_{side}"));
             assert!(effect >= 1.0, "{side}: {episodes:?}");
         }
-        let has = |m: &[(&str, f64)]| m.iter().any(|(k, _)| k.contains("design_effect"));
+        let has = |m: &[(&str, f64)]| {
+            m.iter().any(|(k, _)| k.starts_with("discriminator_heldout_auc_design"))
+        };
         assert!(!has(&rows), "counting rows reports no design effect");
+    }
+}
+
+/// The share of held-out D^N that Eq. 10's weights keep, on the same separable data, with one
+/// discriminator and cross-fitted: below 1 with its interval too (the weights remove the
+/// unsafe episodes), and `kept_share_test` then leaves the run as it was.
+#[test]
+fn separable_data_weights_keep_little_of_d_n() {
+    let data = separable_task();
+    for cross_fit in [false, true] {
+        let phase = |test: bool| {
+            separable_phase(
+                &data,
+                serde_json::json!({"cross_fit": cross_fit, "kept_share_test": test}),
+            )
+        };
+        let (off, on) = (phase(false), phase(true));
+        let kept = metric(&on, "weighting_kept_dn_share");
+        let upper = metric(&on, "weighting_kept_dn_share_upper");
+        assert!(0.0 <= kept && kept <= upper && upper < 1.0, "{on:?}");
+        assert!(metric(&on, "weighting_kept_dn_share_design_effect") >= 1.0, "{on:?}");
+        assert_eq!(metric(&on, "weighting_uniform"), 0.0, "{on:?}");
+        assert_eq!(metric(&on, "alpha_hat"), metric(&off, "alpha_hat"));
+        assert_eq!(kept, metric(&off, "weighting_kept_dn_share"), "measured either way");
     }
 }
 
@@ -344,10 +381,7 @@ fn three_cross_fitted_folds_read_every_row_and_resume_in_any_part() {
 }
 
 fn cross_fitted_run(folds: u32, labeled: bool, stops: &[usize]) -> SafediceTrainer {
-    let data = TrainingData {
-        unlabeled: std::sync::Arc::new(two_action_episodes(60, 1, |e| e % 5 < 2)),
-        non_preferred: Some(std::sync::Arc::new(two_action_episodes(30, 2, |_| true))),
-    };
+    let data = separable_task();
     let config = crate::algo::resolve_config(
         crate::algo::Algorithm::Safedice,
         &serde_json::json!({

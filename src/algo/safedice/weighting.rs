@@ -7,6 +7,7 @@
 use rand::SeedableRng;
 
 use super::draws::FlowColumns;
+use super::kept_share::{kept_share, KeptShare, Rewarded};
 use super::mixture::{
     best_bin_estimate, platt_scaling, roc_auc, roc_auc_by_episode, Auc, EpisodesOf, HeldOut,
 };
@@ -77,6 +78,24 @@ impl SafediceTrainer {
             self.cfg.standardize_reward,
             ruled_out,
         );
+        let kept = heldout.as_ref().and_then(|h| {
+            let logits_n = self.heldout_eq10_logits(h, calibrated);
+            let ruled_out_n: Vec<bool> = match self.cfg.top_bin {
+                TopBin::RuledOut => {
+                    h.scores_n.iter().map(|&c| c as f64 >= h.alpha.threshold).collect()
+                }
+                _ => Vec::new(),
+            };
+            let scale = self.cfg.reward_scale;
+            let rewards_n: Vec<f64> =
+                eq10.map.rewards(&logits_n, &ruled_out_n).into_iter().map(|r| scale * r).collect();
+            let rewards_u: Vec<f64> = eq10.rewards.iter().map(|r| scale * r).collect();
+            kept_share(
+                Rewarded { rewards: &rewards_n, episodes: &h.episodes_n },
+                Rewarded { rewards: &rewards_u, episodes: &self.run.u.episode_ids },
+                self.cfg.policy_uniform_share,
+            )
+        });
         if let Some(bad) = eq10.rewards.iter().position(|r| !r.is_finite()) {
             return Err(TrainError::Diverged {
                 step: self.run.step,
@@ -107,6 +126,13 @@ impl SafediceTrainer {
         if let Some(h) = &heldout {
             self.phase_metrics.extend(h.metrics());
         }
+        if let Some(k) = &kept {
+            self.phase_metrics.extend([
+                ("weighting_kept_dn_share", k.value),
+                ("weighting_kept_dn_share_upper", k.upper),
+                ("weighting_kept_dn_share_design_effect", k.design_effect),
+            ]);
+        }
         if calibrated {
             self.phase_metrics.push(("discriminator_cross_fitted", 1.0));
         }
@@ -131,13 +157,27 @@ impl SafediceTrainer {
                 format!("Eq. 10's reward is the same on every row (alpha-hat {:.4}), so there is nothing to weight", alpha.value)
             })
         };
-        self.decide_weighting(heldout.as_ref(), uninformative)?;
+        self.decide_weighting(heldout.as_ref(), kept.as_ref(), uninformative)?;
         self.heldout = heldout;
         let scale = self.cfg.reward_scale;
         let rewards: Vec<f32> = eq10.rewards.iter().map(|&r| (scale * r) as f32).collect();
         self.flow = Some(FlowColumns::build(&self.run.u, rewards, &self.cfg)?);
         self.alpha = Some(alpha);
         Ok(())
+    }
+
+    /// Held-out D^N's logits as Eq. 10 reads D^U's: recalibrated (unless the scores are
+    /// already), and raised to the bin's ratio in Best Bin Estimation's bin under `bin_ratio`.
+    fn heldout_eq10_logits(&self, h: &HeldOut, calibrated: bool) -> Vec<f32> {
+        let mut logits = h.scores_n.clone();
+        let in_bin: Vec<bool> = logits.iter().map(|&c| c as f64 >= h.alpha.threshold).collect();
+        if let (Some((scale, shift)), false) = (h.calibration, calibrated) {
+            logits.iter_mut().for_each(|c| *c = (scale * *c as f64 + shift) as f32);
+        }
+        if matches!(self.cfg.top_bin, TopBin::BinRatio | TopBin::BinRatioOwnScale) {
+            raise_to_bin_ratio(&mut logits, &in_bin, h.alpha.value);
+        }
+        logits
     }
 
     /// The discriminator's logits on every row of D^U (given ones in the oracle ablation,
@@ -181,7 +221,7 @@ impl SafediceTrainer {
         };
         let calibration =
             self.cfg.calibrate_discriminator.then(|| platt_scaling(&scores_n, &scores_u));
-        Ok(Some(HeldOut { alpha, auc, calibration }))
+        Ok(Some(HeldOut { alpha, auc, calibration, scores_n, episodes_n }))
     }
 
     /// The held-out ROC AUC of D^N's scores against D^U's, its interval counting rows or
@@ -203,6 +243,7 @@ impl SafediceTrainer {
     fn decide_weighting(
         &mut self,
         heldout: Option<&HeldOut>,
+        kept: Option<&KeptShare>,
         uninformative_reward: Option<String>,
     ) -> Result<(), TrainError> {
         let ablation = self.overrides.alpha.is_some() || self.overrides.unlabeled_logits.is_some();
@@ -214,7 +255,8 @@ impl SafediceTrainer {
             None => Some("no held-out rows to estimate alpha-hat on".to_string()),
             Some(h) => h.not_identifiable(),
         }
-        .or(uninformative_reward);
+        .or(uninformative_reward)
+        .or_else(|| kept.filter(|_| self.cfg.kept_share_test).and_then(weights_keep_dn));
         self.phase_metrics.push(("weighting_uniform", f64::from(u8::from(reason.is_some()))));
         let Some(reason) = reason else { return Ok(()) };
         tracing::warn!(reason = %reason, "weighting: uniform, {reason}; SafeDICE trains as BC");
@@ -346,6 +388,17 @@ fn raise_to_bin_ratio(logits: &mut [f32], in_bin: &[bool], ratio: f64) -> usize 
     raised
 }
 
+/// Why the weighting is no better than noise, if it is not: the interval of the share of D^N's
+/// mass that Eq. 10's weights keep reaches 1.
+fn weights_keep_dn(kept: &KeptShare) -> Option<String> {
+    (kept.upper >= 1.0).then(|| {
+        format!(
+            "Eq. 10's weights keep {:.3} of held-out D^N's share (upper end {:.3}, design effect {:.1}): they cannot be shown to remove non-preferred rows",
+            kept.value, kept.upper, kept.design_effect
+        )
+    })
+}
+
 /// The episode of each of `rows` (rows of a set whose episodes are `episode_ids`).
 pub(super) fn episodes_of(episode_ids: &[u32], rows: &[u32]) -> Vec<u32> {
     rows.iter().map(|&row| episode_ids[row as usize]).collect()
@@ -354,6 +407,15 @@ pub(super) fn episodes_of(episode_ids: &[u32], rows: &[u32]) -> Vec<u32> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The kept share's test fires when its interval reaches 1, and says with what numbers.
+    #[test]
+    fn weights_that_may_keep_all_of_d_n_are_reported() {
+        let kept = |value, upper| KeptShare { value, upper, design_effect: 40.0 };
+        assert_eq!(weights_keep_dn(&kept(0.4, 0.99)), None);
+        let reason = weights_keep_dn(&kept(0.62, 1.06)).unwrap();
+        assert!(reason.starts_with("Eq. 10's weights keep 0.620 of held-out D^N's share (upper end 1.060, design effect 40.0)"), "{reason}");
+    }
 
     /// On the bin's rows the logit rises to the bin's `ln(q_N/q_U)` and never falls; off the bin,
     /// and with an empty bin (ratio 0), nothing moves. At alpha-hat the bin's ratio Eq. 10 then

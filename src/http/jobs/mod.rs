@@ -81,7 +81,9 @@ pub struct CreateJob {
     /// allowed), `auc_interval` (`bbe` only: how the held-out AUC's interval, the uniform
     /// fallback's first test, counts its sample: `rows`, each row a draw, by default;
     /// `episodes`, DeLong's variance times each set's design effect from the rows'
-    /// intra-episode correlation), `ess_warning_fraction`,
+    /// intra-episode correlation), `kept_share_test` (`bbe` only: also train as BC when the
+    /// interval of the share of held-out D^N's mass that Eq. 10's weights keep reaches 1; off by
+    /// default), `ess_warning_fraction`,
     /// `discriminator_early_stopping` (hold out a fifth of
     /// the data and stop the discriminator when its held-out loss stops improving;
     /// `discriminator_iterations` is then its most). `dwbc`: `eta`, `lr_discriminator`, `discriminator_gp`.
