@@ -113,6 +113,14 @@ mod tests {
         let expected = (-5f64).exp() / (0.4 + 0.6 * (-5f64).exp());
         assert!((kept.value - expected).abs() < 0.15 * expected, "{kept:?} vs {expected}");
         assert!(kept.upper < 0.05, "{kept:?}");
+        // The same rows give the same bits (the metric is part of a run's record).
+        let again = kept_share(
+            Rewarded { rewards: &n, episodes: &n_ids },
+            Rewarded { rewards: &u, episodes: &u_ids },
+            0.0,
+        );
+        assert_eq!(again.as_ref(), Some(&kept));
+        assert_eq!(again.unwrap().design_effect.to_bits(), kept.design_effect.to_bits());
         // The uniform share m maps the kept share to (1 − m) k + m.
         let mixed = kept_share(
             Rewarded { rewards: &n, episodes: &n_ids },

@@ -11,7 +11,7 @@
 //! BBE's bound and [`roc_auc`]'s interval count rows, so they are optimistic when episodes are
 //! long (docs/algorithm.md); [`roc_auc_by_episode`] counts episodes.
 
-use std::collections::HashMap;
+use std::collections::BTreeMap;
 
 /// Confidence level of the bounds: `1 − δ` (the BBE authors' δ).
 pub const DELTA: f64 = 0.1;
@@ -220,8 +220,10 @@ pub(super) fn sample_variance(values: &[f64], mean: f64) -> f64 {
 /// (`(values, episode of each, mean, variance)`, values centred on their side's mean and scaled
 /// by its deviation), kept in `[0, 1]`; 0 where no episode holds two rows.
 pub(super) fn intra_episode_correlation(sides: &[(&[f64], &[u32], f64, f64)]) -> f64 {
-    // Per episode (side, id): rows, sum and sum of squares of the standardised values.
-    let mut episodes: HashMap<(usize, u32), (f64, f64, f64)> = HashMap::new();
+    // Per episode (side, id): rows, sum and sum of squares of the standardised values. Ordered,
+    // so the sums below add in the same order in every process: the same run records the same
+    // bits (a hash map's order changes with its per-process seed).
+    let mut episodes: BTreeMap<(usize, u32), (f64, f64, f64)> = BTreeMap::new();
     for (side, &(values, ids, mean, variance)) in sides.iter().enumerate() {
         let scale = if variance > 0.0 { variance.sqrt() } else { f64::INFINITY };
         for (&v, &id) in values.iter().zip(ids) {
@@ -251,7 +253,7 @@ pub(super) fn intra_episode_correlation(sides: &[(&[f64], &[u32], f64, f64)]) ->
 /// `Σ m_e² / Σ m_e` over the episodes' row counts `m_e`: the episode length a random row sits
 /// in, which is what a design effect reads when episodes differ in length.
 pub(super) fn row_weighted_episode_length(episode_ids: &[u32]) -> f64 {
-    let mut rows: HashMap<u32, f64> = HashMap::new();
+    let mut rows: BTreeMap<u32, f64> = BTreeMap::new();
     episode_ids.iter().for_each(|&id| *rows.entry(id).or_default() += 1.0);
     let total: f64 = rows.values().sum();
     if total == 0.0 {
