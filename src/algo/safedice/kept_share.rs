@@ -21,7 +21,7 @@ use super::mixture::{
 };
 
 /// The share of D^N's mass that a weighting of D^U keeps (`E_{d^N}[w]`, with `E_U[w] = 1`),
-/// with the upper end of its interval at level `1 − δ` (as alpha-hat's and the AUC's).
+/// with the upper end of its two-sided interval at level `1 − δ` (z of 0.95, as the AUC's).
 #[derive(Clone, Debug, PartialEq)]
 pub struct KeptShare {
     pub value: f64,
@@ -47,9 +47,10 @@ pub fn kept_share(labeled: Rewarded, unlabeled: Rewarded, uniform_share: f64) ->
     if labeled.rewards.is_empty() || unlabeled.rewards.is_empty() || mismatched {
         return None;
     }
-    // exp(r − top) for stability; the normalisation over D^U removes `top` again.
-    let top =
-        labeled.rewards.iter().chain(unlabeled.rewards).fold(f64::NEG_INFINITY, |a, &b| a.max(b));
+    // exp(r − top) for stability, `top` D^U's highest reward, so the normalisation over D^U is
+    // at least 1/n_U: a D^N row far above every row of D^U gives an infinite share (which the
+    // test reads as "cannot be shown to remove"), never 0/0. The normalisation removes `top`.
+    let top = unlabeled.rewards.iter().fold(f64::NEG_INFINITY, |a, &b| a.max(b));
     let raw_u: Vec<f64> = unlabeled.rewards.iter().map(|r| (r - top).exp()).collect();
     let norm = raw_u.iter().sum::<f64>() / raw_u.len() as f64;
     let weight = |e: f64| (1.0 - uniform_share) * e / norm + uniform_share;
@@ -156,6 +157,23 @@ mod tests {
         }
         assert!(covered >= 150, "episodes counted: {covered} of 200 reach 1");
         assert!(covered_by_rows < 140, "rows counted: {covered_by_rows} of 200 reach 1");
+    }
+
+    /// A held-out D^N row whose reward lies far above every row of D^U (hundreds of nats, as
+    /// a large `reward_scale` over a narrow standardisation can give): an infinite share, not
+    /// NaN, so the test cannot read it as a weighting that removes D^N.
+    #[test]
+    fn a_d_n_row_far_above_d_u_keeps_an_infinite_share() {
+        let u = [0.0, -1.0, -2.0];
+        let ids = [0, 0, 1];
+        let far = kept_share(
+            Rewarded { rewards: &[900.0, 0.0], episodes: &[0, 0] },
+            Rewarded { rewards: &u, episodes: &ids },
+            0.0,
+        )
+        .unwrap();
+        assert_eq!(far.value, f64::INFINITY, "{far:?}");
+        assert!(far.upper.is_nan() || far.upper >= 1.0, "{far:?}");
     }
 
     #[test]

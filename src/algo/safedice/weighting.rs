@@ -389,9 +389,10 @@ fn raise_to_bin_ratio(logits: &mut [f32], in_bin: &[bool], ratio: f64) -> usize 
 }
 
 /// Why the weighting is no better than noise, if it is not: the interval of the share of D^N's
-/// mass that Eq. 10's weights keep reaches 1.
+/// mass that Eq. 10's weights keep reaches 1 (or is not a number).
 fn weights_keep_dn(kept: &KeptShare) -> Option<String> {
-    (kept.upper >= 1.0).then(|| {
+    let shown_below_one = kept.upper < 1.0;
+    (!shown_below_one).then(|| {
         format!(
             "Eq. 10's weights keep {:.3} of held-out D^N's share (upper end {:.3}, design effect {:.1}): they cannot be shown to remove non-preferred rows",
             kept.value, kept.upper, kept.design_effect
@@ -413,6 +414,7 @@ mod tests {
     fn weights_that_may_keep_all_of_d_n_are_reported() {
         let kept = |value, upper| KeptShare { value, upper, design_effect: 40.0 };
         assert_eq!(weights_keep_dn(&kept(0.4, 0.99)), None);
+        assert!(weights_keep_dn(&kept(f64::NAN, f64::NAN)).is_some(), "NaN is no evidence");
         let reason = weights_keep_dn(&kept(0.62, 1.06)).unwrap();
         assert!(reason.starts_with("Eq. 10's weights keep 0.620 of held-out D^N's share (upper end 1.060, design effect 40.0)"), "{reason}");
     }
