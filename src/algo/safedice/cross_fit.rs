@@ -17,8 +17,10 @@ use candle_core::Tensor;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
+use super::bin_by_episode::bin_ratio_by_episode;
 use super::folds::FoldScores;
-use super::mixture::{best_bin_estimate, platt_scaling, EpisodesOf, HeldOut};
+use super::heldout::HeldOut;
+use super::mixture::{best_bin_estimate, platt_scaling, EpisodesOf};
 use super::trainer::{logits_of, snapshot, SafediceTrainer};
 use super::weighting::{episodes_of, UnlabeledScores};
 use crate::algo::discriminator_stop::EarlyStop;
@@ -193,7 +195,9 @@ impl SafediceTrainer {
                 // The safety head's own discriminator is the last part's: its own fit
                 // ([`Self::finished_part_members`] gives the others').
                 let calibration = self.cfg.calibrate_discriminator.then_some(fits[last]);
-                Some(HeldOut { alpha, auc, calibration, scores_n, episodes_n })
+                let alpha_by_episode =
+                    bin_ratio_by_episode(&scores_n, &logits, alpha.threshold, episodes);
+                Some(HeldOut { alpha, auc, calibration, scores_n, episodes_n, alpha_by_episode })
             }
             _ => None,
         };

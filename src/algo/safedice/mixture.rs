@@ -302,77 +302,14 @@ pub fn platt_scaling(labeled: &[f32], mixture: &[f32]) -> (f64, f64) {
     }
 }
 
-/// Held-out statistics of the frozen discriminator (the `bbe` estimator).
-pub struct HeldOut {
-    pub alpha: MixtureEstimate,
-    pub auc: Auc,
-    /// `calibrate_discriminator`: Eq. 10 reads `scale · c + shift` (Platt scaling on these rows).
-    pub calibration: Option<(f64, f64)>,
-    /// The held-out D^N rows' scores as Best Bin Estimation read them, and their episodes: the
-    /// kept share ([`super::kept_share`]) reads Eq. 10 on them.
-    pub scores_n: Vec<f32>,
-    pub episodes_n: Vec<u32>,
-}
-
-impl HeldOut {
-    /// Why D^N and D^U cannot be told apart on held-out rows, if they cannot: the AUC's interval
-    /// covers 0.5, or alpha-hat's covers 1 (every row of D^U could be non-preferred).
-    pub fn not_identifiable(&self) -> Option<String> {
-        let (auc, a) = (&self.auc, &self.alpha);
-        if auc.lower <= 0.5 {
-            return Some(format!(
-                "held-out AUC {:.3} [{:.3}, {:.3}] does not exclude 0.5",
-                auc.value, auc.lower, auc.upper
-            ));
-        }
-        (a.upper >= 1.0).then(|| {
-            format!(
-                "alpha-hat {:.3} [{:.3}, {:.3}] does not exclude 1 (held-out AUC {:.3})",
-                a.value, a.lower, a.upper, auc.value
-            )
-        })
-    }
-
-    pub fn metrics(&self) -> Vec<(&'static str, f64)> {
-        let (a, auc) = (&self.alpha, &self.auc);
-        let mut metrics = vec![
-            ("alpha_hat_bin_ratio", a.value),
-            ("alpha_hat_lower", a.lower),
-            ("alpha_hat_upper", a.upper),
-            ("alpha_hat_bin_threshold", a.threshold),
-            ("alpha_hat_bin_share_dn", a.share_n),
-            ("alpha_hat_bin_share_du", a.share_u),
-            ("alpha_hat_rows_dn", a.rows_n as f64),
-            ("alpha_hat_rows_du", a.rows_u as f64),
-            ("discriminator_heldout_auc", auc.value),
-            ("discriminator_heldout_auc_lower", auc.lower),
-            ("discriminator_heldout_auc_upper", auc.upper),
-        ];
-        if let Some(d) = &auc.episodes {
-            metrics.extend([
-                ("discriminator_heldout_auc_episode_correlation", d.correlation),
-                ("discriminator_heldout_auc_design_effect_dn", d.design_effect_labeled),
-                ("discriminator_heldout_auc_design_effect_du", d.design_effect_mixture),
-            ]);
-        }
-        if let Some((scale, shift)) = self.calibration {
-            metrics.extend([
-                ("discriminator_calibration_scale", scale),
-                ("discriminator_calibration_shift", shift),
-            ]);
-        }
-        metrics
-    }
-}
-
 #[cfg(test)]
-mod tests {
+pub(super) mod tests {
     use super::*;
     use rand::{Rng, SeedableRng};
     use rand_chacha::ChaCha8Rng;
 
     /// A draw of N(0, 1) by Box–Muller: enough for a test's draws.
-    fn standard_normal(rng: &mut ChaCha8Rng) -> f64 {
+    pub(in crate::algo::safedice) fn standard_normal(rng: &mut ChaCha8Rng) -> f64 {
         let (u1, u2): (f64, f64) = (rng.random::<f64>().max(1e-12), rng.random());
         (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
     }
@@ -380,7 +317,7 @@ mod tests {
     /// Scores of a known mixture: the labeled class ~ N(μ, 1), the other ~ N(0, 1); the mixture
     /// holds `share` of the labeled class. With a monotone score, BBE converges to `share`
     /// (min d^P/d^N → 0 in the far tail).
-    fn known_mixture(
+    pub(in crate::algo::safedice) fn known_mixture(
         rng: &mut ChaCha8Rng,
         mu: f32,
         share: f64,

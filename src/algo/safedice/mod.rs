@@ -29,6 +29,7 @@
 //!   `diagnostics`, what its report reads off a trained run (Eq. 12's weights on all of D^U).
 
 pub mod ablation;
+pub mod bin_by_episode;
 pub mod config;
 mod cross_fit;
 mod diagnostics;
@@ -36,6 +37,7 @@ pub mod draws;
 mod folds;
 pub mod fused;
 mod fused_steps;
+pub mod heldout;
 pub mod kept_share;
 pub mod mixture;
 pub mod objectives;

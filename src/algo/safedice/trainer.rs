@@ -12,7 +12,7 @@ use super::ablation::SafediceOverrides;
 use super::draws::{DiscDraws, FlowColumns, MainDraws};
 use super::folds::CrossFit;
 use super::fused::FusedSafedice;
-use super::mixture::HeldOut;
+use super::heldout::HeldOut;
 use super::objectives::{
     discriminator_loss, nu_loss, policy_loss, AlphaHat, DISC_LOSS, MASK_RENORM_EPS, NU_LOSS,
     POLICY_LOSS,

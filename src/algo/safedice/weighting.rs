@@ -6,10 +6,12 @@
 
 use rand::SeedableRng;
 
+use super::bin_by_episode::{bin_ratio_by_episode, BinByEpisode};
 use super::draws::FlowColumns;
+use super::heldout::HeldOut;
 use super::kept_share::{kept_share, KeptShare, Rewarded};
 use super::mixture::{
-    best_bin_estimate, platt_scaling, roc_auc, roc_auc_by_episode, Auc, EpisodesOf, HeldOut,
+    best_bin_estimate, platt_scaling, roc_auc, roc_auc_by_episode, Auc, EpisodesOf,
 };
 use super::objectives::{alpha_hat_from_logits, eq10_rewards, ALPHA_MARGIN, POLICY_LOSS};
 use super::trainer::{SafediceTrainer, UniformWeights};
@@ -206,13 +208,15 @@ impl SafediceTrainer {
         let Some(v) = &self.disc_stop else { return Ok(None) };
         let scores_n = self.score_rows(self.run.non_preferred(), &v.n.validation)?;
         let scores_u = self.score_rows(&self.run.u, &v.u.validation)?;
-        let mixture = match self.cfg.bbe_unlabeled_rows {
-            BbeUnlabeledRows::HeldOut => &scores_u[..],
-            BbeUnlabeledRows::All => logits_u,
-        };
         let episodes_n = episodes_of(&self.run.non_preferred().episode_ids, &v.n.validation);
         let episodes_u = episodes_of(&self.run.u.episode_ids, &v.u.validation);
         let episodes = EpisodesOf { labeled: &episodes_n, mixture: &episodes_u };
+        let (mixture, mixture_episodes) = match self.cfg.bbe_unlabeled_rows {
+            BbeUnlabeledRows::HeldOut => (&scores_u[..], episodes),
+            BbeUnlabeledRows::All => {
+                (logits_u, EpisodesOf { mixture: &self.run.u.episode_ids, ..episodes })
+            }
+        };
         let (Some(alpha), Some(auc)) = (
             best_bin_estimate(&scores_n, mixture),
             self.heldout_auc(&scores_n, &scores_u, episodes),
@@ -221,7 +225,9 @@ impl SafediceTrainer {
         };
         let calibration =
             self.cfg.calibrate_discriminator.then(|| platt_scaling(&scores_n, &scores_u));
-        Ok(Some(HeldOut { alpha, auc, calibration, scores_n, episodes_n }))
+        let alpha_by_episode =
+            bin_ratio_by_episode(&scores_n, mixture, alpha.threshold, mixture_episodes);
+        Ok(Some(HeldOut { alpha, auc, calibration, scores_n, episodes_n, alpha_by_episode }))
     }
 
     /// The held-out ROC AUC of D^N's scores against D^U's, its interval counting rows or
@@ -341,11 +347,11 @@ impl SafediceTrainer {
     pub(super) fn describe_alpha_hat(&self) -> Option<String> {
         let alpha = self.alpha.as_ref()?;
         Some(match &self.heldout {
-            Some(HeldOut { alpha: bin, auc, .. }) => format!(
-                "Best Bin Estimation on {}: {:.4} ({}), 90% interval [{:.3}, {:.3}] around the bin's ratio {:.3}, from the {:.0}% of held-out D^N rows scoring at least {:.3} (and {:.0}% of D^U's); held-out AUC {:.3} [{:.3}, {:.3}]; the paper's minimum over D^U would be {:.4}",
+            Some(HeldOut { alpha: bin, auc, alpha_by_episode, .. }) => format!(
+                "Best Bin Estimation on {}: {:.4} ({}), 90% interval [{:.3}, {:.3}] around the bin's ratio {:.3}{}, from the {:.0}% of held-out D^N rows scoring at least {:.3} (and {:.0}% of D^U's); held-out AUC {:.3} [{:.3}, {:.3}]; the paper's minimum over D^U would be {:.4}",
                 self.scored_rows_words(), alpha.value, self.alpha_point_words(), bin.lower, bin.upper, bin.value,
-                100.0 * bin.share_n, bin.threshold, 100.0 * bin.share_u, auc.value, auc.lower,
-                auc.upper, alpha.min_ratio
+                episodes_words(alpha_by_episode.as_ref()), 100.0 * bin.share_n, bin.threshold,
+                100.0 * bin.share_u, auc.value, auc.lower, auc.upper, alpha.min_ratio
             ),
             None => format!(
                 "the minimum of 1/c - 1 over D^U (the paper), at row {} of episode {}",
@@ -386,6 +392,13 @@ fn raise_to_bin_ratio(logits: &mut [f32], in_bin: &[bool], ratio: f64) -> usize 
         }
     }
     raised
+}
+
+/// The bin's interval with episodes counted, for the job log: BBE's own counts rows.
+fn episodes_words(by_episode: Option<&BinByEpisode>) -> String {
+    by_episode.map_or_else(String::new, |b| {
+        format!(" ([{:.3}, {:.3}] counting episodes)", b.lower, b.upper)
+    })
 }
 
 /// Why the weighting is no better than noise, if it is not: the interval of the share of D^N's
