@@ -380,7 +380,7 @@ impl SafediceConfig {
     /// (`lr_actor` 3e-4: median 0.83 against 0.81, 10th percentile 0.34 against 0.37) beat the
     /// default on the development split. Over four seeds the raise held against each row's own
     /// logit (median 0.81 against 0.80, 10th percentile 0.36 against 0.33, 18 of 22 moving tasks
-    /// better).
+    /// better); raw Eq. 10 at the paper's scale captured less on every task (median 0.51).
     fn service(discriminator_iterations: u64) -> Self {
         SafediceConfig {
             discriminator_iterations,
