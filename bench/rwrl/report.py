@@ -118,7 +118,7 @@ def build(work: Path, demos: Path, mode: str = "onnx") -> dict:
 
 
 def _weighting_cells(job: dict) -> str:
-    """alpha-hat with its interval, its bin, the paper's point-wise minimum beside it, the held-out
+    """alpha-hat with its interval (and the bin's counting episodes, where recorded), its bin, the paper's point-wise minimum beside it, the held-out
     AUC and the stage's weighting: the five cells after the status (dashes where the job has no
     weighting stage or predates the record)."""
     ah, w = job.get("alpha_hat"), job.get("weighting") or {}
@@ -127,6 +127,10 @@ def _weighting_cells(job: dict) -> str:
     alpha = f"{ah:.3f}"
     if "alpha_hat_lower" in w and "alpha_hat_upper" in w:
         alpha += f" [{w['alpha_hat_lower']:.3f}, {w['alpha_hat_upper']:.3f}]"
+    if "alpha_hat_episodes_lower" in w:
+        # The service records no unbounded upper end (D^N's share in the bin could be 0).
+        upper = w.get("alpha_hat_episodes_upper")
+        alpha += f", by episode [{w['alpha_hat_episodes_lower']:.3f}, {'∞' if upper is None else f'{upper:.3f}'}]"
     shares = (f"{w['alpha_hat_bin_share_du']:.4f} / {w['alpha_hat_bin_share_dn']:.4f}"
               if "alpha_hat_bin_share_du" in w and "alpha_hat_bin_share_dn" in w else "—")
     minimum = f"{w['alpha_hat_min_ratio']:.4f}" if "alpha_hat_min_ratio" in w else "—"

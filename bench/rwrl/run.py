@@ -283,11 +283,13 @@ def cmd_train(args) -> None:
 
 
 # The weighting stage's record of a job that estimated alpha-hat: its interval, the bin it came
-# from, the held-out AUC and whether the stage fell back to uniform weights (each metric's last
-# value; the service logs them once, when the discriminator phase ends).
+# from (and its interval counting episodes), the held-out AUC and whether the stage fell back to
+# uniform weights (each metric's last value; the service logs them once, when the discriminator
+# phase ends; an unbounded upper end is not recorded).
 WEIGHTING_METRICS = ("alpha_hat_lower", "alpha_hat_upper", "alpha_hat_bin_ratio", "alpha_hat_bin_share_du",
                      "alpha_hat_bin_share_dn", "alpha_hat_min_ratio", "discriminator_heldout_auc",
-                     "discriminator_heldout_auc_lower", "discriminator_heldout_auc_upper", "weighting_uniform")
+                     "discriminator_heldout_auc_lower", "discriminator_heldout_auc_upper", "weighting_uniform",
+                     "alpha_hat_episodes_lower", "alpha_hat_episodes_upper")
 
 
 def _weighting(client, job) -> dict | None:
