@@ -261,16 +261,12 @@ fn separable_data_keep_the_weighting_and_report_the_interval() {
     // `cross_fitted_run`) plus the discriminator's shortfall at this size.
     assert!(upper >= 0.4 && lower <= 0.7, "true share 0.4 above the interval: {scalars:?}");
     assert!(metric(&scalars, "discriminator_heldout_auc_lower") > 0.5, "{scalars:?}");
-    // The same bin counted by episode brackets the bin's ratio, each side's rows counting as
-    // fewer draws than rows.
-    let by_episode = ["alpha_hat_episodes_lower", "alpha_hat_episodes_upper"];
-    let (episodes_lower, episodes_upper) =
-        (metric(&scalars, by_episode[0]), metric(&scalars, by_episode[1]));
-    let ratio = metric(&scalars, "alpha_hat_bin_ratio");
-    assert!(episodes_lower <= ratio && ratio <= episodes_upper, "{scalars:?}");
+    // The same bin counted by episode: its upper end bounds the true share too, and the rows of
+    // an episode (10 each here) count as fewer draws than rows.
+    assert!(metric(&scalars, "alpha_hat_episodes_upper") >= 0.4, "{scalars:?}");
     for side in ["dn", "du"] {
         let name = format!("alpha_hat_episodes_design_effect_{side}");
-        assert!(metric(&scalars, &name) >= 1.0, "{scalars:?}");
+        assert!(metric(&scalars, &name) > 1.0, "{scalars:?}");
     }
     assert!(t.uniform_weighting_reason().is_none());
     let detail = t.alpha_hat_detail().unwrap();
