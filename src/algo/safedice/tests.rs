@@ -306,6 +306,31 @@ fn separable_phase(data: &TrainingData, extra: serde_json::Value) -> Vec<(&'stat
     finish_phase(&mut SafediceTrainer::new(&config, data).unwrap())
 }
 
+/// The bin counted by episode on every path that scores the bin's rows: held-out D^U with one
+/// discriminator, every row of D^U (`bbe_unlabeled_rows: all`), and cross-fitted with D^N's
+/// rows in the folds too. Each reports an interval whose upper end bounds the true share (0.4)
+/// and design effects of at least 1, so the episode lists matched the scores on each.
+#[test]
+fn the_bin_counted_by_episode_is_reported_on_every_scoring_path() {
+    let data = separable_task();
+    for extra in [
+        serde_json::json!({"cross_fit": false}),
+        serde_json::json!({"cross_fit": false, "bbe_unlabeled_rows": "all"}),
+        serde_json::json!({"cross_fit": true, "cross_fit_labeled": true}),
+    ] {
+        let phase = separable_phase(&data, extra.clone());
+        let (lower, upper) = (
+            metric(&phase, "alpha_hat_episodes_lower"),
+            metric(&phase, "alpha_hat_episodes_upper"),
+        );
+        assert!(lower <= upper && upper >= 0.4, "{extra}: {phase:?}");
+        for side in ["dn", "du"] {
+            let name = format!("alpha_hat_episodes_design_effect_{side}");
+            assert!(metric(&phase, &name) >= 1.0, "{extra}: {phase:?}");
+        }
+    }
+}
+
 /// `auc_interval: episodes` on the same separable data, with one discriminator and
 /// cross-fitted: the same discriminator, so the same alpha-hat and AUC as counting rows, with the
 /// episodes' design effects reported and the interval around the same value.
