@@ -279,7 +279,8 @@ pub struct BenchArgs {
     /// With --suite: which split(s) to run. Choose defaults on `dev`; report `test` once.
     #[arg(long, value_enum, default_value = "dev")]
     pub split: SplitArg,
-    /// With --suite: tasks per split (at most 24).
+    /// With --suite: tasks per split (at most 24; up to 96 on the development split alone, an
+    /// extended split for studying a family on more draws, never for reporting).
     #[arg(long, default_value_t = crate::envs::suite::TASKS_PER_SPLIT)]
     pub tasks: usize,
     /// With --suite: only these task families (e.g. `grid-continuing,pace`), for a study of one
@@ -348,15 +349,26 @@ impl SplitArg {
             SplitArg::Both => vec![Split::Dev, Split::Test],
         }
     }
+
+    pub fn as_str(self) -> &'static str {
+        match self {
+            SplitArg::Dev => "dev",
+            SplitArg::Test => "test",
+            SplitArg::Both => "both",
+        }
+    }
 }
 
 impl BenchArgs {
     /// The robustness suite's configuration: its defaults, overlaid with the arguments given.
     pub fn to_suite_config(&self) -> Result<BenchConfig, BenchError> {
         let base = robustness::default_config();
-        if self.tasks == 0 || self.tasks > crate::envs::suite::TASKS_PER_SPLIT {
+        let most = self.split.splits().iter().map(|s| s.max_tasks()).min().unwrap_or(0);
+        if self.tasks == 0 || self.tasks > most {
             return Err(BenchError::Config(format!(
-                "--tasks must be between 1 and {}",
+                "--tasks must be between 1 and {most} with --split {} (only the development \
+                 split extends beyond {})",
+                self.split.as_str(),
                 crate::envs::suite::TASKS_PER_SPLIT
             )));
         }
@@ -603,5 +615,35 @@ mod tests {
         assert!(refused.contains("already holds files (results.md)"), "{refused}");
         assert!(refused.contains("--force"), "{refused}");
         check_out(&out, true).expect("--force");
+    }
+
+    #[derive(clap::Parser)]
+    struct Cli {
+        #[command(flatten)]
+        bench: BenchArgs,
+    }
+
+    fn suite_config(args: &[&str]) -> Result<BenchConfig, BenchError> {
+        use clap::Parser;
+        let argv = ["bench", "--suite", "robustness"].iter().chain(args);
+        Cli::try_parse_from(argv).expect("the arguments parse").bench.to_suite_config()
+    }
+
+    #[test]
+    fn only_the_development_split_extends_beyond_its_standard_tasks() {
+        suite_config(&["--split", "dev", "--tasks", "96"]).expect("the extended development split");
+        for split in ["test", "both"] {
+            suite_config(&["--split", split, "--tasks", "24"]).expect("the standard split");
+            let Err(BenchError::Config(refused)) =
+                suite_config(&["--split", split, "--tasks", "25"])
+            else {
+                panic!("--split {split} --tasks 25 is refused");
+            };
+            assert!(refused.contains("between 1 and 24 with --split"), "{refused}");
+        }
+        let Err(BenchError::Config(refused)) = suite_config(&["--tasks", "97"]) else {
+            panic!("97 development tasks are refused");
+        };
+        assert!(refused.contains("between 1 and 96"), "{refused}");
     }
 }

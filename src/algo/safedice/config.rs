@@ -59,6 +59,10 @@ pub enum AlphaHatPoint {
     /// The interval's lower end: alpha-hat errs toward fewer rows marked impossible under the
     /// preferred demonstrator, i.e. toward BC, when the held-out sample is small.
     Lower,
+    /// The lower end of the bin's ratio with episodes counted (`alpha_hat_episodes_lower`):
+    /// the same side, with the width the rows of one episode moving together allow. The
+    /// row-counted end where that interval is not defined (no held-out row in a set).
+    EpisodesLower,
 }
 
 /// What Eq. 10 does on rows where it is undefined (`1 − α e^c ≤ 0`: the discriminator says the

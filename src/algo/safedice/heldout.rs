@@ -5,6 +5,7 @@
 
 use super::bin_by_episode::BinByEpisode;
 use super::mixture::{Auc, MixtureEstimate};
+use crate::algo::hyperparams::AlphaHatPoint;
 
 /// Held-out statistics of the frozen discriminator (the `bbe` estimator).
 pub struct HeldOut {
@@ -16,8 +17,23 @@ pub struct HeldOut {
     /// kept share ([`super::kept_share`]) reads Eq. 10 on them.
     pub scores_n: Vec<f32>,
     pub episodes_n: Vec<u32>,
-    /// The bin's ratio with episodes counted ([`super::bin_by_episode`]): reported, not used.
+    /// The bin's ratio with episodes counted ([`super::bin_by_episode`]): reported, and
+    /// alpha-hat's lower end with `alpha_hat_point: episodes_lower`.
     pub alpha_by_episode: Option<BinByEpisode>,
+}
+
+impl AlphaHatPoint {
+    /// The point of Best Bin Estimation's interval that alpha-hat takes (before its margin).
+    pub fn of(self, heldout: &HeldOut) -> f64 {
+        let bin = &heldout.alpha;
+        match self {
+            AlphaHatPoint::Estimate => bin.value,
+            AlphaHatPoint::Lower => bin.lower,
+            AlphaHatPoint::EpisodesLower => {
+                heldout.alpha_by_episode.as_ref().map_or(bin.lower, |b| b.lower)
+            }
+        }
+    }
 }
 
 impl HeldOut {

@@ -331,6 +331,29 @@ fn the_bin_counted_by_episode_is_reported_on_every_scoring_path() {
     }
 }
 
+/// `alpha_hat_point` on the same separable data and discriminator: each point takes its end of
+/// the interval it names, less the margin (the two lower ends differ here: neither interval
+/// contains the other in general, BBE's being uniform over thresholds and counting rows).
+#[test]
+fn alpha_hat_takes_the_point_it_is_asked_for() {
+    let data = separable_task();
+    let phase = |point: &str| {
+        separable_phase(&data, serde_json::json!({"cross_fit": false, "alpha_hat_point": point}))
+    };
+    fn alpha_at(phase: &[(&'static str, f64)], end: &str) -> f64 {
+        (metric(phase, end) - super::objectives::ALPHA_MARGIN).clamp(0.0, 1.0)
+    }
+    let (estimate, lower, episodes) =
+        (phase("estimate"), phase("lower"), phase("episodes_lower"));
+    assert_eq!(metric(&estimate, "alpha_hat"), alpha_at(&estimate, "alpha_hat_bin_ratio"));
+    assert_eq!(metric(&lower, "alpha_hat"), alpha_at(&lower, "alpha_hat_lower"));
+    assert_eq!(metric(&episodes, "alpha_hat"), alpha_at(&episodes, "alpha_hat_episodes_lower"));
+    for name in ["alpha_hat_bin_ratio", "alpha_hat_lower", "alpha_hat_episodes_lower"] {
+        assert_eq!(metric(&lower, name), metric(&episodes, name), "the same discriminator");
+    }
+    assert_ne!(metric(&episodes, "alpha_hat"), metric(&lower, "alpha_hat"), "{episodes:?}");
+}
+
 /// `auc_interval: episodes` on the same separable data, with one discriminator and
 /// cross-fitted: the same discriminator, so the same alpha-hat and AUC as counting rows, with the
 /// episodes' design effects reported and the interval around the same value.

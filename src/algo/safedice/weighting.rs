@@ -51,11 +51,8 @@ impl SafediceTrainer {
                 logits.iter_mut().for_each(|c| *c = (scale * *c as f64 + shift) as f32);
             }
         }
-        if let Some(bin) = heldout.as_ref().map(|h| &h.alpha) {
-            let point = match self.cfg.alpha_hat_point {
-                AlphaHatPoint::Estimate => bin.value,
-                AlphaHatPoint::Lower => bin.lower,
-            };
+        if let Some(h) = &heldout {
+            let point = self.cfg.alpha_hat_point.of(h);
             alpha.value = (point - ALPHA_MARGIN).clamp(0.0, 1.0 - ALPHA_MARGIN);
         }
         // `bin_ratio_own_scale` standardises on the rows' own logits, before the bin is raised.
@@ -372,6 +369,7 @@ impl SafediceTrainer {
         match self.cfg.alpha_hat_point {
             AlphaHatPoint::Estimate => "the bin's ratio",
             AlphaHatPoint::Lower => "the interval's lower end",
+            AlphaHatPoint::EpisodesLower => "the lower end of its interval counting episodes",
         }
     }
 }

@@ -46,10 +46,25 @@ impl Split {
             Split::Test => "test",
         }
     }
+
+    /// The most tasks a run may draw from the split. The test split is its fixed
+    /// [`TASKS_PER_SPLIT`] tasks, reported as a whole; the development split can be extended
+    /// (tasks 24 and on, seeds still a million below the test split's) to study a family on
+    /// more draws than the standard split holds, e.g. tasks near the edge of what a
+    /// discriminator can separate.
+    pub fn max_tasks(self) -> usize {
+        match self {
+            Split::Dev => EXTENDED_DEV_TASKS,
+            Split::Test => TASKS_PER_SPLIT,
+        }
+    }
 }
 
-/// Tasks per split (the suite has twice as many).
+/// Tasks per split in the standard suite (the one every default is chosen and reported on).
 pub const TASKS_PER_SPLIT: usize = 24;
+
+/// The most development tasks a study may draw (`--tasks` on the development split alone).
+pub const EXTENDED_DEV_TASKS: usize = 96;
 
 /// A family and its drawn parameters.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -326,7 +341,10 @@ mod tests {
         for family in ["grid", "grid-continuing", "nav", "pace"] {
             assert_eq!(dev.iter().filter(|t| t.family.name() == family).count(), 6, "{family}");
         }
-        for t in dev.iter().chain(&test) {
+        let extended = TaskSpec::split(Split::Dev, Split::Dev.max_tasks());
+        assert_eq!(extended[..TASKS_PER_SPLIT], dev[..], "extending keeps the standard tasks");
+        assert!(extended.iter().all(|d| d.seed < Split::Test.first_seed()));
+        for t in extended.iter().chain(&test) {
             assert!((0.15..=0.85).contains(&t.mixture_share()), "{t:?}");
             assert!((5..=80).contains(&t.labeled_episodes), "{t:?}");
         }

@@ -64,7 +64,7 @@ pub struct CreateJob {
     /// `uniform_fallback` (train as BC when held-out data cannot tell D^N from D^U, or alpha-hat is 0 without `standardize_reward`, which weights by Eq. 10's limit as α → 0; `bbe`
     /// only), `calibrate_discriminator` (`bbe` only), `bbe_unlabeled_rows` (`bbe` only: the
     /// rows of D^U its ratio reads, `held_out` or `all`), `alpha_hat_point` (`bbe` only:
-    /// `estimate`, the bin's ratio, or `lower`, its interval's lower end), `reward_scale` (multiplies Eq. 10's
+    /// `estimate`, the bin's ratio, `lower`, its interval's lower end, or `episodes_lower`, the lower end counting episodes), `reward_scale` (multiplies Eq. 10's
     /// reward after the standardisation; 1 by default), `cross_fit` (`bbe` only: two
     /// discriminators on two folds of D^U's episodes, each row scored by the one that did not
     /// train on it, and the safety head the mean of both; on in `service`), `cross_fit_labeled`
