@@ -229,6 +229,13 @@ pub struct SafediceConfig {
     /// without the key): the fallback reads the AUC and alpha-hat only.
     #[serde(default)]
     pub kept_share_test: bool,
+    /// `bbe` only: multiply `reward_scale` by the share of the held-out AUC's excess over ½ that
+    /// its interval makes certain, `(lower − ½) / (AUC − ½)` in [0, 1]: full strength where the
+    /// separation is certain, none where the interval reaches ½ (where `uniform_fallback`
+    /// fires), so the weighting weakens continuously toward that edge instead of falling off
+    /// it. false (every preset, and a stored config without the key): `reward_scale` as set.
+    #[serde(default)]
+    pub weighting_strength_from_auc: bool,
 }
 
 /// How far below the lowest defined reward an excluded row's reward is set by default
@@ -281,6 +288,7 @@ impl SafediceConfig {
             top_bin: TopBin::RowLogits,
             auc_interval: AucInterval::Rows,
             kept_share_test: false,
+            weighting_strength_from_auc: false,
         }
     }
 

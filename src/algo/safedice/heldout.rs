@@ -55,6 +55,17 @@ impl HeldOut {
         })
     }
 
+    /// The share of the AUC's excess over ½ that its interval's lower end keeps: 1 where the
+    /// separation is certain, 0 where the interval reaches ½ or the AUC is not above it.
+    pub fn certain_separation(&self) -> f64 {
+        let excess = self.auc.value - 0.5;
+        if excess > 0.0 {
+            ((self.auc.lower - 0.5) / excess).clamp(0.0, 1.0)
+        } else {
+            0.0
+        }
+    }
+
     pub fn metrics(&self) -> Vec<(&'static str, f64)> {
         let (a, auc) = (&self.alpha, &self.auc);
         let mut metrics = vec![

@@ -343,8 +343,7 @@ fn alpha_hat_takes_the_point_it_is_asked_for() {
     fn alpha_at(phase: &[(&'static str, f64)], end: &str) -> f64 {
         (metric(phase, end) - super::objectives::ALPHA_MARGIN).clamp(0.0, 1.0)
     }
-    let (estimate, lower, episodes) =
-        (phase("estimate"), phase("lower"), phase("episodes_lower"));
+    let (estimate, lower, episodes) = (phase("estimate"), phase("lower"), phase("episodes_lower"));
     assert_eq!(metric(&estimate, "alpha_hat"), alpha_at(&estimate, "alpha_hat_bin_ratio"));
     assert_eq!(metric(&lower, "alpha_hat"), alpha_at(&lower, "alpha_hat_lower"));
     assert_eq!(metric(&episodes, "alpha_hat"), alpha_at(&episodes, "alpha_hat_episodes_lower"));
@@ -352,6 +351,34 @@ fn alpha_hat_takes_the_point_it_is_asked_for() {
         assert_eq!(metric(&lower, name), metric(&episodes, name), "the same discriminator");
     }
     assert_ne!(metric(&episodes, "alpha_hat"), metric(&lower, "alpha_hat"), "{episodes:?}");
+}
+
+/// `weighting_strength_from_auc` on the same separable data: the strength is the share of the
+/// held-out AUC's excess over ½ that its interval's lower end keeps, the same discriminator and
+/// alpha-hat as without it, and the kept share read through the weakened weights moves toward 1.
+#[test]
+fn the_weighting_strength_is_the_certain_share_of_the_aucs_excess() {
+    let data = separable_task();
+    let phase = |on: bool| {
+        separable_phase(
+            &data,
+            serde_json::json!({"cross_fit": false, "weighting_strength_from_auc": on}),
+        )
+    };
+    let (fixed, weakened) = (phase(false), phase(true));
+    let (auc, lower) = (
+        metric(&weakened, "discriminator_heldout_auc"),
+        metric(&weakened, "discriminator_heldout_auc_lower"),
+    );
+    let strength = metric(&weakened, "weighting_strength");
+    assert!((strength - (lower - 0.5) / (auc - 0.5)).abs() < 1e-12, "{weakened:?}");
+    assert!(strength > 0.0 && strength < 1.0, "{strength}");
+    assert!(metric(&fixed, "weighting_strength").is_nan(), "reported only when asked for");
+    for name in ["alpha_hat", "discriminator_heldout_auc", "reward_std"] {
+        assert_eq!(metric(&fixed, name), metric(&weakened, name), "{name}");
+    }
+    let kept = |p: &[(&'static str, f64)]| metric(p, "weighting_kept_dn_share");
+    assert!(kept(&fixed) < kept(&weakened) && kept(&weakened) < 1.0, "{fixed:?}\n{weakened:?}");
 }
 
 /// `auc_interval: episodes` on the same separable data, with one discriminator and

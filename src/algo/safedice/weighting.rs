@@ -77,6 +77,7 @@ impl SafediceTrainer {
             self.cfg.standardize_reward,
             ruled_out,
         );
+        let scale = self.cfg.reward_scale * self.weighting_strength(heldout.as_ref());
         let kept = heldout.as_ref().and_then(|h| {
             let logits_n = self.heldout_eq10_logits(h, calibrated);
             let ruled_out_n: Vec<bool> = match self.cfg.top_bin {
@@ -85,7 +86,6 @@ impl SafediceTrainer {
                 }
                 _ => Vec::new(),
             };
-            let scale = self.cfg.reward_scale;
             let rewards_n: Vec<f64> =
                 eq10.map.rewards(&logits_n, &ruled_out_n).into_iter().map(|r| scale * r).collect();
             let rewards_u: Vec<f64> = eq10.rewards.iter().map(|r| scale * r).collect();
@@ -125,6 +125,9 @@ impl SafediceTrainer {
         if let Some(h) = &heldout {
             self.phase_metrics.extend(h.metrics());
         }
+        if self.cfg.weighting_strength_from_auc {
+            self.phase_metrics.push(("weighting_strength", scale / self.cfg.reward_scale));
+        }
         if let Some(k) = &kept {
             self.phase_metrics.extend([
                 ("weighting_kept_dn_share", k.value),
@@ -158,11 +161,29 @@ impl SafediceTrainer {
         };
         self.decide_weighting(heldout.as_ref(), kept.as_ref(), uninformative)?;
         self.heldout = heldout;
-        let scale = self.cfg.reward_scale;
         let rewards: Vec<f32> = eq10.rewards.iter().map(|&r| (scale * r) as f32).collect();
         self.flow = Some(FlowColumns::build(&self.run.u, rewards, &self.cfg)?);
         self.alpha = Some(alpha);
         Ok(())
+    }
+
+    /// What multiplies `reward_scale`: with `weighting_strength_from_auc`, the share of the
+    /// held-out AUC's excess over ½ that its interval makes certain; 1 otherwise, and where
+    /// no held-out statistics exist (the paper's estimator, given logits).
+    fn weighting_strength(&self, heldout: Option<&HeldOut>) -> f64 {
+        match heldout {
+            Some(h) if self.cfg.weighting_strength_from_auc => {
+                let strength = h.certain_separation();
+                tracing::info!(
+                    strength,
+                    auc = h.auc.value,
+                    auc_lower = h.auc.lower,
+                    "SafeDICE weighting strength from the held-out AUC"
+                );
+                strength
+            }
+            _ => 1.0,
+        }
     }
 
     /// Held-out D^N's logits as Eq. 10 reads D^U's: recalibrated (unless the scores are

@@ -83,7 +83,8 @@ pub struct CreateJob {
     /// `episodes`, DeLong's variance times each set's design effect from the rows'
     /// intra-episode correlation), `kept_share_test` (`bbe` only: also train as BC when the
     /// interval of the share of held-out D^N's mass that Eq. 10's weights keep reaches 1; off by
-    /// default), `ess_warning_fraction`,
+    /// default), `weighting_strength_from_auc` (`bbe` only: `reward_scale` times the share of the held-out
+    /// AUC's excess over 0.5 that its interval's lower end keeps; off by default), `ess_warning_fraction`,
     /// `discriminator_early_stopping` (hold out a fifth of
     /// the data and stop the discriminator when its held-out loss stops improving;
     /// `discriminator_iterations` is then its most). `dwbc`: `eta`, `lr_discriminator`, `discriminator_gp`.
