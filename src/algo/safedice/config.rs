@@ -393,6 +393,10 @@ impl SafediceConfig {
     /// default on the development split. Over four seeds the raise held against each row's own
     /// logit (median 0.81 against 0.80, 10th percentile 0.36 against 0.33, 18 of 22 moving tasks
     /// better); raw Eq. 10 at the paper's scale captured less on every task (median 0.51).
+    /// Also over four seeds: BC's actor rate (median 0.87, 10th percentile 0.43, but dev-12-grid
+    /// worse than BC), alpha-hat at the lower end counted by episode (0.73 / 0.18) or at the
+    /// bin's ratio (0.71 / 0.03, three tasks worse), and a weighting strength from the AUC's
+    /// certain excess (0.67 / 0.32); none replaced the default.
     fn service(discriminator_iterations: u64) -> Self {
         SafediceConfig {
             discriminator_iterations,
