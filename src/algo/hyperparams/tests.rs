@@ -159,6 +159,14 @@ fn weighting_knobs_default_for_stored_configs_and_are_checked() {
         let key = bad.as_object().unwrap().keys().next().unwrap().clone();
         assert_eq!(resolve_config(Algorithm::Safedice, &bad).unwrap_err().key, key);
     }
+    resolve_config(Algorithm::Safedice, &json!({"weighting_strength_from_auc": true})).unwrap();
+    for without in [json!({"uniform_fallback": false}), json!({"alpha_hat_estimator": "min"})] {
+        let mut config = json!({"weighting_strength_from_auc": true});
+        config.as_object_mut().unwrap().extend(without.as_object().unwrap().clone());
+        let e = resolve_config(Algorithm::Safedice, &config).unwrap_err();
+        assert_eq!(e.key, "weighting_strength_from_auc", "{without}");
+        assert!(e.message.contains("uniform_fallback true"), "{}", e.message);
+    }
 }
 
 /// A learning rate sent with 20 significant digits (as `printf("%.20g")` writes it) whose

@@ -2,8 +2,9 @@
 //! ([`super::mixture::best_bin_estimate`]) counts rows, and the rows of an episode fall in the
 //! bin together, so on long episodes its interval is too narrow (bench/rwrl/results.md, Cartpole
 //! seed 1: the true share 0.5 above an interval of [0.305, 0.467] built from 16 held-out
-//! episodes counted as 4,096 draws). The interval here is reported beside it on every `bbe` run; alpha-hat and
-//! the bin do not read it (docs/algorithm.md, "2. alpha-hat").
+//! episodes counted as 4,096 draws). The interval here is reported beside it on every `bbe` run;
+//! alpha-hat reads its lower end only with `alpha_hat_point: episodes_lower`, and the bin never
+//! (docs/algorithm.md, "2. alpha-hat").
 
 use super::mixture::{
     intra_episode_correlation, row_weighted_episode_length, sample_variance, EpisodesOf, DELTA,

@@ -210,7 +210,8 @@ pub struct SafediceConfig {
     pub policy_uniform_share: f64,
     /// With `undefined_reward: exclude`: how far below the lowest defined (standardised) reward
     /// an excluded row's reward sits, before `reward_scale`. 30 (the default, and a stored config
-    /// without the key): `e^{−30·reward_scale}` of a weight, the −∞ of Eq. 10. A few units keep the rows
+    /// without the key): `e^{−30·reward_scale}` of a weight (times the strength with
+    /// `weighting_strength_from_auc`), the −∞ of Eq. 10. A few units keep the rows
     /// Eq. 10 rules out in both Eq. 36 and 37 at a small weight, so the states only they reach
     /// are not left without a policy.
     #[serde(default = "excluded_gap")]
@@ -459,8 +460,22 @@ impl AlgorithmKnobs for SafediceConfig {
         in_range("policy_uniform_share", self.policy_uniform_share, 0.0, 1.0)?;
         in_range("excluded_reward_gap", self.excluded_reward_gap, 0.0, 1000.0)?;
         in_range("cross_fit_folds", self.cross_fit_folds as f64, 2.0, 10.0)?;
-        check_alpha_estimator(self)
+        check_alpha_estimator(self)?;
+        check_weighting_strength(self)
     }
+}
+
+/// The strength from the AUC is 0 exactly where the fallback's AUC test fires, so without the
+/// fallback (or without the held-out AUC of `bbe`) a run could train on a reward of 0 everywhere.
+fn check_weighting_strength(s: &SafediceConfig) -> Result<(), HyperparamError> {
+    let bbe = s.alpha_hat_estimator == AlphaEstimator::Bbe;
+    if s.weighting_strength_from_auc && !(bbe && s.uniform_fallback) {
+        return Err(HyperparamError::new(
+            "weighting_strength_from_auc",
+            "config.weighting_strength_from_auc: needs alpha_hat_estimator \"bbe\" and uniform_fallback true (its strength is 0 where the fallback trains as BC)",
+        ));
+    }
+    Ok(())
 }
 
 /// The quantile diagnostic belongs to the paper's minimum (`uniform_fallback`,

@@ -341,7 +341,8 @@ fn alpha_hat_takes_the_point_it_is_asked_for() {
         separable_phase(&data, serde_json::json!({"cross_fit": false, "alpha_hat_point": point}))
     };
     fn alpha_at(phase: &[(&'static str, f64)], end: &str) -> f64 {
-        (metric(phase, end) - super::objectives::ALPHA_MARGIN).clamp(0.0, 1.0)
+        let margin = super::objectives::ALPHA_MARGIN;
+        (metric(phase, end) - margin).clamp(0.0, 1.0 - margin)
     }
     let (estimate, lower, episodes) = (phase("estimate"), phase("lower"), phase("episodes_lower"));
     assert_eq!(metric(&estimate, "alpha_hat"), alpha_at(&estimate, "alpha_hat_bin_ratio"));
@@ -353,32 +354,46 @@ fn alpha_hat_takes_the_point_it_is_asked_for() {
     assert_ne!(metric(&episodes, "alpha_hat"), metric(&lower, "alpha_hat"), "{episodes:?}");
 }
 
-/// `weighting_strength_from_auc` on the same separable data: the strength is the share of the
-/// held-out AUC's excess over ½ that its interval's lower end keeps, the same discriminator and
-/// alpha-hat as without it, and the kept share read through the weakened weights moves toward 1.
+/// `weighting_strength_from_auc` on the same separable data, with one discriminator and
+/// cross-fitted: the strength is the share of the held-out AUC's excess over ½ that its
+/// interval's lower end keeps, the same discriminator and alpha-hat as without it, the rewards ν
+/// and the policy read are the unweakened ones times the strength, and the kept share read
+/// through the weakened weights moves toward 1.
 #[test]
 fn the_weighting_strength_is_the_certain_share_of_the_aucs_excess() {
     let data = separable_task();
-    let phase = |on: bool| {
-        separable_phase(
-            &data,
-            serde_json::json!({"cross_fit": false, "weighting_strength_from_auc": on}),
-        )
-    };
-    let (fixed, weakened) = (phase(false), phase(true));
-    let (auc, lower) = (
-        metric(&weakened, "discriminator_heldout_auc"),
-        metric(&weakened, "discriminator_heldout_auc_lower"),
-    );
-    let strength = metric(&weakened, "weighting_strength");
-    assert!((strength - (lower - 0.5) / (auc - 0.5)).abs() < 1e-12, "{weakened:?}");
-    assert!(strength > 0.0 && strength < 1.0, "{strength}");
-    assert!(metric(&fixed, "weighting_strength").is_nan(), "reported only when asked for");
-    for name in ["alpha_hat", "discriminator_heldout_auc", "reward_std"] {
-        assert_eq!(metric(&fixed, name), metric(&weakened, name), "{name}");
+    for cross_fit in [false, true] {
+        let finished = |on: bool| {
+            let json = serde_json::json!({
+                "seed": 3, "batch_size": 32, "hidden_sizes": [16, 16], "iterations": 3,
+                "discriminator_iterations": 400, "lr_discriminator": 3e-3,
+                "cross_fit": cross_fit, "weighting_strength_from_auc": on,
+            });
+            let config =
+                crate::algo::resolve_config(crate::algo::Algorithm::Safedice, &json).unwrap();
+            let mut t = SafediceTrainer::new(&config, &data).unwrap();
+            let phase = finish_phase(&mut t);
+            (phase, t.unlabeled_rewards().unwrap().expect("the flow table is built"))
+        };
+        let ((fixed, fixed_rewards), (weakened, weakened_rewards)) =
+            (finished(false), finished(true));
+        let (auc, lower) = (
+            metric(&weakened, "discriminator_heldout_auc"),
+            metric(&weakened, "discriminator_heldout_auc_lower"),
+        );
+        let strength = metric(&weakened, "weighting_strength");
+        assert!((strength - (lower - 0.5) / (auc - 0.5)).abs() < 1e-12, "{weakened:?}");
+        assert!(strength > 0.0 && strength < 1.0, "cross_fit {cross_fit}: {strength}");
+        assert!(metric(&fixed, "weighting_strength").is_nan(), "reported only when applied");
+        for name in ["alpha_hat", "discriminator_heldout_auc", "reward_std"] {
+            assert_eq!(metric(&fixed, name), metric(&weakened, name), "{name}");
+        }
+        for (f, w) in fixed_rewards.iter().zip(&weakened_rewards) {
+            assert!((w - strength * f).abs() <= 1e-5 * (1.0 + f.abs()), "{w} against {f}");
+        }
+        let kept = |p: &[(&'static str, f64)]| metric(p, "weighting_kept_dn_share");
+        assert!(kept(&fixed) < kept(&weakened) && kept(&weakened) < 1.0, "{fixed:?}\n{weakened:?}");
     }
-    let kept = |p: &[(&'static str, f64)]| metric(p, "weighting_kept_dn_share");
-    assert!(kept(&fixed) < kept(&weakened) && kept(&weakened) < 1.0, "{fixed:?}\n{weakened:?}");
 }
 
 /// `auc_interval: episodes` on the same separable data, with one discriminator and

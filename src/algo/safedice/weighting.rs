@@ -77,7 +77,8 @@ impl SafediceTrainer {
             self.cfg.standardize_reward,
             ruled_out,
         );
-        let scale = self.cfg.reward_scale * self.weighting_strength(heldout.as_ref());
+        let strength = self.weighting_strength(heldout.as_ref());
+        let scale = self.cfg.reward_scale * strength.unwrap_or(1.0);
         let kept = heldout.as_ref().and_then(|h| {
             let logits_n = self.heldout_eq10_logits(h, calibrated);
             let ruled_out_n: Vec<bool> = match self.cfg.top_bin {
@@ -125,8 +126,8 @@ impl SafediceTrainer {
         if let Some(h) = &heldout {
             self.phase_metrics.extend(h.metrics());
         }
-        if self.cfg.weighting_strength_from_auc {
-            self.phase_metrics.push(("weighting_strength", scale / self.cfg.reward_scale));
+        if let Some(strength) = strength {
+            self.phase_metrics.push(("weighting_strength", strength));
         }
         if let Some(k) = &kept {
             self.phase_metrics.extend([
@@ -168,9 +169,9 @@ impl SafediceTrainer {
     }
 
     /// What multiplies `reward_scale`: with `weighting_strength_from_auc`, the share of the
-    /// held-out AUC's excess over ½ that its interval makes certain; 1 otherwise, and where
-    /// no held-out statistics exist (the paper's estimator, given logits).
-    fn weighting_strength(&self, heldout: Option<&HeldOut>) -> f64 {
+    /// held-out AUC's excess over ½ that its interval makes certain; `None` (nothing applied)
+    /// otherwise, and where no held-out statistics exist (the paper's estimator, given logits).
+    fn weighting_strength(&self, heldout: Option<&HeldOut>) -> Option<f64> {
         match heldout {
             Some(h) if self.cfg.weighting_strength_from_auc => {
                 let strength = h.certain_separation();
@@ -180,9 +181,9 @@ impl SafediceTrainer {
                     auc_lower = h.auc.lower,
                     "SafeDICE weighting strength from the held-out AUC"
                 );
-                strength
+                Some(strength)
             }
-            _ => 1.0,
+            _ => None,
         }
     }
 
