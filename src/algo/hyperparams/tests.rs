@@ -120,6 +120,7 @@ fn weighting_knobs_default_for_stored_configs_and_are_checked() {
         "auc_interval",
         "kept_share_test",
         "weighting_strength_from_auc",
+        "pool_scores_by_episode",
     ] {
         assert!(map.remove(key).is_some(), "{key} is in the service preset");
     }
@@ -136,6 +137,7 @@ fn weighting_knobs_default_for_stored_configs_and_are_checked() {
     assert_eq!(s.auc_interval, AucInterval::Rows, "a stored config counted held-out rows");
     assert!(!s.kept_share_test, "a stored config's fallback read the AUC and alpha-hat only");
     assert!(!s.weighting_strength_from_auc, "a stored config weighted at reward_scale");
+    assert!(!s.pool_scores_by_episode, "a stored config read each row's own logit");
     let lower = resolve_config(Algorithm::Safedice, &json!({"alpha_hat_point": "lower"})).unwrap();
     let AlgorithmConfig::Safedice(s) = &lower.specific else { panic!("a SafeDICE config") };
     assert_eq!(s.alpha_hat_point, AlphaHatPoint::Lower);

@@ -21,6 +21,7 @@ use super::bin_by_episode::bin_ratio_by_episode;
 use super::folds::FoldScores;
 use super::heldout::HeldOut;
 use super::mixture::{best_bin_estimate, platt_scaling, EpisodesOf};
+use super::pooling::pool_by_episode;
 use super::trainer::{logits_of, snapshot, SafediceTrainer};
 use super::weighting::{episodes_of, UnlabeledScores};
 use crate::algo::discriminator_stop::EarlyStop;
@@ -188,6 +189,9 @@ impl SafediceTrainer {
             None => own_n_rows,
         };
         let episodes_n = episodes_of(&self.run.non_preferred().episode_ids, &labeled_rows);
+        let pooled = (self.cfg.pool_scores_by_episode)
+            .then(|| self.pooled_by_episode(&scores_n, &episodes_n, &logits));
+        let (pooled_n, pooled_u) = pooled.unzip();
         let episodes = EpisodesOf { labeled: &episodes_n, mixture: &self.run.u.episode_ids };
         let auc = self.heldout_auc(&scores_n, &logits, episodes);
         let heldout = match (best_bin_estimate(&scores_n, &logits), auc) {
@@ -197,11 +201,40 @@ impl SafediceTrainer {
                 let calibration = self.cfg.calibrate_discriminator.then_some(fits[last]);
                 let alpha_by_episode =
                     bin_ratio_by_episode(&scores_n, &logits, alpha.threshold, episodes);
-                Some(HeldOut { alpha, auc, calibration, scores_n, episodes_n, alpha_by_episode })
+                let eq10_n = pooled_n;
+                Some(HeldOut {
+                    alpha,
+                    auc,
+                    calibration,
+                    scores_n,
+                    episodes_n,
+                    alpha_by_episode,
+                    eq10_n,
+                })
             }
             _ => None,
         };
-        Ok(Some(UnlabeledScores { logits, heldout, calibrated: true }))
+        Ok(Some(UnlabeledScores { logits, heldout, calibrated: true, eq10_logits: pooled_u }))
+    }
+
+    /// `pool_scores_by_episode`: held-out D^N's and D^U's scores replaced by their episodes'
+    /// means, then recalibrated on those means (with `calibrate_discriminator`) so that Eq. 10
+    /// reads the log-ratio of the means' densities ([`super::pooling`]). Returns D^N's and D^U's.
+    fn pooled_by_episode(
+        &self,
+        scores_n: &[f32],
+        episodes_n: &[u32],
+        logits_u: &[f32],
+    ) -> (Vec<f32>, Vec<f32>) {
+        let (mut n, mut u) = (scores_n.to_vec(), logits_u.to_vec());
+        pool_by_episode(&mut n, episodes_n);
+        pool_by_episode(&mut u, &self.run.u.episode_ids);
+        let (scale, shift) = self.recalibration(&n, &u);
+        for c in n.iter_mut().chain(u.iter_mut()) {
+            *c = (scale * *c as f64 + shift) as f32;
+        }
+        tracing::info!(scale, shift, "SafeDICE scores pooled by episode and recalibrated");
+        (n, u)
     }
 
     /// How many of D^N's `rows_n` held-out rows go to the parts that score the first

@@ -20,6 +20,9 @@ pub struct HeldOut {
     /// The bin's ratio with episodes counted ([`super::bin_by_episode`]): reported, and
     /// alpha-hat's lower end with `alpha_hat_point: episodes_lower`.
     pub alpha_by_episode: Option<BinByEpisode>,
+    /// With `pool_scores_by_episode`, the held-out D^N rows' logits as Eq. 10 reads them (their
+    /// episodes' means, recalibrated); `scores_n` stays what Best Bin Estimation read.
+    pub eq10_n: Option<Vec<f32>>,
 }
 
 impl AlphaHatPoint {

@@ -20,6 +20,7 @@
 //!   AUC and the discriminator's recalibration; `cross_fit`, the option that scores every row
 //!   of D^U with a discriminator that never trained on it; [`kept_share`], whether Eq. 10's
 //!   weights remove D^N's rows at all (the uniform fallback's test of the weighting itself);
+//!   `pooling`, the option that scores each row by its episode's mean logit;
 //! - [`draws`]: the flow table of step 3 and the minibatches both phases draw;
 //! - [`trainer`]: Algorithm 1 as a [`crate::algo::Trainer`], the reference in candle autograd,
 //!   with its steps 2-3 and the uniform fallback in `weighting`;
@@ -41,6 +42,7 @@ pub mod heldout;
 pub mod kept_share;
 pub mod mixture;
 pub mod objectives;
+mod pooling;
 pub mod trainer;
 mod weighting;
 

@@ -586,3 +586,55 @@ fn alpha_hat_zero_weights_by_the_limit_or_trains_as_bc() {
     let reason = bc.uniform_weighting_reason().unwrap();
     assert!(reason.contains("same on every row"), "{reason}");
 }
+
+/// Episodes that show their kind in every step only weakly: the unsafe kind takes action 1 with
+/// probability 0.7, the other with 0.3, half of D^U each. One step ranks D^N above D^U with an
+/// AUC near 0.6; an episode's ten steps together separate far better. Pooling by episode leaves
+/// the discriminators, alpha-hat and the fallback's AUC as they were, and gives the unsafe
+/// episodes of D^U a smaller share of Eq. 10's weight and keeps less of held-out D^N.
+#[test]
+fn pooling_by_episode_weighs_out_what_a_whole_episode_shows() {
+    use rand::{Rng, SeedableRng};
+    let weak = |count: usize, seed: u64, unsafe_kind: fn(usize) -> bool| {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+        let p = |episode| if unsafe_kind(episode) { 0.7 } else { 0.3 };
+        std::sync::Arc::new(episodes_acting(count, |e, _| u32::from(rng.random::<f64>() < p(e))))
+    };
+    let unsafe_episode = |e: usize| e % 2 == 0;
+    let data = TrainingData {
+        unlabeled: weak(120, 1, unsafe_episode),
+        non_preferred: Some(weak(100, 2, |_| true)),
+    };
+    let finished = |pooled: bool| {
+        let json = serde_json::json!({
+            "seed": 3, "batch_size": 32, "hidden_sizes": [16, 16], "iterations": 3,
+            "discriminator_iterations": 400, "lr_discriminator": 3e-3,
+            "pool_scores_by_episode": pooled,
+        });
+        let config = crate::algo::resolve_config(crate::algo::Algorithm::Safedice, &json).unwrap();
+        let mut t = SafediceTrainer::new(&config, &data).unwrap();
+        let phase = finish_phase(&mut t);
+        let rewards = t.unlabeled_rewards().unwrap().expect("the flow table is built");
+        // The unsafe episodes' share of the weights e^r (0.5 under uniform weights).
+        let weight = |unsafe_kind: bool| -> f64 {
+            let rows =
+                rewards.iter().enumerate().filter(|(i, _)| unsafe_episode(i / 10) == unsafe_kind);
+            rows.map(|(_, &r)| (r as f64).exp()).sum()
+        };
+        (phase, weight(true) / (weight(true) + weight(false)))
+    };
+    let ((rows, rows_share), (pooled, pooled_share)) = (finished(false), finished(true));
+    for name in ["alpha_hat", "discriminator_heldout_auc", "alpha_hat_bin_threshold"] {
+        assert_eq!(metric(&rows, name), metric(&pooled, name), "{name}");
+    }
+    assert_eq!(metric(&rows, "weighting_uniform"), 0.0, "{rows:?}");
+    assert!(metric(&rows, "discriminator_heldout_auc") < 0.65, "{rows:?}");
+    assert_eq!(metric(&pooled, "discriminator_scores_pooled_by_episode"), 1.0);
+    assert!(metric(&rows, "discriminator_scores_pooled_by_episode").is_nan());
+    assert!(pooled_share < rows_share - 0.1, "{pooled_share} against {rows_share}");
+    let kept = |m: &[(&'static str, f64)]| metric(m, "weighting_kept_dn_share");
+    assert!(kept(&pooled) < kept(&rows), "{pooled:?}\n{rows:?}");
+    let one_discriminator = serde_json::json!({"pool_scores_by_episode": true, "cross_fit": false});
+    let refused = crate::algo::resolve_config(crate::algo::Algorithm::Safedice, &one_discriminator);
+    assert_eq!(refused.unwrap_err().key, "pool_scores_by_episode");
+}

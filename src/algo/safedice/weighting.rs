@@ -25,16 +25,20 @@ use crate::algo::{Algorithm, ResolvedConfig, TrainError};
 
 /// The discriminator's logits on every row of D^U, the held-out statistics alpha-hat reads,
 /// and whether the logits are recalibrated already (cross-fitted: each half on its own fit).
+/// With `pool_scores_by_episode`, `eq10_logits` are what Eq. 10 reads instead of `logits`
+/// (each row's episode's mean, recalibrated); alpha-hat, its bin and the fallback read `logits`.
 pub(super) struct UnlabeledScores {
     pub(super) logits: Vec<f32>,
     pub(super) heldout: Option<HeldOut>,
     pub(super) calibrated: bool,
+    pub(super) eq10_logits: Option<Vec<f32>>,
 }
 
 impl SafediceTrainer {
     /// Algorithm 1 step 2 and the reward of Eq. 10 over all of D^U, with the frozen discriminator.
     pub(super) fn finish_discriminator_phase(&mut self) -> Result<(), TrainError> {
-        let UnlabeledScores { mut logits, heldout, calibrated } = self.unlabeled_scores()?;
+        let UnlabeledScores { mut logits, heldout, calibrated, eq10_logits } =
+            self.unlabeled_scores()?;
         // The bin's rows, on the scores Best Bin Estimation read (before a recalibration here).
         let in_bin: Vec<bool> = match &heldout {
             Some(h) if self.cfg.top_bin != TopBin::RowLogits => {
@@ -50,6 +54,11 @@ impl SafediceTrainer {
             if !calibrated {
                 logits.iter_mut().for_each(|c| *c = (scale * *c as f64 + shift) as f32);
             }
+        }
+        // Pooled, Eq. 10 reads the episode's evidence; the bin above stays each row's own.
+        let pooled = eq10_logits.is_some();
+        if let Some(pooled_logits) = eq10_logits {
+            logits = pooled_logits;
         }
         if let Some(h) = &heldout {
             let point = self.cfg.alpha_hat_point.of(h);
@@ -138,6 +147,9 @@ impl SafediceTrainer {
         }
         if calibrated {
             self.phase_metrics.push(("discriminator_cross_fitted", 1.0));
+            if pooled {
+                self.phase_metrics.push(("discriminator_scores_pooled_by_episode", 1.0));
+            }
         }
         if !in_bin.is_empty() {
             let rows = in_bin.iter().filter(|&&flag| flag).count();
@@ -187,11 +199,11 @@ impl SafediceTrainer {
         }
     }
 
-    /// Held-out D^N's logits as Eq. 10 reads D^U's: recalibrated (unless the scores are
-    /// already), and raised to the bin's ratio in Best Bin Estimation's bin under `bin_ratio`.
+    /// Held-out D^N's logits as Eq. 10 reads D^U's: pooled by episode where D^U's are,
+    /// recalibrated (unless the scores are already), and raised to the bin's ratio in Best Bin Estimation's bin under `bin_ratio`.
     fn heldout_eq10_logits(&self, h: &HeldOut, calibrated: bool) -> Vec<f32> {
-        let mut logits = h.scores_n.clone();
-        let in_bin: Vec<bool> = logits.iter().map(|&c| c as f64 >= h.alpha.threshold).collect();
+        let in_bin: Vec<bool> = h.scores_n.iter().map(|&c| c as f64 >= h.alpha.threshold).collect();
+        let mut logits = h.eq10_n.clone().unwrap_or_else(|| h.scores_n.clone());
         if let (Some((scale, shift)), false) = (h.calibration, calibrated) {
             logits.iter_mut().for_each(|c| *c = (scale * *c as f64 + shift) as f32);
         }
@@ -205,14 +217,20 @@ impl SafediceTrainer {
     /// cross-fitted ones with `cross_fit`) and the held-out statistics.
     fn unlabeled_scores(&self) -> Result<UnlabeledScores, TrainError> {
         if let Some(given) = &self.overrides.unlabeled_logits {
-            return Ok(UnlabeledScores { logits: given.clone(), heldout: None, calibrated: false });
+            let logits = given.clone();
+            return Ok(UnlabeledScores {
+                logits,
+                heldout: None,
+                calibrated: false,
+                eq10_logits: None,
+            });
         }
         if let Some(cross_fitted) = self.cross_fitted()? {
             return Ok(cross_fitted);
         }
         let logits = self.score(&self.run.u)?;
         let heldout = self.heldout_statistics(&logits)?;
-        Ok(UnlabeledScores { logits, heldout, calibrated: false })
+        Ok(UnlabeledScores { logits, heldout, calibrated: false, eq10_logits: None })
     }
 
     /// With the `bbe` estimator: the frozen discriminator's scores on the held-out rows of D^N
@@ -246,7 +264,16 @@ impl SafediceTrainer {
             self.cfg.calibrate_discriminator.then(|| platt_scaling(&scores_n, &scores_u));
         let alpha_by_episode =
             bin_ratio_by_episode(&scores_n, mixture, alpha.threshold, mixture_episodes);
-        Ok(Some(HeldOut { alpha, auc, calibration, scores_n, episodes_n, alpha_by_episode }))
+        let eq10_n = None;
+        Ok(Some(HeldOut {
+            alpha,
+            auc,
+            calibration,
+            scores_n,
+            episodes_n,
+            alpha_by_episode,
+            eq10_n,
+        }))
     }
 
     /// The held-out ROC AUC of D^N's scores against D^U's, its interval counting rows or

@@ -84,7 +84,10 @@ pub struct CreateJob {
     /// intra-episode correlation), `kept_share_test` (`bbe` only: also train as BC when the
     /// interval of the share of held-out D^N's mass that Eq. 10's weights keep reaches 1; off by
     /// default), `weighting_strength_from_auc` (`bbe` only: `reward_scale` times the share of the held-out
-    /// AUC's excess over 0.5 that its interval's lower end keeps; off by default), `ess_warning_fraction`,
+    /// AUC's excess over 0.5 that its interval's lower end keeps; off by default),
+    /// `pool_scores_by_episode` (`bbe` with `cross_fit` only: Eq. 10 reads each row of D^U at its
+    /// episode's mean cross-fitted logit, recalibrated, so a whole episode's evidence weighs it;
+    /// alpha-hat and the fallback still read each row's own; off by default), `ess_warning_fraction`,
     /// `discriminator_early_stopping` (hold out a fifth of
     /// the data and stop the discriminator when its held-out loss stops improving;
     /// `discriminator_iterations` is then its most). `dwbc`: `eta`, `lr_discriminator`, `discriminator_gp`.
