@@ -74,7 +74,7 @@ pub struct CreateJob {
     /// in folds too; 2 by default),
     /// `policy_uniform_share` (0 to 1: the share of each policy step's weight spread evenly over
     /// its rows, BC's weights, so states Eq. 37's weights leave empty still get D^U's behaviour;
-    /// 0: Eq. 37 as written), `top_bin` (`bbe` only: what Eq. 10 reads on the rows of D^U in
+    /// 0.05 in `service`; 0: Eq. 37 as written), `top_bin` (`bbe` only: what Eq. 10 reads on the rows of D^U in
     /// Best Bin Estimation's bin: `row_logits`, each row's own, by default; `bin_ratio`, at least
     /// the bin's density ratio; `bin_ratio_own_scale`, the same with the reward standardised on
     /// the rows' own logits, so that only the bin's rewards move; `ruled_out`, none of them
@@ -87,7 +87,7 @@ pub struct CreateJob {
     /// AUC's excess over 0.5 that its interval's lower end keeps; off by default),
     /// `pool_scores_by_episode` (`bbe` with `cross_fit` only: Eq. 10 reads each row of D^U at its
     /// episode's mean cross-fitted logit, recalibrated, so a whole episode's evidence weighs it;
-    /// alpha-hat and the fallback still read each row's own; off by default), `ess_warning_fraction`,
+    /// alpha-hat and the fallback still read each row's own; on in `service`), `ess_warning_fraction`,
     /// `discriminator_early_stopping` (hold out a fifth of
     /// the data and stop the discriminator when its held-out loss stops improving;
     /// `discriminator_iterations` is then its most). `dwbc`: `eta`, `lr_discriminator`, `discriminator_gp`.
