@@ -237,7 +237,8 @@ pub struct SafediceConfig {
     /// it. false (every preset, and a stored config without the key): `reward_scale` as set.
     #[serde(default)]
     pub weighting_strength_from_auc: bool,
-    /// `bbe` with `cross_fit` only: Eq. 10 reads every row of D^U (and of held-out D^N) at the
+    /// `bbe` with `cross_fit` (nothing without: one discriminator's means would pool the rows it
+    /// trained on): Eq. 10 reads every row of D^U (and of held-out D^N) at the
     /// mean cross-fitted logit of its episode, recalibrated once more on those means
     /// (`algo::safedice::pooling`): the evidence of a whole episode instead of one step.
     /// alpha-hat, its bin and the fallback's AUC still read each row's own logit. On in
@@ -477,22 +478,8 @@ impl AlgorithmKnobs for SafediceConfig {
         in_range("excluded_reward_gap", self.excluded_reward_gap, 0.0, 1000.0)?;
         in_range("cross_fit_folds", self.cross_fit_folds as f64, 2.0, 10.0)?;
         check_alpha_estimator(self)?;
-        check_weighting_strength(self)?;
-        check_pooling(self)
+        check_weighting_strength(self)
     }
-}
-
-/// Pooling reads the cross-fitted scores, the only ones every row of D^U has from a
-/// discriminator that never trained on its episode (an in-sample mean would pool the fit).
-fn check_pooling(s: &SafediceConfig) -> Result<(), HyperparamError> {
-    let bbe = s.alpha_hat_estimator == AlphaEstimator::Bbe;
-    if s.pool_scores_by_episode && !(bbe && s.cross_fit) {
-        return Err(HyperparamError::new(
-            "pool_scores_by_episode",
-            "config.pool_scores_by_episode: needs alpha_hat_estimator \"bbe\" and cross_fit true (it pools the cross-fitted scores)",
-        ));
-    }
-    Ok(())
 }
 
 /// The strength from the AUC is 0 exactly where the fallback's AUC test fires, so without the

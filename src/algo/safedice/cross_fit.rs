@@ -18,7 +18,7 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
 use super::bin_by_episode::bin_ratio_by_episode;
-use super::folds::FoldScores;
+use super::folds::{whole_episode_folds, FoldScores};
 use super::heldout::HeldOut;
 use super::mixture::{best_bin_estimate, platt_scaling, EpisodesOf};
 use super::pooling::pool_by_episode;
@@ -189,7 +189,7 @@ impl SafediceTrainer {
             None => own_n_rows,
         };
         let episodes_n = episodes_of(&self.run.non_preferred().episode_ids, &labeled_rows);
-        let pooled = (self.cfg.pool_scores_by_episode)
+        let pooled = (self.pooling_applies())
             .then(|| self.pooled_by_episode(&scores_n, &episodes_n, &logits));
         let (pooled_n, pooled_u) = pooled.unzip();
         let episodes = EpisodesOf { labeled: &episodes_n, mixture: &self.run.u.episode_ids };
@@ -215,6 +215,26 @@ impl SafediceTrainer {
             _ => None,
         };
         Ok(Some(UnlabeledScores { logits, heldout, calibrated: true, eq10_logits: pooled_u }))
+    }
+
+    /// `pool_scores_by_episode`, where D^U's folds hold whole episodes: with fewer episodes the
+    /// folds cut rows, so an episode's mean would read scores of discriminators that trained on
+    /// its other rows, and a single episode would give every row the same score.
+    fn pooling_applies(&self) -> bool {
+        if !self.cfg.pool_scores_by_episode {
+            return false;
+        }
+        let mut episodes = self.run.u.episode_ids.clone();
+        episodes.sort_unstable();
+        episodes.dedup();
+        let applies = whole_episode_folds(self.cfg.cross_fit_folds as usize, episodes.len());
+        if !applies {
+            tracing::warn!(
+                episodes = episodes.len(),
+                "SafeDICE: D^U has too few episodes to pool the discriminator's scores by episode; Eq. 10 reads each row's own logit"
+            );
+        }
+        applies
     }
 
     /// `pool_scores_by_episode`: held-out D^N's and D^U's scores replaced by their episodes'

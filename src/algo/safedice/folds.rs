@@ -161,6 +161,12 @@ impl CrossFit {
     }
 }
 
+/// Whether `k` folds of a set with `episodes` episodes hold whole episodes: at least `max(k, 4)`
+/// of them (below that, the folds cut rows).
+pub(super) fn whole_episode_folds(k: usize, episodes: usize) -> bool {
+    episodes >= k.max(4)
+}
+
 /// Rows in `k` folds of whole episodes (of rows, with fewer episodes than `max(k, 4)`), shuffled
 /// by `seed`: fold `f` holds the shuffled units from `⌊f·len/k⌋` up to `⌊(f+1)·len/k⌋`, so the
 /// folds' sizes differ by one unit at most. None with fewer rows than folds.
@@ -171,7 +177,7 @@ fn folds_of(k: usize, episode_ids: &[u32], seed: u64) -> Option<Vec<Vec<u32>>> {
     let mut episodes: Vec<u32> = episode_ids.to_vec();
     episodes.sort_unstable();
     episodes.dedup();
-    let by_row = episodes.len() < k.max(4);
+    let by_row = !whole_episode_folds(k, episodes.len());
     let mut units: Vec<u32> =
         if by_row { (0..episode_ids.len() as u32).collect() } else { episodes };
     units.shuffle(&mut ChaCha8Rng::seed_from_u64(seed));

@@ -591,7 +591,8 @@ fn alpha_hat_zero_weights_by_the_limit_or_trains_as_bc() {
 /// probability 0.7, the other with 0.3, half of D^U each. One step ranks D^N above D^U with an
 /// AUC near 0.6; an episode's ten steps together separate far better. Pooling by episode leaves
 /// the discriminators, alpha-hat and the fallback's AUC as they were, and gives the unsafe
-/// episodes of D^U a smaller share of Eq. 10's weight and keeps less of held-out D^N.
+/// episodes of D^U a smaller share of Eq. 10's weight and keeps less of held-out D^N. With too
+/// few episodes to fold, it does nothing and says so.
 #[test]
 fn pooling_by_episode_weighs_out_what_a_whole_episode_shows() {
     use rand::{Rng, SeedableRng};
@@ -600,7 +601,7 @@ fn pooling_by_episode_weighs_out_what_a_whole_episode_shows() {
         let p = |episode| if unsafe_kind(episode) { 0.7 } else { 0.3 };
         std::sync::Arc::new(episodes_acting(count, |e, _| u32::from(rng.random::<f64>() < p(e))))
     };
-    let unsafe_episode = |e: usize| e % 2 == 0;
+    let unsafe_episode = |e: usize| e.is_multiple_of(2);
     let data = TrainingData {
         unlabeled: weak(120, 1, unsafe_episode),
         non_preferred: Some(weak(100, 2, |_| true)),
@@ -619,7 +620,7 @@ fn pooling_by_episode_weighs_out_what_a_whole_episode_shows() {
         let weight = |unsafe_kind: bool| -> f64 {
             let rows =
                 rewards.iter().enumerate().filter(|(i, _)| unsafe_episode(i / 10) == unsafe_kind);
-            rows.map(|(_, &r)| (r as f64).exp()).sum()
+            rows.map(|(_, &r)| r.exp()).sum()
         };
         (phase, weight(true) / (weight(true) + weight(false)))
     };
@@ -634,7 +635,14 @@ fn pooling_by_episode_weighs_out_what_a_whole_episode_shows() {
     assert!(pooled_share < rows_share - 0.1, "{pooled_share} against {rows_share}");
     let kept = |m: &[(&'static str, f64)]| metric(m, "weighting_kept_dn_share");
     assert!(kept(&pooled) < kept(&rows), "{pooled:?}\n{rows:?}");
-    let one_discriminator = serde_json::json!({"pool_scores_by_episode": true, "cross_fit": false});
-    let refused = crate::algo::resolve_config(crate::algo::Algorithm::Safedice, &one_discriminator);
-    assert_eq!(refused.unwrap_err().key, "pool_scores_by_episode");
+    // Three episodes of D^U: the folds cut rows, so nothing is pooled, and the metric says so.
+    let few = TrainingData {
+        unlabeled: weak(3, 1, unsafe_episode),
+        non_preferred: Some(weak(20, 2, |_| true)),
+    };
+    let few_episodes = separable_phase(&few, serde_json::json!({"pool_scores_by_episode": true}));
+    assert_eq!(metric(&few_episodes, "discriminator_scores_pooled_by_episode"), 0.0);
+    // One discriminator scores the rows it trained on: nothing to pool out of fold.
+    let one = separable_phase(&data, serde_json::json!({"cross_fit": false}));
+    assert!(metric(&one, "discriminator_scores_pooled_by_episode").is_nan(), "{one:?}");
 }

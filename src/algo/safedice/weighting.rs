@@ -147,8 +147,9 @@ impl SafediceTrainer {
         }
         if calibrated {
             self.phase_metrics.push(("discriminator_cross_fitted", 1.0));
-            if pooled {
-                self.phase_metrics.push(("discriminator_scores_pooled_by_episode", 1.0));
+            if self.cfg.pool_scores_by_episode {
+                let value = f64::from(u8::from(pooled));
+                self.phase_metrics.push(("discriminator_scores_pooled_by_episode", value));
             }
         }
         if !in_bin.is_empty() {

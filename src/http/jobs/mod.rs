@@ -85,7 +85,7 @@ pub struct CreateJob {
     /// interval of the share of held-out D^N's mass that Eq. 10's weights keep reaches 1; off by
     /// default), `weighting_strength_from_auc` (`bbe` only: `reward_scale` times the share of the held-out
     /// AUC's excess over 0.5 that its interval's lower end keeps; off by default),
-    /// `pool_scores_by_episode` (`bbe` with `cross_fit` only: Eq. 10 reads each row of D^U at its
+    /// `pool_scores_by_episode` (with `bbe` and `cross_fit`: Eq. 10 reads each row of D^U at its
     /// episode's mean cross-fitted logit, recalibrated, so a whole episode's evidence weighs it;
     /// alpha-hat and the fallback still read each row's own; on in `service`), `ess_warning_fraction`,
     /// `discriminator_early_stopping` (hold out a fifth of
