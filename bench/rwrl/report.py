@@ -140,6 +140,8 @@ def _weighting_cells(job: dict) -> str:
         if "discriminator_heldout_auc_lower" in w and "discriminator_heldout_auc_upper" in w:
             auc += f" [{w['discriminator_heldout_auc_lower']:.3f}, {w['discriminator_heldout_auc_upper']:.3f}]"
     weighting = "—" if "weighting_uniform" not in w else ("uniform (BC)" if w["weighting_uniform"] else "SafeDICE")
+    if w.get("discriminator_scores_pooled_by_episode") == 1.0:
+        weighting += ", Eq. 10 on episode means"
     return f"{alpha} | {shares} | {minimum} | {auc} | {weighting}"
 
 

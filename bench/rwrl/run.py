@@ -267,9 +267,9 @@ def cmd_train(args) -> None:
                                        "status": job["status"]})
                 record_path.write_text(json.dumps(record, indent=1) + "\n")
                 print(f"queued {algo} seed {seed}: job {job['id']}", flush=True)
+        # Finished jobs are read again too (one request each): their record then carries any
+        # weighting metric added to WEIGHTING_METRICS since.
         for j in record["jobs"]:
-            if j.get("status") == "succeeded":
-                continue
             try:
                 job = client.wait(j["job_id"], progress=False, poll=5)
             except Exception as e:  # a failed job is recorded, the others go on
@@ -283,13 +283,14 @@ def cmd_train(args) -> None:
 
 
 # The weighting stage's record of a job that estimated alpha-hat: its interval, the bin it came
-# from (and its interval counting episodes), the held-out AUC and whether the stage fell back to
-# uniform weights (each metric's last value; the service logs them once, when the discriminator
-# phase ends; an unbounded upper end is not recorded).
+# from (and its interval counting episodes), the held-out AUC, whether the stage fell back to
+# uniform weights and whether Eq. 10 read episode means (each metric's last value; the service
+# logs them once, when the discriminator phase ends; an unbounded upper end is not recorded).
 WEIGHTING_METRICS = ("alpha_hat_lower", "alpha_hat_upper", "alpha_hat_bin_ratio", "alpha_hat_bin_share_du",
                      "alpha_hat_bin_share_dn", "alpha_hat_min_ratio", "discriminator_heldout_auc",
                      "discriminator_heldout_auc_lower", "discriminator_heldout_auc_upper", "weighting_uniform",
-                     "alpha_hat_episodes_lower", "alpha_hat_episodes_upper")
+                     "alpha_hat_episodes_lower", "alpha_hat_episodes_upper",
+                     "discriminator_scores_pooled_by_episode")
 
 
 def _weighting(client, job) -> dict | None:
