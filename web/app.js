@@ -584,6 +584,31 @@ function uniformWeightingNotice(series) {
     'The held-out data could not tell the non-preferred demonstrations from the unlabeled ones (alpha-hat’s interval covers 1, or the discriminator’s held-out AUC cannot be told from 0.5), so this SafeDICE job trained as BC. The log gives the numbers.');
 }
 
+/** SafeDICE's weighting stage in a sentence, from the metrics it records once when the
+ *  discriminator phase ends: alpha-hat and the held-out AUC with their intervals, and what Eq. 10
+ *  read (each episode's mean logit, or each row's own where D^U had too few episodes to pool
+ *  them). Null before the policy phase, for other algorithms and where the stage fell back to
+ *  uniform weights (that notice says so). */
+function weightingSummary(series) {
+  const last = (n) => (series.get(n) || []).at(-1)?.[1];
+  const alpha = last('alpha_hat');
+  if (alpha === undefined || last('weighting_uniform') === 1) return null;
+  const interval = (lower, upper) => (upper === undefined ? `${fmt(lower, 3)} or more` : `${fmt(lower, 3)} to ${fmt(upper, 3)}`);
+  // Only the mixture-proportion estimators record an interval (the paper's minimum has none).
+  const lower = last('alpha_hat_lower');
+  const parts = [`alpha-hat ${fmt(alpha, 3)}${lower === undefined ? '' : ` (interval ${interval(lower, last('alpha_hat_upper'))})`}`];
+  const auc = last('discriminator_heldout_auc');
+  if (auc !== undefined) {
+    parts.push(`the discriminator’s held-out ROC AUC ${fmt(auc, 3)} (${interval(last('discriminator_heldout_auc_lower'), last('discriminator_heldout_auc_upper'))})`);
+  }
+  const pooled = last('discriminator_scores_pooled_by_episode');
+  const eq10 = pooled === undefined ? ''
+    : pooled === 1 ? ' Eq. 10 read each unlabeled episode’s mean discriminator logit.'
+      : ' Eq. 10 read each row’s own logit: the unlabeled data has too few episodes to pool the scores by episode (the log says how many).';
+  return h('p', { class: 'hint', id: 'weighting-summary', style: 'margin-top:12px' },
+    h('strong', {}, 'Weighting: SafeDICE. '), `${parts.join('; ')}.${eq10}`);
+}
+
 /** Where SafeDICE's discriminator stood with early stopping, in words (its metrics
  *  discriminator_best_step and discriminator_stopped_at, -1 while it has not stopped). */
 function earlyStopNote(job, series) {
@@ -605,7 +630,7 @@ function earlyStopNote(job, series) {
 async function drawCharts(job, slots) {
   const metrics = await api(`/v1/jobs/${job.id}/metrics?max_points=${CHART_POINTS}`);
   const series = groupMetrics(metrics.rows);
-  const weighting = uniformWeightingNotice(series);
+  const weighting = uniformWeightingNotice(series) || weightingSummary(series);
   if (job.eval) showEvaluation(job, series, slots);
   [...series.keys()].filter(isEval).forEach((n) => series.delete(n));
   // Metrics recorded once (e.g. alpha-hat diagnostics at the end of the discriminator phase)

@@ -331,6 +331,19 @@ test('the job page charts the training metrics in the browser, with values on ho
   assert.match(stopping, stoppedAt < 0 ? /did not stop early \(trained all [\d,]+ steps\)/ : new RegExp(`stopped early at discriminator step ${stoppedAt.toLocaleString('en-US')} of`));
   assert.match(stopping, new RegExp(`best at step ${bestStep.toLocaleString('en-US')}, whose weights it kept`));
   assert.doesNotMatch(stopping, /-1/);
+  // The weighting stage in words, with the numbers the metrics hold (the service preset pools
+  // the discriminator's scores by episode; this D^U has 80 episodes, enough to).
+  const lastOf = (name) => pointsOf(name).at(-1)?.value;
+  const three = (v) => String(Number(v.toPrecision(3)));
+  assert.equal(lastOf('weighting_uniform'), 0);
+  assert.equal(lastOf('discriminator_scores_pooled_by_episode'), 1);
+  assert.equal(await page.locator('#weighting-uniform').count(), 0);
+  const weighting = await page.textContent('#weighting-summary');
+  assert.ok(weighting.startsWith('Weighting: SafeDICE. alpha-hat ' + three(lastOf('alpha_hat'))
+    + ` (interval ${three(lastOf('alpha_hat_lower'))} `), weighting);
+  assert.ok(weighting.includes(`held-out ROC AUC ${three(lastOf('discriminator_heldout_auc'))} `
+    + `(${three(lastOf('discriminator_heldout_auc_lower'))} to ${three(lastOf('discriminator_heldout_auc_upper'))})`), weighting);
+  assert.match(weighting, /Eq\. 10 read each unlabeled episode’s mean discriminator logit\.$/);
   const alpha = charted.find((c) => c.key === 'alpha');
   assert.ok(alpha.series[0][1] >= 1);
   assert.match(await page.textContent('#job-config'), new RegExp(`iterations\\s*${ITERATIONS}`));
