@@ -224,7 +224,8 @@ pub struct BenchArgs {
     pub force: bool,
     /// Go on with a run cut short in --out: keep the trainings its runs.jsonl holds and train
     /// the rest, with the same options (checked against the bench-config.json it recorded;
-    /// only --parallel may differ). Not with --suite tabular.
+    /// only --parallel may differ, and --seed-count may grow: the seeds it adds are trained).
+    /// Not with --suite tabular.
     #[arg(long)]
     pub resume: bool,
     /// Policy-learning iterations per training. Default: 1000000 (300 with --quick).

@@ -67,7 +67,11 @@ fn kept_runs<T: DeserializeOwned>(
     })?;
     let before: serde_json::Value =
         serde_json::from_str(&text).map_err(|e| refuse(format!("{CONFIG_FILE}: {e}")))?;
-    let differing = differing_keys(&before, &recorded(config));
+    let now = recorded(config);
+    let differing: Vec<String> = differing_keys(&before, &now)
+        .into_iter()
+        .filter(|key| !(key == "seeds" && more_seeds(&before, &now)))
+        .collect();
     if !differing.is_empty() {
         return Err(refuse(format!(
             "its configuration differs in {} (run it with the same options, or start afresh \
@@ -81,6 +85,11 @@ fn kept_runs<T: DeserializeOwned>(
         Err(e) => return Err(refuse(format!("{}: {e}", log.display()))),
     };
     let runs = parse_log(&lines).map_err(refuse)?;
+    if more_seeds(&before, &now) {
+        // The next resume compares against the larger count this one trains.
+        let text = serde_json::to_string_pretty(&now).unwrap_or_default();
+        std::fs::write(dir.join(CONFIG_FILE), text + "\n").map_err(|e| refuse(e.to_string()))?;
+    }
     if !lines.is_empty() && !lines.ends_with('\n') {
         // The cut-off line goes, so that the lines this run appends start on a line of their own.
         let whole = &lines[..lines.rfind('\n').map_or(0, |i| i + 1)];
@@ -134,6 +143,14 @@ impl RunsLog {
     }
 }
 
+/// Whether `now` asks for more training seeds than `before` recorded: a resumed run may add
+/// seeds (each training depends on its own seed only, so the kept seeds are the ones the larger
+/// run would train), never drop them (their trainings are in the log).
+fn more_seeds(before: &serde_json::Value, now: &serde_json::Value) -> bool {
+    let seeds = |config: &serde_json::Value| config.get("seeds").and_then(|n| n.as_u64());
+    matches!((seeds(before), seeds(now)), (Some(b), Some(n)) if n > b)
+}
+
 /// The top-level keys whose values differ between two recorded configurations.
 fn differing_keys(before: &serde_json::Value, now: &serde_json::Value) -> Vec<String> {
     let empty = serde_json::Map::new();
@@ -175,9 +192,30 @@ mod tests {
         assert_eq!(std::fs::read_to_string(&log).unwrap(), "", "a fresh start empties the log");
         let more_threads = BenchConfig { threads: 7, ..config.clone() };
         assert!(kept_runs::<Line>(dir.path(), &log, &more_threads).unwrap().is_empty());
-        let other = BenchConfig { seeds: 9, iterations: 1, ..config };
+        let other = BenchConfig { seeds: 1, iterations: 1, ..config };
         let refused = kept_runs::<Line>(dir.path(), &log, &other).unwrap_err();
         assert!(refused.contains("differs in iterations, seeds"), "{refused}");
+    }
+
+    /// A resume may add seeds, and records the larger count; it may not drop any.
+    #[test]
+    fn a_resume_may_add_seeds_but_not_drop_them() {
+        let dir = tempfile::tempdir().unwrap();
+        let log = dir.path().join("runs.jsonl");
+        let config = BenchConfig { seeds: 3, ..BenchConfig::quick() };
+        start(dir.path(), &log, &config).unwrap();
+        std::fs::write(&log, "{\"seed\": 0}\n").unwrap();
+        let five = BenchConfig { seeds: 5, ..config.clone() };
+        assert_eq!(kept_runs::<Line>(dir.path(), &log, &five).unwrap().len(), 1);
+        let recorded: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(dir.path().join(CONFIG_FILE)).unwrap())
+                .unwrap();
+        assert_eq!(recorded["seeds"], 5, "the larger count is what a later resume compares with");
+        let refused = kept_runs::<Line>(dir.path(), &log, &config).unwrap_err();
+        assert!(refused.contains("differs in seeds"), "{refused}");
+        let other = BenchConfig { seeds: 6, iterations: 1, ..config };
+        let refused = kept_runs::<Line>(dir.path(), &log, &other).unwrap_err();
+        assert!(refused.contains("differs in iterations (run"), "{refused}");
     }
 
     #[test]
