@@ -193,7 +193,19 @@ fn a_run_cut_short_resumes_to_the_results_of_one_that_never_stopped() {
         "the log is whole again"
     );
 
-    let other = BenchConfig { resume: true, seeds: 3, ..config };
-    let refused = bench::run(&other).unwrap_err().to_string();
+    // A resume may add seeds: the kept trainings stay, the new seed's are trained.
+    let more_seeds = BenchConfig { resume: true, seeds: 3, ..config.clone() };
+    let grown = bench::run(&more_seeds).unwrap();
+    assert_eq!((grown.resumed_runs, grown.runs.len()), (4, 6));
+    let mut kept_sorted: Vec<_> =
+        trained(&grown).into_iter().filter(|run| run["seed"].as_u64() < Some(2)).collect();
+    let mut whole_sorted = trained(&whole);
+    let key = |run: &serde_json::Value| format!("{}{}", run["algorithm"], run["seed"]);
+    kept_sorted.sort_by_key(key);
+    whole_sorted.sort_by_key(key);
+    assert_eq!(kept_sorted, whole_sorted, "the kept seeds are the first run's trainings");
+    // ... and may not drop any: their trainings are in the log.
+    let fewer_seeds = BenchConfig { resume: true, seeds: 1, ..config };
+    let refused = bench::run(&fewer_seeds).unwrap_err().to_string();
     assert!(refused.contains("differs in seeds"), "{refused}");
 }
